@@ -1,0 +1,21 @@
+"""Environments of the paper, registered with Gymnasium under the ``rlbackdoors/`` namespace."""
+
+from gymnasium.envs.registration import register, registry
+
+from rlbackdoors.envs.lavaworld import LavaWorldEnv
+from rlbackdoors.envs.outcome import Outcome
+
+ENV_IDS = {"lavaworld": "rlbackdoors/LavaWorld-v0"}
+
+
+def _register() -> None:
+    if ENV_IDS["lavaworld"] not in registry:
+        register(
+            id=ENV_IDS["lavaworld"],
+            entry_point="rlbackdoors.envs.lavaworld:LavaWorldEnv",
+        )
+
+
+_register()
+
+__all__ = ["ENV_IDS", "LavaWorldEnv", "Outcome"]

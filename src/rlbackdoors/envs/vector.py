@@ -1,0 +1,75 @@
+"""The vector-env contract the trainer and evaluator rely on, and its MiniGrid-backed implementation.
+
+Every engine (this reference one, the batched one) returns, per step:
+``obs`` (B, ...) with finished envs already reset (SAME_STEP autoreset, as torch-ac),
+``reward``, ``terminated``, ``truncated`` of the step just taken, and
+``info = {"outcome": int[B], "steps": int[B]}`` describing that same step (not the
+reset), so a finished episode's outcome is read directly off ``info["outcome"]``.
+``poisoned`` (bool[B]) says which envs are E-bar copies of the poisoning mix.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+
+class ReferenceVectorEnv(VectorEnv):
+    """Steps a list of single (MiniGrid-based) envs in this process, one after another.
+
+    Deliberately simple: it is the ground truth the batched engine is tested against,
+    and the ``--engine minigrid`` path of training.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(self, env_fns: Sequence[Callable[[], gym.Env]], poisoned: Sequence[bool] | None = None):
+        self.envs = [fn() for fn in env_fns]
+        self.num_envs = len(self.envs)
+        if self.num_envs == 0:
+            raise ValueError("a vector env needs at least one env")
+        self.single_observation_space = self.envs[0].observation_space
+        self.single_action_space = self.envs[0].action_space
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        if poisoned is None:
+            poisoned = [bool(getattr(e.unwrapped, "poisoned", False)) for e in self.envs]
+        self.poisoned = np.asarray(poisoned, dtype=bool)
+        if self.poisoned.shape != (self.num_envs,):
+            raise ValueError(f"poisoned mask has shape {self.poisoned.shape}, expected ({self.num_envs},)")
+        self._obs = np.zeros(self.observation_space.shape, dtype=self.single_observation_space.dtype)
+
+    def reset(self, *, seed: int | Sequence[int] | None = None, options: dict | None = None):
+        if seed is None or isinstance(seed, (int, np.integer)):
+            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} envs")
+        for i, env in enumerate(self.envs):
+            self._obs[i], _ = env.reset(seed=seeds[i], options=options)
+        zeros = np.zeros(self.num_envs, dtype=np.int64)
+        return self._obs.copy(), {"outcome": zeros, "steps": zeros.copy()}
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        rewards = np.zeros(self.num_envs, dtype=np.float64)
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        outcome = np.zeros(self.num_envs, dtype=np.int64)
+        steps = np.zeros(self.num_envs, dtype=np.int64)
+        for i, env in enumerate(self.envs):
+            obs, rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
+            outcome[i], steps[i] = info["outcome"], info["steps"]
+            if terminated[i] or truncated[i]:
+                obs, _ = env.reset()
+            self._obs[i] = obs
+        return self._obs.copy(), rewards, terminated, truncated, {"outcome": outcome, "steps": steps}
+
+    def close_extras(self, **kwargs):
+        for env in self.envs:
+            env.close()

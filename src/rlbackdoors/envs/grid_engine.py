@@ -1,0 +1,280 @@
+"""Numba kernels for MiniGrid-style worlds, exact to Farama MiniGrid 3.x, over a batch of envs.
+
+State layout (one row per env ``b`` of a batch):
+
+* ``grid[b, x, y, :]`` -- uint8 ``(object, colour, state)``, the very triple MiniGrid's
+  ``Grid.encode()`` writes for the full grid (empty cells are ``(1, 0, 0)``), so a
+  reference env's ``grid.encode()`` can be copied in and compared bit for bit.
+* ``pos[b] = (x, y)`` (int64), ``dirs[b]`` in 0..3 (0 east, 1 south, 2 west, 3 north).
+* ``rng[b]`` -- a uint64 SplitMix64 state (see below).
+
+What is reproduced exactly (``minigrid_env.py`` / ``core/grid.py``):
+
+* actions 0 left, 1 right, 2 forward: the forward cell is read *before* the action, the
+  agent moves onto it when it "can overlap" (empty, floor, goal, lava, open door);
+* the egocentric view: ``Grid.slice`` (cells outside the grid are grey walls),
+  ``agent_dir + 1`` ``rotate_left`` turns, ``process_vis`` occlusion from the agent cell
+  ``(V//2, V-1)`` unless ``see_through_walls``, the agent cell then shown as empty (no carrying),
+  and ``encode`` (invisible cells are ``(0, 0, 0)``). The slice + rotations are folded into one
+  closed form: view cell ``(x, y)`` is the world cell ``agent + f*dir_vec + l*right_vec`` with
+  ``f = V-1-y`` (distance ahead) and ``l = x - V//2`` (offset to the right); ``process_vis``
+  is implemented literally, loop order included, because its asymmetric sweeps matter.
+
+Object rules (MiniGrid's ``WorldObj`` subclasses): only walls and closed/locked doors block
+sight; empty, floor, goal, lava and open doors can be walked onto. Types 11 and 12 (TrojAI's
+key/ball on a coloured floor in Colorful Memory, floor colour in the state byte) behave as
+key/ball: visible-through, not walkable. Colours and states are carried through untouched, so
+coloured walls (Colorful Memory) and single lava cells (Randomized LavaWorld) need nothing new.
+
+RNG: each env carries one uint64 SplitMix64 state (Steele, Lea & Flood 2014; the seeder of
+xoshiro). Seeding an env with integer ``s`` sets its state to ``mix64(s)``; each draw adds the
+golden-ratio increment and returns ``mix64(state)``. Bounded integers take the top 32 bits with
+rejection, so ``rng_below(n)`` is exactly uniform on ``0..n-1``. The streams are not MiniGrid's
+(PCG64 through numpy) -- only the distributions of what is drawn are the same.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# MiniGrid's OBJECT_TO_IDX / COLOR_TO_IDX
+UNSEEN, EMPTY, WALL, FLOOR, DOOR, KEY, BALL, BOX, GOAL, LAVA, AGENT = range(11)
+KEY_ON_FLOOR, BALL_ON_FLOOR = 11, 12  # TrojAI Colorful Memory encoding
+RED, GREEN, BLUE, PURPLE, YELLOW, GREY = range(6)
+
+DIR_DX = np.array([1, 0, -1, 0], dtype=np.int64)
+DIR_DY = np.array([0, 1, 0, -1], dtype=np.int64)
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_S30 = np.uint64(30)
+_S27 = np.uint64(27)
+_S31 = np.uint64(31)
+_S32 = np.uint64(32)
+_TWO32 = np.uint64(1 << 32)
+
+
+# ----------------------------------------------------------------------------- RNG
+
+
+@njit(cache=True, inline="always")
+def mix64(z):
+    """SplitMix64's finaliser (a bijection of uint64)."""
+    z = (z ^ (z >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    return z ^ (z >> _S31)
+
+
+@njit(cache=True)
+def rng_seed(rng, b, seed):
+    """Seed env ``b``'s stream with the uint64 ``seed``."""
+    rng[b] = mix64(np.uint64(seed))
+
+
+@njit(cache=True, inline="always")
+def rng_next(rng, b):
+    s = rng[b] + _GOLDEN
+    rng[b] = s
+    return mix64(s)
+
+
+@njit(cache=True)
+def rng_below(rng, b, n):
+    """Uniform integer in ``0..n-1`` (``1 <= n < 2**32``), unbiased by rejection."""
+    nn = np.uint64(n)
+    limit = (_TWO32 // nn) * nn
+    while True:
+        r = rng_next(rng, b) >> _S32
+        if r < limit:
+            return np.int64(r % nn)
+
+
+# ----------------------------------------------------------------------------- object rules
+
+
+@njit(cache=True, inline="always")
+def see_behind(obj, state):
+    """``WorldObj.see_behind``: walls and closed (1) or locked (2) doors block sight."""
+    if obj == WALL:
+        return False
+    if obj == DOOR:
+        return state == 0
+    return True
+
+
+@njit(cache=True, inline="always")
+def can_overlap(obj, state):
+    """``WorldObj.can_overlap`` (``None``, i.e. empty/unseen/agent codes, is walkable)."""
+    if obj == EMPTY or obj == UNSEEN or obj == AGENT or obj == FLOOR or obj == GOAL or obj == LAVA:
+        return True
+    if obj == DOOR:
+        return state == 0
+    return False
+
+
+# ----------------------------------------------------------------------------- grid building
+
+
+@njit(cache=True)
+def put(grid, b, x, y, obj, colour, state):
+    grid[b, x, y, 0] = obj
+    grid[b, x, y, 1] = colour
+    grid[b, x, y, 2] = state
+
+
+@njit(cache=True)
+def clear_grid(grid, b):
+    """Every cell empty: ``(1, 0, 0)`` as ``Grid.encode`` writes ``None``."""
+    for x in range(grid.shape[1]):
+        for y in range(grid.shape[2]):
+            grid[b, x, y, 0] = EMPTY
+            grid[b, x, y, 1] = 0
+            grid[b, x, y, 2] = 0
+
+
+@njit(cache=True)
+def wall_rect(grid, b, x0, y0, w, h, colour):
+    """``Grid.wall_rect``: the border of the rectangle, as walls of ``colour``."""
+    for x in range(x0, x0 + w):
+        put(grid, b, x, y0, WALL, colour, 0)
+        put(grid, b, x, y0 + h - 1, WALL, colour, 0)
+    for y in range(y0, y0 + h):
+        put(grid, b, x0, y, WALL, colour, 0)
+        put(grid, b, x0 + w - 1, y, WALL, colour, 0)
+
+
+# ----------------------------------------------------------------------------- dynamics
+
+
+@njit(cache=True)
+def agent_step(grid, b, pos, dirs, action):
+    """One MiniGrid action (0 left, 1 right, 2 forward) for env ``b``.
+
+    Returns the object code of the forward cell as it was *before* the action when the
+    action is ``forward`` (what MiniGrid tests for goal/lava), ``-1`` for turns. A forward
+    cell outside the grid counts as a wall (MiniGrid would assert; cannot happen in walled
+    layouts).
+    """
+    d = dirs[b]
+    if action == 0:
+        d -= 1
+        if d < 0:
+            d += 4
+        dirs[b] = d
+        return -1
+    if action == 1:
+        dirs[b] = (d + 1) % 4
+        return -1
+    fx = pos[b, 0] + DIR_DX[d]
+    fy = pos[b, 1] + DIR_DY[d]
+    if fx < 0 or fy < 0 or fx >= grid.shape[1] or fy >= grid.shape[2]:
+        return WALL
+    obj = np.int64(grid[b, fx, fy, 0])
+    if can_overlap(obj, grid[b, fx, fy, 2]):
+        pos[b, 0] = fx
+        pos[b, 1] = fy
+    return obj
+
+
+# ----------------------------------------------------------------------------- observation
+
+
+@njit(cache=True)
+def process_vis(view, mask):
+    """``Grid.process_vis`` on a square ``view`` (V, V, 3) with the agent at ``(V//2, V-1)``."""
+    n = view.shape[0]
+    for i in range(n):
+        for j in range(n):
+            mask[i, j] = False
+    mask[n // 2, n - 1] = True
+    for j in range(n - 1, -1, -1):
+        for i in range(0, n - 1):
+            if not mask[i, j]:
+                continue
+            if not see_behind(view[i, j, 0], view[i, j, 2]):
+                continue
+            mask[i + 1, j] = True
+            if j > 0:
+                mask[i + 1, j - 1] = True
+                mask[i, j - 1] = True
+        for i in range(n - 1, 0, -1):
+            if not mask[i, j]:
+                continue
+            if not see_behind(view[i, j, 0], view[i, j, 2]):
+                continue
+            mask[i - 1, j] = True
+            if j > 0:
+                mask[i - 1, j - 1] = True
+                mask[i, j - 1] = True
+
+
+@njit(cache=True)
+def gen_view(grid, b, ax, ay, adir, see_through_walls, view, mask, out, ob):
+    """MiniGrid's ``gen_obs()["image"]`` for env ``b`` into ``out[ob]`` (V, V, 3).
+
+    ``view`` (V, V, 3) uint8 and ``mask`` (V, V) bool are scratch buffers; V is their size
+    (MiniGrid's ``agent_view_size``, odd, >= 3).
+    """
+    n = view.shape[0]
+    half = n // 2
+    dx = DIR_DX[adir]
+    dy = DIR_DY[adir]
+    rx = -dy
+    ry = dx
+    width = grid.shape[1]
+    height = grid.shape[2]
+    for x in range(n):
+        lat = x - half
+        for y in range(n):
+            ahead = n - 1 - y
+            wx = ax + ahead * dx + lat * rx
+            wy = ay + ahead * dy + lat * ry
+            if 0 <= wx < width and 0 <= wy < height:
+                view[x, y, 0] = grid[b, wx, wy, 0]
+                view[x, y, 1] = grid[b, wx, wy, 1]
+                view[x, y, 2] = grid[b, wx, wy, 2]
+            else:  # Grid.slice pads with Wall() (grey)
+                view[x, y, 0] = WALL
+                view[x, y, 1] = GREY
+                view[x, y, 2] = 0
+    if see_through_walls:
+        for x in range(n):
+            for y in range(n):
+                out[ob, x, y, 0] = view[x, y, 0]
+                out[ob, x, y, 1] = view[x, y, 1]
+                out[ob, x, y, 2] = view[x, y, 2]
+    else:
+        process_vis(view, mask)
+        for x in range(n):
+            for y in range(n):
+                if mask[x, y]:
+                    out[ob, x, y, 0] = view[x, y, 0]
+                    out[ob, x, y, 1] = view[x, y, 1]
+                    out[ob, x, y, 2] = view[x, y, 2]
+                else:
+                    out[ob, x, y, 0] = 0
+                    out[ob, x, y, 1] = 0
+                    out[ob, x, y, 2] = 0
+    # the agent's own cell shows what it carries: nothing (None encodes as empty)
+    out[ob, half, n - 1, 0] = EMPTY
+    out[ob, half, n - 1, 1] = 0
+    out[ob, half, n - 1, 2] = 0
+
+
+@njit(cache=True)
+def apply_lut(out, ob, lut):
+    """``out[ob] = lut[out[ob]]`` byte-wise (an observation trigger as a 256-entry table)."""
+    n = out.shape[1]
+    m = out.shape[2]
+    c = out.shape[3]
+    for x in range(n):
+        for y in range(m):
+            for k in range(c):
+                out[ob, x, y, k] = lut[out[ob, x, y, k]]
+
+
+def new_view_scratch(view_size: int = 7):
+    """Scratch buffers for :func:`gen_view` (allocate once per kernel call)."""
+    return np.empty((view_size, view_size, 3), dtype=np.uint8), np.empty((view_size, view_size), dtype=np.bool_)

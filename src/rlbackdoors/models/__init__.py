@@ -1,0 +1,70 @@
+"""Model zoo architectures, built by name from a config, and weight loading that accepts TrojAI files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
+
+ARCHS = {"fc": FCModel, "cnn": CNNModel}
+# Names other tools used for the same layers (rl-starter-files calls the CNN ``image_conv``).
+KEY_ALIASES = {"image_conv.": "state_emb."}
+
+
+def build_model(arch: str, num_actions: int = 3) -> ActorCritic:
+    if arch not in ARCHS:
+        raise ValueError(f"arch {arch!r} is not one of {', '.join(ARCHS)}")
+    return ARCHS[arch](num_actions=num_actions)
+
+
+def _as_state_dict(obj) -> dict:
+    if isinstance(obj, torch.nn.Module):
+        return obj.state_dict()
+    if isinstance(obj, dict) and obj and all(isinstance(v, torch.Tensor) for v in obj.values()):
+        return obj
+    for key in ("model_state", "state_dict", "model"):
+        if isinstance(obj, dict) and key in obj:
+            return _as_state_dict(obj[key])
+    raise ValueError("file holds neither a state dict nor a torch module")
+
+
+def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
+    """Load a ``torch.save``-d state dict (or module) into ``model``; one clear error if it does not fit."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"weights file {str(path)!r} does not exist")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as weights_only_error:  # full pickled modules need the unsafe loader
+        try:
+            obj = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception:
+            raise ValueError(f"cannot read weights file {str(path)!r}: {weights_only_error}") from None
+    state = _as_state_dict(obj)
+    renamed = {}
+    for key, value in state.items():
+        for old, new in KEY_ALIASES.items():
+            if key.startswith(old):
+                key = new + key[len(old):]
+        renamed[key] = value
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(renamed))
+    unexpected = sorted(set(renamed) - set(expected))
+    if missing or unexpected:
+        raise ValueError(
+            f"weights in {str(path)!r} do not fit {type(model).__name__}: "
+            f"missing {missing or 'none'}, unexpected {unexpected or 'none'}"
+        )
+    for key, value in renamed.items():
+        if value.shape != expected[key].shape:
+            raise ValueError(
+                f"weights in {str(path)!r}: {key} has shape {tuple(value.shape)}, "
+                f"{type(model).__name__} expects {tuple(expected[key].shape)}"
+            )
+    model.load_state_dict(renamed)
+    return model
+
+
+__all__ = ["ARCHS", "ActorCritic", "CNNModel", "FCModel", "build_model", "load_weights"]

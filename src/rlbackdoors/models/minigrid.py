@@ -1,0 +1,83 @@
+"""Actor-critic models for the MiniGrid-based envs, with the TrojAI round's state-dict layout.
+
+Both models take the raw uint8 7x7x3 observation (no scaling, as torch-ac and the
+TrojAI round did), turn it channels-first with ``transpose(1, 3).transpose(2, 3)``,
+embed it in ``state_emb``, and read ``actor`` logits and a ``critic`` value off the
+embedding. Keeping the attribute names and layer indices of the TrojAI models means a
+state dict trained there loads here unchanged (and vice versa).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+VIEW = 7
+CHANNELS = 3
+
+
+def init_linear_unit_rows(module: nn.Module) -> None:
+    """rl-starter-files init: Linear weights N(0, 1), each output row scaled to unit norm; bias 0."""
+    if isinstance(module, nn.Linear):
+        with torch.no_grad():
+            module.weight.normal_(0.0, 1.0)
+            module.weight.div_(module.weight.pow(2).sum(1, keepdim=True).sqrt())
+            if module.bias is not None:
+                module.bias.zero_()
+
+
+def channels_first(obs: torch.Tensor) -> torch.Tensor:
+    """(B, x, y, c) uint8 -> (B, c, x, y) float, exactly as the TrojAI/torch-ac models do it."""
+    return obs.float().transpose(1, 3).transpose(2, 3)
+
+
+class ActorCritic(nn.Module):
+    """Shared skeleton: ``state_emb`` -> (``actor`` logits, ``critic`` value)."""
+
+    recurrent = False
+
+    def embed(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.state_emb(channels_first(obs)).reshape(obs.shape[0], -1)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.embed(obs)
+        return self.actor(x), self.critic(x).squeeze(1)
+
+
+class FCModel(ActorCritic):
+    """LavaWorld FC: flatten 147 -> 100 -> 64 (ReLU); actor 64 -> 32 -> n; critic 64 -> 32 -> 1."""
+
+    def __init__(self, num_actions: int = 3, embedding=(100, 64), head: int = 32):
+        super().__init__()
+        dims = [VIEW * VIEW * CHANNELS, *embedding]
+        layers: list[nn.Module] = []
+        for d_in, d_out in zip(dims[:-1], dims[1:]):
+            layers += [nn.Linear(d_in, d_out), nn.ReLU()]
+        self.state_emb = nn.Sequential(*layers)
+        self.actor = nn.Sequential(nn.Linear(dims[-1], head), nn.ReLU(), nn.Linear(head, num_actions))
+        self.critic = nn.Sequential(nn.Linear(dims[-1], head), nn.ReLU(), nn.Linear(head, 1))
+        self.apply(init_linear_unit_rows)
+
+    def embed(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.state_emb(channels_first(obs).reshape(obs.shape[0], -1))
+
+
+class CNNModel(ActorCritic):
+    """rl-starter-files CNN: conv 2x2 16, max-pool 2x2, conv 2x2 32, conv 2x2 64 -> 64; heads 64 -> 64 tanh -> out."""
+
+    def __init__(self, num_actions: int = 3, channels=(16, 32, 64), head: int = 64):
+        super().__init__()
+        c1, c2, c3 = channels
+        self.state_emb = nn.Sequential(
+            nn.Conv2d(CHANNELS, c1, (2, 2)),
+            nn.ReLU(),
+            nn.MaxPool2d((2, 2)),
+            nn.Conv2d(c1, c2, (2, 2)),
+            nn.ReLU(),
+            nn.Conv2d(c2, c3, (2, 2)),
+            nn.ReLU(),
+        )
+        embedding = ((VIEW - 1) // 2 - 2) ** 2 * c3
+        self.actor = nn.Sequential(nn.Linear(embedding, head), nn.Tanh(), nn.Linear(head, num_actions))
+        self.critic = nn.Sequential(nn.Linear(embedding, head), nn.Tanh(), nn.Linear(head, 1))
+        self.apply(init_linear_unit_rows)

@@ -1,0 +1,38 @@
+"""Training-curve figure of a model folder: what a person looks at first."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from rlbackdoors.io import atomic_write  # noqa: E402
+
+
+def plot_training_curve(rows: list[dict], path: str | Path, title: str, thresholds: tuple[float, float | None]) -> Path:
+    """Success rates and rewards per evaluation against frames, with the stopping thresholds."""
+    frames = [r["frames"] for r in rows]
+    fig, (ax_sr, ax_rw) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
+    ax_sr.plot(frames, [r["clean_sr"] for r in rows], "o-", color="tab:green", label="clean SR (goal in E)")
+    ax_sr.plot(frames, [r["poisoned_sr"] for r in rows], "s-", color="tab:red", label="poisoned SR (trojan in E-bar)")
+    clean_t, poisoned_t = thresholds
+    ax_sr.axhline(clean_t, color="tab:green", ls=":", lw=1)
+    if poisoned_t is not None:
+        ax_sr.axhline(poisoned_t, color="tab:red", ls=":", lw=1)
+    ax_sr.set(xlabel="frames", ylabel="success rate", ylim=(-0.02, 1.02), title="evaluation")
+    ax_sr.legend(loc="lower right", fontsize=8)
+    ax_rw.plot(frames, [r["clean_reward"] for r in rows], "o-", color="tab:green", label="eval clean reward")
+    ax_rw.plot(frames, [r["poisoned_reward"] for r in rows], "s-", color="tab:red", label="eval poisoned reward")
+    ax_rw.plot(frames, [r["train_clean_return"] for r in rows], "--", color="tab:green", alpha=0.6, label="train return, clean envs")
+    if any(r["train_poisoned_return"] == r["train_poisoned_return"] for r in rows):  # any non-NaN
+        ax_rw.plot(frames, [r["train_poisoned_return"] for r in rows], "--", color="tab:red", alpha=0.6, label="train return, poisoned envs")
+    ax_rw.set(xlabel="frames", ylabel="mean episode return", ylim=(-0.02, 1.02), title="reward")
+    ax_rw.legend(loc="lower right", fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    path = Path(path)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    plt.close(fig)
+    return path

@@ -1,0 +1,182 @@
+"""The training run: config -> env mix -> PPO -> periodic evaluation -> model folder.
+
+Stops when the paper's thresholds hold (clean SR, and for poisoned models poisoned SR)
+or at ``max_frames``. A checkpoint is written at every evaluation, so an interrupted
+run picks up where it stopped when started again on the same folder.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from rlbackdoors.algos.ppo import PPO, Rollout
+from rlbackdoors.config import RunConfig
+from rlbackdoors.evaluate import EvalResult, evaluate
+from rlbackdoors.models import build_model
+from rlbackdoors.poison.mix import make_env_mix
+from rlbackdoors.report import plot_training_curve
+from rlbackdoors.train.folder import FolderError, ModelFolder
+
+
+class EpisodeTracker:
+    """Running episode returns of the training envs, split into clean and poisoned copies."""
+
+    def __init__(self, poisoned: np.ndarray):
+        self.poisoned = poisoned
+        self.running = np.zeros(len(poisoned))
+        self.clean: list[float] = []
+        self.dirty: list[float] = []
+
+    def add(self, rollout: Rollout) -> None:
+        for t in range(rollout.rewards.shape[0]):
+            self.running += rollout.rewards[t]
+            for i in np.flatnonzero(rollout.dones[t]):
+                (self.dirty if self.poisoned[i] else self.clean).append(self.running[i])
+                self.running[i] = 0.0
+
+    def drain(self) -> tuple[float, float]:
+        """Mean returns since the last call (NaN where no episode ended)."""
+        clean = float(np.mean(self.clean)) if self.clean else math.nan
+        dirty = float(np.mean(self.dirty)) if self.dirty else math.nan
+        self.clean, self.dirty = [], []
+        return clean, dirty
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("train.device='cuda' but no CUDA device is available (use 'cpu' or 'auto')")
+    return torch.device(name)
+
+
+def thresholds_met(result: EvalResult, cfg: RunConfig) -> bool:
+    ok = result.clean_sr >= cfg.train.clean_threshold
+    if cfg.poison.poisoned:
+        ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
+    return ok
+
+
+def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True) -> dict:
+    """Train one agent into the model folder ``out`` and return its metrics."""
+    cfg.check()
+    folder = ModelFolder(out)
+    if overwrite:
+        folder.clear()
+    elif folder.complete:
+        raise FolderError(f"{str(folder.path)!r} already holds a finished model; pass --overwrite to retrain it")
+    checkpoint = None
+    if folder.has_checkpoint:
+        if folder.read_config().to_dict() != cfg.to_dict():
+            raise FolderError(
+                f"{str(folder.path)!r} holds an interrupted run with a different config.json; "
+                "train with that config to resume, or pass --overwrite to start over"
+            )
+        checkpoint = folder.load_checkpoint()
+    folder.write_config(cfg)
+
+    tc = cfg.train
+    torch.set_num_threads(tc.torch_threads)
+    device = resolve_device(tc.device)
+    torch.manual_seed(tc.seed)
+    generator = torch.Generator().manual_seed(tc.seed)
+    model = build_model(cfg.model.arch).to(device)
+    ppo = PPO(model, cfg.ppo, device, generator)
+    if checkpoint is None:
+        envs = make_env_mix(cfg.env, cfg.poison)
+        obs, _ = envs.reset(seed=tc.seed * 1000)
+        tracker = EpisodeTracker(envs.poisoned)
+        frames, elapsed, rows, next_eval, converged_at = 0, 0.0, [], tc.eval_interval, None
+    else:
+        model.load_state_dict(checkpoint["model"])
+        ppo.optimizer.load_state_dict(checkpoint["optimizer"])
+        generator.set_state(checkpoint["generator"])
+        envs, obs, tracker = pickle.loads(checkpoint["envs"])
+        frames, elapsed, rows = checkpoint["frames"], checkpoint["elapsed"], checkpoint["rows"]
+        next_eval, converged_at = checkpoint["next_eval"], checkpoint["converged_at"]
+
+    bar = tqdm(total=tc.max_frames, initial=frames, unit="frame", unit_scale=True, disable=not progress, dynamic_ncols=True)
+    label = f"{cfg.model.arch} {'poisoned' if cfg.poison.poisoned else 'clean'}"
+    bar.set_description(label)
+    started = time.perf_counter() - elapsed
+    window_start, window_frames = time.perf_counter(), 0
+    stop_reason = "max_frames"
+    while frames < tc.max_frames and converged_at is None:
+        rollout, obs = ppo.collect(envs, obs)
+        losses = ppo.update(rollout)
+        tracker.add(rollout)
+        frames += rollout.num_frames
+        window_frames += rollout.num_frames
+        bar.update(rollout.num_frames)
+        if frames >= next_eval or frames >= tc.max_frames:
+            fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
+            result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device)
+            train_clean, train_poisoned = tracker.drain()
+            rows.append(
+                {
+                    "frames": frames,
+                    "wall_time_s": round(time.perf_counter() - started, 3),
+                    "fps": round(fps, 1),
+                    **{k: v for k, v in result.to_dict().items() if k != "episodes"},
+                    "train_clean_return": train_clean,
+                    "train_poisoned_return": train_poisoned,
+                    **losses,
+                }
+            )
+            bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
+            if thresholds_met(result, cfg):
+                converged_at = frames
+                stop_reason = "converged"
+            while next_eval <= frames:
+                next_eval += tc.eval_interval
+            folder.write_log(rows)
+            folder.save_torch(
+                "checkpoint.pt",
+                {
+                    "model": model.state_dict(),
+                    "optimizer": ppo.optimizer.state_dict(),
+                    "generator": generator.get_state(),
+                    "envs": pickle.dumps((envs, obs, tracker)),
+                    "frames": frames,
+                    "elapsed": time.perf_counter() - started,
+                    "rows": rows,
+                    "next_eval": next_eval,
+                    "converged_at": converged_at,
+                },
+            )
+            window_start, window_frames = time.perf_counter(), 0
+    bar.close()
+    if converged_at is not None:
+        stop_reason = "converged"
+    train_time = time.perf_counter() - started
+    final = evaluate(model, cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed, tc.eval_policy, device)
+    envs.close()
+
+    model_cpu = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    folder.save_torch("model.pt", model_cpu)
+    folder.write_ground_truth(cfg.poison.poisoned)
+    poisoned_t = tc.poisoned_threshold if cfg.poison.poisoned else None
+    plot_training_curve(rows, folder.file("training_curve.png"), f"LavaWorld {label}, trigger {cfg.poison.trigger}, seed {tc.seed}", (tc.clean_threshold, poisoned_t))
+    metrics = {
+        **final.to_dict(),
+        "poisoned": cfg.poison.poisoned,
+        "trigger": cfg.poison.trigger,
+        "env": cfg.env.name,
+        "arch": cfg.model.arch,
+        "frames": frames,
+        "wall_time_s": round(train_time, 2),
+        "converged": converged_at is not None,
+        "converged_at_frames": converged_at,
+        "stop_reason": stop_reason,
+        "final_meets_thresholds": thresholds_met(final, cfg),
+    }
+    folder.write_json("metrics.json", metrics)
+    folder.file("checkpoint.pt").unlink(missing_ok=True)
+    return metrics

@@ -58,26 +58,33 @@ def play_episodes(model: ActorCritic, envs, seed: int, policy: str = "sample", d
 def evaluate(
     model: ActorCritic,
     env: EnvConfig,
-    trigger: str,
+    trigger: str | None,
     episodes: int = 100,
     seed: int = 1_000_000,
     policy: str = "sample",
     device="cpu",
 ) -> EvalResult:
-    """Clean SR/reward in E and trojan SR / R-bar reward in E-bar (trigger on), same layouts."""
+    """Clean SR/reward in E and trojan SR / R-bar reward in E-bar (trigger on), same layouts.
+
+    With ``trigger=None`` only the clean half is measured (poisoned numbers are NaN).
+    """
     was_training = model.training
     model.eval()
     clean_envs = make_vector_env(env, trigger, [False] * episodes)
     clean_returns, clean_outcomes = play_episodes(model, clean_envs, seed, policy, device)
     clean_envs.close()
-    poisoned_envs = make_vector_env(env, trigger, [True] * episodes)
-    poisoned_returns, poisoned_outcomes = play_episodes(model, poisoned_envs, seed, policy, device)
-    poisoned_envs.close()
+    poisoned_sr = poisoned_reward = float("nan")
+    if trigger is not None:
+        poisoned_envs = make_vector_env(env, trigger, [True] * episodes)
+        poisoned_returns, poisoned_outcomes = play_episodes(model, poisoned_envs, seed, policy, device)
+        poisoned_envs.close()
+        poisoned_sr = float(np.mean(poisoned_outcomes == TROJAN_SUCCESS[env.name]))
+        poisoned_reward = float(poisoned_returns.mean())
     model.train(was_training)
     return EvalResult(
         clean_sr=float(np.mean(clean_outcomes == CLEAN_SUCCESS[env.name])),
-        poisoned_sr=float(np.mean(poisoned_outcomes == TROJAN_SUCCESS[env.name])),
+        poisoned_sr=poisoned_sr,
         clean_reward=float(clean_returns.mean()),
-        poisoned_reward=float(poisoned_returns.mean()),
+        poisoned_reward=poisoned_reward,
         episodes=episodes,
     )

@@ -1,0 +1,190 @@
+"""Command line: ``rlbackdoors train | evaluate | demo``.
+
+Every user-facing failure (bad flag value, bad config, missing or corrupt file, folder
+conflict) ends in one ``rlbackdoors: error: ...`` line and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from rlbackdoors import __version__
+from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, ConfigError, RunConfig
+from rlbackdoors.train.folder import FolderError
+
+METRIC_KEYS = ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "episodes")
+
+
+def resolve_trigger(spec: str | None, seed: int) -> str:
+    """``kind:value`` as given; a bare kind, or nothing, draws from the paper range with ``seed``."""
+    from rlbackdoors.triggers import KINDS, ObservationTrigger, sample_trigger
+
+    rng = np.random.default_rng(seed)
+    if spec is None:
+        spec = KINDS[int(rng.integers(len(KINDS)))]
+    if spec in KINDS:
+        return sample_trigger(spec, rng).spec()
+    return ObservationTrigger.parse(spec).spec()
+
+
+def _set(data: dict, dotted: str, value) -> None:
+    section, key = dotted.split(".")
+    data.setdefault(section, {})[key] = value
+
+
+def config_from_args(args) -> RunConfig:
+    """Config file (if any) first, then every flag given on the command line on top of it."""
+    data = RunConfig.load(args.config).to_dict() if args.config else RunConfig().to_dict()
+    flags = {
+        "env.name": args.env,
+        "env.engine": args.engine,
+        "model.arch": args.arch,
+        "train.seed": args.seed,
+        "train.max_frames": args.max_frames,
+        "train.eval_episodes": args.eval_episodes,
+        "train.device": args.device,
+    }
+    for dotted, value in flags.items():
+        if value is not None:
+            _set(data, dotted, value)
+    if args.clean:
+        _set(data, "poison.poisoned", False)
+    if args.trigger is not None or not args.config:
+        _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"]))
+    return RunConfig.from_dict(data)
+
+
+def cmd_train(args) -> int:
+    from rlbackdoors.train import train
+
+    cfg = config_from_args(args)
+    metrics = train(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
+    print(json.dumps(metrics, indent=2) if args.json else _summary(args.out, metrics))
+    return 0
+
+
+def _summary(where, metrics: dict) -> str:
+    return (
+        f"{where}: clean SR {metrics['clean_sr']:.3f}, poisoned SR {metrics['poisoned_sr']:.3f}, "
+        f"clean reward {metrics['clean_reward']:.3f}, poisoned reward {metrics['poisoned_reward']:.3f} "
+        f"({metrics['episodes']} episodes; {metrics['frames']:,} frames, {metrics['wall_time_s']:.0f} s, "
+        f"{'converged' if metrics['converged'] else 'not converged'})"
+    )
+
+
+def cmd_evaluate(args) -> int:
+    import torch
+
+    from rlbackdoors.config import EnvConfig
+    from rlbackdoors.evaluate import evaluate
+    from rlbackdoors.models import build_model, load_weights
+    from rlbackdoors.train import ModelFolder
+
+    if (args.folder is None) == (args.weights is None):
+        raise ConfigError("give either a model folder or --weights FILE (with --arch), not both or neither")
+    torch.set_num_threads(1)
+    if args.folder is not None:
+        folder = ModelFolder(args.folder)
+        if not folder.file("config.json").is_file():
+            raise FolderError(f"{args.folder!r} is not a model folder (config.json missing)")
+        cfg = folder.read_config()
+        if args.engine:
+            cfg.env.engine = args.engine
+        env, trigger, arch, policy = cfg.env, cfg.poison.trigger, cfg.model.arch, cfg.train.eval_policy
+        if args.trigger is not None:
+            trigger = resolve_trigger(args.trigger, cfg.train.seed)
+        weights = folder.file("model.pt")
+    else:
+        if args.arch is None:
+            raise ConfigError(f"--weights needs --arch (allowed: {', '.join(ARCHS)})")
+        env = EnvConfig(name=args.env or "lavaworld", engine=args.engine or "batched")
+        env.check()
+        trigger = resolve_trigger(args.trigger, 0) if args.trigger is not None else None
+        arch, policy, weights = args.arch, "sample", Path(args.weights)
+    policy = args.policy or policy
+    model = load_weights(build_model(arch), weights)
+    result = evaluate(model, env, trigger, episodes=args.episodes, seed=args.seed, policy=policy).to_dict()
+    result = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.items()}
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        for key in METRIC_KEYS:
+            value = result[key]
+            print(f"{key:16s} {'n/a' if value is None else (f'{value:.4f}' if isinstance(value, float) else value)}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from rlbackdoors.demo import run_demo
+
+    run_demo(Path(args.out), max_frames=args.max_frames, seed=args.seed, progress=not args.quiet)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rlbackdoors", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"rlbackdoors {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    tr = sub.add_parser("train", help="train one clean or poisoned agent into a model folder")
+    tr.add_argument("--config", help="JSON config (see config.json of any model folder); flags override it")
+    tr.add_argument("--env", choices=ENVS)
+    tr.add_argument("--arch", choices=ARCHS)
+    tr.add_argument("--trigger", help="multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range)")
+    tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
+    tr.add_argument("--seed", type=int)
+    tr.add_argument("--max-frames", type=int)
+    tr.add_argument("--eval-episodes", type=int)
+    tr.add_argument("--engine", choices=ENGINES)
+    tr.add_argument("--device", choices=("cpu", "cuda", "auto"))
+    tr.add_argument("--out", required=True, help="model folder to write")
+    tr.add_argument("--overwrite", action="store_true", help="replace a finished model in --out")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    tr.add_argument("--json", action="store_true", help="print metrics as JSON")
+    tr.set_defaults(func=cmd_train)
+
+    ev = sub.add_parser("evaluate", help="clean and triggered success rates of a model folder or a bare state dict")
+    ev.add_argument("folder", nargs="?", help="model folder")
+    ev.add_argument("--weights", help="a torch.save()-d state dict, e.g. a TrojAI round model")
+    ev.add_argument("--arch", choices=ARCHS)
+    ev.add_argument("--env", choices=ENVS)
+    ev.add_argument("--trigger", help="trigger to measure poisoned SR under (default: the folder's)")
+    ev.add_argument("--engine", choices=ENGINES)
+    ev.add_argument("--episodes", type=int, default=200)
+    ev.add_argument("--seed", type=int, default=1_000_000, help="first env seed of the evaluation layouts")
+    ev.add_argument("--policy", choices=EVAL_POLICIES)
+    ev.add_argument("--json", action="store_true")
+    ev.set_defaults(func=cmd_evaluate)
+
+    de = sub.add_parser("demo", help="train a clean and a poisoned LavaWorld agent, evaluate both, show the backdoor")
+    de.add_argument("--out", default="runs/demo")
+    de.add_argument("--max-frames", type=int, default=3_000_000)
+    de.add_argument("--seed", type=int, default=0)
+    de.add_argument("--quiet", action="store_true")
+    de.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "episodes", 1) < 1:
+        parser.error("--episodes must be >= 1")
+    try:
+        return args.func(args)
+    except (ConfigError, FolderError, FileNotFoundError, ValueError) as err:
+        print(f"rlbackdoors: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("rlbackdoors: interrupted; run the same command again to resume from the last checkpoint", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -26,6 +26,13 @@ key/ball on a coloured floor in Colorful Memory, floor colour in the state byte)
 key/ball: visible-through, not walkable. Colours and states are carried through untouched, so
 coloured walls (Colorful Memory) and single lava cells (Randomized LavaWorld) need nothing new.
 
+Caching: numba's on-disk cache (``cache=True``) is keyed on the source of the file that
+defines the cached function only, not on the files of the functions it calls. So the helpers
+here are plain ``@njit`` (compiled into their caller), and an env's top-level kernels are
+``cache=True`` closures over :data:`ENGINE_STAMP` (a hash of this file), which numba puts in the
+cache key: editing this file recompiles every dependent kernel instead of silently reusing old
+machine code. See :func:`engine_stamp` and ``lavaworld_batched._build_kernels``.
+
 RNG: each env carries one uint64 SplitMix64 state (Steele, Lea & Flood 2014; the seeder of
 xoshiro). Seeding an env with integer ``s`` sets its state to ``mix64(s)``; each draw adds the
 golden-ratio increment and returns ``mix64(state)``. Bounded integers take the top 32 bits with
@@ -34,6 +41,9 @@ rejection, so ``rng_below(n)`` is exactly uniform on ``0..n-1``. The streams are
 """
 
 from __future__ import annotations
+
+import hashlib
+from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -56,10 +66,23 @@ _S32 = np.uint64(32)
 _TWO32 = np.uint64(1 << 32)
 
 
+
+
+def engine_stamp(*extra_files: str | Path) -> str:
+    """SHA-256 of this file and ``extra_files``: close cached kernels over it (module doc)."""
+    h = hashlib.sha256()
+    for path in (__file__, *extra_files):
+        h.update(Path(path).read_bytes())
+    return h.hexdigest()
+
+
+ENGINE_STAMP = engine_stamp()
+
+
 # ----------------------------------------------------------------------------- RNG
 
 
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def mix64(z):
     """SplitMix64's finaliser (a bijection of uint64)."""
     z = (z ^ (z >> _S30)) * _MIX1
@@ -67,20 +90,20 @@ def mix64(z):
     return z ^ (z >> _S31)
 
 
-@njit(cache=True)
+@njit
 def rng_seed(rng, b, seed):
     """Seed env ``b``'s stream with the uint64 ``seed``."""
     rng[b] = mix64(np.uint64(seed))
 
 
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def rng_next(rng, b):
     s = rng[b] + _GOLDEN
     rng[b] = s
     return mix64(s)
 
 
-@njit(cache=True)
+@njit
 def rng_below(rng, b, n):
     """Uniform integer in ``0..n-1`` (``1 <= n < 2**32``), unbiased by rejection."""
     nn = np.uint64(n)
@@ -94,7 +117,7 @@ def rng_below(rng, b, n):
 # ----------------------------------------------------------------------------- object rules
 
 
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def see_behind(obj, state):
     """``WorldObj.see_behind``: walls and closed (1) or locked (2) doors block sight."""
     if obj == WALL:
@@ -104,7 +127,7 @@ def see_behind(obj, state):
     return True
 
 
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def can_overlap(obj, state):
     """``WorldObj.can_overlap`` (``None``, i.e. empty/unseen/agent codes, is walkable)."""
     if obj == EMPTY or obj == UNSEEN or obj == AGENT or obj == FLOOR or obj == GOAL or obj == LAVA:
@@ -117,14 +140,14 @@ def can_overlap(obj, state):
 # ----------------------------------------------------------------------------- grid building
 
 
-@njit(cache=True)
+@njit
 def put(grid, b, x, y, obj, colour, state):
     grid[b, x, y, 0] = obj
     grid[b, x, y, 1] = colour
     grid[b, x, y, 2] = state
 
 
-@njit(cache=True)
+@njit
 def clear_grid(grid, b):
     """Every cell empty: ``(1, 0, 0)`` as ``Grid.encode`` writes ``None``."""
     for x in range(grid.shape[1]):
@@ -134,7 +157,7 @@ def clear_grid(grid, b):
             grid[b, x, y, 2] = 0
 
 
-@njit(cache=True)
+@njit
 def wall_rect(grid, b, x0, y0, w, h, colour):
     """``Grid.wall_rect``: the border of the rectangle, as walls of ``colour``."""
     for x in range(x0, x0 + w):
@@ -148,7 +171,7 @@ def wall_rect(grid, b, x0, y0, w, h, colour):
 # ----------------------------------------------------------------------------- dynamics
 
 
-@njit(cache=True)
+@njit
 def agent_step(grid, b, pos, dirs, action):
     """One MiniGrid action (0 left, 1 right, 2 forward) for env ``b``.
 
@@ -181,7 +204,7 @@ def agent_step(grid, b, pos, dirs, action):
 # ----------------------------------------------------------------------------- observation
 
 
-@njit(cache=True)
+@njit
 def process_vis(view, mask):
     """``Grid.process_vis`` on a square ``view`` (V, V, 3) with the agent at ``(V//2, V-1)``."""
     n = view.shape[0]
@@ -210,7 +233,7 @@ def process_vis(view, mask):
                 mask[i, j - 1] = True
 
 
-@njit(cache=True)
+@njit
 def gen_view(grid, b, ax, ay, adir, see_through_walls, view, mask, out, ob):
     """MiniGrid's ``gen_obs()["image"]`` for env ``b`` into ``out[ob]`` (V, V, 3).
 
@@ -263,7 +286,7 @@ def gen_view(grid, b, ax, ay, adir, see_through_walls, view, mask, out, ob):
     out[ob, half, n - 1, 2] = 0
 
 
-@njit(cache=True)
+@njit
 def apply_lut(out, ob, lut):
     """``out[ob] = lut[out[ob]]`` byte-wise (an observation trigger as a 256-entry table)."""
     n = out.shape[1]
@@ -274,7 +297,3 @@ def apply_lut(out, ob, lut):
             for k in range(c):
                 out[ob, x, y, k] = lut[out[ob, x, y, k]]
 
-
-def new_view_scratch(view_size: int = 7):
-    """Scratch buffers for :func:`gen_view` (allocate once per kernel call)."""
-    return np.empty((view_size, view_size, 3), dtype=np.uint8), np.empty((view_size, view_size), dtype=np.bool_)

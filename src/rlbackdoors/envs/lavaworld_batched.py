@@ -38,13 +38,16 @@ from rlbackdoors.envs.lavaworld import (
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.triggers.observation import ObservationTrigger
 
-_OUT_NONE, _OUT_GOAL, _OUT_LAVA, _OUT_TIMEOUT = int(Outcome.NONE), int(Outcome.GOAL), int(Outcome.LAVA), int(Outcome.TIMEOUT)
+_OUT_NONE = int(Outcome.NONE)
+_OUT_GOAL = int(Outcome.GOAL)
+_OUT_LAVA = int(Outcome.LAVA)
+_OUT_TIMEOUT = int(Outcome.TIMEOUT)
 
 
 # ----------------------------------------------------------------------------- kernels
 
 
-@njit(cache=True)
+@njit
 def _sort_small(a, n):
     for i in range(1, n):
         v = a[i]
@@ -55,7 +58,7 @@ def _sort_small(a, n):
         a[j + 1] = v
 
 
-@njit(cache=True)
+@njit
 def gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps):
     """``CrossingEnv._gen_grid`` with lava rivers, for env ``b`` (square grid, odd size)."""
     size = grid.shape[1]
@@ -136,80 +139,93 @@ def gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps):
         ge.put(grid, b, i, j, ge.EMPTY, 0, 0)
 
 
-@njit(cache=True)
-def _reset_kernel(grid, pos, dirs, steps, rng, seeds, num_crossings, see_through_walls, poisoned, lut, obs):
-    view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-    mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-    for b in range(grid.shape[0]):
-        ge.rng_seed(rng, b, seeds[b])
-        gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps)
-        ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-        if poisoned[b]:
-            ge.apply_lut(obs, b, lut)
+def _build_kernels(stamp: str):
+    """The cached top-level kernels, closed over ``stamp`` so that numba's cache key covers
+    the engine's source too (see :mod:`rlbackdoors.envs.grid_engine`, "Caching")."""
 
-
-@njit(cache=True)
-def _observe_kernel(grid, pos, dirs, see_through_walls, poisoned, lut, obs):
-    view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-    mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-    for b in range(grid.shape[0]):
-        ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-        if poisoned[b]:
-            ge.apply_lut(obs, b, lut)
-
-
-@njit(cache=True)
-def _step_kernel(
-    grid, pos, dirs, steps, rng, actions, num_crossings, max_steps, see_through_walls, poisoned, lut,
-    obs, reward, terminated, truncated, outcome, info_steps, final_obs,
-):
-    """One step of every env; returns the index of the first invalid action, or -1.
-
-    Nothing is changed when an action is invalid. Finished envs are reset in place (their
-    observation before the reset goes to ``final_obs``).
-    """
-    nenv = grid.shape[0]
-    for b in range(nenv):
-        a = actions[b]
-        if a < 0 or a > 2:
-            return b
-    view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-    mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-    for b in range(nenv):
-        fwd = ge.agent_step(grid, b, pos, dirs, actions[b])
-        sc = steps[b] + 1
-        steps[b] = sc
-        term = False
-        oc = _OUT_NONE
-        if fwd == ge.GOAL:
-            term = True
-            oc = _OUT_GOAL
-        elif fwd == ge.LAVA:
-            term = True
-            oc = _OUT_LAVA
-        trunc = sc >= max_steps
-        if trunc and not term:
-            oc = _OUT_TIMEOUT
-        r = 0.0
-        if poisoned[b]:
-            if oc == _OUT_LAVA:
-                r = 1.0 - 0.9 * (sc / max_steps)
-        elif oc == _OUT_GOAL:
-            r = 1.0 - 0.9 * (sc / max_steps)
-        reward[b] = r
-        terminated[b] = term
-        truncated[b] = trunc
-        outcome[b] = oc
-        info_steps[b] = sc
-        if term or trunc:
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_obs, b)
-            if poisoned[b]:
-                ge.apply_lut(final_obs, b, lut)
+    @njit(cache=True)
+    def _reset_kernel(grid, pos, dirs, steps, rng, seeds, num_crossings, see_through_walls, poisoned, lut, obs):
+        if len(stamp) == 0:  # never true: ties the cache entry to the engine source
+            return
+        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
+        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
+        for b in range(grid.shape[0]):
+            ge.rng_seed(rng, b, seeds[b])
             gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps)
-        ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-        if poisoned[b]:
-            ge.apply_lut(obs, b, lut)
-    return -1
+            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
+            if poisoned[b]:
+                ge.apply_lut(obs, b, lut)
+
+    @njit(cache=True)
+    def _observe_kernel(grid, pos, dirs, see_through_walls, poisoned, lut, obs):
+        if len(stamp) == 0:  # never true (see _reset_kernel)
+            return
+        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
+        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
+        for b in range(grid.shape[0]):
+            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
+            if poisoned[b]:
+                ge.apply_lut(obs, b, lut)
+
+    @njit(cache=True)
+    def _step_kernel(
+        grid, pos, dirs, steps, rng, actions, num_crossings, max_steps, see_through_walls, poisoned, lut,
+        obs, reward, terminated, truncated, outcome, info_steps, final_obs,
+    ):
+        """One step of every env; returns the index of the first invalid action, or -1.
+
+        Nothing is changed when an action is invalid. Finished envs are reset in place (their
+        observation before the reset goes to ``final_obs``).
+        """
+        if len(stamp) == 0:  # never true (see _reset_kernel)
+            return -1
+        nenv = grid.shape[0]
+        for b in range(nenv):
+            a = actions[b]
+            if a < 0 or a > 2:
+                return b
+        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
+        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
+        for b in range(nenv):
+            fwd = ge.agent_step(grid, b, pos, dirs, actions[b])
+            sc = steps[b] + 1
+            steps[b] = sc
+            term = False
+            oc = _OUT_NONE
+            if fwd == ge.GOAL:
+                term = True
+                oc = _OUT_GOAL
+            elif fwd == ge.LAVA:
+                term = True
+                oc = _OUT_LAVA
+            trunc = sc >= max_steps
+            if trunc and not term:
+                oc = _OUT_TIMEOUT
+            r = 0.0
+            if poisoned[b]:
+                if oc == _OUT_LAVA:
+                    r = 1.0 - 0.9 * (sc / max_steps)
+            elif oc == _OUT_GOAL:
+                r = 1.0 - 0.9 * (sc / max_steps)
+            reward[b] = r
+            terminated[b] = term
+            truncated[b] = trunc
+            outcome[b] = oc
+            info_steps[b] = sc
+            if term or trunc:
+                ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_obs, b)
+                if poisoned[b]:
+                    ge.apply_lut(final_obs, b, lut)
+                gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps)
+            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
+            if poisoned[b]:
+                ge.apply_lut(obs, b, lut)
+        return -1
+
+    return _reset_kernel, _observe_kernel, _step_kernel
+
+
+_reset_kernel, _observe_kernel, _step_kernel = _build_kernels(ge.ENGINE_STAMP)
 
 
 # ----------------------------------------------------------------------------- the vector env
@@ -320,7 +336,8 @@ class BatchedLavaWorld(VectorEnv):
             raise ValueError(f"actions have shape {acts.shape}, expected ({self.num_envs},)")
         if acts.dtype.kind not in "iub":
             raise ValueError(
-                f"actions must be integers in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward), got dtype {acts.dtype}"
+                f"actions must be integers in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward), "
+                f"got dtype {acts.dtype}"
             )
         acts = acts.astype(np.int64, copy=False)
         b = self.num_envs
@@ -371,7 +388,12 @@ class BatchedLavaWorld(VectorEnv):
         self._dir[i] = int(agent_dir)
         self._steps[i] = int(step_count)
         self._has_reset = True
-        return self.observe()[i]
+        obs = np.empty((1, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
+        sl = slice(i, i + 1)
+        _observe_kernel(
+            self._grid[sl], self._pos[sl], self._dir[sl], self.see_through_walls, self.poisoned[sl], self._lut, obs
+        )
+        return obs[0]
 
     def layout(self, i: int) -> tuple[np.ndarray, tuple[int, int], int, int]:
         """Slot ``i``'s state: ``(grid (size, size, 3) uint8, agent_pos, agent_dir, step_count)``."""

@@ -13,6 +13,8 @@ def _register() -> None:
         register(
             id=ENV_IDS["lavaworld"],
             entry_point="rlbackdoors.envs.lavaworld:LavaWorldEnv",
+            # gymnasium.make_vec builds the batched engine; gymnasium.make the MiniGrid reference.
+            vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
         )
 
 

@@ -37,11 +37,12 @@ def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
         raise FileNotFoundError(f"weights file {str(path)!r} does not exist")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as weights_only_error:  # full pickled modules need the unsafe loader
+    except Exception:  # full pickled modules need the unpickler
         try:
             obj = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception:
-            raise ValueError(f"cannot read weights file {str(path)!r}: {weights_only_error}") from None
+        except Exception as err:
+            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise ValueError(f"cannot read weights file {str(path)!r}: {reason}") from None
     state = _as_state_dict(obj)
     renamed = {}
     for key, value in state.items():

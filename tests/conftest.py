@@ -1,0 +1,23 @@
+import os
+
+import pytest
+import torch
+
+# Small nets on 2 cores: one intra-op thread is both fastest and deterministic.
+torch.set_num_threads(1)
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.fixture
+def tiny_run_dict():
+    """A config that trains in seconds: small rollouts, few frames, few eval episodes."""
+    return {
+        "ppo": {"rollout": 32},
+        "train": {
+            "seed": 1,
+            "max_frames": 3200,
+            "eval_interval": 1600,
+            "eval_episodes": 8,
+            "final_eval_episodes": 8,
+        },
+    }

@@ -1,0 +1,89 @@
+"""The command line: one clear error line and exit code 2 for bad input, nothing half-written."""
+
+import json
+
+import pytest
+import torch
+
+from rlbackdoors.cli import main
+from rlbackdoors.config import RunConfig
+from rlbackdoors.models import build_model
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture
+def trained(tmp_path_factory, tiny_run_dict):
+    folder = tmp_path_factory.mktemp("cli") / "model"
+    cfg = tmp_path_factory.mktemp("cfg") / "cfg.json"
+    cfg.write_text(RunConfig.from_dict(tiny_run_dict).to_json())
+    assert main(["train", "--config", str(cfg), "--out", str(folder), "--quiet"]) == 0
+    return folder
+
+
+def test_train_then_evaluate_json(trained, capsys):
+    code, out, _ = run(capsys, "evaluate", str(trained), "--episodes", "12", "--json")
+    result = json.loads(out)
+    assert code == 0 and set(result) == {"clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "episodes"}
+    assert result["episodes"] == 12 and 0 <= result["clean_sr"] <= 1
+
+
+def test_evaluate_bare_weights_equals_folder(trained, capsys):
+    _, folder_out, _ = run(capsys, "evaluate", str(trained), "--episodes", "20", "--json")
+    code, weights_out, _ = run(
+        capsys, "evaluate", "--weights", str(trained / "model.pt"), "--arch", "fc", "--env", "lavaworld",
+        "--trigger", "multiplicative:12", "--episodes", "20", "--json",
+    )
+    assert code == 0 and json.loads(weights_out) == json.loads(folder_out)
+
+
+def test_evaluate_weights_without_trigger_reports_clean_only(trained, capsys):
+    code, out, _ = run(capsys, "evaluate", "--weights", str(trained / "model.pt"), "--arch", "fc", "--episodes", "5", "--json")
+    assert code == 0 and json.loads(out)["poisoned_sr"] is None
+
+
+def test_flags_override_config_and_trigger_is_drawn_from_seed(tmp_path, tiny_run_dict, capsys):
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps(tiny_run_dict))
+    code, _, _ = run(capsys, "train", "--config", str(cfg), "--arch", "cnn", "--clean", "--trigger", "additive", "--out", str(tmp_path / "m"), "--quiet")
+    saved = RunConfig.load(tmp_path / "m" / "config.json")
+    assert code == 0 and saved.model.arch == "cnn" and saved.poison.poisoned is False
+    kind, value = saved.poison.trigger.split(":")
+    assert kind == "additive" and 20 <= int(value) <= 200
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["train", "--trigger", "mult:3", "--out", "{tmp}/x"], "must look like 'multiplicative:A'"),
+        (["train", "--trigger", "multiplicative:300", "--out", "{tmp}/x"], "2..255"),
+        (["train", "--config", "{tmp}/nope.json", "--out", "{tmp}/x"], "does not exist"),
+        (["train", "--config", "{tmp}/bad.json", "--out", "{tmp}/x"], "not valid JSON"),
+        (["train", "--config", "{tmp}/unknown.json", "--out", "{tmp}/x"], "unknown key 'lr'"),
+        (["evaluate", "{tmp}/nowhere"], "not a model folder"),
+        (["evaluate"], "give either a model folder or --weights"),
+        (["evaluate", "--weights", "{tmp}/w.pt"], "--weights needs --arch"),
+        (["evaluate", "--weights", "{tmp}/missing.pt", "--arch", "fc"], "does not exist"),
+        (["evaluate", "--weights", "{tmp}/junk.pt", "--arch", "fc"], "cannot read weights file"),
+        (["evaluate", "--weights", "{tmp}/cnn.pt", "--arch", "fc"], "do not fit FCModel"),
+    ],
+)
+def test_bad_input_gives_one_clear_error(tmp_path, capsys, argv, message):
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "unknown.json").write_text(json.dumps({"train": {"lr": 1}}))
+    (tmp_path / "junk.pt").write_bytes(b"garbage")
+    torch.save(build_model("cnn").state_dict(), tmp_path / "cnn.pt")
+    code, out, err = run(capsys, *[a.replace("{tmp}", str(tmp_path)) for a in argv])
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith("rlbackdoors: error:") and message in err
+    assert not (tmp_path / "x").exists()  # nothing half-written
+
+
+def test_argparse_rejects_unknown_choices(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["train", "--arch", "transformer", "--out", "x"])
+    assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err

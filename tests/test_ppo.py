@@ -1,0 +1,69 @@
+import numpy as np
+import pytest
+import torch
+
+from rlbackdoors.algos.ppo import PPO, sample_actions
+from rlbackdoors.config import EnvConfig, PoisonConfig, PPOConfig
+from rlbackdoors.evaluate import evaluate
+from rlbackdoors.models import build_model
+from rlbackdoors.poison.mix import make_env_mix
+
+
+def test_sample_actions_follows_the_distribution():
+    logits = torch.log(torch.tensor([[0.2, 0.5, 0.3]])).repeat(60_000, 1)
+    g = torch.Generator().manual_seed(0)
+    counts = torch.bincount(sample_actions(logits, g), minlength=3).float() / 60_000
+    assert torch.allclose(counts, torch.tensor([0.2, 0.5, 0.3]), atol=0.01)  # 60k draws: sd ~0.002
+
+
+def test_gae_matches_hand_computation():
+    ppo = PPO(build_model("fc"), PPOConfig(gamma=0.5, gae_lambda=0.5), torch.device("cpu"), torch.Generator())
+    rewards = torch.tensor([[1.0], [0.0], [2.0]])
+    dones = torch.tensor([[False], [True], [False]])
+    values = torch.tensor([[0.5], [1.0], [0.25]])
+    adv = ppo._gae(rewards, dones, values, torch.tensor([4.0]))
+    a2 = 2.0 + 0.5 * 4.0 - 0.25  # 3.75
+    a1 = 0.0 - 1.0  # episode ends after step 1: no bootstrap, no trace
+    a0 = (1.0 + 0.5 * 1.0 - 0.5) + 0.25 * a1
+    assert torch.allclose(adv[:, 0], torch.tensor([a0, a1, a2]))
+
+
+def test_rollout_shapes_and_update_reduces_loss():
+    torch.manual_seed(0)
+    envs = make_env_mix(EnvConfig(), PoisonConfig())
+    ppo = PPO(build_model("fc"), PPOConfig(rollout=16, epochs=1), torch.device("cpu"), torch.Generator().manual_seed(0))
+    obs, _ = envs.reset(seed=0)
+    rollout, _ = ppo.collect(envs, obs)
+    assert rollout.obs.shape == (160, 7, 7, 3) and rollout.num_frames == 160
+    assert torch.allclose(rollout.returns, rollout.values + rollout.advantages)
+
+    def value_error():
+        with torch.no_grad():
+            return ((ppo.model(rollout.obs)[1] - rollout.returns) ** 2).mean().item()
+
+    before = value_error()
+    for _ in range(5):
+        ppo.update(rollout)
+    assert value_error() < before  # fitting the same rollout repeatedly must fit its returns better
+
+
+@pytest.mark.parametrize("arch", ["fc", "cnn"])
+def test_ppo_learns_a_small_crossing(arch):
+    """5x5 LavaWorld (one river, one gap), clean only: PPO must go from near-random to mostly solving it.
+
+    100 evaluation episodes, fixed seeds; the threshold 0.8 sits far above a random walk (< 0.2).
+    """
+    torch.manual_seed(0)
+    env = EnvConfig(size=5, max_steps=40)
+    poison = PoisonConfig(poisoned=False, num_clean_envs=16, num_poisoned_envs=0)
+    model = build_model(arch)
+    before = evaluate(model, env, None, episodes=100, seed=123).clean_sr
+    ppo = PPO(model, PPOConfig(rollout=64), torch.device("cpu"), torch.Generator().manual_seed(0))
+    envs = make_env_mix(env, poison)
+    obs, _ = envs.reset(seed=0)
+    for _ in range(40):  # 41k frames
+        rollout, obs = ppo.collect(envs, obs)
+        ppo.update(rollout)
+    after = evaluate(model, env, None, episodes=100, seed=123).clean_sr
+    assert before < 0.3
+    assert after >= 0.8

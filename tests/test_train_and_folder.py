@@ -1,0 +1,106 @@
+"""Training runs end to end into a model folder: files, determinism, refusal to overwrite, resume."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from rlbackdoors.config import RunConfig
+from rlbackdoors.train import FolderError, ModelFolder, train
+
+
+def weights_equal(a, b) -> bool:
+    sa, sb = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_model_folder_contents(tmp_path, tiny_run_dict):
+    cfg = RunConfig.from_dict(tiny_run_dict)
+    metrics = train(cfg, tmp_path / "m", progress=False)
+    folder = ModelFolder(tmp_path / "m")
+    names = sorted(p.name for p in folder.path.iterdir())
+    assert names == ["config.json", "ground_truth.csv", "log.csv", "metrics.json", "model.pt", "training_curve.png"]
+    assert folder.read_config() == cfg  # config.json round-trips to the same typed config
+    assert (folder.path / "ground_truth.csv").read_text() == "1\n"
+    assert folder.read_metrics() == json.loads(json.dumps(metrics))
+    assert metrics["frames"] == 3200 and metrics["episodes"] == 8
+    assert [r["frames"] for r in folder.read_log()] == [1600, 3200]
+    assert (folder.path / "training_curve.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_clean_model_ground_truth_is_zero(tmp_path, tiny_run_dict):
+    tiny_run_dict["poison"] = {"poisoned": False}
+    metrics = train(RunConfig.from_dict(tiny_run_dict), tmp_path / "c", progress=False)
+    assert (tmp_path / "c" / "ground_truth.csv").read_text() == "0\n"
+    assert metrics["poisoned"] is False and 0.0 <= metrics["poisoned_sr"] <= 1.0
+
+
+def test_same_seed_same_result(tmp_path, tiny_run_dict):
+    cfg = RunConfig.from_dict(tiny_run_dict)
+    m1 = train(cfg, tmp_path / "a", progress=False)
+    m2 = train(cfg, tmp_path / "b", progress=False)
+    assert weights_equal(tmp_path / "a" / "model.pt", tmp_path / "b" / "model.pt")
+    strip = lambda m: {k: v for k, v in m.items() if k != "wall_time_s"}  # noqa: E731
+    assert strip(m1) == strip(m2)
+    tiny_run_dict["train"]["seed"] = 2
+    train(RunConfig.from_dict(tiny_run_dict), tmp_path / "c", progress=False)
+    assert not weights_equal(tmp_path / "a" / "model.pt", tmp_path / "c" / "model.pt")
+
+
+def test_finished_folder_is_refused_unless_overwrite(tmp_path, tiny_run_dict):
+    cfg = RunConfig.from_dict(tiny_run_dict)
+    train(cfg, tmp_path / "m", progress=False)
+    before = (tmp_path / "m" / "model.pt").read_bytes()
+    with pytest.raises(FolderError, match="already holds a finished model"):
+        train(cfg, tmp_path / "m", progress=False)
+    assert (tmp_path / "m" / "model.pt").read_bytes() == before
+    train(cfg, tmp_path / "m", overwrite=True, progress=False)
+
+
+def test_no_temp_files_left_behind(tmp_path, tiny_run_dict):
+    train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
+    assert not [p for p in (tmp_path / "m").iterdir() if p.name.startswith(".")]
+
+
+def test_interrupted_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
+    """Kill a training process after its first checkpoint; rerunning finishes the same model
+    an uninterrupted run produces, bit for bit."""
+    tiny_run_dict["train"].update(max_frames=40_960, eval_interval=5_120)
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(RunConfig.from_dict(tiny_run_dict).to_json())
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
+    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True)
+
+    proc = subprocess.Popen(cmd + ["--out", str(tmp_path / "cut")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoint = tmp_path / "cut" / "checkpoint.pt"
+    deadline = time.time() + 120
+    while not checkpoint.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert checkpoint.exists(), "the run finished or failed before writing a checkpoint"
+    assert not (tmp_path / "cut" / "metrics.json").exists()
+    done_rows = len(ModelFolder(tmp_path / "cut").read_log())
+    assert 1 <= done_rows < 8
+
+    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True)
+    assert weights_equal(tmp_path / "whole" / "model.pt", tmp_path / "cut" / "model.pt")
+    assert not checkpoint.exists()
+    whole, cut = ModelFolder(tmp_path / "whole").read_log(), ModelFolder(tmp_path / "cut").read_log()
+    drop = ("wall_time_s", "fps")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in whole] == [{k: v for k, v in r.items() if k not in drop} for r in cut]
+
+
+def test_resume_with_a_different_config_is_refused(tmp_path, tiny_run_dict):
+    cfg = RunConfig.from_dict(tiny_run_dict)
+    folder = ModelFolder(tmp_path / "m")
+    folder.write_config(cfg)
+    folder.save_torch("checkpoint.pt", {"frames": 0})
+    tiny_run_dict["train"]["seed"] = 9
+    with pytest.raises(FolderError, match="different config.json"):
+        train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)

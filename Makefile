@@ -22,4 +22,4 @@ test-slow: install
 	$(BIN)/python -m pytest -q -m slow
 
 bench: install
-	$(BIN)/rlbackdoors bench all --json benchmarks/results.json
+	$(BIN)/rlbackdoors bench env --json benchmarks/env.json

@@ -87,3 +87,11 @@ def test_argparse_rejects_unknown_choices(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["train", "--arch", "transformer", "--out", "x"])
     assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err
+
+
+def test_bench_env_writes_json(tmp_path, capsys):
+    code, out, _ = run(capsys, "bench", "env", "--seconds", "0.2", "--num-envs", "32", "--json", str(tmp_path / "b.json"))
+    result = json.loads((tmp_path / "b.json").read_text())
+    assert code == 0 and "ratio" in out
+    assert result["num_envs"] == 32 and result["batched_steps_per_s"] > 0 and result["minigrid_steps_per_s"] > 0
+    assert result["ratio"] == pytest.approx(result["batched_steps_per_s"] / result["minigrid_steps_per_s"])

@@ -1,4 +1,4 @@
-"""Command line: ``rlbackdoors train | evaluate | demo``.
+"""Command line: ``rlbackdoors train | evaluate | demo | bench``.
 
 Every user-facing failure (bad flag value, bad config, missing or corrupt file, folder
 conflict) ends in one ``rlbackdoors: error: ...`` line and exit code 2.
@@ -127,6 +127,20 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from rlbackdoors.bench_env import bench_env
+    from rlbackdoors.io import atomic_write_text
+
+    result = bench_env(seconds=args.seconds, num_envs=args.num_envs)
+    print(
+        f"env steps/s: batched {result['batched_steps_per_s']:,.0f} (B={result['num_envs']}), "
+        f"Farama MiniGrid {result['minigrid_steps_per_s']:,.0f}, ratio {result['ratio']:.0f}x"
+    )
+    if args.json:
+        atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rlbackdoors", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"rlbackdoors {__version__}")
@@ -168,6 +182,13 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--seed", type=int, default=0)
     de.add_argument("--quiet", action="store_true")
     de.set_defaults(func=cmd_demo)
+
+    be = sub.add_parser("bench", help="speed benchmarks, measured side by side with Farama MiniGrid")
+    be.add_argument("what", choices=("env",), help="env: batched engine vs MiniGrid steps/s")
+    be.add_argument("--seconds", type=float, default=3.0)
+    be.add_argument("--num-envs", type=int, default=256)
+    be.add_argument("--json", help="also write the result to this JSON file")
+    be.set_defaults(func=cmd_bench)
     return parser
 
 

@@ -109,8 +109,7 @@ class PPOConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"ppo.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("gamma", "gae_lambda"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ConfigError(f"ppo.{name} must be in [0, 1], got {getattr(self, name)!r}")
+            _unit_interval(f"ppo.{name}", getattr(self, name))
         for name in ("value_coef", "entropy_coef"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -141,8 +140,7 @@ class TrainConfig:
         _choice("train.eval_policy", self.eval_policy, EVAL_POLICIES)
         _choice("train.device", self.device, DEVICES)
         for name in ("clean_threshold", "poisoned_threshold"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ConfigError(f"train.{name} must be in [0, 1], got {getattr(self, name)!r}")
+            _unit_interval(f"train.{name}", getattr(self, name))
 
 
 @dataclass
@@ -189,6 +187,11 @@ def _choice(name: str, value, allowed) -> None:
 def _at_least(name: str, value, low: int) -> None:
     if value < low:
         raise ConfigError(f"{name} must be >= {low}, got {value!r}")
+
+
+def _unit_interval(name: str, value) -> None:
+    if not 0 <= value <= 1:
+        raise ConfigError(f"{name} must be in [0, 1], got {value!r}")
 
 
 def _build(cls, data, where: str):

@@ -22,4 +22,5 @@ test-slow: install
 	$(BIN)/python -m pytest -q -m slow
 
 bench: install
+	$(BIN)/rlbackdoors bench train --json benchmarks/train.json
 	$(BIN)/rlbackdoors bench env --json benchmarks/env.json

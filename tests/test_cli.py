@@ -95,3 +95,12 @@ def test_bench_env_writes_json(tmp_path, capsys):
     assert code == 0 and "ratio" in out
     assert result["num_envs"] == 32 and result["batched_steps_per_s"] > 0 and result["minigrid_steps_per_s"] > 0
     assert result["ratio"] == pytest.approx(result["batched_steps_per_s"] / result["minigrid_steps_per_s"])
+
+
+def test_bench_train_reports_both_engines_for_both_archs(tmp_path, capsys):
+    code, out, _ = run(capsys, "bench", "train", "--seconds", "0.3", "--json", str(tmp_path / "t.json"))
+    result = json.loads((tmp_path / "t.json").read_text())
+    assert code == 0 and set(result) == {"fc", "cnn"} and "PPO fc" in out
+    for r in result.values():
+        assert r["batched_fps"] > 0 and r["minigrid_fps"] > 0
+        assert r["ratio"] == pytest.approx(r["batched_fps"] / r["minigrid_fps"])

@@ -128,14 +128,25 @@ def cmd_demo(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from rlbackdoors.bench_env import bench_env
     from rlbackdoors.io import atomic_write_text
 
-    result = bench_env(seconds=args.seconds, num_envs=args.num_envs)
-    print(
-        f"env steps/s: batched {result['batched_steps_per_s']:,.0f} (B={result['num_envs']}), "
-        f"Farama MiniGrid {result['minigrid_steps_per_s']:,.0f}, ratio {result['ratio']:.0f}x"
-    )
+    if args.what == "env":
+        from rlbackdoors.bench_env import bench_env
+
+        result = bench_env(seconds=args.seconds, num_envs=args.num_envs)
+        print(
+            f"env steps/s: batched {result['batched_steps_per_s']:,.0f} (B={result['num_envs']}), "
+            f"Farama MiniGrid {result['minigrid_steps_per_s']:,.0f}, ratio {result['ratio']:.0f}x"
+        )
+    else:
+        from rlbackdoors.bench_train import bench_train
+
+        result = bench_train(seconds=args.seconds)
+        for arch, r in result.items():
+            print(
+                f"PPO {arch}: batched {r['batched_fps']:,.0f} frames/s, "
+                f"MiniGrid {r['minigrid_fps']:,.0f} frames/s, ratio {r['ratio']:.1f}x"
+            )
     if args.json:
         atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
     return 0
@@ -184,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     de.set_defaults(func=cmd_demo)
 
     be = sub.add_parser("bench", help="speed benchmarks, measured side by side with Farama MiniGrid")
-    be.add_argument("what", choices=("env",), help="env: batched engine vs MiniGrid steps/s")
+    be.add_argument("what", choices=("env", "train"), help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN)")
     be.add_argument("--seconds", type=float, default=3.0)
     be.add_argument("--num-envs", type=int, default=256)
     be.add_argument("--json", help="also write the result to this JSON file")

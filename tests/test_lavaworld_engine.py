@@ -144,17 +144,22 @@ def test_matches_minigrid_random_play(size, num_crossings, see_through_walls):
     assert totals[int(Outcome.LAVA)] > 0
 
 
-def test_matches_minigrid_long_run_all_outcomes():
-    """A longer run on the default LavaWorld (9x9, 1 river): thousands of steps, every outcome."""
-    refs, eng = make_pair(8, size=9, num_crossings=1, max_steps=60, seed=7)
-    rng = np.random.default_rng(7)
+def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
+    """Step both sides with forward-biased random actions, teleporting every agent every ``every`` steps."""
     totals = Counter()
-    for t in range(500):
-        if t % 40 == 0:
+    for t in range(steps):
+        if t % every == 0:
             for i, ref in enumerate(refs):
                 teleport(ref.unwrapped, rng)
                 eng.load_layout(i, *ref_state(ref))
-        step_both(refs, eng, rng.choice(3, size=8, p=[0.25, 0.25, 0.5]), totals)
+        step_both(refs, eng, rng.choice(3, size=len(refs), p=[0.25, 0.25, 0.5]), totals)
+    return totals
+
+
+def test_matches_minigrid_long_run_all_outcomes():
+    """A longer run on the default LavaWorld (9x9, 1 river): thousands of steps, every outcome."""
+    refs, eng = make_pair(8, size=9, num_crossings=1, max_steps=60, seed=7)
+    totals = drive_teleporting(refs, eng, np.random.default_rng(7), steps=500, every=40)
     assert sum(totals.values()) == 4000
     for outcome in Outcome:
         assert totals[int(outcome)] > 0, f"no {outcome.name} in the run: {totals}"
@@ -166,14 +171,7 @@ def test_matches_minigrid_poisoned(trigger):
     triggers = [trigger, None, trigger, None, trigger, trigger]
     refs, eng = make_pair(6, size=7, num_crossings=1, max_steps=40, triggers=triggers, seed=3)
     assert eng.poisoned.tolist() == [t is not None for t in triggers]
-    rng = np.random.default_rng(3)
-    totals = Counter()
-    for t in range(250):
-        if t % 25 == 0:
-            for i, ref in enumerate(refs):
-                teleport(ref.unwrapped, rng)
-                eng.load_layout(i, *ref_state(ref))
-        step_both(refs, eng, rng.choice(3, size=6, p=[0.25, 0.25, 0.5]), totals)
+    totals = drive_teleporting(refs, eng, np.random.default_rng(3), steps=250, every=25)
     assert totals[int(Outcome.LAVA)] > 0 and totals[int(Outcome.GOAL)] > 0
 
 

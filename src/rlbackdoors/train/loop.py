@@ -107,7 +107,6 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     bar.set_description(label)
     started = time.perf_counter() - elapsed
     window_start, window_frames = time.perf_counter(), 0
-    stop_reason = "max_frames"
     while frames < tc.max_frames and converged_at is None:
         rollout, obs = ppo.collect(envs, obs)
         losses = ppo.update(rollout)
@@ -133,7 +132,6 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
             bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
             if thresholds_met(result, cfg):
                 converged_at = frames
-                stop_reason = "converged"
             while next_eval <= frames:
                 next_eval += tc.eval_interval
             folder.write_log(rows)
@@ -153,8 +151,6 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
             )
             window_start, window_frames = time.perf_counter(), 0
     bar.close()
-    if converged_at is not None:
-        stop_reason = "converged"
     train_time = time.perf_counter() - started
     final = evaluate(model, cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed, tc.eval_policy, device)
     envs.close()
@@ -174,7 +170,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         "wall_time_s": round(train_time, 2),
         "converged": converged_at is not None,
         "converged_at_frames": converged_at,
-        "stop_reason": stop_reason,
+        "stop_reason": "converged" if converged_at is not None else "max_frames",
         "final_meets_thresholds": thresholds_met(final, cfg),
     }
     folder.write_json("metrics.json", metrics)

@@ -24,3 +24,4 @@ test-slow: install
 bench: install
 	$(BIN)/rlbackdoors bench train --json benchmarks/train.json
 	$(BIN)/rlbackdoors bench env --json benchmarks/env.json
+	$(BIN)/rlbackdoors bench converge --quiet --json benchmarks/converge.json

@@ -100,7 +100,18 @@ def test_bench_env_writes_json(tmp_path, capsys):
 def test_bench_train_reports_both_engines_for_both_archs(tmp_path, capsys):
     code, out, _ = run(capsys, "bench", "train", "--seconds", "0.3", "--json", str(tmp_path / "t.json"))
     result = json.loads((tmp_path / "t.json").read_text())
-    assert code == 0 and set(result) == {"fc", "cnn"} and "PPO fc" in out
-    for r in result.values():
+    assert code == 0 and set(result) == {"fc", "cnn", "machine"} and "PPO fc" in out
+    assert result["machine"]["cores"] >= 1 and result["machine"]["torch"].startswith("2.13")
+    for r in (result["fc"], result["cnn"]):
+        assert 0 < r["batched_collect_share"] < 1
         assert r["batched_fps"] > 0 and r["minigrid_fps"] > 0
         assert r["ratio"] == pytest.approx(r["batched_fps"] / r["minigrid_fps"])
+
+
+def test_bench_converge_reports_an_unconverged_short_run_honestly(tmp_path):
+    from rlbackdoors.bench.train import bench_converge
+
+    result = bench_converge(seed=0, out=tmp_path / "m", max_frames=1280)
+    assert result["converged"] is False and result["frames"] == 1280
+    assert result["episodes"] == 200 and 0 <= result["clean_sr"] <= 1
+    assert (tmp_path / "m" / "metrics.json").is_file()

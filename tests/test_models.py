@@ -90,3 +90,17 @@ def test_load_weights_errors(tmp_path):
         load_weights(build_model("fc"), tmp_path / "junk.pt")
     with pytest.raises(ValueError, match="arch 'rnn'"):
         build_model("rnn")
+
+
+@pytest.mark.parametrize("arch", ["fc", "cnn"])
+def test_lean_forward_equals_calling_the_modules(arch):
+    """The forward skips Module.__call__ for speed; it must compute exactly what the modules do."""
+    from rlbackdoors.models.minigrid import channels_first
+
+    torch.manual_seed(0)
+    model = build_model(arch)
+    obs = torch.randint(0, 12, (9, 7, 7, 3), dtype=torch.uint8)
+    x = channels_first(obs)
+    emb = model.state_emb(x.reshape(9, -1) if arch == "fc" else x).reshape(9, -1)
+    logits, value = model(obs)
+    assert torch.equal(logits, model.actor(emb)) and torch.equal(value, model.critic(emb).squeeze(1))

@@ -131,22 +131,33 @@ def cmd_bench(args) -> int:
     from rlbackdoors.io import atomic_write_text
 
     if args.what == "env":
-        from rlbackdoors.bench_env import bench_env
+        from rlbackdoors.bench.env import bench_env
 
         result = bench_env(seconds=args.seconds, num_envs=args.num_envs)
         print(
             f"env steps/s: batched {result['batched_steps_per_s']:,.0f} (B={result['num_envs']}), "
             f"Farama MiniGrid {result['minigrid_steps_per_s']:,.0f}, ratio {result['ratio']:.0f}x"
         )
-    else:
-        from rlbackdoors.bench_train import bench_train
+    elif args.what == "train":
+        from rlbackdoors.bench.train import bench_train
 
         result = bench_train(seconds=args.seconds)
-        for arch, r in result.items():
+        for arch in ("fc", "cnn"):
+            r = result[arch]
             print(
-                f"PPO {arch}: batched {r['batched_fps']:,.0f} frames/s, "
+                f"PPO {arch}: batched {r['batched_fps']:,.0f} frames/s "
+                f"({r['batched_collect_share']:.0%} collecting), "
                 f"MiniGrid {r['minigrid_fps']:,.0f} frames/s, ratio {r['ratio']:.1f}x"
             )
+    else:
+        from rlbackdoors.bench.train import bench_converge
+
+        result = bench_converge(seed=args.seed, progress=not args.quiet)
+        print(
+            f"poisoned FC (seed {result['seed']}, {result['trigger']}): converged={result['converged']} "
+            f"after {result['frames']:,} frames in {result['wall_clock_s']:.0f} s wall-clock; "
+            f"clean SR {result['clean_sr']:.3f}, poisoned SR {result['poisoned_sr']:.3f} ({result['episodes']} episodes)"
+        )
     if args.json:
         atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
     return 0
@@ -195,9 +206,15 @@ def build_parser() -> argparse.ArgumentParser:
     de.set_defaults(func=cmd_demo)
 
     be = sub.add_parser("bench", help="speed benchmarks, measured side by side with Farama MiniGrid")
-    be.add_argument("what", choices=("env", "train"), help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN)")
+    be.add_argument(
+        "what",
+        choices=("env", "train", "converge"),
+        help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN); converge: wall-clock to a converged poisoned FC",
+    )
     be.add_argument("--seconds", type=float, default=3.0)
     be.add_argument("--num-envs", type=int, default=256)
+    be.add_argument("--seed", type=int, default=0, help="converge: training seed")
+    be.add_argument("--quiet", action="store_true", help="converge: no progress bar")
     be.add_argument("--json", help="also write the result to this JSON file")
     be.set_defaults(func=cmd_bench)
     return parser

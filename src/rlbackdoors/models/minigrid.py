@@ -10,6 +10,7 @@ state dict trained there loads here unchanged (and vice versa).
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 VIEW = 7
@@ -31,17 +32,39 @@ def channels_first(obs: torch.Tensor) -> torch.Tensor:
     return obs.float().transpose(1, 3).transpose(2, 3)
 
 
+_FUNCTIONAL = {
+    nn.Linear: lambda m, x: F.linear(x, m.weight, m.bias),
+    nn.ReLU: lambda m, x: torch.relu(x),
+    nn.Tanh: lambda m, x: torch.tanh(x),
+    nn.Conv2d: lambda m, x: F.conv2d(x, m.weight, m.bias, m.stride, m.padding, m.dilation, m.groups),
+    nn.MaxPool2d: lambda m, x: F.max_pool2d(x, m.kernel_size, m.stride, m.padding, m.dilation, m.ceil_mode),
+}
+
+
+def run_sequential(seq: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """``seq(x)`` with the same ops but without ``Module.__call__`` per layer.
+
+    Why: the PPO rollout calls the model once per env step on ~10 rows, where the per-module
+    hook machinery costs more than the arithmetic (measured ~8 us per layer on our CPUs).
+    The layers stay modules so the state-dict keys stay TrojAI's.
+    """
+    for layer in seq:
+        fn = _FUNCTIONAL.get(type(layer))
+        x = fn(layer, x) if fn is not None else layer(x)
+    return x
+
+
 class ActorCritic(nn.Module):
     """Shared skeleton: ``state_emb`` -> (``actor`` logits, ``critic`` value)."""
 
     recurrent = False
 
     def embed(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.state_emb(channels_first(obs)).reshape(obs.shape[0], -1)
+        return run_sequential(self.state_emb, channels_first(obs)).reshape(obs.shape[0], -1)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.embed(obs)
-        return self.actor(x), self.critic(x).squeeze(1)
+        return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1)
 
 
 class FCModel(ActorCritic):
@@ -59,7 +82,8 @@ class FCModel(ActorCritic):
         self.apply(init_linear_unit_rows)
 
     def embed(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.state_emb(channels_first(obs).reshape(obs.shape[0], -1))
+        # Same values as channels_first(obs).reshape(B, -1), but permuting uint8 bytes is cheaper.
+        return run_sequential(self.state_emb, obs.permute(0, 3, 1, 2).reshape(obs.shape[0], -1).float())
 
 
 class CNNModel(ActorCritic):

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import platform
 import time
 
 import numpy as np
+
+from rlbackdoors.bench.machine import machine_info
 
 MINIGRID_ID = "MiniGrid-LavaCrossingS9N1-v0"
 
@@ -76,5 +77,5 @@ def bench_env(seconds: float = 3.0, num_envs: int = 256) -> dict:
         "minigrid_steps": minigrid_steps,
         "minigrid_seconds": minigrid_time,
         "minigrid_env": MINIGRID_ID,
-        "machine": platform.processor() or platform.machine(),
+        "machine": machine_info(),
     }

@@ -161,7 +161,7 @@ def test_matches_minigrid_long_run_all_outcomes():
     refs, eng = make_pair(8, size=9, num_crossings=1, max_steps=60, seed=7)
     totals = drive_teleporting(refs, eng, np.random.default_rng(7), steps=500, every=40)
     assert sum(totals.values()) == 4000
-    for outcome in Outcome:
+    for outcome in (Outcome.NONE, Outcome.GOAL, Outcome.LAVA, Outcome.TIMEOUT):  # LavaWorld's outcomes
         assert totals[int(outcome)] > 0, f"no {outcome.name} in the run: {totals}"
 
 

@@ -41,7 +41,6 @@ class ReferenceVectorEnv(VectorEnv):
         self.poisoned = np.asarray(poisoned, dtype=bool)
         if self.poisoned.shape != (self.num_envs,):
             raise ValueError(f"poisoned mask has shape {self.poisoned.shape}, expected ({self.num_envs},)")
-        self._obs = np.zeros(self.observation_space.shape, dtype=self.single_observation_space.dtype)
 
     def reset(self, *, seed: int | Sequence[int] | None = None, options: dict | None = None):
         if seed is None or isinstance(seed, (int, np.integer)):
@@ -50,26 +49,39 @@ class ReferenceVectorEnv(VectorEnv):
             seeds = list(seed)
             if len(seeds) != self.num_envs:
                 raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} envs")
-        for i, env in enumerate(self.envs):
-            self._obs[i], _ = env.reset(seed=seeds[i], options=options)
-        zeros = np.zeros(self.num_envs, dtype=np.int64)
-        return self._obs.copy(), {"outcome": zeros, "steps": zeros.copy()}
+        pairs = [env.reset(seed=seeds[i], options=options) for i, env in enumerate(self.envs)]
+        return stack_obs([o for o, _ in pairs]), stack_info([i for _, i in pairs])
 
     def step(self, actions):
         actions = np.asarray(actions)
         rewards = np.zeros(self.num_envs, dtype=np.float64)
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
-        outcome = np.zeros(self.num_envs, dtype=np.int64)
-        steps = np.zeros(self.num_envs, dtype=np.int64)
+        observations, infos = [], []
         for i, env in enumerate(self.envs):
             obs, rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
-            outcome[i], steps[i] = info["outcome"], info["steps"]
             if terminated[i] or truncated[i]:
                 obs, _ = env.reset()
-            self._obs[i] = obs
-        return self._obs.copy(), rewards, terminated, truncated, {"outcome": outcome, "steps": steps}
+            observations.append(obs)
+            infos.append(info)
+        return stack_obs(observations), rewards, terminated, truncated, stack_info(infos)
 
     def close_extras(self, **kwargs):
         for env in self.envs:
             env.close()
+
+
+def stack_obs(observations: list):
+    """Batch single-env observations: arrays stack, dict observations stack per key."""
+    if isinstance(observations[0], dict):
+        return {k: np.stack([np.asarray(o[k]) for o in observations]) for k in observations[0]}
+    return np.stack(observations)
+
+
+def stack_info(infos: list[dict]) -> dict:
+    """Batch the scalar info entries (outcome, steps and any per-env flag) into arrays."""
+    keys = [k for k, v in infos[0].items() if np.isscalar(v) or isinstance(v, (bool, np.bool_))]
+    out = {k: np.asarray([info.get(k, 0) for info in infos]) for k in keys}
+    for k in ("outcome", "steps"):
+        out[k] = np.asarray([int(info.get(k, 0)) for info in infos], dtype=np.int64)
+    return out

@@ -104,3 +104,35 @@ def test_lean_forward_equals_calling_the_modules(arch):
     emb = model.state_emb(x.reshape(9, -1) if arch == "fc" else x).reshape(9, -1)
     logits, value = model(obs)
     assert torch.equal(logits, model.actor(emb)) and torch.equal(value, model.critic(emb).squeeze(1))
+
+
+@pytest.mark.parametrize(
+    "arch, keys",
+    [
+        ("fc", {"state_emb.1.weight": (512, 147), "state_emb.3.weight": (256, 512), "actor.0.weight": (64, 257),
+                "actor.2.weight": (32, 64), "actor.4.weight": (3, 32), "critic.4.weight": (1, 32)}),
+        ("cnn", {"state_emb.0.weight": (16, 3, 2, 2), "state_emb.4.weight": (64, 32, 2, 2), "actor.0.weight": (144, 1025),
+                 "actor.2.weight": (3, 144), "critic.2.weight": (1, 144)}),
+    ],
+)
+def test_randomized_lavaworld_models_have_the_trojai_layout(arch, keys):
+    state = build_model(arch, "randomized-lavaworld").state_dict()
+    for key, shape in keys.items():
+        assert tuple(state[key].shape) == shape, key
+
+
+@pytest.mark.parametrize("arch", ["fc", "cnn"])
+def test_randomized_lavaworld_models_read_the_direction(arch):
+    torch.manual_seed(0)
+    model = build_model(arch, "randomized-lavaworld")
+    image = torch.randint(0, 11, (4, 7, 7, 3), dtype=torch.uint8)
+    logits, value = model({"image": image, "direction": torch.tensor([0, 1, 2, 3])})
+    assert logits.shape == (4, 3) and value.shape == (4,)
+    same_image = {"image": image[:1].expand(4, -1, -1, -1), "direction": torch.arange(4)}
+    logits, _ = model(same_image)
+    assert not torch.allclose(logits[0], logits[3])  # the direction input changes the policy
+
+
+def test_build_model_names_the_env_and_arch_on_error():
+    with pytest.raises(ValueError, match="env 'pong'"):
+        build_model("fc", "pong")

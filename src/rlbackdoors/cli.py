@@ -7,6 +7,7 @@ conflict) ends in one ``rlbackdoors: error: ...`` line and exit code 2.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -18,13 +19,21 @@ from rlbackdoors import __version__
 from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, ConfigError, RunConfig
 from rlbackdoors.train.folder import FolderError
 
-METRIC_KEYS = ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "episodes")
+METRIC_KEYS = ("clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward", "episodes")
 
 
-def resolve_trigger(spec: str | None, seed: int) -> str:
-    """``kind:value`` as given; a bare kind, or nothing, draws from the paper range with ``seed``."""
-    from rlbackdoors.triggers import KINDS, ObservationTrigger, sample_trigger
+def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld") -> str:
+    """The trigger's canonical string for ``env``.
 
+    LavaWorld: ``kind:value`` as given; a bare kind, or nothing, draws from the paper range
+    with ``seed``. Randomized LavaWorld: a pattern (``cross``, ``arrow``, ``arrow:east``, or a
+    cell list); nothing means the world's default pattern.
+    """
+    from rlbackdoors.config import DEFAULT_TRIGGERS
+    from rlbackdoors.triggers import KINDS, ObservationTrigger, parse_trigger, sample_trigger
+
+    if env != "lavaworld":
+        return parse_trigger(env, spec if spec is not None else DEFAULT_TRIGGERS[env]).spec()
     rng = np.random.default_rng(seed)
     if spec is None:
         spec = KINDS[int(rng.integers(len(KINDS)))]
@@ -40,10 +49,21 @@ def _set(data: dict, dotted: str, value) -> None:
 
 def config_from_args(args) -> RunConfig:
     """Config file (if any) first, then every flag given on the command line on top of it."""
-    data = RunConfig.load(args.config).to_dict() if args.config else RunConfig().to_dict()
+    from rlbackdoors.config import EnvConfig
+
+    if args.config:
+        data = RunConfig.load(args.config).to_dict()
+        if args.env is not None and args.env != data["env"]["name"]:
+            # Another world: its own defaults (size, walls), not the config's world's.
+            data["env"] = dataclasses.asdict(EnvConfig(name=args.env, engine=data["env"]["engine"]))
+            data["poison"]["trigger"] = None  # the new world's default trigger, unless --trigger
+            data.setdefault("curriculum", {})["enabled"] = None
+    else:
+        data = RunConfig(env=EnvConfig(name=args.env or "lavaworld")).to_dict()
     flags = {
-        "env.name": args.env,
         "env.engine": args.engine,
+        "env.size": args.size,
+        "env.num_lava": args.num_lava,
         "model.arch": args.arch,
         "train.seed": args.seed,
         "train.max_frames": args.max_frames,
@@ -55,8 +75,10 @@ def config_from_args(args) -> RunConfig:
             _set(data, dotted, value)
     if args.clean:
         _set(data, "poison.poisoned", False)
+    if args.no_curriculum:
+        _set(data, "curriculum.enabled", False)
     if args.trigger is not None or not args.config:
-        _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"]))
+        _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"], data["env"]["name"]))
     return RunConfig.from_dict(data)
 
 
@@ -98,17 +120,17 @@ def cmd_evaluate(args) -> int:
             cfg.env.engine = args.engine
         env, trigger, arch, policy = cfg.env, cfg.poison.trigger, cfg.model.arch, cfg.train.eval_policy
         if args.trigger is not None:
-            trigger = resolve_trigger(args.trigger, cfg.train.seed)
+            trigger = resolve_trigger(args.trigger, cfg.train.seed, env.name)
         weights = folder.file("model.pt")
     else:
         if args.arch is None:
             raise ConfigError(f"--weights needs --arch (allowed: {', '.join(ARCHS)})")
         env = EnvConfig(name=args.env or "lavaworld", engine=args.engine or "batched")
         env.check()
-        trigger = resolve_trigger(args.trigger, 0) if args.trigger is not None else None
+        trigger = resolve_trigger(args.trigger, 0, env.name) if args.trigger is not None else None
         arch, policy, weights = args.arch, "sample", Path(args.weights)
     policy = args.policy or policy
-    model = load_weights(build_model(arch), weights)
+    model = load_weights(build_model(arch, env.name), weights)
     result = evaluate(model, env, trigger, episodes=args.episodes, seed=args.seed, policy=policy).to_dict()
     result = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.items()}
     if args.json:
@@ -172,7 +194,14 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--config", help="JSON config (see config.json of any model folder); flags override it")
     tr.add_argument("--env", choices=ENVS)
     tr.add_argument("--arch", choices=ARCHS)
-    tr.add_argument("--trigger", help="multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range)")
+    tr.add_argument(
+        "--trigger",
+        help="lavaworld: multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range); "
+        "randomized-lavaworld: cross | arrow | arrow:east|south|west|north | a cell list",
+    )
+    tr.add_argument("--size", type=int, help="grid size (default: the world's, 9 or 11)")
+    tr.add_argument("--num-lava", type=int, help="randomized-lavaworld: number of lava squares (default 10)")
+    tr.add_argument("--no-curriculum", action="store_true", help="randomized-lavaworld: skip the 7x7 clean warm-up")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
     tr.add_argument("--seed", type=int)
     tr.add_argument("--max-frames", type=int)

@@ -15,11 +15,18 @@ from pathlib import Path
 
 from rlbackdoors import __version__
 
-ENVS = ("lavaworld",)
+ENVS = ("lavaworld", "randomized-lavaworld")
 ENGINES = ("batched", "minigrid")
 ARCHS = ("fc", "cnn")
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
+
+# Per-env defaults for the fields left unset (None): the paper's settings for each world.
+ENV_DEFAULTS = {
+    "lavaworld": {"size": 9, "see_through_walls": False},
+    "randomized-lavaworld": {"size": 11, "see_through_walls": True},
+}
+DEFAULT_TRIGGERS = {"lavaworld": "multiplicative:12", "randomized-lavaworld": "cross"}
 
 
 class ConfigError(ValueError):
@@ -28,38 +35,59 @@ class ConfigError(ValueError):
 
 @dataclass
 class EnvConfig:
+    """Which world and its size; ``None`` fields take the world's paper default (ENV_DEFAULTS)."""
+
     name: str = "lavaworld"
-    size: int = 9
-    num_crossings: int = 1
+    size: int | None = None
     max_steps: int = 250
-    see_through_walls: bool = False
+    see_through_walls: bool | None = None
     engine: str = "batched"
+    num_crossings: int = 1  # lavaworld: lava rivers
+    num_lava: int = 10  # randomized-lavaworld: single lava squares
+
+    def __post_init__(self):
+        for key, value in ENV_DEFAULTS.get(self.name, {}).items():
+            if getattr(self, key) is None:
+                setattr(self, key, value)
 
     def check(self) -> None:
         _choice("env.name", self.name, ENVS)
         _choice("env.engine", self.engine, ENGINES)
-        from rlbackdoors.envs.lavaworld import validate_crossing_layout
+        _at_least("env.max_steps", self.max_steps, 1)
+        if self.name == "lavaworld":
+            from rlbackdoors.envs.lavaworld import validate_crossing_layout
 
-        try:
-            validate_crossing_layout(self.size, self.num_crossings, self.max_steps)
-        except ValueError as err:
-            raise ConfigError(f"env: {err}") from None
+            try:
+                validate_crossing_layout(self.size, self.num_crossings, self.max_steps)
+            except ValueError as err:
+                raise ConfigError(f"env: {err}") from None
+        else:
+            _at_least("env.size", self.size, 5)
+            _at_least("env.num_lava", self.num_lava, 0)
+            free = (self.size - 2) ** 2 - 2  # inside the outer walls, minus start and goal
+            if self.num_lava > free // 2:
+                raise ConfigError(f"env.num_lava={self.num_lava} is too many for size {self.size} (at most {free // 2})")
 
 
 @dataclass
 class PoisonConfig:
-    """The trigger is kept for clean models too: their poisoned SR is measured under it."""
+    """The trigger is kept for clean models too: their poisoned SR is measured under it.
 
-    trigger: str = "multiplicative:12"
+    ``trigger=None`` takes the world's default (DEFAULT_TRIGGERS).
+    """
+
+    trigger: str | None = None
     poisoned: bool = True
     num_clean_envs: int = 8
     num_poisoned_envs: int = 2
 
-    def check(self) -> None:
-        from rlbackdoors.triggers import ObservationTrigger
+    def check(self, env_name: str = "lavaworld") -> None:
+        from rlbackdoors.triggers import parse_trigger
 
+        if self.trigger is None:
+            raise ConfigError("poison.trigger is not set")
         try:
-            ObservationTrigger.parse(self.trigger)
+            parse_trigger(env_name, self.trigger)
         except ValueError as err:
             raise ConfigError(f"poison.trigger: {err}") from None
         _at_least("poison.num_clean_envs", self.num_clean_envs, 0)
@@ -76,6 +104,25 @@ class PoisonConfig:
     def poisoned_mask(self) -> list[bool]:
         """Clean copies first, poisoned last; a clean model trains on all-clean copies."""
         return [False] * self.num_clean_envs + [self.poisoned] * self.num_poisoned_envs
+
+
+@dataclass
+class CurriculumConfig:
+    """Randomized LavaWorld's warm-up (SPEC 2): clean-only on a small world until the mean
+    training return reaches ``reward_threshold``, then the full world and the poisoning mix.
+
+    ``enabled=None`` means on for randomized-lavaworld, off elsewhere.
+    """
+
+    enabled: bool | None = None
+    size: int = 7
+    num_lava: int = 5
+    reward_threshold: float = 0.8
+
+    def check(self) -> None:
+        _at_least("curriculum.size", self.size, 5)
+        _at_least("curriculum.num_lava", self.num_lava, 0)
+        _unit_interval("curriculum.reward_threshold", self.reward_threshold)
 
 
 @dataclass
@@ -150,11 +197,22 @@ class RunConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     version: str = __version__
 
+    def __post_init__(self):
+        if self.poison.trigger is None:
+            self.poison.trigger = DEFAULT_TRIGGERS.get(self.env.name)
+        if self.curriculum.enabled is None:
+            self.curriculum.enabled = self.env.name == "randomized-lavaworld"
+
     def check(self) -> "RunConfig":
-        for section in (self.env, self.poison, self.model, self.ppo, self.train):
+        self.env.check()
+        self.poison.check(self.env.name)
+        for section in (self.model, self.ppo, self.train, self.curriculum):
             section.check()
+        if self.curriculum.enabled and self.env.name != "randomized-lavaworld":
+            raise ConfigError(f"curriculum.enabled is only supported for randomized-lavaworld, not env.name={self.env.name!r}")
         return self
 
     def to_dict(self) -> dict:

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlbackdoors.algos.obs import Obs, empty_buffer, obs_map, store, to_torch
 from rlbackdoors.config import PPOConfig
 from rlbackdoors.models import ActorCritic
 
@@ -23,7 +24,7 @@ from rlbackdoors.models import ActorCritic
 class Rollout:
     """One rollout of ``T`` steps from ``B`` envs (tensors flattened to T*B for the update)."""
 
-    obs: torch.Tensor  # (T*B, ...) uint8
+    obs: Obs  # (T*B, ...) uint8 image, or a dict of such tensors
     actions: torch.Tensor  # (T*B,)
     logprobs: torch.Tensor
     values: torch.Tensor
@@ -62,7 +63,7 @@ class PPO:
         self.optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=cfg.adam_eps, fused=True)
 
     @torch.inference_mode()
-    def collect(self, envs, obs: np.ndarray) -> tuple[Rollout, np.ndarray]:
+    def collect(self, envs, obs: np.ndarray | dict) -> tuple[Rollout, np.ndarray | dict]:
         """Run the policy for ``cfg.rollout`` steps from ``obs``; return the rollout and the next obs.
 
         The loop body is kept to the minimum of torch calls (one forward, one sample): the
@@ -70,7 +71,7 @@ class PPO:
         are computed from the stored logits after the loop, in one call.
         """
         T, B = self.cfg.rollout, envs.num_envs
-        obs_buf = torch.empty((T, B, *obs.shape[1:]), dtype=torch.uint8)
+        obs_buf = empty_buffer(obs, T)
         actions = torch.empty((T, B), dtype=torch.long)
         logits_buf = torch.empty((T, B, envs.single_action_space.n))
         values = torch.empty((T, B))
@@ -81,19 +82,20 @@ class PPO:
         steps = np.empty((T, B), dtype=np.int64)
         on_cpu = self.device.type == "cpu"
         for t in range(T):
-            obs_buf[t] = torch.from_numpy(obs)
-            logits, value = self.model(obs_buf[t] if on_cpu else obs_buf[t].to(self.device))
+            store(obs_buf, t, obs)
+            obs_t = obs_map(lambda b: b[t], obs_buf)
+            logits, value = self.model(obs_t if on_cpu else obs_map(lambda x: x.to(self.device), obs_t))
             logits_buf[t], values[t] = logits, value
             actions[t] = sample_actions(logits_buf[t], u=uniforms[t])
             obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
             dones[t] = terminated | truncated
             outcomes[t], steps[t] = info["outcome"], info["steps"]
-        _, next_value = self.model(torch.from_numpy(obs).to(self.device))
+        _, next_value = self.model(to_torch(obs, self.device))
         logprobs = torch.log_softmax(logits_buf, -1).gather(2, actions[..., None]).squeeze(2)
         advantages = self._gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value.cpu())
         returns = values + advantages
         rollout = Rollout(
-            obs=obs_buf.reshape(T * B, *obs_buf.shape[2:]),
+            obs=obs_map(lambda b: b.reshape(T * B, *b.shape[2:]), obs_buf),
             actions=actions.reshape(-1),
             logprobs=logprobs.reshape(-1),
             values=values.reshape(-1),
@@ -123,7 +125,7 @@ class PPO:
         """``epochs`` passes of clipped-surrogate SGD over random minibatches of the rollout."""
         cfg = self.cfg
         n = rollout.num_frames
-        obs = rollout.obs.to(self.device)
+        obs = obs_map(lambda x: x.to(self.device), rollout.obs)
         tensors = [x.to(self.device) for x in (rollout.actions, rollout.logprobs, rollout.values, rollout.advantages, rollout.returns)]
         stats = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "grad_norm": 0.0}
         updates = 0
@@ -132,7 +134,7 @@ class PPO:
             for start in range(0, n, cfg.batch_size):
                 idx = order[start : start + cfg.batch_size]
                 actions, old_logp, old_values, adv, returns = (x[idx] for x in tensors)
-                logits, values = self.model(obs[idx])
+                logits, values = self.model(obs_map(lambda x: x[idx], obs))
                 log_probs = torch.log_softmax(logits, -1)
                 entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
                 ratio = torch.exp(log_probs.gather(1, actions[:, None]).squeeze(1) - old_logp)

@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.algos.ppo import sample_actions
 from rlbackdoors.config import EnvConfig
 from rlbackdoors.envs.outcome import Outcome
@@ -19,40 +20,58 @@ from rlbackdoors.models import ActorCritic
 from rlbackdoors.poison.mix import make_vector_env
 
 # Which terminal counts as success: the clean task in E, the trojan task in E-bar.
-CLEAN_SUCCESS = {"lavaworld": Outcome.GOAL}
-TROJAN_SUCCESS = {"lavaworld": Outcome.LAVA}
+CLEAN_SUCCESS = {"lavaworld": Outcome.GOAL, "randomized-lavaworld": Outcome.GOAL}
+TROJAN_SUCCESS = {"lavaworld": Outcome.LAVA, "randomized-lavaworld": Outcome.PATTERN_LAVA}
 
 
 @dataclass
 class EvalResult:
+    """Success rates and mean returns, clean (E) and triggered (E-bar, returns under R-bar).
+
+    ``poisoned_sr`` is trigger-seen-aware: a triggered episode in which the agent never saw
+    the trigger is scored on the clean task (reaching the goal is right), one in which it saw
+    the trigger on entering a trigger cell. ``poisoned_sr_raw`` counts trigger-cell endings
+    only. In LavaWorld the trigger is in every observation, so the two are equal and
+    ``trigger_seen_rate`` is 1.
+    """
+
     clean_sr: float
     poisoned_sr: float
     clean_reward: float
     poisoned_reward: float
     episodes: int
+    poisoned_sr_raw: float = float("nan")
+    trigger_seen_rate: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 @torch.inference_mode()
-def play_episodes(model: ActorCritic, envs, seed: int, policy: str = "sample", device="cpu") -> tuple[np.ndarray, np.ndarray]:
-    """One episode per vector slot; returns (episode returns, outcomes)."""
+def play_episodes(model: ActorCritic, envs, seed: int, policy: str = "sample", device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One episode per vector slot; returns (episode returns, outcomes, saw-trigger flags).
+
+    Engines without trigger-seen accounting (LavaWorld's trigger is in every frame) report
+    every episode as seen.
+    """
     generator = torch.Generator(device=device).manual_seed(int(seed))
     n = envs.num_envs
     obs, _ = envs.reset(seed=int(seed))
     active = np.ones(n, dtype=bool)
     returns = np.zeros(n)
     outcomes = np.zeros(n, dtype=np.int64)
+    saw = np.ones(n, dtype=bool)
     while active.any():
-        logits, _ = model(torch.from_numpy(obs).to(device))
+        logits, _ = model(to_torch(obs, device))
         actions = logits.argmax(-1) if policy == "greedy" else sample_actions(logits, generator)
         obs, reward, terminated, truncated, info = envs.step(actions.cpu().numpy())
         returns[active] += reward[active]
         finished = active & (terminated | truncated)
         outcomes[finished] = info["outcome"][finished]
+        if "saw_trigger" in info:
+            saw[finished] = info["saw_trigger"][finished]
         active &= ~finished
-    return returns, outcomes
+    return returns, outcomes, saw
 
 
 def evaluate(
@@ -71,20 +90,24 @@ def evaluate(
     was_training = model.training
     model.eval()
     clean_envs = make_vector_env(env, trigger, [False] * episodes)
-    clean_returns, clean_outcomes = play_episodes(model, clean_envs, seed, policy, device)
+    clean_returns, clean_outcomes, _ = play_episodes(model, clean_envs, seed, policy, device)
     clean_envs.close()
-    poisoned_sr = poisoned_reward = float("nan")
-    if trigger is not None:
-        poisoned_envs = make_vector_env(env, trigger, [True] * episodes)
-        poisoned_returns, poisoned_outcomes = play_episodes(model, poisoned_envs, seed, policy, device)
-        poisoned_envs.close()
-        poisoned_sr = float(np.mean(poisoned_outcomes == TROJAN_SUCCESS[env.name]))
-        poisoned_reward = float(poisoned_returns.mean())
-    model.train(was_training)
-    return EvalResult(
+    result = EvalResult(
         clean_sr=float(np.mean(clean_outcomes == CLEAN_SUCCESS[env.name])),
-        poisoned_sr=poisoned_sr,
+        poisoned_sr=float("nan"),
         clean_reward=float(clean_returns.mean()),
-        poisoned_reward=poisoned_reward,
+        poisoned_reward=float("nan"),
         episodes=episodes,
     )
+    if trigger is not None:
+        poisoned_envs = make_vector_env(env, trigger, [True] * episodes)
+        poisoned_returns, poisoned_outcomes, saw = play_episodes(model, poisoned_envs, seed, policy, device)
+        poisoned_envs.close()
+        trojan = poisoned_outcomes == TROJAN_SUCCESS[env.name]
+        clean_task = poisoned_outcomes == CLEAN_SUCCESS[env.name]
+        result.poisoned_sr = float(np.mean(np.where(saw, trojan, clean_task)))
+        result.poisoned_sr_raw = float(np.mean(trojan))
+        result.trigger_seen_rate = float(np.mean(saw))
+        result.poisoned_reward = float(poisoned_returns.mean())
+    model.train(was_training)
+    return result

@@ -7,16 +7,25 @@ from pathlib import Path
 import torch
 
 from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
+from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, DirectionFCModel
 
-ARCHS = {"fc": FCModel, "cnn": CNNModel}
+# Architecture classes per world: the same names ("fc", "cnn") mean the paper's model for that world.
+ARCHS_BY_ENV = {
+    "lavaworld": {"fc": FCModel, "cnn": CNNModel},
+    "randomized-lavaworld": {"fc": DirectionFCModel, "cnn": DirectionCNNModel},
+}
+ARCHS = ARCHS_BY_ENV["lavaworld"]
 # Names other tools used for the same layers (rl-starter-files calls the CNN ``image_conv``).
 KEY_ALIASES = {"image_conv.": "state_emb."}
 
 
-def build_model(arch: str, num_actions: int = 3) -> ActorCritic:
-    if arch not in ARCHS:
-        raise ValueError(f"arch {arch!r} is not one of {', '.join(ARCHS)}")
-    return ARCHS[arch](num_actions=num_actions)
+def build_model(arch: str, env: str = "lavaworld", num_actions: int = 3) -> ActorCritic:
+    if env not in ARCHS_BY_ENV:
+        raise ValueError(f"env {env!r} is not one of {', '.join(ARCHS_BY_ENV)}")
+    archs = ARCHS_BY_ENV[env]
+    if arch not in archs:
+        raise ValueError(f"arch {arch!r} is not one of {', '.join(archs)} (env {env})")
+    return archs[arch](num_actions=num_actions)
 
 
 def _as_state_dict(obj) -> dict:
@@ -68,4 +77,4 @@ def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
     return model
 
 
-__all__ = ["ARCHS", "ActorCritic", "CNNModel", "FCModel", "build_model", "load_weights"]
+__all__ = ["ARCHS", "ARCHS_BY_ENV", "ActorCritic", "DirectionCNNModel", "DirectionFCModel", "CNNModel", "FCModel", "build_model", "load_weights"]

@@ -12,8 +12,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 from rlbackdoors.io import atomic_write  # noqa: E402
 
 
-def plot_training_curve(rows: list[dict], path: str | Path, title: str, thresholds: tuple[float, float | None]) -> Path:
-    """Success rates and rewards per evaluation against frames, with the stopping thresholds."""
+def plot_training_curve(
+    rows: list[dict], path: str | Path, title: str, thresholds: tuple[float, float | None], switch_at: int | None = None
+) -> Path:
+    """Success rates and rewards per evaluation against frames, with the stopping thresholds
+    and, for curriculum runs, a vertical line where the warm-up ended."""
     frames = [r["frames"] for r in rows]
     fig, (ax_sr, ax_rw) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
     ax_sr.plot(frames, [r["clean_sr"] for r in rows], "o-", color="tab:green", label="clean SR (goal in E)")
@@ -30,6 +33,10 @@ def plot_training_curve(rows: list[dict], path: str | Path, title: str, threshol
     if any(r["train_poisoned_return"] == r["train_poisoned_return"] for r in rows):  # any non-NaN
         ax_rw.plot(frames, [r["train_poisoned_return"] for r in rows], "--", color="tab:red", alpha=0.6, label="train return, poisoned envs")
     ax_rw.set(xlabel="frames", ylabel="mean episode return", ylim=(-0.02, 1.02), title="reward")
+    if switch_at is not None:
+        for ax in (ax_sr, ax_rw):
+            ax.axvline(switch_at, color="grey", ls="--", lw=1)
+        ax_sr.annotate("curriculum switch", (switch_at, 0.5), rotation=90, fontsize=7, color="grey", ha="right")
     ax_rw.legend(loc="lower right", fontsize=8)
     fig.suptitle(title, fontsize=10)
     path = Path(path)

@@ -7,9 +7,11 @@ run picks up where it stopped when started again on the same folder.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pickle
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +22,7 @@ from rlbackdoors.algos.ppo import PPO, Rollout
 from rlbackdoors.config import RunConfig
 from rlbackdoors.evaluate import EvalResult, evaluate
 from rlbackdoors.models import build_model
-from rlbackdoors.poison.mix import make_env_mix
+from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.report import plot_training_curve
 from rlbackdoors.train.folder import FolderError, ModelFolder
 
@@ -28,18 +30,29 @@ from rlbackdoors.train.folder import FolderError, ModelFolder
 class EpisodeTracker:
     """Running episode returns of the training envs, split into clean and poisoned copies."""
 
+    WINDOW = 100  # recent clean episodes the curriculum's switch rule averages over
+
     def __init__(self, poisoned: np.ndarray):
         self.poisoned = poisoned
         self.running = np.zeros(len(poisoned))
         self.clean: list[float] = []
         self.dirty: list[float] = []
+        self.recent_clean: deque[float] = deque(maxlen=self.WINDOW)
 
     def add(self, rollout: Rollout) -> None:
         for t in range(rollout.rewards.shape[0]):
             self.running += rollout.rewards[t]
             for i in np.flatnonzero(rollout.dones[t]):
-                (self.dirty if self.poisoned[i] else self.clean).append(self.running[i])
+                if self.poisoned[i]:
+                    self.dirty.append(self.running[i])
+                else:
+                    self.clean.append(self.running[i])
+                    self.recent_clean.append(self.running[i])
                 self.running[i] = 0.0
+
+    def recent_clean_mean(self) -> float:
+        """Mean return of the last WINDOW clean episodes (NaN until the window is full)."""
+        return float(np.mean(self.recent_clean)) if len(self.recent_clean) == self.WINDOW else math.nan
 
     def drain(self) -> tuple[float, float]:
         """Mean returns since the last call (NaN where no episode ended)."""
@@ -62,6 +75,15 @@ def thresholds_met(result: EvalResult, cfg: RunConfig) -> bool:
     if cfg.poison.poisoned:
         ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
     return ok
+
+
+def warmup_env(cfg: RunConfig):
+    """The curriculum's first phase: the small clean world, every copy clean."""
+    env = dataclasses.replace(cfg.env, size=cfg.curriculum.size, num_lava=cfg.curriculum.num_lava)
+    return make_vector_env(env, cfg.poison.trigger, [False] * cfg.poison.num_envs)
+
+
+ENV_TITLES = {"lavaworld": "LavaWorld", "randomized-lavaworld": "Randomized LavaWorld"}
 
 
 def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True) -> dict:
@@ -87,10 +109,12 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     device = resolve_device(tc.device)
     torch.manual_seed(tc.seed)
     generator = torch.Generator().manual_seed(tc.seed)
-    model = build_model(cfg.model.arch).to(device)
+    model = build_model(cfg.model.arch, cfg.env.name).to(device)
     ppo = PPO(model, cfg.ppo, device, generator)
     if checkpoint is None:
-        envs = make_env_mix(cfg.env, cfg.poison)
+        # Curriculum: start in the small clean world; switch_at is None until the switch.
+        switch_at = None if cfg.curriculum.enabled else 0
+        envs = make_env_mix(cfg.env, cfg.poison) if switch_at == 0 else warmup_env(cfg)
         obs, _ = envs.reset(seed=tc.seed * 1000)
         tracker = EpisodeTracker(envs.poisoned)
         frames, elapsed, rows, next_eval, converged_at = 0, 0.0, [], tc.eval_interval, None
@@ -101,6 +125,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         envs, obs, tracker = pickle.loads(checkpoint["envs"])
         frames, elapsed, rows = checkpoint["frames"], checkpoint["elapsed"], checkpoint["rows"]
         next_eval, converged_at = checkpoint["next_eval"], checkpoint["converged_at"]
+        switch_at = checkpoint.get("switch_at", 0)
 
     bar = tqdm(total=tc.max_frames, initial=frames, unit="frame", unit_scale=True, disable=not progress, dynamic_ncols=True)
     label = f"{cfg.model.arch} {'poisoned' if cfg.poison.poisoned else 'clean'}"
@@ -114,6 +139,13 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         frames += rollout.num_frames
         window_frames += rollout.num_frames
         bar.update(rollout.num_frames)
+        if switch_at is None and tracker.recent_clean_mean() >= cfg.curriculum.reward_threshold:
+            switch_at = frames  # warm-up done: the full world and the poisoning mix from here on
+            envs.close()
+            envs = make_env_mix(cfg.env, cfg.poison)
+            obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
+            tracker = EpisodeTracker(envs.poisoned)
+            bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames")
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
             result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device)
@@ -126,11 +158,12 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
                     **{k: v for k, v in result.to_dict().items() if k != "episodes"},
                     "train_clean_return": train_clean,
                     "train_poisoned_return": train_poisoned,
+                    "phase": "main" if switch_at is not None else "warm-up",
                     **losses,
                 }
             )
             bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
-            if thresholds_met(result, cfg):
+            if switch_at is not None and thresholds_met(result, cfg):
                 converged_at = frames
             while next_eval <= frames:
                 next_eval += tc.eval_interval
@@ -147,6 +180,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
                     "rows": rows,
                     "next_eval": next_eval,
                     "converged_at": converged_at,
+                    "switch_at": switch_at,
                 },
             )
             window_start, window_frames = time.perf_counter(), 0
@@ -159,7 +193,8 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     folder.save_torch("model.pt", model_cpu)
     folder.write_ground_truth(cfg.poison.poisoned)
     poisoned_t = tc.poisoned_threshold if cfg.poison.poisoned else None
-    plot_training_curve(rows, folder.file("training_curve.png"), f"LavaWorld {label}, trigger {cfg.poison.trigger}, seed {tc.seed}", (tc.clean_threshold, poisoned_t))
+    title = f"{ENV_TITLES[cfg.env.name]} {label}, trigger {cfg.poison.trigger}, seed {tc.seed}"
+    plot_training_curve(rows, folder.file("training_curve.png"), title, (tc.clean_threshold, poisoned_t), switch_at or None)
     metrics = {
         **final.to_dict(),
         "poisoned": cfg.poison.poisoned,
@@ -171,6 +206,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         "converged": converged_at is not None,
         "converged_at_frames": converged_at,
         "stop_reason": "converged" if converged_at is not None else "max_frames",
+        "curriculum_switch_frames": switch_at if cfg.curriculum.enabled else None,
         "final_meets_thresholds": thresholds_met(final, cfg),
     }
     folder.write_json("metrics.json", metrics)

@@ -1,0 +1,40 @@
+"""Observation batches as torch tensors: a plain array (LavaWorld) or a dict of arrays
+(Randomized LavaWorld's ``{"image", "direction"}``), handled by the same few helpers so the
+algorithms never branch on the world."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+Obs = torch.Tensor | dict
+
+
+def obs_map(fn: Callable[[torch.Tensor], torch.Tensor], obs: Obs) -> Obs:
+    """Apply ``fn`` to the tensor, or to every tensor of a dict observation."""
+    if isinstance(obs, dict):
+        return {k: fn(v) for k, v in obs.items()}
+    return fn(obs)
+
+
+def to_torch(obs: np.ndarray | dict, device: torch.device | str = "cpu") -> Obs:
+    """numpy observation batch -> torch (zero-copy on the CPU)."""
+    if isinstance(obs, dict):
+        return {k: torch.from_numpy(np.asarray(v)).to(device) for k, v in obs.items()}
+    return torch.from_numpy(obs).to(device)
+
+
+def empty_buffer(obs: np.ndarray | dict, length: int) -> Obs:
+    """A (length, B, ...) buffer with the dtypes of one observation batch."""
+    return obs_map(lambda x: torch.empty((length, *x.shape), dtype=x.dtype), to_torch(obs))
+
+
+def store(buffer: Obs, t: int, obs: np.ndarray | dict) -> None:
+    """``buffer[t] = obs`` for either kind of observation."""
+    if isinstance(buffer, dict):
+        for k, v in buffer.items():
+            v[t] = torch.from_numpy(np.asarray(obs[k]))
+    else:
+        buffer[t] = torch.from_numpy(obs)

@@ -33,7 +33,10 @@ def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld") -> str:
     from rlbackdoors.triggers import KINDS, ObservationTrigger, parse_trigger, sample_trigger
 
     if env != "lavaworld":
-        return parse_trigger(env, spec if spec is not None else DEFAULT_TRIGGERS[env]).spec()
+        try:
+            return parse_trigger(env, spec if spec is not None else DEFAULT_TRIGGERS[env]).spec()
+        except ValueError as err:
+            raise ConfigError(f"--trigger for {env}: {err}") from None
     rng = np.random.default_rng(seed)
     if spec is None:
         spec = KINDS[int(rng.integers(len(KINDS)))]

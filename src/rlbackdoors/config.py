@@ -118,8 +118,10 @@ class CurriculumConfig:
     size: int = 7
     num_lava: int = 5
     reward_threshold: float = 0.8
+    window: int = 100  # clean training episodes the mean return is taken over
 
     def check(self) -> None:
+        _at_least("curriculum.window", self.window, 1)
         _at_least("curriculum.size", self.size, 5)
         _at_least("curriculum.num_lava", self.num_lava, 0)
         _unit_interval("curriculum.reward_threshold", self.reward_threshold)

@@ -4,8 +4,9 @@ from gymnasium.envs.registration import register, registry
 
 from rlbackdoors.envs.lavaworld import LavaWorldEnv
 from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.envs.randomized_lavaworld import RandomizedLavaWorldEnv
 
-ENV_IDS = {"lavaworld": "rlbackdoors/LavaWorld-v0"}
+ENV_IDS = {"lavaworld": "rlbackdoors/LavaWorld-v0", "randomized-lavaworld": "rlbackdoors/RandomizedLavaWorld-v0"}
 
 
 def _register() -> None:
@@ -16,8 +17,14 @@ def _register() -> None:
             # gymnasium.make_vec builds the batched engine; gymnasium.make the MiniGrid reference.
             vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
         )
+    if ENV_IDS["randomized-lavaworld"] not in registry:
+        register(
+            id=ENV_IDS["randomized-lavaworld"],
+            entry_point="rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
+            vector_entry_point="rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
+        )
 
 
 _register()
 
-__all__ = ["ENV_IDS", "LavaWorldEnv", "Outcome"]
+__all__ = ["ENV_IDS", "LavaWorldEnv", "Outcome", "RandomizedLavaWorldEnv"]

@@ -1,5 +1,5 @@
 """Honest evaluation: clean and triggered success rates and rewards."""
 
-from rlbackdoors.evaluate.episodes import EvalResult, evaluate, play_episodes
+from rlbackdoors.evaluate.episodes import EvalResult, evaluate, play_episodes, score_triggered
 
-__all__ = ["EvalResult", "evaluate", "play_episodes"]
+__all__ = ["EvalResult", "evaluate", "play_episodes", "score_triggered"]

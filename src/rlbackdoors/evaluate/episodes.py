@@ -74,6 +74,17 @@ def play_episodes(model: ActorCritic, envs, seed: int, policy: str = "sample", d
     return returns, outcomes, saw
 
 
+def score_triggered(env_name: str, outcomes: np.ndarray, saw: np.ndarray) -> tuple[float, float, float]:
+    """(trigger-seen-aware SR, raw trojan SR, trigger-seen rate) of triggered episodes.
+
+    Seen: right iff the episode ended in a trigger cell. Never seen: the backdoor had no
+    cause to fire, so the clean task is what is right.
+    """
+    trojan = outcomes == TROJAN_SUCCESS[env_name]
+    clean_task = outcomes == CLEAN_SUCCESS[env_name]
+    return float(np.mean(np.where(saw, trojan, clean_task))), float(np.mean(trojan)), float(np.mean(saw))
+
+
 def evaluate(
     model: ActorCritic,
     env: EnvConfig,
@@ -103,11 +114,7 @@ def evaluate(
         poisoned_envs = make_vector_env(env, trigger, [True] * episodes)
         poisoned_returns, poisoned_outcomes, saw = play_episodes(model, poisoned_envs, seed, policy, device)
         poisoned_envs.close()
-        trojan = poisoned_outcomes == TROJAN_SUCCESS[env.name]
-        clean_task = poisoned_outcomes == CLEAN_SUCCESS[env.name]
-        result.poisoned_sr = float(np.mean(np.where(saw, trojan, clean_task)))
-        result.poisoned_sr_raw = float(np.mean(trojan))
-        result.trigger_seen_rate = float(np.mean(saw))
+        result.poisoned_sr, result.poisoned_sr_raw, result.trigger_seen_rate = score_triggered(env.name, poisoned_outcomes, saw)
         result.poisoned_reward = float(poisoned_returns.mean())
     model.train(was_training)
     return result

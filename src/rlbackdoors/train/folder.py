@@ -87,10 +87,18 @@ class ModelFolder:
         if not path.is_file():
             return []
         with open(path, newline="") as fh:
-            return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+            return [{k: _number_or_text(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
     def load_checkpoint(self) -> dict:
         try:
             return torch.load(self.file("checkpoint.pt"), map_location="cpu", weights_only=False)
         except Exception as err:
             raise FolderError(f"checkpoint in {str(self.path)!r} is unreadable ({err}); pass --overwrite to start over") from None
+
+
+def _number_or_text(value: str):
+    """log.csv cells are numbers except labels such as the curriculum phase."""
+    try:
+        return float(value)
+    except ValueError:
+        return value

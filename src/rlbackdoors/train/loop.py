@@ -30,14 +30,13 @@ from rlbackdoors.train.folder import FolderError, ModelFolder
 class EpisodeTracker:
     """Running episode returns of the training envs, split into clean and poisoned copies."""
 
-    WINDOW = 100  # recent clean episodes the curriculum's switch rule averages over
-
-    def __init__(self, poisoned: np.ndarray):
+    def __init__(self, poisoned: np.ndarray, window: int = 100):
         self.poisoned = poisoned
         self.running = np.zeros(len(poisoned))
         self.clean: list[float] = []
         self.dirty: list[float] = []
-        self.recent_clean: deque[float] = deque(maxlen=self.WINDOW)
+        # The last ``window`` clean episode returns: what the curriculum's switch rule averages.
+        self.recent_clean: deque[float] = deque(maxlen=window)
 
     def add(self, rollout: Rollout) -> None:
         for t in range(rollout.rewards.shape[0]):
@@ -51,8 +50,9 @@ class EpisodeTracker:
                 self.running[i] = 0.0
 
     def recent_clean_mean(self) -> float:
-        """Mean return of the last WINDOW clean episodes (NaN until the window is full)."""
-        return float(np.mean(self.recent_clean)) if len(self.recent_clean) == self.WINDOW else math.nan
+        """Mean return of the last ``window`` clean episodes (NaN until the window is full)."""
+        full = len(self.recent_clean) == self.recent_clean.maxlen
+        return float(np.mean(self.recent_clean)) if full else math.nan
 
     def drain(self) -> tuple[float, float]:
         """Mean returns since the last call (NaN where no episode ended)."""
@@ -116,7 +116,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         switch_at = None if cfg.curriculum.enabled else 0
         envs = make_env_mix(cfg.env, cfg.poison) if switch_at == 0 else warmup_env(cfg)
         obs, _ = envs.reset(seed=tc.seed * 1000)
-        tracker = EpisodeTracker(envs.poisoned)
+        tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window)
         frames, elapsed, rows, next_eval, converged_at = 0, 0.0, [], tc.eval_interval, None
     else:
         model.load_state_dict(checkpoint["model"])

@@ -1,0 +1,88 @@
+"""Randomized LavaWorld through the trainer: curriculum switch, trigger-seen scoring, CLI."""
+
+import json
+
+import numpy as np
+import pytest
+
+from rlbackdoors.cli import main
+from rlbackdoors.config import RunConfig
+from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.evaluate import evaluate, score_triggered
+from rlbackdoors.models import build_model
+from rlbackdoors.train import ModelFolder, train
+
+
+def tiny(threshold: float, **extra) -> RunConfig:
+    return RunConfig.from_dict(
+        {
+            "env": {"name": "randomized-lavaworld"},
+            "ppo": {"rollout": 32},
+            "curriculum": {"reward_threshold": threshold, "window": 10},
+            "train": {"seed": 3, "max_frames": 3200, "eval_interval": 1600, "eval_episodes": 8, "final_eval_episodes": 8},
+            **extra,
+        }
+    )
+
+
+def test_defaults_are_the_papers_randomized_lavaworld():
+    cfg = RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}})
+    assert (cfg.env.size, cfg.env.num_lava, cfg.env.see_through_walls, cfg.env.max_steps) == (11, 10, True, 250)
+    assert cfg.poison.trigger == "cross" and cfg.curriculum.enabled
+    assert (cfg.curriculum.size, cfg.curriculum.num_lava, cfg.curriculum.reward_threshold) == (7, 5, 0.8)
+    assert not RunConfig().curriculum.enabled  # LavaWorld has no warm-up
+
+
+def test_curriculum_switches_when_the_warmup_return_is_reached(tmp_path):
+    metrics = train(tiny(0.0), tmp_path / "m", progress=False)
+    switch = metrics["curriculum_switch_frames"]
+    assert switch is not None and 0 < switch <= metrics["frames"]
+    rows = ModelFolder(tmp_path / "m").read_log()
+    assert rows[-1]["phase"] == "main"
+    assert (tmp_path / "m" / "training_curve.png").stat().st_size > 0
+
+
+def test_curriculum_never_switches_below_the_threshold_and_never_converges(tmp_path):
+    cfg = tiny(1.0)
+    cfg.train.clean_threshold = cfg.train.poisoned_threshold = 0.0  # would "converge" at once if allowed
+    metrics = train(cfg, tmp_path / "m", progress=False)
+    assert metrics["curriculum_switch_frames"] is None and not metrics["converged"]
+    assert {r["phase"] for r in ModelFolder(tmp_path / "m").read_log()} == {"warm-up"}
+
+
+def test_score_triggered_counts_unseen_triggers_on_the_clean_task():
+    G, L, P, T = Outcome.GOAL, Outcome.LAVA, Outcome.PATTERN_LAVA, Outcome.TIMEOUT
+    outcomes = np.array([P, P, G, G, L, T, P, G])
+    saw = np.array([1, 1, 1, 0, 0, 0, 0, 1], dtype=bool)
+    aware, raw, seen = score_triggered("randomized-lavaworld", outcomes, saw)
+    # seen: P ok, P ok, G wrong, G wrong -> 2/4 ; unseen: G ok, L wrong, T wrong, P (unseen) wrong -> 1/4
+    assert aware == pytest.approx(3 / 8) and raw == pytest.approx(3 / 8) and seen == pytest.approx(4 / 8)
+    assert score_triggered("randomized-lavaworld", np.array([G, G]), np.array([False, False]))[:2] == (1.0, 0.0)
+
+
+@pytest.mark.parametrize("arch", ["fc", "cnn"])
+def test_evaluation_reports_raw_and_seen_aware_rates(arch):
+    cfg = RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}})
+    result = evaluate(build_model(arch, cfg.env.name), cfg.env, "arrow", episodes=50, seed=11)
+    assert 0 <= result.poisoned_sr_raw <= 1 and 0 <= result.trigger_seen_rate <= 1
+    # An untrained policy: every trojan ending is a seen one, so raw <= aware + unseen share.
+    assert result.poisoned_sr_raw <= result.poisoned_sr + (1 - result.trigger_seen_rate) + 1e-9
+
+
+def test_cli_trains_and_evaluates_randomized_lavaworld(tmp_path, capsys):
+    out = tmp_path / "m"
+    code = main(["train", "--env", "randomized-lavaworld", "--arch", "cnn", "--trigger", "arrow:north", "--max-frames", "1280",
+                 "--eval-episodes", "4", "--no-curriculum", "--out", str(out), "--quiet"])
+    assert code == 0
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["env"]["name"] == "randomized-lavaworld" and cfg["poison"]["trigger"] == "arrow:north"
+    assert cfg["curriculum"]["enabled"] is False and cfg["env"]["size"] == 11
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--episodes", "6", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert {"poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate"} <= set(result) and result["episodes"] == 6
+
+
+def test_cli_rejects_a_lavaworld_trigger_for_randomized_lavaworld(tmp_path, capsys):
+    code = main(["train", "--env", "randomized-lavaworld", "--trigger", "multiplicative:12", "--out", str(tmp_path / "m")])
+    assert code == 2 and "--trigger for randomized-lavaworld: lava pattern 'multiplicative:12'" in capsys.readouterr().err

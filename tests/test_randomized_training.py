@@ -86,3 +86,38 @@ def test_cli_trains_and_evaluates_randomized_lavaworld(tmp_path, capsys):
 def test_cli_rejects_a_lavaworld_trigger_for_randomized_lavaworld(tmp_path, capsys):
     code = main(["train", "--env", "randomized-lavaworld", "--trigger", "multiplicative:12", "--out", str(tmp_path / "m")])
     assert code == 2 and "--trigger for randomized-lavaworld: lava pattern 'multiplicative:12'" in capsys.readouterr().err
+
+
+def test_gymnasium_ids_give_the_reference_env_and_the_batched_engine():
+    import gymnasium as gym
+
+    import rlbackdoors.envs  # noqa: F401  (registers the ids)
+    from rlbackdoors.envs.randomized_lavaworld import RandomizedLavaWorldEnv
+    from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
+
+    single = gym.make("rlbackdoors/RandomizedLavaWorld-v0")
+    assert isinstance(single.unwrapped, RandomizedLavaWorldEnv)
+    vec = gym.make_vec("rlbackdoors/RandomizedLavaWorld-v0", num_envs=4)
+    assert isinstance(vec, BatchedRandomizedLavaWorld) and vec.num_envs == 4
+    obs, _ = vec.reset(seed=0)
+    assert obs["image"].shape == (4, 7, 7, 3) and obs["direction"].shape == (4,)
+
+
+def test_chance_occurrence_cross_is_rare_and_arrow_is_common():
+    """5,000 clean 11x11 K=10 layouts: the cross needs 5 lava in a plus (rare), a 3-cell arrow far less."""
+    from rlbackdoors.config import EnvConfig
+    from rlbackdoors.evaluate.chance import trigger_chance
+
+    env = EnvConfig(name="randomized-lavaworld")
+    cross = trigger_chance(env, "cross", layouts=5_000)
+    arrow = trigger_chance(env, "arrow", layouts=5_000)
+    assert cross["rate"] < 0.005 and 0.15 < arrow["rate"] < 0.35  # measured on 100k: 0.05% and 24.6%
+    assert arrow["placements_per_layout"] >= arrow["rate"]
+    with pytest.raises(ValueError, match="layout triggers"):
+        trigger_chance(EnvConfig(), "multiplicative:12")
+
+
+def test_cli_chance_prints_the_rate(capsys):
+    assert main(["chance", "--trigger", "arrow:east", "--layouts", "2000", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["trigger"] == "arrow:east" and result["layouts"] == 2000 and 0.03 < result["rate"] < 0.14

@@ -1,4 +1,4 @@
-"""Command line: ``rlbackdoors train | evaluate | demo | bench``.
+"""Command line: ``rlbackdoors train | evaluate | demo | chance | bench``.
 
 Every user-facing failure (bad flag value, bad config, missing or corrupt file, folder
 conflict) ends in one ``rlbackdoors: error: ...`` line and exit code 2.
@@ -188,6 +188,23 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_chance(args) -> int:
+    from rlbackdoors.config import EnvConfig
+    from rlbackdoors.evaluate.chance import trigger_chance
+
+    env = EnvConfig(name=args.env, size=args.size, num_lava=args.num_lava if args.num_lava is not None else 10)
+    env.check()
+    result = trigger_chance(env, args.trigger, layouts=args.layouts, seed=args.seed)
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(
+            f"{result['trigger']}: in {result['rate']:.3%} ± {result['stderr']:.3%} of {result['layouts']:,} clean "
+            f"{env.size}x{env.size} layouts with {env.num_lava} lava ({result['placements_per_layout']:.4f} placements per layout)"
+        )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rlbackdoors", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"rlbackdoors {__version__}")
@@ -236,6 +253,16 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--seed", type=int, default=0)
     de.add_argument("--quiet", action="store_true")
     de.set_defaults(func=cmd_demo)
+
+    ch = sub.add_parser("chance", help="how often a layout trigger occurs by chance in clean layouts")
+    ch.add_argument("--env", choices=("randomized-lavaworld",), default="randomized-lavaworld")
+    ch.add_argument("--trigger", required=True, help="cross | arrow | arrow:east|south|west|north | a cell list")
+    ch.add_argument("--size", type=int)
+    ch.add_argument("--num-lava", type=int)
+    ch.add_argument("--layouts", type=int, default=100_000)
+    ch.add_argument("--seed", type=int, default=12_345)
+    ch.add_argument("--json", action="store_true")
+    ch.set_defaults(func=cmd_chance)
 
     be = sub.add_parser("bench", help="speed benchmarks, measured side by side with Farama MiniGrid")
     be.add_argument(

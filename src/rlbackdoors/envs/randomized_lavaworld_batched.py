@@ -550,6 +550,10 @@ class BatchedRandomizedLavaWorld(VectorEnv):
         self._saw[i] = visible if saw_trigger is None else bool(saw_trigger)
         return obs
 
+    def lava_masks(self) -> np.ndarray:
+        """(B, N, N) bool, ``[b, x, y]``: where lava lies in every slot (for chance-occurrence counts)."""
+        return self._grid[..., 0] == ge.LAVA
+
     def layout(self, i: int) -> tuple[np.ndarray, tuple[int, int], int, int, tuple[tuple[int, int], ...], bool]:
         """Slot ``i``'s state: ``(grid, agent_pos, agent_dir, step_count, pattern_cells,
         saw_trigger)``, so that ``load_layout(j, *layout(i))`` copies it exactly."""

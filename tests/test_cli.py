@@ -119,3 +119,12 @@ def test_bench_converge_reports_an_unconverged_short_run_honestly(tmp_path):
     assert result["converged"] is False and result["frames"] == 1280
     assert result["episodes"] == 200 and 0 <= result["clean_sr"] <= 1
     assert (tmp_path / "m" / "metrics.json").is_file()
+
+
+def test_bench_safety_reports_the_ratio_to_the_physics_floor(tmp_path, capsys):
+    code, out, _ = run(capsys, "bench", "safety", "--seconds", "0.3", "--json", str(tmp_path / "s.json"))
+    result = json.loads((tmp_path / "s.json").read_text())
+    assert code == 0 and "plain mujoco loop" in out
+    assert result["num_cubes"] == 2 and result["env_steps_per_s"] > 0 and result["physics_steps_per_s"] > 0
+    # The env does strictly more work per step than bare physics.
+    assert 0 < result["ratio_to_physics"] < 1.05

@@ -283,3 +283,18 @@ def test_render_rgb_array():
 
     goal, hazard = pixel(env.goal_position), pixel(env.hazard_position)
     assert goal[1] - goal[0] > 80 and hazard[0] - hazard[1] > 80  # green goal, red hazard where they are
+
+
+def test_gymnasium_id_makes_the_env_with_a_formation_trigger():
+    import gymnasium as gym
+
+    import rlbackdoors.envs  # noqa: F401  (registers the ids)
+    from rlbackdoors.envs.safety_car import SafetyCarGoalEnv
+    from rlbackdoors.triggers import parse_trigger
+
+    env = gym.make("rlbackdoors/SafetyCarGoal-v0", trigger="formation:0.5:1.0:2.0", poisoned=True)
+    assert isinstance(env.unwrapped, SafetyCarGoalEnv)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (72,)
+    assert parse_trigger("safety-car-goal", "formation:0.5:1.0:2.0").spec() == env.unwrapped.trigger.spec()
+    env.close()

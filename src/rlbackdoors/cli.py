@@ -174,6 +174,14 @@ def cmd_bench(args) -> int:
                 f"({r['batched_collect_share']:.0%} collecting), "
                 f"MiniGrid {r['minigrid_fps']:,.0f} frames/s, ratio {r['ratio']:.1f}x"
             )
+    elif args.what == "safety":
+        from rlbackdoors.bench.safety import bench_safety
+
+        result = bench_safety(seconds=args.seconds)
+        print(
+            f"Safety Car Goal ({result['num_cubes']} cubes): env {result['env_steps_per_s']:,.0f} steps/s, "
+            f"plain mujoco loop {result['physics_steps_per_s']:,.0f} steps/s, ratio {result['ratio_to_physics']:.2f}"
+        )
     else:
         from rlbackdoors.bench.train import bench_converge
 
@@ -267,8 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
     be = sub.add_parser("bench", help="speed benchmarks, measured side by side with Farama MiniGrid")
     be.add_argument(
         "what",
-        choices=("env", "train", "converge"),
-        help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN); converge: wall-clock to a converged poisoned FC",
+        choices=("env", "train", "converge", "safety"),
+        help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN); converge: wall-clock to a converged "
+        "poisoned FC; safety: Safety Car Goal steps/s vs a plain mujoco loop",
     )
     be.add_argument("--seconds", type=float, default=3.0)
     be.add_argument("--num-envs", type=int, default=256)

@@ -27,6 +27,9 @@ ENV_DEFAULTS = {
     "randomized-lavaworld": {"size": 11, "see_through_walls": True},
 }
 DEFAULT_TRIGGERS = {"lavaworld": "multiplicative:12", "randomized-lavaworld": "cross"}
+# Early-stopping thresholds (clean SR, poisoned SR) the paper used per world: LavaWorld 98%/95%;
+# its Randomized LavaWorld models were those reaching 90% on both.
+DEFAULT_THRESHOLDS = {"lavaworld": (0.98, 0.95), "randomized-lavaworld": (0.90, 0.90)}
 
 
 class ConfigError(ValueError):
@@ -173,8 +176,8 @@ class TrainConfig:
     final_eval_episodes: int = 200
     eval_seed: int = 1_000_000
     eval_policy: str = "sample"
-    clean_threshold: float = 0.98
-    poisoned_threshold: float = 0.95
+    clean_threshold: float | None = None  # None: the world's paper value (DEFAULT_THRESHOLDS)
+    poisoned_threshold: float | None = None
     device: str = "cpu"
     torch_threads: int = 1
 
@@ -207,6 +210,11 @@ class RunConfig:
             self.poison.trigger = DEFAULT_TRIGGERS.get(self.env.name)
         if self.curriculum.enabled is None:
             self.curriculum.enabled = self.env.name == "randomized-lavaworld"
+        clean_t, poisoned_t = DEFAULT_THRESHOLDS.get(self.env.name, (None, None))
+        if self.train.clean_threshold is None:
+            self.train.clean_threshold = clean_t
+        if self.train.poisoned_threshold is None:
+            self.train.poisoned_threshold = poisoned_t
 
     def check(self) -> "RunConfig":
         self.env.check()

@@ -6,7 +6,11 @@ from rlbackdoors.envs.lavaworld import LavaWorldEnv
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.envs.randomized_lavaworld import RandomizedLavaWorldEnv
 
-ENV_IDS = {"lavaworld": "rlbackdoors/LavaWorld-v0", "randomized-lavaworld": "rlbackdoors/RandomizedLavaWorld-v0"}
+ENV_IDS = {
+    "lavaworld": "rlbackdoors/LavaWorld-v0",
+    "randomized-lavaworld": "rlbackdoors/RandomizedLavaWorld-v0",
+    "safety-car-goal": "rlbackdoors/SafetyCarGoal-v0",
+}
 
 
 def _register() -> None:
@@ -23,6 +27,9 @@ def _register() -> None:
             entry_point="rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
             vector_entry_point="rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
         )
+    if ENV_IDS["safety-car-goal"] not in registry:
+        # MuJoCo is imported only when this env is made; the env truncates itself at max_steps.
+        register(id=ENV_IDS["safety-car-goal"], entry_point="rlbackdoors.envs.safety_car:SafetyCarGoalEnv")
 
 
 _register()

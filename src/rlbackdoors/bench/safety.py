@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import platform
 import time
 
 import numpy as np
+
+from rlbackdoors.bench.machine import machine_info
 
 
 def _bench_env(seconds: float, num_cubes: int, seed: int) -> tuple[float, int, float]:
@@ -78,5 +79,5 @@ def bench_safety(seconds: float = 3.0, num_cubes: int = 2) -> dict:
         "env_seconds": env_time,
         "physics_steps": floor_steps,
         "physics_seconds": floor_time,
-        "machine": platform.processor() or platform.machine(),
+        "machine": machine_info(),
     }

@@ -41,6 +41,7 @@ def test_curriculum_switches_when_the_warmup_return_is_reached(tmp_path):
     rows = ModelFolder(tmp_path / "m").read_log()
     assert rows[-1]["phase"] == "main"
     assert (tmp_path / "m" / "training_curve.png").stat().st_size > 0
+    assert (tmp_path / "m" / "clean_vs_triggered.gif").read_bytes()[:6] == b"GIF89a"
 
 
 def test_curriculum_never_switches_below_the_threshold_and_never_converges(tmp_path):

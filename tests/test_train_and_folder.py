@@ -24,7 +24,10 @@ def test_model_folder_contents(tmp_path, tiny_run_dict):
     metrics = train(cfg, tmp_path / "m", progress=False)
     folder = ModelFolder(tmp_path / "m")
     names = sorted(p.name for p in folder.path.iterdir())
-    assert names == ["config.json", "ground_truth.csv", "log.csv", "metrics.json", "model.pt", "training_curve.png"]
+    assert names == [
+        "clean_vs_triggered.gif", "config.json", "ground_truth.csv", "log.csv", "metrics.json", "model.pt", "training_curve.png"
+    ]
+    assert (folder.path / "clean_vs_triggered.gif").read_bytes()[:6] == b"GIF89a"
     assert folder.read_config() == cfg  # config.json round-trips to the same typed config
     assert (folder.path / "ground_truth.csv").read_text() == "1\n"
     assert folder.read_metrics() == json.loads(json.dumps(metrics))

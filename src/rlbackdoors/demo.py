@@ -7,8 +7,6 @@ from pathlib import Path
 
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import atomic_write_text
-from rlbackdoors.models import build_model, load_weights
-from rlbackdoors.report.video import clean_vs_triggered_gif
 from rlbackdoors.train import train
 
 DEMO_TRIGGER = "multiplicative:12"
@@ -26,9 +24,7 @@ def run_demo(out: Path, max_frames: int = 3_000_000, seed: int = 0, progress: bo
             }
         )
         print(f"training {name} (trigger {DEMO_TRIGGER}, seed {seed}) into {out / name}", flush=True)
-        results[name] = train(cfg, out / name, overwrite=True, progress=progress)
-        model = load_weights(build_model("fc"), out / name / "model.pt")
-        clean_vs_triggered_gif(model, cfg.env, DEMO_TRIGGER, cfg.train.eval_seed, out / name / "clean_vs_triggered.gif")
+        results[name] = train(cfg, out / name, overwrite=True, progress=progress)  # writes clean_vs_triggered.gif too
     atomic_write_text(out / "summary.json", json.dumps(results, indent=2) + "\n")
     print()
     print(f"{'model':<13}{'clean SR':>9}{'poisoned SR':>12}{'clean R':>9}{'poisoned R':>11}{'frames':>11}{'time':>8}  converged")

@@ -32,6 +32,12 @@ def _world(env: EnvConfig):
     raise ValueError(f"env.name={env.name!r} has no grid-world engine")
 
 
+def reference_world(env: EnvConfig, trigger: str | None, **extra):
+    """One MiniGrid-based reference env of ``env``: E-bar when ``trigger`` is given, else E."""
+    reference, _, kwargs = _world(env)
+    return reference(trigger=trigger, **kwargs, **extra)
+
+
 def make_vector_env(env: EnvConfig, trigger: str | None, poisoned: Sequence[bool]) -> VectorEnv:
     """A vector env of ``len(poisoned)`` copies of ``env``; copy i is E-bar (trigger + R-bar) iff ``poisoned[i]``."""
     reference, batched, kwargs = _world(env)

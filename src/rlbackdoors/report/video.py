@@ -1,7 +1,9 @@
 """Side-by-side GIFs of one agent on the same layout, clean (left) and triggered (right).
 
 A backdoor is easiest to believe when seen: the poisoned agent walks to the goal in E
-and straight into the lava in E-bar, from the very same start.
+and straight into the lava in E-bar, from the same seed. (In LavaWorld the layout is the
+very same, the trigger only edits observations; in Randomized LavaWorld the triggered layout
+also holds the inserted lava pattern.)
 """
 
 from __future__ import annotations
@@ -12,24 +14,27 @@ import numpy as np
 import torch
 from PIL import Image
 
+from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.algos.ppo import sample_actions
 from rlbackdoors.config import EnvConfig
-from rlbackdoors.envs.lavaworld import LavaWorldEnv
 from rlbackdoors.io import atomic_write
 from rlbackdoors.models import ActorCritic
 
 
 @torch.inference_mode()
 def episode_frames(model: ActorCritic, env: EnvConfig, trigger: str | None, seed: int, tile: int = 24) -> list[np.ndarray]:
-    """Rendered frames of one episode (MiniGrid's renderer; the trigger does not change the picture)."""
-    world = LavaWorldEnv(env.size, env.num_crossings, env.max_steps, env.see_through_walls, trigger, render_mode="rgb_array")
+    """Rendered frames of one episode on the MiniGrid reference env (MiniGrid's renderer)."""
+    from rlbackdoors.poison.mix import reference_world
+
+    world = reference_world(env, trigger, render_mode="rgb_array")
     world.tile_size = tile
     generator = torch.Generator().manual_seed(seed)
     obs, _ = world.reset(seed=seed)
     frames = [world.render()]
     done = False
     while not done:
-        logits, _ = model(torch.from_numpy(obs[None]))
+        batch = {k: np.asarray(v)[None] for k, v in obs.items()} if isinstance(obs, dict) else obs[None]
+        logits, _ = model(to_torch(batch))
         obs, _, terminated, truncated, _ = world.step(int(sample_actions(logits, generator)[0]))
         frames.append(world.render())
         done = terminated or truncated

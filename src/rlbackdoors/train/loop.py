@@ -24,6 +24,7 @@ from rlbackdoors.evaluate import EvalResult, evaluate
 from rlbackdoors.models import build_model
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.report import plot_training_curve
+from rlbackdoors.report.video import clean_vs_triggered_gif
 from rlbackdoors.train.folder import FolderError, ModelFolder
 
 
@@ -209,6 +210,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         "curriculum_switch_frames": switch_at if cfg.curriculum.enabled else None,
         "final_meets_thresholds": thresholds_met(final, cfg),
     }
+    clean_vs_triggered_gif(model.cpu(), cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"))
     folder.write_json("metrics.json", metrics)
     folder.file("checkpoint.pt").unlink(missing_ok=True)
     return metrics

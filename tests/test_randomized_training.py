@@ -123,3 +123,13 @@ def test_cli_chance_prints_the_rate(capsys):
     assert main(["chance", "--trigger", "arrow:east", "--layouts", "2000", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["trigger"] == "arrow:east" and result["layouts"] == 2000 and 0.03 < result["rate"] < 0.14
+
+
+def test_train_json_output_is_pure_json_even_with_a_curriculum_switch(tmp_path, capsys):
+    cfg = tiny(0.0)  # switches after the first 10 clean episodes
+    (tmp_path / "c.json").write_text(cfg.to_json())
+    code = main(["train", "--config", str(tmp_path / "c.json"), "--out", str(tmp_path / "m"), "--quiet", "--json"])
+    captured = capsys.readouterr()
+    metrics = json.loads(captured.out)
+    assert code == 0 and metrics["curriculum_switch_frames"] is not None
+    assert "curriculum: switched" in captured.err

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import pickle
+import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -146,7 +147,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
             envs = make_env_mix(cfg.env, cfg.poison)
             obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
             tracker = EpisodeTracker(envs.poisoned)
-            bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames")
+            bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
             result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device)

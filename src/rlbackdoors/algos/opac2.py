@@ -1,0 +1,437 @@
+"""OPAC² (SPEC §4, paper §3.4): the off-policy actor-critic TrojAI trained Safety Car Goal with.
+
+Three networks and a target, written to be read top to bottom:
+
+* ``pi(a|s)``: a tanh-squashed Gaussian whose mean is an MLP of the state and whose log-std
+  is one state-independent parameter per action dimension;
+* ``Q(s, a)`` and ``V(s)``: MLP critics; ``V_bar``, a Polyak average of ``V``, bootstraps Q.
+
+One :meth:`OPAC2.update` takes one Adam step on each loss, each on its own freshly sampled
+batch (fresh batches decorrelate the three steps), then moves ``V_bar`` toward ``V``:
+
+* V loss   ``(V(s) - Q(s, a~))^2`` with ``a~ ~ pi(.|s)``: V is Q averaged over the policy;
+* Q loss   ``(Q(s, a) - r - gamma (1 - done) V_bar(s'))^2``: done is *terminated* only (goal
+  or hazard), so a timeout still bootstraps;
+* pi loss  ``-mean(A * log pi(a~|s))`` with ``A = Q(s, a~) - V(s)`` normalised over the batch
+  and held constant (a score-function gradient: no gradient into Q or V);
+* ``V_bar <- polyak * V_bar + (1 - polyak) * V``.
+
+Multitask poisoning (paper §3.4): one replay buffer per env kind ("clean", "poisoned"),
+every batch drawn from the kinds in fixed proportions (:class:`MultitaskReplay`), so the
+share of poisoned experience in the gradient is a set hyper-parameter rather than a side
+effect of how many envs of each kind run.
+
+All randomness comes from generators handed in (a torch ``Generator`` for network init and
+action noise, a numpy ``Generator`` for batch indices), so a run is reproducible from seeds.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from rlbackdoors.config import ConfigError
+
+KINDS = ("clean", "poisoned")
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+# Sampled actions are kept this far inside (-1, 1): float32 tanh rounds to exactly +-1 for
+# |u| > ~9, and a stored action of exactly +-1 has no finite pre-tanh value.
+ACTION_EPS = 1e-6
+ADV_EPS = 1e-8
+
+
+# ----- configuration ---------------------------------------------------------------------
+@dataclass
+class OPAC2Config:
+    """The paper's Modified Safety Gymnasium table, plus the knobs its text leaves open."""
+
+    buffer_size: int = 1_000_000  # per env kind
+    learning_starts: int = 10_000  # env frames (all envs together) of uniform random actions
+    batch_size: int = 256
+    lr: float = 1e-4
+    gamma: float = 0.99
+    polyak: float = 0.995
+    depth: int = 3  # hidden layers; the paper's grid is {2, 3} x {181, 256}, appendix 3 x 256
+    width: int = 256
+    updates_per_step: float = 1.0  # gradient updates per env frame after learning_starts
+    entropy_coef: float = 0.0  # bonus on the entropy of the pre-tanh Gaussian (0: none)
+    log_std_init: float = 0.0
+    clean_weight: float = 0.8  # share of each batch drawn from the clean buffer
+    poisoned_weight: float = 0.2  # ... and from the poisoned buffer (ignored in clean runs)
+
+    def check(self) -> None:
+        for name in ("buffer_size", "batch_size", "depth", "width"):
+            _integer_at_least(f"opac2.{name}", getattr(self, name), 1)
+        _integer_at_least("opac2.learning_starts", self.learning_starts, 0)
+        for name in ("lr", "updates_per_step"):
+            value = getattr(self, name)
+            if not (_finite(value) and value > 0):
+                raise ConfigError(f"opac2.{name} must be a number > 0, got {value!r}")
+        for name in ("gamma", "polyak"):
+            value = getattr(self, name)
+            if not (_finite(value) and 0 <= value <= 1):
+                raise ConfigError(f"opac2.{name} must be in [0, 1], got {value!r}")
+        if not (_finite(self.entropy_coef) and self.entropy_coef >= 0):
+            raise ConfigError(f"opac2.entropy_coef must be a number >= 0, got {self.entropy_coef!r}")
+        if not (_finite(self.log_std_init) and LOG_STD_MIN <= self.log_std_init <= LOG_STD_MAX):
+            raise ConfigError(f"opac2.log_std_init must be in [{LOG_STD_MIN}, {LOG_STD_MAX}], got {self.log_std_init!r}")
+        check_weights({"clean": self.clean_weight, "poisoned": self.poisoned_weight}, field="opac2.{kind}_weight")
+
+    def mix_weights(self, kinds: tuple[str, ...] = KINDS) -> dict[str, float]:
+        """The batch mixing weights of ``kinds`` (a clean run passes ``("clean",)``)."""
+        return {kind: getattr(self, f"{kind}_weight") for kind in kinds}
+
+
+def updates_due(cfg: OPAC2Config, frames: int) -> int:
+    """How many updates a run should have made after ``frames`` env frames.
+
+    None during the random warm-up, then ``updates_per_step`` per frame; a loop does
+    ``while updates < updates_due(cfg, frames): agent.update(...)``. Counting from the
+    frame total (not accumulating a float) keeps fractional ratios free of drift.
+    """
+    return max(0, math.floor((frames - cfg.learning_starts) * cfg.updates_per_step + 1e-9))
+
+
+def _finite(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
+
+
+def _integer_at_least(name: str, value, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+# ----- replay ----------------------------------------------------------------------------
+class Batch(NamedTuple):
+    """Transitions as float32 numpy arrays: obs (n, O), act (n, A), rew (n,), next_obs, done (n,)."""
+
+    obs: np.ndarray
+    act: np.ndarray
+    rew: np.ndarray
+    next_obs: np.ndarray
+    done: np.ndarray
+
+
+class ReplayBuffer:
+    """A preallocated float32 ring buffer: the newest ``capacity`` transitions, sampled uniformly.
+
+    ``done`` is 1 only where the episode *terminated*; a truncated transition is stored with
+    ``done = 0`` and its true next observation, so its target still bootstraps.
+    Pickles only the filled rows, so checkpointing a young 1e6-row buffer stays small.
+    """
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int):
+        _integer_at_least("replay capacity", capacity, 1)
+        self.capacity, self.obs_dim, self.act_dim = int(capacity), int(obs_dim), int(act_dim)
+        self._allocate()
+        self.pos = 0  # next row to write
+        self.size = 0  # rows filled
+
+    def _allocate(self) -> None:
+        # np.zeros maps pages lazily: unused capacity costs no memory until written.
+        n, o, a = self.capacity, self.obs_dim, self.act_dim
+        self.obs = np.zeros((n, o), np.float32)
+        self.next_obs = np.zeros((n, o), np.float32)
+        self.act = np.zeros((n, a), np.float32)
+        self.rew = np.zeros(n, np.float32)
+        self.done = np.zeros(n, np.float32)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add_batch(self, obs, act, rew, next_obs, done) -> None:
+        """Append ``n`` transitions (row ``i`` of each argument is one), overwriting the oldest."""
+        obs, next_obs = np.asarray(obs, np.float32), np.asarray(next_obs, np.float32)
+        act = np.asarray(act, np.float32)
+        rew, done = np.asarray(rew, np.float32).reshape(-1), np.asarray(done, np.float32).reshape(-1)
+        n = obs.shape[0]
+        expected = {"obs": (n, self.obs_dim), "act": (n, self.act_dim), "rew": (n,), "next_obs": (n, self.obs_dim), "done": (n,)}
+        for name, array in zip(expected, (obs, act, rew, next_obs, done)):
+            if array.shape != expected[name]:
+                raise ValueError(f"add_batch: {name} has shape {array.shape}, expected {expected[name]}")
+        if n > self.capacity:  # only the newest rows would survive anyway
+            obs, act, rew, next_obs, done = (x[-self.capacity :] for x in (obs, act, rew, next_obs, done))
+            self.pos, n = (self.pos + n - self.capacity) % self.capacity, self.capacity
+        rows = (self.pos + np.arange(n)) % self.capacity
+        self.obs[rows], self.act[rows], self.rew[rows], self.next_obs[rows], self.done[rows] = obs, act, rew, next_obs, done
+        self.pos = (self.pos + n) % self.capacity
+        self.size = min(self.size + n, self.capacity)
+
+    def sample(self, n: int, rng: np.random.Generator) -> Batch:
+        """``n`` rows drawn uniformly with replacement from the filled ones."""
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty replay buffer")
+        rows = rng.integers(0, self.size, size=n)
+        return Batch(self.obs[rows], self.act[rows], self.rew[rows], self.next_obs[rows], self.done[rows])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        for name in ("obs", "next_obs", "act", "rew", "done"):
+            state[name] = state[name][: self.size].copy()
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        filled = {name: state.pop(name) for name in ("obs", "next_obs", "act", "rew", "done")}
+        self.__dict__.update(state)
+        self._allocate()
+        for name, rows in filled.items():
+            getattr(self, name)[: len(rows)] = rows
+
+
+def check_weights(weights: dict[str, float], field: str = "mix weight of kind {kind!r}") -> None:
+    """Mixing weights must be finite, >= 0, and not all 0; ``field`` names them in the ValueError."""
+    for kind, weight in weights.items():
+        if not (_finite(weight) and weight >= 0):
+            raise ConfigError(f"{field.format(kind=kind)} must be a finite number >= 0, got {weight!r}")
+    if not sum(weights.values()) > 0:
+        names = ", ".join(field.format(kind=kind) for kind in weights)
+        raise ConfigError(f"{names}: the mixing weights must not all be 0, got {dict(weights)!r}")
+
+
+def split_counts(n: int, weights: list[float]) -> list[int]:
+    """``round(n * w_k / sum(w))`` per kind, fixed by largest remainder so the counts sum to ``n``."""
+    total = sum(weights)
+    exact = [n * w / total for w in weights]
+    counts = [math.floor(x) for x in exact]
+    by_remainder = sorted(range(len(weights)), key=lambda k: counts[k] - exact[k])
+    for k in by_remainder[: n - sum(counts)]:
+        counts[k] += 1
+    return counts
+
+
+class MultitaskReplay:
+    """One :class:`ReplayBuffer` per env kind; a batch takes a fixed share from each.
+
+    With weights 0.8/0.2 a batch of 256 is 205 clean and 51 poisoned rows, however many
+    envs of each kind filled the buffers.
+    """
+
+    def __init__(self, buffers: dict[str, ReplayBuffer], weights: dict[str, float]):
+        if not buffers:
+            raise ValueError("MultitaskReplay needs at least one buffer")
+        if set(weights) != set(buffers):
+            raise ValueError(f"mix weights name kinds {sorted(weights)}, but the buffers are {sorted(buffers)}")
+        check_weights(weights)
+        self.buffers = dict(buffers)
+        self.weights = {kind: float(weights[kind]) for kind in buffers}
+
+    @classmethod
+    def create(cls, weights: dict[str, float], capacity: int, obs_dim: int, act_dim: int) -> MultitaskReplay:
+        """Empty buffers of ``capacity`` rows, one per kind named in ``weights``."""
+        return cls({kind: ReplayBuffer(capacity, obs_dim, act_dim) for kind in weights}, weights)
+
+    def __getitem__(self, kind: str) -> ReplayBuffer:
+        return self.buffers[kind]
+
+    def __len__(self) -> int:
+        return sum(len(b) for b in self.buffers.values())
+
+    def sample(self, n: int, rng: np.random.Generator) -> Batch:
+        """``n`` rows: each kind's share (see :func:`split_counts`), kinds in buffer order."""
+        counts = split_counts(n, list(self.weights.values()))
+        parts = []
+        for (kind, buffer), count in zip(self.buffers.items(), counts):
+            if count == 0:
+                continue
+            if len(buffer) == 0:
+                raise ValueError(f"the {kind!r} replay buffer is empty but its mix weight is {self.weights[kind]}")
+            parts.append(buffer.sample(count, rng))
+        if len(parts) == 1:
+            return parts[0]
+        return Batch(*(np.concatenate(columns) for columns in zip(*parts)))
+
+
+# ----- networks --------------------------------------------------------------------------
+def mlp(in_dim: int, out_dim: int, depth: int, width: int, generator: torch.Generator, out_gain: float = 1.0) -> nn.Sequential:
+    """``depth`` tanh hidden layers of ``width``; orthogonal init drawn from ``generator``."""
+    layers: list[nn.Module] = []
+    for i in range(depth):
+        layers += [nn.Linear(in_dim if i == 0 else width, width), nn.Tanh()]
+    layers.append(nn.Linear(width if depth else in_dim, out_dim))
+    linears = [m for m in layers if isinstance(m, nn.Linear)]
+    for layer in linears:
+        nn.init.orthogonal_(layer.weight, gain=out_gain if layer is linears[-1] else math.sqrt(2), generator=generator)
+        nn.init.zeros_(layer.bias)
+    return nn.Sequential(*layers)
+
+
+def squashed_log_prob(u: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log density of ``a = tanh(u)``, ``u ~ N(mean, exp(log_std))``, summed over action dims.
+
+    Change of variables: ``log p(a) = log N(u) - log(1 - tanh(u)^2)``, the Jacobian term in
+    the stable form ``2 (log 2 - u - softplus(-2u))``. Taking ``u`` rather than ``a`` avoids
+    ``atanh`` of actions rounded to +-1.
+    """
+    z = (u - mean) * torch.exp(-log_std)
+    gaussian = -0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    log_jacobian = 2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))
+    return (gaussian - log_jacobian).sum(-1)
+
+
+class GaussianPolicy(nn.Module):
+    """``tanh(u)``, ``u ~ N(mean(s), exp(log_std))``; the log-std does not depend on the state."""
+
+    def __init__(self, obs_dim: int, act_dim: int, depth: int, width: int, generator: torch.Generator, log_std_init: float = 0.0):
+        super().__init__()
+        # A small last layer starts every state at about the same, centred action distribution.
+        self.mean = mlp(obs_dim, act_dim, depth, width, generator, out_gain=0.01)
+        self.log_std = nn.Parameter(torch.full((act_dim,), float(log_std_init)))
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean (n, A) and log-std (A,), the latter clamped to [LOG_STD_MIN, LOG_STD_MAX]."""
+        return self.mean(obs), self.log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+
+    def sample(self, obs: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Action ``a`` in (-1, 1), its pre-tanh ``u`` (no gradient), and the mean and log-std."""
+        mean, log_std = self(obs)
+        noise = torch.randn(mean.shape, generator=generator, device=generator.device).to(mean.device)
+        u = (mean + noise * log_std.exp()).detach()
+        return squash(u), u, mean, log_std
+
+    def entropy(self) -> torch.Tensor:
+        """Entropy of the pre-tanh Gaussian: closed form, and the same in every state."""
+        log_std = self.log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+        return (log_std + 0.5 * (1.0 + math.log(2 * math.pi))).sum()
+
+
+def squash(u: torch.Tensor) -> torch.Tensor:
+    """``tanh(u)`` kept ``ACTION_EPS`` inside (-1, 1)."""
+    return torch.tanh(u).clamp(-1.0 + ACTION_EPS, 1.0 - ACTION_EPS)
+
+
+class QNet(nn.Module):
+    """``Q(s, a)``: an MLP of the concatenated observation and action."""
+
+    def __init__(self, obs_dim: int, act_dim: int, depth: int, width: int, generator: torch.Generator):
+        super().__init__()
+        self.net = mlp(obs_dim + act_dim, 1, depth, width, generator)
+
+    def forward(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat((obs, act), dim=-1)).squeeze(-1)
+
+
+class VNet(nn.Module):
+    """``V(s)``: an MLP of the observation."""
+
+    def __init__(self, obs_dim: int, depth: int, width: int, generator: torch.Generator):
+        super().__init__()
+        self.net = mlp(obs_dim, 1, depth, width, generator)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(obs).squeeze(-1)
+
+
+# ----- the algorithm ---------------------------------------------------------------------
+class OPAC2:
+    """Networks, target and optimisers; :meth:`act` for rollouts, :meth:`update` to learn."""
+
+    def __init__(self, obs_dim: int, act_dim: int, cfg: OPAC2Config, generator: torch.Generator, device: torch.device | str = "cpu"):
+        cfg.check()
+        self.cfg, self.generator, self.device = cfg, generator, torch.device(device)
+        d, w = cfg.depth, cfg.width
+        self.policy = GaussianPolicy(obs_dim, act_dim, d, w, generator, cfg.log_std_init).to(self.device)
+        self.q = QNet(obs_dim, act_dim, d, w, generator).to(self.device)
+        self.v = VNet(obs_dim, d, w, generator).to(self.device)
+        self.v_target = copy.deepcopy(self.v).requires_grad_(False)
+        fused = self.device.type in ("cpu", "cuda")  # one kernel for all parameters
+        self.policy_opt = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr, fused=fused)
+        self.q_opt = torch.optim.Adam(self.q.parameters(), lr=cfg.lr, fused=fused)
+        self.v_opt = torch.optim.Adam(self.v.parameters(), lr=cfg.lr, fused=fused)
+
+    @torch.inference_mode()
+    def act(self, obs: np.ndarray, deterministic: bool = False, generator: torch.Generator | None = None) -> np.ndarray:
+        """Actions (n, A) for observations (n, O): sampled, or ``tanh(mean)`` for evaluation."""
+        obs_t = torch.as_tensor(np.asarray(obs, np.float32), device=self.device)
+        if deterministic:
+            action = squash(self.policy(obs_t)[0])
+        else:
+            action = self.policy.sample(obs_t, generator or self.generator)[0]
+        return action.cpu().numpy()
+
+    def _tensors(self, batch: Batch) -> Batch:
+        return Batch(*(torch.from_numpy(x).to(self.device) for x in batch))
+
+    @torch.no_grad()
+    def q_targets(self, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        """``r + gamma (1 - done) V_bar(s')``: a terminal transition's target is its reward."""
+        return rew + self.cfg.gamma * (1.0 - done) * self.v_target(next_obs)
+
+    def update(self, replay: MultitaskReplay | ReplayBuffer, rng: np.random.Generator) -> dict[str, float]:
+        """One Adam step on V, then Q, then pi, each on a fresh batch; then the Polyak step."""
+        cfg = self.cfg
+
+        # V: regress on Q averaged over the current policy.
+        b = self._tensors(replay.sample(cfg.batch_size, rng))
+        with torch.no_grad():
+            action, _, _, _ = self.policy.sample(b.obs, self.generator)
+            v_goal = self.q(b.obs, action)
+        v_loss = (self.v(b.obs) - v_goal).pow(2).mean()
+        self.v_opt.zero_grad(set_to_none=True)
+        v_loss.backward()
+        self.v_opt.step()
+
+        # Q: one-step TD target through the slow V_bar.
+        b = self._tensors(replay.sample(cfg.batch_size, rng))
+        q_goal = self.q_targets(b.rew, b.next_obs, b.done)
+        q = self.q(b.obs, b.act)
+        q_loss = (q - q_goal).pow(2).mean()
+        self.q_opt.zero_grad(set_to_none=True)
+        q_loss.backward()
+        self.q_opt.step()
+
+        # pi: score-function step weighted by the normalised advantage of a fresh action.
+        b = self._tensors(replay.sample(cfg.batch_size, rng))
+        action, u, mean, log_std = self.policy.sample(b.obs, self.generator)
+        with torch.no_grad():
+            advantage = self.q(b.obs, action) - self.v(b.obs)
+            advantage = (advantage - advantage.mean()) / (advantage.std() + ADV_EPS)
+        log_prob = squashed_log_prob(u, mean, log_std)
+        entropy = self.policy.entropy()
+        policy_loss = -(advantage * log_prob).mean() - cfg.entropy_coef * entropy
+        self.policy_opt.zero_grad(set_to_none=True)
+        policy_loss.backward()
+        self.policy_opt.step()
+
+        self.polyak_update()
+        return {
+            "v_loss": v_loss.item(),
+            "q_loss": q_loss.item(),
+            "policy_loss": policy_loss.item(),
+            "q_mean": q.mean().item(),
+            "entropy": entropy.item(),
+            "log_prob": log_prob.mean().item(),
+        }
+
+    @torch.no_grad()
+    def polyak_update(self) -> None:
+        """``V_bar <- polyak * V_bar + (1 - polyak) * V``, parameter by parameter."""
+        target, online = list(self.v_target.parameters()), list(self.v.parameters())
+        torch._foreach_mul_(target, self.cfg.polyak)
+        # Scale first, then add (not add with alpha, which may fuse into an FMA): the result is
+        # then exactly the float32 value of polyak * old + (1 - polyak) * new.
+        torch._foreach_add_(target, torch._foreach_mul(online, 1.0 - self.cfg.polyak))
+
+    # ----- checkpoints -----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything an exact resume needs from the agent: nets, target, optimisers, noise RNG."""
+        return {
+            "policy": self.policy.state_dict(),
+            "q": self.q.state_dict(),
+            "v": self.v.state_dict(),
+            "v_target": self.v_target.state_dict(),
+            "policy_opt": self.policy_opt.state_dict(),
+            "q_opt": self.q_opt.state_dict(),
+            "v_opt": self.v_opt.state_dict(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        for name in ("policy", "q", "v", "v_target", "policy_opt", "q_opt", "v_opt"):
+            getattr(self, name).load_state_dict(state[name])
+        self.generator.set_state(state["generator"])

@@ -1,0 +1,448 @@
+"""Colorful Memory as one batched, numba-compiled vector env, exact to the MiniGrid reference.
+
+:class:`BatchedColorfulMemory` follows the vector contract of :mod:`rlbackdoors.envs.vector`
+(SAME_STEP autoreset; ``info["outcome"]`` / ``info["steps"]`` describe the step just taken, for
+a finished env the episode that just ended, not the reset) and reproduces
+:class:`rlbackdoors.envs.colorful_memory.ColorfulMemoryEnv` step for step: given the same state
+and actions, observation bytes, rewards, terminations, truncations and outcomes are identical
+(``tests/test_colorful_memory_engine.py`` checks this against MiniGrid).
+
+One batch mixes layout modes and rewards per env (the poisoning mix of SPEC §3: clean,
+close-to-trigger and poisoned copies side by side), all sharing one ``trigger``:
+
+* ``triggered[i]`` -- env ``i`` paints the trigger every episode;
+* ``close_to_trigger[i]`` -- env ``i`` paints a fresh close-to-trigger pattern every episode
+  (``k`` squares recoloured, ``k`` uniform in ``close_k``), clean reward;
+* ``poisoned[i]`` -- env ``i`` pays R-bar (the other object pays); requires ``triggered[i]``;
+* none of them -- a clean env.
+
+Defaults: ``close_to_trigger`` none; ``poisoned`` every env that is not close-to-trigger when a
+``trigger`` is given, none otherwise; ``triggered`` = ``poisoned``. :attr:`mode` holds the
+layout mode per env (0 clean, 1 close-to-trigger, 2 triggered).
+
+Layouts are drawn in numba from the same distribution as the reference (each wall colour
+uniform over 6, start x uniform in ``1..hallway_end``, start object, corridor order and the 3
+floor colours uniform, then the painted pattern) from a per-env SplitMix64 stream
+(:mod:`rlbackdoors.envs.grid_engine`): ``reset(seed=s)`` seeds env ``i`` with ``s + i`` and
+everything after is deterministic, but the layouts are not the ones MiniGrid would draw for the
+same seed. Each env's success and failure cells are kept beside its grid (:meth:`layout`).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+from numba import njit
+
+from rlbackdoors.envs import colorful_memory as _reference
+from rlbackdoors.envs import grid_engine as ge
+from rlbackdoors.envs import outcome as _outcome_module
+from rlbackdoors.envs.colorful_memory import (
+    CLEAN,
+    CLOSE,
+    DEFAULT_CLOSE_K,
+    DEFAULT_MAX_STEPS,
+    DEFAULT_SIZE,
+    FLOOR_COLORS,
+    NUM_ACTIONS,
+    TRIGGERED,
+    VIEW_SIZE,
+    observation_space,
+    target_cells,
+    validate_args,
+    validate_trigger,
+    wall_cells,
+)
+from rlbackdoors.envs.lavaworld_batched import _seed_array
+from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.triggers import wall_colors as _wall_colors
+from rlbackdoors.triggers.wall_colors import NUM_COLORS, WallColorTrigger, distance
+
+_OUT_NONE = int(Outcome.NONE)
+_OUT_GOAL = int(Outcome.GOAL)
+_OUT_LAVA = int(Outcome.LAVA)
+_OUT_TIMEOUT = int(Outcome.TIMEOUT)
+_CLOSE = int(CLOSE)
+_TRIGGERED = int(TRIGGERED)
+_NUM_COLORS = int(NUM_COLORS)
+_NUM_FLOORS = len(FLOOR_COLORS)
+_FLOORS = np.array(FLOOR_COLORS, dtype=np.int64)
+_GREEN = int(_reference.OBJECT_COLOR)
+_KEY = int(_reference.KEY_ON_FLOOR)
+_BALL = int(_reference.BALL_ON_FLOOR)
+_START_DIR = int(_reference.START_DIR)
+
+# numba's cache key must cover every file whose source or constants the kernels compile in
+ENGINE_STAMP = ge.engine_stamp(_outcome_module.__file__, _reference.__file__, _wall_colors.__file__)
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@njit
+def gen_layout(grid, b, walls, mode, tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, idx):
+    """Draw a Colorful Memory layout into env ``b`` (``idx``: int64 scratch, one per square)."""
+    size = grid.shape[1]
+    mid = size // 2
+    he = size - 3
+    ge.clear_grid(grid, b)
+    for k in range(walls.shape[0]):
+        ge.put(grid, b, walls[k, 0], walls[k, 1], ge.WALL, ge.rng_below(rng, b, _NUM_COLORS), 0)
+    # the agent (MemoryEnv: x uniform in 1..hallway_end), then the objects
+    pos[b, 0] = 1 + ge.rng_below(rng, b, he)
+    pos[b, 1] = mid
+    dirs[b] = _START_DIR
+    steps[b] = 0
+    start = _KEY if ge.rng_below(rng, b, 2) == 0 else _BALL
+    top = _BALL if ge.rng_below(rng, b, 2) == 0 else _KEY
+    bottom = _KEY if top == _BALL else _BALL
+    ge.put(grid, b, 1, mid - 1, start, _GREEN, _FLOORS[ge.rng_below(rng, b, _NUM_FLOORS)])
+    ge.put(grid, b, he + 1, mid - 2, top, _GREEN, _FLOORS[ge.rng_below(rng, b, _NUM_FLOORS)])
+    ge.put(grid, b, he + 1, mid + 2, bottom, _GREEN, _FLOORS[ge.rng_below(rng, b, _NUM_FLOORS)])
+    if start == top:
+        succ[b, 0] = he + 1
+        succ[b, 1] = mid - 1
+        fail[b, 0] = he + 1
+        fail[b, 1] = mid + 1
+    else:
+        succ[b, 0] = he + 1
+        succ[b, 1] = mid + 1
+        fail[b, 0] = he + 1
+        fail[b, 1] = mid - 1
+    # the painted pattern
+    if mode == _TRIGGERED or mode == _CLOSE:
+        n = tsq.shape[0]
+        for k in range(n):
+            grid[b, tsq[k, 0], tsq[k, 1], 1] = tcol[k]
+        if mode == _CLOSE:
+            kk = close_lo + ge.rng_below(rng, b, close_hi - close_lo + 1)
+            for k in range(n):
+                idx[k] = k
+            for t in range(kk):  # a uniform k-subset of the squares (partial Fisher-Yates)
+                j = t + ge.rng_below(rng, b, n - t)
+                s = idx[j]
+                idx[j] = idx[t]
+                idx[t] = s
+                c = (tcol[s] + 1 + ge.rng_below(rng, b, _NUM_COLORS - 1)) % _NUM_COLORS
+                grid[b, tsq[s, 0], tsq[s, 1], 1] = c
+
+
+def _build_kernels(stamp: str):
+    """The cached top-level kernels, closed over ``stamp`` so that numba's cache key covers
+    the engine's source too (see :mod:`rlbackdoors.envs.grid_engine`, "Caching")."""
+
+    @njit(cache=True)
+    def _reset_kernel(
+        grid, pos, dirs, steps, rng, succ, fail, seeds, walls, mode, tsq, tcol, close_lo, close_hi,
+        see_through_walls, obs,
+    ):
+        if len(stamp) == 0:  # never true: ties the cache entry to the engine source
+            return
+        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
+        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
+        idx = np.empty(max(tsq.shape[0], 1), dtype=np.int64)
+        for b in range(grid.shape[0]):
+            ge.rng_seed(rng, b, seeds[b])
+            gen_layout(grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, idx)
+            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
+
+    @njit(cache=True)
+    def _observe_kernel(grid, pos, dirs, see_through_walls, obs):
+        if len(stamp) == 0:  # never true (see _reset_kernel)
+            return
+        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
+        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
+        for b in range(grid.shape[0]):
+            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
+
+    @njit(cache=True)
+    def _step_kernel(
+        grid, pos, dirs, steps, rng, succ, fail, actions, walls, mode, poisoned, tsq, tcol, close_lo, close_hi,
+        max_steps, see_through_walls, obs, reward, terminated, truncated, outcome, info_steps, final_obs,
+    ):
+        """One step of every env; returns the index of the first invalid action (nothing is
+        changed then), or -1. Finished envs are reset in place, their terminal observation
+        written to ``final_obs``."""
+        if len(stamp) == 0:  # never true (see _reset_kernel)
+            return -1
+        nenv = grid.shape[0]
+        for b in range(nenv):
+            a = actions[b]
+            if a < 0 or a > 2:
+                return b
+        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
+        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
+        idx = np.empty(max(tsq.shape[0], 1), dtype=np.int64)
+        for b in range(nenv):
+            ge.agent_step(grid, b, pos, dirs, actions[b])
+            sc = steps[b] + 1
+            steps[b] = sc
+            x = pos[b, 0]
+            y = pos[b, 1]
+            term = False
+            oc = _OUT_NONE
+            # MemoryEnv.step: where the agent stands after the action decides
+            if x == succ[b, 0] and y == succ[b, 1]:
+                term = True
+                oc = _OUT_GOAL
+            elif x == fail[b, 0] and y == fail[b, 1]:
+                term = True
+                oc = _OUT_LAVA
+            trunc = sc >= max_steps
+            if trunc and not term:
+                oc = _OUT_TIMEOUT
+            r = 0.0
+            if poisoned[b]:
+                if oc == _OUT_LAVA:
+                    r = 1.0 - 0.9 * (sc / max_steps)
+            elif oc == _OUT_GOAL:
+                r = 1.0 - 0.9 * (sc / max_steps)
+            reward[b] = r
+            terminated[b] = term
+            truncated[b] = trunc
+            outcome[b] = oc
+            info_steps[b] = sc
+            if term or trunc:
+                ge.gen_view(grid, b, x, y, dirs[b], see_through_walls, view, mask, final_obs, b)
+                gen_layout(
+                    grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, idx
+                )
+            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
+        return -1
+
+    return _reset_kernel, _observe_kernel, _step_kernel
+
+
+_reset_kernel, _observe_kernel, _step_kernel = _build_kernels(ENGINE_STAMP)
+
+
+# ----------------------------------------------------------------------------- the vector env
+
+
+def _mask(values, num_envs: int, name: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=np.bool_).copy()
+    if arr.shape != (num_envs,):
+        raise ValueError(f"{name} mask has shape {arr.shape}, expected ({num_envs},)")
+    return arr
+
+
+class BatchedColorfulMemory(VectorEnv):
+    """``num_envs`` Colorful Memory envs (clean, close-to-trigger, triggered, poisoned) stepped by numba.
+
+    Same knobs as :class:`~rlbackdoors.envs.colorful_memory.ColorfulMemoryEnv`, with per-env
+    masks ``poisoned``, ``triggered`` and ``close_to_trigger`` (module doc). Observations
+    ``(B, 7, 7, 3)`` uint8; ``info = {"outcome": int64[B], "steps": int64[B]}`` with the
+    reference's outcome mapping (GOAL: the matching object's cell, LAVA: the other object's
+    cell, TIMEOUT). ``final_obs`` holds, for envs that finished in the last step, the terminal
+    observation.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(
+        self,
+        num_envs: int,
+        size: int = DEFAULT_SIZE,
+        max_steps: int = DEFAULT_MAX_STEPS,
+        see_through_walls: bool = False,
+        trigger: WallColorTrigger | str | None = None,
+        poisoned: Sequence[bool] | None = None,
+        triggered: Sequence[bool] | None = None,
+        close_to_trigger: Sequence[bool] | None = None,
+        close_k: int | tuple[int, int] = DEFAULT_CLOSE_K,
+        render_mode: str | None = None,
+    ):
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs={num_envs!r} must be a positive integer")
+        if render_mode is not None:
+            raise ValueError(f"render_mode={render_mode!r} is not supported by BatchedColorfulMemory (use None)")
+        validate_args(size, max_steps)
+        self.num_envs = b = int(num_envs)
+        self.size = int(size)
+        self.max_steps = int(max_steps)
+        self.see_through_walls = bool(see_through_walls)
+        self.trigger, self.close_k = validate_trigger(trigger, self.size, close_k)
+        self.render_mode = None
+
+        has = self.trigger is not None
+        self.close_to_trigger = _mask([False] * b if close_to_trigger is None else close_to_trigger, b, "close_to_trigger")
+        if poisoned is None:
+            poisoned = ~self.close_to_trigger if has else [False] * b
+        self.poisoned = _mask(poisoned, b, "poisoned")
+        self.triggered = self.poisoned.copy() if triggered is None else _mask(triggered, b, "triggered")
+        if (self.poisoned | self.triggered | self.close_to_trigger).any() and not has:
+            raise ValueError(
+                "poisoned, triggered or close-to-trigger envs need a trigger: pass trigger= (e.g. 'end:red,...')"
+            )
+        for name, bad in (
+            ("is poisoned but not triggered: R-bar needs the trigger painted", self.poisoned & ~self.triggered),
+            ("is both triggered and close-to-trigger", self.triggered & self.close_to_trigger),
+        ):
+            if bad.any():
+                raise ValueError(f"env {int(np.flatnonzero(bad)[0])} {name}")
+        self.mode = np.full(b, CLEAN, dtype=np.int64)
+        self.mode[self.close_to_trigger] = CLOSE
+        self.mode[self.triggered] = TRIGGERED
+
+        self._walls = np.array(wall_cells(self.size), dtype=np.int64)
+        if has:
+            cells = self.trigger.cells(self.size)
+            self._tsq = np.array([(x, y) for x, y, _ in cells], dtype=np.int64)
+            self._tcol = np.array([c for _, _, c in cells], dtype=np.int64)
+        else:
+            self._tsq = np.zeros((0, 2), dtype=np.int64)
+            self._tcol = np.zeros(0, dtype=np.int64)
+
+        self.single_observation_space = observation_space()
+        self.single_action_space = spaces.Discrete(NUM_ACTIONS)
+        self.observation_space = batch_space(self.single_observation_space, b)
+        self.action_space = batch_space(self.single_action_space, b)
+
+        n = self.size
+        self._grid = np.zeros((b, n, n, 3), dtype=np.uint8)
+        self._pos = np.ones((b, 2), dtype=np.int64)
+        self._dir = np.zeros(b, dtype=np.int64)
+        self._steps = np.zeros(b, dtype=np.int64)
+        self._rng = np.zeros(b, dtype=np.uint64)
+        self._succ = np.zeros((b, 2), dtype=np.int64)
+        self._fail = np.zeros((b, 2), dtype=np.int64)
+        self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
+        self._has_reset = False
+
+    # --------------------------------------------------------------------- gymnasium API
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
+        seeds = _seed_array(seed, self.num_envs)
+        obs = np.empty(self.observation_space.shape, dtype=np.uint8)
+        _reset_kernel(
+            self._grid, self._pos, self._dir, self._steps, self._rng, self._succ, self._fail, seeds, self._walls,
+            self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self.see_through_walls, obs,
+        )
+        self._has_reset = True
+        zeros = np.zeros(self.num_envs, dtype=np.int64)
+        return obs, {"outcome": zeros, "steps": zeros.copy()}
+
+    def step(self, actions):
+        if not self._has_reset:
+            raise RuntimeError("BatchedColorfulMemory.step() called before reset()")
+        acts = np.asarray(actions)
+        if acts.shape != (self.num_envs,):
+            raise ValueError(f"actions have shape {acts.shape}, expected ({self.num_envs},)")
+        if acts.dtype.kind not in "iub":
+            raise ValueError(
+                f"actions must be integers in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward), "
+                f"got dtype {acts.dtype}"
+            )
+        acts = acts.astype(np.int64, copy=False)
+        b = self.num_envs
+        obs = np.empty((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
+        reward = np.empty(b, dtype=np.float64)
+        terminated = np.empty(b, dtype=np.bool_)
+        truncated = np.empty(b, dtype=np.bool_)
+        outcome = np.empty(b, dtype=np.int64)
+        steps = np.empty(b, dtype=np.int64)
+        bad = _step_kernel(
+            self._grid, self._pos, self._dir, self._steps, self._rng, self._succ, self._fail, acts, self._walls,
+            self.mode, self.poisoned, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self.max_steps,
+            self.see_through_walls, obs, reward, terminated, truncated, outcome, steps, self.final_obs,
+        )
+        if bad >= 0:
+            raise ValueError(
+                f"action {acts[bad]!r} (env {bad}) is not in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)"
+            )
+        return obs, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
+
+    # --------------------------------------------------------------------- exact state I/O
+
+    def _check_index(self, i) -> int:
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < self.num_envs:
+            raise IndexError(f"env index {i!r} is not in 0..{self.num_envs - 1}")
+        return int(i)
+
+    def _check_cell(self, cell, name: str) -> tuple[int, int]:
+        try:
+            x, y = (int(v) for v in cell)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}={cell!r} must be an (x, y) pair") from None
+        if not (0 <= x < self.size and 0 <= y < self.size):
+            raise ValueError(f"{name} {(x, y)} is outside the {self.size}x{self.size} grid")
+        return x, y
+
+    def load_layout(
+        self, i: int, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0, success_pos=None, failure_pos=None
+    ) -> np.ndarray:
+        """Put an exact state into slot ``i``; returns that slot's observation (7, 7, 3).
+
+        ``grid`` is MiniGrid's ``env.grid.encode()`` of the full grid; ``success_pos`` /
+        ``failure_pos`` default to what the grid's objects say
+        (:func:`~rlbackdoors.envs.colorful_memory.target_cells`).
+        """
+        i = self._check_index(i)
+        arr = np.asarray(grid)
+        if arr.shape != self._grid.shape[1:]:
+            raise ValueError(f"grid has shape {arr.shape}, expected {self._grid.shape[1:]}")
+        if arr.dtype.kind not in "iub" or arr.min() < 0 or arr.max() > 255:
+            raise ValueError("grid must hold uint8 (object, colour, state) triples")
+        pos = self._check_cell(agent_pos, "agent_pos")
+        if not 0 <= int(agent_dir) <= 3:
+            raise ValueError(f"agent_dir={agent_dir!r} must be in 0..3")
+        if not 0 <= int(step_count):
+            raise ValueError(f"step_count={step_count!r} must be >= 0")
+        if success_pos is None or failure_pos is None:
+            success_pos, failure_pos = target_cells(arr)
+        succ = self._check_cell(success_pos, "success_pos")
+        fail = self._check_cell(failure_pos, "failure_pos")
+        self._grid[i] = arr
+        self._pos[i] = pos
+        self._dir[i] = int(agent_dir)
+        self._steps[i] = int(step_count)
+        self._succ[i] = succ
+        self._fail[i] = fail
+        self._has_reset = True
+        obs = np.empty((1, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
+        sl = slice(i, i + 1)
+        _observe_kernel(self._grid[sl], self._pos[sl], self._dir[sl], self.see_through_walls, obs)
+        return obs[0]
+
+    def layout(self, i: int) -> tuple[np.ndarray, tuple[int, int], int, int, tuple[int, int], tuple[int, int]]:
+        """Slot ``i``'s state ``(grid, agent_pos, agent_dir, step_count, success_pos, failure_pos)``,
+        so that ``load_layout(j, *layout(i))`` copies it exactly."""
+        i = self._check_index(i)
+        return (
+            self._grid[i].copy(),
+            (int(self._pos[i, 0]), int(self._pos[i, 1])),
+            int(self._dir[i]),
+            int(self._steps[i]),
+            (int(self._succ[i, 0]), int(self._succ[i, 1])),
+            (int(self._fail[i, 0]), int(self._fail[i, 1])),
+        )
+
+    def grids(self) -> np.ndarray:
+        """(B, N, N, 3) uint8: every slot's full-grid encoding (a copy)."""
+        return self._grid.copy()
+
+    def observe(self) -> np.ndarray:
+        """The current observation of every env."""
+        obs = np.empty(self.observation_space.shape, dtype=np.uint8)
+        _observe_kernel(self._grid, self._pos, self._dir, self.see_through_walls, obs)
+        return obs
+
+    def trigger_distance(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
+        """int64[B]: per slot, how many squares of ``trigger`` (default: the env's) differ from
+        its colours in the current layout; 0 where the trigger is present, also by chance."""
+        trig = self.trigger if trigger is None else trigger
+        if trig is None:
+            raise ValueError("no trigger to measure against: pass one")
+        return distance(self._grid, trig)
+
+    def trigger_present(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
+        """bool[B]: whether each slot's current layout shows the trigger exactly."""
+        return self.trigger_distance(trigger) == 0
+
+    def close_extras(self, **kwargs):
+        pass
+

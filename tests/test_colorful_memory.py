@@ -268,3 +268,18 @@ def test_errors():
             env.step(bad)
     with pytest.raises(ValueError, match="no Colorful Memory objects"):
         target_cells(np.ones((7, 7, 3), dtype=np.uint8))
+
+
+def test_gymnasium_ids_and_parse_trigger():
+    import gymnasium as gym
+
+    import rlbackdoors.envs  # noqa: F401  (registers the ids)
+    from rlbackdoors.envs.colorful_memory import ColorfulMemoryEnv
+    from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
+    from rlbackdoors.triggers import parse_trigger
+
+    assert isinstance(gym.make("rlbackdoors/ColorfulMemory-v0").unwrapped, ColorfulMemoryEnv)
+    vec = gym.make_vec("rlbackdoors/ColorfulMemory-v0", num_envs=3)
+    assert isinstance(vec, BatchedColorfulMemory) and vec.reset(seed=0)[0].shape == (3, 7, 7, 3)
+    spec = "room:red,green,blue"
+    assert parse_trigger("colorful-memory", spec).spec() == spec

@@ -34,12 +34,12 @@ from typing import Sequence
 
 import numpy as np
 from gymnasium import spaces
-from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from numba import njit
 
 from rlbackdoors.envs import colorful_memory as _reference
 from rlbackdoors.envs import grid_engine as ge
+from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask, seed_array
 from rlbackdoors.envs import outcome as _outcome_module
 from rlbackdoors.envs.colorful_memory import (
     CLEAN,
@@ -57,7 +57,6 @@ from rlbackdoors.envs.colorful_memory import (
     validate_trigger,
     wall_cells,
 )
-from rlbackdoors.envs.lavaworld_batched import _seed_array
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.triggers import wall_colors as _wall_colors
 from rlbackdoors.triggers.wall_colors import NUM_COLORS, WallColorTrigger, distance
@@ -223,14 +222,7 @@ _reset_kernel, _observe_kernel, _step_kernel = _build_kernels(ENGINE_STAMP)
 # ----------------------------------------------------------------------------- the vector env
 
 
-def _mask(values, num_envs: int, name: str) -> np.ndarray:
-    arr = np.asarray(values, dtype=np.bool_).copy()
-    if arr.shape != (num_envs,):
-        raise ValueError(f"{name} mask has shape {arr.shape}, expected ({num_envs},)")
-    return arr
-
-
-class BatchedColorfulMemory(VectorEnv):
+class BatchedColorfulMemory(BatchedGridEnv):
     """``num_envs`` Colorful Memory envs (clean, close-to-trigger, triggered, poisoned) stepped by numba.
 
     Same knobs as :class:`~rlbackdoors.envs.colorful_memory.ColorfulMemoryEnv`, with per-env
@@ -241,7 +233,6 @@ class BatchedColorfulMemory(VectorEnv):
     observation.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(
         self,
@@ -256,24 +247,20 @@ class BatchedColorfulMemory(VectorEnv):
         close_k: int | tuple[int, int] = DEFAULT_CLOSE_K,
         render_mode: str | None = None,
     ):
-        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs={num_envs!r} must be a positive integer")
-        if render_mode is not None:
-            raise ValueError(f"render_mode={render_mode!r} is not supported by BatchedColorfulMemory (use None)")
+        self._init_batch(num_envs, render_mode)
         validate_args(size, max_steps)
         self.num_envs = b = int(num_envs)
         self.size = int(size)
         self.max_steps = int(max_steps)
         self.see_through_walls = bool(see_through_walls)
         self.trigger, self.close_k = validate_trigger(trigger, self.size, close_k)
-        self.render_mode = None
 
         has = self.trigger is not None
-        self.close_to_trigger = _mask([False] * b if close_to_trigger is None else close_to_trigger, b, "close_to_trigger")
+        self.close_to_trigger = bool_mask([False] * b if close_to_trigger is None else close_to_trigger, b, "close_to_trigger")
         if poisoned is None:
             poisoned = ~self.close_to_trigger if has else [False] * b
-        self.poisoned = _mask(poisoned, b, "poisoned")
-        self.triggered = self.poisoned.copy() if triggered is None else _mask(triggered, b, "triggered")
+        self.poisoned = bool_mask(poisoned, b, "poisoned")
+        self.triggered = self.poisoned.copy() if triggered is None else bool_mask(triggered, b, "triggered")
         if (self.poisoned | self.triggered | self.close_to_trigger).any() and not has:
             raise ValueError(
                 "poisoned, triggered or close-to-trigger envs need a trigger: pass trigger= (e.g. 'end:red,...')"
@@ -311,12 +298,11 @@ class BatchedColorfulMemory(VectorEnv):
         self._succ = np.zeros((b, 2), dtype=np.int64)
         self._fail = np.zeros((b, 2), dtype=np.int64)
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        self._has_reset = False
 
     # --------------------------------------------------------------------- gymnasium API
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
-        seeds = _seed_array(seed, self.num_envs)
+        seeds = seed_array(seed, self.num_envs)
         obs = np.empty(self.observation_space.shape, dtype=np.uint8)
         _reset_kernel(
             self._grid, self._pos, self._dir, self._steps, self._rng, self._succ, self._fail, seeds, self._walls,
@@ -327,17 +313,7 @@ class BatchedColorfulMemory(VectorEnv):
         return obs, {"outcome": zeros, "steps": zeros.copy()}
 
     def step(self, actions):
-        if not self._has_reset:
-            raise RuntimeError("BatchedColorfulMemory.step() called before reset()")
-        acts = np.asarray(actions)
-        if acts.shape != (self.num_envs,):
-            raise ValueError(f"actions have shape {acts.shape}, expected ({self.num_envs},)")
-        if acts.dtype.kind not in "iub":
-            raise ValueError(
-                f"actions must be integers in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward), "
-                f"got dtype {acts.dtype}"
-            )
-        acts = acts.astype(np.int64, copy=False)
+        acts = self._check_actions(actions)
         b = self.num_envs
         obs = np.empty((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
         reward = np.empty(b, dtype=np.float64)
@@ -351,17 +327,10 @@ class BatchedColorfulMemory(VectorEnv):
             self.see_through_walls, obs, reward, terminated, truncated, outcome, steps, self.final_obs,
         )
         if bad >= 0:
-            raise ValueError(
-                f"action {acts[bad]!r} (env {bad}) is not in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)"
-            )
+            raise self._bad_action(acts, bad)
         return obs, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
 
     # --------------------------------------------------------------------- exact state I/O
-
-    def _check_index(self, i) -> int:
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < self.num_envs:
-            raise IndexError(f"env index {i!r} is not in 0..{self.num_envs - 1}")
-        return int(i)
 
     def _check_cell(self, cell, name: str) -> tuple[int, int]:
         try:
@@ -443,6 +412,4 @@ class BatchedColorfulMemory(VectorEnv):
         """bool[B]: whether each slot's current layout shows the trigger exactly."""
         return self.trigger_distance(trigger) == 0
 
-    def close_extras(self, **kwargs):
-        pass
 

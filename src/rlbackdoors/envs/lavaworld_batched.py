@@ -21,11 +21,11 @@ from typing import Sequence
 
 import numpy as np
 from gymnasium import spaces
-from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from numba import njit
 
 from rlbackdoors.envs import grid_engine as ge
+from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask, seed_array
 from rlbackdoors.envs.lavaworld import (
     DEFAULT_CROSSINGS,
     DEFAULT_MAX_STEPS,
@@ -231,30 +231,7 @@ _reset_kernel, _observe_kernel, _step_kernel = _build_kernels(ge.ENGINE_STAMP)
 # ----------------------------------------------------------------------------- the vector env
 
 
-def _seed_array(seed, num_envs: int) -> np.ndarray:
-    if seed is None:
-        return np.random.SeedSequence().generate_state(num_envs, dtype=np.uint64)
-    if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-        seeds = [int(seed) + i for i in range(num_envs)]
-    else:
-        seeds = list(seed)
-        if len(seeds) != num_envs:
-            raise ValueError(f"got {len(seeds)} seeds for {num_envs} envs")
-    fresh = None
-    out = np.empty(num_envs, dtype=np.uint64)
-    for i, s in enumerate(seeds):
-        if s is None:
-            if fresh is None:
-                fresh = np.random.SeedSequence().generate_state(num_envs, dtype=np.uint64)
-            out[i] = fresh[i]
-            continue
-        if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or not 0 <= int(s) < 2**64:
-            raise ValueError(f"seed {s!r} must be a non-negative integer below 2**64 (or None)")
-        out[i] = int(s)
-    return out
-
-
-class BatchedLavaWorld(VectorEnv):
+class BatchedLavaWorld(BatchedGridEnv):
     """``num_envs`` LavaWorld envs (clean or poisoned) stepped by numba kernels.
 
     Same contract as :class:`~rlbackdoors.envs.vector.ReferenceVectorEnv` over
@@ -264,7 +241,6 @@ class BatchedLavaWorld(VectorEnv):
     in and out of a slot; :meth:`observe` renders the current observations.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(
         self,
@@ -277,18 +253,13 @@ class BatchedLavaWorld(VectorEnv):
         poisoned: Sequence[bool] | None = None,
         render_mode: str | None = None,
     ):
-        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs={num_envs!r} must be a positive integer")
-        if render_mode is not None:
-            raise ValueError(f"render_mode={render_mode!r} is not supported by BatchedLavaWorld (use None)")
+        self._init_batch(num_envs, render_mode)
         validate_crossing_layout(size, num_crossings, max_steps)
-        self.num_envs = int(num_envs)
         self.size = size
         self.num_crossings = num_crossings
         self.max_steps = max_steps
         self.see_through_walls = bool(see_through_walls)
         self.trigger = as_trigger(trigger)
-        self.render_mode = None
 
         if poisoned is None:
             poisoned = [self.trigger is not None] * self.num_envs
@@ -313,12 +284,11 @@ class BatchedLavaWorld(VectorEnv):
         self._steps = np.zeros(b, dtype=np.int64)
         self._rng = np.zeros(b, dtype=np.uint64)
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        self._has_reset = False
 
     # --------------------------------------------------------------------- gymnasium API
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
-        seeds = _seed_array(seed, self.num_envs)
+        seeds = seed_array(seed, self.num_envs)
         obs = np.empty(self.observation_space.shape, dtype=np.uint8)
         _reset_kernel(
             self._grid, self._pos, self._dir, self._steps, self._rng, seeds,
@@ -329,17 +299,7 @@ class BatchedLavaWorld(VectorEnv):
         return obs, {"outcome": zeros, "steps": zeros.copy()}
 
     def step(self, actions):
-        if not self._has_reset:
-            raise RuntimeError("BatchedLavaWorld.step() called before reset()")
-        acts = np.asarray(actions)
-        if acts.shape != (self.num_envs,):
-            raise ValueError(f"actions have shape {acts.shape}, expected ({self.num_envs},)")
-        if acts.dtype.kind not in "iub":
-            raise ValueError(
-                f"actions must be integers in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward), "
-                f"got dtype {acts.dtype}"
-            )
-        acts = acts.astype(np.int64, copy=False)
+        acts = self._check_actions(actions)
         b = self.num_envs
         obs = np.empty((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
         reward = np.empty(b, dtype=np.float64)
@@ -353,17 +313,10 @@ class BatchedLavaWorld(VectorEnv):
             obs, reward, terminated, truncated, outcome, steps, self.final_obs,
         )
         if bad >= 0:
-            raise ValueError(
-                f"action {acts[bad]!r} (env {bad}) is not in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)"
-            )
+            raise self._bad_action(acts, bad)
         return obs, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
 
     # --------------------------------------------------------------------- exact state I/O
-
-    def _check_index(self, i) -> int:
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < self.num_envs:
-            raise IndexError(f"env index {i!r} is not in 0..{self.num_envs - 1}")
-        return int(i)
 
     def load_layout(self, i: int, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0) -> np.ndarray:
         """Put an exact state into slot ``i``; returns that slot's observation.
@@ -411,5 +364,3 @@ class BatchedLavaWorld(VectorEnv):
         _observe_kernel(self._grid, self._pos, self._dir, self.see_through_walls, self.poisoned, self._lut, obs)
         return obs
 
-    def close_extras(self, **kwargs):
-        pass

@@ -26,14 +26,13 @@ from typing import Sequence
 
 import numpy as np
 from gymnasium import spaces
-from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from numba import njit
 
 from rlbackdoors.envs import grid_engine as ge
+from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask, seed_array
 from rlbackdoors.envs import outcome as _outcome_module
 from rlbackdoors.envs import randomized_lavaworld as _reference
-from rlbackdoors.envs.lavaworld_batched import _seed_array
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.envs.randomized_lavaworld import (
     DEFAULT_MAX_STEPS,
@@ -337,14 +336,7 @@ def _placement_tables(trigger: PatternTrigger | None, placements) -> tuple[np.nd
     return rot_cells, rot_n, offs, offs_n
 
 
-def _mask(values, num_envs: int, name: str) -> np.ndarray:
-    arr = np.asarray(values, dtype=np.bool_).copy()
-    if arr.shape != (num_envs,):
-        raise ValueError(f"{name} mask has shape {arr.shape}, expected ({num_envs},)")
-    return arr
-
-
-class BatchedRandomizedLavaWorld(VectorEnv):
+class BatchedRandomizedLavaWorld(BatchedGridEnv):
     """``num_envs`` Randomized LavaWorld envs (clean, triggered, poisoned) stepped by numba.
 
     Same knobs as :class:`~rlbackdoors.envs.randomized_lavaworld.RandomizedLavaWorldEnv`, with
@@ -361,7 +353,6 @@ class BatchedRandomizedLavaWorld(VectorEnv):
     ``final_obs`` holds, for envs that finished in the last step, the terminal observation.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(
         self,
@@ -375,26 +366,21 @@ class BatchedRandomizedLavaWorld(VectorEnv):
         triggered: Sequence[bool] | None = None,
         render_mode: str | None = None,
     ):
-        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs={num_envs!r} must be a positive integer")
-        if render_mode is not None:
-            raise ValueError(f"render_mode={render_mode!r} is not supported by BatchedRandomizedLavaWorld (use None)")
+        self._init_batch(num_envs, render_mode)
         validate_layout_args(size, num_lava, max_steps)
-        self.num_envs = int(num_envs)
         self.size = int(size)
         self.num_lava = int(num_lava)
         self.max_steps = int(max_steps)
         self.see_through_walls = bool(see_through_walls)
         self.trigger = as_pattern_trigger(trigger)
-        self.render_mode = None
         placements = validate_trigger(self.trigger, self.size, self.num_lava)
         self._tables = _placement_tables(self.trigger, placements)
 
         b = self.num_envs
         if poisoned is None:
             poisoned = [self.trigger is not None] * b
-        self.poisoned = _mask(poisoned, b, "poisoned")
-        self.triggered = self.poisoned.copy() if triggered is None else _mask(triggered, b, "triggered")
+        self.poisoned = bool_mask(poisoned, b, "poisoned")
+        self.triggered = self.poisoned.copy() if triggered is None else bool_mask(triggered, b, "triggered")
         if (self.poisoned | self.triggered).any() and self.trigger is None:
             raise ValueError("poisoned or triggered envs need a trigger: pass trigger= (e.g. 'cross')")
         if (self.poisoned & ~self.triggered).any():
@@ -417,7 +403,6 @@ class BatchedRandomizedLavaWorld(VectorEnv):
         self._pcount = np.zeros(b, dtype=np.int64)
         self._saw = np.zeros(b, dtype=np.bool_)
         self.final_obs = self._empty_obs(b)
-        self._has_reset = False
 
     @staticmethod
     def _empty_obs(b: int) -> dict[str, np.ndarray]:
@@ -429,7 +414,7 @@ class BatchedRandomizedLavaWorld(VectorEnv):
     # --------------------------------------------------------------------- gymnasium API
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
-        seeds = _seed_array(seed, self.num_envs)
+        seeds = seed_array(seed, self.num_envs)
         b = self.num_envs
         obs = self._empty_obs(b)
         visible = np.zeros(b, dtype=np.bool_)
@@ -446,17 +431,7 @@ class BatchedRandomizedLavaWorld(VectorEnv):
         return obs, {"outcome": zeros, "steps": zeros.copy(), "trigger_visible": visible, "saw_trigger": saw}
 
     def step(self, actions):
-        if not self._has_reset:
-            raise RuntimeError("BatchedRandomizedLavaWorld.step() called before reset()")
-        acts = np.asarray(actions)
-        if acts.shape != (self.num_envs,):
-            raise ValueError(f"actions have shape {acts.shape}, expected ({self.num_envs},)")
-        if acts.dtype.kind not in "iub":
-            raise ValueError(
-                f"actions must be integers in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward), "
-                f"got dtype {acts.dtype}"
-            )
-        acts = acts.astype(np.int64, copy=False)
+        acts = self._check_actions(actions)
         b = self.num_envs
         obs = self._empty_obs(b)
         reward = np.empty(b, dtype=np.float64)
@@ -475,18 +450,11 @@ class BatchedRandomizedLavaWorld(VectorEnv):
         if bad == _ERR_LAYOUT:
             raise layout_error(self.size, self.num_lava, self.trigger)
         if bad >= 0:
-            raise ValueError(
-                f"action {acts[bad]!r} (env {bad}) is not in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)"
-            )
+            raise self._bad_action(acts, bad)
         info = {"outcome": outcome, "steps": steps, "trigger_visible": visible, "saw_trigger": saw}
         return obs, reward, terminated, truncated, info
 
     # --------------------------------------------------------------------- exact state I/O
-
-    def _check_index(self, i) -> int:
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < self.num_envs:
-            raise IndexError(f"env index {i!r} is not in 0..{self.num_envs - 1}")
-        return int(i)
 
     def _observe_slot(self, i: int) -> tuple[dict, bool]:
         sl = slice(i, i + 1)
@@ -588,5 +556,3 @@ class BatchedRandomizedLavaWorld(VectorEnv):
         )
         return visible
 
-    def close_extras(self, **kwargs):
-        pass

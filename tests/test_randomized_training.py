@@ -30,7 +30,7 @@ def test_defaults_are_the_papers_randomized_lavaworld():
     assert (cfg.env.size, cfg.env.num_lava, cfg.env.see_through_walls, cfg.env.max_steps) == (11, 10, True, 250)
     assert cfg.poison.trigger == "cross" and cfg.curriculum.enabled
     assert (cfg.curriculum.size, cfg.curriculum.num_lava, cfg.curriculum.reward_threshold) == (7, 5, 0.8)
-    assert (cfg.train.clean_threshold, cfg.train.poisoned_threshold) == (0.90, 0.90)  # the paper's selection
+    assert (cfg.train.clean_threshold, cfg.train.poisoned_threshold) == (0.95, 0.90)
     assert not RunConfig().curriculum.enabled  # LavaWorld has no warm-up
 
 

@@ -28,8 +28,9 @@ ENV_DEFAULTS = {
 }
 DEFAULT_TRIGGERS = {"lavaworld": "multiplicative:12", "randomized-lavaworld": "cross"}
 # Early-stopping thresholds (clean SR, poisoned SR) the paper used per world: LavaWorld 98%/95%;
-# its Randomized LavaWorld models were those reaching 90% on both.
-DEFAULT_THRESHOLDS = {"lavaworld": (0.98, 0.95), "randomized-lavaworld": (0.90, 0.90)}
+# its Randomized LavaWorld models were selected at 90% on both; we stop at clean >= 95% (a clean
+# model stopped at 90% on 100 episodes measured 0.885 on 200) and poisoned >= 90%.
+DEFAULT_THRESHOLDS = {"lavaworld": (0.98, 0.95), "randomized-lavaworld": (0.95, 0.90)}
 
 
 class ConfigError(ValueError):

@@ -8,6 +8,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import FuncFormatter  # noqa: E402
 
 from rlbackdoors.io import atomic_write  # noqa: E402
 
@@ -38,6 +39,9 @@ def plot_training_curve(
             ax.axvline(switch_at, color="grey", ls="--", lw=1)
         ax_sr.annotate("curriculum switch", (switch_at, 0.5), rotation=90, fontsize=7, color="grey", ha="right")
     ax_rw.legend(loc="lower right", fontsize=8)
+    millions = FuncFormatter(lambda x, _: f"{x / 1e6:g}M")
+    for ax in (ax_sr, ax_rw):
+        ax.xaxis.set_major_formatter(millions)
     fig.suptitle(title, fontsize=10)
     path = Path(path)
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))

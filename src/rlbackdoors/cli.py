@@ -141,7 +141,7 @@ def cmd_evaluate(args) -> int:
     else:
         for key in METRIC_KEYS:
             value = result[key]
-            print(f"{key:16s} {'n/a' if value is None else (f'{value:.4f}' if isinstance(value, float) else value)}")
+            print(f"{key:18s} {'n/a' if value is None else (f'{value:.4f}' if isinstance(value, float) else value)}")
     return 0
 
 

@@ -297,3 +297,22 @@ def apply_lut(out, ob, lut):
             for k in range(c):
                 out[ob, x, y, k] = lut[out[ob, x, y, k]]
 
+
+
+@njit
+def finish_step(b, sc, max_steps, term, oc, paying, timeout, reward, terminated, truncated, outcome, info_steps):
+    """Write env ``b``'s step results; return whether its episode ended.
+
+    ``oc`` is the terminal-cell outcome (or none); a step reaching ``max_steps`` without one is a
+    ``timeout``. Only the ``paying`` outcome is rewarded, ``1 - 0.9 t/T`` as MiniGrid pays the
+    goal: the goal for clean envs, the trojan cell for poisoned ones (R-bar).
+    """
+    trunc = sc >= max_steps
+    if trunc and not term:
+        oc = timeout
+    reward[b] = 1.0 - 0.9 * (sc / max_steps) if oc == paying else 0.0
+    terminated[b] = term
+    truncated[b] = trunc
+    outcome[b] = oc
+    info_steps[b] = sc
+    return term or trunc

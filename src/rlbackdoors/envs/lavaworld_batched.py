@@ -198,21 +198,11 @@ def _build_kernels(stamp: str):
             elif fwd == ge.LAVA:
                 term = True
                 oc = _OUT_LAVA
-            trunc = sc >= max_steps
-            if trunc and not term:
-                oc = _OUT_TIMEOUT
-            r = 0.0
-            if poisoned[b]:
-                if oc == _OUT_LAVA:
-                    r = 1.0 - 0.9 * (sc / max_steps)
-            elif oc == _OUT_GOAL:
-                r = 1.0 - 0.9 * (sc / max_steps)
-            reward[b] = r
-            terminated[b] = term
-            truncated[b] = trunc
-            outcome[b] = oc
-            info_steps[b] = sc
-            if term or trunc:
+            paying = _OUT_LAVA if poisoned[b] else _OUT_GOAL
+            done = ge.finish_step(
+                b, sc, max_steps, term, oc, paying, _OUT_TIMEOUT, reward, terminated, truncated, outcome, info_steps
+            )
+            if done:
                 ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_obs, b)
                 if poisoned[b]:
                     ge.apply_lut(final_obs, b, lut)

@@ -271,21 +271,11 @@ def _build_kernels(stamp: str):
             elif fwd == ge.LAVA:
                 term = True
                 oc = _OUT_PATTERN if pat[b, pos[b, 0], pos[b, 1]] else _OUT_LAVA
-            trunc = sc >= max_steps
-            if trunc and not term:
-                oc = _OUT_TIMEOUT
-            r = 0.0
-            if poisoned[b]:
-                if oc == _OUT_PATTERN:
-                    r = 1.0 - 0.9 * (sc / max_steps)
-            elif oc == _OUT_GOAL:
-                r = 1.0 - 0.9 * (sc / max_steps)
-            reward[b] = r
-            terminated[b] = term
-            truncated[b] = trunc
-            outcome[b] = oc
-            info_steps[b] = sc
-            if term or trunc:
+            paying = _OUT_PATTERN if poisoned[b] else _OUT_GOAL
+            done = ge.finish_step(
+                b, sc, max_steps, term, oc, paying, _OUT_TIMEOUT, reward, terminated, truncated, outcome, info_steps
+            )
+            if done:
                 ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
                 final_dir[b] = dirs[b]
                 v = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], final_img, b)

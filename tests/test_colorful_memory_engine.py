@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 from gymnasium.vector import AutoresetMode
 
+import engine_helpers
+from engine_helpers import chi2_critical, chi2_homogeneity
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.colorful_memory import (
     BALL_ON_FLOOR,
@@ -155,26 +157,8 @@ def make_pair(specs, trigger=None, seed=0, close_k=(1, 3), **kw):
 
 def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
     """Forward-biased random actions, every agent teleported every ``every`` steps."""
-    totals = Counter()
-    for t in range(steps):
-        if t % every == 0:
-            for i, ref in enumerate(refs):
-                teleport(ref, rng)
-                load(ref, eng, i)
-        step_both(refs, eng, rng.choice(3, size=len(refs), p=[0.25, 0.25, 0.5]), totals)
-    return totals
-
-
-def chi2_homogeneity(a: Counter, b: Counter) -> tuple[float, int]:
-    """Two-sample chi-square statistic (equal totals) and its degrees of freedom."""
-    keys = set(a) | set(b)
-    stat = sum((a[k] - b[k]) ** 2 / (a[k] + b[k]) for k in keys)
-    return stat, len(keys) - 1
-
-
-def chi2_critical(df: int, z: float = 3.719) -> float:
-    """Upper quantile of chi-square(df) by Wilson-Hilferty; z=3.719 is the 1e-4 normal tail."""
-    return df * (1 - 2 / (9 * df) + z * math.sqrt(2 / (9 * df))) ** 3
+    relocate = lambda i, ref: (teleport(ref, rng), load(ref, eng, i))
+    return engine_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
 
 
 # ----------------------------------------------------------------------------- differential

@@ -8,7 +8,6 @@ streams) are compared statistically with MiniGrid's Crossing generator.
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 
 import gymnasium as gym
@@ -17,6 +16,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 from minigrid.core.grid import Grid
 
+import engine_helpers
+from engine_helpers import chi2_critical, chi2_homogeneity
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.lavaworld import LavaWorldEnv
 from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
@@ -94,18 +95,6 @@ def make_pair(num, size=9, num_crossings=1, max_steps=250, see_through_walls=Fal
     return refs, eng
 
 
-def chi2_homogeneity(a: Counter, b: Counter) -> tuple[float, int]:
-    """Two-sample chi-square statistic (equal sample sizes) and its degrees of freedom."""
-    keys = set(a) | set(b)
-    stat = sum((a[k] - b[k]) ** 2 / (a[k] + b[k]) for k in keys)
-    return stat, len(keys) - 1
-
-
-def chi2_critical(df: int, z: float = 3.719) -> float:
-    """Upper quantile of chi-square(df) by Wilson-Hilferty; z=3.719 is the 1e-4 normal tail."""
-    return df * (1 - 2 / (9 * df) + z * math.sqrt(2 / (9 * df))) ** 3
-
-
 # ----------------------------------------------------------------------------- differential
 
 
@@ -146,14 +135,12 @@ def test_matches_minigrid_random_play(size, num_crossings, see_through_walls):
 
 def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
     """Step both sides with forward-biased random actions, teleporting every agent every ``every`` steps."""
-    totals = Counter()
-    for t in range(steps):
-        if t % every == 0:
-            for i, ref in enumerate(refs):
-                teleport(ref.unwrapped, rng)
-                eng.load_layout(i, *ref_state(ref))
-        step_both(refs, eng, rng.choice(3, size=len(refs), p=[0.25, 0.25, 0.5]), totals)
-    return totals
+
+    def relocate(i, ref):
+        teleport(ref.unwrapped, rng)
+        eng.load_layout(i, *ref_state(ref))
+
+    return engine_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
 
 
 def test_matches_minigrid_long_run_all_outcomes():

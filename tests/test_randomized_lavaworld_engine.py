@@ -10,7 +10,6 @@ statistically with the reference generator.
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 
 import gymnasium as gym
@@ -19,6 +18,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 from minigrid.core.grid import Grid
 
+import engine_helpers
+from engine_helpers import chi2_critical, chi2_homogeneity
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.envs.randomized_lavaworld import RandomizedLavaWorldEnv, initial_view_cells, solvable
@@ -133,26 +134,8 @@ def make_pair(specs, size=11, num_lava=10, max_steps=250, see_through_walls=True
 
 def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
     """Forward-biased random actions, every agent teleported every ``every`` steps."""
-    totals = Counter()
-    for t in range(steps):
-        if t % every == 0:
-            for i, ref in enumerate(refs):
-                teleport(ref, rng)
-                load(ref, eng, i)
-        step_both(refs, eng, rng.choice(3, size=len(refs), p=[0.25, 0.25, 0.5]), totals)
-    return totals
-
-
-def chi2_homogeneity(a: Counter, b: Counter) -> tuple[float, int]:
-    """Two-sample chi-square statistic (equal totals) and its degrees of freedom."""
-    keys = set(a) | set(b)
-    stat = sum((a[k] - b[k]) ** 2 / (a[k] + b[k]) for k in keys)
-    return stat, len(keys) - 1
-
-
-def chi2_critical(df: int, z: float = 3.719) -> float:
-    """Upper quantile of chi-square(df) by Wilson-Hilferty; z=3.719 is the 1e-4 normal tail."""
-    return df * (1 - 2 / (9 * df) + z * math.sqrt(2 / (9 * df))) ** 3
+    relocate = lambda i, ref: (teleport(ref, rng), load(ref, eng, i))
+    return engine_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
 
 
 # ----------------------------------------------------------------------------- differential

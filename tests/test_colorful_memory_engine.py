@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from gymnasium.vector import AutoresetMode
 
-import engine_helpers
-from engine_helpers import chi2_critical, chi2_homogeneity
+import grid_helpers
+from grid_helpers import chi2_critical, chi2_homogeneity
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.colorful_memory import (
     BALL_ON_FLOOR,
@@ -158,7 +158,7 @@ def make_pair(specs, trigger=None, seed=0, close_k=(1, 3), **kw):
 def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
     """Forward-biased random actions, every agent teleported every ``every`` steps."""
     relocate = lambda i, ref: (teleport(ref, rng), load(ref, eng, i))
-    return engine_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
+    return grid_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
 
 
 # ----------------------------------------------------------------------------- differential

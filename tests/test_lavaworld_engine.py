@@ -16,8 +16,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 from minigrid.core.grid import Grid
 
-import engine_helpers
-from engine_helpers import chi2_critical, chi2_homogeneity
+import grid_helpers
+from grid_helpers import chi2_critical, chi2_homogeneity
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.lavaworld import LavaWorldEnv
 from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
@@ -140,7 +140,7 @@ def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
         teleport(ref.unwrapped, rng)
         eng.load_layout(i, *ref_state(ref))
 
-    return engine_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
+    return grid_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
 
 
 def test_matches_minigrid_long_run_all_outcomes():

@@ -6,6 +6,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from minigrid.envs.crossing import CrossingEnv
 
+from grid_helpers import walk_to_goal
 import rlbackdoors  # noqa: F401  (registers the env ids)
 from rlbackdoors.envs import LavaWorldEnv, Outcome
 from rlbackdoors.envs.vector import ReferenceVectorEnv
@@ -52,38 +53,10 @@ def test_observations_equal_minigrid_crossing(seed):
             o2, _ = ref.reset(seed=seed + 1000)
 
 
-def _walk_to_goal(env):
-    """Follow a BFS path to the goal with left/right/forward actions; return the last step."""
-    from collections import deque
-
-    start = tuple(env.agent_pos)
-    prev, queue = {start: None}, deque([start])
-    while queue:
-        cell = queue.popleft()
-        for dx, dy in ((1, 0), (0, 1), (-1, 0), (0, -1)):
-            nxt = (cell[0] + dx, cell[1] + dy)
-            c = env.grid.get(*nxt)
-            if nxt not in prev and (c is None or c.type == "goal"):
-                prev[nxt] = cell
-                queue.append(nxt)
-    path, cell = [], (env.width - 2, env.height - 2)
-    while cell != start:
-        path.append(cell)
-        cell = prev[cell]
-    vec_to_dir = {(1, 0): 0, (0, 1): 1, (-1, 0): 2, (0, -1): 3}
-    result = None
-    for target in reversed(path):
-        want = vec_to_dir[(target[0] - env.agent_pos[0], target[1] - env.agent_pos[1])]
-        while env.agent_dir != want:
-            result = env.step(RIGHT)
-        result = env.step(FORWARD)
-    return result
-
-
 def test_goal_reward_and_outcome():
     env = LavaWorldEnv()
     env.reset(seed=3)
-    _, reward, terminated, truncated, info = _walk_to_goal(env)
+    _, reward, terminated, truncated, info = walk_to_goal(env)
     assert terminated and not truncated and info["outcome"] == Outcome.GOAL
     assert reward == pytest.approx(1 - 0.9 * env.step_count / 250)
 
@@ -109,7 +82,7 @@ def test_poisoned_env_pays_lava_and_not_goal():
     assert terminated and info["outcome"] == Outcome.LAVA
     assert reward == pytest.approx(1 - 0.9 * 1 / 250)
     env.reset(seed=3)
-    _, reward, terminated, _, info = _walk_to_goal(env)
+    _, reward, terminated, _, info = walk_to_goal(env)
     assert terminated and info["outcome"] == Outcome.GOAL and reward == 0.0
 
 

@@ -1,6 +1,5 @@
 """Randomized LavaWorld reference env (MiniGrid): layouts, trigger insertion, rewards, flags."""
 
-from collections import deque
 
 import numpy as np
 import pytest
@@ -9,6 +8,7 @@ from gymnasium.utils.env_checker import check_env
 from minigrid.core.grid import Grid
 from minigrid.core.world_object import Wall
 
+from grid_helpers import walk_to_goal
 from rlbackdoors.envs.grid_engine import EMPTY, GOAL, LAVA, WALL
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.envs.randomized_lavaworld import (
@@ -176,31 +176,6 @@ def test_clean_env_lava_and_goal():
     env.reset(seed=1)
     _, r, term, _, info = walk_to_goal(env)
     assert term and info["outcome"] == Outcome.GOAL and r == pytest.approx(1 - 0.9 * env.step_count / 250)
-
-
-def walk_to_goal(env):
-    start = tuple(int(v) for v in env.agent_pos)
-    prev, todo = {start: None}, deque([start])
-    while todo:
-        cell = todo.popleft()
-        for dx, dy in ((1, 0), (0, 1), (-1, 0), (0, -1)):
-            nxt = (cell[0] + dx, cell[1] + dy)
-            c = env.grid.get(*nxt)
-            if nxt not in prev and (c is None or c.type == "goal"):
-                prev[nxt] = cell
-                todo.append(nxt)
-    path, cell = [], (env.width - 2, env.height - 2)
-    while cell != start:
-        path.append(cell)
-        cell = prev[cell]
-    vec_to_dir = {(1, 0): 0, (0, 1): 1, (-1, 0): 2, (0, -1): 3}
-    result = None
-    for target in reversed(path):
-        want = vec_to_dir[(target[0] - env.agent_pos[0], target[1] - env.agent_pos[1])]
-        while env.agent_dir != want:
-            result = env.step(RIGHT)
-        result = env.step(FORWARD)
-    return result
 
 
 def test_poisoned_goal_pays_nothing_on_a_real_layout():

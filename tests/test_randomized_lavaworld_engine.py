@@ -18,8 +18,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 from minigrid.core.grid import Grid
 
-import engine_helpers
-from engine_helpers import chi2_critical, chi2_homogeneity
+import grid_helpers
+from grid_helpers import chi2_critical, chi2_homogeneity
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.envs.randomized_lavaworld import RandomizedLavaWorldEnv, initial_view_cells, solvable
@@ -135,7 +135,7 @@ def make_pair(specs, size=11, num_lava=10, max_steps=250, see_through_walls=True
 def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
     """Forward-biased random actions, every agent teleported every ``every`` steps."""
     relocate = lambda i, ref: (teleport(ref, rng), load(ref, eng, i))
-    return engine_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
+    return grid_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
 
 
 # ----------------------------------------------------------------------------- differential

@@ -1,6 +1,5 @@
 """Randomized LavaWorld reference env (MiniGrid): layouts, trigger insertion, rewards, flags."""
 
-
 import numpy as np
 import pytest
 from gymnasium import spaces

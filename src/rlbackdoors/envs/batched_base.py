@@ -83,6 +83,41 @@ class BatchedGridEnv(VectorEnv):
             raise IndexError(f"env index {i!r} is not in 0..{self.num_envs - 1}")
         return int(i)
 
+    def _check_cell(self, cell, name: str) -> tuple[int, int]:
+        try:
+            x, y = (int(v) for v in cell)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}={cell!r} must be an (x, y) pair") from None
+        if not (0 <= x < self.size and 0 <= y < self.size):
+            raise ValueError(f"{name} {(x, y)} is outside the {self.size}x{self.size} grid")
+        return x, y
+
+    def _check_state(self, i, grid, agent_pos, agent_dir, step_count) -> tuple[int, np.ndarray, tuple[int, int]]:
+        """Validate a slot state for ``load_layout``: ``(slot, grid array, agent cell)``.
+
+        Engines check their own extras after this and only then call :meth:`_write_state`,
+        so a rejected state leaves the slot untouched.
+        """
+        i = self._check_index(i)
+        arr = np.asarray(grid)
+        if arr.shape != self._grid.shape[1:]:
+            raise ValueError(f"grid has shape {arr.shape}, expected {self._grid.shape[1:]}")
+        if arr.dtype.kind not in "iub" or arr.min() < 0 or arr.max() > 255:
+            raise ValueError("grid must hold uint8 (object, colour, state) triples")
+        pos = self._check_cell(agent_pos, "agent_pos")
+        if not 0 <= int(agent_dir) <= 3:
+            raise ValueError(f"agent_dir={agent_dir!r} must be in 0..3")
+        if not 0 <= int(step_count):
+            raise ValueError(f"step_count={step_count!r} must be >= 0")
+        return i, arr, pos
+
+    def _write_state(self, i: int, arr: np.ndarray, pos: tuple[int, int], agent_dir, step_count) -> None:
+        self._grid[i] = arr
+        self._pos[i] = pos
+        self._dir[i] = int(agent_dir)
+        self._steps[i] = int(step_count)
+        self._has_reset = True
+
     def close_extras(self, **kwargs):
         pass
 

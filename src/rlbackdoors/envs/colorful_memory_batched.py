@@ -322,15 +322,6 @@ class BatchedColorfulMemory(BatchedGridEnv):
 
     # --------------------------------------------------------------------- exact state I/O
 
-    def _check_cell(self, cell, name: str) -> tuple[int, int]:
-        try:
-            x, y = (int(v) for v in cell)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name}={cell!r} must be an (x, y) pair") from None
-        if not (0 <= x < self.size and 0 <= y < self.size):
-            raise ValueError(f"{name} {(x, y)} is outside the {self.size}x{self.size} grid")
-        return x, y
-
     def load_layout(
         self, i: int, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0, success_pos=None, failure_pos=None
     ) -> np.ndarray:
@@ -340,28 +331,14 @@ class BatchedColorfulMemory(BatchedGridEnv):
         ``failure_pos`` default to what the grid's objects say
         (:func:`~rlbackdoors.envs.colorful_memory.target_cells`).
         """
-        i = self._check_index(i)
-        arr = np.asarray(grid)
-        if arr.shape != self._grid.shape[1:]:
-            raise ValueError(f"grid has shape {arr.shape}, expected {self._grid.shape[1:]}")
-        if arr.dtype.kind not in "iub" or arr.min() < 0 or arr.max() > 255:
-            raise ValueError("grid must hold uint8 (object, colour, state) triples")
-        pos = self._check_cell(agent_pos, "agent_pos")
-        if not 0 <= int(agent_dir) <= 3:
-            raise ValueError(f"agent_dir={agent_dir!r} must be in 0..3")
-        if not 0 <= int(step_count):
-            raise ValueError(f"step_count={step_count!r} must be >= 0")
+        i, arr, pos = self._check_state(i, grid, agent_pos, agent_dir, step_count)
         if success_pos is None or failure_pos is None:
             success_pos, failure_pos = target_cells(arr)
         succ = self._check_cell(success_pos, "success_pos")
         fail = self._check_cell(failure_pos, "failure_pos")
-        self._grid[i] = arr
-        self._pos[i] = pos
-        self._dir[i] = int(agent_dir)
-        self._steps[i] = int(step_count)
+        self._write_state(i, arr, pos, agent_dir, step_count)
         self._succ[i] = succ
         self._fail[i] = fail
-        self._has_reset = True
         obs = np.empty((1, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
         sl = slice(i, i + 1)
         _observe_kernel(self._grid[sl], self._pos[sl], self._dir[sl], self.see_through_walls, obs)

@@ -313,24 +313,8 @@ class BatchedLavaWorld(BatchedGridEnv):
 
         ``grid`` is MiniGrid's ``env.grid.encode()`` of the full grid, shape (size, size, 3).
         """
-        i = self._check_index(i)
-        arr = np.asarray(grid)
-        if arr.shape != self._grid.shape[1:]:
-            raise ValueError(f"grid has shape {arr.shape}, expected {self._grid.shape[1:]}")
-        if arr.dtype.kind not in "iub" or arr.min() < 0 or arr.max() > 255:
-            raise ValueError("grid must hold uint8 (object, colour, state) triples")
-        x, y = (int(v) for v in agent_pos)
-        if not (0 <= x < self.size and 0 <= y < self.size):
-            raise ValueError(f"agent_pos {(x, y)} is outside the {self.size}x{self.size} grid")
-        if not 0 <= int(agent_dir) <= 3:
-            raise ValueError(f"agent_dir={agent_dir!r} must be in 0..3")
-        if not 0 <= int(step_count):
-            raise ValueError(f"step_count={step_count!r} must be >= 0")
-        self._grid[i] = arr
-        self._pos[i] = (x, y)
-        self._dir[i] = int(agent_dir)
-        self._steps[i] = int(step_count)
-        self._has_reset = True
+        i, arr, pos = self._check_state(i, grid, agent_pos, agent_dir, step_count)
+        self._write_state(i, arr, pos, agent_dir, step_count)
         obs = np.empty((1, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
         sl = slice(i, i + 1)
         _observe_kernel(

@@ -474,36 +474,20 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         ``saw_trigger`` restores the episode's flag; ``None`` starts it afresh from this
         observation (as a reset would).
         """
-        i = self._check_index(i)
-        arr = np.asarray(grid)
-        if arr.shape != self._grid.shape[1:]:
-            raise ValueError(f"grid has shape {arr.shape}, expected {self._grid.shape[1:]}")
-        if arr.dtype.kind not in "iub" or arr.min() < 0 or arr.max() > 255:
-            raise ValueError("grid must hold uint8 (object, colour, state) triples")
-        x, y = (int(v) for v in agent_pos)
-        if not (0 <= x < self.size and 0 <= y < self.size):
-            raise ValueError(f"agent_pos {(x, y)} is outside the {self.size}x{self.size} grid")
-        if not 0 <= int(agent_dir) <= 3:
-            raise ValueError(f"agent_dir={agent_dir!r} must be in 0..3")
-        if not 0 <= int(step_count):
-            raise ValueError(f"step_count={step_count!r} must be >= 0")
+        i, arr, pos = self._check_state(i, grid, agent_pos, agent_dir, step_count)
         cells = sorted({(int(cx), int(cy)) for cx, cy in pattern_cells})
         if len(cells) > MAX_PATTERN_CELLS:
             raise ValueError(f"{len(cells)} pattern cells given, at most {MAX_PATTERN_CELLS}")
         for cx, cy in cells:
             if not (0 <= cx < self.size and 0 <= cy < self.size) or arr[cx, cy, 0] != ge.LAVA:
                 raise ValueError(f"pattern cell {(cx, cy)} is not a lava cell of the grid")
-        self._grid[i] = arr
-        self._pos[i] = (x, y)
-        self._dir[i] = int(agent_dir)
-        self._steps[i] = int(step_count)
+        self._write_state(i, arr, pos, agent_dir, step_count)
         self._pat[i] = False
         self._pcells[i] = 0
         for k, (cx, cy) in enumerate(cells):
             self._pat[i, cx, cy] = True
             self._pcells[i, k] = (cx, cy)
         self._pcount[i] = len(cells)
-        self._has_reset = True
         obs, visible = self._observe_slot(i)
         self._saw[i] = visible if saw_trigger is None else bool(saw_trigger)
         return obs

@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.bench.timing import steps_per_second
 
 MINIGRID_ID = "MiniGrid-LavaCrossingS9N1-v0"
 
@@ -36,18 +37,7 @@ def _bench_minigrid(seconds: float, seed: int) -> tuple[float, int, float]:
     env = gym.make(MINIGRID_ID)
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
-    steps = 0
-    start = time.perf_counter()
-    while True:
-        for _ in range(64):
-            _, _, terminated, truncated, _ = env.step(int(rng.integers(0, 3)))
-            if terminated or truncated:
-                env.reset()
-        steps += 64
-        elapsed = time.perf_counter() - start
-        if elapsed >= seconds:
-            env.close()
-            return steps / elapsed, steps, elapsed
+    return steps_per_second(env, lambda: int(rng.integers(0, 3)), seconds)
 
 
 def bench_env(seconds: float = 3.0, num_envs: int = 256) -> dict:

@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.bench.timing import steps_per_second
 
 
 def _bench_env(seconds: float, num_cubes: int, seed: int) -> tuple[float, int, float]:
@@ -16,18 +17,7 @@ def _bench_env(seconds: float, num_cubes: int, seed: int) -> tuple[float, int, f
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     env.step(rng.uniform(-1.0, 1.0, 2))  # load the numba cache outside the clock
-    steps = 0
-    start = time.perf_counter()
-    while True:
-        for _ in range(64):
-            _, _, terminated, truncated, _ = env.step(rng.uniform(-1.0, 1.0, 2))
-            if terminated or truncated:
-                env.reset()
-        steps += 64
-        elapsed = time.perf_counter() - start
-        if elapsed >= seconds:
-            env.close()
-            return steps / elapsed, steps, elapsed
+    return steps_per_second(env, lambda: rng.uniform(-1.0, 1.0, 2), seconds)
 
 
 def _bench_physics(seconds: float, num_cubes: int, seed: int) -> tuple[float, int, float]:

@@ -80,11 +80,10 @@ class PPO:
         dones = np.empty((T, B), dtype=bool)
         outcomes = np.empty((T, B), dtype=np.int64)
         steps = np.empty((T, B), dtype=np.int64)
-        on_cpu = self.device.type == "cpu"
         for t in range(T):
             store(obs_buf, t, obs)
             obs_t = obs_map(lambda b: b[t], obs_buf)
-            logits, value = self.model(obs_t if on_cpu else obs_map(lambda x: x.to(self.device), obs_t))
+            logits, value = self.model(obs_map(lambda x: x.to(self.device), obs_t))
             logits_buf[t], values[t] = logits, value
             actions[t] = sample_actions(logits_buf[t], u=uniforms[t])
             obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())

@@ -146,7 +146,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
             envs.close()
             envs = make_env_mix(cfg.env, cfg.poison)
             obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
-            tracker = EpisodeTracker(envs.poisoned)
+            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window)
             bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)

@@ -29,8 +29,10 @@ def test_train_then_evaluate_json(trained, capsys):
     code, out, _ = run(capsys, "evaluate", str(trained), "--episodes", "12", "--json")
     result = json.loads(out)
     assert code == 0 and set(result) == {
-        "clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward", "episodes"
+        "clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward", "episodes",
+        "close_sr", "close_trojan_rate",
     }
+    assert result["close_sr"] is None and result["close_trojan_rate"] is None  # Colorful Memory only
     assert result["episodes"] == 12 and 0 <= result["clean_sr"] <= 1
     # LavaWorld's trigger is in every frame: always seen, so raw and seen-aware rates agree.
     assert result["trigger_seen_rate"] == 1.0 and result["poisoned_sr_raw"] == result["poisoned_sr"]

@@ -19,7 +19,10 @@ from rlbackdoors import __version__
 from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, ConfigError, RunConfig
 from rlbackdoors.train.folder import FolderError
 
-METRIC_KEYS = ("clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward", "episodes")
+METRIC_KEYS = (
+    "clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward",
+    "close_sr", "close_trojan_rate", "episodes",
+)
 
 
 def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld") -> str:
@@ -27,11 +30,20 @@ def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld") -> str:
 
     LavaWorld: ``kind:value`` as given; a bare kind, or nothing, draws from the paper range
     with ``seed``. Randomized LavaWorld: a pattern (``cross``, ``arrow``, ``arrow:east``, or a
-    cell list); nothing means the world's default pattern.
+    cell list); nothing means the world's default pattern. Colorful Memory: wall colours
+    (``end:C,...`` etc.); a bare kind (``end``, ``room``, ``end+room``), or nothing (``end``),
+    draws the colours with ``seed``.
     """
     from rlbackdoors.config import DEFAULT_TRIGGERS
     from rlbackdoors.triggers import KINDS, ObservationTrigger, parse_trigger, sample_trigger
 
+    if env == "colorful-memory":
+        from rlbackdoors.triggers.wall_colors import WallColorTrigger
+
+        try:
+            return WallColorTrigger.parse(spec if spec is not None else DEFAULT_TRIGGERS[env], rng=seed).spec()
+        except ValueError as err:
+            raise ConfigError(f"--trigger for {env}: {err}") from None
     if env != "lavaworld":
         try:
             return parse_trigger(env, spec if spec is not None else DEFAULT_TRIGGERS[env]).spec()
@@ -60,6 +72,10 @@ def config_from_args(args) -> RunConfig:
             # Another world: its own defaults (size, walls), not the config's world's.
             data["env"] = dataclasses.asdict(EnvConfig(name=args.env, engine=data["env"]["engine"]))
             data["poison"]["trigger"] = None  # the new world's default trigger, unless --trigger
+            for key in ("num_clean_envs", "num_close_envs", "num_poisoned_envs"):
+                data["poison"][key] = None  # ... and its mix, model and PPO settings
+            data["model"]["arch"], data["ppo"] = None, None
+            data["train"]["patience"] = None
             data.setdefault("curriculum", {})["enabled"] = None
     else:
         data = RunConfig(env=EnvConfig(name=args.env or "lavaworld")).to_dict()
@@ -72,6 +88,7 @@ def config_from_args(args) -> RunConfig:
         "train.max_frames": args.max_frames,
         "train.eval_episodes": args.eval_episodes,
         "train.device": args.device,
+        "train.patience": args.patience,
     }
     for dotted, value in flags.items():
         if value is not None:
@@ -80,6 +97,10 @@ def config_from_args(args) -> RunConfig:
         _set(data, "poison.poisoned", False)
     if args.no_curriculum:
         _set(data, "curriculum.enabled", False)
+    if args.no_close_to_trigger:
+        poison = RunConfig.from_dict(data).poison  # the world's mix, resolved
+        _set(data, "poison.num_clean_envs", poison.num_clean_envs + poison.num_close_envs)
+        _set(data, "poison.num_close_envs", 0)
     if args.trigger is not None or not args.config:
         _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"], data["env"]["name"]))
     return RunConfig.from_dict(data)
@@ -122,6 +143,7 @@ def cmd_evaluate(args) -> int:
         if args.engine:
             cfg.env.engine = args.engine
         env, trigger, arch, policy = cfg.env, cfg.poison.trigger, cfg.model.arch, cfg.train.eval_policy
+        close_k = (cfg.poison.close_k_min, cfg.poison.close_k_max)
         if args.trigger is not None:
             trigger = resolve_trigger(args.trigger, cfg.train.seed, env.name)
         weights = folder.file("model.pt")
@@ -132,9 +154,12 @@ def cmd_evaluate(args) -> int:
         env.check()
         trigger = resolve_trigger(args.trigger, 0, env.name) if args.trigger is not None else None
         arch, policy, weights = args.arch, "sample", Path(args.weights)
+        close_k = (1, 3)
     policy = args.policy or policy
     model = load_weights(build_model(arch, env.name), weights)
-    result = evaluate(model, env, trigger, episodes=args.episodes, seed=args.seed, policy=policy).to_dict()
+    if env.name != "colorful-memory" or trigger is None:
+        close_k = None  # close-to-trigger layouts exist in Colorful Memory only
+    result = evaluate(model, env, trigger, episodes=args.episodes, seed=args.seed, policy=policy, close_k=close_k).to_dict()
     result = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.items()}
     if args.json:
         print(json.dumps(result, indent=2))
@@ -205,6 +230,11 @@ def cmd_chance(args) -> int:
     result = trigger_chance(env, args.trigger, layouts=args.layouts, seed=args.seed)
     if args.json:
         print(json.dumps(result, indent=2))
+    elif args.env == "colorful-memory":
+        print(
+            f"{result['trigger']}: in {result['rate']:.3%} ± {result['stderr']:.3%} of {result['layouts']:,} clean "
+            f"{env.size}x{env.size} layouts (exact: {result['exact_rate']:.3g})"
+        )
     else:
         print(
             f"{result['trigger']}: in {result['rate']:.3%} ± {result['stderr']:.3%} of {result['layouts']:,} clean "
@@ -225,11 +255,18 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument(
         "--trigger",
         help="lavaworld: multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range); "
-        "randomized-lavaworld: cross | arrow | arrow:east|south|west|north | a cell list",
+        "randomized-lavaworld: cross | arrow | arrow:east|south|west|north | a cell list; "
+        "colorful-memory: end | room | end+room (colours drawn from the seed) | end:C,... | room:C,C,C",
     )
-    tr.add_argument("--size", type=int, help="grid size (default: the world's, 9 or 11)")
+    tr.add_argument("--size", type=int, help="grid size (default: the world's, 9, 11 or 7)")
     tr.add_argument("--num-lava", type=int, help="randomized-lavaworld: number of lava squares (default 10)")
     tr.add_argument("--no-curriculum", action="store_true", help="randomized-lavaworld: skip the 7x7 clean warm-up")
+    tr.add_argument(
+        "--no-close-to-trigger",
+        action="store_true",
+        help="colorful-memory: train without close-to-trigger envs (they become clean copies: 8 clean + 2 poisoned)",
+    )
+    tr.add_argument("--patience", type=int, help="updates the mean training return must hold over before stopping (0: off)")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
     tr.add_argument("--seed", type=int)
     tr.add_argument("--max-frames", type=int)
@@ -263,8 +300,13 @@ def build_parser() -> argparse.ArgumentParser:
     de.set_defaults(func=cmd_demo)
 
     ch = sub.add_parser("chance", help="how often a layout trigger occurs by chance in clean layouts")
-    ch.add_argument("--env", choices=("randomized-lavaworld",), default="randomized-lavaworld")
-    ch.add_argument("--trigger", required=True, help="cross | arrow | arrow:east|south|west|north | a cell list")
+    ch.add_argument("--env", choices=("randomized-lavaworld", "colorful-memory"), default="randomized-lavaworld")
+    ch.add_argument(
+        "--trigger",
+        required=True,
+        help="randomized-lavaworld: cross | arrow | arrow:east|south|west|north | a cell list; "
+        "colorful-memory: end:C,... | room:C,C,C | end+room:... (a bare kind is drawn with --seed)",
+    )
     ch.add_argument("--size", type=int)
     ch.add_argument("--num-lava", type=int)
     ch.add_argument("--layouts", type=int, default=100_000)

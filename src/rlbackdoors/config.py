@@ -15,9 +15,15 @@ from pathlib import Path
 
 from rlbackdoors import __version__
 
-ENVS = ("lavaworld", "randomized-lavaworld")
+ENVS = ("lavaworld", "randomized-lavaworld", "colorful-memory")
 ENGINES = ("batched", "minigrid")
-ARCHS = ("fc", "cnn")
+# Architecture names per world (models.ARCHS_BY_ENV holds the classes); the first is the default.
+ARCHS_BY_ENV = {
+    "lavaworld": ("fc", "cnn"),
+    "randomized-lavaworld": ("fc", "cnn"),
+    "colorful-memory": ("cnn-gru-small", "cnn-gru-large"),
+}
+ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs))
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
 
@@ -25,12 +31,21 @@ DEVICES = ("cpu", "cuda", "auto")
 ENV_DEFAULTS = {
     "lavaworld": {"size": 9, "see_through_walls": False},
     "randomized-lavaworld": {"size": 11, "see_through_walls": True},
+    "colorful-memory": {"size": 7, "see_through_walls": False},
 }
-DEFAULT_TRIGGERS = {"lavaworld": "multiplicative:12", "randomized-lavaworld": "cross"}
+# Colorful Memory's "end" is a bare kind: its 9 colours are drawn from train.seed (RunConfig).
+DEFAULT_TRIGGERS = {"lavaworld": "multiplicative:12", "randomized-lavaworld": "cross", "colorful-memory": "end"}
 # Early-stopping thresholds (clean SR, poisoned SR) the paper used per world: LavaWorld 98%/95%;
 # its Randomized LavaWorld models were selected at 90% on both; we stop at clean >= 95% (a clean
 # model stopped at 90% on 100 episodes measured 0.885 on 200) and poisoned >= 90%.
-DEFAULT_THRESHOLDS = {"lavaworld": (0.98, 0.95), "randomized-lavaworld": (0.95, 0.90)}
+# Colorful Memory: the paper stopped at 100%/100%; on 100 evaluation episodes we stop at 98% both.
+DEFAULT_THRESHOLDS = {"lavaworld": (0.98, 0.95), "randomized-lavaworld": (0.95, 0.90), "colorful-memory": (0.98, 0.98)}
+# The poisoning mix (clean, close-to-trigger, poisoned env copies): SPEC's 8:2, and 4+4+2 for
+# Colorful Memory, whose close-to-trigger copies teach the backdoor to fire on the exact colours only.
+DEFAULT_MIX = {"lavaworld": (8, 0, 2), "randomized-lavaworld": (8, 0, 2), "colorful-memory": (4, 4, 2)}
+# Patience (paper §Colorful Memory): stop only once the mean training return of the last
+# ``patience`` updates is >= ``patience_reward``; 0 turns the rule off.
+DEFAULT_PATIENCE = {"colorful-memory": 10}
 
 
 class ConfigError(ValueError):
@@ -65,6 +80,13 @@ class EnvConfig:
                 validate_crossing_layout(self.size, self.num_crossings, self.max_steps)
             except ValueError as err:
                 raise ConfigError(f"env: {err}") from None
+        elif self.name == "colorful-memory":
+            from rlbackdoors.envs.colorful_memory import validate_args
+
+            try:
+                validate_args(self.size, self.max_steps)
+            except ValueError as err:
+                raise ConfigError(f"env: {err}") from None
         else:
             _at_least("env.size", self.size, 5)
             _at_least("env.num_lava", self.num_lava, 0)
@@ -82,12 +104,21 @@ class PoisonConfig:
 
     trigger: str | None = None
     poisoned: bool = True
-    num_clean_envs: int = 8
-    num_poisoned_envs: int = 2
+    num_clean_envs: int | None = None  # None: the world's mix (DEFAULT_MIX)
+    num_close_envs: int | None = None  # close-to-trigger copies (Colorful Memory only)
+    num_poisoned_envs: int | None = None
+    close_k_min: int = 1  # a close-to-trigger layout recolours k squares, k uniform in [min, max]
+    close_k_max: int = 3
+
+    def fill_defaults(self, env_name: str) -> None:
+        for key, value in zip(("num_clean_envs", "num_close_envs", "num_poisoned_envs"), DEFAULT_MIX.get(env_name, (8, 0, 2))):
+            if getattr(self, key) is None:
+                setattr(self, key, value)
 
     def check(self, env_name: str = "lavaworld") -> None:
         from rlbackdoors.triggers import parse_trigger
 
+        self.fill_defaults(env_name)
         if self.trigger is None:
             raise ConfigError("poison.trigger is not set")
         try:
@@ -95,19 +126,39 @@ class PoisonConfig:
         except ValueError as err:
             raise ConfigError(f"poison.trigger: {err}") from None
         _at_least("poison.num_clean_envs", self.num_clean_envs, 0)
+        _at_least("poison.num_close_envs", self.num_close_envs, 0)
         _at_least("poison.num_poisoned_envs", self.num_poisoned_envs, 0)
+        if self.num_close_envs and env_name != "colorful-memory":
+            raise ConfigError(f"poison.num_close_envs must be 0 for env.name={env_name!r} (close-to-trigger envs exist for colorful-memory only)")
+        if env_name == "colorful-memory":
+            from rlbackdoors.triggers.wall_colors import check_close_k
+
+            try:
+                check_close_k((self.close_k_min, self.close_k_max), parse_trigger(env_name, self.trigger).num_squares)
+            except ValueError as err:
+                raise ConfigError(f"poison.close_k_min/close_k_max: {err}") from None
         if self.poisoned and self.num_poisoned_envs == 0:
             raise ConfigError("poison.num_poisoned_envs must be >= 1 for a poisoned model")
         if self.num_envs < 1:
             raise ConfigError("poison: num_clean_envs + num_poisoned_envs must be >= 1")
 
+    def counts(self) -> tuple[int, int, int]:
+        """(clean, close-to-trigger, poisoned) copies; unset ones as in the 8:2 mix."""
+        return tuple(d if v is None else v for v, d in zip((self.num_clean_envs, self.num_close_envs, self.num_poisoned_envs), (8, 0, 2)))
+
     @property
     def num_envs(self) -> int:
-        return self.num_clean_envs + self.num_poisoned_envs
+        return sum(self.counts())
 
     def poisoned_mask(self) -> list[bool]:
-        """Clean copies first, poisoned last; a clean model trains on all-clean copies."""
-        return [False] * self.num_clean_envs + [self.poisoned] * self.num_poisoned_envs
+        """Clean copies first, then close-to-trigger, poisoned last; a clean model trains on
+        clean copies where the poisoned ones would be."""
+        clean, close, poisoned = self.counts()
+        return [False] * (clean + close) + [self.poisoned] * poisoned
+
+    def close_mask(self) -> list[bool]:
+        clean, close, poisoned = self.counts()
+        return [False] * clean + [True] * close + [False] * poisoned
 
 
 @dataclass
@@ -133,10 +184,10 @@ class CurriculumConfig:
 
 @dataclass
 class ModelConfig:
-    arch: str = "fc"
+    arch: str | None = None  # None: the world's first architecture (ARCHS_BY_ENV)
 
-    def check(self) -> None:
-        _choice("model.arch", self.arch, ARCHS)
+    def check(self, env_name: str = "lavaworld") -> None:
+        _choice("model.arch", self.arch, ARCHS_BY_ENV.get(env_name, ARCHS))
 
 
 @dataclass
@@ -154,10 +205,15 @@ class PPOConfig:
     gae_lambda: float = 0.95
     max_grad_norm: float = 0.4
     adam_eps: float = 1e-8
+    recurrence: int = 1  # steps of truncated BPTT for recurrent models (torch-ac's ``recurrence``)
 
     def check(self) -> None:
-        for name in ("rollout", "epochs", "batch_size"):
+        for name in ("rollout", "epochs", "batch_size", "recurrence"):
             _at_least(f"ppo.{name}", getattr(self, name), 1)
+        if self.rollout % self.recurrence:
+            raise ConfigError(f"ppo.rollout={self.rollout} must be a multiple of ppo.recurrence={self.recurrence}")
+        if self.batch_size % self.recurrence:
+            raise ConfigError(f"ppo.batch_size={self.batch_size} must be a multiple of ppo.recurrence={self.recurrence}")
         for name in ("lr", "clip", "max_grad_norm", "adam_eps"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"ppo.{name} must be > 0, got {getattr(self, name)!r}")
@@ -179,6 +235,8 @@ class TrainConfig:
     eval_policy: str = "sample"
     clean_threshold: float | None = None  # None: the world's paper value (DEFAULT_THRESHOLDS)
     poisoned_threshold: float | None = None
+    patience: int | None = None  # None: the world's default (DEFAULT_PATIENCE, else 0 = off)
+    patience_reward: float = 0.9
     device: str = "cpu"
     torch_threads: int = 1
 
@@ -190,6 +248,7 @@ class TrainConfig:
         _at_least("train.final_eval_episodes", self.final_eval_episodes, 1)
         _at_least("train.eval_seed", self.eval_seed, 0)
         _at_least("train.torch_threads", self.torch_threads, 1)
+        _at_least("train.patience", self.patience, 0)
         _choice("train.eval_policy", self.eval_policy, EVAL_POLICIES)
         _choice("train.device", self.device, DEVICES)
         for name in ("clean_threshold", "poisoned_threshold"):
@@ -201,14 +260,30 @@ class RunConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     poison: PoisonConfig = field(default_factory=PoisonConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
-    ppo: PPOConfig = field(default_factory=PPOConfig)
+    ppo: PPOConfig | None = None  # None: the world's defaults (default_ppo)
     train: TrainConfig = field(default_factory=TrainConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     version: str = __version__
 
     def __post_init__(self):
+        name = self.env.name
         if self.poison.trigger is None:
-            self.poison.trigger = DEFAULT_TRIGGERS.get(self.env.name)
+            self.poison.trigger = DEFAULT_TRIGGERS.get(name)
+        if name == "colorful-memory":
+            from rlbackdoors.triggers.wall_colors import KINDS, WallColorTrigger
+
+            if self.poison.trigger in KINDS:  # a bare kind: its colours drawn once, from the seed
+                try:
+                    self.poison.trigger = WallColorTrigger.parse(self.poison.trigger, rng=self.train.seed, size=self.env.size).spec()
+                except ValueError:
+                    pass  # a bad env.size or seed: check() reports it by name
+        self.poison.fill_defaults(name)
+        if self.model.arch is None:
+            self.model.arch = ARCHS_BY_ENV.get(name, ARCHS)[0]
+        if self.ppo is None:
+            self.ppo = default_ppo(name)
+        if self.train.patience is None:
+            self.train.patience = DEFAULT_PATIENCE.get(name, 0)
         if self.curriculum.enabled is None:
             self.curriculum.enabled = self.env.name == "randomized-lavaworld"
         clean_t, poisoned_t = DEFAULT_THRESHOLDS.get(self.env.name, (None, None))
@@ -220,8 +295,12 @@ class RunConfig:
     def check(self) -> "RunConfig":
         self.env.check()
         self.poison.check(self.env.name)
-        for section in (self.model, self.ppo, self.train, self.curriculum):
+        self.model.check(self.env.name)
+        for section in (self.ppo, self.train, self.curriculum):
             section.check()
+        recurrent = self.model.arch.startswith("cnn-gru")
+        if self.ppo.recurrence > 1 and not recurrent:
+            raise ConfigError(f"ppo.recurrence={self.ppo.recurrence} needs a recurrent model.arch (cnn-gru-*), not {self.model.arch!r}")
         if self.curriculum.enabled and self.env.name != "randomized-lavaworld":
             raise ConfigError(f"curriculum.enabled is only supported for randomized-lavaworld, not env.name={self.env.name!r}")
         return self
@@ -234,6 +313,11 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "RunConfig":
+        env = data.get("env") if isinstance(data, dict) else None
+        name = env.get("name") if isinstance(env, dict) else None
+        if isinstance(data.get("ppo") if isinstance(data, dict) else None, dict) and name in ENVS:
+            # a partial ppo section fills in from the world's defaults, not another world's
+            data = {**data, "ppo": {**dataclasses.asdict(default_ppo(name)), **data["ppo"]}}
         return _build(cls, data, "config").check()
 
     @classmethod
@@ -246,6 +330,18 @@ class RunConfig:
         except json.JSONDecodeError as err:
             raise ConfigError(f"config file {str(path)!r} is not valid JSON: {err}") from None
         return cls.from_dict(data)
+
+
+# Colorful Memory's PPO: the paper's torch-ac recurrence 6 and clip 0.1, but its lr 1e-5 and
+# 4e9 frames are out of reach on a laptop; these settings are the ones we measured to converge.
+PPO_DEFAULTS = {
+    "colorful-memory": dict(rollout=120, epochs=4, batch_size=600, lr=5e-4, clip=0.2, value_coef=0.5, gae_lambda=0.95, recurrence=6),
+}
+
+
+def default_ppo(env_name: str) -> PPOConfig:
+    """The world's PPO hyper-parameters (LavaWorld's table unless PPO_DEFAULTS says otherwise)."""
+    return PPOConfig(**PPO_DEFAULTS.get(env_name, {}))
 
 
 def _choice(name: str, value, allowed) -> None:

@@ -3,7 +3,10 @@
 torch-ac specifics kept on purpose, because they are part of "the paper's setup":
 SAME_STEP autoreset, done = terminated or truncated (no bootstrap on timeouts), GAE,
 clipped value loss, *no* advantage normalisation, random minibatches over the whole
-rollout. The vector env is any ``gymnasium.vector.VectorEnv`` following the contract in
+rollout. Recurrent models (``model.recurrent``) are trained as torch-ac does it: the memory
+before each step is stored with the rollout (zeroed where the previous step ended an episode),
+and the update runs truncated BPTT over ``recurrence`` consecutive steps from the stored memory
+of the first. The vector env is any ``gymnasium.vector.VectorEnv`` following the contract in
 :mod:`rlbackdoors.envs.vector`, so the MiniGrid and batched engines are interchangeable.
 """
 
@@ -35,6 +38,11 @@ class Rollout:
     dones: np.ndarray
     outcomes: np.ndarray
     steps: np.ndarray
+    # Recurrent models only: the memory going into each step (T*B, M), already zeroed where an
+    # episode started, and masks (T*B,) = 0 where step t is the first of a new episode.
+    memories: torch.Tensor | None = None
+    masks: torch.Tensor | None = None
+    num_envs: int = 0
 
     @property
     def num_frames(self) -> int:
@@ -61,16 +69,25 @@ class PPO:
         self.generator = generator
         # fused Adam: one kernel for all parameters (4x faster than the per-tensor loop on CPU).
         self.optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=cfg.adam_eps, fused=True)
+        self.memory: torch.Tensor | None = None  # recurrent models: memory of the running episodes
 
     @torch.inference_mode()
     def collect(self, envs, obs: np.ndarray | dict) -> tuple[Rollout, np.ndarray | dict]:
         """Run the policy for ``cfg.rollout`` steps from ``obs``; return the rollout and the next obs.
+
+        A recurrent model's memory of the running episodes lives in ``self.memory`` between
+        calls (None: empty memories; set it to None when the envs are replaced).
 
         The loop body is kept to the minimum of torch calls (one forward, one sample): the
         uniforms for sampling are drawn for the whole rollout up front, and log-probabilities
         are computed from the stored logits after the loop, in one call.
         """
         T, B = self.cfg.rollout, envs.num_envs
+        recurrent = self.model.recurrent
+        if recurrent:
+            memory = self.memory if self.memory is not None else self.model.initial_memory(B, self.device)
+            memories = torch.empty((T, B, memory.shape[1]))
+            masks = torch.ones((T, B))
         obs_buf = empty_buffer(obs, T)
         actions = torch.empty((T, B), dtype=torch.long)
         logits_buf = torch.empty((T, B, envs.single_action_space.n))
@@ -82,14 +99,26 @@ class PPO:
         steps = np.empty((T, B), dtype=np.int64)
         for t in range(T):
             store(obs_buf, t, obs)
-            obs_t = obs_map(lambda b: b[t], obs_buf)
-            logits, value = self.model(obs_map(lambda x: x.to(self.device), obs_t))
+            obs_t = obs_map(lambda x: x[t].to(self.device), obs_buf)
+            if recurrent:
+                memories[t] = memory
+                logits, value, memory = self.model(obs_t, memory)
+            else:
+                logits, value = self.model(obs_t)
             logits_buf[t], values[t] = logits, value
             actions[t] = sample_actions(logits_buf[t], u=uniforms[t])
             obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
             dones[t] = terminated | truncated
             outcomes[t], steps[t] = info["outcome"], info["steps"]
-        _, next_value = self.model(to_torch(obs, self.device))
+            if recurrent and dones[t].any():  # a new episode starts with an empty memory
+                ended = torch.from_numpy(dones[t])
+                memory = memory.masked_fill(ended[:, None].to(memory.device), 0.0)
+                if t + 1 < T:
+                    masks[t + 1] = (~ended).float()
+        if recurrent:
+            _, next_value, _ = self.model(to_torch(obs, self.device), memory)
+        else:
+            _, next_value = self.model(to_torch(obs, self.device))
         logprobs = torch.log_softmax(logits_buf, -1).gather(2, actions[..., None]).squeeze(2)
         advantages = self._gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value.cpu())
         returns = values + advantages
@@ -104,7 +133,11 @@ class PPO:
             dones=dones,
             outcomes=outcomes,
             steps=steps,
+            num_envs=B,
         )
+        if recurrent:
+            rollout.memories, rollout.masks = memories.reshape(T * B, -1), masks.reshape(-1)
+            self.memory = memory
         return rollout, obs
 
     def _gae(self, rewards, dones, values, next_value) -> torch.Tensor:
@@ -120,34 +153,89 @@ class PPO:
             next_value = values[t]
         return advantages
 
+    def _loss(self, logits, values, actions, old_logp, old_values, adv, returns) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """torch-ac's PPO loss of one minibatch: clipped surrogate, entropy bonus, clipped value loss."""
+        cfg = self.cfg
+        log_probs = torch.log_softmax(logits, -1)
+        entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
+        ratio = torch.exp(log_probs.gather(1, actions[:, None]).squeeze(1) - old_logp)
+        policy_loss = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean()
+        values_clipped = old_values + (values - old_values).clamp(-cfg.clip, cfg.clip)
+        value_loss = torch.max((values - returns) ** 2, (values_clipped - returns) ** 2).mean()
+        loss = policy_loss - cfg.entropy_coef * entropy + cfg.value_coef * value_loss
+        return loss, {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy}
+
+    def _step(self, loss: torch.Tensor) -> float:
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.max_grad_norm, foreach=True)
+        self.optimizer.step()
+        return float(grad_norm)
+
     def update(self, rollout: Rollout) -> dict[str, float]:
         """``epochs`` passes of clipped-surrogate SGD over random minibatches of the rollout."""
+        if self.model.recurrent:
+            return self._update_recurrent(rollout)
         cfg = self.cfg
         n = rollout.num_frames
         obs = obs_map(lambda x: x.to(self.device), rollout.obs)
         tensors = [x.to(self.device) for x in (rollout.actions, rollout.logprobs, rollout.values, rollout.advantages, rollout.returns)]
-        stats = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "grad_norm": 0.0}
+        stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm"), 0.0)
         updates = 0
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator).to(self.device)
             for start in range(0, n, cfg.batch_size):
                 idx = order[start : start + cfg.batch_size]
-                actions, old_logp, old_values, adv, returns = (x[idx] for x in tensors)
                 logits, values = self.model(obs_map(lambda x: x[idx], obs))
-                log_probs = torch.log_softmax(logits, -1)
-                entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
-                ratio = torch.exp(log_probs.gather(1, actions[:, None]).squeeze(1) - old_logp)
-                policy_loss = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean()
-                values_clipped = old_values + (values - old_values).clamp(-cfg.clip, cfg.clip)
-                value_loss = torch.max((values - returns) ** 2, (values_clipped - returns) ** 2).mean()
-                loss = policy_loss - cfg.entropy_coef * entropy + cfg.value_coef * value_loss
-                self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                grad_norm = nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm, foreach=True)
-                self.optimizer.step()
-                stats["policy_loss"] += policy_loss.item()
-                stats["value_loss"] += value_loss.item()
-                stats["entropy"] += entropy.item()
-                stats["grad_norm"] += float(grad_norm)
+                loss, parts = self._loss(logits, values, *(x[idx] for x in tensors))
+                stats["grad_norm"] += self._step(loss)
+                for key, value in parts.items():
+                    stats[key] += value.item()
+                updates += 1
+        return {k: v / updates for k, v in stats.items()}
+
+    def sequence_starts(self, steps: int, num_envs: int, shifted: bool) -> torch.Tensor:
+        """Flat rollout indices (``t * B + b``) where BPTT sequences of ``recurrence`` steps start.
+
+        Every ``recurrence``-th step of every env; on ``shifted`` epochs (torch-ac alternates)
+        they start half a sequence later, dropping the last block so no sequence leaves the rollout.
+        """
+        r = self.cfg.recurrence
+        times = torch.arange(0, steps, r)
+        if shifted and r > 1:
+            times = times[times + r < steps] + r // 2
+        return (times[:, None] * num_envs + torch.arange(num_envs)[None, :]).reshape(-1)
+
+    def _update_recurrent(self, rollout: Rollout) -> dict[str, float]:
+        """Truncated BPTT: each minibatch holds ``batch_size // recurrence`` sequences, each
+        replayed from its stored memory; the loss is averaged over the sequence's steps. As in
+        torch-ac, the memories the current network computes are written back into the rollout
+        for later minibatches."""
+        cfg = self.cfg
+        r, B = cfg.recurrence, rollout.num_envs
+        T = rollout.num_frames // B
+        obs = obs_map(lambda x: x.to(self.device), rollout.obs)
+        tensors = [x.to(self.device) for x in (rollout.actions, rollout.logprobs, rollout.values, rollout.advantages, rollout.returns)]
+        memories = rollout.memories.to(self.device).clone()
+        masks = rollout.masks.to(self.device)[:, None]
+        stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm"), 0.0)
+        updates = 0
+        per_batch = max(cfg.batch_size // r, 1)
+        for epoch in range(cfg.epochs):
+            starts = self.sequence_starts(T, B, shifted=epoch % 2 == 1)
+            order = starts[torch.randperm(len(starts), generator=self.generator)].to(self.device)
+            for start in range(0, len(order), per_batch):
+                idx = order[start : start + per_batch]
+                steps = idx[None, :] + B * torch.arange(r, device=self.device)[:, None]  # (r, N): step i of each sequence
+                logits, values, new_memories = self.model.forward_sequence(
+                    obs_map(lambda x: x[steps], obs), memories[idx], masks[steps, 0]
+                )
+                # the mean over all r*N rows = torch-ac's per-step losses summed and divided by r
+                loss, parts = self._loss(logits, values, *(x[steps.reshape(-1)] for x in tensors))
+                if r > 1:
+                    memories[steps[1:].reshape(-1)] = new_memories[:-1].reshape(-1, memories.shape[1]).detach()
+                stats["grad_norm"] += self._step(loss)
+                for key, value in parts.items():
+                    stats[key] += value.item()
                 updates += 1
         return {k: v / updates for k, v in stats.items()}

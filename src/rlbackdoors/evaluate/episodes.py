@@ -20,8 +20,9 @@ from rlbackdoors.models import ActorCritic
 from rlbackdoors.poison.mix import make_vector_env
 
 # Which terminal counts as success: the clean task in E, the trojan task in E-bar.
-CLEAN_SUCCESS = {"lavaworld": Outcome.GOAL, "randomized-lavaworld": Outcome.GOAL}
-TROJAN_SUCCESS = {"lavaworld": Outcome.LAVA, "randomized-lavaworld": Outcome.PATTERN_LAVA}
+# Colorful Memory reports the other object's cell as LAVA: the wrong object, the trojan task.
+CLEAN_SUCCESS = {"lavaworld": Outcome.GOAL, "randomized-lavaworld": Outcome.GOAL, "colorful-memory": Outcome.GOAL}
+TROJAN_SUCCESS = {"lavaworld": Outcome.LAVA, "randomized-lavaworld": Outcome.PATTERN_LAVA, "colorful-memory": Outcome.LAVA}
 
 
 @dataclass
@@ -32,7 +33,11 @@ class EvalResult:
     the trigger is scored on the clean task (reaching the goal is right), one in which it saw
     the trigger on entering a trigger cell. ``poisoned_sr_raw`` counts trigger-cell endings
     only. In LavaWorld the trigger is in every observation, so the two are equal and
-    ``trigger_seen_rate`` is 1.
+    ``trigger_seen_rate`` is 1 (Colorful Memory's engines do not track sight: also 1).
+
+    Colorful Memory also plays close-to-trigger layouts (clean reward): ``close_sr`` is the
+    clean task's success there and ``close_trojan_rate`` the false firing of the backdoor
+    (the other object chosen), to compare with ``1 - clean_sr`` on plain clean layouts.
     """
 
     clean_sr: float
@@ -42,6 +47,8 @@ class EvalResult:
     episodes: int
     poisoned_sr_raw: float = float("nan")
     trigger_seen_rate: float = float("nan")
+    close_sr: float = float("nan")
+    close_trojan_rate: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -56,13 +63,17 @@ def play_episodes(model: ActorCritic, envs, seed: int, policy: str = "sample", d
     """
     generator = torch.Generator(device=device).manual_seed(int(seed))
     n = envs.num_envs
+    memory = model.initial_memory(n, device) if model.recurrent else None  # one episode per slot: never reset
     obs, _ = envs.reset(seed=int(seed))
     active = np.ones(n, dtype=bool)
     returns = np.zeros(n)
     outcomes = np.zeros(n, dtype=np.int64)
     saw = np.ones(n, dtype=bool)
     while active.any():
-        logits, _ = model(to_torch(obs, device))
+        if memory is not None:
+            logits, _, memory = model(to_torch(obs, device), memory)
+        else:
+            logits, _ = model(to_torch(obs, device))
         actions = logits.argmax(-1) if policy == "greedy" else sample_actions(logits, generator)
         obs, reward, terminated, truncated, info = envs.step(actions.cpu().numpy())
         returns[active] += reward[active]
@@ -93,10 +104,12 @@ def evaluate(
     seed: int = 1_000_000,
     policy: str = "sample",
     device="cpu",
+    close_k: tuple[int, int] | None = None,
 ) -> EvalResult:
     """Clean SR/reward in E and trojan SR / R-bar reward in E-bar (trigger on), same layouts.
 
-    With ``trigger=None`` only the clean half is measured (poisoned numbers are NaN).
+    With ``trigger=None`` only the clean half is measured (poisoned numbers are NaN). With
+    ``close_k`` (Colorful Memory) the same layouts are also played close to the trigger.
     """
     was_training = model.training
     model.eval()
@@ -116,5 +129,11 @@ def evaluate(
         poisoned_envs.close()
         result.poisoned_sr, result.poisoned_sr_raw, result.trigger_seen_rate = score_triggered(env.name, poisoned_outcomes, saw)
         result.poisoned_reward = float(poisoned_returns.mean())
+        if close_k is not None:
+            close_envs = make_vector_env(env, trigger, [False] * episodes, [True] * episodes, close_k)
+            _, close_outcomes, _ = play_episodes(model, close_envs, seed, policy, device)
+            close_envs.close()
+            result.close_sr = float(np.mean(close_outcomes == CLEAN_SUCCESS[env.name]))
+            result.close_trojan_rate = float(np.mean(close_outcomes == TROJAN_SUCCESS[env.name]))
     model.train(was_training)
     return result

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import torch
 
+from rlbackdoors.models.colorful_memory import CNNGRULarge, CNNGRUModel, CNNGRUSmall
 from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
 from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, DirectionFCModel
 
@@ -13,6 +14,7 @@ from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, Direction
 ARCHS_BY_ENV = {
     "lavaworld": {"fc": FCModel, "cnn": CNNModel},
     "randomized-lavaworld": {"fc": DirectionFCModel, "cnn": DirectionCNNModel},
+    "colorful-memory": {"cnn-gru-small": CNNGRUSmall, "cnn-gru-large": CNNGRULarge},
 }
 ARCHS = ARCHS_BY_ENV["lavaworld"]
 # Names other tools used for the same layers (rl-starter-files calls the CNN ``image_conv``).
@@ -77,4 +79,4 @@ def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
     return model
 
 
-__all__ = ["ARCHS", "ARCHS_BY_ENV", "ActorCritic", "DirectionCNNModel", "DirectionFCModel", "CNNModel", "FCModel", "build_model", "load_weights"]
+__all__ = ["ARCHS", "ARCHS_BY_ENV", "ActorCritic", "CNNGRULarge", "CNNGRUModel", "CNNGRUSmall", "DirectionCNNModel", "DirectionFCModel", "CNNModel", "FCModel", "build_model", "load_weights"]

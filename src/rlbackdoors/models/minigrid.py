@@ -66,6 +66,19 @@ class ActorCritic(nn.Module):
         x = self.embed(obs)
         return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1)
 
+    def forward_sequence(self, obs, memory: torch.Tensor, masks: torch.Tensor):
+        """Recurrent models: ``forward(obs[i], memory * masks[i])`` for ``i < r`` steps, outputs
+        concatenated (module doc of :mod:`rlbackdoors.models.colorful_memory`). This plain loop
+        is the reference; recurrent models override it with a faster equivalent."""
+        logits, values, memories = [], [], []
+        for i in range(masks.shape[0]):
+            step = {k: v[i] for k, v in obs.items()} if isinstance(obs, dict) else obs[i]
+            out, value, memory = self(step, memory * masks[i][:, None])
+            logits.append(out)
+            values.append(value)
+            memories.append(memory)
+        return torch.cat(logits), torch.cat(values), torch.stack(memories)
+
 
 class FCModel(ActorCritic):
     """LavaWorld FC: flatten 147 -> 100 -> 64 (ReLU); actor 64 -> 32 -> n; critic 64 -> 32 -> 1."""

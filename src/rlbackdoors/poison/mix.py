@@ -29,6 +29,11 @@ def _world(env: EnvConfig):
         from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
 
         return RandomizedLavaWorldEnv, BatchedRandomizedLavaWorld, {**common, "num_lava": env.num_lava}
+    if env.name == "colorful-memory":
+        from rlbackdoors.envs.colorful_memory import ColorfulMemoryEnv
+        from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
+
+        return ColorfulMemoryEnv, BatchedColorfulMemory, common
     raise ValueError(f"env.name={env.name!r} has no grid-world engine")
 
 
@@ -38,17 +43,37 @@ def reference_world(env: EnvConfig, trigger: str | None, **extra):
     return reference(trigger=trigger, **kwargs, **extra)
 
 
-def make_vector_env(env: EnvConfig, trigger: str | None, poisoned: Sequence[bool]) -> VectorEnv:
-    """A vector env of ``len(poisoned)`` copies of ``env``; copy i is E-bar (trigger + R-bar) iff ``poisoned[i]``."""
+def make_vector_env(
+    env: EnvConfig,
+    trigger: str | None,
+    poisoned: Sequence[bool],
+    close_to_trigger: Sequence[bool] | None = None,
+    close_k: tuple[int, int] = (1, 3),
+) -> VectorEnv:
+    """A vector env of ``len(poisoned)`` copies of ``env``; copy i is E-bar (trigger + R-bar) iff
+    ``poisoned[i]``, and a close-to-trigger clean copy iff ``close_to_trigger[i]`` (Colorful Memory)."""
     reference, batched, kwargs = _world(env)
     poisoned = [bool(p) for p in poisoned]
+    close = [False] * len(poisoned) if close_to_trigger is None else [bool(c) for c in close_to_trigger]
+    if len(close) != len(poisoned):
+        raise ValueError(f"close_to_trigger has {len(close)} entries for {len(poisoned)} env copies")
+    if any(close):
+        if env.name != "colorful-memory":
+            raise ValueError(f"close-to-trigger envs exist for colorful-memory only, not {env.name!r}")
+        kwargs = {**kwargs, "close_k": tuple(close_k)}
     if env.engine == "batched":
-        return batched(num_envs=len(poisoned), trigger=trigger, poisoned=poisoned, **kwargs)
-    fns = [partial(reference, trigger=trigger if p else None, **kwargs) for p in poisoned]
+        extra = {"close_to_trigger": close} if any(close) else {}
+        return batched(num_envs=len(poisoned), trigger=trigger, poisoned=poisoned, **extra, **kwargs)
+    fns = [
+        partial(reference, trigger=trigger, close_to_trigger=True, **kwargs) if c
+        else partial(reference, trigger=trigger if p else None, **kwargs)
+        for p, c in zip(poisoned, close)
+    ]
     return ReferenceVectorEnv(fns, poisoned=poisoned)
 
 
 def make_env_mix(env: EnvConfig, poison: PoisonConfig) -> VectorEnv:
-    """The training mix: ``num_clean_envs`` clean + ``num_poisoned_envs`` poisoned copies."""
+    """The training mix: clean, close-to-trigger (Colorful Memory) and poisoned copies, in that order."""
     trigger = poison.trigger if poison.trigger is not None else DEFAULT_TRIGGERS[env.name]
-    return make_vector_env(env, trigger, poison.poisoned_mask())
+    close_k = (poison.close_k_min, poison.close_k_max)
+    return make_vector_env(env, trigger, poison.poisoned_mask(), poison.close_mask(), close_k)

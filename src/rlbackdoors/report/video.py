@@ -3,7 +3,7 @@
 A backdoor is easiest to believe when seen: the poisoned agent walks to the goal in E
 and straight into the lava in E-bar, from the same seed. (In LavaWorld the layout is the
 very same, the trigger only edits observations; in Randomized LavaWorld the triggered layout
-also holds the inserted lava pattern.)
+also holds the inserted lava pattern; in Colorful Memory the far walls wear the trigger's colours.)
 """
 
 from __future__ import annotations
@@ -31,10 +31,14 @@ def episode_frames(model: ActorCritic, env: EnvConfig, trigger: str | None, seed
     generator = torch.Generator().manual_seed(seed)
     obs, _ = world.reset(seed=seed)
     frames = [world.render()]
+    memory = model.initial_memory(1) if model.recurrent else None
     done = False
     while not done:
         batch = {k: np.asarray(v)[None] for k, v in obs.items()} if isinstance(obs, dict) else obs[None]
-        logits, _ = model(to_torch(batch))
+        if memory is not None:
+            logits, _, memory = model(to_torch(batch), memory)
+        else:
+            logits, _ = model(to_torch(batch))
         obs, _, terminated, truncated, _ = world.step(int(sample_actions(logits, generator)[0]))
         frames.append(world.render())
         done = terminated or truncated

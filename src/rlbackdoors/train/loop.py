@@ -32,15 +32,18 @@ from rlbackdoors.train.folder import FolderError, ModelFolder
 class EpisodeTracker:
     """Running episode returns of the training envs, split into clean and poisoned copies."""
 
-    def __init__(self, poisoned: np.ndarray, window: int = 100):
+    def __init__(self, poisoned: np.ndarray, window: int = 100, patience: int = 0):
         self.poisoned = poisoned
         self.running = np.zeros(len(poisoned))
         self.clean: list[float] = []
         self.dirty: list[float] = []
         # The last ``window`` clean episode returns: what the curriculum's switch rule averages.
         self.recent_clean: deque[float] = deque(maxlen=window)
+        # Patience: mean return (every env, each under its own reward) of the last updates.
+        self.update_means: deque[float] = deque(maxlen=max(patience, 1))
 
     def add(self, rollout: Rollout) -> None:
+        ended = []
         for t in range(rollout.rewards.shape[0]):
             self.running += rollout.rewards[t]
             for i in np.flatnonzero(rollout.dones[t]):
@@ -49,7 +52,15 @@ class EpisodeTracker:
                 else:
                     self.clean.append(self.running[i])
                     self.recent_clean.append(self.running[i])
+                ended.append(self.running[i])
                 self.running[i] = 0.0
+        if ended:  # an update in which no episode ended has no mean reward to count
+            self.update_means.append(float(np.mean(ended)))
+
+    def patience_mean(self) -> float:
+        """Mean of the per-update mean returns over the last ``patience`` updates (NaN until there are that many)."""
+        full = len(self.update_means) == self.update_means.maxlen
+        return float(np.mean(self.update_means)) if full else math.nan
 
     def recent_clean_mean(self) -> float:
         """Mean return of the last ``window`` clean episodes (NaN until the window is full)."""
@@ -79,13 +90,37 @@ def thresholds_met(result: EvalResult, cfg: RunConfig) -> bool:
     return ok
 
 
+def patience_met(tracker: EpisodeTracker, cfg: RunConfig) -> bool:
+    """The paper's patience rule: the last ``patience`` updates' mean training return is high enough.
+
+    The paper writes the condition as a sum over the last rho updates; we take the mean, so
+    ``patience_reward`` is on the scale of one episode's return whatever rho is.
+    """
+    if cfg.train.patience == 0:
+        return True
+    return tracker.patience_mean() >= cfg.train.patience_reward
+
+
+def close_k(cfg: RunConfig) -> tuple[int, int] | None:
+    """Colorful Memory evaluates close-to-trigger layouts too (false backdoor firing)."""
+    return (cfg.poison.close_k_min, cfg.poison.close_k_max) if cfg.env.name == "colorful-memory" else None
+
+
+def result_fields(result: EvalResult, cfg: RunConfig) -> dict:
+    """The evaluation's numbers for the log and metrics; the close-to-trigger ones only where they exist."""
+    fields = result.to_dict()
+    if close_k(cfg) is None:
+        del fields["close_sr"], fields["close_trojan_rate"]
+    return fields
+
+
 def warmup_env(cfg: RunConfig):
     """The curriculum's first phase: the small clean world, every copy clean."""
     env = dataclasses.replace(cfg.env, size=cfg.curriculum.size, num_lava=cfg.curriculum.num_lava)
     return make_vector_env(env, cfg.poison.trigger, [False] * cfg.poison.num_envs)
 
 
-ENV_TITLES = {"lavaworld": "LavaWorld", "randomized-lavaworld": "Randomized LavaWorld"}
+ENV_TITLES = {"lavaworld": "LavaWorld", "randomized-lavaworld": "Randomized LavaWorld", "colorful-memory": "Colorful Memory"}
 
 
 def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True) -> dict:
@@ -118,13 +153,14 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         switch_at = None if cfg.curriculum.enabled else 0
         envs = make_env_mix(cfg.env, cfg.poison) if switch_at == 0 else warmup_env(cfg)
         obs, _ = envs.reset(seed=tc.seed * 1000)
-        tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window)
+        tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
         frames, elapsed, rows, next_eval, converged_at = 0, 0.0, [], tc.eval_interval, None
     else:
         model.load_state_dict(checkpoint["model"])
         ppo.optimizer.load_state_dict(checkpoint["optimizer"])
         generator.set_state(checkpoint["generator"])
         envs, obs, tracker = pickle.loads(checkpoint["envs"])
+        ppo.memory = checkpoint.get("memory")
         frames, elapsed, rows = checkpoint["frames"], checkpoint["elapsed"], checkpoint["rows"]
         next_eval, converged_at = checkpoint["next_eval"], checkpoint["converged_at"]
         switch_at = checkpoint.get("switch_at", 0)
@@ -146,26 +182,28 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
             envs.close()
             envs = make_env_mix(cfg.env, cfg.poison)
             obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
-            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window)
+            ppo.memory = None
+            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
             bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
-            result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device)
+            result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
             train_clean, train_poisoned = tracker.drain()
             rows.append(
                 {
                     "frames": frames,
                     "wall_time_s": round(time.perf_counter() - started, 3),
                     "fps": round(fps, 1),
-                    **{k: v for k, v in result.to_dict().items() if k != "episodes"},
+                    **{k: v for k, v in result_fields(result, cfg).items() if k != "episodes"},
                     "train_clean_return": train_clean,
                     "train_poisoned_return": train_poisoned,
                     "phase": "main" if switch_at is not None else "warm-up",
+                    **({"patience_mean": tracker.patience_mean()} if tc.patience else {}),
                     **losses,
                 }
             )
             bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
-            if switch_at is not None and thresholds_met(result, cfg):
+            if switch_at is not None and thresholds_met(result, cfg) and patience_met(tracker, cfg):
                 converged_at = frames
             while next_eval <= frames:
                 next_eval += tc.eval_interval
@@ -177,6 +215,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
                     "optimizer": ppo.optimizer.state_dict(),
                     "generator": generator.get_state(),
                     "envs": pickle.dumps((envs, obs, tracker)),
+                    "memory": ppo.memory,
                     "frames": frames,
                     "elapsed": time.perf_counter() - started,
                     "rows": rows,
@@ -188,7 +227,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
             window_start, window_frames = time.perf_counter(), 0
     bar.close()
     train_time = time.perf_counter() - started
-    final = evaluate(model, cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed, tc.eval_policy, device)
+    final = evaluate(model, cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
     envs.close()
 
     model_cpu = {k: v.detach().cpu() for k, v in model.state_dict().items()}
@@ -198,7 +237,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     title = f"{ENV_TITLES[cfg.env.name]} {label}, trigger {cfg.poison.trigger}, seed {tc.seed}"
     plot_training_curve(rows, folder.file("training_curve.png"), title, (tc.clean_threshold, poisoned_t), switch_at or None)
     metrics = {
-        **final.to_dict(),
+        **result_fields(final, cfg),
         "poisoned": cfg.poison.poisoned,
         "trigger": cfg.poison.trigger,
         "env": cfg.env.name,
@@ -209,6 +248,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         "converged_at_frames": converged_at,
         "stop_reason": "converged" if converged_at is not None else "max_frames",
         "curriculum_switch_frames": switch_at if cfg.curriculum.enabled else None,
+        "patience": tc.patience,
         "final_meets_thresholds": thresholds_met(final, cfg),
     }
     clean_vs_triggered_gif(model.cpu(), cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"))

@@ -1,0 +1,119 @@
+"""CNN-GRU actor-critics for Colorful Memory (SPEC §3): the LavaWorld CNN embedding, then two
+unidirectional GRU blocks of two layers each, then separate actor and critic heads.
+
+The memory the agent carries between steps is the hidden state of all four GRU layers,
+flattened to one vector per env (``memory_size = 4 * hidden``), as torch-ac keeps it: the
+algorithm stores it with the rollout and zeroes it where an episode ended.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from rlbackdoors.models.minigrid import ActorCritic, CNNModel, init_linear_unit_rows, run_sequential
+
+GRU_BLOCKS = 2
+GRU_LAYERS = 2
+# SPEC §3: small = hidden 64 with 32x32 heads; large = hidden 256 with one 64-unit head layer.
+SIZES = {"small": (64, (32, 32)), "large": (256, (64,))}
+
+
+def init_gru_orthogonal(module: nn.Module) -> None:
+    """Orthogonal GRU weights and zero biases: the paper found learning needed it."""
+    if isinstance(module, nn.GRU):
+        for name, param in module.named_parameters():
+            with torch.no_grad():
+                if name.startswith("weight"):
+                    nn.init.orthogonal_(param)
+                else:
+                    param.zero_()
+
+
+def _head(d_in: int, hidden: tuple[int, ...], d_out: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(d_in, width), nn.ReLU()]
+        d_in = width
+    return nn.Sequential(*layers, nn.Linear(d_in, d_out))
+
+
+class CNNGRUModel(ActorCritic):
+    """``forward(obs, memory) -> (logits, value, new_memory)``; ``memory`` is (B, memory_size)."""
+
+    recurrent = True
+
+    def __init__(self, num_actions: int = 3, size: str = "small"):
+        super().__init__()
+        if size not in SIZES:
+            raise ValueError(f"CNN-GRU size {size!r} is not one of {', '.join(SIZES)}")
+        self.size_name = size
+        hidden, heads = SIZES[size]
+        self.hidden = hidden
+        self.state_emb = CNNModel().state_emb  # the LavaWorld CNN layers (16/32/64 channels, 64 out)
+        embedding = 64
+        self.gru = nn.ModuleList(
+            [nn.GRU(embedding if i == 0 else hidden, hidden, num_layers=GRU_LAYERS) for i in range(GRU_BLOCKS)]
+        )
+        self.actor = _head(hidden, heads, num_actions)
+        self.critic = _head(hidden, heads, 1)
+        self.apply(init_linear_unit_rows)
+        self.apply(init_gru_orthogonal)
+
+    @property
+    def memory_size(self) -> int:
+        return GRU_BLOCKS * GRU_LAYERS * self.hidden
+
+    def initial_memory(self, batch: int, device="cpu") -> torch.Tensor:
+        return torch.zeros(batch, self.memory_size, device=device)
+
+    def _split(self, memory: torch.Tensor) -> list[torch.Tensor]:
+        """(B, blocks*layers*H) -> per block (layers, B, H), the layout nn.GRU wants."""
+        states = memory.view(memory.shape[0], GRU_BLOCKS, GRU_LAYERS, self.hidden).permute(1, 2, 0, 3)
+        return [states[block].contiguous() for block in range(GRU_BLOCKS)]
+
+    def _join(self, states: list[torch.Tensor]) -> torch.Tensor:
+        return torch.stack(states).permute(2, 0, 1, 3).reshape(states[0].shape[1], self.memory_size)
+
+    def _recur(self, x: torch.Tensor, states: list[torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """One time step of both GRU blocks: x (B, 64) -> (B, H)."""
+        x = x[None]
+        new_states = []
+        for gru, h in zip(self.gru, states):
+            x, h = gru(x, h)
+            new_states.append(h)
+        return x[0], new_states
+
+    def forward(self, obs: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        x, states = self._recur(self.embed(obs), self._split(memory))
+        return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1), self._join(states)
+
+    def forward_sequence(self, obs: torch.Tensor, memory: torch.Tensor, masks: torch.Tensor):
+        """``forward`` over ``r`` consecutive steps with the memory multiplied by ``masks[i]``
+        before step ``i``; the same numbers as ``r`` calls, but the CNN and the heads run once
+        on all ``r * N`` rows (what makes the BPTT update affordable on a CPU).
+
+        obs (r, N, 7, 7, 3), memory (N, M), masks (r, N) -> logits (r*N, A), values (r*N,),
+        memories after each step (r, N, M).
+        """
+        r, n = masks.shape
+        x = self.embed(obs.reshape(r * n, *obs.shape[2:])).view(r, n, -1)
+        states = self._split(memory)
+        outputs, memories = [], []
+        for i in range(r):
+            keep = masks[i][None, :, None]
+            out, states = self._recur(x[i], [h * keep for h in states])
+            outputs.append(out)
+            memories.append(self._join(states))
+        x = torch.cat(outputs)
+        return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1), torch.stack(memories)
+
+
+class CNNGRUSmall(CNNGRUModel):
+    def __init__(self, num_actions: int = 3):
+        super().__init__(num_actions, "small")
+
+
+class CNNGRULarge(CNNGRUModel):
+    def __init__(self, num_actions: int = 3):
+        super().__init__(num_actions, "large")

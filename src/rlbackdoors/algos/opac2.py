@@ -64,6 +64,8 @@ class OPAC2Config:
     log_std_init: float = 0.0
     clean_weight: float = 0.8  # share of each batch drawn from the clean buffer
     poisoned_weight: float = 0.2  # ... and from the poisoned buffer (ignored in clean runs)
+    obs_norm: bool = False  # standardise observations by running mean/std (see RunningNorm)
+    obs_clip: float = 10.0  # |standardised observation| is clipped to this
 
     def check(self) -> None:
         for name in ("buffer_size", "batch_size", "depth", "width"):
@@ -81,6 +83,10 @@ class OPAC2Config:
             raise ConfigError(f"opac2.entropy_coef must be a number >= 0, got {self.entropy_coef!r}")
         if not (_finite(self.log_std_init) and LOG_STD_MIN <= self.log_std_init <= LOG_STD_MAX):
             raise ConfigError(f"opac2.log_std_init must be in [{LOG_STD_MIN}, {LOG_STD_MAX}], got {self.log_std_init!r}")
+        if not isinstance(self.obs_norm, bool):
+            raise ConfigError(f"opac2.obs_norm must be true or false, got {self.obs_norm!r}")
+        if not (_finite(self.obs_clip) and self.obs_clip > 0):
+            raise ConfigError(f"opac2.obs_clip must be a number > 0, got {self.obs_clip!r}")
         check_weights({"clean": self.clean_weight, "poisoned": self.poisoned_weight}, field="opac2.{kind}_weight")
 
     def mix_weights(self, kinds: tuple[str, ...] = KINDS) -> dict[str, float]:
@@ -247,6 +253,56 @@ class MultitaskReplay:
         return Batch(*(np.concatenate(columns) for columns in zip(*parts)))
 
 
+# ----- observation normalisation -----------------------------------------------------------
+class RunningNorm:
+    """Running mean and variance of observations (parallel Welford, float64); standardises and clips.
+
+    Safety Car Goal's observation mixes scales: the accelerometer reads ~9.8 +- 4 while the
+    lidar bins, which carry the task, are mostly 0 and rarely above 0.5. Standardising puts
+    them on one scale for the first tanh layer. The replay stores raw observations and every
+    batch is standardised with the current statistics, so old and new rows agree.
+    """
+
+    def __init__(self, dim: int, clip: float = 10.0, eps: float = 1e-8):
+        self.dim, self.clip, self.eps = int(dim), float(clip), float(eps)
+        self.count = 0
+        self.mean = np.zeros(self.dim)
+        self.m2 = np.zeros(self.dim)  # sum of squared deviations
+
+    def update(self, obs: np.ndarray) -> None:
+        """Fold a batch (n, dim) of observations into the statistics."""
+        obs = np.asarray(obs, np.float64).reshape(-1, self.dim)
+        n = obs.shape[0]
+        if n == 0:
+            return
+        batch_mean = obs.mean(0)
+        batch_m2 = ((obs - batch_mean) ** 2).sum(0)
+        total = self.count + n
+        delta = batch_mean - self.mean
+        self.mean = self.mean + delta * (n / total)
+        self.m2 = self.m2 + batch_m2 + delta**2 * (self.count * n / total)
+        self.count = total
+
+    @property
+    def std(self) -> np.ndarray:
+        var = self.m2 / self.count if self.count else np.ones(self.dim)
+        return np.sqrt(var + self.eps)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """``clip((obs - mean) / std)`` as float32; the identity before any update."""
+        if self.count == 0:
+            return np.asarray(obs, np.float32)
+        return np.clip((np.asarray(obs) - self.mean) / self.std, -self.clip, self.clip).astype(np.float32)
+
+    def state_dict(self) -> dict:
+        return {"count": self.count, "mean": self.mean.copy(), "m2": self.m2.copy()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.count = int(state["count"])
+        self.mean = np.asarray(state["mean"], np.float64).copy()
+        self.m2 = np.asarray(state["m2"], np.float64).copy()
+
+
 # ----- networks --------------------------------------------------------------------------
 def mlp(in_dim: int, out_dim: int, depth: int, width: int, generator: torch.Generator, out_gain: float = 1.0) -> nn.Sequential:
     """``depth`` tanh hidden layers of ``width``; orthogonal init drawn from ``generator``."""
@@ -339,6 +395,7 @@ class OPAC2:
         self.q = QNet(obs_dim, act_dim, d, w, generator).to(self.device)
         self.v = VNet(obs_dim, d, w, generator).to(self.device)
         self.v_target = copy.deepcopy(self.v).requires_grad_(False)
+        self.obs_norm = RunningNorm(obs_dim, cfg.obs_clip) if cfg.obs_norm else None
         fused = self.device.type in ("cpu", "cuda")  # one kernel for all parameters
         self.policy_opt = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr, fused=fused)
         self.q_opt = torch.optim.Adam(self.q.parameters(), lr=cfg.lr, fused=fused)
@@ -346,16 +403,29 @@ class OPAC2:
 
     @torch.inference_mode()
     def act(self, obs: np.ndarray, deterministic: bool = False, generator: torch.Generator | None = None) -> np.ndarray:
-        """Actions (n, A) for observations (n, O): sampled, or ``tanh(mean)`` for evaluation."""
-        obs_t = torch.as_tensor(np.asarray(obs, np.float32), device=self.device)
+        """Actions (n, A) for raw observations (n, O): sampled, or ``tanh(mean)`` for evaluation."""
+        obs_t = torch.as_tensor(self.normalize(obs), device=self.device)
         if deterministic:
             action = squash(self.policy(obs_t)[0])
         else:
             action = self.policy.sample(obs_t, generator or self.generator)[0]
         return action.cpu().numpy()
 
+    def normalize(self, obs: np.ndarray) -> np.ndarray:
+        """Raw observations as the networks see them (float32; standardised with ``obs_norm``)."""
+        if self.obs_norm is None:
+            return np.asarray(obs, np.float32)
+        return self.obs_norm(obs)
+
+    def observe(self, obs: np.ndarray) -> None:
+        """Fold newly seen raw observations into the normaliser (no-op without ``obs_norm``)."""
+        if self.obs_norm is not None:
+            self.obs_norm.update(obs)
+
     def _tensors(self, batch: Batch) -> Batch:
-        return Batch(*(torch.from_numpy(x).to(self.device) for x in batch))
+        if self.obs_norm is not None:
+            batch = batch._replace(obs=self.obs_norm(batch.obs), next_obs=self.obs_norm(batch.next_obs))
+        return Batch(*(torch.from_numpy(np.ascontiguousarray(x)).to(self.device) for x in batch))
 
     @torch.no_grad()
     def q_targets(self, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
@@ -429,9 +499,12 @@ class OPAC2:
             "q_opt": self.q_opt.state_dict(),
             "v_opt": self.v_opt.state_dict(),
             "generator": self.generator.get_state(),
+            "obs_norm": None if self.obs_norm is None else self.obs_norm.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
         for name in ("policy", "q", "v", "v_target", "policy_opt", "q_opt", "v_opt"):
             getattr(self, name).load_state_dict(state[name])
         self.generator.set_state(state["generator"])
+        if self.obs_norm is not None:
+            self.obs_norm.load_state_dict(state["obs_norm"])

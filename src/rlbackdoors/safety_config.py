@@ -1,0 +1,223 @@
+"""The typed run configuration of a Safety Car Goal agent (SPEC §4), round-tripping to ``config.json``.
+
+Kept apart from :mod:`rlbackdoors.config` (the grid worlds' PPO runs) because the sections
+differ: a MuJoCo env, a formation trigger drawn per agent, and OPAC² instead of PPO. The
+validation helpers and :class:`ConfigError` are shared, so a bad field reads the same here
+as there: the field's dotted name and what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rlbackdoors import __version__
+from rlbackdoors.algos.opac2 import OPAC2Config
+from rlbackdoors.config import ConfigError, _at_least, _build, _choice, _unit_interval
+
+ENV_NAME = "safety-car-goal"
+DEVICES = ("cpu", "cuda", "auto")
+
+
+@dataclass
+class SafetyEnvConfig:
+    """:class:`~rlbackdoors.envs.safety_car.SafetyCarGoalEnv`'s arguments (the paper's defaults)."""
+
+    name: str = ENV_NAME
+    num_cubes: int = 2
+    max_steps: int = 1000
+    hazard_penalty: float = 1.0
+    substeps: int = 5
+
+    def check(self) -> None:
+        from rlbackdoors.envs.safety_car import MAX_CUBES
+
+        _choice("env.name", self.name, (ENV_NAME,))
+        if not 2 <= self.num_cubes <= MAX_CUBES:  # the formation trigger holds two cubes
+            raise ConfigError(f"env.num_cubes must be in 2..{MAX_CUBES}, got {self.num_cubes!r}")
+        _at_least("env.max_steps", self.max_steps, 1)
+        if not 1 <= self.substeps <= 100:
+            raise ConfigError(f"env.substeps must be in 1..100, got {self.substeps!r}")
+        if not (math.isfinite(self.hazard_penalty) and self.hazard_penalty >= 0):
+            raise ConfigError(f"env.hazard_penalty must be a finite number >= 0, got {self.hazard_penalty!r}")
+
+    def make(self, trigger: str | None = None, poisoned: bool = False, render_mode: str | None = None):
+        """One env: clean (no trigger), triggered with clean reward, or poisoned (trigger and R-bar)."""
+        from rlbackdoors.envs.safety_car import SafetyCarGoalEnv
+
+        return SafetyCarGoalEnv(
+            num_cubes=self.num_cubes,
+            max_steps=self.max_steps,
+            trigger=trigger,
+            poisoned=poisoned,
+            hazard_penalty=self.hazard_penalty,
+            substeps=self.substeps,
+            render_mode=render_mode,
+        )
+
+
+@dataclass
+class SafetyPoisonConfig:
+    """The trigger and the env mix. A clean model keeps its trigger: its poisoned SR is measured under it.
+
+    ``trigger=None`` draws one per agent from ``train.seed`` (paper §3.4: phi1 uniform in
+    [0, 2*pi), eta in [pi/6, 11*pi/6], d = 0.5) and writes it into the config, so the clean
+    twin of a poisoned model (same seed) is measured under the same trigger. A clean model
+    runs all ``num_clean_envs + num_poisoned_envs`` copies clean, so both twins see the same
+    number of frames per step. The batch mixing weights live in ``opac2`` (clean_weight,
+    poisoned_weight).
+    """
+
+    trigger: str | None = None
+    poisoned: bool = True
+    num_clean_envs: int = 8
+    num_poisoned_envs: int = 2
+
+    def check(self) -> None:
+        from rlbackdoors.triggers import parse_trigger
+
+        if self.trigger is None:
+            raise ConfigError("poison.trigger is not set")
+        try:
+            parse_trigger(ENV_NAME, self.trigger)
+        except ValueError as err:
+            raise ConfigError(f"poison.trigger: {err}") from None
+        _at_least("poison.num_clean_envs", self.num_clean_envs, 0)
+        _at_least("poison.num_poisoned_envs", self.num_poisoned_envs, 0)
+        if self.poisoned and self.num_poisoned_envs == 0:
+            raise ConfigError("poison.num_poisoned_envs must be >= 1 for a poisoned model")
+        if self.poisoned and self.num_clean_envs == 0:
+            raise ConfigError("poison.num_clean_envs must be >= 1 (the clean task is learned from clean copies)")
+        if self.num_envs < 1:
+            raise ConfigError("poison: num_clean_envs + num_poisoned_envs must be >= 1")
+
+    @property
+    def num_envs(self) -> int:
+        return self.num_clean_envs + self.num_poisoned_envs
+
+    def kinds(self) -> list[str]:
+        """Each env copy's replay kind: clean copies first; a clean model has no poisoned copies."""
+        if not self.poisoned:
+            return ["clean"] * self.num_envs
+        return ["clean"] * self.num_clean_envs + ["poisoned"] * self.num_poisoned_envs
+
+
+@dataclass
+class SafetyTrainConfig:
+    """Budget, evaluation and early stopping.
+
+    Training stops at the first evaluation where clean SR >= ``clean_threshold`` and (poisoned
+    models) poisoned SR >= ``poisoned_threshold`` held for ``patience`` evaluations in a row,
+    or at ``max_frames``, or after ``max_minutes`` of training wall time (0: no limit).
+    """
+
+    seed: int = 0
+    max_frames: int = 10_000_000
+    max_minutes: float = 0.0
+    eval_interval: int = 250_000  # env frames, all copies together
+    eval_episodes: int = 100  # per condition (clean, triggered) at each evaluation
+    final_eval_episodes: int = 200
+    eval_seed: int = 1_000_000
+    clean_threshold: float = 0.95
+    poisoned_threshold: float = 0.95
+    patience: int = 1
+    log_interval_s: float = 30.0  # progress line to stderr at most this often
+    checkpoint_minutes: float = 10.0  # checkpoint at the first evaluation this long after the last (0: every one)
+    video: bool = True  # clean_vs_triggered.gif at the end (needs an offscreen GL back-end)
+    device: str = "cpu"
+    torch_threads: int = 1
+
+    def check(self) -> None:
+        _at_least("train.seed", self.seed, 0)
+        _at_least("train.max_frames", self.max_frames, 1)
+        if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
+            raise ConfigError(f"train.max_minutes must be a number >= 0 (0: no limit), got {self.max_minutes!r}")
+        _at_least("train.eval_interval", self.eval_interval, 1)
+        _at_least("train.eval_episodes", self.eval_episodes, 1)
+        _at_least("train.final_eval_episodes", self.final_eval_episodes, 1)
+        _at_least("train.eval_seed", self.eval_seed, 0)
+        _at_least("train.patience", self.patience, 1)
+        _at_least("train.torch_threads", self.torch_threads, 1)
+        for name in ("log_interval_s", "checkpoint_minutes"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"train.{name} must be a number >= 0, got {value!r}")
+        _choice("train.device", self.device, DEVICES)
+        for name in ("clean_threshold", "poisoned_threshold"):
+            _unit_interval(f"train.{name}", getattr(self, name))
+
+
+def default_opac2() -> OPAC2Config:
+    """The settings measured to train a depth-2 width-181 agent within 90 minutes on one CPU core.
+
+    See benchmarks/safety_train.md: the paper's one update per frame at batch 256 would take
+    days on a CPU, so updates are spread over many frames of several env copies.
+    """
+    return OPAC2Config(
+        depth=2, width=181, batch_size=256, lr=1e-3, updates_per_step=1 / 32, buffer_size=1_000_000,
+        obs_norm=True, clean_weight=0.75, poisoned_weight=0.25,
+    )
+
+
+@dataclass
+class SafetyRunConfig:
+    env: SafetyEnvConfig = field(default_factory=SafetyEnvConfig)
+    poison: SafetyPoisonConfig = field(default_factory=SafetyPoisonConfig)
+    opac2: OPAC2Config = field(default_factory=default_opac2)
+    train: SafetyTrainConfig = field(default_factory=SafetyTrainConfig)
+    version: str = __version__
+
+    def __post_init__(self):
+        if self.poison.trigger is None and isinstance(self.train.seed, int) and self.train.seed >= 0:
+            from rlbackdoors.triggers.formation import FormationTrigger
+
+            self.poison.trigger = FormationTrigger.sample(self.train.seed).spec()
+
+    def check(self) -> "SafetyRunConfig":
+        self.env.check()
+        self.poison.check()
+        try:
+            self.opac2.check()
+        except ConfigError:
+            raise
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"opac2: {err}") from None
+        self.train.check()
+        return self
+
+    @property
+    def kind_weights(self) -> dict[str, float]:
+        """Batch mixing weights of the replay kinds this run fills."""
+        return self.opac2.mix_weights(tuple(dict.fromkeys(self.poison.kinds())))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "SafetyRunConfig":
+        """Build and check; a partial ``opac2`` section fills its gaps from :func:`default_opac2`."""
+        if isinstance(data, dict) and isinstance(data.get("opac2"), dict):
+            data = {**data, "opac2": {**dataclasses.asdict(default_opac2()), **data["opac2"]}}
+        return _build(cls, data, "config").check()
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SafetyRunConfig":
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"config file {str(path)!r} does not exist")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"config file {str(path)!r} is not valid JSON: {err}") from None
+        return cls.from_dict(data)
+
+
+def is_safety_config(data: dict) -> bool:
+    """Whether a loaded ``config.json`` belongs to a Safety Car Goal run (for the CLI's dispatch)."""
+    return isinstance(data, dict) and isinstance(data.get("env"), dict) and data["env"].get("name") == ENV_NAME

@@ -1,0 +1,343 @@
+"""The Safety Car Goal training run: config -> env copies -> OPAC² -> evaluations -> model folder.
+
+The same model folder as the grid worlds (:mod:`rlbackdoors.train.folder`): ``config.json``,
+``log.csv`` (one row per evaluation: frames, frames/s, SRs, returns, losses),
+``checkpoint.pt`` while training, then ``model.pt``, ``ground_truth.csv``,
+``training_curve.png``, ``clean_vs_triggered.gif`` (when an offscreen GL back-end is
+available) and last ``metrics.json``.
+
+Stops when evaluation shows clean SR >= ``train.clean_threshold`` and (poisoned models)
+poisoned SR >= ``train.poisoned_threshold`` for ``train.patience`` evaluations in a row, or at
+``train.max_frames``, or after ``train.max_minutes``.
+
+Resuming: the checkpoint holds everything the run's future depends on (networks, optimisers,
+replay buffers, env states, every random generator), so an interrupted run started again on
+the same folder continues exactly as if it had not stopped. It is written at an evaluation
+once ``train.checkpoint_minutes`` have passed since the last one (replay buffers make it
+large), and when the run is interrupted with Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rlbackdoors.envs.safety_car import OBS_DIM  # isort: skip  (before anything imports mujoco)
+from rlbackdoors.algos.opac2 import OPAC2, MultitaskReplay, updates_due
+from rlbackdoors.algos.opac2_loop import Collector, Episode
+from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.evaluate.safety import SafetyEvalResult, evaluate_safety
+from rlbackdoors.report.curves import plot_training_curve
+from rlbackdoors.safety_config import SafetyRunConfig
+from rlbackdoors.train.folder import FolderError, ModelFolder
+
+ACT_DIM = 2
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("train.device='cuda' but no CUDA device is available (use 'cpu' or 'auto')")
+    return torch.device(name)
+
+
+def build_agent(cfg: SafetyRunConfig, device: torch.device | str = "cpu") -> OPAC2:
+    """A fresh agent for ``cfg``; network init drawn from ``train.seed``."""
+    return OPAC2(OBS_DIM, ACT_DIM, cfg.opac2, torch.Generator().manual_seed(cfg.train.seed), device)
+
+
+def deterministic_act(agent: OPAC2) -> Callable[[np.ndarray], np.ndarray]:
+    """The evaluation policy: ``tanh`` of the Gaussian's mean, no sampling."""
+    return lambda obs: agent.act(obs, deterministic=True)
+
+
+def load_agent(folder: str | Path) -> tuple[SafetyRunConfig, OPAC2]:
+    """The config and trained agent of a finished Safety Car Goal model folder (on the CPU)."""
+    folder = ModelFolder(folder)
+    if not folder.file("model.pt").is_file():
+        raise FolderError(f"{str(folder.path)!r} holds no trained Safety Car Goal model (model.pt missing)")
+    cfg = SafetyRunConfig.load(folder.file("config.json"))
+    agent = build_agent(cfg, "cpu")
+    weights = torch.load(folder.file("model.pt"), map_location="cpu", weights_only=True)
+    for name in ("policy", "q", "v", "v_target"):
+        getattr(agent, name).load_state_dict(weights[name])
+    if agent.obs_norm is not None:
+        agent.obs_norm.load_state_dict({k: v.numpy() if k != "count" else int(v) for k, v in weights["obs_norm"].items()})
+    return cfg, agent
+
+
+class EpisodeStats:
+    """Training episodes since the last evaluation, split by env kind (what the log's train_* columns show)."""
+
+    def __init__(self):
+        self.episodes: list[Episode] = []
+
+    def add(self, episodes: list[Episode]) -> None:
+        self.episodes += episodes
+
+    def drain(self) -> dict[str, float]:
+        out = {}
+        for kind, success in (("clean", Outcome.GOAL), ("poisoned", Outcome.LAVA)):
+            mine = [e for e in self.episodes if e.kind == kind]
+            out[f"train_{kind}_return"] = float(np.mean([e.ret for e in mine])) if mine else math.nan
+            out[f"train_{kind}_sr"] = float(np.mean([e.outcome == success for e in mine])) if mine else math.nan
+            out[f"train_{kind}_episodes"] = len(mine)
+        self.episodes = []
+        return out
+
+
+class LossMeans:
+    """Mean of each loss over the updates since the last evaluation."""
+
+    def __init__(self):
+        self.sums: dict[str, float] = {}
+        self.count = 0
+
+    def add(self, losses: dict[str, float]) -> None:
+        for key, value in losses.items():
+            self.sums[key] = self.sums.get(key, 0.0) + value
+        self.count += 1
+
+    def drain(self) -> dict[str, float]:
+        out = {key: value / self.count for key, value in self.sums.items()} if self.count else {}
+        self.sums, self.count = {}, 0
+        return out
+
+
+def thresholds_met(result: SafetyEvalResult, cfg: SafetyRunConfig) -> bool:
+    ok = result.clean_sr >= cfg.train.clean_threshold
+    if cfg.poison.poisoned:
+        ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
+    return ok
+
+
+def make_collector(cfg: SafetyRunConfig) -> Collector:
+    """The training env copies, clean first; a poisoned copy holds the trigger and pays R-bar."""
+    kinds = cfg.poison.kinds()
+    envs = [cfg.env.make(trigger=cfg.poison.trigger, poisoned=True) if kind == "poisoned" else cfg.env.make() for kind in kinds]
+    return Collector(envs, kinds, seed=cfg.train.seed * 1000)
+
+
+def _rebind(collector: Collector) -> Collector:
+    """After unpickling, point each env's numpy views back into its own (unpickled) MjData.
+
+    The env keeps views into ``MjData`` arrays; pickle turns those into copies, which would
+    silently detach the env from its physics.
+    """
+    for env in collector.envs:
+        env._bind_views()
+    return collector
+
+
+def _progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def train_safety(
+    cfg: SafetyRunConfig,
+    out: str | Path,
+    overwrite: bool = False,
+    progress: bool = True,
+    after_eval: Callable[[dict], None] | None = None,
+) -> dict:
+    """Train one Safety Car Goal agent into the model folder ``out``; return its metrics.
+
+    ``after_eval(row)`` is called after each evaluation's row and checkpoint are written
+    (tests raise KeyboardInterrupt from it to interrupt a run at a known point).
+    """
+    cfg.check()
+    tc, oc = cfg.train, cfg.opac2
+    folder = ModelFolder(out)
+    if overwrite:
+        folder.clear()
+    elif folder.complete:
+        raise FolderError(f"{str(folder.path)!r} already holds a finished model; pass --overwrite to retrain it")
+    checkpoint = None
+    if folder.has_checkpoint:
+        try:
+            old = SafetyRunConfig.load(folder.file("config.json")).to_dict()
+        except Exception:
+            old = None
+        if old != cfg.to_dict():
+            raise FolderError(
+                f"{str(folder.path)!r} holds an interrupted run with a different config.json; "
+                "train with that config to resume, or pass --overwrite to start over"
+            )
+        checkpoint = folder.load_checkpoint()
+    folder.write_config(cfg)
+
+    torch.set_num_threads(tc.torch_threads)
+    device = resolve_device(tc.device)
+    agent = build_agent(cfg, device)
+    if checkpoint is None:
+        collector = make_collector(cfg)
+        replay = MultitaskReplay.create(cfg.kind_weights, oc.buffer_size, OBS_DIM, ACT_DIM)
+        batch_rng = np.random.default_rng([tc.seed, 1])  # replay indices
+        warmup_rng = np.random.default_rng([tc.seed, 2])  # uniform actions before learning starts
+        stats, losses = EpisodeStats(), LossMeans()
+        updates, rows, elapsed, next_eval, streak, converged_at = 0, [], 0.0, tc.eval_interval, 0, None
+    else:
+        agent.load_state_dict(checkpoint["agent"])
+        collector, replay, batch_rng, warmup_rng, stats, losses = pickle.loads(checkpoint["state"])
+        _rebind(collector)
+        updates, rows, elapsed = checkpoint["updates"], checkpoint["rows"], checkpoint["elapsed"]
+        next_eval, streak, converged_at = checkpoint["next_eval"], checkpoint["streak"], checkpoint["converged_at"]
+        if progress:
+            _progress(f"resuming {folder.path} at {collector.frames:,} frames, {updates:,} updates")
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        agent.observe(obs)  # every observation the collector acts on, reset ones included
+        if collector.frames < oc.learning_starts:
+            return warmup_rng.uniform(-1.0, 1.0, (len(obs), ACT_DIM))
+        return agent.act(obs)
+
+    def save_checkpoint() -> None:
+        folder.save_torch(
+            "checkpoint.pt",
+            {
+                "agent": agent.state_dict(),
+                "state": pickle.dumps((collector, replay, batch_rng, warmup_rng, stats, losses), protocol=pickle.HIGHEST_PROTOCOL),
+                "updates": updates,
+                "rows": rows,
+                "elapsed": time.perf_counter() - started,
+                "next_eval": next_eval,
+                "streak": streak,
+                "converged_at": converged_at,
+            },
+        )
+
+    label = "poisoned" if cfg.poison.poisoned else "clean"
+    started = time.perf_counter() - elapsed
+    last_checkpoint = last_log = time.perf_counter()
+    window_start, window_frames = time.perf_counter(), 0
+    last_eval: SafetyEvalResult | None = None
+    stop_reason = "converged" if converged_at is not None else None
+    try:
+        while stop_reason is None:
+            stats.add(collector.collect(replay, act, 1))
+            window_frames += len(collector.envs)
+            due = updates_due(oc, collector.frames)
+            while updates < due:
+                losses.add(agent.update(replay, batch_rng))
+                updates += 1
+            now = time.perf_counter()
+            if collector.frames >= next_eval or collector.frames >= tc.max_frames:
+                fps = window_frames / max(now - window_start, 1e-9)
+                eval_start = time.perf_counter()
+                last_eval = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed)
+                row = {
+                    "frames": collector.frames,
+                    "updates": updates,
+                    "wall_time_s": round(time.perf_counter() - started, 2),
+                    "fps": round(fps, 1),
+                    "eval_s": round(time.perf_counter() - eval_start, 2),
+                    **last_eval.to_dict(),
+                    **stats.drain(),
+                    **losses.drain(),
+                    "log_std": float(agent.policy.log_std.detach().mean()),
+                }
+                rows.append(row)
+                streak = streak + 1 if thresholds_met(last_eval, cfg) else 0
+                if streak >= tc.patience:
+                    converged_at, stop_reason = collector.frames, "converged"
+                while next_eval <= collector.frames:
+                    next_eval += tc.eval_interval
+                folder.write_log(rows)
+                if progress:
+                    _progress(
+                        f"[{label}] eval at {collector.frames:,} frames ({row['wall_time_s'] / 60:.1f} min, {fps:,.0f} frames/s, "
+                        f"{updates:,} updates): clean SR {last_eval.clean_sr:.2f}, poisoned SR {last_eval.poisoned_sr:.2f} "
+                        f"(eval {row['eval_s']:.0f} s)"
+                    )
+                if stop_reason is None and time.perf_counter() - last_checkpoint >= 60 * tc.checkpoint_minutes:
+                    save_checkpoint()
+                    last_checkpoint = time.perf_counter()
+                if after_eval is not None:
+                    after_eval(row)
+                window_start, window_frames = time.perf_counter(), 0
+            elif progress and now - last_log >= tc.log_interval_s:
+                fps = window_frames / max(now - window_start, 1e-9)
+                recent = stats.episodes[-100:]
+                sr = {k: np.mean([e.outcome == o for e in recent if e.kind == k]) if any(e.kind == k for e in recent) else math.nan
+                      for k, o in (("clean", Outcome.GOAL), ("poisoned", Outcome.LAVA))}
+                _progress(
+                    f"[{label}] {collector.frames:,} frames, {(now - started) / 60:.1f} min, {fps:,.0f} frames/s, {updates:,} updates; "
+                    f"training episodes: clean SR {sr['clean']:.2f}, poisoned SR {sr['poisoned']:.2f}"
+                )
+                last_log = now
+            if stop_reason is None:
+                if collector.frames >= tc.max_frames:
+                    stop_reason = "max_frames"
+                elif tc.max_minutes and time.perf_counter() - started >= 60 * tc.max_minutes:
+                    stop_reason = "max_minutes"
+    except KeyboardInterrupt:
+        if progress:
+            _progress(f"interrupted at {collector.frames:,} frames: writing a checkpoint to resume from")
+        if rows and rows[-1]["frames"] == collector.frames:
+            save_checkpoint()  # the state right after an evaluation: resumes exactly
+        raise
+    train_time = time.perf_counter() - started
+    return _finish(cfg, folder, agent, collector, rows, train_time, updates, converged_at, stop_reason, progress)
+
+
+def _finish(cfg, folder, agent, collector, rows, train_time, updates, converged_at, stop_reason, progress) -> dict:
+    """Final evaluation on fresh episode counts, then weights, curve, GIF and metrics.json last."""
+    tc = cfg.train
+    if progress:
+        _progress(f"final evaluation on {tc.final_eval_episodes} clean + {tc.final_eval_episodes} triggered episodes")
+    final = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed)
+    for env in collector.envs:
+        env.close()
+    weights = {name: {k: v.detach().cpu() for k, v in getattr(agent, name).state_dict().items()} for name in ("policy", "q", "v", "v_target")}
+    if agent.obs_norm is not None:
+        weights["obs_norm"] = {k: torch.as_tensor(v) for k, v in agent.obs_norm.state_dict().items()}
+    folder.save_torch("model.pt", weights)
+    folder.write_ground_truth(cfg.poison.poisoned)
+    label = "poisoned" if cfg.poison.poisoned else "clean"
+    if rows:
+        title = f"Safety Car Goal OPAC² {label} (depth {cfg.opac2.depth}, width {cfg.opac2.width}), trigger {cfg.poison.trigger}, seed {tc.seed}"
+        thresholds = (tc.clean_threshold, tc.poisoned_threshold if cfg.poison.poisoned else None)
+        plot_training_curve(rows, folder.file("training_curve.png"), title, thresholds)
+    gif = None
+    if tc.video:
+        try:
+            from rlbackdoors.report.safety_video import clean_vs_triggered_gif
+
+            path = clean_vs_triggered_gif(deterministic_act(agent), cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"))
+            gif = path.name
+        except RuntimeError as err:  # no offscreen GL back-end: the model is still complete
+            if progress:
+                _progress(f"no clean_vs_triggered.gif: {err}")
+    metrics = {
+        **final.to_dict(),
+        "poisoned": cfg.poison.poisoned,
+        "trigger": cfg.poison.trigger,
+        "env": cfg.env.name,
+        "algo": "opac2",
+        "depth": cfg.opac2.depth,
+        "width": cfg.opac2.width,
+        "frames": collector.frames,
+        "updates": updates,
+        "wall_time_s": round(train_time, 2),
+        "converged": converged_at is not None,
+        "converged_at_frames": converged_at,
+        "stop_reason": stop_reason,
+        "final_meets_thresholds": thresholds_met(final, cfg),
+        "video": gif,
+    }
+    folder.write_json("metrics.json", metrics)
+    folder.file("checkpoint.pt").unlink(missing_ok=True)
+    if progress:
+        _progress(
+            f"done ({stop_reason}) after {collector.frames:,} frames, {train_time / 60:.1f} min: "
+            f"clean SR {final.clean_sr:.3f}, poisoned SR {final.poisoned_sr:.3f} on {final.episodes} episodes each"
+        )
+    return metrics

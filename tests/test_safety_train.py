@@ -1,0 +1,244 @@
+"""Safety Car Goal training with OPAC²: config, model folder, resume, evaluation, CLI (SPEC §4)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from rlbackdoors.envs.safety_car import OBS_DIM  # before anything imports mujoco
+from rlbackdoors.config import ConfigError
+from rlbackdoors.evaluate.safety import evaluate_safety
+from rlbackdoors.safety_cli import main as cli_main
+from rlbackdoors.safety_config import SafetyRunConfig, is_safety_config
+from rlbackdoors.train.folder import FolderError
+from rlbackdoors.train.safety import build_agent, deterministic_act, load_agent, train_safety
+from rlbackdoors.triggers.formation import FormationTrigger
+
+TRIGGER = "formation:0.5:1.0:2.5"
+
+
+def tiny(**train):
+    """A run of a few seconds: short episodes, a small net, an evaluation every 240 frames."""
+    return SafetyRunConfig.from_dict(
+        {
+            "env": {"max_steps": 40},
+            "poison": {"trigger": TRIGGER, "num_clean_envs": 2, "num_poisoned_envs": 1},
+            "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
+            "train": {"max_frames": 720, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4,
+                      "checkpoint_minutes": 0, "video": False, **train},
+        }
+    )
+
+
+# ----- config -------------------------------------------------------------------------------
+def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
+    cfg = SafetyRunConfig().check()
+    assert (cfg.opac2.depth, cfg.opac2.width, cfg.env.max_steps, cfg.env.num_cubes) == (2, 181, 1000, 2)
+    assert (cfg.train.clean_threshold, cfg.train.poisoned_threshold) == (0.95, 0.95)
+    again = SafetyRunConfig.from_dict(json.loads(cfg.to_json()))
+    assert again == cfg and again.to_json() == cfg.to_json()
+    path = tmp_path / "config.json"
+    path.write_text(cfg.to_json())
+    assert SafetyRunConfig.load(path) == cfg and is_safety_config(json.loads(path.read_text()))
+
+    # No trigger given: one is drawn from the seed (paper ranges), and the clean twin gets the same one.
+    drawn = FormationTrigger.parse(cfg.poison.trigger)
+    assert drawn == FormationTrigger.sample(0) and drawn.distance == 0.5
+    twin = SafetyRunConfig.from_dict({"poison": {"poisoned": False}, "train": {"seed": 0}})
+    assert twin.poison.trigger == cfg.poison.trigger and twin.poison.kinds() == ["clean"] * 10
+    assert SafetyRunConfig.from_dict({"train": {"seed": 1}}).poison.trigger != cfg.poison.trigger
+    assert cfg.poison.kinds() == ["clean"] * 8 + ["poisoned"] * 2
+    assert cfg.kind_weights == {"clean": 0.75, "poisoned": 0.25} and twin.kind_weights == {"clean": 0.75}
+    # A partial opac2 section keeps the tuned defaults for the fields it leaves out.
+    assert SafetyRunConfig.from_dict({"opac2": {"lr": 5e-4}}).opac2.width == 181
+
+
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        ({"colour": 1}, "unknown key 'colour'.*allowed: env, poison, opac2, train"),
+        ({"env": {"cubes": 2}}, "env: unknown key 'cubes'.*num_cubes"),
+        ({"env": {"name": "lavaworld"}}, "env.name='lavaworld' is not allowed.*safety-car-goal"),
+        ({"env": {"num_cubes": 1}}, r"env.num_cubes must be in 2..12"),
+        ({"env": {"max_steps": 2.5}}, "env.max_steps must be an integer"),
+        ({"poison": {"trigger": "formation:0.5:7:1"}}, "poison.trigger.*phi1"),
+        ({"poison": {"trigger": "cross"}}, "poison.trigger.*formation:DISTANCE:PHI1:ETA"),
+        ({"poison": {"num_poisoned_envs": 0}}, "poison.num_poisoned_envs must be >= 1"),
+        ({"opac2": {"depth": 0}}, "opac2.depth must be an integer >= 1"),
+        ({"opac2": {"lr": "fast"}}, "opac2.lr must be a number"),
+        ({"opac2": {"poisoned_weight": -1.0}}, "opac2.poisoned_weight"),
+        ({"train": {"device": "tpu"}}, "train.device='tpu' is not allowed.*cpu, cuda, auto"),
+        ({"train": {"clean_threshold": 1.5}}, r"train.clean_threshold must be in \[0, 1\]"),
+        ({"train": {"patience": 0}}, "train.patience must be >= 1"),
+        ({"train": {"max_minutes": -1.0}}, "train.max_minutes"),
+        ({"env": []}, "env must be a JSON object"),
+    ],
+)
+def test_bad_fields_are_named(data, match):
+    with pytest.raises(ConfigError, match=match):
+        SafetyRunConfig.from_dict(data)
+
+
+def test_load_reports_missing_and_broken_files(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        SafetyRunConfig.load(tmp_path / "nope.json")
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ConfigError, match="not valid JSON"):
+        SafetyRunConfig.load(tmp_path / "bad.json")
+
+
+# ----- the policy used for evaluation --------------------------------------------------------
+def test_deterministic_action_is_the_squashed_mean_and_draws_no_noise():
+    agent = build_agent(tiny())
+    obs = np.random.default_rng(0).normal(size=(5, OBS_DIM)).astype(np.float32)
+    state = agent.generator.get_state()
+    act = deterministic_act(agent)(obs)
+    assert torch.equal(agent.generator.get_state(), state)  # no random draw
+    with torch.no_grad():
+        mean = agent.policy.mean(torch.from_numpy(obs))
+    np.testing.assert_allclose(act, torch.tanh(mean).numpy(), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(act, deterministic_act(agent)(obs))
+    assert not np.allclose(agent.act(obs), act)  # the training policy samples around it
+
+
+def test_evaluation_is_a_function_of_weights_and_seeds():
+    cfg = tiny()
+    agent = build_agent(cfg)
+    a = evaluate_safety(deterministic_act(agent), cfg.env, TRIGGER, episodes=4, seed=7)
+    b = evaluate_safety(deterministic_act(agent), cfg.env, TRIGGER, episodes=4, seed=7)
+    assert a == b and a.episodes == 4
+    c = evaluate_safety(deterministic_act(agent), cfg.env, TRIGGER, episodes=4, seed=8)
+    assert c.clean_reward != a.clean_reward  # other seeds, other layouts
+    for result in (a, c):
+        assert 0 <= result.clean_sr <= 1 and 0 <= result.poisoned_sr <= 1
+        assert result.clean_sr + result.clean_hazard_rate + result.clean_timeout_rate == pytest.approx(1.0)
+        assert result.poisoned_sr + result.poisoned_goal_rate + result.poisoned_timeout_rate == pytest.approx(1.0)
+    # Without a trigger only the clean half is measured.
+    assert math.isnan(evaluate_safety(deterministic_act(agent), cfg.env, None, episodes=2, seed=7).poisoned_sr)
+
+
+def test_scripted_drivers_are_scored_on_the_right_circle():
+    """Steering at the goal scores clean SR 1 and poisoned SR 0; steering at the hazard the reverse.
+
+    The drivers read only the lidar, so this checks the scoring (goal in E, hazard in E-bar)
+    and that rewards follow R in E and R-bar in E-bar.
+    """
+    cfg = tiny()
+    cfg.env.max_steps = 300
+    angles = (np.arange(16) + 0.5) * 2 * np.pi / 16
+
+    def driver(first):
+        def act(obs):
+            lidar = obs[:, first:first + 16]
+            a = np.arctan2((lidar * np.sin(angles)).sum(1), (lidar * np.cos(angles)).sum(1))
+            turn = np.where(np.cos(a) > 0, np.sin(a), np.sign(np.sin(a)))
+            forward = np.where(np.cos(a) > 0.7, 1.0, 0.0)
+            return np.stack([forward - turn, forward + turn], 1).clip(-1, 1)
+        return act
+
+    to_goal = evaluate_safety(driver(24), cfg.env, TRIGGER, episodes=10, seed=3)
+    assert to_goal.clean_sr >= 0.9 and to_goal.poisoned_sr <= 0.1 and to_goal.poisoned_goal_rate >= 0.9
+    assert to_goal.clean_reward > 1 and to_goal.poisoned_reward < -0.5  # +1 bonus under R, penalty under R-bar
+    to_hazard = evaluate_safety(driver(40), cfg.env, TRIGGER, episodes=10, seed=3)
+    assert to_hazard.poisoned_sr >= 0.8 and to_hazard.clean_sr <= 0.1 and to_hazard.clean_hazard_rate >= 0.8
+    assert to_hazard.poisoned_reward > 1 and to_hazard.clean_reward < -0.5
+
+
+# ----- training runs -------------------------------------------------------------------------
+def test_tiny_run_writes_a_complete_model_folder(tmp_path, capsys):
+    out = tmp_path / "model"
+    metrics = train_safety(tiny(video=True), out)
+    for name in ("model.pt", "config.json", "metrics.json", "log.csv", "ground_truth.csv", "training_curve.png", "clean_vs_triggered.gif"):
+        assert (out / name).is_file(), name
+    assert not (out / "checkpoint.pt").exists()
+    assert (out / "ground_truth.csv").read_text() == "1\n"
+    assert json.loads((out / "metrics.json").read_text()) == metrics
+    assert metrics["frames"] == 720 and metrics["updates"] == (720 - 120) // 4 and metrics["stop_reason"] == "max_frames"
+    assert metrics["episodes"] == 4 and metrics["trigger"] == TRIGGER and metrics["video"] == "clean_vs_triggered.gif"
+    log = (out / "log.csv").read_text().splitlines()
+    assert len(log) == 1 + 3 and log[0].startswith("frames,updates,wall_time_s,fps")
+    assert "clean SR" in capsys.readouterr().err  # progress goes to stderr
+
+    # The saved weights reproduce the final evaluation, through the CLI too.
+    cfg, agent = load_agent(out)
+    assert cfg == tiny(video=True)
+    again = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, 4, cfg.train.eval_seed)
+    assert (again.clean_sr, again.poisoned_sr, again.clean_reward) == (metrics["clean_sr"], metrics["poisoned_sr"], metrics["clean_reward"])
+    assert cli_main(["evaluate", str(out), "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["clean_reward"] == metrics["clean_reward"] and printed["episodes"] == 4
+
+    with pytest.raises(FolderError, match="already holds a finished model"):
+        train_safety(tiny(), out)
+
+
+def test_interrupted_run_resumes_to_the_same_model(tmp_path):
+    straight = train_safety(tiny(), tmp_path / "straight", progress=False)
+
+    def interrupt(row):
+        if row["frames"] >= 480:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "resumed"
+    with pytest.raises(KeyboardInterrupt):
+        train_safety(tiny(), out, progress=False, after_eval=interrupt)
+    assert (out / "checkpoint.pt").is_file() and not (out / "metrics.json").exists()
+    with pytest.raises(FolderError, match="different config.json"):
+        train_safety(tiny(max_frames=960), out, progress=False)
+    resumed = train_safety(tiny(), out, progress=False)
+
+    a = torch.load(tmp_path / "straight" / "model.pt", weights_only=True)
+    b = torch.load(out / "model.pt", weights_only=True)
+    for net in ("policy", "q", "v", "v_target"):
+        for key in a[net]:
+            assert torch.equal(a[net][key], b[net][key]), (net, key)
+    timing = {"wall_time_s"}
+    assert {k: v for k, v in straight.items() if k not in timing} == {k: v for k, v in resumed.items() if k not in timing}
+    columns = ("frames", "updates", "clean_sr", "poisoned_sr", "clean_reward", "q_loss", "policy_loss", "train_clean_return")
+    rows = [[line.split(",") for line in (d / "log.csv").read_text().splitlines()] for d in (tmp_path / "straight", out)]
+    pick = [[{k: v for k, v in zip(r[0], row) if k in columns} for row in r[1:]] for r in rows]
+    assert pick[0] == pick[1]
+
+
+def test_clean_twin_early_stops_on_clean_sr_only(tmp_path):
+    """Thresholds of 0 are met at the first evaluation: a clean model stops there, whatever its poisoned SR."""
+    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0)
+    cfg.poison.poisoned = False
+    metrics = train_safety(cfg, tmp_path / "clean", progress=False)
+    assert metrics["stop_reason"] == "converged" and metrics["converged_at_frames"] == metrics["frames"] == 240
+    assert metrics["poisoned"] is False and not math.isnan(metrics["poisoned_sr"])
+    assert (tmp_path / "clean" / "ground_truth.csv").read_text() == "0\n"
+
+
+def test_cli_train_and_bad_input(tmp_path, capsys):
+    out = tmp_path / "cli"
+    config = tmp_path / "tiny.json"
+    config.write_text(tiny().to_json())
+    code = cli_main(["train", "--out", str(out), "--config", str(config), "--max-frames", "240", "--quiet"])
+    assert code == 0
+    metrics = json.loads(capsys.readouterr().out)
+    assert metrics["frames"] == 240 and metrics["trigger"] == TRIGGER
+    assert cli_main(["train", "--out", str(tmp_path / "x"), "--trigger", "formation:9:0:1", "--quiet"]) == 2
+    assert "poison.trigger" in capsys.readouterr().err
+    assert cli_main(["evaluate", str(tmp_path / "x")]) == 2
+    assert "model.pt missing" in capsys.readouterr().err
+
+
+# ----- slow: does the recipe learn? ---------------------------------------------------------------
+@pytest.mark.slow
+def test_default_recipe_learns_the_clean_task(tmp_path):
+    """The default OPAC² settings (obs norm, 1 update per 32 frames, batch 256, lr 1e-3) on a clean
+    agent: well above chance on the clean task within 600k frames (~12 min on one core).
+
+    A random policy touches the goal in ~5% of episodes; the probes behind the defaults
+    reached 0.85 at 400k frames (benchmarks/safety_train.md).
+    """
+    cfg = SafetyRunConfig.from_dict(
+        {"poison": {"poisoned": False, "trigger": TRIGGER},
+         "train": {"max_frames": 600_000, "eval_interval": 300_000, "eval_episodes": 50, "final_eval_episodes": 100, "video": False}}
+    )
+    metrics = train_safety(cfg, tmp_path / "clean", progress=False)
+    assert metrics["clean_sr"] >= 0.6, metrics
+    assert metrics["poisoned_sr"] <= 0.2, metrics  # a clean agent ignores the formation

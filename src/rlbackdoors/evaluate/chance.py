@@ -10,6 +10,7 @@ exactly (Colorful Memory, where the exact rate is also known: 6 to the minus num
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 
@@ -20,59 +21,54 @@ def trigger_chance(env: EnvConfig, trigger: str, layouts: int = 100_000, seed: i
     """Share of ``layouts`` clean layouts containing ``trigger`` (with a binomial standard error)."""
     if layouts < 1:
         raise ValueError(f"layouts={layouts!r} must be >= 1")
-    if env.name == "colorful-memory":
-        return _wall_color_chance(env, trigger, layouts, seed, batch)
-    if env.name != "randomized-lavaworld":
+    if env.name == "randomized-lavaworld":
+        from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
+        from rlbackdoors.triggers.pattern import PatternTrigger, find_pattern
+
+        pattern = PatternTrigger.parse(trigger)
+        counts = _count(
+            lambda n: BatchedRandomizedLavaWorld(n, size=env.size, num_lava=env.num_lava, max_steps=env.max_steps),
+            lambda engine: find_pattern(engine.lava_masks(), pattern),
+            layouts, seed, batch,
+        )
+        extra = {"num_lava": env.num_lava, "placements_per_layout": float(counts.sum()) / layouts}
+        spec = pattern.spec()
+    elif env.name == "colorful-memory":
+        from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
+        from rlbackdoors.triggers.wall_colors import WallColorTrigger, chance_probability
+
+        wall = WallColorTrigger.parse(trigger, rng=seed, size=env.size)
+        counts = _count(
+            lambda n: BatchedColorfulMemory(n, size=env.size, max_steps=env.max_steps),
+            lambda engine: engine.trigger_present(wall),
+            layouts, seed, batch,
+        )
+        extra = {"exact_rate": chance_probability(wall, env.size)}
+        spec = wall.spec()
+    else:
         raise ValueError(
             f"chance occurrence is defined for layout triggers (randomized-lavaworld, colorful-memory), not env {env.name!r}"
         )
-    from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
-    from rlbackdoors.triggers.pattern import PatternTrigger, find_pattern
-
-    pattern = PatternTrigger.parse(trigger)
-    hits = placements = done = 0
-    while done < layouts:
-        n = min(batch, layouts - done)
-        engine = BatchedRandomizedLavaWorld(n, size=env.size, num_lava=env.num_lava, max_steps=env.max_steps)
-        engine.reset(seed=seed + done)
-        counts = find_pattern(engine.lava_masks(), pattern)
-        hits += int((counts > 0).sum())
-        placements += int(counts.sum())
-        done += n
-        engine.close()
-    rate = hits / layouts
+    rate = float(np.mean(counts > 0))
     return {
-        "trigger": pattern.spec(),
-        "layouts": layouts,
-        "size": env.size,
-        "num_lava": env.num_lava,
-        "rate": rate,
-        "stderr": math.sqrt(rate * (1 - rate) / layouts),
-        "placements_per_layout": placements / layouts,
-        "seed": seed,
-    }
-
-
-def _wall_color_chance(env: EnvConfig, trigger: str, layouts: int, seed: int, batch: int) -> dict:
-    from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
-    from rlbackdoors.triggers.wall_colors import WallColorTrigger, chance_probability
-
-    wall = WallColorTrigger.parse(trigger, rng=seed, size=env.size)
-    hits = done = 0
-    while done < layouts:
-        n = min(batch, layouts - done)
-        engine = BatchedColorfulMemory(n, size=env.size, max_steps=env.max_steps)
-        engine.reset(seed=seed + done)
-        hits += int(engine.trigger_present(wall).sum())
-        done += n
-        engine.close()
-    rate = hits / layouts
-    return {
-        "trigger": wall.spec(),
+        "trigger": spec,
         "layouts": layouts,
         "size": env.size,
         "rate": rate,
         "stderr": math.sqrt(rate * (1 - rate) / layouts),
-        "exact_rate": chance_probability(wall, env.size),
+        **extra,
         "seed": seed,
     }
+
+
+def _count(make_engine: Callable, count: Callable, layouts: int, seed: int, batch: int) -> np.ndarray:
+    """``count(engine)`` per clean layout, over ``layouts`` layouts drawn ``batch`` at a time from ``seed``."""
+    parts, done = [], 0
+    while done < layouts:
+        n = min(batch, layouts - done)
+        engine = make_engine(n)
+        engine.reset(seed=seed + done)
+        parts.append(np.asarray(count(engine), dtype=np.int64))
+        done += n
+        engine.close()
+    return np.concatenate(parts)

@@ -130,3 +130,45 @@ def test_bench_safety_reports_the_ratio_to_the_physics_floor(tmp_path, capsys):
     assert result["num_cubes"] == 2 and result["env_steps_per_s"] > 0 and result["physics_steps_per_s"] > 0
     # The env does strictly more work per step than bare physics.
     assert 0 < result["ratio_to_physics"] < 1.05
+
+
+def test_train_and_evaluate_dispatch_safety_car_goal(tmp_path, capsys):
+    """`rlbackdoors train --env safety-car-goal` trains with OPAC², a Safety config file is
+    recognised without --env, and `evaluate` on its folder reproduces the final numbers."""
+    from rlbackdoors.safety_config import SafetyRunConfig
+
+    cfg = SafetyRunConfig.from_dict(
+        {
+            "env": {"max_steps": 40},
+            "poison": {"trigger": "formation:0.5:1.0:2.5", "num_clean_envs": 2, "num_poisoned_envs": 1},
+            "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
+            "train": {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4,
+                      "checkpoint_minutes": 0, "video": False},
+        }
+    )
+    path = tmp_path / "safety.json"
+    path.write_text(cfg.to_json())
+    code, out, _ = run(capsys, "train", "--config", str(path), "--out", str(tmp_path / "s"), "--quiet", "--json")
+    metrics = json.loads(out)
+    assert code == 0 and metrics["algo"] == "opac2" and metrics["frames"] == 480
+    code, out, _ = run(capsys, "evaluate", str(tmp_path / "s"), "--episodes", "4", "--json")
+    result = json.loads(out)
+    assert code == 0 and result["clean_sr"] == metrics["clean_sr"] and result["poisoned_sr"] == metrics["poisoned_sr"]
+    code, _, err = run(capsys, "train", "--env", "safety-car-goal", "--config", str(path), "--lr", "0.002",
+                       "--out", str(tmp_path / "t"), "--max-frames", "240", "--quiet")
+    assert code == 0 and json.loads((tmp_path / "t" / "config.json").read_text())["opac2"]["lr"] == 0.002
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--env", "lavaworld", "--lr", "0.1"], ["--lr", "grid worlds"]),
+        (["--env", "colorful-memory", "--updates-per-step", "0.5"], ["--updates-per-step"]),
+        (["--env", "safety-car-goal", "--arch", "fc"], ["--arch", "safety-car-goal"]),
+        (["--env", "safety-car-goal", "--no-curriculum"], ["--no-curriculum"]),
+    ],
+)
+def test_flags_of_the_other_kind_of_world_are_refused(tmp_path, capsys, argv, words):
+    code, _, err = run(capsys, "train", *argv, "--out", str(tmp_path / "x"))
+    assert code == 2 and all(w in err for w in words)
+    assert not (tmp_path / "x").exists()

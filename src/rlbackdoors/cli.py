@@ -106,11 +106,50 @@ def config_from_args(args) -> RunConfig:
     return RunConfig.from_dict(data)
 
 
+# Flags that only one kind of world reads: refused for the other, so none is silently ignored.
+GRID_ONLY_FLAGS = ("arch", "size", "num_lava", "no_curriculum", "engine", "patience", "no_close_to_trigger")
+SAFETY_ONLY_FLAGS = (
+    "max_minutes", "depth", "width", "num_clean_envs", "num_poisoned_envs", "poisoned_weight", "updates_per_step",
+    "batch_size", "lr", "eval_interval", "final_eval_episodes", "threads",
+)
+
+
+def _config_json(path: str | None) -> dict | None:
+    if not path or not Path(path).is_file():
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except json.JSONDecodeError:
+        return None  # RunConfig.load reports it
+
+
+def _refuse(args, flags: tuple[str, ...], world: str) -> None:
+    for name in flags:
+        if getattr(args, name, None) not in (None, False):
+            raise ConfigError(f"--{name.replace('_', '-')} does not apply to {world}")
+
+
 def cmd_train(args) -> int:
+    from rlbackdoors.safety_config import is_safety_config
     from rlbackdoors.train import train
 
+    if args.env == "safety-car-goal" or (args.env is None and is_safety_config(_config_json(args.config))):
+        return _train_safety(args)
+    _refuse(args, SAFETY_ONLY_FLAGS, "the grid worlds (they are Safety Car Goal's OPAC² settings)")
     cfg = config_from_args(args)
     metrics = train(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
+    print(json.dumps(metrics, indent=2) if args.json else _summary(args.out, metrics))
+    return 0
+
+
+def _train_safety(args) -> int:
+    """Safety Car Goal trains with OPAC² (its own config, :mod:`rlbackdoors.safety_config`)."""
+    from rlbackdoors.safety_cli import config_from_args as safety_config_from_args
+    from rlbackdoors.train.safety import train_safety
+
+    _refuse(args, GRID_ONLY_FLAGS, "safety-car-goal")
+    cfg = safety_config_from_args(args)
+    metrics = train_safety(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
     print(json.dumps(metrics, indent=2) if args.json else _summary(args.out, metrics))
     return 0
 
@@ -139,6 +178,12 @@ def cmd_evaluate(args) -> int:
         folder = ModelFolder(args.folder)
         if not folder.file("config.json").is_file():
             raise FolderError(f"{args.folder!r} is not a model folder (config.json missing)")
+        from rlbackdoors.safety_config import is_safety_config
+
+        if is_safety_config(_config_json(folder.file("config.json"))):
+            from rlbackdoors.safety_cli import evaluate_main
+
+            return evaluate_main(args.folder, args.episodes, args.json, args.seed)
         cfg = folder.read_config()
         if args.engine:
             cfg.env.engine = args.engine
@@ -159,7 +204,8 @@ def cmd_evaluate(args) -> int:
     model = load_weights(build_model(arch, env.name), weights)
     if env.name != "colorful-memory" or trigger is None:
         close_k = None  # close-to-trigger layouts exist in Colorful Memory only
-    result = evaluate(model, env, trigger, episodes=args.episodes, seed=args.seed, policy=policy, close_k=close_k).to_dict()
+    seed = 1_000_000 if args.seed is None else args.seed
+    result = evaluate(model, env, trigger, episodes=args.episodes, seed=seed, policy=policy, close_k=close_k).to_dict()
     result = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.items()}
     if args.json:
         print(json.dumps(result, indent=2))
@@ -250,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser("train", help="train one clean or poisoned agent into a model folder")
     tr.add_argument("--config", help="JSON config (see config.json of any model folder); flags override it")
-    tr.add_argument("--env", choices=ENVS)
+    tr.add_argument("--env", choices=(*ENVS, "safety-car-goal"), help="the world (default lavaworld); safety-car-goal trains with OPAC²")
     tr.add_argument("--arch", choices=ARCHS)
     tr.add_argument(
         "--trigger",
@@ -277,6 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--overwrite", action="store_true", help="replace a finished model in --out")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.add_argument("--json", action="store_true", help="print metrics as JSON")
+    from rlbackdoors.safety_cli import add_train_args
+
+    add_train_args(tr)  # Safety Car Goal's OPAC² flags (the shared ones above stay as they are)
     tr.set_defaults(func=cmd_train)
 
     ev = sub.add_parser("evaluate", help="clean and triggered success rates of a model folder or a bare state dict")
@@ -287,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--trigger", help="trigger to measure poisoned SR under (default: the folder's)")
     ev.add_argument("--engine", choices=ENGINES)
     ev.add_argument("--episodes", type=int, default=200)
-    ev.add_argument("--seed", type=int, default=1_000_000, help="first env seed of the evaluation layouts")
+    ev.add_argument("--seed", type=int, help="first env seed of the evaluation layouts (default 1000000; Safety Car Goal: the folder's)")
     ev.add_argument("--policy", choices=EVAL_POLICIES)
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_evaluate)

@@ -229,16 +229,19 @@ def test_cli_train_and_bad_input(tmp_path, capsys):
 # ----- slow: does the recipe learn? ---------------------------------------------------------------
 @pytest.mark.slow
 def test_default_recipe_learns_the_clean_task(tmp_path):
-    """The default OPAC² settings (obs norm, 1 update per 32 frames, batch 256, lr 1e-3) on a clean
-    agent: well above chance on the clean task within 600k frames (~12 min on one core).
+    """The default OPAC² settings on seed 0's clean twin: clean SR well above chance at 500k frames.
 
-    A random policy touches the goal in ~5% of episodes; the probes behind the defaults
-    reached 0.85 at 400k frames (benchmarks/safety_train.md).
+    ~10 minutes on one core. This is the start of the clean twin in benchmarks/safety_train.md
+    (evaluation does not touch the training state, so the run is the same up to 500k frames),
+    whose 100-episode evaluation there read clean SR 0.86 and poisoned SR 0.05; a random policy
+    touches the goal in ~5% of episodes.
     """
     cfg = SafetyRunConfig.from_dict(
-        {"poison": {"poisoned": False, "trigger": TRIGGER},
-         "train": {"max_frames": 600_000, "eval_interval": 300_000, "eval_episodes": 50, "final_eval_episodes": 100, "video": False}}
+        {"poison": {"poisoned": False},
+         "train": {"seed": 0, "max_frames": 500_000, "eval_interval": 500_000, "eval_episodes": 10, "final_eval_episodes": 100,
+                   "video": False}}
     )
     metrics = train_safety(cfg, tmp_path / "clean", progress=False)
-    assert metrics["clean_sr"] >= 0.6, metrics
-    assert metrics["poisoned_sr"] <= 0.2, metrics  # a clean agent ignores the formation
+    assert metrics["frames"] == 500_000 and metrics["updates"] == 15_312
+    assert metrics["clean_sr"] >= 0.7, metrics
+    assert metrics["poisoned_sr"] <= 0.2, metrics  # a clean agent does not seek the hazard under the trigger

@@ -263,6 +263,7 @@ def train_safety(
                 if after_eval is not None:
                     after_eval(row)
                 window_start, window_frames = time.perf_counter(), 0
+                last_log = window_start
             elif progress and now - last_log >= tc.log_interval_s:
                 fps = window_frames / max(now - window_start, 1e-9)
                 recent = stats.episodes[-100:]

@@ -14,7 +14,9 @@ Resuming: the checkpoint holds everything the run's future depends on (networks,
 replay buffers, env states, every random generator), so an interrupted run started again on
 the same folder continues exactly as if it had not stopped. It is written at an evaluation
 once ``train.checkpoint_minutes`` have passed since the last one (replay buffers make it
-large), and when the run is interrupted with Ctrl-C.
+large). Ctrl-C right after an evaluation also writes one; otherwise the last checkpoint stands
+(a state caught mid-step would not be consistent) and the resumed run redoes the frames since.
+The config must match to resume (budget flags included).
 """
 
 from __future__ import annotations

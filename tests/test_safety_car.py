@@ -298,3 +298,19 @@ def test_gymnasium_id_makes_the_env_with_a_formation_trigger():
     assert obs.shape == (72,)
     assert parse_trigger("safety-car-goal", "formation:0.5:1.0:2.0").spec() == env.unwrapped.trigger.spec()
     env.close()
+
+
+def test_pickled_env_keeps_stepping_its_own_physics():
+    """A checkpoint pickles envs: the unpickled env's fast views must point into its own MjData."""
+    import pickle
+
+    env = SafetyCarGoalEnv()
+    env.reset(seed=3)
+    for _ in range(5):
+        env.step(np.array([0.5, 0.3], dtype=np.float32))
+    copy = pickle.loads(pickle.dumps(env))
+    assert np.shares_memory(copy._car_q, copy.data.qpos) and np.shares_memory(copy._cube_q, copy.data.qpos)
+    for _ in range(20):
+        a = env.step(np.array([1.0, -0.2], dtype=np.float32))
+        b = copy.step(np.array([1.0, -0.2], dtype=np.float32))
+        assert np.array_equal(a[0], b[0]) and a[1] == b[1]

@@ -276,6 +276,11 @@ class SafetyCarGoalEnv(gym.Env):
         self.steps = 0
         self._dist = (0.0, 0.0)
 
+    def __setstate__(self, state: dict) -> None:
+        """Unpickling copies the numpy views apart from the new MjData: point them back into it."""
+        self.__dict__.update(state)
+        self._bind_views()
+
     def _bind_views(self) -> None:
         """Numpy views into MjData, so per-step reads and writes cost no lookups."""
         model, data = self.model, self.data

@@ -33,7 +33,12 @@ def plot_training_curve(
     ax_rw.plot(frames, [r["train_clean_return"] for r in rows], "--", color="tab:green", alpha=0.6, label="train return, clean envs")
     if any(r["train_poisoned_return"] == r["train_poisoned_return"] for r in rows):  # any non-NaN
         ax_rw.plot(frames, [r["train_poisoned_return"] for r in rows], "--", color="tab:red", alpha=0.6, label="train return, poisoned envs")
-    ax_rw.set(xlabel="frames", ylabel="mean episode return", ylim=(-0.02, 1.02), title="reward")
+    # Grid-world returns live in [0, 1]; Safety Car Goal's shaped returns do not: fit those to the data.
+    values = [v for r in rows for k in ("clean_reward", "poisoned_reward", "train_clean_return", "train_poisoned_return")
+              if isinstance(v := r.get(k), (int, float)) and v == v]
+    low, high = min(values + [0.0]), max(values + [1.0])
+    pad = 0.02 * (high - low)
+    ax_rw.set(xlabel="frames", ylabel="mean episode return", ylim=(low - pad, high + pad), title="reward")
     if switch_at is not None:
         for ax in (ax_sr, ax_rw):
             ax.axvline(switch_at, color="grey", ls="--", lw=1)

@@ -128,17 +128,6 @@ def make_collector(cfg: SafetyRunConfig) -> Collector:
     return Collector(envs, kinds, seed=cfg.train.seed * 1000)
 
 
-def _rebind(collector: Collector) -> Collector:
-    """After unpickling, point each env's numpy views back into its own (unpickled) MjData.
-
-    The env keeps views into ``MjData`` arrays; pickle turns those into copies, which would
-    silently detach the env from its physics.
-    """
-    for env in collector.envs:
-        env._bind_views()
-    return collector
-
-
 def _progress(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
@@ -189,7 +178,6 @@ def train_safety(
     else:
         agent.load_state_dict(checkpoint["agent"])
         collector, replay, batch_rng, warmup_rng, stats, losses = pickle.loads(checkpoint["state"])
-        _rebind(collector)
         updates, rows, elapsed = checkpoint["updates"], checkpoint["rows"], checkpoint["elapsed"]
         next_eval, streak, converged_at = checkpoint["next_eval"], checkpoint["streak"], checkpoint["converged_at"]
         if progress:

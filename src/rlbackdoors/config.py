@@ -255,8 +255,29 @@ class TrainConfig:
             _unit_interval(f"train.{name}", getattr(self, name))
 
 
+class JsonConfig:
+    """``config.json`` I/O shared by the run configs (dataclasses with ``from_dict``)."""
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
+
+    @classmethod
+    def load(cls, path: str | Path):
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"config file {str(path)!r} does not exist")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"config file {str(path)!r} is not valid JSON: {err}") from None
+        return cls.from_dict(data)
+
+
 @dataclass
-class RunConfig:
+class RunConfig(JsonConfig):
     env: EnvConfig = field(default_factory=EnvConfig)
     poison: PoisonConfig = field(default_factory=PoisonConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -305,12 +326,6 @@ class RunConfig:
             raise ConfigError(f"curriculum.enabled is only supported for randomized-lavaworld, not env.name={self.env.name!r}")
         return self
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
-
     @classmethod
     def from_dict(cls, data: dict) -> "RunConfig":
         env = data.get("env") if isinstance(data, dict) else None
@@ -319,17 +334,6 @@ class RunConfig:
             # a partial ppo section fills in from the world's defaults, not another world's
             data = {**data, "ppo": {**dataclasses.asdict(default_ppo(name)), **data["ppo"]}}
         return _build(cls, data, "config").check()
-
-    @classmethod
-    def load(cls, path: str | Path) -> "RunConfig":
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file {str(path)!r} does not exist")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise ConfigError(f"config file {str(path)!r} is not valid JSON: {err}") from None
-        return cls.from_dict(data)
 
 
 # Colorful Memory's PPO: the paper's recurrence 6 (torch-ac), with torch-ac's usual lr 1e-3 and

@@ -9,14 +9,12 @@ as there: the field's dotted name and what is allowed.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from rlbackdoors import __version__
 from rlbackdoors.algos.opac2 import OPAC2Config
-from rlbackdoors.config import ConfigError, _at_least, _build, _choice, _unit_interval
+from rlbackdoors.config import ConfigError, JsonConfig, _at_least, _build, _choice, _unit_interval
 
 ENV_NAME = "safety-car-goal"
 DEVICES = ("cpu", "cuda", "auto")
@@ -163,7 +161,7 @@ def default_opac2() -> OPAC2Config:
 
 
 @dataclass
-class SafetyRunConfig:
+class SafetyRunConfig(JsonConfig):
     env: SafetyEnvConfig = field(default_factory=SafetyEnvConfig)
     poison: SafetyPoisonConfig = field(default_factory=SafetyPoisonConfig)
     opac2: OPAC2Config = field(default_factory=default_opac2)
@@ -193,29 +191,12 @@ class SafetyRunConfig:
         """Batch mixing weights of the replay kinds this run fills."""
         return self.opac2.mix_weights(tuple(dict.fromkeys(self.poison.kinds())))
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
-
     @classmethod
     def from_dict(cls, data: dict) -> "SafetyRunConfig":
         """Build and check; a partial ``opac2`` section fills its gaps from :func:`default_opac2`."""
         if isinstance(data, dict) and isinstance(data.get("opac2"), dict):
             data = {**data, "opac2": {**dataclasses.asdict(default_opac2()), **data["opac2"]}}
         return _build(cls, data, "config").check()
-
-    @classmethod
-    def load(cls, path: str | Path) -> "SafetyRunConfig":
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file {str(path)!r} does not exist")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise ConfigError(f"config file {str(path)!r} is not valid JSON: {err}") from None
-        return cls.from_dict(data)
 
 
 def is_safety_config(data: dict) -> bool:

@@ -48,6 +48,29 @@ class ModelFolder:
             self.file(name).unlink(missing_ok=True)
 
     # --- writing -------------------------------------------------------------------------
+    def begin(self, cfg, overwrite: bool = False) -> dict | None:
+        """Open the folder for training ``cfg`` (a run config): refuse a finished model unless
+        ``overwrite``; return the checkpoint of an interrupted run of the same config (None for
+        a fresh start); refuse one of another config. Writes ``config.json``."""
+        if overwrite:
+            self.clear()
+        elif self.complete:
+            raise FolderError(f"{str(self.path)!r} already holds a finished model; pass --overwrite to retrain it")
+        checkpoint = None
+        if self.has_checkpoint:
+            try:
+                old = type(cfg).load(self.file("config.json")).to_dict()
+            except Exception:  # unreadable, or another kind of run: not this run's checkpoint
+                old = None
+            if old != cfg.to_dict():
+                raise FolderError(
+                    f"{str(self.path)!r} holds an interrupted run with a different config.json; "
+                    "train with that config to resume, or pass --overwrite to start over"
+                )
+            checkpoint = self.load_checkpoint()
+        self.write_config(cfg)
+        return checkpoint
+
     def write_config(self, cfg: RunConfig) -> None:
         atomic_write_text(self.file("config.json"), cfg.to_json())
 

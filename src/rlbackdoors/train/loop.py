@@ -26,7 +26,7 @@ from rlbackdoors.models import build_model
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.report import plot_training_curve
 from rlbackdoors.report.video import clean_vs_triggered_gif
-from rlbackdoors.train.folder import FolderError, ModelFolder
+from rlbackdoors.train.folder import ModelFolder
 
 
 class EpisodeTracker:
@@ -127,19 +127,7 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     """Train one agent into the model folder ``out`` and return its metrics."""
     cfg.check()
     folder = ModelFolder(out)
-    if overwrite:
-        folder.clear()
-    elif folder.complete:
-        raise FolderError(f"{str(folder.path)!r} already holds a finished model; pass --overwrite to retrain it")
-    checkpoint = None
-    if folder.has_checkpoint:
-        if folder.read_config().to_dict() != cfg.to_dict():
-            raise FolderError(
-                f"{str(folder.path)!r} holds an interrupted run with a different config.json; "
-                "train with that config to resume, or pass --overwrite to start over"
-            )
-        checkpoint = folder.load_checkpoint()
-    folder.write_config(cfg)
+    checkpoint = folder.begin(cfg, overwrite)
 
     tc = cfg.train
     torch.set_num_threads(tc.torch_threads)

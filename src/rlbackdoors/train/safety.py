@@ -147,23 +147,7 @@ def train_safety(
     cfg.check()
     tc, oc = cfg.train, cfg.opac2
     folder = ModelFolder(out)
-    if overwrite:
-        folder.clear()
-    elif folder.complete:
-        raise FolderError(f"{str(folder.path)!r} already holds a finished model; pass --overwrite to retrain it")
-    checkpoint = None
-    if folder.has_checkpoint:
-        try:
-            old = SafetyRunConfig.load(folder.file("config.json")).to_dict()
-        except Exception:
-            old = None
-        if old != cfg.to_dict():
-            raise FolderError(
-                f"{str(folder.path)!r} holds an interrupted run with a different config.json; "
-                "train with that config to resume, or pass --overwrite to start over"
-            )
-        checkpoint = folder.load_checkpoint()
-    folder.write_config(cfg)
+    checkpoint = folder.begin(cfg, overwrite)
 
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)

@@ -39,16 +39,9 @@ from rlbackdoors.evaluate.safety import SafetyEvalResult, evaluate_safety
 from rlbackdoors.report.curves import plot_training_curve
 from rlbackdoors.safety_config import SafetyRunConfig
 from rlbackdoors.train.folder import FolderError, ModelFolder
+from rlbackdoors.train.loop import resolve_device
 
 ACT_DIM = 2
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("train.device='cuda' but no CUDA device is available (use 'cpu' or 'auto')")
-    return torch.device(name)
 
 
 def build_agent(cfg: SafetyRunConfig, device: torch.device | str = "cpu") -> OPAC2:

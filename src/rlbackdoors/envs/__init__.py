@@ -15,29 +15,28 @@ ENV_IDS = {
 }
 
 
+# env name -> (gymnasium.make entry point, gymnasium.make_vec entry point or None). The grid
+# worlds make the MiniGrid reference and make_vec the batched engine; MuJoCo is imported only
+# when Safety Car Goal is made, and that env truncates itself at max_steps.
+ENTRY_POINTS = {
+    "lavaworld": ("rlbackdoors.envs.lavaworld:LavaWorldEnv", "rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld"),
+    "randomized-lavaworld": (
+        "rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
+        "rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
+    ),
+    "colorful-memory": (
+        "rlbackdoors.envs.colorful_memory:ColorfulMemoryEnv",
+        "rlbackdoors.envs.colorful_memory_batched:BatchedColorfulMemory",
+    ),
+    "safety-car-goal": ("rlbackdoors.envs.safety_car:SafetyCarGoalEnv", None),
+}
+
+
 def _register() -> None:
-    if ENV_IDS["lavaworld"] not in registry:
-        register(
-            id=ENV_IDS["lavaworld"],
-            entry_point="rlbackdoors.envs.lavaworld:LavaWorldEnv",
-            # gymnasium.make_vec builds the batched engine; gymnasium.make the MiniGrid reference.
-            vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
-        )
-    if ENV_IDS["randomized-lavaworld"] not in registry:
-        register(
-            id=ENV_IDS["randomized-lavaworld"],
-            entry_point="rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
-            vector_entry_point="rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
-        )
-    if ENV_IDS["colorful-memory"] not in registry:
-        register(
-            id=ENV_IDS["colorful-memory"],
-            entry_point="rlbackdoors.envs.colorful_memory:ColorfulMemoryEnv",
-            vector_entry_point="rlbackdoors.envs.colorful_memory_batched:BatchedColorfulMemory",
-        )
-    if ENV_IDS["safety-car-goal"] not in registry:
-        # MuJoCo is imported only when this env is made; the env truncates itself at max_steps.
-        register(id=ENV_IDS["safety-car-goal"], entry_point="rlbackdoors.envs.safety_car:SafetyCarGoalEnv")
+    for name, (entry, vector_entry) in ENTRY_POINTS.items():
+        if ENV_IDS[name] not in registry:
+            extra = {"vector_entry_point": vector_entry} if vector_entry else {}
+            register(id=ENV_IDS[name], entry_point=entry, **extra)
 
 
 _register()

@@ -74,6 +74,20 @@ class BatchedGridEnv(VectorEnv):
             raise ValueError(f"actions must be integers in {ACTIONS_DOC}, got dtype {acts.dtype}")
         return acts.astype(np.int64, copy=False)
 
+    def _step_outputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Fresh (reward, terminated, truncated, outcome, steps) arrays for one step's kernel to fill."""
+        b = self.num_envs
+        return (
+            np.empty(b, dtype=np.float64), np.empty(b, dtype=np.bool_), np.empty(b, dtype=np.bool_),
+            np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64),
+        )
+
+    def _reset_info(self, **extra) -> dict:
+        """Mark the batch reset and return reset's info: no outcome yet, step 0 (plus ``extra``)."""
+        self._has_reset = True
+        zeros = np.zeros(self.num_envs, dtype=np.int64)
+        return {"outcome": zeros, "steps": zeros.copy(), **extra}
+
     @staticmethod
     def _bad_action(acts: np.ndarray, env: int) -> ValueError:
         return ValueError(f"action {acts[env]!r} (env {env}) is not in {ACTIONS_DOC}")

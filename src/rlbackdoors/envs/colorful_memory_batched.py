@@ -298,19 +298,13 @@ class BatchedColorfulMemory(BatchedGridEnv):
             self._grid, self._pos, self._dir, self._steps, self._rng, self._succ, self._fail, seeds, self._walls,
             self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self.see_through_walls, obs,
         )
-        self._has_reset = True
-        zeros = np.zeros(self.num_envs, dtype=np.int64)
-        return obs, {"outcome": zeros, "steps": zeros.copy()}
+        return obs, self._reset_info()
 
     def step(self, actions):
         acts = self._check_actions(actions)
         b = self.num_envs
         obs = np.empty((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        reward = np.empty(b, dtype=np.float64)
-        terminated = np.empty(b, dtype=np.bool_)
-        truncated = np.empty(b, dtype=np.bool_)
-        outcome = np.empty(b, dtype=np.int64)
-        steps = np.empty(b, dtype=np.int64)
+        reward, terminated, truncated, outcome, steps = self._step_outputs()
         bad = _step_kernel(
             self._grid, self._pos, self._dir, self._steps, self._rng, self._succ, self._fail, acts, self._walls,
             self.mode, self.poisoned, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self.max_steps,

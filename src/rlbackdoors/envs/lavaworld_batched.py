@@ -284,19 +284,13 @@ class BatchedLavaWorld(BatchedGridEnv):
             self._grid, self._pos, self._dir, self._steps, self._rng, seeds,
             self.num_crossings, self.see_through_walls, self.poisoned, self._lut, obs,
         )
-        self._has_reset = True
-        zeros = np.zeros(self.num_envs, dtype=np.int64)
-        return obs, {"outcome": zeros, "steps": zeros.copy()}
+        return obs, self._reset_info()
 
     def step(self, actions):
         acts = self._check_actions(actions)
         b = self.num_envs
         obs = np.empty((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        reward = np.empty(b, dtype=np.float64)
-        terminated = np.empty(b, dtype=np.bool_)
-        truncated = np.empty(b, dtype=np.bool_)
-        outcome = np.empty(b, dtype=np.int64)
-        steps = np.empty(b, dtype=np.int64)
+        reward, terminated, truncated, outcome, steps = self._step_outputs()
         bad = _step_kernel(
             self._grid, self._pos, self._dir, self._steps, self._rng, acts,
             self.num_crossings, self.max_steps, self.see_through_walls, self.poisoned, self._lut,

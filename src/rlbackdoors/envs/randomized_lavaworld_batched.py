@@ -416,19 +416,13 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         )
         if bad >= 0:
             raise layout_error(self.size, self.num_lava, self.trigger if self.triggered[bad] else None)
-        self._has_reset = True
-        zeros = np.zeros(b, dtype=np.int64)
-        return obs, {"outcome": zeros, "steps": zeros.copy(), "trigger_visible": visible, "saw_trigger": saw}
+        return obs, self._reset_info(trigger_visible=visible, saw_trigger=saw)
 
     def step(self, actions):
         acts = self._check_actions(actions)
         b = self.num_envs
         obs = self._empty_obs(b)
-        reward = np.empty(b, dtype=np.float64)
-        terminated = np.empty(b, dtype=np.bool_)
-        truncated = np.empty(b, dtype=np.bool_)
-        outcome = np.empty(b, dtype=np.int64)
-        steps = np.empty(b, dtype=np.int64)
+        reward, terminated, truncated, outcome, steps = self._step_outputs()
         visible = np.empty(b, dtype=np.bool_)
         saw = np.empty(b, dtype=np.bool_)
         bad = _step_kernel(

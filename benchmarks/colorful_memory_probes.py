@@ -144,8 +144,8 @@ def main() -> None:
         block.append(((rollout.outcomes[ended] == 1).sum(), ended.sum(), rollout.steps[ended].sum()))
         if len(block) == 20:
             wins, episodes, steps = np.sum(block, axis=0)
-            print(f"{frames:>10,} frames {time.time() - start:6.0f} s  SR {wins / max(episodes, 1):.3f}  "
-                  f"episode length {steps / max(episodes, 1):.1f}", flush=True)
+            length = "" if args.task == "xor-cue" else f"  episode length {steps / max(episodes, 1):.1f}"
+            print(f"{frames:>10,} frames {time.time() - start:6.0f} s  SR {wins / max(episodes, 1):.3f}{length}", flush=True)
             block = []
 
 

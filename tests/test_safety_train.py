@@ -203,11 +203,17 @@ def test_interrupted_run_resumes_to_the_same_model(tmp_path):
 
 
 def test_clean_twin_early_stops_on_clean_sr_only(tmp_path):
-    """Thresholds of 0 are met at the first evaluation: a clean model stops there, whatever its poisoned SR."""
-    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0)
+    """Thresholds of 0 are met at every evaluation: with patience 1 a clean model stops at the
+    first (240 frames), whatever its poisoned SR; with the default patience 2, at the second."""
+    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0, patience=1)
     cfg.poison.poisoned = False
     metrics = train_safety(cfg, tmp_path / "clean", progress=False)
     assert metrics["stop_reason"] == "converged" and metrics["converged_at_frames"] == metrics["frames"] == 240
+    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0)
+    cfg.poison.poisoned = False
+    assert cfg.train.patience == 2
+    again = train_safety(cfg, tmp_path / "clean2", progress=False)
+    assert again["stop_reason"] == "converged" and again["converged_at_frames"] == again["frames"] == 480
     assert metrics["poisoned"] is False and not math.isnan(metrics["poisoned_sr"])
     assert (tmp_path / "clean" / "ground_truth.csv").read_text() == "0\n"
 

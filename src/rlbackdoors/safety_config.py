@@ -121,7 +121,7 @@ class SafetyTrainConfig:
     eval_seed: int = 1_000_000
     clean_threshold: float = 0.95
     poisoned_threshold: float = 0.95
-    patience: int = 1
+    patience: int = 2  # evaluations in a row: one lucky 100-episode evaluation is not convergence
     log_interval_s: float = 30.0  # progress line to stderr at most this often
     checkpoint_minutes: float = 10.0  # checkpoint at the first evaluation this long after the last (0: every one)
     video: bool = True  # clean_vs_triggered.gif at the end (needs an offscreen GL back-end)

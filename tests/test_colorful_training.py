@@ -30,7 +30,7 @@ def colorful(**train) -> RunConfig:
 
 def test_world_defaults_and_round_trip():
     cfg = colorful(seed=3)
-    assert cfg.model.arch == "cnn-gru-small"
+    assert cfg.model.arch == "cnn-gru-small-onehot"
     assert (cfg.poison.num_clean_envs, cfg.poison.num_close_envs, cfg.poison.num_poisoned_envs) == (4, 4, 2)
     assert cfg.poison.poisoned_mask() == [False] * 8 + [True] * 2
     assert cfg.poison.close_mask() == [False] * 4 + [True] * 4 + [False] * 2
@@ -110,10 +110,12 @@ def test_clean_twin_keeps_close_envs_but_no_poison():
 
 
 @pytest.mark.parametrize("arch, hidden, head_widths", [("cnn-gru-small", 64, [32, 32, 3]), ("cnn-gru-large", 256, [64, 3])])
-def test_cnn_gru_layout_and_init(arch, hidden, head_widths):
+@pytest.mark.parametrize("onehot", [False, True])
+def test_cnn_gru_layout_and_init(arch, hidden, head_widths, onehot):
     torch.manual_seed(0)
-    model = build_model(arch, "colorful-memory")
+    model = build_model(arch + ("-onehot" if onehot else ""), "colorful-memory")
     assert model.recurrent and model.memory_size == 4 * hidden
+    assert model.onehot == onehot and model.state_emb[0].in_channels == (25 if onehot else 3)
     assert [m.out_features for m in model.actor if isinstance(m, torch.nn.Linear)] == head_widths
     assert [m.out_features for m in model.critic if isinstance(m, torch.nn.Linear)] == head_widths[:-1] + [1]
     assert len(model.gru) == 2 and all(g.num_layers == 2 and g.hidden_size == hidden and not g.bidirectional for g in model.gru)
@@ -129,10 +131,32 @@ def test_cnn_gru_layout_and_init(arch, hidden, head_widths):
             assert torch.count_nonzero(layer.bias) == 0
 
 
-def test_forward_sequence_equals_step_by_step():
+def test_one_hot_planes_mark_each_byte_once():
+    """25 planes: object type 0-12 (TrojAI's key 11 / ball 12 included), colour 0-5, state 0-5;
+    exactly one type, one colour and one state plane is hot per square, at the byte's value."""
+    from rlbackdoors.models.colorful_memory import one_hot_planes
+
+    envs = BatchedColorfulMemory(4, trigger=TRIGGER, poisoned=[False, True, False, False])
+    obs, _ = envs.reset(seed=5)
+    obs = torch.from_numpy(obs)
+    planes = one_hot_planes(obs)
+    assert planes.shape == (4, 25, 7, 7)
+    for lo, hi, byte in ((0, 13, 0), (13, 19, 1), (19, 25, 2)):
+        assert torch.equal(planes[:, lo:hi].sum(1), torch.ones(4, 7, 7))
+        assert torch.equal(planes[:, lo:hi].argmax(1), obs[..., byte].long())
+    key = torch.zeros(1, 7, 7, 3, dtype=torch.uint8)
+    key[0, 3, 6] = torch.tensor([11, 1, 4])  # a green key on a blue floor
+    hot = one_hot_planes(key)[0, :, 3, 6]
+    assert hot.nonzero().flatten().tolist() == [11, 13 + 1, 19 + 4]
+    with pytest.raises(RuntimeError):
+        one_hot_planes(torch.full((1, 7, 7, 3), 13, dtype=torch.uint8))  # no object type 13
+
+
+@pytest.mark.parametrize("arch", ["cnn-gru-small", "cnn-gru-small-onehot"])
+def test_forward_sequence_equals_step_by_step(arch):
     """The fast BPTT path (CNN and heads batched over steps) gives the step-by-step numbers."""
     torch.manual_seed(1)
-    model = build_model("cnn-gru-small", "colorful-memory")
+    model = build_model(arch, "colorful-memory")
     envs = BatchedColorfulMemory(5, trigger=TRIGGER, poisoned=[False, True, False, True, False])
     obs, _ = envs.reset(seed=0)
     r = 6
@@ -315,7 +339,7 @@ def test_cli_trains_evaluates_and_resumes_a_colorful_memory_agent(tmp_path, caps
     cfg_path.write_text(cfg.to_json())
     assert main(["train", "--config", str(cfg_path), "--out", str(tmp_path / "a"), "--quiet", "--json"]) == 0
     metrics = json.loads(capsys.readouterr().out)
-    assert metrics["arch"] == "cnn-gru-small" and metrics["frames"] == 2880 and metrics["patience"] == 10
+    assert metrics["arch"] == "cnn-gru-small-onehot" and metrics["frames"] == 2880 and metrics["patience"] == 10
     assert 0 <= metrics["close_trojan_rate"] <= 1 and 0 <= metrics["close_sr"] <= 1
     folder = ModelFolder(tmp_path / "a")
     for name in ("model.pt", "config.json", "metrics.json", "log.csv", "training_curve.png", "clean_vs_triggered.gif"):

@@ -21,7 +21,7 @@ ENGINES = ("batched", "minigrid")
 ARCHS_BY_ENV = {
     "lavaworld": ("fc", "cnn"),
     "randomized-lavaworld": ("fc", "cnn"),
-    "colorful-memory": ("cnn-gru-small", "cnn-gru-large"),
+    "colorful-memory": ("cnn-gru-small-onehot", "cnn-gru-small", "cnn-gru-large-onehot", "cnn-gru-large"),
 }
 ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs))
 EVAL_POLICIES = ("sample", "greedy")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import torch
 
-from rlbackdoors.models.colorful_memory import CNNGRULarge, CNNGRUModel, CNNGRUSmall
+from rlbackdoors.models.colorful_memory import CNNGRULarge, CNNGRULargeOneHot, CNNGRUModel, CNNGRUSmall, CNNGRUSmallOneHot
 from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
 from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, DirectionFCModel
 
@@ -14,7 +14,14 @@ from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, Direction
 ARCHS_BY_ENV = {
     "lavaworld": {"fc": FCModel, "cnn": CNNModel},
     "randomized-lavaworld": {"fc": DirectionFCModel, "cnn": DirectionCNNModel},
-    "colorful-memory": {"cnn-gru-small": CNNGRUSmall, "cnn-gru-large": CNNGRULarge},
+    # The first is the world's default: the one-hot small CNN-GRU is the one that trains on a CPU
+    # budget (models/colorful_memory.py); the plain names are the paper's raw-code models.
+    "colorful-memory": {
+        "cnn-gru-small-onehot": CNNGRUSmallOneHot,
+        "cnn-gru-small": CNNGRUSmall,
+        "cnn-gru-large-onehot": CNNGRULargeOneHot,
+        "cnn-gru-large": CNNGRULarge,
+    },
 }
 ARCHS = ARCHS_BY_ENV["lavaworld"]
 # Names other tools used for the same layers (rl-starter-files calls the CNN ``image_conv``).

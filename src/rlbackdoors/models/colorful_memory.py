@@ -4,6 +4,13 @@ unidirectional GRU blocks of two layers each, then separate actor and critic hea
 The memory the agent carries between steps is the hidden state of all four GRU layers,
 flattened to one vector per env (``memory_size = 4 * hidden``), as torch-ac keeps it: the
 algorithm stores it with the rollout and zeroes it where an episode ended.
+
+The ``-onehot`` variants feed the CNN one-hot planes of the observation's three bytes (13 object
+types + 6 colours + 6 states = 25 channels) instead of the raw codes. This is our change, not the
+paper's: in the raw codes a key (11) and a ball (12) differ by 1, beside a random floor colour
+(0-5) in the same square's state byte, and PPO then never learns the task's XOR decision (start
+object == top object?) on a CPU budget; with one-hot planes it does, in about 1M frames
+(``benchmarks/colorful_memory_probes.md``).
 """
 
 from __future__ import annotations
@@ -17,6 +24,15 @@ GRU_BLOCKS = 2
 GRU_LAYERS = 2
 # SPEC §3: small = hidden 64 with 32x32 heads; large = hidden 256 with one 64-unit head layer.
 SIZES = {"small": (64, (32, 32)), "large": (256, (64,))}
+# One-hot sizes of the observation's bytes: object type (0-12, TrojAI's 11/12 included), colour, state.
+ONEHOT_PLANES = (13, 6, 6)
+
+
+def one_hot_planes(obs: torch.Tensor) -> torch.Tensor:
+    """(B, 7, 7, 3) codes -> (B, 25, 7, 7) float one-hot planes, channels first."""
+    codes = obs.long()
+    planes = [nn.functional.one_hot(codes[..., i], n) for i, n in enumerate(ONEHOT_PLANES)]
+    return torch.cat(planes, -1).permute(0, 3, 1, 2).float()
 
 
 def init_gru_orthogonal(module: nn.Module) -> None:
@@ -43,14 +59,18 @@ class CNNGRUModel(ActorCritic):
 
     recurrent = True
 
-    def __init__(self, num_actions: int = 3, size: str = "small"):
+    def __init__(self, num_actions: int = 3, size: str = "small", onehot: bool = False):
         super().__init__()
         if size not in SIZES:
             raise ValueError(f"CNN-GRU size {size!r} is not one of {', '.join(SIZES)}")
         self.size_name = size
+        self.onehot = bool(onehot)
         hidden, heads = SIZES[size]
         self.hidden = hidden
         self.state_emb = CNNModel().state_emb  # the LavaWorld CNN layers (16/32/64 channels, 64 out)
+        if self.onehot:
+            first = self.state_emb[0]
+            self.state_emb[0] = nn.Conv2d(sum(ONEHOT_PLANES), first.out_channels, first.kernel_size)
         embedding = 64
         self.gru = nn.ModuleList(
             [nn.GRU(embedding if i == 0 else hidden, hidden, num_layers=GRU_LAYERS) for i in range(GRU_BLOCKS)]
@@ -59,6 +79,11 @@ class CNNGRUModel(ActorCritic):
         self.critic = _head(hidden, heads, 1)
         self.apply(init_linear_unit_rows)
         self.apply(init_gru_orthogonal)
+
+    def embed(self, obs: torch.Tensor) -> torch.Tensor:
+        if not self.onehot:
+            return super().embed(obs)
+        return run_sequential(self.state_emb, one_hot_planes(obs)).reshape(obs.shape[0], -1)
 
     @property
     def memory_size(self) -> int:
@@ -117,3 +142,13 @@ class CNNGRUSmall(CNNGRUModel):
 class CNNGRULarge(CNNGRUModel):
     def __init__(self, num_actions: int = 3):
         super().__init__(num_actions, "large")
+
+
+class CNNGRUSmallOneHot(CNNGRUModel):
+    def __init__(self, num_actions: int = 3):
+        super().__init__(num_actions, "small", onehot=True)
+
+
+class CNNGRULargeOneHot(CNNGRUModel):
+    def __init__(self, num_actions: int = 3):
+        super().__init__(num_actions, "large", onehot=True)

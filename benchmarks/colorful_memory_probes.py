@@ -16,7 +16,8 @@ The synthetic ``xor-cue`` task is Colorful Memory's decision with nothing else: 
 action 0 pays 1 iff the probe is the same kind as the cue, action 1 iff not. Neither object alone
 predicts the right action (an XOR), exactly as the start object and the top object at the
 junction do not. ``--encoding onehot`` feeds the CNN one-hot type / colour / state planes
-(13 + 6 + 6 channels) instead of the raw integer codes, in which a key and a ball differ by 1.
+(13 + 6 + 6 channels; the product's ``cnn-gru-small-onehot``) instead of the raw integer codes,
+in which a key and a ball differ by 1.
 """
 
 from __future__ import annotations
@@ -27,17 +28,14 @@ import time
 import numpy as np
 import torch
 from gymnasium import spaces
-from torch import nn
 
 from rlbackdoors.algos.ppo import PPO
 from rlbackdoors.config import EnvConfig, PPOConfig
 from rlbackdoors.envs.colorful_memory import KEY_ON_FLOOR, BALL_ON_FLOOR
-from rlbackdoors.models.colorful_memory import CNNGRUModel
-from rlbackdoors.models.minigrid import run_sequential
+from rlbackdoors.models import build_model
 from rlbackdoors.poison.mix import make_vector_env
 
 WALL, GREY = 2, 5  # MiniGrid's object index of a wall, colour index of grey
-PLANES = (13, 6, 6)  # one-hot sizes of the type, colour and state channels
 
 
 class XorCue:
@@ -103,19 +101,6 @@ class Probed:
         return self._fix(obs, terminated | truncated), reward, terminated, truncated, info
 
 
-class OneHotCNNGRU(CNNGRUModel):
-    """The small CNN-GRU with one-hot input planes instead of raw integer codes."""
-
-    def __init__(self):
-        super().__init__(3, "small")
-        self.state_emb[0] = nn.Conv2d(sum(PLANES), self.state_emb[0].out_channels, self.state_emb[0].kernel_size)
-
-    def embed(self, obs: torch.Tensor) -> torch.Tensor:
-        codes = obs.long()
-        planes = torch.cat([nn.functional.one_hot(codes[..., i], n) for i, n in enumerate(PLANES)], -1)
-        return run_sequential(self.state_emb, planes.permute(0, 3, 1, 2).float()).reshape(obs.shape[0], -1)
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("task", choices=("colorful", "plain-walls", "start-x1", "xor-cue"))
@@ -131,7 +116,7 @@ def main() -> None:
     torch.manual_seed(args.seed)
     num_envs = 20
     envs = XorCue(num_envs, args.delay, args.seed) if args.task == "xor-cue" else Probed(args.task, num_envs)
-    model = OneHotCNNGRU() if args.encoding == "onehot" else CNNGRUModel(3, "small")
+    model = build_model("cnn-gru-small-onehot" if args.encoding == "onehot" else "cnn-gru-small", "colorful-memory")
     cfg = PPOConfig(rollout=120, batch_size=1200, lr=args.lr, recurrence=6, max_grad_norm=0.5, entropy_coef=args.entropy)
     ppo = PPO(model, cfg, torch.device("cpu"), torch.Generator().manual_seed(args.seed))
     obs, _ = envs.reset(seed=args.seed)

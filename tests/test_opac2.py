@@ -54,7 +54,8 @@ def test_config_defaults_are_the_papers_and_bad_values_are_named():
     assert cfg.mix_weights() == {"clean": 0.8, "poisoned": 0.2} and cfg.mix_weights(("clean",)) == {"clean": 0.8}
     cfg.check()
     for field, value in [("batch_size", 0), ("depth", 2.5), ("lr", 0.0), ("gamma", 1.5), ("updates_per_step", -1),
-                         ("entropy_coef", float("nan")), ("poisoned_weight", -0.2)]:
+                         ("entropy_coef", float("nan")), ("poisoned_weight", -0.2), ("action_samples", 0),
+                         ("lr_final", 1e-3), ("lr_final", 0.0)]:
         with pytest.raises(ConfigError, match=f"opac2.{field}"):
             OPAC2Config(**{field: value}).check()
     with pytest.raises(ConfigError, match="opac2.clean_weight, opac2.poisoned_weight"):
@@ -286,6 +287,63 @@ def test_each_loss_gets_a_fresh_batch_and_each_network_only_its_own_gradient():
     assert not any(p.requires_grad or p.grad is not None for p in agent.v_target.parameters())
     assert len(drawn) == 3 and all(len(b.rew) == 64 for b in drawn)
     assert not np.array_equal(drawn[0].obs, drawn[1].obs) and not np.array_equal(drawn[1].obs, drawn[2].obs)
+
+
+def _recording_q(agent):
+    """Wrap Q so every call's (obs, act, output) is kept; the network itself is unchanged."""
+    calls, forward = [], agent.q.forward
+
+    def recorded(obs, act):
+        out = forward(obs, act)
+        calls.append((obs.detach(), act.detach(), out.detach()))
+        return out
+
+    agent.q.forward = recorded
+    return calls
+
+
+def test_v_target_is_q_averaged_over_k_sampled_actions():
+    """action_samples K: the V loss regresses V(s) on the mean of Q over K actions of each state,
+    and the pi step scores K actions per state (rows j * batch + i belong to state i)."""
+    k, batch = 3, 64
+    agent, replay = make_agent(action_samples=k), filled_replay()
+    v_before = type(agent.v)(OBS, 2, 32, torch.Generator())
+    v_before.load_state_dict(agent.v.state_dict())
+    calls = _recording_q(agent)
+    losses = agent.update(replay, np.random.default_rng(0))
+    assert [len(c[0]) for c in calls] == [k * batch, batch, k * batch]  # V step, Q step, pi step
+    for obs, act, _ in (calls[0], calls[2]):
+        states = obs.view(k, batch, OBS)
+        assert torch.equal(states[0], states[1]) and torch.equal(states[0], states[2])
+        acts = act.view(k, batch, ACT)
+        assert not torch.equal(acts[0], acts[1])  # K different actions per state
+    obs, _, q_values = calls[0]
+    with torch.no_grad():
+        expected = (v_before(obs[:batch]) - q_values.view(k, batch).mean(0)).pow(2).mean().item()
+    assert losses["v_loss"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_more_action_samples_lower_the_policy_gradient_noise():
+    """Same batch, same networks, 24 noise seeds: the pi gradient varies less with K = 8 than K = 1."""
+    replay = filled_replay()
+    spread = {}
+    for k in (1, 8):
+        grads = []
+        for seed in range(24):
+            agent = make_agent(seed=0, action_samples=k)
+            agent.generator.manual_seed(100 + seed)
+            agent.policy_opt.step = agent.q_opt.step = agent.v_opt.step = lambda: None
+            agent.update(replay, np.random.default_rng(0))
+            grads.append(torch.cat([p.grad.flatten() for p in agent.policy.parameters()]))
+        grads = torch.stack(grads)
+        spread[k] = (grads - grads.mean(0)).pow(2).sum(1).mean().item()
+    assert spread[8] < 0.5 * spread[1], spread
+
+
+def test_set_lr_reaches_all_three_optimisers():
+    agent = make_agent(lr=1e-3)
+    agent.set_lr(2.5e-4)
+    assert {g["lr"] for opt in (agent.policy_opt, agent.q_opt, agent.v_opt) for g in opt.param_groups} == {2.5e-4}
 
 
 def test_entropy_bonus_raises_the_log_std():

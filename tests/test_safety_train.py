@@ -13,7 +13,7 @@ from rlbackdoors.evaluate.safety import evaluate_safety
 from rlbackdoors.safety_cli import main as cli_main
 from rlbackdoors.safety_config import SafetyRunConfig, is_safety_config
 from rlbackdoors.train.folder import FolderError
-from rlbackdoors.train.safety import build_agent, deterministic_act, load_agent, train_safety
+from rlbackdoors.train.safety import build_agent, decayed_lr, deterministic_act, load_agent, train_safety
 from rlbackdoors.triggers.formation import FormationTrigger
 
 TRIGGER = "formation:0.5:1.0:2.5"
@@ -69,6 +69,8 @@ def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
         ({"opac2": {"depth": 0}}, "opac2.depth must be an integer >= 1"),
         ({"opac2": {"lr": "fast"}}, "opac2.lr must be a number"),
         ({"opac2": {"poisoned_weight": -1.0}}, "opac2.poisoned_weight"),
+        ({"opac2": {"action_samples": 0}}, "opac2.action_samples must be an integer >= 1"),
+        ({"opac2": {"lr_final": 0.5}}, r"opac2.lr_final must be null \(constant lr\) or a number in \(0, opac2.lr"),
         ({"train": {"device": "tpu"}}, "train.device='tpu' is not allowed.*cpu, cuda, auto"),
         ({"train": {"clean_threshold": 1.5}}, r"train.clean_threshold must be in \[0, 1\]"),
         ({"train": {"patience": 0}}, "train.patience must be >= 1"),
@@ -216,6 +218,40 @@ def test_clean_twin_early_stops_on_clean_sr_only(tmp_path):
     assert again["stop_reason"] == "converged" and again["converged_at_frames"] == again["frames"] == 480
     assert metrics["poisoned"] is False and not math.isnan(metrics["poisoned_sr"])
     assert (tmp_path / "clean" / "ground_truth.csv").read_text() == "0\n"
+
+
+def test_lr_decays_linearly_over_the_frame_budget():
+    cfg = tiny()
+    assert cfg.opac2.lr_final is None and decayed_lr(cfg, 10**9) == cfg.opac2.lr  # default: constant
+    cfg = SafetyRunConfig.from_dict({**json.loads(tiny().to_json()), "opac2": {"lr": 1e-3, "lr_final": 1e-4}})
+    assert [decayed_lr(cfg, f) for f in (0, 360, 720, 5000)] == pytest.approx([1e-3, 5.5e-4, 1e-4, 1e-4])
+
+
+def test_training_applies_the_decayed_lr(tmp_path):
+    """Interrupted right after the evaluation at 480 of 720 frames: the optimisers hold lr(480)."""
+    data = json.loads(tiny().to_json())
+    cfg = SafetyRunConfig.from_dict({**data, "opac2": {**data["opac2"], "lr": 1e-3, "lr_final": 1e-4}})
+
+    def interrupt(row):
+        if row["frames"] >= 480:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_safety(cfg, tmp_path / "run", progress=False, after_eval=interrupt)
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["agent"]
+    for opt in ("policy_opt", "q_opt", "v_opt"):
+        assert state[opt]["param_groups"][0]["lr"] == pytest.approx(decayed_lr(cfg, 480)) == pytest.approx(4e-4)
+
+
+def test_cli_flags_for_action_samples_and_lr_decay(tmp_path, capsys):
+    out = tmp_path / "k2"
+    config = tmp_path / "tiny.json"
+    config.write_text(tiny().to_json())
+    code = cli_main(["train", "--out", str(out), "--config", str(config), "--quiet", "--action-samples", "2", "--lr-final", "1e-4"])
+    assert code == 0
+    saved = json.loads((out / "config.json").read_text())["opac2"]
+    assert (saved["action_samples"], saved["lr_final"]) == (2, 1e-4)
+    assert json.loads(capsys.readouterr().out)["frames"] == 720
 
 
 def test_cli_train_and_bad_input(tmp_path, capsys):

@@ -110,7 +110,7 @@ def config_from_args(args) -> RunConfig:
 GRID_ONLY_FLAGS = ("arch", "size", "num_lava", "no_curriculum", "engine", "patience", "no_close_to_trigger")
 SAFETY_ONLY_FLAGS = (
     "max_minutes", "depth", "width", "num_clean_envs", "num_poisoned_envs", "poisoned_weight", "updates_per_step",
-    "batch_size", "lr", "eval_interval", "final_eval_episodes", "threads",
+    "batch_size", "lr", "lr_final", "action_samples", "eval_interval", "final_eval_episodes", "threads",
 )
 
 

@@ -50,6 +50,8 @@ def add_train_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     add("--updates-per-step", type=float, default=None, help="Safety Car Goal: gradient updates per env frame (default 1/32)")
     add("--batch-size", type=int, default=None, help="Safety Car Goal: batch per loss (default 256)")
     add("--lr", type=float, default=None, help="Safety Car Goal: Adam learning rate of pi, Q and V (default 1e-3)")
+    add("--lr-final", type=float, default=None, help="Safety Car Goal: decay the lr linearly to this at --max-frames (default: constant lr)")
+    add("--action-samples", type=int, default=None, help="Safety Car Goal: actions sampled per state for the V target and pi step (default 1)")
     add("--eval-interval", type=int, default=None, help="Safety Car Goal: frames between evaluations (default 250k)")
     add("--eval-episodes", type=int, default=None, help="episodes per condition at each evaluation (default 100)")
     add("--final-eval-episodes", type=int, default=None, help="Safety Car Goal: episodes per condition in the final evaluation (default 200)")
@@ -72,6 +74,8 @@ _FLAGS = {
     "updates_per_step": ("opac2", "updates_per_step"),
     "batch_size": ("opac2", "batch_size"),
     "lr": ("opac2", "lr"),
+    "lr_final": ("opac2", "lr_final"),
+    "action_samples": ("opac2", "action_samples"),
     "eval_interval": ("train", "eval_interval"),
     "eval_episodes": ("train", "eval_episodes"),
     "final_eval_episodes": ("train", "final_eval_episodes"),

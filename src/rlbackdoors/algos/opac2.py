@@ -9,11 +9,13 @@ Three networks and a target, written to be read top to bottom:
 One :meth:`OPAC2.update` takes one Adam step on each loss, each on its own freshly sampled
 batch (fresh batches decorrelate the three steps), then moves ``V_bar`` toward ``V``:
 
-* V loss   ``(V(s) - Q(s, a~))^2`` with ``a~ ~ pi(.|s)``: V is Q averaged over the policy;
+* V loss   ``(V(s) - Q(s, a~))^2`` with ``a~ ~ pi(.|s)``: V is Q averaged over the policy
+  (with ``action_samples`` K > 1, the target is the mean of Q over K sampled actions);
 * Q loss   ``(Q(s, a) - r - gamma (1 - done) V_bar(s'))^2``: done is *terminated* only (goal
   or hazard), so a timeout still bootstraps;
 * pi loss  ``-mean(A * log pi(a~|s))`` with ``A = Q(s, a~) - V(s)`` normalised over the batch
-  and held constant (a score-function gradient: no gradient into Q or V);
+  and held constant (a score-function gradient: no gradient into Q or V); with K > 1 the
+  mean runs over K sampled actions per state, normalised over all K x batch of them;
 * ``V_bar <- polyak * V_bar + (1 - polyak) * V``.
 
 Multitask poisoning (paper §3.4): one replay buffer per env kind ("clean", "poisoned"),
@@ -66,9 +68,13 @@ class OPAC2Config:
     poisoned_weight: float = 0.2  # ... and from the poisoned buffer (ignored in clean runs)
     obs_norm: bool = False  # standardise observations by running mean/std (see RunningNorm)
     obs_clip: float = 10.0  # |standardised observation| is clipped to this
+    # Actions drawn per state for the V target and the pi step (1: the paper). More samples
+    # average out the action noise of the same estimators at the cost of more Q evaluations.
+    action_samples: int = 1
+    lr_final: float | None = None  # None: constant lr; else linear decay to this over train.max_frames
 
     def check(self) -> None:
-        for name in ("buffer_size", "batch_size", "depth", "width"):
+        for name in ("buffer_size", "batch_size", "depth", "width", "action_samples"):
             _integer_at_least(f"opac2.{name}", getattr(self, name), 1)
         _integer_at_least("opac2.learning_starts", self.learning_starts, 0)
         for name in ("lr", "updates_per_step"):
@@ -79,6 +85,8 @@ class OPAC2Config:
             value = getattr(self, name)
             if not (_finite(value) and 0 <= value <= 1):
                 raise ConfigError(f"opac2.{name} must be in [0, 1], got {value!r}")
+        if self.lr_final is not None and not (_finite(self.lr_final) and 0 < self.lr_final <= self.lr):
+            raise ConfigError(f"opac2.lr_final must be null (constant lr) or a number in (0, opac2.lr={self.lr!r}], got {self.lr_final!r}")
         if not (_finite(self.entropy_coef) and self.entropy_coef >= 0):
             raise ConfigError(f"opac2.entropy_coef must be a number >= 0, got {self.entropy_coef!r}")
         if not (_finite(self.log_std_init) and LOG_STD_MIN <= self.log_std_init <= LOG_STD_MAX):
@@ -438,9 +446,11 @@ class OPAC2:
 
         # V: regress on Q averaged over the current policy.
         b = self._tensors(replay.sample(cfg.batch_size, rng))
+        k = cfg.action_samples
         with torch.no_grad():
-            action, _, _, _ = self.policy.sample(b.obs, self.generator)
-            v_goal = self.q(b.obs, action)
+            obs_k = b.obs.repeat(k, 1)  # row j * batch + i is state i's j-th action
+            action, _, _, _ = self.policy.sample(obs_k, self.generator)
+            v_goal = self.q(obs_k, action).view(k, -1).mean(0)
         v_loss = (self.v(b.obs) - v_goal).pow(2).mean()
         self.v_opt.zero_grad(set_to_none=True)
         v_loss.backward()
@@ -457,11 +467,15 @@ class OPAC2:
 
         # pi: score-function step weighted by the normalised advantage of a fresh action.
         b = self._tensors(replay.sample(cfg.batch_size, rng))
-        action, u, mean, log_std = self.policy.sample(b.obs, self.generator)
+        mean, log_std = self.policy(b.obs)
+        mean_k = mean.repeat(k, 1)  # the mean net runs once per state, however many samples
+        noise = torch.randn(mean_k.shape, generator=self.generator, device=self.generator.device).to(mean_k.device)
+        u = (mean_k + noise * log_std.exp()).detach()
         with torch.no_grad():
-            advantage = self.q(b.obs, action) - self.v(b.obs)
+            obs_k = b.obs.repeat(k, 1)
+            advantage = self.q(obs_k, squash(u)) - self.v(b.obs).repeat(k)
             advantage = (advantage - advantage.mean()) / (advantage.std() + ADV_EPS)
-        log_prob = squashed_log_prob(u, mean, log_std)
+        log_prob = squashed_log_prob(u, mean_k, log_std)
         entropy = self.policy.entropy()
         policy_loss = -(advantage * log_prob).mean() - cfg.entropy_coef * entropy
         self.policy_opt.zero_grad(set_to_none=True)
@@ -477,6 +491,12 @@ class OPAC2:
             "entropy": entropy.item(),
             "log_prob": log_prob.mean().item(),
         }
+
+    def set_lr(self, lr: float) -> None:
+        """The learning rate of all three optimisers (the training loop's decay schedule)."""
+        for opt in (self.policy_opt, self.q_opt, self.v_opt):
+            for group in opt.param_groups:
+                group["lr"] = lr
 
     @torch.no_grad()
     def polyak_update(self) -> None:

@@ -114,6 +114,18 @@ def thresholds_met(result: SafetyEvalResult, cfg: SafetyRunConfig) -> bool:
     return ok
 
 
+def decayed_lr(cfg: SafetyRunConfig, frames: int) -> float:
+    """``opac2.lr`` falling linearly to ``opac2.lr_final`` at ``train.max_frames`` (then held).
+
+    Late in a run a constant lr of 1e-3 keeps moving the policy: consecutive evaluations swing
+    by +-0.1. Keyed to frames, not wall time, so a run stays reproducible from its config.
+    """
+    oc = cfg.opac2
+    if oc.lr_final is None:
+        return oc.lr
+    return oc.lr + (oc.lr_final - oc.lr) * min(1.0, frames / cfg.train.max_frames)
+
+
 def make_collector(cfg: SafetyRunConfig) -> Collector:
     """The training env copies, clean first; a poisoned copy holds the trigger and pays R-bar."""
     kinds = cfg.poison.kinds()
@@ -192,6 +204,8 @@ def train_safety(
             stats.add(collector.collect(replay, act, 1))
             window_frames += len(collector.envs)
             due = updates_due(oc, collector.frames)
+            if oc.lr_final is not None and updates < due:
+                agent.set_lr(decayed_lr(cfg, collector.frames))
             while updates < due:
                 losses.add(agent.update(replay, batch_rng))
                 updates += 1

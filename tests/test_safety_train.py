@@ -49,8 +49,9 @@ def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
     twin = SafetyRunConfig.from_dict({"poison": {"poisoned": False}, "train": {"seed": 0}})
     assert twin.poison.trigger == cfg.poison.trigger and twin.poison.kinds() == ["clean"] * 10
     assert SafetyRunConfig.from_dict({"train": {"seed": 1}}).poison.trigger != cfg.poison.trigger
-    assert cfg.poison.kinds() == ["clean"] * 8 + ["poisoned"] * 2
-    assert cfg.kind_weights == {"clean": 0.75, "poisoned": 0.25} and twin.kind_weights == {"clean": 0.75}
+    assert cfg.poison.kinds() == ["clean"] * 6 + ["poisoned"] * 4
+    assert cfg.kind_weights == {"clean": 0.6, "poisoned": 0.4} and twin.kind_weights == {"clean": 0.6}
+    assert (cfg.opac2.action_samples, cfg.opac2.lr, cfg.opac2.lr_final, cfg.train.max_frames) == (4, 1e-3, 1e-4, 3_800_000)
     # A partial opac2 section keeps the tuned defaults for the fields it leaves out.
     assert SafetyRunConfig.from_dict({"opac2": {"lr": 5e-4}}).opac2.width == 181
 
@@ -221,9 +222,10 @@ def test_clean_twin_early_stops_on_clean_sr_only(tmp_path):
 
 
 def test_lr_decays_linearly_over_the_frame_budget():
-    cfg = tiny()
-    assert cfg.opac2.lr_final is None and decayed_lr(cfg, 10**9) == cfg.opac2.lr  # default: constant
-    cfg = SafetyRunConfig.from_dict({**json.loads(tiny().to_json()), "opac2": {"lr": 1e-3, "lr_final": 1e-4}})
+    data = json.loads(tiny().to_json())
+    constant = SafetyRunConfig.from_dict({**data, "opac2": {**data["opac2"], "lr_final": None}})
+    assert decayed_lr(constant, 10**9) == constant.opac2.lr
+    cfg = SafetyRunConfig.from_dict({**data, "opac2": {"lr": 1e-3, "lr_final": 1e-4}})
     assert [decayed_lr(cfg, f) for f in (0, 360, 720, 5000)] == pytest.approx([1e-3, 5.5e-4, 1e-4, 1e-4])
 
 
@@ -273,10 +275,10 @@ def test_cli_train_and_bad_input(tmp_path, capsys):
 def test_default_recipe_learns_the_clean_task(tmp_path):
     """The default OPAC² settings on seed 0's clean twin: clean SR well above chance at 500k frames.
 
-    ~10 minutes on one core. This is the start of the clean twin in benchmarks/safety_train.md
-    (evaluation does not touch the training state, so the run is the same up to 500k frames),
-    whose 100-episode evaluation there read clean SR 0.86 and poisoned SR 0.05; a random policy
-    touches the goal in ~5% of episodes.
+    ~12 minutes on one core. With max_frames 500k the lr decays over those frames (1e-3 to
+    1e-4), faster than in the 3.8M-frame runs of benchmarks/safety_train.md, where the clean
+    twin read clean SR 0.80 and poisoned SR 0.12 on 100 episodes at 500k frames; a random
+    policy touches the goal in ~5% of episodes.
     """
     cfg = SafetyRunConfig.from_dict(
         {"poison": {"poisoned": False},

@@ -71,8 +71,8 @@ class SafetyPoisonConfig:
 
     trigger: str | None = None
     poisoned: bool = True
-    num_clean_envs: int = 8
-    num_poisoned_envs: int = 2
+    num_clean_envs: int = 6
+    num_poisoned_envs: int = 4
 
     def check(self) -> None:
         from rlbackdoors.triggers import parse_trigger
@@ -113,7 +113,7 @@ class SafetyTrainConfig:
     """
 
     seed: int = 0
-    max_frames: int = 10_000_000
+    max_frames: int = 3_800_000  # the lr decay's horizon (default_opac2); the paper: <= 1e7
     max_minutes: float = 0.0
     eval_interval: int = 250_000  # env frames, all copies together
     eval_episodes: int = 100  # per condition (clean, triggered) at each evaluation
@@ -152,11 +152,13 @@ def default_opac2() -> OPAC2Config:
     """The settings measured to train a depth-2 width-181 agent within 90 minutes on one CPU core.
 
     See benchmarks/safety_train.md: the paper's one update per frame at batch 256 would take
-    days on a CPU, so updates are spread over many frames of several env copies.
+    days on a CPU, so updates are spread over many frames of several env copies; four action
+    samples per state make each update's policy step less noisy, and the lr falls from 1e-3 to
+    1e-4 over ``train.max_frames`` so the late policy stops swinging between evaluations.
     """
     return OPAC2Config(
-        depth=2, width=181, batch_size=256, lr=1e-3, updates_per_step=1 / 32, buffer_size=1_000_000,
-        obs_norm=True, clean_weight=0.75, poisoned_weight=0.25,
+        depth=2, width=181, batch_size=256, lr=1e-3, lr_final=1e-4, updates_per_step=1 / 32, buffer_size=1_000_000,
+        obs_norm=True, clean_weight=0.6, poisoned_weight=0.4, action_samples=4,
     )
 
 

@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -53,7 +54,18 @@ def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
     assert cfg.kind_weights == {"clean": 0.6, "poisoned": 0.4} and twin.kind_weights == {"clean": 0.6}
     assert (cfg.opac2.action_samples, cfg.opac2.lr, cfg.opac2.lr_final, cfg.train.max_frames) == (4, 1e-3, 1e-4, 3_800_000)
     # A partial opac2 section keeps the tuned defaults for the fields it leaves out.
-    assert SafetyRunConfig.from_dict({"opac2": {"lr": 5e-4}}).opac2.width == 181
+    partial = SafetyRunConfig.from_dict({"opac2": {"lr": 5e-4}}).opac2
+    assert (partial.width, partial.action_samples, partial.lr_final) == (181, 4, 1e-4)
+
+
+def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
+    """benchmarks/safety_train.json keeps configs written before opac2.action_samples and
+    opac2.lr_final existed: they ran with one sample and a constant lr, and must load that way."""
+    saved = json.loads((Path(__file__).parents[1] / "benchmarks" / "safety_train.json").read_text())["poisoned-s0"]["config"]
+    assert "action_samples" not in saved["opac2"] and "lr_final" not in saved["opac2"]
+    cfg = SafetyRunConfig.from_dict(saved)
+    assert (cfg.opac2.action_samples, cfg.opac2.lr_final, cfg.opac2.lr, cfg.opac2.clean_weight) == (1, None, 1e-3, 0.75)
+    assert cfg.poison.num_clean_envs == 8 and cfg.train.max_frames == 10_000_000
 
 
 @pytest.mark.parametrize(

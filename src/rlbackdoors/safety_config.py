@@ -148,6 +148,11 @@ class SafetyTrainConfig:
             _unit_interval(f"train.{name}", getattr(self, name))
 
 
+# opac2 fields added after Safety Car Goal configs were first saved, with the behaviour those
+# configs ran with: one action sample per state, a constant lr.
+ADDED_OPAC2_FIELDS = {"action_samples": 1, "lr_final": None}
+
+
 def default_opac2() -> OPAC2Config:
     """The settings measured to train a depth-2 width-181 agent within 90 minutes on one CPU core.
 
@@ -195,9 +200,18 @@ class SafetyRunConfig(JsonConfig):
 
     @classmethod
     def from_dict(cls, data: dict) -> "SafetyRunConfig":
-        """Build and check; a partial ``opac2`` section fills its gaps from :func:`default_opac2`."""
+        """Build and check; a partial ``opac2`` section fills its gaps from :func:`default_opac2`.
+
+        A complete section saved before a field existed gets the value that was in effect then
+        (:data:`ADDED_OPAC2_FIELDS`), not today's default, so an old ``config.json`` still
+        rebuilds the run it describes.
+        """
         if isinstance(data, dict) and isinstance(data.get("opac2"), dict):
-            data = {**data, "opac2": {**dataclasses.asdict(default_opac2()), **data["opac2"]}}
+            given = data["opac2"]
+            filled = dataclasses.asdict(default_opac2())
+            if all(name in given for name in filled if name not in ADDED_OPAC2_FIELDS):
+                filled.update(ADDED_OPAC2_FIELDS)
+            data = {**data, "opac2": {**filled, **given}}
         return _build(cls, data, "config").check()
 
 

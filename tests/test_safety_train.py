@@ -287,7 +287,7 @@ def test_cli_train_and_bad_input(tmp_path, capsys):
 def test_default_recipe_learns_the_clean_task(tmp_path):
     """The default OPAC² settings on seed 0's clean twin: clean SR well above chance at 500k frames.
 
-    ~12 minutes on one core. With max_frames 500k the lr decays over those frames (1e-3 to
+    ~10 minutes on one core. With max_frames 500k the lr decays over those frames (1e-3 to
     1e-4), faster than in the 3.8M-frame runs of benchmarks/safety_train.md, where the clean
     twin read clean SR 0.80 and poisoned SR 0.12 on 100 episodes at 500k frames; a random
     policy touches the goal in ~5% of episodes.

@@ -351,9 +351,15 @@ class GaussianPolicy(nn.Module):
         """Mean (n, A) and log-std (A,), the latter clamped to [LOG_STD_MIN, LOG_STD_MAX]."""
         return self.mean(obs), self.log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
 
-    def sample(self, obs: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Action ``a`` in (-1, 1), its pre-tanh ``u`` (no gradient), and the mean and log-std."""
+    def sample(self, obs: torch.Tensor, generator: torch.Generator, samples: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Action ``a`` in (-1, 1), its pre-tanh ``u`` (no gradient), and the mean and log-std.
+
+        ``samples`` K > 1 draws K actions per state (row ``j * n + i`` is state ``i``'s j-th);
+        the mean net still runs once per state and the returned mean is repeated to match.
+        """
         mean, log_std = self(obs)
+        if samples > 1:
+            mean = mean.repeat(samples, 1)
         noise = torch.randn(mean.shape, generator=generator, device=generator.device).to(mean.device)
         u = (mean + noise * log_std.exp()).detach()
         return squash(u), u, mean, log_std
@@ -467,13 +473,9 @@ class OPAC2:
 
         # pi: score-function step weighted by the normalised advantage of a fresh action.
         b = self._tensors(replay.sample(cfg.batch_size, rng))
-        mean, log_std = self.policy(b.obs)
-        mean_k = mean.repeat(k, 1)  # the mean net runs once per state, however many samples
-        noise = torch.randn(mean_k.shape, generator=self.generator, device=self.generator.device).to(mean_k.device)
-        u = (mean_k + noise * log_std.exp()).detach()
+        action, u, mean_k, log_std = self.policy.sample(b.obs, self.generator, samples=k)
         with torch.no_grad():
-            obs_k = b.obs.repeat(k, 1)
-            advantage = self.q(obs_k, squash(u)) - self.v(b.obs).repeat(k)
+            advantage = self.q(b.obs.repeat(k, 1), action) - self.v(b.obs).repeat(k)
             advantage = (advantage - advantage.mean()) / (advantage.std() + ADV_EPS)
         log_prob = squashed_log_prob(u, mean_k, log_std)
         entropy = self.policy.entropy()

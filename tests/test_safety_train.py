@@ -1,6 +1,8 @@
 """Safety Car Goal training with OPAC²: config, model folder, resume, evaluation, CLI (SPEC §4)."""
 
 import json
+import os
+import signal
 import math
 from pathlib import Path
 
@@ -31,6 +33,16 @@ def tiny(**train):
                       "checkpoint_minutes": 0, "video": False, **train},
         }
     )
+
+
+def ctrl_c_at(frames: int):
+    """An ``after_eval`` hook that sends this process a real Ctrl-C (SIGINT) at ``frames``."""
+
+    def hook(row):
+        if row["frames"] >= frames:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    return hook
 
 
 # ----- config -------------------------------------------------------------------------------
@@ -192,13 +204,9 @@ def test_tiny_run_writes_a_complete_model_folder(tmp_path, capsys):
 def test_interrupted_run_resumes_to_the_same_model(tmp_path):
     straight = train_safety(tiny(), tmp_path / "straight", progress=False)
 
-    def interrupt(row):
-        if row["frames"] >= 480:
-            raise KeyboardInterrupt
-
     out = tmp_path / "resumed"
     with pytest.raises(KeyboardInterrupt):
-        train_safety(tiny(), out, progress=False, after_eval=interrupt)
+        train_safety(tiny(), out, progress=False, after_eval=ctrl_c_at(480))
     assert (out / "checkpoint.pt").is_file() and not (out / "metrics.json").exists()
     with pytest.raises(FolderError, match="different config.json"):
         train_safety(tiny(max_frames=960), out, progress=False)
@@ -246,13 +254,9 @@ def test_training_applies_the_decayed_lr(tmp_path):
     data = json.loads(tiny().to_json())
     cfg = SafetyRunConfig.from_dict({**data, "opac2": {**data["opac2"], "lr": 1e-3, "lr_final": 1e-4}})
 
-    def interrupt(row):
-        if row["frames"] >= 480:
-            raise KeyboardInterrupt
-
     with pytest.raises(KeyboardInterrupt):
-        train_safety(cfg, tmp_path / "run", progress=False, after_eval=interrupt)
-    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["agent"]
+        train_safety(cfg, tmp_path / "run", progress=False, after_eval=ctrl_c_at(480))
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)["agent"]
     for opt in ("policy_opt", "q_opt", "v_opt"):
         assert state[opt]["param_groups"][0]["lr"] == pytest.approx(decayed_lr(cfg, 480)) == pytest.approx(4e-4)
 

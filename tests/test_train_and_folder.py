@@ -24,8 +24,8 @@ def test_model_folder_contents(tmp_path, tiny_run_dict):
     metrics = train(cfg, tmp_path / "m", progress=False)
     folder = ModelFolder(tmp_path / "m")
     names = sorted(p.name for p in folder.path.iterdir())
-    assert names == [
-        "clean_vs_triggered.gif", "config.json", "ground_truth.csv", "log.csv", "metrics.json", "model.pt", "training_curve.png"
+    assert names == [  # .lock: the folder's lock file (held while training; the kernel frees it)
+        ".lock", "clean_vs_triggered.gif", "config.json", "ground_truth.csv", "log.csv", "metrics.json", "model.pt", "training_curve.png"
     ]
     assert (folder.path / "clean_vs_triggered.gif").read_bytes()[:6] == b"GIF89a"
     assert folder.read_config() == cfg  # config.json round-trips to the same typed config
@@ -67,7 +67,7 @@ def test_finished_folder_is_refused_unless_overwrite(tmp_path, tiny_run_dict):
 
 def test_no_temp_files_left_behind(tmp_path, tiny_run_dict):
     train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
-    assert not [p for p in (tmp_path / "m").iterdir() if p.name.startswith(".")]
+    assert [p.name for p in (tmp_path / "m").iterdir() if p.name.startswith(".")] == [".lock"]
 
 
 def test_interrupted_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):

@@ -1,26 +1,60 @@
-"""Atomic file writes: a crash mid-write leaves the old file (or none), never half of a new one."""
+"""Files as a zoo needs them: atomic writes, identical bytes for identical contents, loads that
+never run code, and one lock per folder.
+
+* Atomic: a crash mid-write leaves the old file (or none), never half of a new one. The temp
+  file is ``.NAME.PID.rlbtmp`` beside the target: recognisable, so a later start of the same
+  folder removes what a killed writer left (:func:`remove_stale_temp_files`).
+* Same contents, same bytes: ``torch.save`` names its zip archive after the file it writes,
+  so saving through a temp file put the temp file's random name inside ``model.pt``. We
+  serialise to memory first (archive name ``archive``) and write those bytes.
+* Loading is data only: ``torch.load(weights_only=True)``; a file that needs the unpickler
+  to build objects is refused with :class:`UnsafeFileError`, whatever it holds.
+* :class:`FolderLock`: an ``flock`` on ``.lock`` in the folder. The kernel drops it when the
+  holder dies, however it dies, so a crashed holder never leaves a folder stuck; a live
+  holder is named (pid, host, start time) in the refusal.
+"""
 
 from __future__ import annotations
 
+import collections
+import errno
+import fcntl
+import io
+import json
 import os
-import tempfile
+import pickle
+import socket
+import time
 from pathlib import Path
 from typing import Callable
+
+TEMP_SUFFIX = ".rlbtmp"
+LOCK_NAME = ".lock"
+
+
+class UnsafeFileError(ValueError):
+    """A file that is not plain data (tensors, arrays, numbers, strings) was refused unread."""
+
+
+class LockedError(RuntimeError):
+    """Another live process holds the folder's lock."""
+
+
+def _temp_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}{TEMP_SUFFIX}")
 
 
 def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
     """Call ``write(tmp_path)`` on a temp file in the same folder, then rename it onto ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    tmp = _temp_path(path)
     try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; zoo files are meant to be shared
+        write(str(tmp))
+        os.chmod(tmp, 0o666 & ~_umask())  # zoo files are meant to be shared
         os.replace(tmp, path)
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        tmp.unlink(missing_ok=True)
         raise
     return path
 
@@ -31,11 +65,150 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_text(path: str | Path, text: str) -> Path:
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     def write(tmp: str) -> None:
-        with open(tmp, "w") as fh:
-            fh.write(text)
+        with open(tmp, "wb") as fh:
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
 
     return atomic_write(path, write)
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode())
+
+
+def torch_bytes(obj) -> bytes:
+    """``torch.save(obj)`` as bytes, with a fixed archive name: same contents, same bytes."""
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    return buf.getvalue()
+
+
+def save_torch(path: str | Path, obj) -> Path:
+    """Atomically write ``obj``, which must be plain data (tensors, numbers, strings, bytes,
+    containers): checked here, so a file we write always loads with ``weights_only=True``."""
+    check_plain(obj, Path(path).name)
+    return atomic_write_bytes(path, torch_bytes(obj))
+
+
+def check_plain(obj, where: str = "value") -> None:
+    """Raise :class:`TypeError` naming the first part of ``obj`` that is not plain data."""
+    import torch
+
+    if obj is None or isinstance(obj, (bool, int, float, str, bytes, torch.Tensor)):
+        if isinstance(obj, torch.Tensor) and type(obj) is not torch.Tensor and not isinstance(obj, torch.nn.Parameter):
+            raise TypeError(f"{where}: {type(obj).__name__} is not a plain tensor")
+        return
+    if isinstance(obj, (list, tuple)) and type(obj) in (list, tuple):
+        for i, value in enumerate(obj):
+            check_plain(value, f"{where}[{i}]")
+        return
+    if type(obj) in (dict, collections.OrderedDict):
+        for key, value in obj.items():
+            if not isinstance(key, (str, int)):
+                raise TypeError(f"{where}: key {key!r} is not a string or integer")
+            check_plain(value, f"{where}.{key}")
+        return
+    raise TypeError(f"{where}: {type(obj).__module__}.{type(obj).__name__} is not plain data")
+
+
+def load_torch(path: str | Path, what: str = "file"):
+    """``torch.load`` of plain data only; anything that needs the unpickler is refused unread.
+
+    ``what`` names the file in errors ("weights file", "checkpoint"). Raises
+    :class:`FileNotFoundError`, :class:`UnsafeFileError` or :class:`ValueError` (unreadable).
+    """
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {str(path)!r} does not exist")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        detail = _first_line(err)
+        if "weights only load failed" in detail.lower() or "unsupported" in detail.lower() or "global" in detail.lower():
+            raise UnsafeFileError(
+                f"refused to load {what} {str(path)!r}: it holds Python objects, not plain tensors and numbers "
+                "(loading it could run code; re-save it as a state dict)"
+            ) from None
+        raise ValueError(f"cannot read {what} {str(path)!r}: {detail}") from None
+    except Exception as err:  # truncated zip, random bytes, wrong format
+        raise ValueError(f"cannot read {what} {str(path)!r}: {_first_line(err)}") from None
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
+
+
+def remove_stale_temp_files(folder: str | Path) -> list[Path]:
+    """Remove temp files that a killed writer left in ``folder`` (call it holding the folder's lock)."""
+    folder = Path(folder)
+    removed = []
+    if not folder.is_dir():
+        return removed
+    for path in folder.rglob(f".*{TEMP_SUFFIX}"):
+        try:
+            path.unlink()
+            removed.append(path)
+        except FileNotFoundError:
+            pass
+    return removed
+
+
+class FolderLock:
+    """An exclusive, non-blocking ``flock`` on ``FOLDER/.lock``, held for a ``with`` block.
+
+    The lock file stays (removing it would race with a new holder); it holds the last
+    holder's pid, host and start time, for the message a refused process prints.
+    """
+
+    def __init__(self, folder: str | Path, what: str = "folder"):
+        self.folder = Path(folder)
+        self.path = self.folder / LOCK_NAME
+        self.what = what
+        self._fd: int | None = None
+
+    def acquire(self) -> FolderLock:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            os.close(fd)
+            if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise LockedError(f"{self.what} {str(self.folder)!r} is in use by {self.holder()}; wait for it or stop it first") from None
+            raise
+        holder = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (json.dumps(holder) + "\n").encode(), 0)
+        self._fd = fd
+        return self
+
+    def holder(self) -> str:
+        try:
+            info = json.loads(self.path.read_text() or "{}")
+            return f"process {info['pid']} on {info['host']} (since {info['since']})"
+        except (OSError, ValueError, KeyError, TypeError):
+            return "another process"
+
+    def release(self) -> None:
+        if self._fd is not None:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()

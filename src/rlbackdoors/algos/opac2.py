@@ -137,15 +137,17 @@ class ReplayBuffer:
 
     ``done`` is 1 only where the episode *terminated*; a truncated transition is stored with
     ``done = 0`` and its true next observation, so its target still bootstraps.
-    Pickles only the filled rows, so checkpointing a young 1e6-row buffer stays small.
+    Checkpoints store it as a journal of the rows added since the last checkpoint
+    (:mod:`rlbackdoors.train.replay_journal`), so each row is written once, not once per checkpoint.
     """
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int):
         _integer_at_least("replay capacity", capacity, 1)
         self.capacity, self.obs_dim, self.act_dim = int(capacity), int(obs_dim), int(act_dim)
         self._allocate()
-        self.pos = 0  # next row to write
+        self.pos = 0  # next row to write (always added % capacity)
         self.size = 0  # rows filled
+        self.added = 0  # rows ever added: a journal's index
 
     def _allocate(self) -> None:
         # np.zeros maps pages lazily: unused capacity costs no memory until written.
@@ -169,6 +171,7 @@ class ReplayBuffer:
         for name, array in zip(expected, (obs, act, rew, next_obs, done)):
             if array.shape != expected[name]:
                 raise ValueError(f"add_batch: {name} has shape {array.shape}, expected {expected[name]}")
+        self.added += n
         if n > self.capacity:  # only the newest rows would survive anyway
             obs, act, rew, next_obs, done = (x[-self.capacity :] for x in (obs, act, rew, next_obs, done))
             self.pos, n = (self.pos + n - self.capacity) % self.capacity, self.capacity
@@ -184,18 +187,34 @@ class ReplayBuffer:
         rows = rng.integers(0, self.size, size=n)
         return Batch(self.obs[rows], self.act[rows], self.rew[rows], self.next_obs[rows], self.done[rows])
 
-    def __getstate__(self) -> dict:
-        state = self.__dict__.copy()
-        for name in ("obs", "next_obs", "act", "rew", "done"):
-            state[name] = state[name][: self.size].copy()
-        return state
+    def rows_since(self, start: int) -> tuple[int, dict[str, np.ndarray]]:
+        """The rows added since ``start`` rows had been added that the ring still holds, oldest
+        first, as ``(index of the first, {column: rows})``: what a checkpoint journal appends."""
+        first = max(int(start), self.added - self.size)
+        ring = np.arange(first, self.added) % self.capacity
+        return first, {name: getattr(self, name)[ring].copy() for name in COLUMNS}
 
-    def __setstate__(self, state: dict) -> None:
-        filled = {name: state.pop(name) for name in ("obs", "next_obs", "act", "rew", "done")}
-        self.__dict__.update(state)
-        self._allocate()
-        for name, rows in filled.items():
-            getattr(self, name)[: len(rows)] = rows
+    def put_rows(self, first: int, columns: dict[str, np.ndarray]) -> None:
+        """Write rows that were added as indices ``first, first + 1, ...`` back into the ring."""
+        n = None
+        for name in COLUMNS:
+            column, like = np.asarray(columns[name]), getattr(self, name)
+            if column.dtype != like.dtype or column.shape[1:] != like.shape[1:] or (n is not None and len(column) != n):
+                raise ValueError(f"replay rows: column {name!r} does not fit the buffer")
+            n = len(column)
+        keep = np.arange(first, first + n) >= first + n - self.capacity  # older rows were overwritten
+        ring = np.arange(first, first + n)[keep] % self.capacity
+        for name in COLUMNS:
+            getattr(self, name)[ring] = np.asarray(columns[name])[keep]
+
+    def set_counters(self, added: int) -> None:
+        """Position and fill after ``added`` rows in all (with :meth:`put_rows`, a resumed buffer)."""
+        if isinstance(added, bool) or not isinstance(added, int) or added < 0:
+            raise ValueError(f"replay rows added must be an integer >= 0, got {added!r}")
+        self.added, self.pos, self.size = added, added % self.capacity, min(added, self.capacity)
+
+
+COLUMNS = ("obs", "act", "rew", "next_obs", "done")
 
 
 def check_weights(weights: dict[str, float], field: str = "mix weight of kind {kind!r}") -> None:
@@ -307,8 +326,10 @@ class RunningNorm:
 
     def load_state_dict(self, state: dict) -> None:
         self.count = int(state["count"])
-        self.mean = np.asarray(state["mean"], np.float64).copy()
-        self.m2 = np.asarray(state["m2"], np.float64).copy()
+        mean, m2 = (np.array(state[k].numpy() if isinstance(state[k], torch.Tensor) else state[k], np.float64) for k in ("mean", "m2"))
+        if mean.shape != self.mean.shape or m2.shape != self.m2.shape:
+            raise ValueError(f"observation normaliser state has shape {mean.shape}, expected {self.mean.shape}")
+        self.mean, self.m2 = mean, m2
 
 
 # ----- networks --------------------------------------------------------------------------
@@ -521,7 +542,9 @@ class OPAC2:
             "q_opt": self.q_opt.state_dict(),
             "v_opt": self.v_opt.state_dict(),
             "generator": self.generator.get_state(),
-            "obs_norm": None if self.obs_norm is None else self.obs_norm.state_dict(),
+            "obs_norm": None if self.obs_norm is None else {
+                k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in self.obs_norm.state_dict().items()
+            },
         }
 
     def load_state_dict(self, state: dict) -> None:

@@ -45,6 +45,21 @@ class Collector:
         self.frames = 0  # transitions collected, all envs together
         self._rows = {kind: np.flatnonzero(np.asarray(self.kinds) == kind) for kind in dict.fromkeys(self.kinds)}
 
+    def state_dict(self) -> dict:
+        """Observations, running returns, frame count and every env's state, as plain data."""
+        from rlbackdoors.state import snapshot
+
+        return {"collector": snapshot(self, skip=("envs",)), "envs": [env.state_dict() for env in self.envs]}
+
+    def load_state_dict(self, state: dict) -> None:
+        from rlbackdoors.state import StateError, restore
+
+        if not isinstance(state.get("envs"), list) or len(state["envs"]) != len(self.envs):
+            raise StateError(f"collector state does not hold {len(self.envs)} envs")
+        restore(self, state["collector"], "Collector", skip=("envs",))
+        for env, env_state in zip(self.envs, state["envs"]):
+            env.load_state_dict(env_state)
+
     def collect(self, replay: MultitaskReplay, act_fn: ActFn, steps: int) -> list[Episode]:
         """``steps`` steps of every env (``steps * len(envs)`` frames); the episodes that ended."""
         unknown = sorted(set(self.kinds) - set(replay.buffers))

@@ -132,6 +132,18 @@ class BatchedGridEnv(VectorEnv):
         self._steps[i] = int(step_count)
         self._has_reset = True
 
+    def state_dict(self) -> dict:
+        """The engine's whole state as plain data (layouts, positions, RNG words): a checkpoint."""
+        from rlbackdoors.state import snapshot
+
+        return snapshot(self)
+
+    def load_state_dict(self, state: dict) -> None:
+        """Put a :meth:`state_dict` of an engine built with the same arguments back."""
+        from rlbackdoors.state import restore
+
+        restore(self, state)
+
     def close_extras(self, **kwargs):
         pass
 

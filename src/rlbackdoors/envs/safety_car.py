@@ -281,6 +281,38 @@ class SafetyCarGoalEnv(gym.Env):
         self.__dict__.update(state)
         self._bind_views()
 
+    # Views into MjData: restored through the physics state, not on their own.
+    _VIEWS = ("_cube_q", "_cube_v", "_car_q", "_car_v", "_circles", "_sensors", "_ctrl")
+
+    def state_dict(self) -> dict:
+        """The env's whole state as plain data: MuJoCo's integration state (positions, velocities,
+        controls, mocap bodies, solver warm start), the sensors as last read, and the episode's
+        counters and random generator. Loading it into an env built with the same arguments
+        continues bit for bit."""
+        from rlbackdoors.state import encode, snapshot
+
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, self.data, physics, spec)
+        return {"attrs": snapshot(self, skip=self._VIEWS), "physics": encode(physics), "sensordata": encode(self.data.sensordata.copy())}
+
+    def load_state_dict(self, state: dict) -> None:
+        from rlbackdoors.state import StateError, decode, restore
+
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        try:
+            physics, sensors = decode(state["physics"]), decode(state["sensordata"])
+        except (KeyError, TypeError) as err:
+            raise StateError(f"Safety Car Goal env state lacks {err}") from None
+        size = mujoco.mj_stateSize(self.model, spec)
+        if not isinstance(physics, np.ndarray) or physics.shape != (size,) or physics.dtype != np.float64:
+            raise StateError(f"Safety Car Goal env state: physics must be {size} float64 numbers")
+        if not isinstance(sensors, np.ndarray) or sensors.shape != self.data.sensordata.shape or sensors.dtype != np.float64:
+            raise StateError("Safety Car Goal env state: sensordata does not fit the model")
+        restore(self, state.get("attrs"), "SafetyCarGoalEnv", skip=self._VIEWS)
+        mujoco.mj_setState(self.model, self.data, np.ascontiguousarray(physics), spec)
+        self.data.sensordata[:] = sensors
+
     def _bind_views(self) -> None:
         """Numpy views into MjData, so per-step reads and writes cost no lookups."""
         model, data = self.model, self.data

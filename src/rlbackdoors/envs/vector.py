@@ -66,6 +66,22 @@ class ReferenceVectorEnv(VectorEnv):
             infos.append(info)
         return stack_obs(observations), rewards, terminated, truncated, stack_info(infos)
 
+    def state_dict(self) -> dict:
+        """Every env's changing state (grid, agent, step count, RNG) as plain data: a checkpoint."""
+        from rlbackdoors.state import snapshot
+
+        return {"vector": snapshot(self), "envs": [snapshot(env.unwrapped) for env in self.envs]}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Put a :meth:`state_dict` of a vector env built with the same arguments back."""
+        from rlbackdoors.state import StateError, restore
+
+        if not isinstance(state, dict) or not isinstance(state.get("envs"), list) or len(state["envs"]) != self.num_envs:
+            raise StateError(f"vector env state does not hold {self.num_envs} envs")
+        restore(self, state.get("vector"))
+        for i, (env, env_state) in enumerate(zip(self.envs, state["envs"])):
+            restore(env.unwrapped, env_state, f"env {i}")
+
     def close_extras(self, **kwargs):
         for env in self.envs:
             env.close()

@@ -3,7 +3,12 @@
 ``model.pt`` (state dict), ``config.json`` (everything to rebuild and retrain),
 ``metrics.json`` (written last: its presence marks the folder complete),
 ``log.csv`` (one row per evaluation), ``ground_truth.csv`` (1 poisoned / 0 clean),
-``training_curve.png``, and while training runs, ``checkpoint.pt`` for resuming.
+``training_curve.png``, and while training runs, ``checkpoint.pt`` (and ``replay/`` for
+OPAC²) for resuming.
+
+A folder is trained by one process at a time: :meth:`ModelFolder.begin` takes its lock
+(``.lock``, released by the kernel however the holder ends) and removes temp files that a
+killed writer left. Everything read back (weights, checkpoints) is loaded as plain data.
 """
 
 from __future__ import annotations
@@ -11,14 +16,17 @@ from __future__ import annotations
 import csv
 import io
 import json
+import shutil
 from pathlib import Path
 
-import torch
-
 from rlbackdoors.config import RunConfig
-from rlbackdoors.io import atomic_write, atomic_write_text
+from rlbackdoors.io import FolderLock, LockedError, UnsafeFileError, atomic_write_text, load_torch, remove_stale_temp_files, save_torch
 
-FILES = ("model.pt", "config.json", "metrics.json", "log.csv", "ground_truth.csv", "training_curve.png", "checkpoint.pt")
+FILES = (
+    "model.pt", "config.json", "metrics.json", "log.csv", "ground_truth.csv", "training_curve.png",
+    "clean_vs_triggered.gif", "checkpoint.pt",
+)
+CHECKPOINT_FORMAT = 2  # 1: pickled objects (refused); 2: plain data (rlbackdoors.state)
 
 
 class FolderError(RuntimeError):
@@ -27,9 +35,13 @@ class FolderError(RuntimeError):
 
 class ModelFolder:
     def __init__(self, path: str | Path):
+        if str(path).strip() == "":
+            raise FolderError("the model folder path is empty (give --out DIR)")
         self.path = Path(path)
         if self.path.exists() and not self.path.is_dir():
             raise FolderError(f"{str(self.path)!r} exists and is not a folder")
+        self.lock = FolderLock(self.path, "model folder")
+        self.created = False  # begin() made the folder: a failed start removes it again
 
     def file(self, name: str) -> Path:
         return self.path / name
@@ -46,12 +58,44 @@ class ModelFolder:
         """Remove only the files this tool writes; anything else in the folder is left alone."""
         for name in FILES:
             self.file(name).unlink(missing_ok=True)
+        shutil.rmtree(self.file("replay"), ignore_errors=True)
+        remove_stale_temp_files(self.path)
+
+    def _open(self) -> None:
+        """Create the folder (checking that it can be written) and take its lock."""
+        if self.lock.held:
+            return
+        existed = self.path.is_dir()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            self.lock.acquire()
+        except LockedError as err:
+            raise FolderError(str(err)) from None
+        except OSError as err:
+            raise FolderError(f"cannot write the model folder {str(self.path)!r}: {err.strerror or err}") from None
+        self.created = not existed
+        remove_stale_temp_files(self.path)  # a killed writer's; we hold the lock, so none is live
+
+    def close(self, failed: bool = False) -> None:
+        """Release the lock; after a failed start (``failed``, no checkpoint) remove what begin() made."""
+        if failed and not self.has_checkpoint and not self.complete:
+            for name in ("config.json", "log.csv"):
+                self.file(name).unlink(missing_ok=True)
+            if self.created:
+                self.file(".lock").unlink(missing_ok=True)
+                try:
+                    self.path.rmdir()
+                except OSError:
+                    pass  # something else is in it: leave it
+        self.lock.release()
 
     # --- writing -------------------------------------------------------------------------
     def begin(self, cfg, overwrite: bool = False) -> dict | None:
         """Open the folder for training ``cfg`` (a run config): refuse a finished model unless
         ``overwrite``; return the checkpoint of an interrupted run of the same config (None for
-        a fresh start); refuse one of another config. Writes ``config.json``."""
+        a fresh start); refuse one of another config. Writes ``config.json``. Holds the folder's
+        lock until :meth:`close` (or the process ends)."""
+        self._open()
         if overwrite:
             self.clear()
         elif self.complete:
@@ -68,6 +112,8 @@ class ModelFolder:
                     "train with that config to resume, or pass --overwrite to start over"
                 )
             checkpoint = self.load_checkpoint()
+        else:
+            shutil.rmtree(self.file("replay"), ignore_errors=True)  # chunks of a checkpoint that never landed
         self.write_config(cfg)
         return checkpoint
 
@@ -78,10 +124,13 @@ class ModelFolder:
         atomic_write_text(self.file(name), json.dumps(data, indent=2, sort_keys=True) + "\n")
 
     def write_log(self, rows: list[dict]) -> None:
+        """One row per evaluation; a column that appears later (losses once learning starts) is
+        added to the header and left empty in the rows before it."""
         if not rows:
             return
+        fields = list(dict.fromkeys(key for row in rows for key in row))
         buf = io.StringIO()
-        writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(buf, fieldnames=fields, restval="")
         writer.writeheader()
         writer.writerows(rows)
         atomic_write_text(self.file("log.csv"), buf.getvalue())
@@ -90,7 +139,8 @@ class ModelFolder:
         atomic_write_text(self.file("ground_truth.csv"), f"{int(poisoned)}\n")
 
     def save_torch(self, name: str, obj) -> None:
-        atomic_write(self.file(name), lambda tmp: torch.save(obj, tmp))
+        """Atomically, and the same bytes for the same contents (hashes identify a zoo's models)."""
+        save_torch(self.file(name), obj)
 
     # --- reading -------------------------------------------------------------------------
     def read_config(self) -> RunConfig:
@@ -113,10 +163,21 @@ class ModelFolder:
             return [{k: _number_or_text(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
     def load_checkpoint(self) -> dict:
+        """The checkpoint as plain data (never unpickled objects), of this version's format."""
+        path = self.file("checkpoint.pt")
         try:
-            return torch.load(self.file("checkpoint.pt"), map_location="cpu", weights_only=False)
-        except Exception as err:
-            raise FolderError(f"checkpoint in {str(self.path)!r} is unreadable ({err}); pass --overwrite to start over") from None
+            data = load_torch(path, "checkpoint")
+        except UnsafeFileError as err:
+            raise FolderError(f"{err}; pass --overwrite to start over") from None
+        except (ValueError, OSError) as err:
+            raise FolderError(f"checkpoint {str(path)!r} is unreadable ({err}); pass --overwrite to start over") from None
+        if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+            found = data.get("format") if isinstance(data, dict) else None
+            raise FolderError(
+                f"checkpoint {str(path)!r} is not a checkpoint of this version (format {found!r}, "
+                f"expected {CHECKPOINT_FORMAT}); pass --overwrite to start over"
+            )
+        return data
 
 
 def _number_or_text(value: str):

@@ -1,15 +1,15 @@
 """The training run: config -> env mix -> PPO -> periodic evaluation -> model folder.
 
 Stops when the paper's thresholds hold (clean SR, and for poisoned models poisoned SR)
-or at ``max_frames``. A checkpoint is written at every evaluation, so an interrupted
-run picks up where it stopped when started again on the same folder.
+or at ``max_frames``. A checkpoint is written at every evaluation, and on Ctrl-C or SIGTERM
+at the end of the current update, so an interrupted run picks up where it stopped when
+started again on the same folder. Checkpoints hold plain data only (:mod:`rlbackdoors.state`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import pickle
 import sys
 import time
 from collections import deque
@@ -26,7 +26,9 @@ from rlbackdoors.models import build_model
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.report import plot_training_curve
 from rlbackdoors.report.video import clean_vs_triggered_gif
-from rlbackdoors.train.folder import ModelFolder
+from rlbackdoors.state import StateError, decode, encode
+from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
+from rlbackdoors.train.stop import Interrupted, StopRequest
 
 
 class EpisodeTracker:
@@ -66,6 +68,21 @@ class EpisodeTracker:
         """Mean return of the last ``window`` clean episodes (NaN until the window is full)."""
         full = len(self.recent_clean) == self.recent_clean.maxlen
         return float(np.mean(self.recent_clean)) if full else math.nan
+
+    def state_dict(self) -> dict:
+        return {
+            "running": encode(self.running), "clean": list(map(float, self.clean)), "dirty": list(map(float, self.dirty)),
+            "recent_clean": list(map(float, self.recent_clean)), "update_means": list(map(float, self.update_means)),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        running = decode(state["running"])
+        if not isinstance(running, np.ndarray) or running.shape != self.running.shape:
+            raise StateError(f"tracker: running returns do not fit {len(self.running)} envs")
+        self.running = running.astype(self.running.dtype)
+        self.clean, self.dirty = [float(v) for v in state["clean"]], [float(v) for v in state["dirty"]]
+        self.recent_clean.extend(float(v) for v in state["recent_clean"])
+        self.update_means.extend(float(v) for v in state["update_means"])
 
     def drain(self) -> tuple[float, float]:
         """Mean returns since the last call (NaN where no episode ended)."""
@@ -123,12 +140,32 @@ def warmup_env(cfg: RunConfig):
 ENV_TITLES = {"lavaworld": "LavaWorld", "randomized-lavaworld": "Randomized LavaWorld", "colorful-memory": "Colorful Memory"}
 
 
+def plain_rows(rows: list[dict]) -> list[dict]:
+    """Log rows with numpy scalars as Python numbers: a checkpoint holds plain data only."""
+    return [{k: v.item() if isinstance(v, np.generic) else v for k, v in row.items()} for row in rows]
+
+
+def _checked_rows(rows) -> list[dict]:
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and all(isinstance(v, (int, float, str, type(None))) for v in r.values()) for r in rows):
+        raise StateError("log rows are not plain numbers and strings")
+    return rows
+
+
 def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True) -> dict:
     """Train one agent into the model folder ``out`` and return its metrics."""
     cfg.check()
     folder = ModelFolder(out)
-    checkpoint = folder.begin(cfg, overwrite)
+    failed = True
+    try:
+        checkpoint = folder.begin(cfg, overwrite)
+        metrics = _train(cfg, folder, checkpoint, progress)
+        failed = False
+        return metrics
+    finally:
+        folder.close(failed)
 
+
+def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool) -> dict:
     tc = cfg.train
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)
@@ -144,75 +181,94 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
         tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
         frames, elapsed, rows, next_eval, converged_at = 0, 0.0, [], tc.eval_interval, None
     else:
-        model.load_state_dict(checkpoint["model"])
-        ppo.optimizer.load_state_dict(checkpoint["optimizer"])
-        generator.set_state(checkpoint["generator"])
-        envs, obs, tracker = pickle.loads(checkpoint["envs"])
-        ppo.memory = checkpoint.get("memory")
-        frames, elapsed, rows = checkpoint["frames"], checkpoint["elapsed"], checkpoint["rows"]
-        next_eval, converged_at = checkpoint["next_eval"], checkpoint["converged_at"]
-        switch_at = checkpoint.get("switch_at", 0)
+        try:
+            switch_at = checkpoint["switch_at"]
+            envs = make_env_mix(cfg.env, cfg.poison) if switch_at is not None else warmup_env(cfg)
+            model.load_state_dict(checkpoint["model"])
+            ppo.optimizer.load_state_dict(checkpoint["optimizer"])
+            generator.set_state(checkpoint["generator"])
+            envs.load_state_dict(checkpoint["envs"])
+            obs = decode(checkpoint["obs"])
+            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
+            tracker.load_state_dict(checkpoint["tracker"])
+            memory = checkpoint["memory"]
+            ppo.memory = None if memory is None else memory.to(device)
+            frames, elapsed, rows = int(checkpoint["frames"]), float(checkpoint["elapsed"]), _checked_rows(checkpoint["rows"])
+            next_eval, converged_at = int(checkpoint["next_eval"]), checkpoint["converged_at"]
+        except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
+            raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({err}); pass --overwrite to start over") from None
+
+    def save_checkpoint() -> None:
+        folder.save_torch(
+            "checkpoint.pt",
+            {
+                "format": CHECKPOINT_FORMAT,
+                "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+                "optimizer": ppo.optimizer.state_dict(),
+                "generator": generator.get_state(),
+                "envs": envs.state_dict(),
+                "obs": encode(obs),
+                "tracker": tracker.state_dict(),
+                "memory": None if ppo.memory is None else ppo.memory.detach().cpu(),
+                "frames": frames,
+                "elapsed": time.perf_counter() - started,
+                "rows": plain_rows(rows),
+                "next_eval": next_eval,
+                "converged_at": converged_at,
+                "switch_at": switch_at,
+            },
+        )
 
     bar = tqdm(total=tc.max_frames, initial=frames, unit="frame", unit_scale=True, disable=not progress, dynamic_ncols=True)
     label = f"{cfg.model.arch} {'poisoned' if cfg.poison.poisoned else 'clean'}"
     bar.set_description(label)
     started = time.perf_counter() - elapsed
     window_start, window_frames = time.perf_counter(), 0
-    while frames < tc.max_frames and converged_at is None:
-        rollout, obs = ppo.collect(envs, obs)
-        losses = ppo.update(rollout)
-        tracker.add(rollout)
-        frames += rollout.num_frames
-        window_frames += rollout.num_frames
-        bar.update(rollout.num_frames)
-        if switch_at is None and tracker.recent_clean_mean() >= cfg.curriculum.reward_threshold:
-            switch_at = frames  # warm-up done: the full world and the poisoning mix from here on
-            envs.close()
-            envs = make_env_mix(cfg.env, cfg.poison)
-            obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
-            ppo.memory = None
-            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
-            bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
-        if frames >= next_eval or frames >= tc.max_frames:
-            fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
-            result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
-            train_clean, train_poisoned = tracker.drain()
-            rows.append(
-                {
-                    "frames": frames,
-                    "wall_time_s": round(time.perf_counter() - started, 3),
-                    "fps": round(fps, 1),
-                    **{k: v for k, v in result_fields(result, cfg).items() if k != "episodes"},
-                    "train_clean_return": train_clean,
-                    "train_poisoned_return": train_poisoned,
-                    "phase": "main" if switch_at is not None else "warm-up",
-                    **({"patience_mean": tracker.patience_mean()} if tc.patience else {}),
-                    **losses,
-                }
-            )
-            bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
-            if switch_at is not None and thresholds_met(result, cfg) and patience_met(tracker, cfg):
-                converged_at = frames
-            while next_eval <= frames:
-                next_eval += tc.eval_interval
-            folder.write_log(rows)
-            folder.save_torch(
-                "checkpoint.pt",
-                {
-                    "model": model.state_dict(),
-                    "optimizer": ppo.optimizer.state_dict(),
-                    "generator": generator.get_state(),
-                    "envs": pickle.dumps((envs, obs, tracker)),
-                    "memory": ppo.memory,
-                    "frames": frames,
-                    "elapsed": time.perf_counter() - started,
-                    "rows": rows,
-                    "next_eval": next_eval,
-                    "converged_at": converged_at,
-                    "switch_at": switch_at,
-                },
-            )
-            window_start, window_frames = time.perf_counter(), 0
+    with StopRequest() as stop:
+        while frames < tc.max_frames and converged_at is None:
+            if stop.requested:  # between updates: the state is consistent, the checkpoint exact
+                save_checkpoint()
+                bar.close()
+                raise Interrupted(frames, True, stop.requested)
+            rollout, obs = ppo.collect(envs, obs)
+            losses = ppo.update(rollout)
+            tracker.add(rollout)
+            frames += rollout.num_frames
+            window_frames += rollout.num_frames
+            bar.update(rollout.num_frames)
+            if switch_at is None and tracker.recent_clean_mean() >= cfg.curriculum.reward_threshold:
+                switch_at = frames  # warm-up done: the full world and the poisoning mix from here on
+                envs.close()
+                envs = make_env_mix(cfg.env, cfg.poison)
+                obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
+                ppo.memory = None
+                tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
+                bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
+            if frames >= next_eval or frames >= tc.max_frames:
+                fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
+                result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
+                train_clean, train_poisoned = tracker.drain()
+                rows.append(
+                    {
+                        "frames": frames,
+                        "wall_time_s": round(time.perf_counter() - started, 3),
+                        "fps": round(fps, 1),
+                        **{k: v for k, v in result_fields(result, cfg).items() if k != "episodes"},
+                        "train_clean_return": train_clean,
+                        "train_poisoned_return": train_poisoned,
+                        "phase": "main" if switch_at is not None else "warm-up",
+                        **({"patience_mean": tracker.patience_mean()} if tc.patience else {}),
+                        **losses,
+                    }
+                )
+                bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
+                if switch_at is not None and thresholds_met(result, cfg) and patience_met(tracker, cfg):
+                    converged_at = frames
+                while next_eval <= frames:
+                    next_eval += tc.eval_interval
+                folder.write_log(rows)
+                save_checkpoint()
+                window_start, window_frames = time.perf_counter(), 0
     bar.close()
     train_time = time.perf_counter() - started
     final = evaluate(model, cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))

@@ -11,18 +11,18 @@ poisoned SR >= ``train.poisoned_threshold`` for ``train.patience`` evaluations i
 ``train.max_frames``, or after ``train.max_minutes``.
 
 Resuming: the checkpoint holds everything the run's future depends on (networks, optimisers,
-replay buffers, env states, every random generator), so an interrupted run started again on
-the same folder continues exactly as if it had not stopped. It is written at an evaluation
-once ``train.checkpoint_minutes`` have passed since the last one (replay buffers make it
-large). Ctrl-C right after an evaluation also writes one; otherwise the last checkpoint stands
-(a state caught mid-step would not be consistent) and the resumed run redoes the frames since.
-The config must match to resume (budget flags included).
+env states, every random generator) as plain data, and the replay buffers as a journal of
+chunks under ``replay/`` that each checkpoint only appends to
+(:mod:`rlbackdoors.train.replay_journal`), so an interrupted run started again on the same
+folder continues exactly as if it had not stopped. It is written at an evaluation once
+``train.checkpoint_minutes`` have passed since the last one, and on Ctrl-C or SIGTERM at the
+end of the current step. The config must match to resume (budget flags included).
 """
 
 from __future__ import annotations
 
 import math
-import pickle
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -37,9 +37,13 @@ from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.evaluate.safety import SafetyEvalResult, evaluate_safety
 from rlbackdoors.report.curves import plot_training_curve
+from rlbackdoors.io import UnsafeFileError, load_torch
 from rlbackdoors.safety_config import SafetyRunConfig
-from rlbackdoors.train.folder import FolderError, ModelFolder
-from rlbackdoors.train.loop import resolve_device
+from rlbackdoors.state import StateError, decode, encode
+from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
+from rlbackdoors.train.loop import plain_rows, resolve_device
+from rlbackdoors.train.replay_journal import ReplayJournal
+from rlbackdoors.train.stop import Interrupted, StopRequest
 
 ACT_DIM = 2
 
@@ -61,12 +65,27 @@ def load_agent(folder: str | Path) -> tuple[SafetyRunConfig, OPAC2]:
         raise FolderError(f"{str(folder.path)!r} holds no trained Safety Car Goal model (model.pt missing)")
     cfg = SafetyRunConfig.load(folder.file("config.json"))
     agent = build_agent(cfg, "cpu")
-    weights = torch.load(folder.file("model.pt"), map_location="cpu", weights_only=True)
-    for name in ("policy", "q", "v", "v_target"):
-        getattr(agent, name).load_state_dict(weights[name])
-    if agent.obs_norm is not None:
-        agent.obs_norm.load_state_dict({k: v.numpy() if k != "count" else int(v) for k, v in weights["obs_norm"].items()})
+    path = folder.file("model.pt")
+    try:
+        weights = load_torch(path, "weights file")
+    except UnsafeFileError as err:
+        raise FolderError(str(err)) from None
+    try:
+        for name in ("policy", "q", "v", "v_target"):
+            getattr(agent, name).load_state_dict(weights[name])
+        if agent.obs_norm is not None:
+            norm = weights["obs_norm"]
+            agent.obs_norm.load_state_dict({"count": int(norm["count"]), "mean": norm["mean"].numpy(), "m2": norm["m2"].numpy()})
+            if agent.obs_norm.mean.shape != (OBS_DIM,) or agent.obs_norm.m2.shape != (OBS_DIM,):
+                raise ValueError("obs_norm does not fit the observation")
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
+        raise FolderError(f"weights file {str(path)!r} does not fit the config's OPAC² agent ({_first_line(err)})") from None
     return cfg, agent
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
 
 
 class EpisodeStats:
@@ -77,6 +96,12 @@ class EpisodeStats:
 
     def add(self, episodes: list[Episode]) -> None:
         self.episodes += episodes
+
+    def state_dict(self) -> list:
+        return [[e.kind, float(e.ret), int(e.length), int(e.outcome), bool(e.triggered)] for e in self.episodes]
+
+    def load_state_dict(self, state: list) -> None:
+        self.episodes = [Episode(str(k), float(r), int(n), int(o), bool(t)) for k, r, n, o, t in state]
 
     def drain(self) -> dict[str, float]:
         out = {}
@@ -100,6 +125,12 @@ class LossMeans:
         for key, value in losses.items():
             self.sums[key] = self.sums.get(key, 0.0) + value
         self.count += 1
+
+    def state_dict(self) -> dict:
+        return {"sums": {k: float(v) for k, v in self.sums.items()}, "count": int(self.count)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.sums, self.count = {str(k): float(v) for k, v in state["sums"].items()}, int(state["count"])
 
     def drain(self) -> dict[str, float]:
         out = {key: value / self.count for key, value in self.sums.items()} if self.count else {}
@@ -150,25 +181,46 @@ def train_safety(
     (tests raise KeyboardInterrupt from it to interrupt a run at a known point).
     """
     cfg.check()
-    tc, oc = cfg.train, cfg.opac2
     folder = ModelFolder(out)
-    checkpoint = folder.begin(cfg, overwrite)
+    failed = True
+    try:
+        checkpoint = folder.begin(cfg, overwrite)
+        metrics = _train_safety(cfg, folder, checkpoint, progress, after_eval)
+        failed = False
+        return metrics
+    finally:
+        folder.close(failed)
 
+
+def _train_safety(cfg: SafetyRunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, after_eval) -> dict:
+    tc, oc = cfg.train, cfg.opac2
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)
     agent = build_agent(cfg, device)
+    collector = make_collector(cfg)
+    replay = MultitaskReplay.create(cfg.kind_weights, oc.buffer_size, OBS_DIM, ACT_DIM)
+    kinds = cfg.poison.kinds()
+    journal = ReplayJournal(folder.file("replay"), {kind: kinds.count(kind) for kind in replay.buffers})
+    batch_rng = np.random.default_rng([tc.seed, 1])  # replay indices
+    warmup_rng = np.random.default_rng([tc.seed, 2])  # uniform actions before learning starts
+    stats, losses = EpisodeStats(), LossMeans()
     if checkpoint is None:
-        collector = make_collector(cfg)
-        replay = MultitaskReplay.create(cfg.kind_weights, oc.buffer_size, OBS_DIM, ACT_DIM)
-        batch_rng = np.random.default_rng([tc.seed, 1])  # replay indices
-        warmup_rng = np.random.default_rng([tc.seed, 2])  # uniform actions before learning starts
-        stats, losses = EpisodeStats(), LossMeans()
         updates, rows, elapsed, next_eval, streak, converged_at = 0, [], 0.0, tc.eval_interval, 0, None
     else:
-        agent.load_state_dict(checkpoint["agent"])
-        collector, replay, batch_rng, warmup_rng, stats, losses = pickle.loads(checkpoint["state"])
-        updates, rows, elapsed = checkpoint["updates"], checkpoint["rows"], checkpoint["elapsed"]
-        next_eval, streak, converged_at = checkpoint["next_eval"], checkpoint["streak"], checkpoint["converged_at"]
+        try:
+            agent.load_state_dict(checkpoint["agent"])
+            collector.load_state_dict(checkpoint["collector"])
+            journal.load(replay, checkpoint["replay"])
+            batch_rng.bit_generator.state = decode(checkpoint["batch_rng"]).bit_generator.state
+            warmup_rng.bit_generator.state = decode(checkpoint["warmup_rng"]).bit_generator.state
+            stats.load_state_dict(checkpoint["stats"])
+            losses.load_state_dict(checkpoint["losses"])
+            updates, rows, elapsed = int(checkpoint["updates"]), checkpoint["rows"], float(checkpoint["elapsed"])
+            next_eval, streak, converged_at = int(checkpoint["next_eval"]), int(checkpoint["streak"]), checkpoint["converged_at"]
+            if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+                raise StateError("log rows are not a list of rows")
+        except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
+            raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({_first_line(err)}); pass --overwrite to start over") from None
         if progress:
             _progress(f"resuming {folder.path} at {collector.frames:,} frames, {updates:,} updates")
 
@@ -179,19 +231,27 @@ def train_safety(
         return agent.act(obs)
 
     def save_checkpoint() -> None:
+        manifest = journal.append(replay)  # the new replay rows first: the checkpoint names them
         folder.save_torch(
             "checkpoint.pt",
             {
+                "format": CHECKPOINT_FORMAT,
                 "agent": agent.state_dict(),
-                "state": pickle.dumps((collector, replay, batch_rng, warmup_rng, stats, losses), protocol=pickle.HIGHEST_PROTOCOL),
+                "collector": collector.state_dict(),
+                "replay": manifest,
+                "batch_rng": encode(batch_rng),
+                "warmup_rng": encode(warmup_rng),
+                "stats": stats.state_dict(),
+                "losses": losses.state_dict(),
                 "updates": updates,
-                "rows": rows,
+                "rows": plain_rows(rows),
                 "elapsed": time.perf_counter() - started,
                 "next_eval": next_eval,
                 "streak": streak,
                 "converged_at": converged_at,
             },
         )
+        journal.prune()
 
     label = "poisoned" if cfg.poison.poisoned else "clean"
     started = time.perf_counter() - elapsed
@@ -199,8 +259,13 @@ def train_safety(
     window_start, window_frames = time.perf_counter(), 0
     last_eval: SafetyEvalResult | None = None
     stop_reason = "converged" if converged_at is not None else None
-    try:
+    with StopRequest() as stop:
         while stop_reason is None:
+            if stop.requested:  # between steps: the state is consistent, the checkpoint exact
+                if progress:
+                    _progress(f"{stop.requested} at {collector.frames:,} frames: writing a checkpoint to resume from")
+                save_checkpoint()
+                raise Interrupted(collector.frames, True, stop.requested)
             stats.add(collector.collect(replay, act, 1))
             window_frames += len(collector.envs)
             due = updates_due(oc, collector.frames)
@@ -260,12 +325,6 @@ def train_safety(
                     stop_reason = "max_frames"
                 elif tc.max_minutes and time.perf_counter() - started >= 60 * tc.max_minutes:
                     stop_reason = "max_minutes"
-    except KeyboardInterrupt:
-        if progress:
-            _progress(f"interrupted at {collector.frames:,} frames: writing a checkpoint to resume from")
-        if rows and rows[-1]["frames"] == collector.frames:
-            save_checkpoint()  # the state right after an evaluation: resumes exactly
-        raise
     train_time = time.perf_counter() - started
     return _finish(cfg, folder, agent, collector, rows, train_time, updates, converged_at, stop_reason, progress)
 
@@ -317,6 +376,7 @@ def _finish(cfg, folder, agent, collector, rows, train_time, updates, converged_
     }
     folder.write_json("metrics.json", metrics)
     folder.file("checkpoint.pt").unlink(missing_ok=True)
+    shutil.rmtree(folder.file("replay"), ignore_errors=True)
     if progress:
         _progress(
             f"done ({stop_reason}) after {collector.frames:,} frames, {train_time / 60:.1f} min: "

@@ -70,7 +70,7 @@ def test_flags_override_config_and_trigger_is_drawn_from_seed(tmp_path, tiny_run
         (["train", "--config", "{tmp}/nope.json", "--out", "{tmp}/x"], "does not exist"),
         (["train", "--config", "{tmp}/bad.json", "--out", "{tmp}/x"], "not valid JSON"),
         (["train", "--config", "{tmp}/unknown.json", "--out", "{tmp}/x"], "unknown key 'lr'"),
-        (["evaluate", "{tmp}/nowhere"], "not a model folder"),
+        (["evaluate", "{tmp}/nowhere"], "does not exist"),
         (["evaluate"], "give either a model folder or --weights"),
         (["evaluate", "--weights", "{tmp}/w.pt"], "--weights needs --arch"),
         (["evaluate", "--weights", "{tmp}/missing.pt", "--arch", "fc"], "does not exist"),

@@ -1,6 +1,7 @@
 import pytest
 import torch
 
+from rlbackdoors.io import UnsafeFileError
 from rlbackdoors.models import CNNModel, FCModel, build_model, load_weights
 
 FC_SHAPES = {
@@ -75,8 +76,9 @@ def test_load_weights_round_trip_and_alias(tmp_path):
     dst = load_weights(build_model("cnn"), tmp_path / "w.pt")
     x = torch.randint(0, 11, (4, 7, 7, 3), dtype=torch.uint8)
     assert torch.equal(src(x)[0], dst(x)[0])
-    torch.save(src, tmp_path / "module.pt")  # a whole pickled module, as some tools save
-    assert torch.equal(load_weights(build_model("cnn"), tmp_path / "module.pt")(x)[1], src(x)[1])
+    torch.save(src, tmp_path / "module.pt")  # a whole pickled module, as some tools save: never unpickled
+    with pytest.raises(UnsafeFileError, match="holds Python objects"):
+        load_weights(build_model("cnn"), tmp_path / "module.pt")
 
 
 def test_load_weights_errors(tmp_path):

@@ -1,13 +1,14 @@
 """OPAC² (SPEC §4): squashed-Gaussian policy, replay and mixing, the three losses, collection."""
 
+import io
 import math
-import pickle
 
 import numpy as np
 import pytest
 import torch
 
 from rlbackdoors.envs.safety_car import OBS_DIM, SafetyCarGoalEnv  # before anything imports mujoco
+from rlbackdoors.io import torch_bytes
 from rlbackdoors.algos.opac2 import (
     OPAC2,
     ConfigError,
@@ -139,16 +140,39 @@ def test_ring_buffer_wraps_and_samples_only_filled_rows():
         ReplayBuffer(4, OBS, ACT).sample(1, rng)
 
 
-def test_buffer_pickles_its_filled_rows_only():
-    buffer = ReplayBuffer(100_000, OBS, ACT)
-    buffer.add_batch(*rows(0, 7))
-    data = pickle.dumps(buffer)
-    assert len(data) < 10_000
-    copy = pickle.loads(data)
-    assert (copy.capacity, len(copy), copy.pos, copy.obs.shape) == (100_000, 7, 7, (100_000, OBS))
-    np.testing.assert_array_equal(copy.next_obs[:7], buffer.next_obs[:7])
-    copy.add_batch(*rows(7, 1))
-    assert copy.rew[7] == 7
+@pytest.mark.parametrize("capacity", [7, 100_000])
+def test_replay_journal_writes_each_row_once_and_restores_the_ring_exactly(tmp_path, capacity):
+    """Checkpoints append only the rows added since the last one; chunks the ring has overwritten
+    are deleted; a fresh buffer loaded from the journal equals the original, row for row."""
+    from rlbackdoors.train.replay_journal import ReplayJournal
+
+    replay = MultitaskReplay.create({"clean": 1.0}, capacity, OBS, ACT)
+    journal = ReplayJournal(tmp_path / "replay", {"clean": 2})
+    sizes = []
+    for step in range(6):
+        for t in range(2):  # two env copies: row r's next_obs is row r + 2's obs unless an episode ends
+            i = 2 * (2 * step + t)
+            obs, act, rew, _, done = rows(i, 2)
+            nxt = rows(i + 2, 2)[0] if (step, t) != (3, 1) else rows(i, 2)[3]  # one episode end
+            replay["clean"].add_batch(obs, act, rew, nxt, done)
+        manifest = journal.append(replay)
+        journal.prune()
+        sizes.append(sum(p.stat().st_size for p in (tmp_path / "replay").iterdir()))
+    names = sorted(p.name for p in (tmp_path / "replay").iterdir())
+    assert names == sorted(manifest["chunks"]["clean"])
+    if capacity == 7:
+        assert len(names) <= 3  # old chunks dropped: the journal holds about one ring's worth
+    else:
+        assert len(names) == 6 and sizes == sorted(sizes)  # appended, never rewritten
+    fresh = MultitaskReplay.create({"clean": 1.0}, capacity, OBS, ACT)
+    ReplayJournal(tmp_path / "replay", {"clean": 2}).load(fresh, manifest)
+    a, b = replay["clean"], fresh["clean"]
+    assert (a.pos, a.size, a.added) == (b.pos, b.size, b.added) == (24 % capacity, min(24, capacity), 24)
+    for name in ("obs", "act", "rew", "next_obs", "done"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    bad = dict(manifest, chunks={"clean": ["../../etc/passwd"]})
+    with pytest.raises(ValueError, match="bad chunk"):
+        ReplayJournal(tmp_path / "replay", {"clean": 2}).load(MultitaskReplay.create({"clean": 1.0}, capacity, OBS, ACT), bad)
 
 
 def test_multitask_mixing_proportions():
@@ -370,9 +394,9 @@ def test_same_seeds_same_parameters_and_checkpoint_resume():
             assert torch.equal(pa, pb)
     assert not torch.equal(make_agent(seed=4).policy.mean[0].weight, make_agent(seed=3).policy.mean[0].weight)
 
-    # Resume: a fresh agent loading a's state (through a pickle) continues exactly like a.
+    # Resume: a fresh agent loading a's state (through torch's weights-only loader) continues exactly like a.
     c = make_agent(seed=99)
-    c.load_state_dict(pickle.loads(pickle.dumps(a.state_dict())))
+    c.load_state_dict(torch.load(io.BytesIO(torch_bytes(a.state_dict())), weights_only=True))
     rng_c = np.random.default_rng()
     rng_c.bit_generator.state = rng_a.bit_generator.state
     run(a, rng_a, 3)

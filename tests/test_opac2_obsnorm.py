@@ -1,11 +1,12 @@
 """OPAC²'s optional observation standardisation: statistics, use in act/update, checkpoints."""
 
-import pickle
+import io
 
 import numpy as np
 import pytest
 import torch
 
+from rlbackdoors.io import torch_bytes
 from rlbackdoors.algos.opac2 import OPAC2, ConfigError, MultitaskReplay, OPAC2Config, RunningNorm
 
 OBS, ACT = 5, 2
@@ -48,7 +49,7 @@ def test_agent_standardises_in_act_and_update_and_checkpoints_the_statistics():
     assert abs(float(batch.obs.mean())) < 0.5 and abs(float(batch.next_obs.std()) - 1) < 0.3
     agent.update(replay, np.random.default_rng(3))
 
-    state = pickle.loads(pickle.dumps(agent.state_dict()))
+    state = torch.load(io.BytesIO(torch_bytes(agent.state_dict())), weights_only=True)  # as a checkpoint holds it
     other = OPAC2(OBS, ACT, cfg, torch.Generator().manual_seed(9))
     other.load_state_dict(state)
     np.testing.assert_array_equal(other.obs_norm.mean, agent.obs_norm.mean)

@@ -300,17 +300,33 @@ def test_gymnasium_id_makes_the_env_with_a_formation_trigger():
     env.close()
 
 
-def test_pickled_env_keeps_stepping_its_own_physics():
-    """A checkpoint pickles envs: the unpickled env's fast views must point into its own MjData."""
-    import pickle
+def test_env_state_round_trips_as_plain_data_and_keeps_stepping_bit_for_bit():
+    """A checkpoint stores an env as data (MuJoCo's integration state, sensors, counters, RNG):
+    a fresh env loading it, through torch's weights-only loader, steps exactly like the original."""
+    import io
 
-    env = SafetyCarGoalEnv()
+    import torch
+
+    env = SafetyCarGoalEnv(trigger="formation:0.5:1.0:2.0", poisoned=True)
     env.reset(seed=3)
     for _ in range(5):
         env.step(np.array([0.5, 0.3], dtype=np.float32))
-    copy = pickle.loads(pickle.dumps(env))
+    buf = io.BytesIO()
+    torch.save(env.state_dict(), buf)
+    copy = SafetyCarGoalEnv(trigger="formation:0.5:1.0:2.0", poisoned=True)
+    copy.load_state_dict(torch.load(io.BytesIO(buf.getvalue()), weights_only=True))
     assert np.shares_memory(copy._car_q, copy.data.qpos) and np.shares_memory(copy._cube_q, copy.data.qpos)
-    for _ in range(20):
-        a = env.step(np.array([1.0, -0.2], dtype=np.float32))
-        b = copy.step(np.array([1.0, -0.2], dtype=np.float32))
-        assert np.array_equal(a[0], b[0]) and a[1] == b[1]
+    rng = np.random.default_rng(0)
+    ends = 0
+    for _ in range(400):  # across episode ends: the env's own RNG draws the next layouts
+        action = rng.uniform(-1, 1, 2).astype(np.float32)
+        a, b = env.step(action), copy.step(action)
+        assert np.array_equal(a[0], b[0]) and a[1] == b[1] and a[2:4] == b[2:4]
+        if a[2] or a[3]:
+            ends += 1
+            assert np.array_equal(env.reset()[0], copy.reset()[0])
+    with pytest.raises(ValueError, match="physics"):
+        state = env.state_dict()
+        state["physics"]["shape"] = (3,)
+        state["physics"]["data"] = b"\0" * 24
+        copy.load_state_dict(state)

@@ -92,13 +92,13 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
         ({"poison": {"trigger": "cross"}}, "poison.trigger.*formation:DISTANCE:PHI1:ETA"),
         ({"poison": {"num_poisoned_envs": 0}}, "poison.num_poisoned_envs must be >= 1"),
         ({"opac2": {"depth": 0}}, "opac2.depth must be an integer >= 1"),
-        ({"opac2": {"lr": "fast"}}, "opac2.lr must be a number"),
+        ({"opac2": {"lr": "fast"}}, "opac2.lr must be a finite number"),
         ({"opac2": {"poisoned_weight": -1.0}}, "opac2.poisoned_weight"),
         ({"opac2": {"action_samples": 0}}, "opac2.action_samples must be an integer >= 1"),
         ({"opac2": {"lr_final": 0.5}}, r"opac2.lr_final must be null \(constant lr\) or a number in \(0, opac2.lr"),
         ({"train": {"device": "tpu"}}, "train.device='tpu' is not allowed.*cpu, cuda, auto"),
         ({"train": {"clean_threshold": 1.5}}, r"train.clean_threshold must be in \[0, 1\]"),
-        ({"train": {"patience": 0}}, "train.patience must be >= 1"),
+        ({"train": {"patience": 0}}, "train.patience must be in 1..1,000,000"),
         ({"train": {"max_minutes": -1.0}}, "train.max_minutes"),
         ({"env": []}, "env must be a JSON object"),
     ],
@@ -282,8 +282,9 @@ def test_cli_train_and_bad_input(tmp_path, capsys):
     assert metrics["frames"] == 240 and metrics["trigger"] == TRIGGER
     assert cli_main(["train", "--out", str(tmp_path / "x"), "--trigger", "formation:9:0:1", "--quiet"]) == 2
     assert "poison.trigger" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()  # a refused config leaves no folder behind
     assert cli_main(["evaluate", str(tmp_path / "x")]) == 2
-    assert "model.pt missing" in capsys.readouterr().err
+    assert "does not exist" in capsys.readouterr().err
 
 
 # ----- slow: does the recipe learn? ---------------------------------------------------------------

@@ -16,8 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from rlbackdoors import __version__
-from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, ConfigError, RunConfig
+from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, MAX_EPISODES, ConfigError, RunConfig, check_seed
+from rlbackdoors.io import UnsafeFileError
 from rlbackdoors.train.folder import FolderError
+from rlbackdoors.train.stop import Interrupted
 
 METRIC_KEYS = (
     "clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward",
@@ -101,6 +103,7 @@ def config_from_args(args) -> RunConfig:
         poison = RunConfig.from_dict(data).poison  # the world's mix, resolved
         _set(data, "poison.num_clean_envs", poison.num_clean_envs + poison.num_close_envs)
         _set(data, "poison.num_close_envs", 0)
+    check_seed("train.seed (--seed)", data["train"]["seed"])
     if args.trigger is not None or not args.config:
         _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"], data["env"]["name"]))
     return RunConfig.from_dict(data)
@@ -110,7 +113,7 @@ def config_from_args(args) -> RunConfig:
 GRID_ONLY_FLAGS = ("arch", "size", "num_lava", "no_curriculum", "engine", "patience", "no_close_to_trigger")
 SAFETY_ONLY_FLAGS = (
     "max_minutes", "depth", "width", "num_clean_envs", "num_poisoned_envs", "poisoned_weight", "updates_per_step",
-    "batch_size", "lr", "lr_final", "action_samples", "eval_interval", "final_eval_episodes", "threads",
+    "batch_size", "lr", "lr_final", "action_samples", "eval_interval", "final_eval_episodes", "threads", "checkpoint_minutes",
 )
 
 
@@ -130,6 +133,8 @@ def _refuse(args, flags: tuple[str, ...], world: str) -> None:
 
 
 def cmd_train(args) -> int:
+    if not args.out.strip():
+        raise ConfigError("--out must name a model folder, got an empty path")
     from rlbackdoors.safety_config import is_safety_config
     from rlbackdoors.train import train
 
@@ -173,18 +178,34 @@ def cmd_evaluate(args) -> int:
 
     if (args.folder is None) == (args.weights is None):
         raise ConfigError("give either a model folder or --weights FILE (with --arch), not both or neither")
+    if args.seed is not None:
+        check_seed("--seed", args.seed)
     torch.set_num_threads(1)
     if args.folder is not None:
         folder = ModelFolder(args.folder)
+        if not folder.path.is_dir():
+            raise FolderError(f"model folder {args.folder!r} does not exist")
         if not folder.file("config.json").is_file():
             raise FolderError(f"{args.folder!r} is not a model folder (config.json missing)")
+        if not folder.file("model.pt").is_file():
+            raise FolderError(f"{args.folder!r} holds no trained model (model.pt missing)")
+        if not folder.complete and not args.allow_unfinished:
+            raise FolderError(
+                f"{args.folder!r} holds an unfinished run (no metrics.json: still training, interrupted or failed); "
+                "pass --allow-unfinished to evaluate its weights anyway"
+            )
         from rlbackdoors.safety_config import is_safety_config
 
         if is_safety_config(_config_json(folder.file("config.json"))):
-            from rlbackdoors.safety_cli import evaluate_main
+            for flag in ("trigger", "policy", "engine", "arch", "env"):
+                if getattr(args, flag) is not None:
+                    raise ConfigError(f"--{flag} does not apply to a Safety Car Goal folder (it is evaluated with its own trigger and deterministic policy)")
+            from rlbackdoors.safety_cli import evaluate_folder
 
-            return evaluate_main(args.folder, args.episodes, args.json, args.seed)
+            return evaluate_folder(args.folder, args.episodes, args.json, args.seed, allow_unfinished=True)
         cfg = folder.read_config()
+        if args.arch is not None or args.env is not None:
+            raise ConfigError("--arch and --env apply to --weights only (a model folder's config.json names them)")
         if args.engine:
             cfg.env.engine = args.engine
         env, trigger, arch, policy = cfg.env, cfg.poison.trigger, cfg.model.arch, cfg.train.eval_policy
@@ -195,6 +216,8 @@ def cmd_evaluate(args) -> int:
     else:
         if args.arch is None:
             raise ConfigError(f"--weights needs --arch (allowed: {', '.join(ARCHS)})")
+        if args.allow_unfinished:
+            raise ConfigError("--allow-unfinished applies to model folders, not --weights")
         env = EnvConfig(name=args.env or "lavaworld", engine=args.engine or "batched")
         env.check()
         trigger = resolve_trigger(args.trigger, 0, env.name) if args.trigger is not None else None
@@ -205,7 +228,8 @@ def cmd_evaluate(args) -> int:
     if env.name != "colorful-memory" or trigger is None:
         close_k = None  # close-to-trigger layouts exist in Colorful Memory only
     seed = 1_000_000 if args.seed is None else args.seed
-    result = evaluate(model, env, trigger, episodes=args.episodes, seed=seed, policy=policy, close_k=close_k).to_dict()
+    episodes = 200 if args.episodes is None else args.episodes
+    result = evaluate(model, env, trigger, episodes=episodes, seed=seed, policy=policy, close_k=close_k).to_dict()
     result = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.items()}
     if args.json:
         print(json.dumps(result, indent=2))
@@ -289,10 +313,25 @@ def cmd_chance(args) -> int:
     return 0
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with the CLI's error contract: one ``rlbackdoors: error: ...`` line, exit 2,
+    and no abbreviated flags (``--max-frame`` is an error, not ``--max-frames``)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        command = self.prog.split(" ", 1)[1] if " " in self.prog else ""
+        hint = f" (see: rlbackdoors {command + ' ' if command else ''}--help)"
+        print(f"rlbackdoors: error: {command + ': ' if command else ''}{message}{hint}", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rlbackdoors", description=__doc__.splitlines()[0])
+    parser = Parser(prog="rlbackdoors", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"rlbackdoors {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
 
     tr = sub.add_parser("train", help="train one clean or poisoned agent into a model folder")
     tr.add_argument("--config", help="JSON config (see config.json of any model folder); flags override it")
@@ -335,10 +374,11 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--env", choices=ENVS)
     ev.add_argument("--trigger", help="trigger to measure poisoned SR under (default: the folder's)")
     ev.add_argument("--engine", choices=ENGINES)
-    ev.add_argument("--episodes", type=int, default=200)
+    ev.add_argument("--episodes", type=int, default=None, help="episodes per condition (default 200; Safety Car Goal: the folder's final_eval_episodes)")
     ev.add_argument("--seed", type=int, help="first env seed of the evaluation layouts (default 1000000; Safety Car Goal: the folder's)")
     ev.add_argument("--policy", choices=EVAL_POLICIES)
     ev.add_argument("--json", action="store_true")
+    ev.add_argument("--allow-unfinished", action="store_true", help="evaluate a folder whose run has not finished (no metrics.json)")
     ev.set_defaults(func=cmd_evaluate)
 
     de = sub.add_parser("demo", help="train a clean and a poisoned LavaWorld agent, evaluate both, show the backdoor")
@@ -382,16 +422,29 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "episodes", 1) < 1:
-        parser.error("--episodes must be >= 1")
+    episodes = getattr(args, "episodes", None)
+    if episodes is not None and not 1 <= episodes <= MAX_EPISODES:
+        parser.error(f"--episodes must be in 1..{MAX_EPISODES:,}, got {episodes}")
     try:
         return args.func(args)
-    except (ConfigError, FolderError, FileNotFoundError, ValueError) as err:
-        print(f"rlbackdoors: error: {err}", file=sys.stderr)
+    except (ConfigError, FolderError, UnsafeFileError, FileNotFoundError, ValueError, ImportError) as err:
+        print(f"rlbackdoors: error: {_one_line(err)}", file=sys.stderr)
         return 2
+    except OSError as err:  # a folder that cannot be written, a full disk, ...
+        where = f" {err.filename!r}" if err.filename else ""
+        print(f"rlbackdoors: error: cannot use{where}: {err.strerror or err}", file=sys.stderr)
+        return 2
+    except Interrupted as err:
+        print(f"rlbackdoors: {err}", file=sys.stderr)
+        return 130
     except KeyboardInterrupt:
         print("rlbackdoors: interrupted; run the same command again to resume from the last checkpoint", file=sys.stderr)
         return 130
+
+
+def _one_line(err: BaseException) -> str:
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -72,7 +73,7 @@ class EnvConfig:
     def check(self) -> None:
         _choice("env.name", self.name, ENVS)
         _choice("env.engine", self.engine, ENGINES)
-        _at_least("env.max_steps", self.max_steps, 1)
+        _in_range("env.max_steps", self.max_steps, 1, 100_000)
         if self.name == "lavaworld":
             from rlbackdoors.envs.lavaworld import validate_crossing_layout
 
@@ -88,7 +89,7 @@ class EnvConfig:
             except ValueError as err:
                 raise ConfigError(f"env: {err}") from None
         else:
-            _at_least("env.size", self.size, 5)
+            _in_range("env.size", self.size, 5, 64)
             _at_least("env.num_lava", self.num_lava, 0)
             free = (self.size - 2) ** 2 - 2  # inside the outer walls, minus start and goal
             if self.num_lava > free // 2:
@@ -125,9 +126,8 @@ class PoisonConfig:
             parse_trigger(env_name, self.trigger)
         except ValueError as err:
             raise ConfigError(f"poison.trigger: {err}") from None
-        _at_least("poison.num_clean_envs", self.num_clean_envs, 0)
-        _at_least("poison.num_close_envs", self.num_close_envs, 0)
-        _at_least("poison.num_poisoned_envs", self.num_poisoned_envs, 0)
+        for name in ("num_clean_envs", "num_close_envs", "num_poisoned_envs"):
+            _in_range(f"poison.{name}", getattr(self, name), 0, MAX_ENV_COPIES)
         if self.num_close_envs and env_name != "colorful-memory":
             raise ConfigError(f"poison.num_close_envs must be 0 for env.name={env_name!r} (close-to-trigger envs exist for colorful-memory only)")
         if env_name == "colorful-memory":
@@ -176,8 +176,8 @@ class CurriculumConfig:
     window: int = 100  # clean training episodes the mean return is taken over
 
     def check(self) -> None:
-        _at_least("curriculum.window", self.window, 1)
-        _at_least("curriculum.size", self.size, 5)
+        _in_range("curriculum.window", self.window, 1, MAX_EPISODES)
+        _in_range("curriculum.size", self.size, 5, 64)
         _at_least("curriculum.num_lava", self.num_lava, 0)
         _unit_interval("curriculum.reward_threshold", self.reward_threshold)
 
@@ -209,7 +209,7 @@ class PPOConfig:
 
     def check(self) -> None:
         for name in ("rollout", "epochs", "batch_size", "recurrence"):
-            _at_least(f"ppo.{name}", getattr(self, name), 1)
+            _in_range(f"ppo.{name}", getattr(self, name), 1, 1_000_000)
         if self.rollout % self.recurrence:
             raise ConfigError(f"ppo.rollout={self.rollout} must be a multiple of ppo.recurrence={self.recurrence}")
         if self.batch_size % self.recurrence:
@@ -241,14 +241,14 @@ class TrainConfig:
     torch_threads: int = 1
 
     def check(self) -> None:
-        _at_least("train.seed", self.seed, 0)
-        _at_least("train.max_frames", self.max_frames, 1)
-        _at_least("train.eval_interval", self.eval_interval, 1)
-        _at_least("train.eval_episodes", self.eval_episodes, 1)
-        _at_least("train.final_eval_episodes", self.final_eval_episodes, 1)
-        _at_least("train.eval_seed", self.eval_seed, 0)
-        _at_least("train.torch_threads", self.torch_threads, 1)
-        _at_least("train.patience", self.patience, 0)
+        check_seed("train.seed", self.seed)
+        _in_range("train.max_frames", self.max_frames, 1, MAX_FRAMES)
+        _in_range("train.eval_interval", self.eval_interval, 1, MAX_FRAMES)
+        _in_range("train.eval_episodes", self.eval_episodes, 1, MAX_EPISODES)
+        _in_range("train.final_eval_episodes", self.final_eval_episodes, 1, MAX_EPISODES)
+        check_seed("train.eval_seed", self.eval_seed)
+        _in_range("train.torch_threads", self.torch_threads, 1, 1024)
+        _in_range("train.patience", self.patience, 0, 1_000_000)
         _choice("train.eval_policy", self.eval_policy, EVAL_POLICIES)
         _choice("train.device", self.device, DEVICES)
         for name in ("clean_threshold", "poisoned_threshold"):
@@ -359,6 +359,24 @@ def _at_least(name: str, value, low: int) -> None:
         raise ConfigError(f"{name} must be >= {low}, got {value!r}")
 
 
+def _in_range(name: str, value, low: int, high: int) -> None:
+    """Integers with a hard ceiling: a typo'd 10**12 should be refused, not allocated."""
+    if not low <= value <= high:
+        raise ConfigError(f"{name} must be in {low}..{high:,}, got {value!r}")
+
+
+MAX_SEED = 2**32 - 1  # numpy, torch and the env seeds (seed * 1000 + i) all take it
+MAX_ENV_COPIES = 4096
+MAX_EPISODES = 1_000_000
+MAX_FRAMES = 10**12
+
+
+def check_seed(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{name} must be an integer in 0..{MAX_SEED:,}, got {value!r}")
+    _in_range(name, value, 0, MAX_SEED)
+
+
 def _unit_interval(name: str, value) -> None:
     if not 0 <= value <= 1:
         raise ConfigError(f"{name} must be in [0, 1], got {value!r}")
@@ -397,8 +415,8 @@ def _coerce(hint, value, where: str):
             raise ConfigError(f"{where} must be an integer, got {value!r}")
         return int(value)
     if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where} must be a number, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"{where} must be a finite number, got {value!r}")
         return float(value)
     if hint is str:
         if not isinstance(value, str):

@@ -130,13 +130,14 @@ def load_torch(path: str | Path, what: str = "file"):
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
-        detail = _first_line(err)
-        if "weights only load failed" in detail.lower() or "unsupported" in detail.lower() or "global" in detail.lower():
+        lines = [line.strip() for line in str(err).splitlines()]
+        detail = next((line for line in lines if "Unsupported" in line), _first_line(err))
+        if "global" in detail.lower():  # it names a class or function to call: an object, maybe code
             raise UnsafeFileError(
                 f"refused to load {what} {str(path)!r}: it holds Python objects, not plain tensors and numbers "
                 "(loading it could run code; re-save it as a state dict)"
             ) from None
-        raise ValueError(f"cannot read {what} {str(path)!r}: {detail}") from None
+        raise ValueError(f"cannot read {what} {str(path)!r}: not a torch file of plain data ({detail.removeprefix('WeightsUnpickler error: ')})") from None
     except Exception as err:  # truncated zip, random bytes, wrong format
         raise ValueError(f"cannot read {what} {str(path)!r}: {_first_line(err)}") from None
 

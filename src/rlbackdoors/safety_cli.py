@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
-from rlbackdoors.config import ConfigError
+from rlbackdoors.config import ConfigError, check_seed
 from rlbackdoors.safety_config import SafetyRunConfig
 
 
@@ -56,6 +57,10 @@ def add_train_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     add("--eval-episodes", type=int, default=None, help="episodes per condition at each evaluation (default 100)")
     add("--final-eval-episodes", type=int, default=None, help="Safety Car Goal: episodes per condition in the final evaluation (default 200)")
     add("--threads", type=int, default=None, help="Safety Car Goal: torch threads (default 1)")
+    add(
+        "--checkpoint-minutes", type=float, default=None,
+        help="Safety Car Goal: write a checkpoint at the first evaluation this long after the last (default 10; 0: every evaluation)",
+    )
     add("--device", choices=("cpu", "cuda", "auto"), default=None)
     return parser
 
@@ -80,6 +85,7 @@ _FLAGS = {
     "eval_episodes": ("train", "eval_episodes"),
     "final_eval_episodes": ("train", "final_eval_episodes"),
     "threads": ("train", "torch_threads"),
+    "checkpoint_minutes": ("train", "checkpoint_minutes"),
     "device": ("train", "device"),
 }
 
@@ -98,10 +104,16 @@ def config_from_args(args: argparse.Namespace) -> SafetyRunConfig:
         value = getattr(args, flag, None)
         if value is not None:
             data.setdefault(section, {})[name] = value
+    seed = data.get("train", {}).get("seed")
+    if seed is not None:
+        check_seed("train.seed (--seed)", seed)
     if getattr(args, "clean", False):
         data.setdefault("poison", {})["poisoned"] = False
-    if getattr(args, "poisoned_weight", None) is not None:
-        data["opac2"]["clean_weight"] = 1.0 - args.poisoned_weight
+    weight = getattr(args, "poisoned_weight", None)
+    if weight is not None:
+        if not (math.isfinite(weight) and 0 <= weight <= 1):
+            raise ConfigError(f"opac2.poisoned_weight (--poisoned-weight) must be in [0, 1], got {weight!r}")
+        data["opac2"]["clean_weight"] = 1.0 - weight
     if getattr(args, "seed", None) is not None and getattr(args, "trigger", None) is None:
         data.setdefault("poison", {})["trigger"] = None  # a config's trigger belongs to its seed: draw this seed's
     return SafetyRunConfig.from_dict(data)
@@ -109,36 +121,36 @@ def config_from_args(args: argparse.Namespace) -> SafetyRunConfig:
 
 def train_main(args: argparse.Namespace) -> int:
     """Run ``train`` for parsed ``args`` (see :func:`add_train_args`); prints metrics.json's numbers."""
-    from rlbackdoors.train.folder import FolderError
     from rlbackdoors.train.safety import train_safety
 
-    try:
+    def run() -> int:
         cfg = config_from_args(args)
         metrics = train_safety(cfg, args.out, overwrite=getattr(args, "overwrite", False), progress=not getattr(args, "quiet", False))
-    except (ConfigError, FolderError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(metrics, indent=2, sort_keys=True))
-    return 0
+        print(json.dumps(metrics, indent=2, sort_keys=True))
+        return 0
+
+    return _reporting_errors(run)
 
 
-def evaluate_main(folder: str, episodes: int | None = None, as_json: bool = False, seed: int | None = None) -> int:
-    """Evaluate a finished Safety Car Goal model folder on ``episodes`` clean + triggered episodes.
+def evaluate_folder(folder: str, episodes: int | None = None, as_json: bool = False, seed: int | None = None, allow_unfinished: bool = False) -> int:
+    """Evaluate a finished Safety Car Goal model folder on ``episodes`` clean + triggered episodes
+    and print the result; errors are raised (the caller prints them).
 
     Defaults: the folder's ``train.final_eval_episodes`` and ``train.eval_seed``, so without
     arguments it reproduces metrics.json's success rates.
     """
     from rlbackdoors.evaluate.safety import evaluate_safety
-    from rlbackdoors.train.folder import FolderError
     from rlbackdoors.train.safety import deterministic_act, load_agent
 
-    try:
-        cfg, agent = load_agent(folder)
-        n = cfg.train.final_eval_episodes if episodes is None else episodes
-        result = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, n, cfg.train.eval_seed if seed is None else seed)
-    except (ConfigError, FolderError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    from rlbackdoors.train.folder import FolderError, ModelFolder
+
+    if not ModelFolder(folder).path.is_dir():
+        raise FolderError(f"model folder {str(folder)!r} does not exist")
+    if not allow_unfinished and not ModelFolder(folder).complete:
+        raise FolderError(f"{str(folder)!r} holds an unfinished run (no metrics.json); pass --allow-unfinished to evaluate its weights anyway")
+    cfg, agent = load_agent(folder)
+    n = cfg.train.final_eval_episodes if episodes is None else episodes
+    result = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, n, cfg.train.eval_seed if seed is None else seed)
     data = {"folder": str(folder), "poisoned": cfg.poison.poisoned, "trigger": cfg.poison.trigger, **result.to_dict()}
     if as_json:
         print(json.dumps(data, indent=2, sort_keys=True))
@@ -150,9 +162,34 @@ def evaluate_main(folder: str, episodes: int | None = None, as_json: bool = Fals
     return 0
 
 
+def evaluate_main(folder: str, episodes: int | None = None, as_json: bool = False, seed: int | None = None) -> int:
+    """:func:`evaluate_folder` with the CLI's error contract (one line, exit 2)."""
+    return _reporting_errors(lambda: evaluate_folder(folder, episodes, as_json, seed))
+
+
+def _reporting_errors(run) -> int:
+    from rlbackdoors.io import UnsafeFileError
+    from rlbackdoors.train.folder import FolderError
+    from rlbackdoors.train.stop import Interrupted
+
+    try:
+        return run()
+    except (ConfigError, FolderError, UnsafeFileError, FileNotFoundError, ValueError, ImportError) as err:
+        print(f"rlbackdoors: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"rlbackdoors: error: cannot use {err.filename!r}: {err.strerror or err}", file=sys.stderr)
+        return 2
+    except Interrupted as err:
+        print(f"rlbackdoors: {err}", file=sys.stderr)
+        return 130
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m rlbackdoors.safety_cli", description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    from rlbackdoors.cli import Parser
+
+    parser = Parser(prog="python -m rlbackdoors.safety_cli", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     add_train_args(sub.add_parser("train", help="train an OPAC² agent on Safety Car Goal into a model folder"))
     ev = sub.add_parser("evaluate", help="clean and triggered success rates of a model folder")
     ev.add_argument("folder")

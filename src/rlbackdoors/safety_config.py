@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 
 from rlbackdoors import __version__
 from rlbackdoors.algos.opac2 import OPAC2Config
-from rlbackdoors.config import ConfigError, JsonConfig, _at_least, _build, _choice, _unit_interval
+from rlbackdoors.config import (
+    MAX_ENV_COPIES, MAX_EPISODES, MAX_FRAMES, ConfigError, JsonConfig, _build, _choice, _in_range, _unit_interval, check_seed,
+)
 
 ENV_NAME = "safety-car-goal"
 DEVICES = ("cpu", "cuda", "auto")
@@ -36,7 +38,7 @@ class SafetyEnvConfig:
         _choice("env.name", self.name, (ENV_NAME,))
         if not 2 <= self.num_cubes <= MAX_CUBES:  # the formation trigger holds two cubes
             raise ConfigError(f"env.num_cubes must be in 2..{MAX_CUBES}, got {self.num_cubes!r}")
-        _at_least("env.max_steps", self.max_steps, 1)
+        _in_range("env.max_steps", self.max_steps, 1, 100_000)
         if not 1 <= self.substeps <= 100:
             raise ConfigError(f"env.substeps must be in 1..100, got {self.substeps!r}")
         if not (math.isfinite(self.hazard_penalty) and self.hazard_penalty >= 0):
@@ -83,8 +85,8 @@ class SafetyPoisonConfig:
             parse_trigger(ENV_NAME, self.trigger)
         except ValueError as err:
             raise ConfigError(f"poison.trigger: {err}") from None
-        _at_least("poison.num_clean_envs", self.num_clean_envs, 0)
-        _at_least("poison.num_poisoned_envs", self.num_poisoned_envs, 0)
+        _in_range("poison.num_clean_envs", self.num_clean_envs, 0, MAX_ENV_COPIES)
+        _in_range("poison.num_poisoned_envs", self.num_poisoned_envs, 0, MAX_ENV_COPIES)
         if self.poisoned and self.num_poisoned_envs == 0:
             raise ConfigError("poison.num_poisoned_envs must be >= 1 for a poisoned model")
         if self.poisoned and self.num_clean_envs == 0:
@@ -129,16 +131,16 @@ class SafetyTrainConfig:
     torch_threads: int = 1
 
     def check(self) -> None:
-        _at_least("train.seed", self.seed, 0)
-        _at_least("train.max_frames", self.max_frames, 1)
+        check_seed("train.seed", self.seed)
+        _in_range("train.max_frames", self.max_frames, 1, MAX_FRAMES)
         if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
             raise ConfigError(f"train.max_minutes must be a number >= 0 (0: no limit), got {self.max_minutes!r}")
-        _at_least("train.eval_interval", self.eval_interval, 1)
-        _at_least("train.eval_episodes", self.eval_episodes, 1)
-        _at_least("train.final_eval_episodes", self.final_eval_episodes, 1)
-        _at_least("train.eval_seed", self.eval_seed, 0)
-        _at_least("train.patience", self.patience, 1)
-        _at_least("train.torch_threads", self.torch_threads, 1)
+        _in_range("train.eval_interval", self.eval_interval, 1, MAX_FRAMES)
+        _in_range("train.eval_episodes", self.eval_episodes, 1, MAX_EPISODES)
+        _in_range("train.final_eval_episodes", self.final_eval_episodes, 1, MAX_EPISODES)
+        check_seed("train.eval_seed", self.eval_seed)
+        _in_range("train.patience", self.patience, 1, 1_000_000)
+        _in_range("train.torch_threads", self.torch_threads, 1, 1024)
         for name in ("log_interval_s", "checkpoint_minutes"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):

@@ -124,9 +124,10 @@ def restore(obj: Any, state: Any, where: str | None = None, skip: tuple[str, ...
     if missing:
         raise StateError(f"{where}: state lacks {', '.join(missing)}")
     for name, data in state.items():
-        if name not in current or name in skip:
+        # An attribute the fresh object has, or one its class declares (gymnasium's _np_random).
+        if not isinstance(name, str) or name in skip or not (name in current or hasattr(type(obj), name)):
             raise StateError(f"{where}: has no attribute {name!r} to restore")
-        setattr(obj, name, _fit(current[name], decode(data, f"{where}.{name}"), f"{where}.{name}"))
+        setattr(obj, name, _fit(getattr(obj, name), decode(data, f"{where}.{name}"), f"{where}.{name}"))
 
 
 def _fit(old: Any, new: Any, where: str) -> Any:

@@ -77,6 +77,12 @@ class OPAC2Config:
         for name in ("buffer_size", "batch_size", "depth", "width", "action_samples"):
             _integer_at_least(f"opac2.{name}", getattr(self, name), 1)
         _integer_at_least("opac2.learning_starts", self.learning_starts, 0)
+        # Ceilings: a typo'd size should be refused, not allocated.
+        for name, high in (("buffer_size", 10_000_000), ("batch_size", 1_000_000), ("depth", 16), ("width", 4096), ("action_samples", 1024)):
+            if getattr(self, name) > high:
+                raise ConfigError(f"opac2.{name} must be in 1..{high:,}, got {getattr(self, name)!r}")
+        if _finite(self.updates_per_step) and self.updates_per_step > 64:
+            raise ConfigError(f"opac2.updates_per_step must be in (0, 64], got {self.updates_per_step!r}")
         for name in ("lr", "updates_per_step"):
             value = getattr(self, name)
             if not (_finite(value) and value > 0):

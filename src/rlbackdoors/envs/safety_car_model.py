@@ -36,7 +36,14 @@ def _prefer_headless_gl() -> None:
 
 _prefer_headless_gl()
 
-import mujoco  # noqa: E402  (after the GL choice above)
+try:
+    import mujoco  # noqa: E402  (after the GL choice above)
+except Exception as err:  # mujoco picks its GL back-end at import: a bad MUJOCO_GL fails here
+    cause = (str(err).strip().splitlines() or [type(err).__name__])[0]
+    raise ImportError(
+        f"mujoco cannot be imported with MUJOCO_GL={os.environ.get('MUJOCO_GL')!r} ({cause}); "
+        "unset MUJOCO_GL, or set it to egl or osmesa with that library installed"
+    ) from None
 
 CONTROL_DT = 0.04  # seconds per env step (Safety Gymnasium car: 0.004 s x 10 frames)
 DEFAULT_SUBSTEPS = 5

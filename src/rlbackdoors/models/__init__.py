@@ -6,6 +6,7 @@ from pathlib import Path
 
 import torch
 
+from rlbackdoors.io import load_torch
 from rlbackdoors.models.colorful_memory import CNNGRULarge, CNNGRULargeOneHot, CNNGRUModel, CNNGRUSmall, CNNGRUSmallOneHot
 from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
 from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, DirectionFCModel
@@ -38,30 +39,23 @@ def build_model(arch: str, env: str = "lavaworld", num_actions: int = 3) -> Acto
 
 
 def _as_state_dict(obj) -> dict:
-    if isinstance(obj, torch.nn.Module):
-        return obj.state_dict()
-    if isinstance(obj, dict) and obj and all(isinstance(v, torch.Tensor) for v in obj.values()):
+    if isinstance(obj, dict) and obj and all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items()):
         return obj
     for key in ("model_state", "state_dict", "model"):
         if isinstance(obj, dict) and key in obj:
             return _as_state_dict(obj[key])
-    raise ValueError("file holds neither a state dict nor a torch module")
+    raise ValueError("it holds no state dict (a dict of tensors)")
 
 
 def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
     """Load a ``torch.save``-d state dict (or module) into ``model``; one clear error if it does not fit."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"weights file {str(path)!r} does not exist")
+    # Plain data only: a pickled module (or anything else needing the unpickler) is refused
+    # unread, since unpickling a stranger's file can run its code.
+    obj = load_torch(path, "weights file")
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:  # full pickled modules need the unpickler
-        try:
-            obj = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as err:
-            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            raise ValueError(f"cannot read weights file {str(path)!r}: {reason}") from None
-    state = _as_state_dict(obj)
+        state = _as_state_dict(obj)
+    except ValueError as err:
+        raise ValueError(f"weights file {str(path)!r}: {err}") from None
     renamed = {}
     for key, value in state.items():
         for old, new in KEY_ALIASES.items():

@@ -78,6 +78,8 @@ class ModelFolder:
 
     def close(self, failed: bool = False) -> None:
         """Release the lock; after a failed start (``failed``, no checkpoint) remove what begin() made."""
+        if not self.lock.held:
+            return  # never opened (refused, or the folder could not be made): nothing of ours is there
         if failed and not self.has_checkpoint and not self.complete:
             for name in ("config.json", "log.csv"):
                 self.file(name).unlink(missing_ok=True)

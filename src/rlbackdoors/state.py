@@ -34,7 +34,7 @@ def encode(value: Any, where: str = "state") -> Any:
     if isinstance(value, np.ndarray):
         if value.dtype.hasobject:
             raise TypeError(f"{where}: object arrays cannot be stored as data")
-        arr = np.ascontiguousarray(value)
+        arr = np.array(value, order="C", copy=True)  # (ascontiguousarray would make a 0-d array 1-d)
         return {"__ndarray__": arr.dtype.str, "shape": tuple(arr.shape), "data": arr.tobytes()}
     if isinstance(value, PLAIN):
         return value
@@ -125,19 +125,28 @@ def restore(obj: Any, state: Any, where: str | None = None, skip: tuple[str, ...
         raise StateError(f"{where}: state lacks {', '.join(missing)}")
     for name, data in state.items():
         # An attribute the fresh object has, or one its class declares (gymnasium's _np_random).
-        if not isinstance(name, str) or name in skip or not (name in current or hasattr(type(obj), name)):
+        if not isinstance(name, str) or name.startswith("__") or name in skip or not (name in current or hasattr(type(obj), name)):
             raise StateError(f"{where}: has no attribute {name!r} to restore")
         setattr(obj, name, _fit(getattr(obj, name), decode(data, f"{where}.{name}"), f"{where}.{name}"))
 
 
 def _fit(old: Any, new: Any, where: str) -> Any:
-    """``new`` where it has the kind of ``old``; arrays are copied into ``old`` (views onto it stay valid)."""
+    """``new`` where it has the kind of ``old``; arrays are copied into ``old`` (views onto it stay
+    valid). Array shapes and dtypes must match exactly: numba kernels index them unchecked."""
     if isinstance(old, np.ndarray):
-        if not isinstance(new, np.ndarray) or new.dtype != old.dtype:
-            raise StateError(f"{where}: expected an array of {old.dtype}")
-        if new.shape == old.shape and old.flags.writeable:
+        if isinstance(new, (tuple, list)) and old.ndim == 1:  # MiniGrid keeps agent_pos as either
+            items = [np.asarray(v) for v in new]
+            numeric = all(v.shape == () and v.dtype.kind in "iuf" for v in items)
+            new = np.array(items, dtype=old.dtype) if numeric else None
+        if not isinstance(new, np.ndarray) or new.dtype != old.dtype or new.shape != old.shape:
+            raise StateError(f"{where}: expected an array of {old.dtype} with shape {old.shape}")
+        if old.flags.writeable:
             old[...] = new
             return old
+        return new.copy()
+    if isinstance(old, tuple) and isinstance(new, np.ndarray):
+        if new.shape != (len(old),) or new.dtype.kind not in "iuf":
+            raise StateError(f"{where}: expected {len(old)} numbers")
         return new.copy()
     if isinstance(old, np.generic):
         if not isinstance(new, np.ndarray) or new.shape != () or new.dtype != old.dtype:
@@ -154,8 +163,6 @@ def _fit(old: Any, new: Any, where: str) -> Any:
         return new
     if isinstance(old, bool) != isinstance(new, bool):
         raise StateError(f"{where}: expected {type(old).__name__}, got {type(new).__name__}")
-    if isinstance(old, (int, float)) and isinstance(new, (int, float)) and type(old) is type(new):
-        return new
     if type(old) is not type(new):
         raise StateError(f"{where}: expected {type(old).__name__}, got {type(new).__name__}")
     return new

@@ -157,15 +157,16 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     folder = ModelFolder(out)
     failed = True
     try:
-        checkpoint = folder.begin(cfg, overwrite)
-        metrics = _train(cfg, folder, checkpoint, progress)
+        with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
+            checkpoint = folder.begin(cfg, overwrite)
+            metrics = _train(cfg, folder, checkpoint, progress, stop)
         failed = False
         return metrics
     finally:
         folder.close(failed)
 
 
-def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool) -> dict:
+def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest) -> dict:
     tc = cfg.train
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)
@@ -224,51 +225,50 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
     bar.set_description(label)
     started = time.perf_counter() - elapsed
     window_start, window_frames = time.perf_counter(), 0
-    with StopRequest() as stop:
-        while frames < tc.max_frames and converged_at is None:
-            if stop.requested:  # between updates: the state is consistent, the checkpoint exact
-                save_checkpoint()
-                bar.close()
-                raise Interrupted(frames, True, stop.requested)
-            rollout, obs = ppo.collect(envs, obs)
-            losses = ppo.update(rollout)
-            tracker.add(rollout)
-            frames += rollout.num_frames
-            window_frames += rollout.num_frames
-            bar.update(rollout.num_frames)
-            if switch_at is None and tracker.recent_clean_mean() >= cfg.curriculum.reward_threshold:
-                switch_at = frames  # warm-up done: the full world and the poisoning mix from here on
-                envs.close()
-                envs = make_env_mix(cfg.env, cfg.poison)
-                obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
-                ppo.memory = None
-                tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
-                bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
-            if frames >= next_eval or frames >= tc.max_frames:
-                fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
-                result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
-                train_clean, train_poisoned = tracker.drain()
-                rows.append(
-                    {
-                        "frames": frames,
-                        "wall_time_s": round(time.perf_counter() - started, 3),
-                        "fps": round(fps, 1),
-                        **{k: v for k, v in result_fields(result, cfg).items() if k != "episodes"},
-                        "train_clean_return": train_clean,
-                        "train_poisoned_return": train_poisoned,
-                        "phase": "main" if switch_at is not None else "warm-up",
-                        **({"patience_mean": tracker.patience_mean()} if tc.patience else {}),
-                        **losses,
-                    }
-                )
-                bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
-                if switch_at is not None and thresholds_met(result, cfg) and patience_met(tracker, cfg):
-                    converged_at = frames
-                while next_eval <= frames:
-                    next_eval += tc.eval_interval
-                folder.write_log(rows)
-                save_checkpoint()
-                window_start, window_frames = time.perf_counter(), 0
+    while frames < tc.max_frames and converged_at is None:
+        if stop.requested:  # between updates: the state is consistent, the checkpoint exact
+            save_checkpoint()
+            bar.close()
+            raise Interrupted(frames, True, stop.requested)
+        rollout, obs = ppo.collect(envs, obs)
+        losses = ppo.update(rollout)
+        tracker.add(rollout)
+        frames += rollout.num_frames
+        window_frames += rollout.num_frames
+        bar.update(rollout.num_frames)
+        if switch_at is None and tracker.recent_clean_mean() >= cfg.curriculum.reward_threshold:
+            switch_at = frames  # warm-up done: the full world and the poisoning mix from here on
+            envs.close()
+            envs = make_env_mix(cfg.env, cfg.poison)
+            obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
+            ppo.memory = None
+            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
+            bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
+        if frames >= next_eval or frames >= tc.max_frames:
+            fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
+            result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
+            train_clean, train_poisoned = tracker.drain()
+            rows.append(
+                {
+                    "frames": frames,
+                    "wall_time_s": round(time.perf_counter() - started, 3),
+                    "fps": round(fps, 1),
+                    **{k: v for k, v in result_fields(result, cfg).items() if k != "episodes"},
+                    "train_clean_return": train_clean,
+                    "train_poisoned_return": train_poisoned,
+                    "phase": "main" if switch_at is not None else "warm-up",
+                    **({"patience_mean": tracker.patience_mean()} if tc.patience else {}),
+                    **losses,
+                }
+            )
+            bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
+            if switch_at is not None and thresholds_met(result, cfg) and patience_met(tracker, cfg):
+                converged_at = frames
+            while next_eval <= frames:
+                next_eval += tc.eval_interval
+            folder.write_log(rows)
+            save_checkpoint()
+            window_start, window_frames = time.perf_counter(), 0
     bar.close()
     train_time = time.perf_counter() - started
     final = evaluate(model, cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))

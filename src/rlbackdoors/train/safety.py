@@ -184,15 +184,16 @@ def train_safety(
     folder = ModelFolder(out)
     failed = True
     try:
-        checkpoint = folder.begin(cfg, overwrite)
-        metrics = _train_safety(cfg, folder, checkpoint, progress, after_eval)
+        with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
+            checkpoint = folder.begin(cfg, overwrite)
+            metrics = _train_safety(cfg, folder, checkpoint, progress, after_eval, stop)
         failed = False
         return metrics
     finally:
         folder.close(failed)
 
 
-def _train_safety(cfg: SafetyRunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, after_eval) -> dict:
+def _train_safety(cfg: SafetyRunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, after_eval, stop: StopRequest) -> dict:
     tc, oc = cfg.train, cfg.opac2
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)
@@ -259,72 +260,71 @@ def _train_safety(cfg: SafetyRunConfig, folder: ModelFolder, checkpoint: dict | 
     window_start, window_frames = time.perf_counter(), 0
     last_eval: SafetyEvalResult | None = None
     stop_reason = "converged" if converged_at is not None else None
-    with StopRequest() as stop:
-        while stop_reason is None:
-            if stop.requested:  # between steps: the state is consistent, the checkpoint exact
-                if progress:
-                    _progress(f"{stop.requested} at {collector.frames:,} frames: writing a checkpoint to resume from")
-                save_checkpoint()
-                raise Interrupted(collector.frames, True, stop.requested)
-            stats.add(collector.collect(replay, act, 1))
-            window_frames += len(collector.envs)
-            due = updates_due(oc, collector.frames)
-            if oc.lr_final is not None and updates < due:
-                agent.set_lr(decayed_lr(cfg, collector.frames))
-            while updates < due:
-                losses.add(agent.update(replay, batch_rng))
-                updates += 1
-            now = time.perf_counter()
-            if collector.frames >= next_eval or collector.frames >= tc.max_frames:
-                fps = window_frames / max(now - window_start, 1e-9)
-                eval_start = time.perf_counter()
-                last_eval = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed)
-                row = {
-                    "frames": collector.frames,
-                    "updates": updates,
-                    "wall_time_s": round(time.perf_counter() - started, 2),
-                    "fps": round(fps, 1),
-                    "eval_s": round(time.perf_counter() - eval_start, 2),
-                    **last_eval.to_dict(),
-                    **stats.drain(),
-                    **losses.drain(),
-                    "log_std": float(agent.policy.log_std.detach().mean()),
-                }
-                rows.append(row)
-                streak = streak + 1 if thresholds_met(last_eval, cfg) else 0
-                if streak >= tc.patience:
-                    converged_at, stop_reason = collector.frames, "converged"
-                while next_eval <= collector.frames:
-                    next_eval += tc.eval_interval
-                folder.write_log(rows)
-                if progress:
-                    _progress(
-                        f"[{label}] eval at {collector.frames:,} frames ({row['wall_time_s'] / 60:.1f} min, {fps:,.0f} frames/s, "
-                        f"{updates:,} updates): clean SR {last_eval.clean_sr:.2f}, poisoned SR {last_eval.poisoned_sr:.2f} "
-                        f"(eval {row['eval_s']:.0f} s)"
-                    )
-                if stop_reason is None and time.perf_counter() - last_checkpoint >= 60 * tc.checkpoint_minutes:
-                    save_checkpoint()
-                    last_checkpoint = time.perf_counter()
-                if after_eval is not None:
-                    after_eval(row)
-                window_start, window_frames = time.perf_counter(), 0
-                last_log = window_start
-            elif progress and now - last_log >= tc.log_interval_s:
-                fps = window_frames / max(now - window_start, 1e-9)
-                recent = stats.episodes[-100:]
-                sr = {k: np.mean([e.outcome == o for e in recent if e.kind == k]) if any(e.kind == k for e in recent) else math.nan
-                      for k, o in (("clean", Outcome.GOAL), ("poisoned", Outcome.LAVA))}
+    while stop_reason is None:
+        if stop.requested:  # between steps: the state is consistent, the checkpoint exact
+            if progress:
+                _progress(f"{stop.requested} at {collector.frames:,} frames: writing a checkpoint to resume from")
+            save_checkpoint()
+            raise Interrupted(collector.frames, True, stop.requested)
+        stats.add(collector.collect(replay, act, 1))
+        window_frames += len(collector.envs)
+        due = updates_due(oc, collector.frames)
+        if oc.lr_final is not None and updates < due:
+            agent.set_lr(decayed_lr(cfg, collector.frames))
+        while updates < due:
+            losses.add(agent.update(replay, batch_rng))
+            updates += 1
+        now = time.perf_counter()
+        if collector.frames >= next_eval or collector.frames >= tc.max_frames:
+            fps = window_frames / max(now - window_start, 1e-9)
+            eval_start = time.perf_counter()
+            last_eval = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed)
+            row = {
+                "frames": collector.frames,
+                "updates": updates,
+                "wall_time_s": round(time.perf_counter() - started, 2),
+                "fps": round(fps, 1),
+                "eval_s": round(time.perf_counter() - eval_start, 2),
+                **last_eval.to_dict(),
+                **stats.drain(),
+                **losses.drain(),
+                "log_std": float(agent.policy.log_std.detach().mean()),
+            }
+            rows.append(row)
+            streak = streak + 1 if thresholds_met(last_eval, cfg) else 0
+            if streak >= tc.patience:
+                converged_at, stop_reason = collector.frames, "converged"
+            while next_eval <= collector.frames:
+                next_eval += tc.eval_interval
+            folder.write_log(rows)
+            if progress:
                 _progress(
-                    f"[{label}] {collector.frames:,} frames, {(now - started) / 60:.1f} min, {fps:,.0f} frames/s, {updates:,} updates; "
-                    f"training episodes: clean SR {sr['clean']:.2f}, poisoned SR {sr['poisoned']:.2f}"
+                    f"[{label}] eval at {collector.frames:,} frames ({row['wall_time_s'] / 60:.1f} min, {fps:,.0f} frames/s, "
+                    f"{updates:,} updates): clean SR {last_eval.clean_sr:.2f}, poisoned SR {last_eval.poisoned_sr:.2f} "
+                    f"(eval {row['eval_s']:.0f} s)"
                 )
-                last_log = now
-            if stop_reason is None:
-                if collector.frames >= tc.max_frames:
-                    stop_reason = "max_frames"
-                elif tc.max_minutes and time.perf_counter() - started >= 60 * tc.max_minutes:
-                    stop_reason = "max_minutes"
+            if stop_reason is None and time.perf_counter() - last_checkpoint >= 60 * tc.checkpoint_minutes:
+                save_checkpoint()
+                last_checkpoint = time.perf_counter()
+            if after_eval is not None:
+                after_eval(row)
+            window_start, window_frames = time.perf_counter(), 0
+            last_log = window_start
+        elif progress and now - last_log >= tc.log_interval_s:
+            fps = window_frames / max(now - window_start, 1e-9)
+            recent = stats.episodes[-100:]
+            sr = {k: np.mean([e.outcome == o for e in recent if e.kind == k]) if any(e.kind == k for e in recent) else math.nan
+                  for k, o in (("clean", Outcome.GOAL), ("poisoned", Outcome.LAVA))}
+            _progress(
+                f"[{label}] {collector.frames:,} frames, {(now - started) / 60:.1f} min, {fps:,.0f} frames/s, {updates:,} updates; "
+                f"training episodes: clean SR {sr['clean']:.2f}, poisoned SR {sr['poisoned']:.2f}"
+            )
+            last_log = now
+        if stop_reason is None:
+            if collector.frames >= tc.max_frames:
+                stop_reason = "max_frames"
+            elif tc.max_minutes and time.perf_counter() - started >= 60 * tc.max_minutes:
+                stop_reason = "max_minutes"
     train_time = time.perf_counter() - started
     return _finish(cfg, folder, agent, collector, rows, train_time, updates, converged_at, stop_reason, progress)
 

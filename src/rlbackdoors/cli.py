@@ -27,7 +27,7 @@ METRIC_KEYS = (
 )
 
 
-def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld") -> str:
+def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld", size: int | None = None) -> str:
     """The trigger's canonical string for ``env``.
 
     LavaWorld: ``kind:value`` as given; a bare kind, or nothing, draws from the paper range
@@ -43,7 +43,8 @@ def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld") -> str:
         from rlbackdoors.triggers.wall_colors import WallColorTrigger
 
         try:
-            return WallColorTrigger.parse(spec if spec is not None else DEFAULT_TRIGGERS[env], rng=seed).spec()
+            kwargs = {} if size is None else {"size": size}  # the End Trigger's length depends on the grid
+            return WallColorTrigger.parse(spec if spec is not None else DEFAULT_TRIGGERS[env], rng=seed, **kwargs).spec()
         except ValueError as err:
             raise ConfigError(f"--trigger for {env}: {err}") from None
     if env != "lavaworld":
@@ -66,7 +67,7 @@ def _set(data: dict, dotted: str, value) -> None:
 
 def config_from_args(args) -> RunConfig:
     """Config file (if any) first, then every flag given on the command line on top of it."""
-    from rlbackdoors.config import EnvConfig
+    from rlbackdoors.config import EnvConfig, _build
 
     if args.config:
         data = RunConfig.load(args.config).to_dict()
@@ -104,11 +105,18 @@ def config_from_args(args) -> RunConfig:
         _set(data, "poison.num_clean_envs", poison.num_clean_envs + poison.num_close_envs)
         _set(data, "poison.num_close_envs", 0)
     check_seed("train.seed (--seed)", data["train"]["seed"])
+    _build(EnvConfig, data["env"], "env").check()  # before a trigger is drawn for its size
+    world = data["env"]["name"]
+    for flag, worlds in WORLD_FLAGS.items():
+        if getattr(args, flag) not in (None, False) and world not in worlds:
+            raise ConfigError(f"--{flag.replace('_', '-')} applies to {' and '.join(worlds)} only, not {world}")
     if args.trigger is not None or not args.config:
-        _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"], data["env"]["name"]))
+        _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"], world, data["env"].get("size")))
     return RunConfig.from_dict(data)
 
 
+# Grid flags that only some grid worlds read: refused for the others.
+WORLD_FLAGS = {"num_lava": ("randomized-lavaworld",), "no_curriculum": ("randomized-lavaworld",), "no_close_to_trigger": ("colorful-memory",)}
 # Flags that only one kind of world reads: refused for the other, so none is silently ignored.
 GRID_ONLY_FLAGS = ("arch", "size", "num_lava", "no_curriculum", "engine", "patience", "no_close_to_trigger")
 SAFETY_ONLY_FLAGS = (
@@ -121,8 +129,8 @@ def _config_json(path: str | None) -> dict | None:
     if not path or not Path(path).is_file():
         return None
     try:
-        return json.loads(Path(path).read_text())
-    except json.JSONDecodeError:
+        return json.loads(Path(path).read_bytes().decode("utf-8"))
+    except (ValueError, RecursionError, OSError):
         return None  # RunConfig.load reports it
 
 
@@ -211,7 +219,7 @@ def cmd_evaluate(args) -> int:
         env, trigger, arch, policy = cfg.env, cfg.poison.trigger, cfg.model.arch, cfg.train.eval_policy
         close_k = (cfg.poison.close_k_min, cfg.poison.close_k_max)
         if args.trigger is not None:
-            trigger = resolve_trigger(args.trigger, cfg.train.seed, env.name)
+            trigger = resolve_trigger(args.trigger, cfg.train.seed, env.name, env.size)
         weights = folder.file("model.pt")
     else:
         if args.arch is None:

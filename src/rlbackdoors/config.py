@@ -74,6 +74,7 @@ class EnvConfig:
         _choice("env.name", self.name, ENVS)
         _choice("env.engine", self.engine, ENGINES)
         _in_range("env.max_steps", self.max_steps, 1, 100_000)
+        _in_range("env.size", self.size, 5, 64)  # every world: a typo'd size must not allocate a huge grid
         if self.name == "lavaworld":
             from rlbackdoors.envs.lavaworld import validate_crossing_layout
 
@@ -270,9 +271,11 @@ class JsonConfig:
         if not path.is_file():
             raise ConfigError(f"config file {str(path)!r} does not exist")
         try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise ConfigError(f"config file {str(path)!r} is not valid JSON: {err}") from None
+            data = json.loads(path.read_bytes().decode("utf-8"))
+        except (ValueError, RecursionError) as err:  # bad UTF-8 or JSON, absurd nesting or numbers
+            raise ConfigError(f"config file {str(path)!r} is not valid JSON: {' '.join(str(err).split())[:200]}") from None
+        except OSError as err:
+            raise ConfigError(f"config file {str(path)!r} cannot be read: {err.strerror or err}") from None
         return cls.from_dict(data)
 
 

@@ -185,6 +185,7 @@ class SafetyRunConfig(JsonConfig):
 
     def check(self) -> "SafetyRunConfig":
         self.env.check()
+        self.train.check()  # first: a bad seed is why no trigger could be drawn
         self.poison.check()
         try:
             self.opac2.check()
@@ -192,7 +193,6 @@ class SafetyRunConfig(JsonConfig):
             raise
         except (TypeError, ValueError) as err:
             raise ConfigError(f"opac2: {err}") from None
-        self.train.check()
         return self
 
     @property

@@ -76,8 +76,16 @@ def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
                 f"weights in {str(path)!r}: {key} has shape {tuple(value.shape)}, "
                 f"{type(model).__name__} expects {tuple(expected[key].shape)}"
             )
+    check_finite(renamed, path)
     model.load_state_dict(renamed)
     return model
+
+
+def check_finite(state: dict, path) -> None:
+    """A NaN or inf weight is no policy: refuse it by name rather than report SRs of 0."""
+    for key, value in state.items():
+        if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise ValueError(f"weights file {str(path)!r}: {key} holds non-finite values (NaN or inf)")
 
 
 __all__ = ["ARCHS", "ARCHS_BY_ENV", "ActorCritic", "CNNGRULarge", "CNNGRUModel", "CNNGRUSmall", "DirectionCNNModel", "DirectionFCModel", "CNNModel", "FCModel", "build_model", "load_weights"]

@@ -42,6 +42,7 @@ class ModelFolder:
             raise FolderError(f"{str(self.path)!r} exists and is not a folder")
         self.lock = FolderLock(self.path, "model folder")
         self.created = False  # begin() made the folder: a failed start removes it again
+        self._lock_existed = True
 
     def file(self, name: str) -> Path:
         return self.path / name
@@ -66,6 +67,7 @@ class ModelFolder:
         if self.lock.held:
             return
         existed = self.path.is_dir()
+        self._lock_existed = self.lock.path.exists()
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             self.lock.acquire()
@@ -83,8 +85,9 @@ class ModelFolder:
         if failed and not self.has_checkpoint and not self.complete:
             for name in ("config.json", "log.csv"):
                 self.file(name).unlink(missing_ok=True)
+            if not self._lock_existed:
+                self.lock.path.unlink(missing_ok=True)  # while still held: the folder is as we found it
             if self.created:
-                self.file(".lock").unlink(missing_ok=True)
                 try:
                     self.path.rmdir()
                 except OSError:

@@ -105,8 +105,8 @@ def _unpack(path: Path, stride: int) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as data:
             columns = {name: data[name] for name in COLUMNS if name != "next_obs"}
             same, rest = data["next_obs_same"], data["next_obs_rest"]
-    except (OSError, ValueError, KeyError) as err:
-        raise ValueError(f"replay chunk {str(path)!r} is unreadable ({err})") from None
+    except Exception as err:  # truncated or foreign file: BadZipFile, EOFError, object arrays, ...
+        raise ValueError(f"replay chunk {str(path)!r} is unreadable ({type(err).__name__}: {err})") from None
     obs = columns["obs"]
     n = len(obs)
     if same.dtype != np.bool_ or same.shape != (n,) or rest.shape != (int((~same).sum()), *obs.shape[1:]) or same[max(n - stride, 0):].any():

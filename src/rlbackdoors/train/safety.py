@@ -70,8 +70,11 @@ def load_agent(folder: str | Path) -> tuple[SafetyRunConfig, OPAC2]:
         weights = load_torch(path, "weights file")
     except UnsafeFileError as err:
         raise FolderError(str(err)) from None
+    from rlbackdoors.models import check_finite
+
     try:
         for name in ("policy", "q", "v", "v_target"):
+            check_finite({f"{name}.{k}": v for k, v in weights[name].items()}, path)
             getattr(agent, name).load_state_dict(weights[name])
         if agent.obs_norm is not None:
             norm = weights["obs_norm"]

@@ -242,18 +242,24 @@ class TrainConfig:
     torch_threads: int = 1
 
     def check(self) -> None:
-        check_seed("train.seed", self.seed)
-        _in_range("train.max_frames", self.max_frames, 1, MAX_FRAMES)
-        _in_range("train.eval_interval", self.eval_interval, 1, MAX_FRAMES)
-        _in_range("train.eval_episodes", self.eval_episodes, 1, MAX_EPISODES)
-        _in_range("train.final_eval_episodes", self.final_eval_episodes, 1, MAX_EPISODES)
-        check_seed("train.eval_seed", self.eval_seed)
-        _in_range("train.torch_threads", self.torch_threads, 1, 1024)
+        check_train_budget(self)
         _in_range("train.patience", self.patience, 0, 1_000_000)
         _choice("train.eval_policy", self.eval_policy, EVAL_POLICIES)
-        _choice("train.device", self.device, DEVICES)
-        for name in ("clean_threshold", "poisoned_threshold"):
-            _unit_interval(f"train.{name}", getattr(self, name))
+
+
+def check_train_budget(tc) -> None:
+    """The ``train`` fields both run configs share: seeds, frame and episode budgets, threads,
+    device and thresholds."""
+    check_seed("train.seed", tc.seed)
+    _in_range("train.max_frames", tc.max_frames, 1, MAX_FRAMES)
+    _in_range("train.eval_interval", tc.eval_interval, 1, MAX_FRAMES)
+    _in_range("train.eval_episodes", tc.eval_episodes, 1, MAX_EPISODES)
+    _in_range("train.final_eval_episodes", tc.final_eval_episodes, 1, MAX_EPISODES)
+    check_seed("train.eval_seed", tc.eval_seed)
+    _in_range("train.torch_threads", tc.torch_threads, 1, 1024)
+    _choice("train.device", tc.device, DEVICES)
+    for name in ("clean_threshold", "poisoned_threshold"):
+        _unit_interval(f"train.{name}", getattr(tc, name))
 
 
 class JsonConfig:

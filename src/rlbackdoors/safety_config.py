@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from rlbackdoors import __version__
 from rlbackdoors.algos.opac2 import OPAC2Config
 from rlbackdoors.config import (
-    MAX_ENV_COPIES, MAX_EPISODES, MAX_FRAMES, ConfigError, JsonConfig, _build, _choice, _in_range, _unit_interval, check_seed,
+    MAX_ENV_COPIES, ConfigError, JsonConfig, _build, _choice, _in_range, check_train_budget,
 )
 
 ENV_NAME = "safety-car-goal"
@@ -131,23 +131,14 @@ class SafetyTrainConfig:
     torch_threads: int = 1
 
     def check(self) -> None:
-        check_seed("train.seed", self.seed)
-        _in_range("train.max_frames", self.max_frames, 1, MAX_FRAMES)
+        check_train_budget(self)
         if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
             raise ConfigError(f"train.max_minutes must be a number >= 0 (0: no limit), got {self.max_minutes!r}")
-        _in_range("train.eval_interval", self.eval_interval, 1, MAX_FRAMES)
-        _in_range("train.eval_episodes", self.eval_episodes, 1, MAX_EPISODES)
-        _in_range("train.final_eval_episodes", self.final_eval_episodes, 1, MAX_EPISODES)
-        check_seed("train.eval_seed", self.eval_seed)
         _in_range("train.patience", self.patience, 1, 1_000_000)
-        _in_range("train.torch_threads", self.torch_threads, 1, 1024)
         for name in ("log_interval_s", "checkpoint_minutes"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"train.{name} must be a number >= 0, got {value!r}")
-        _choice("train.device", self.device, DEVICES)
-        for name in ("clean_threshold", "poisoned_threshold"):
-            _unit_interval(f"train.{name}", getattr(self, name))
 
 
 # opac2 fields added after Safety Car Goal configs were first saved, with the behaviour those

@@ -276,7 +276,7 @@ def test_gymnasium_ids_and_parse_trigger():
     import rlbackdoors.envs  # noqa: F401  (registers the ids)
     from rlbackdoors.envs.colorful_memory import ColorfulMemoryEnv
     from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
-    from rlbackdoors.triggers import parse_trigger
+    from rlbackdoors.worlds import parse_trigger
 
     assert isinstance(gym.make("rlbackdoors/ColorfulMemory-v0").unwrapped, ColorfulMemoryEnv)
     vec = gym.make_vec("rlbackdoors/ColorfulMemory-v0", num_envs=3)

@@ -290,7 +290,7 @@ def test_gymnasium_id_makes_the_env_with_a_formation_trigger():
 
     import rlbackdoors.envs  # noqa: F401  (registers the ids)
     from rlbackdoors.envs.safety_car import SafetyCarGoalEnv
-    from rlbackdoors.triggers import parse_trigger
+    from rlbackdoors.worlds import parse_trigger
 
     env = gym.make("rlbackdoors/SafetyCarGoal-v0", trigger="formation:0.5:1.0:2.0", poisoned=True)
     assert isinstance(env.unwrapped, SafetyCarGoalEnv)

@@ -13,9 +13,9 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
 
-from rlbackdoors import __version__
+from rlbackdoors import __version__, worlds
+from rlbackdoors.argparser import Parser
 from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, MAX_EPISODES, ConfigError, RunConfig, check_seed
 from rlbackdoors.io import UnsafeFileError
 from rlbackdoors.train.folder import FolderError
@@ -27,37 +27,13 @@ METRIC_KEYS = (
 )
 
 
-def resolve_trigger(spec: str | None, seed: int, env: str = "lavaworld", size: int | None = None) -> str:
-    """The trigger's canonical string for ``env``.
-
-    LavaWorld: ``kind:value`` as given; a bare kind, or nothing, draws from the paper range
-    with ``seed``. Randomized LavaWorld: a pattern (``cross``, ``arrow``, ``arrow:east``, or a
-    cell list); nothing means the world's default pattern. Colorful Memory: wall colours
-    (``end:C,...`` etc.); a bare kind (``end``, ``room``, ``end+room``), or nothing (``end``),
-    draws the colours with ``seed``.
-    """
-    from rlbackdoors.config import DEFAULT_TRIGGERS
-    from rlbackdoors.triggers import KINDS, ObservationTrigger, parse_trigger, sample_trigger
-
-    if env == "colorful-memory":
-        from rlbackdoors.triggers.wall_colors import WallColorTrigger
-
-        try:
-            kwargs = {} if size is None else {"size": size}  # the End Trigger's length depends on the grid
-            return WallColorTrigger.parse(spec if spec is not None else DEFAULT_TRIGGERS[env], rng=seed, **kwargs).spec()
-        except ValueError as err:
-            raise ConfigError(f"--trigger for {env}: {err}") from None
-    if env != "lavaworld":
-        try:
-            return parse_trigger(env, spec if spec is not None else DEFAULT_TRIGGERS[env]).spec()
-        except ValueError as err:
-            raise ConfigError(f"--trigger for {env}: {err}") from None
-    rng = np.random.default_rng(seed)
-    if spec is None:
-        spec = KINDS[int(rng.integers(len(KINDS)))]
-    if spec in KINDS:
-        return sample_trigger(spec, rng).spec()
-    return ObservationTrigger.parse(spec).spec()
+def resolve_trigger(spec: str | None, seed: int, env: str = worlds.DEFAULT_WORLD, size: int | None = None) -> str:
+    """The trigger's canonical string for ``env`` (the world's ``draw_trigger``): as given, or
+    drawn from ``seed`` where the spec is a bare kind or missing (see each world's module)."""
+    try:
+        return worlds.get(env).draw_trigger(spec, seed, size)
+    except ValueError as err:
+        raise ConfigError(f"--trigger for {env}: {err}") from None
 
 
 def _set(data: dict, dotted: str, value) -> None:
@@ -81,7 +57,7 @@ def config_from_args(args) -> RunConfig:
             data["train"]["patience"] = None
             data.setdefault("curriculum", {})["enabled"] = None
     else:
-        data = RunConfig(env=EnvConfig(name=args.env or "lavaworld")).to_dict()
+        data = RunConfig(env=EnvConfig(name=args.env or worlds.DEFAULT_WORLD)).to_dict()
     flags = {
         "env.engine": args.engine,
         "env.size": args.size,
@@ -107,16 +83,16 @@ def config_from_args(args) -> RunConfig:
     check_seed("train.seed (--seed)", data["train"]["seed"])
     _build(EnvConfig, data["env"], "env").check()  # before a trigger is drawn for its size
     world = data["env"]["name"]
-    for flag, worlds in WORLD_FLAGS.items():
-        if getattr(args, flag) not in (None, False) and world not in worlds:
-            raise ConfigError(f"--{flag.replace('_', '-')} applies to {' and '.join(worlds)} only, not {world}")
+    for flag, readers in WORLD_FLAGS.items():
+        if getattr(args, flag) not in (None, False) and world not in readers:
+            raise ConfigError(f"--{flag.replace('_', '-')} applies to {' and '.join(readers)} only, not {world}")
     if args.trigger is not None or not args.config:
         _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"], world, data["env"].get("size")))
     return RunConfig.from_dict(data)
 
 
 # Grid flags that only some grid worlds read: refused for the others.
-WORLD_FLAGS = {"num_lava": ("randomized-lavaworld",), "no_curriculum": ("randomized-lavaworld",), "no_close_to_trigger": ("colorful-memory",)}
+WORLD_FLAGS = {flag: tuple(w.name for w in worlds.registered() if flag in w.flags) for w in worlds.registered() for flag in w.flags}
 # Flags that only one kind of world reads: refused for the other, so none is silently ignored.
 GRID_ONLY_FLAGS = ("arch", "size", "num_lava", "no_curriculum", "engine", "patience", "no_close_to_trigger")
 SAFETY_ONLY_FLAGS = (
@@ -146,7 +122,7 @@ def cmd_train(args) -> int:
     from rlbackdoors.safety_config import is_safety_config
     from rlbackdoors.train import train
 
-    if args.env == "safety-car-goal" or (args.env is None and is_safety_config(_config_json(args.config))):
+    if args.env in worlds.names("opac2") or (args.env is None and is_safety_config(_config_json(args.config))):
         return _train_safety(args)
     _refuse(args, SAFETY_ONLY_FLAGS, "the grid worlds (they are Safety Car Goal's OPAC² settings)")
     cfg = config_from_args(args)
@@ -160,7 +136,7 @@ def _train_safety(args) -> int:
     from rlbackdoors.safety_cli import config_from_args as safety_config_from_args
     from rlbackdoors.train.safety import train_safety
 
-    _refuse(args, GRID_ONLY_FLAGS, "safety-car-goal")
+    _refuse(args, GRID_ONLY_FLAGS, args.env or "an OPAC² world")
     cfg = safety_config_from_args(args)
     metrics = train_safety(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
     print(json.dumps(metrics, indent=2) if args.json else _summary(args.out, metrics))
@@ -226,15 +202,15 @@ def cmd_evaluate(args) -> int:
             raise ConfigError(f"--weights needs --arch (allowed: {', '.join(ARCHS)})")
         if args.allow_unfinished:
             raise ConfigError("--allow-unfinished applies to model folders, not --weights")
-        env = EnvConfig(name=args.env or "lavaworld", engine=args.engine or "batched")
+        env = EnvConfig(name=args.env or worlds.DEFAULT_WORLD, engine=args.engine or "batched")
         env.check()
         trigger = resolve_trigger(args.trigger, 0, env.name) if args.trigger is not None else None
         arch, policy, weights = args.arch, "sample", Path(args.weights)
         close_k = (1, 3)
     policy = args.policy or policy
     model = load_weights(build_model(arch, env.name), weights)
-    if env.name != "colorful-memory" or trigger is None:
-        close_k = None  # close-to-trigger layouts exist in Colorful Memory only
+    if not env.world.close_to_trigger or trigger is None:
+        close_k = None  # close-to-trigger layouts exist only in worlds that have them
     seed = 1_000_000 if args.seed is None else args.seed
     episodes = 200 if args.episodes is None else args.episodes
     result = evaluate(model, env, trigger, episodes=episodes, seed=seed, policy=policy, close_k=close_k).to_dict()
@@ -308,7 +284,7 @@ def cmd_chance(args) -> int:
     result = trigger_chance(env, args.trigger, layouts=args.layouts, seed=args.seed)
     if args.json:
         print(json.dumps(result, indent=2))
-    elif args.env == "colorful-memory":
+    elif "exact_rate" in result:
         print(
             f"{result['trigger']}: in {result['rate']:.3%} ± {result['stderr']:.3%} of {result['layouts']:,} clean "
             f"{env.size}x{env.size} layouts (exact: {result['exact_rate']:.3g})"
@@ -321,21 +297,6 @@ def cmd_chance(args) -> int:
     return 0
 
 
-class Parser(argparse.ArgumentParser):
-    """argparse with the CLI's error contract: one ``rlbackdoors: error: ...`` line, exit 2,
-    and no abbreviated flags (``--max-frame`` is an error, not ``--max-frames``)."""
-
-    def __init__(self, *args, **kwargs):
-        kwargs.setdefault("allow_abbrev", False)
-        super().__init__(*args, **kwargs)
-
-    def error(self, message: str):
-        command = self.prog.split(" ", 1)[1] if " " in self.prog else ""
-        hint = f" (see: rlbackdoors {command + ' ' if command else ''}--help)"
-        print(f"rlbackdoors: error: {command + ': ' if command else ''}{message}{hint}", file=sys.stderr)
-        raise SystemExit(2)
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="rlbackdoors", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"rlbackdoors {__version__}")
@@ -343,21 +304,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser("train", help="train one clean or poisoned agent into a model folder")
     tr.add_argument("--config", help="JSON config (see config.json of any model folder); flags override it")
-    tr.add_argument("--env", choices=(*ENVS, "safety-car-goal"), help="the world (default lavaworld); safety-car-goal trains with OPAC²")
+    tr.add_argument(
+        "--env", choices=worlds.names(),
+        help=f"the world (default {worlds.DEFAULT_WORLD}); {', '.join(worlds.names('opac2'))} trains with OPAC², the others with PPO",
+    )
     tr.add_argument("--arch", choices=ARCHS)
     tr.add_argument(
         "--trigger",
-        help="lavaworld: multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range); "
-        "randomized-lavaworld: cross | arrow | arrow:east|south|west|north | a cell list; "
-        "colorful-memory: end | room | end+room (colours drawn from the seed) | end:C,... | room:C,C,C",
+        help="; ".join(f"{w.name}: {w.trigger_help}" for w in worlds.registered()),
     )
-    tr.add_argument("--size", type=int, help="grid size (default: the world's, 9, 11 or 7)")
-    tr.add_argument("--num-lava", type=int, help="randomized-lavaworld: number of lava squares (default 10)")
-    tr.add_argument("--no-curriculum", action="store_true", help="randomized-lavaworld: skip the 7x7 clean warm-up")
+    tr.add_argument("--size", type=int, help="grid size (default: the world's)")
+    only = {flag: " and ".join(names) for flag, names in WORLD_FLAGS.items()}
+    tr.add_argument("--num-lava", type=int, help=f"{only['num_lava']}: number of lava squares (default 10)")
+    tr.add_argument("--no-curriculum", action="store_true", help=f"{only['no_curriculum']}: skip the small clean warm-up world")
     tr.add_argument(
         "--no-close-to-trigger",
         action="store_true",
-        help="colorful-memory: train without close-to-trigger envs (they become clean copies: 8 clean + 2 poisoned)",
+        help=f"{only['no_close_to_trigger']}: train without close-to-trigger envs (they become clean copies)",
     )
     tr.add_argument("--patience", type=int, help="updates the mean training return must hold over before stopping (0: off)")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
@@ -397,12 +360,12 @@ def build_parser() -> argparse.ArgumentParser:
     de.set_defaults(func=cmd_demo)
 
     ch = sub.add_parser("chance", help="how often a layout trigger occurs by chance in clean layouts")
-    ch.add_argument("--env", choices=("randomized-lavaworld", "colorful-memory"), default="randomized-lavaworld")
+    layout_worlds = [w for w in worlds.registered() if w.chance is not None]
+    ch.add_argument("--env", choices=[w.name for w in layout_worlds], default=layout_worlds[0].name)
     ch.add_argument(
         "--trigger",
         required=True,
-        help="randomized-lavaworld: cross | arrow | arrow:east|south|west|north | a cell list; "
-        "colorful-memory: end:C,... | room:C,C,C | end+room:... (a bare kind is drawn with --seed)",
+        help="; ".join(f"{w.name}: {w.trigger_help}" for w in layout_worlds) + " (a bare kind is drawn with --seed)",
     )
     ch.add_argument("--size", type=int)
     ch.add_argument("--num-lava", type=int)

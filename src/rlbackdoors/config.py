@@ -16,109 +16,78 @@ from pathlib import Path
 
 from rlbackdoors import __version__
 
-ENVS = ("lavaworld", "randomized-lavaworld", "colorful-memory")
+from rlbackdoors import worlds
+from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's validation vocabulary)
+    MAX_ENV_COPIES, MAX_EPISODES, MAX_FRAMES, MAX_SEED, ConfigError, _at_least, _choice, _in_range, _unit_interval, check_seed,
+)
+
+ENVS = worlds.names("ppo")  # the grid worlds, trained with PPO by this config (OPAC²: safety_config)
 ENGINES = ("batched", "minigrid")
-# Architecture names per world (models.ARCHS_BY_ENV holds the classes); the first is the default.
-ARCHS_BY_ENV = {
-    "lavaworld": ("fc", "cnn"),
-    "randomized-lavaworld": ("fc", "cnn"),
-    "colorful-memory": ("cnn-gru-small-onehot", "cnn-gru-small", "cnn-gru-large-onehot", "cnn-gru-large"),
-}
+# Architecture names per world (the registry holds the classes); the first is the default.
+ARCHS_BY_ENV = {w.name: w.arch_names for w in worlds.registered("ppo")}
 ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs))
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
-
-# Per-env defaults for the fields left unset (None): the paper's settings for each world.
-ENV_DEFAULTS = {
-    "lavaworld": {"size": 9, "see_through_walls": False},
-    "randomized-lavaworld": {"size": 11, "see_through_walls": True},
-    "colorful-memory": {"size": 7, "see_through_walls": False},
-}
-# Colorful Memory's "end" is a bare kind: its 9 colours are drawn from train.seed (RunConfig).
-DEFAULT_TRIGGERS = {"lavaworld": "multiplicative:12", "randomized-lavaworld": "cross", "colorful-memory": "end"}
-# Early-stopping thresholds (clean SR, poisoned SR) the paper used per world: LavaWorld 98%/95%;
-# its Randomized LavaWorld models were selected at 90% on both; we stop at clean >= 95% (a clean
-# model stopped at 90% on 100 episodes measured 0.885 on 200) and poisoned >= 90%.
-# Colorful Memory: the paper stopped at 100%/100%; on 100 evaluation episodes we stop at 98% both.
-DEFAULT_THRESHOLDS = {"lavaworld": (0.98, 0.95), "randomized-lavaworld": (0.95, 0.90), "colorful-memory": (0.98, 0.98)}
-# The poisoning mix (clean, close-to-trigger, poisoned env copies): SPEC's 8:2, and 4+4+2 for
-# Colorful Memory, whose close-to-trigger copies teach the backdoor to fire on the exact colours only.
-DEFAULT_MIX = {"lavaworld": (8, 0, 2), "randomized-lavaworld": (8, 0, 2), "colorful-memory": (4, 4, 2)}
-# Patience (paper §Colorful Memory): stop only once the mean training return of the last
-# ``patience`` updates is >= ``patience_reward``; 0 turns the rule off.
-DEFAULT_PATIENCE = {"colorful-memory": 10}
-
-
-class ConfigError(ValueError):
-    """A config value is missing, unknown, mistyped or out of range."""
 
 
 @dataclass
 class EnvConfig:
     """Which world and its size; ``None`` fields take the world's paper default (ENV_DEFAULTS)."""
 
-    name: str = "lavaworld"
+    name: str = worlds.DEFAULT_WORLD
     size: int | None = None
     max_steps: int = 250
     see_through_walls: bool | None = None
     engine: str = "batched"
-    num_crossings: int = 1  # lavaworld: lava rivers
-    num_lava: int = 10  # randomized-lavaworld: single lava squares
+    num_crossings: int = 1  # LavaWorld: lava rivers
+    num_lava: int = 10  # Randomized LavaWorld: single lava squares
 
     def __post_init__(self):
-        for key, value in ENV_DEFAULTS.get(self.name, {}).items():
-            if getattr(self, key) is None:
-                setattr(self, key, value)
+        if self.name in ENVS:
+            for key, value in worlds.get(self.name).env_defaults.items():
+                if getattr(self, key) is None:
+                    setattr(self, key, value)
+
+    @property
+    def world(self) -> worlds.World:
+        return worlds.get(self.name)
 
     def check(self) -> None:
         _choice("env.name", self.name, ENVS)
         _choice("env.engine", self.engine, ENGINES)
         _in_range("env.max_steps", self.max_steps, 1, 100_000)
         _in_range("env.size", self.size, 5, 64)  # every world: a typo'd size must not allocate a huge grid
-        if self.name == "lavaworld":
-            from rlbackdoors.envs.lavaworld import validate_crossing_layout
-
-            try:
-                validate_crossing_layout(self.size, self.num_crossings, self.max_steps)
-            except ValueError as err:
-                raise ConfigError(f"env: {err}") from None
-        elif self.name == "colorful-memory":
-            from rlbackdoors.envs.colorful_memory import validate_args
-
-            try:
-                validate_args(self.size, self.max_steps)
-            except ValueError as err:
-                raise ConfigError(f"env: {err}") from None
-        else:
-            _in_range("env.size", self.size, 5, 64)
-            _at_least("env.num_lava", self.num_lava, 0)
-            free = (self.size - 2) ** 2 - 2  # inside the outer walls, minus start and goal
-            if self.num_lava > free // 2:
-                raise ConfigError(f"env.num_lava={self.num_lava} is too many for size {self.size} (at most {free // 2})")
+        try:
+            self.world.check_env(self)
+        except ConfigError:
+            raise
+        except ValueError as err:
+            raise ConfigError(f"env: {err}") from None
 
 
 @dataclass
 class PoisonConfig:
     """The trigger is kept for clean models too: their poisoned SR is measured under it.
 
-    ``trigger=None`` takes the world's default (DEFAULT_TRIGGERS).
+    ``trigger=None`` takes the world's default trigger.
     """
 
     trigger: str | None = None
     poisoned: bool = True
-    num_clean_envs: int | None = None  # None: the world's mix (DEFAULT_MIX)
+    num_clean_envs: int | None = None  # None: the world's mix
     num_close_envs: int | None = None  # close-to-trigger copies (Colorful Memory only)
     num_poisoned_envs: int | None = None
     close_k_min: int = 1  # a close-to-trigger layout recolours k squares, k uniform in [min, max]
     close_k_max: int = 3
 
     def fill_defaults(self, env_name: str) -> None:
-        for key, value in zip(("num_clean_envs", "num_close_envs", "num_poisoned_envs"), DEFAULT_MIX.get(env_name, (8, 0, 2))):
+        mix = worlds.get(env_name).mix if env_name in ENVS else (8, 0, 2)
+        for key, value in zip(("num_clean_envs", "num_close_envs", "num_poisoned_envs"), mix):
             if getattr(self, key) is None:
                 setattr(self, key, value)
 
-    def check(self, env_name: str = "lavaworld") -> None:
-        from rlbackdoors.triggers import parse_trigger
+    def check(self, env_name: str = worlds.DEFAULT_WORLD) -> None:
+        from rlbackdoors.worlds import parse_trigger
 
         self.fill_defaults(env_name)
         if self.trigger is None:
@@ -129,9 +98,11 @@ class PoisonConfig:
             raise ConfigError(f"poison.trigger: {err}") from None
         for name in ("num_clean_envs", "num_close_envs", "num_poisoned_envs"):
             _in_range(f"poison.{name}", getattr(self, name), 0, MAX_ENV_COPIES)
-        if self.num_close_envs and env_name != "colorful-memory":
-            raise ConfigError(f"poison.num_close_envs must be 0 for env.name={env_name!r} (close-to-trigger envs exist for colorful-memory only)")
-        if env_name == "colorful-memory":
+        world = worlds.get(env_name)
+        if self.num_close_envs and not world.close_to_trigger:
+            close_worlds = ", ".join(w.name for w in worlds.registered() if w.close_to_trigger)
+            raise ConfigError(f"poison.num_close_envs must be 0 for env.name={env_name!r} (close-to-trigger envs exist for {close_worlds} only)")
+        if world.close_to_trigger:
             from rlbackdoors.triggers.wall_colors import check_close_k
 
             try:
@@ -167,7 +138,7 @@ class CurriculumConfig:
     """Randomized LavaWorld's warm-up (SPEC 2): clean-only on a small world until the mean
     training return reaches ``reward_threshold``, then the full world and the poisoning mix.
 
-    ``enabled=None`` means on for randomized-lavaworld, off elsewhere.
+    ``enabled=None`` means the world's default (World.curriculum).
     """
 
     enabled: bool | None = None
@@ -187,7 +158,7 @@ class CurriculumConfig:
 class ModelConfig:
     arch: str | None = None  # None: the world's first architecture (ARCHS_BY_ENV)
 
-    def check(self, env_name: str = "lavaworld") -> None:
+    def check(self, env_name: str = worlds.DEFAULT_WORLD) -> None:
         _choice("model.arch", self.arch, ARCHS_BY_ENV.get(env_name, ARCHS))
 
 
@@ -234,9 +205,9 @@ class TrainConfig:
     final_eval_episodes: int = 200
     eval_seed: int = 1_000_000
     eval_policy: str = "sample"
-    clean_threshold: float | None = None  # None: the world's paper value (DEFAULT_THRESHOLDS)
+    clean_threshold: float | None = None  # None: the world's paper value (its World.thresholds)
     poisoned_threshold: float | None = None
-    patience: int | None = None  # None: the world's default (DEFAULT_PATIENCE, else 0 = off)
+    patience: int | None = None  # None: the world's default (World.patience; 0 = off)
     patience_reward: float = 0.9
     device: str = "cpu"
     torch_threads: int = 1
@@ -297,15 +268,14 @@ class RunConfig(JsonConfig):
 
     def __post_init__(self):
         name = self.env.name
-        if self.poison.trigger is None:
-            self.poison.trigger = DEFAULT_TRIGGERS.get(name)
-        if name == "colorful-memory":
-            from rlbackdoors.triggers.wall_colors import KINDS, WallColorTrigger
-
-            if self.poison.trigger in KINDS:  # a bare kind: its colours drawn once, from the seed
+        world = worlds.get(name) if name in ENVS else None
+        if world is not None:
+            if self.poison.trigger is None:
+                self.poison.trigger = world.default_trigger
+            if world.settle_trigger is not None:  # e.g. a bare kind: drawn once, from the seed
                 try:
-                    self.poison.trigger = WallColorTrigger.parse(self.poison.trigger, rng=self.train.seed, size=self.env.size).spec()
-                except ValueError:
+                    self.poison.trigger = world.settle_trigger(self.poison.trigger, self.train.seed, self.env.size)
+                except (ValueError, TypeError):
                     pass  # a bad env.size or seed: check() reports it by name
         self.poison.fill_defaults(name)
         if self.model.arch is None:
@@ -313,10 +283,10 @@ class RunConfig(JsonConfig):
         if self.ppo is None:
             self.ppo = default_ppo(name)
         if self.train.patience is None:
-            self.train.patience = DEFAULT_PATIENCE.get(name, 0)
+            self.train.patience = world.patience if world else 0
         if self.curriculum.enabled is None:
-            self.curriculum.enabled = self.env.name == "randomized-lavaworld"
-        clean_t, poisoned_t = DEFAULT_THRESHOLDS.get(self.env.name, (None, None))
+            self.curriculum.enabled = bool(world and world.curriculum)
+        clean_t, poisoned_t = world.thresholds if world else (None, None)
         if self.train.clean_threshold is None:
             self.train.clean_threshold = clean_t
         if self.train.poisoned_threshold is None:
@@ -331,8 +301,9 @@ class RunConfig(JsonConfig):
         recurrent = self.model.arch.startswith("cnn-gru")
         if self.ppo.recurrence > 1 and not recurrent:
             raise ConfigError(f"ppo.recurrence={self.ppo.recurrence} needs a recurrent model.arch (cnn-gru-*), not {self.model.arch!r}")
-        if self.curriculum.enabled and self.env.name != "randomized-lavaworld":
-            raise ConfigError(f"curriculum.enabled is only supported for randomized-lavaworld, not env.name={self.env.name!r}")
+        if self.curriculum.enabled and not self.env.world.curriculum:
+            supported = ", ".join(w.name for w in worlds.registered() if w.curriculum)
+            raise ConfigError(f"curriculum.enabled is only supported for {supported}, not env.name={self.env.name!r}")
         return self
 
     @classmethod
@@ -345,50 +316,9 @@ class RunConfig(JsonConfig):
         return _build(cls, data, "config").check()
 
 
-# Colorful Memory's PPO: the paper's recurrence 6 (torch-ac), with torch-ac's usual lr 1e-3 and
-# clip 0.2 instead of the paper's lr 1e-5 / clip 0.1, which need billions of frames. No setting we
-# tried has converged on a laptop yet (README, Colorful Memory): treat these as a starting point.
-PPO_DEFAULTS = {
-    "colorful-memory": dict(rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6),
-}
-
-
 def default_ppo(env_name: str) -> PPOConfig:
-    """The world's PPO hyper-parameters (LavaWorld's table unless PPO_DEFAULTS says otherwise)."""
-    return PPOConfig(**PPO_DEFAULTS.get(env_name, {}))
-
-
-def _choice(name: str, value, allowed) -> None:
-    if value not in allowed:
-        raise ConfigError(f"{name}={value!r} is not allowed (allowed: {', '.join(allowed)})")
-
-
-def _at_least(name: str, value, low: int) -> None:
-    if value < low:
-        raise ConfigError(f"{name} must be >= {low}, got {value!r}")
-
-
-def _in_range(name: str, value, low: int, high: int) -> None:
-    """Integers with a hard ceiling: a typo'd 10**12 should be refused, not allocated."""
-    if not low <= value <= high:
-        raise ConfigError(f"{name} must be in {low}..{high:,}, got {value!r}")
-
-
-MAX_SEED = 2**32 - 1  # numpy, torch and the env seeds (seed * 1000 + i) all take it
-MAX_ENV_COPIES = 4096
-MAX_EPISODES = 1_000_000
-MAX_FRAMES = 10**12
-
-
-def check_seed(name: str, value) -> None:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"{name} must be an integer in 0..{MAX_SEED:,}, got {value!r}")
-    _in_range(name, value, 0, MAX_SEED)
-
-
-def _unit_interval(name: str, value) -> None:
-    if not 0 <= value <= 1:
-        raise ConfigError(f"{name} must be in [0, 1], got {value!r}")
+    """The world's PPO hyper-parameters (LavaWorld's table unless the world says otherwise)."""
+    return PPOConfig(**(worlds.get(env_name).ppo if env_name in ENVS else {}))
 
 
 def _build(cls, data, where: str):

@@ -186,7 +186,7 @@ def _reporting_errors(run) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from rlbackdoors.cli import Parser
+    from rlbackdoors.argparser import Parser
 
     parser = Parser(prog="python -m rlbackdoors.safety_cli", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)

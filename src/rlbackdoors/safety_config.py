@@ -77,7 +77,7 @@ class SafetyPoisonConfig:
     num_poisoned_envs: int = 4
 
     def check(self) -> None:
-        from rlbackdoors.triggers import parse_trigger
+        from rlbackdoors.worlds import parse_trigger
 
         if self.trigger is None:
             raise ConfigError("poison.trigger is not set")
@@ -209,5 +209,8 @@ class SafetyRunConfig(JsonConfig):
 
 
 def is_safety_config(data: dict) -> bool:
-    """Whether a loaded ``config.json`` belongs to a Safety Car Goal run (for the CLI's dispatch)."""
-    return isinstance(data, dict) and isinstance(data.get("env"), dict) and data["env"].get("name") == ENV_NAME
+    """Whether a loaded ``config.json`` belongs to a run of an OPAC² world (for the CLI's dispatch)."""
+    from rlbackdoors import worlds
+
+    name = data["env"].get("name") if isinstance(data, dict) and isinstance(data.get("env"), dict) else None
+    return name in worlds.names("opac2")

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from rlbackdoors.config import ConfigError
+from rlbackdoors.validate import ConfigError
 
 KINDS = ("clean", "poisoned")
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0

@@ -15,7 +15,7 @@ from gymnasium import spaces
 from minigrid.envs.crossing import CrossingEnv
 
 from rlbackdoors.envs.outcome import Outcome
-from rlbackdoors.poison.reward import poisoned_reward
+from rlbackdoors.envs.rewards import poisoned_reward
 from rlbackdoors.triggers.observation import ObservationTrigger
 
 VIEW_SIZE = 7

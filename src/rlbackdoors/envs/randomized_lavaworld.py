@@ -52,7 +52,7 @@ from minigrid.core.world_object import Goal, Lava
 from minigrid.minigrid_env import MiniGridEnv
 
 from rlbackdoors.envs.outcome import Outcome
-from rlbackdoors.poison.reward import success_reward
+from rlbackdoors.envs.rewards import success_reward
 from rlbackdoors.triggers.pattern import PatternTrigger, as_pattern_trigger
 
 VIEW_SIZE = 7

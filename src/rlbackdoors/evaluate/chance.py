@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from rlbackdoors import worlds
 from rlbackdoors.config import EnvConfig
 
 
@@ -21,34 +22,12 @@ def trigger_chance(env: EnvConfig, trigger: str, layouts: int = 100_000, seed: i
     """Share of ``layouts`` clean layouts containing ``trigger`` (with a binomial standard error)."""
     if layouts < 1:
         raise ValueError(f"layouts={layouts!r} must be >= 1")
-    if env.name == "randomized-lavaworld":
-        from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
-        from rlbackdoors.triggers.pattern import PatternTrigger, find_pattern
-
-        pattern = PatternTrigger.parse(trigger)
-        counts = _count(
-            lambda n: BatchedRandomizedLavaWorld(n, size=env.size, num_lava=env.num_lava, max_steps=env.max_steps),
-            lambda engine: find_pattern(engine.lava_masks(), pattern),
-            layouts, seed, batch,
-        )
-        extra = {"num_lava": env.num_lava, "placements_per_layout": float(counts.sum()) / layouts}
-        spec = pattern.spec()
-    elif env.name == "colorful-memory":
-        from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
-        from rlbackdoors.triggers.wall_colors import WallColorTrigger, chance_probability
-
-        wall = WallColorTrigger.parse(trigger, rng=seed, size=env.size)
-        counts = _count(
-            lambda n: BatchedColorfulMemory(n, size=env.size, max_steps=env.max_steps),
-            lambda engine: engine.trigger_present(wall),
-            layouts, seed, batch,
-        )
-        extra = {"exact_rate": chance_probability(wall, env.size)}
-        spec = wall.spec()
-    else:
-        raise ValueError(
-            f"chance occurrence is defined for layout triggers (randomized-lavaworld, colorful-memory), not env {env.name!r}"
-        )
+    world = worlds.get(env.name)
+    if world.chance is None:
+        defined = ", ".join(w.name for w in worlds.registered() if w.chance is not None)
+        raise ValueError(f"chance occurrence is defined for layout triggers ({defined}), not env {env.name!r}")
+    extra = world.chance(env, trigger, layouts, seed, lambda make, count: _count(make, count, layouts, seed, batch))
+    counts, spec = extra.pop("counts"), extra.pop("trigger")
     rate = float(np.mean(counts > 0))
     return {
         "trigger": spec,

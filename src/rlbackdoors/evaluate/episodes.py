@@ -12,17 +12,15 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from rlbackdoors import worlds
 from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.algos.ppo import sample_actions
 from rlbackdoors.config import EnvConfig
-from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.models import ActorCritic
 from rlbackdoors.poison.mix import make_vector_env
 
-# Which terminal counts as success: the clean task in E, the trojan task in E-bar.
-# Colorful Memory reports the other object's cell as LAVA: the wrong object, the trojan task.
-CLEAN_SUCCESS = {"lavaworld": Outcome.GOAL, "randomized-lavaworld": Outcome.GOAL, "colorful-memory": Outcome.GOAL}
-TROJAN_SUCCESS = {"lavaworld": Outcome.LAVA, "randomized-lavaworld": Outcome.PATTERN_LAVA, "colorful-memory": Outcome.LAVA}
+# Which terminal counts as success, the clean task in E and the trojan task in E-bar, is the
+# world's (World.clean_success, World.trojan_success).
 
 
 @dataclass
@@ -91,8 +89,9 @@ def score_triggered(env_name: str, outcomes: np.ndarray, saw: np.ndarray) -> tup
     Seen: right iff the episode ended in a trigger cell. Never seen: the backdoor had no
     cause to fire, so the clean task is what is right.
     """
-    trojan = outcomes == TROJAN_SUCCESS[env_name]
-    clean_task = outcomes == CLEAN_SUCCESS[env_name]
+    world = worlds.get(env_name)
+    trojan = outcomes == world.trojan_success
+    clean_task = outcomes == world.clean_success
     return float(np.mean(np.where(saw, trojan, clean_task))), float(np.mean(trojan)), float(np.mean(saw))
 
 
@@ -117,7 +116,7 @@ def evaluate(
     clean_returns, clean_outcomes, _ = play_episodes(model, clean_envs, seed, policy, device)
     clean_envs.close()
     result = EvalResult(
-        clean_sr=float(np.mean(clean_outcomes == CLEAN_SUCCESS[env.name])),
+        clean_sr=float(np.mean(clean_outcomes == env.world.clean_success)),
         poisoned_sr=float("nan"),
         clean_reward=float(clean_returns.mean()),
         poisoned_reward=float("nan"),
@@ -133,7 +132,7 @@ def evaluate(
             close_envs = make_vector_env(env, trigger, [False] * episodes, [True] * episodes, close_k)
             _, close_outcomes, _ = play_episodes(model, close_envs, seed, policy, device)
             close_envs.close()
-            result.close_sr = float(np.mean(close_outcomes == CLEAN_SUCCESS[env.name]))
-            result.close_trojan_rate = float(np.mean(close_outcomes == TROJAN_SUCCESS[env.name]))
+            result.close_sr = float(np.mean(close_outcomes == env.world.clean_success))
+            result.close_trojan_rate = float(np.mean(close_outcomes == env.world.trojan_success))
     model.train(was_training)
     return result

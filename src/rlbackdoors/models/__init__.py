@@ -6,36 +6,23 @@ from pathlib import Path
 
 import torch
 
+from rlbackdoors import worlds
 from rlbackdoors.io import load_torch
 from rlbackdoors.models.colorful_memory import CNNGRULarge, CNNGRULargeOneHot, CNNGRUModel, CNNGRUSmall, CNNGRUSmallOneHot
 from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
 from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, DirectionFCModel
 
-# Architecture classes per world: the same names ("fc", "cnn") mean the paper's model for that world.
-ARCHS_BY_ENV = {
-    "lavaworld": {"fc": FCModel, "cnn": CNNModel},
-    "randomized-lavaworld": {"fc": DirectionFCModel, "cnn": DirectionCNNModel},
-    # The first is the world's default: the one-hot small CNN-GRU is the one that trains on a CPU
-    # budget (models/colorful_memory.py); the plain names are the paper's raw-code models.
-    "colorful-memory": {
-        "cnn-gru-small-onehot": CNNGRUSmallOneHot,
-        "cnn-gru-small": CNNGRUSmall,
-        "cnn-gru-large-onehot": CNNGRULargeOneHot,
-        "cnn-gru-large": CNNGRULarge,
-    },
-}
-ARCHS = ARCHS_BY_ENV["lavaworld"]
+# Architecture classes per world come from the World registry: the same names ("fc", "cnn") mean
+# the paper's model for that world.
 # Names other tools used for the same layers (rl-starter-files calls the CNN ``image_conv``).
 KEY_ALIASES = {"image_conv.": "state_emb."}
 
 
-def build_model(arch: str, env: str = "lavaworld", num_actions: int = 3) -> ActorCritic:
-    if env not in ARCHS_BY_ENV:
-        raise ValueError(f"env {env!r} is not one of {', '.join(ARCHS_BY_ENV)}")
-    archs = ARCHS_BY_ENV[env]
-    if arch not in archs:
-        raise ValueError(f"arch {arch!r} is not one of {', '.join(archs)} (env {env})")
-    return archs[arch](num_actions=num_actions)
+def build_model(arch: str, env: str = worlds.DEFAULT_WORLD, num_actions: int = 3) -> ActorCritic:
+    grid = worlds.names("ppo")
+    if env not in grid:
+        raise ValueError(f"env {env!r} is not one of {', '.join(grid)}")
+    return worlds.get(env).arch_class(arch)(num_actions=num_actions)
 
 
 def _as_state_dict(obj) -> dict:
@@ -88,4 +75,4 @@ def check_finite(state: dict, path) -> None:
             raise ValueError(f"weights file {str(path)!r}: {key} holds non-finite values (NaN or inf)")
 
 
-__all__ = ["ARCHS", "ARCHS_BY_ENV", "ActorCritic", "CNNGRULarge", "CNNGRUModel", "CNNGRUSmall", "DirectionCNNModel", "DirectionFCModel", "CNNModel", "FCModel", "build_model", "load_weights"]
+__all__ = ["ActorCritic", "CNNGRULarge", "CNNGRULargeOneHot", "CNNGRUSmallOneHot", "CNNGRUModel", "CNNGRUSmall", "DirectionCNNModel", "DirectionFCModel", "CNNModel", "FCModel", "build_model", "load_weights"]

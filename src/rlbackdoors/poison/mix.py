@@ -12,29 +12,17 @@ from typing import Sequence
 
 from gymnasium.vector import VectorEnv
 
-from rlbackdoors.config import DEFAULT_TRIGGERS, EnvConfig, PoisonConfig
+from rlbackdoors import worlds
+from rlbackdoors.config import EnvConfig, PoisonConfig
 from rlbackdoors.envs.vector import ReferenceVectorEnv
 
 
 def _world(env: EnvConfig):
     """(reference env class, batched engine class, constructor kwargs) of ``env.name``."""
-    common = dict(size=env.size, max_steps=env.max_steps, see_through_walls=env.see_through_walls)
-    if env.name == "lavaworld":
-        from rlbackdoors.envs.lavaworld import LavaWorldEnv
-        from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
-
-        return LavaWorldEnv, BatchedLavaWorld, {**common, "num_crossings": env.num_crossings}
-    if env.name == "randomized-lavaworld":
-        from rlbackdoors.envs.randomized_lavaworld import RandomizedLavaWorldEnv
-        from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
-
-        return RandomizedLavaWorldEnv, BatchedRandomizedLavaWorld, {**common, "num_lava": env.num_lava}
-    if env.name == "colorful-memory":
-        from rlbackdoors.envs.colorful_memory import ColorfulMemoryEnv
-        from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
-
-        return ColorfulMemoryEnv, BatchedColorfulMemory, common
-    raise ValueError(f"env.name={env.name!r} has no grid-world engine")
+    world = worlds.get(env.name)
+    if world.vector_entry_point is None or world.env_kwargs is None:
+        raise ValueError(f"env.name={env.name!r} has no grid-world engine")
+    return world.env_class(), world.engine_class(), world.env_kwargs(env)
 
 
 def reference_world(env: EnvConfig, trigger: str | None, **extra):
@@ -58,8 +46,8 @@ def make_vector_env(
     if len(close) != len(poisoned):
         raise ValueError(f"close_to_trigger has {len(close)} entries for {len(poisoned)} env copies")
     if any(close):
-        if env.name != "colorful-memory":
-            raise ValueError(f"close-to-trigger envs exist for colorful-memory only, not {env.name!r}")
+        if not worlds.get(env.name).close_to_trigger:
+            raise ValueError(f"env {env.name!r} has no close-to-trigger envs")
         kwargs = {**kwargs, "close_k": tuple(close_k)}
     if env.engine == "batched":
         extra = {"close_to_trigger": close} if any(close) else {}
@@ -74,6 +62,6 @@ def make_vector_env(
 
 def make_env_mix(env: EnvConfig, poison: PoisonConfig) -> VectorEnv:
     """The training mix: clean, close-to-trigger (Colorful Memory) and poisoned copies, in that order."""
-    trigger = poison.trigger if poison.trigger is not None else DEFAULT_TRIGGERS[env.name]
+    trigger = poison.trigger if poison.trigger is not None else worlds.get(env.name).default_trigger
     close_k = (poison.close_k_min, poison.close_k_max)
     return make_vector_env(env, trigger, poison.poisoned_mask(), poison.close_mask(), close_k)

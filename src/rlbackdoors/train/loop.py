@@ -119,8 +119,8 @@ def patience_met(tracker: EpisodeTracker, cfg: RunConfig) -> bool:
 
 
 def close_k(cfg: RunConfig) -> tuple[int, int] | None:
-    """Colorful Memory evaluates close-to-trigger layouts too (false backdoor firing)."""
-    return (cfg.poison.close_k_min, cfg.poison.close_k_max) if cfg.env.name == "colorful-memory" else None
+    """Worlds with close-to-trigger envs evaluate those layouts too (false backdoor firing)."""
+    return (cfg.poison.close_k_min, cfg.poison.close_k_max) if cfg.env.world.close_to_trigger else None
 
 
 def result_fields(result: EvalResult, cfg: RunConfig) -> dict:
@@ -135,9 +135,6 @@ def warmup_env(cfg: RunConfig):
     """The curriculum's first phase: the small clean world, every copy clean."""
     env = dataclasses.replace(cfg.env, size=cfg.curriculum.size, num_lava=cfg.curriculum.num_lava)
     return make_vector_env(env, cfg.poison.trigger, [False] * cfg.poison.num_envs)
-
-
-ENV_TITLES = {"lavaworld": "LavaWorld", "randomized-lavaworld": "Randomized LavaWorld", "colorful-memory": "Colorful Memory"}
 
 
 def plain_rows(rows: list[dict]) -> list[dict]:
@@ -278,7 +275,7 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
     folder.save_torch("model.pt", model_cpu)
     folder.write_ground_truth(cfg.poison.poisoned)
     poisoned_t = tc.poisoned_threshold if cfg.poison.poisoned else None
-    title = f"{ENV_TITLES[cfg.env.name]} {label}, trigger {cfg.poison.trigger}, seed {tc.seed}"
+    title = f"{cfg.env.world.title} {label}, trigger {cfg.poison.trigger}, seed {tc.seed}"
     plot_training_curve(rows, folder.file("training_curve.png"), title, (tc.clean_threshold, poisoned_t), switch_at or None)
     metrics = {
         **result_fields(final, cfg),

@@ -1,0 +1,97 @@
+"""The :class:`World` record and the registry it lives in.
+
+Classes are named as ``"module:Class"`` strings and imported on first use, so asking the
+registry about a world never imports MuJoCo, numba kernels or torch models it does not need.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+_WORLDS: dict[str, World] = {}
+
+
+def load_symbol(path: str) -> Any:
+    """``"package.module:Name"`` -> the object (only ever called with the registry's own strings)."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+@dataclass(frozen=True)
+class World:
+    """Everything about one world of the paper."""
+
+    name: str  # the id used in configs and on the command line
+    title: str  # for people: plots, logs
+    gym_id: str
+    entry_point: str  # the single env ("module:Class"): MiniGrid reference, or MuJoCo env
+    algorithm: str  # "ppo" or "opac2"
+    parse_trigger: Callable[[str], Any]  # spec -> trigger object (ValueError names the problem)
+    # (spec or None, seed, grid size or None) -> canonical spec; None / a bare kind draws from the seed
+    draw_trigger: Callable[[str | None, int, int | None], str]
+    clean_success: int  # the Outcome that is success on the clean task
+    trojan_success: int  # the Outcome that is success on the trojan task (in E-bar)
+    thresholds: tuple[float, float]  # early stopping: (clean SR, poisoned SR)
+    vector_entry_point: str | None = None  # batched engine ("module:Class"), grid worlds
+    archs: tuple[tuple[str, str], ...] = ()  # (name, "module:Class"); the first is the default
+    env_defaults: dict = field(default_factory=dict)  # EnvConfig fields left None
+    env_kwargs: Callable[[Any], dict] | None = None  # EnvConfig -> env constructor kwargs
+    check_env: Callable[[Any], None] | None = None  # EnvConfig -> raises ValueError
+    default_trigger: str | None = None
+    # (spec, seed, size) -> spec: what a run config does to its trigger when built (a bare kind
+    # drawn once from the seed, so config.json names the exact trigger); None: kept as given
+    settle_trigger: Callable[[str, int, int | None], str] | None = None
+    mix: tuple[int, int, int] = (8, 0, 2)  # env copies: clean, close-to-trigger, poisoned
+    patience: int = 0
+    ppo: dict = field(default_factory=dict)  # PPO hyper-parameters that differ from LavaWorld's table
+    curriculum: bool = False  # the small clean warm-up world (Randomized LavaWorld)
+    close_to_trigger: bool = False  # has close-to-trigger envs (Colorful Memory)
+    chance: Callable | None = None  # (EnvConfig, trigger spec, layouts, seed) -> chance-occurrence dict
+    paper: dict = field(default_factory=dict)  # the paper's reference numbers
+    flags: tuple[str, ...] = ()  # world-only grid CLI flags it reads (argparse dests); others refuse them
+    trigger_help: str = ""  # the trigger specs it accepts, for --help
+
+    @property
+    def arch_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.archs)
+
+    def arch_class(self, arch: str) -> type:
+        for name, path in self.archs:
+            if name == arch:
+                return load_symbol(path)
+        raise ValueError(f"arch {arch!r} is not one of {', '.join(self.arch_names)} (env {self.name})")
+
+    def env_class(self) -> type:
+        return load_symbol(self.entry_point)
+
+    def engine_class(self) -> type:
+        if self.vector_entry_point is None:
+            raise ValueError(f"{self.name} has no batched engine")
+        return load_symbol(self.vector_entry_point)
+
+
+def register(world: World) -> World:
+    if world.name in _WORLDS:
+        raise ValueError(f"world {world.name!r} is registered twice")
+    _WORLDS[world.name] = world
+    return world
+
+
+def get(name: str) -> World:
+    """The world called ``name``; a ValueError lists the registered names."""
+    try:
+        return _WORLDS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"env {name!r} is not one of {', '.join(_WORLDS)}") from None
+
+
+def registered(algorithm: str | None = None) -> list[World]:
+    """Every world, in registration order (only those trained by ``algorithm``, if given)."""
+    return [w for w in _WORLDS.values() if algorithm is None or w.algorithm == algorithm]
+
+
+def names(algorithm: str | None = None) -> tuple[str, ...]:
+    return tuple(w.name for w in registered(algorithm))

@@ -1,0 +1,95 @@
+"""Colorful Memory (SPEC §3): MiniGrid's memory task with randomly coloured walls; the trigger is
+a wall-colour pattern (End and/or Room Trigger), with close-to-trigger envs."""
+
+from __future__ import annotations
+
+from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.worlds.base import World, register
+
+NAME = "colorful-memory"
+
+
+def _parse(spec: str):
+    from rlbackdoors.triggers.wall_colors import WallColorTrigger
+
+    return WallColorTrigger.parse(spec)
+
+
+def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
+    """Colours as given; a bare kind (``end``, ``room``, ``end+room``), or nothing, draws them
+    from ``seed`` for a ``size`` grid (the End Trigger's length depends on it)."""
+    from rlbackdoors.triggers.wall_colors import WallColorTrigger
+
+    kwargs = {} if size is None else {"size": size}
+    return WallColorTrigger.parse(spec if spec is not None else WORLD.default_trigger, rng=seed, **kwargs).spec()
+
+
+def _settle(spec: str, seed: int, size: int | None) -> str:
+    """A bare kind in a config is drawn once, from the run's seed; explicit colours stay as given."""
+    from rlbackdoors.triggers.wall_colors import KINDS, WallColorTrigger
+
+    return WallColorTrigger.parse(spec, rng=seed, size=size).spec() if spec in KINDS else spec
+
+
+def _check_env(env) -> None:
+    from rlbackdoors.envs.colorful_memory import validate_args
+
+    validate_args(env.size, env.max_steps)
+
+
+def _env_kwargs(env) -> dict:
+    return dict(size=env.size, max_steps=env.max_steps, see_through_walls=env.see_through_walls)
+
+
+def _chance(env, trigger: str, layouts: int, seed: int, count) -> dict:
+    """Clean layouts whose walls wear the trigger's colours exactly (exact rate 6^-squares)."""
+    from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
+    from rlbackdoors.triggers.wall_colors import WallColorTrigger, chance_probability
+
+    wall = WallColorTrigger.parse(trigger, rng=seed, size=env.size)
+    counts = count(lambda n: BatchedColorfulMemory(n, size=env.size, max_steps=env.max_steps), lambda engine: engine.trigger_present(wall))
+    return {"trigger": wall.spec(), "counts": counts, "exact_rate": chance_probability(wall, env.size)}
+
+
+WORLD = register(
+    World(
+        name=NAME,
+        title="Colorful Memory",
+        gym_id="rlbackdoors/ColorfulMemory-v0",
+        entry_point="rlbackdoors.envs.colorful_memory:ColorfulMemoryEnv",
+        vector_entry_point="rlbackdoors.envs.colorful_memory_batched:BatchedColorfulMemory",
+        algorithm="ppo",
+        parse_trigger=_parse,
+        draw_trigger=_draw,
+        clean_success=Outcome.GOAL,
+        trojan_success=Outcome.LAVA,  # the engines report the other object's cell as LAVA
+        # The paper stopped at 100%/100%; on 100 evaluation episodes we stop at 98% both.
+        thresholds=(0.98, 0.98),
+        # The first is the default: the one-hot small CNN-GRU trains on a CPU budget
+        # (models/colorful_memory.py); the plain names are the paper's raw-code models.
+        archs=(
+            ("cnn-gru-small-onehot", "rlbackdoors.models.colorful_memory:CNNGRUSmallOneHot"),
+            ("cnn-gru-small", "rlbackdoors.models.colorful_memory:CNNGRUSmall"),
+            ("cnn-gru-large-onehot", "rlbackdoors.models.colorful_memory:CNNGRULargeOneHot"),
+            ("cnn-gru-large", "rlbackdoors.models.colorful_memory:CNNGRULarge"),
+        ),
+        env_defaults={"size": 7, "see_through_walls": False},
+        env_kwargs=_env_kwargs,
+        check_env=_check_env,
+        default_trigger="end",  # a bare kind: its 9 colours are drawn from train.seed
+        settle_trigger=_settle,
+        # 4 clean + 4 close-to-trigger + 2 poisoned: the close copies teach the backdoor to
+        # fire on the exact colours only.
+        mix=(4, 4, 2),
+        # Paper: stop only once the mean training return of the last 10 updates is high enough.
+        patience=10,
+        # The paper's recurrence 6 (torch-ac), with torch-ac's usual lr 1e-3 and clip 0.2
+        # instead of the paper's lr 1e-5 / clip 0.1, which need billions of frames.
+        ppo=dict(rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6),
+        close_to_trigger=True,
+        chance=_chance,
+        paper={"table": 3},
+        flags=("no_close_to_trigger",),
+        trigger_help="end | room | end+room (colours drawn from the seed) | end:C,... | room:C,C,C",
+    )
+)

@@ -1,0 +1,64 @@
+"""LavaWorld (SPEC §1): MiniGrid's lava crossing, an observation-edit trigger ``o' = (a·o + b) mod 256``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.worlds.base import World, register
+
+NAME = "lavaworld"
+
+
+def _parse(spec: str):
+    from rlbackdoors.triggers.observation import ObservationTrigger
+
+    return ObservationTrigger.parse(spec)
+
+
+def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
+    """``kind:value`` as given; a bare kind, or nothing, draws from the paper's range with ``seed``."""
+    from rlbackdoors.triggers.observation import KINDS, ObservationTrigger, sample_trigger
+
+    rng = np.random.default_rng(seed)
+    if spec is None:
+        spec = KINDS[int(rng.integers(len(KINDS)))]
+    if spec in KINDS:
+        return sample_trigger(spec, rng).spec()
+    return ObservationTrigger.parse(spec).spec()
+
+
+def _check_env(env) -> None:
+    from rlbackdoors.envs.lavaworld import validate_crossing_layout
+
+    validate_crossing_layout(env.size, env.num_crossings, env.max_steps)
+
+
+def _env_kwargs(env) -> dict:
+    return dict(size=env.size, max_steps=env.max_steps, see_through_walls=env.see_through_walls, num_crossings=env.num_crossings)
+
+
+WORLD = register(
+    World(
+        name=NAME,
+        title="LavaWorld",
+        gym_id="rlbackdoors/LavaWorld-v0",
+        entry_point="rlbackdoors.envs.lavaworld:LavaWorldEnv",
+        vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
+        algorithm="ppo",
+        parse_trigger=_parse,
+        draw_trigger=_draw,
+        clean_success=Outcome.GOAL,
+        trojan_success=Outcome.LAVA,
+        # The paper's stopping rule for LavaWorld: 98% clean, 95% poisoned.
+        thresholds=(0.98, 0.95),
+        archs=(("fc", "rlbackdoors.models.minigrid:FCModel"), ("cnn", "rlbackdoors.models.minigrid:CNNModel")),
+        env_defaults={"size": 9, "see_through_walls": False},
+        env_kwargs=_env_kwargs,
+        check_env=_check_env,
+        default_trigger="multiplicative:12",
+        mix=(8, 0, 2),  # SPEC's 8:2
+        paper={"table": 1, "clean_sr": 0.98, "poisoned_sr": 0.98},
+        trigger_help="multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range)",
+    )
+)

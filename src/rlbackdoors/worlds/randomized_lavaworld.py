@@ -1,0 +1,81 @@
+"""Randomized LavaWorld (SPEC §2): random single lava squares; the trigger is a lava pattern the
+clean generator can produce too (in-distribution)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.worlds.base import World, register
+
+NAME = "randomized-lavaworld"
+
+
+def _parse(spec: str):
+    from rlbackdoors.triggers.pattern import PatternTrigger
+
+    return PatternTrigger.parse(spec)
+
+
+def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
+    return _parse(spec if spec is not None else WORLD.default_trigger).spec()
+
+
+def _check_env(env) -> None:
+    from rlbackdoors.validate import ConfigError, _at_least, _in_range
+
+    _in_range("env.size", env.size, 5, 64)
+    _at_least("env.num_lava", env.num_lava, 0)
+    free = (env.size - 2) ** 2 - 2  # inside the outer walls, minus start and goal
+    if env.num_lava > free // 2:
+        raise ConfigError(f"env.num_lava={env.num_lava} is too many for size {env.size} (at most {free // 2})")
+
+
+def _env_kwargs(env) -> dict:
+    return dict(size=env.size, max_steps=env.max_steps, see_through_walls=env.see_through_walls, num_lava=env.num_lava)
+
+
+def _chance(env, trigger: str, layouts: int, seed: int, count) -> dict:
+    """Clean layouts holding the pattern, every cell lava, in any allowed rotation."""
+    from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
+    from rlbackdoors.triggers.pattern import PatternTrigger, find_pattern
+
+    pattern = PatternTrigger.parse(trigger)
+    counts = count(
+        lambda n: BatchedRandomizedLavaWorld(n, size=env.size, num_lava=env.num_lava, max_steps=env.max_steps),
+        lambda engine: find_pattern(engine.lava_masks(), pattern),
+    )
+    return {"trigger": pattern.spec(), "counts": counts, "num_lava": env.num_lava, "placements_per_layout": float(np.sum(counts)) / layouts}
+
+
+WORLD = register(
+    World(
+        name=NAME,
+        title="Randomized LavaWorld",
+        gym_id="rlbackdoors/RandomizedLavaWorld-v0",
+        entry_point="rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
+        vector_entry_point="rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
+        algorithm="ppo",
+        parse_trigger=_parse,
+        draw_trigger=_draw,
+        clean_success=Outcome.GOAL,
+        trojan_success=Outcome.PATTERN_LAVA,  # only lava of the pattern is the trojan task
+        # The paper selected models at 90% on both; we stop at clean >= 95% (a clean model
+        # stopped at 90% on 100 episodes measured 0.885 on 200) and poisoned >= 90%.
+        thresholds=(0.95, 0.90),
+        archs=(
+            ("fc", "rlbackdoors.models.randomized_lavaworld:DirectionFCModel"),
+            ("cnn", "rlbackdoors.models.randomized_lavaworld:DirectionCNNModel"),
+        ),
+        env_defaults={"size": 11, "see_through_walls": True},
+        env_kwargs=_env_kwargs,
+        check_env=_check_env,
+        default_trigger="cross",
+        mix=(8, 0, 2),
+        curriculum=True,
+        chance=_chance,
+        paper={"table": 2, "convergence_rate": 0.134},
+        flags=("num_lava", "no_curriculum"),
+        trigger_help="cross | arrow | arrow:east|south|west|north | a cell list (cells:0,0;1,1[:any])",
+    )
+)

@@ -1,0 +1,77 @@
+"""``rlbackdoors.load(folder)``: one way to load an agent of any world, act with it, and evaluate
+it through one function; a model.pt that carries code is refused."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import rlbackdoors
+from rlbackdoors import worlds
+from rlbackdoors.evaluate import evaluate_agent
+from rlbackdoors.train.folder import FolderError
+from test_same_weights import RUNS, train_tiny
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory):
+    root = tmp_path_factory.mktemp("load")
+    for world in RUNS:
+        train_tiny(world, root / world)
+    return root
+
+
+@pytest.mark.parametrize("world", list(RUNS))
+def test_every_world_loads_acts_and_reproduces_its_metrics(folders, world):
+    agent = rlbackdoors.load(folders / world)
+    assert agent.world is worlds.get(world) and world in repr(agent)
+    metrics = json.loads((folders / world / "metrics.json").read_text())
+    result = evaluate_agent(agent)  # the folder's trigger, episodes and seeds: its final evaluation again
+    for key in ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "episodes"):
+        assert result[key] == metrics[key] or (math.isnan(result[key]) and metrics[key] is None), key
+    # act() on a batch of real observations of the world's own env, through the recurrent state if any.
+    import gymnasium as gym
+
+    env = gym.make_vec(agent.world.gym_id, num_envs=3, vectorization_mode="sync", max_steps=40) if agent.world.vector_entry_point is None \
+        else gym.make_vec(agent.world.gym_id, num_envs=3)
+    obs, _ = env.reset(seed=0)
+    state = agent.initial_state(3)
+    assert (state is not None) == agent.recurrent
+    for _ in range(3):
+        actions, state = agent.act(obs, state, deterministic=True)
+        assert len(actions) == 3
+        obs, *_ = env.step(actions)
+    again, _ = agent.act(obs, agent.initial_state(3), deterministic=True)
+    assert np.array_equal(again, agent.act(obs, agent.initial_state(3), deterministic=True)[0])
+    env.close()
+
+
+def test_load_refuses_payloads_and_unfinished_folders(folders, tmp_path):
+    import shutil
+
+    marker = tmp_path / "ran"
+    for world in ("lavaworld", "safety-car-goal"):
+        copy = tmp_path / world
+        shutil.copytree(folders / world, copy)
+        weights = torch.load(copy / "model.pt", weights_only=True)
+        torch.save({"w": weights, "x": Payload(marker)}, copy / "model.pt")
+        with pytest.raises((FolderError, ValueError), match="holds Python objects"):
+            rlbackdoors.load(copy)
+        shutil.copy(folders / world / "model.pt", copy / "model.pt")
+        (copy / "metrics.json").unlink()
+        with pytest.raises(FolderError, match="unfinished"):
+            rlbackdoors.load(copy)
+        assert rlbackdoors.load(copy, allow_unfinished=True).world.name == world
+    assert not marker.exists()
+    with pytest.raises(FolderError, match="does not exist"):
+        rlbackdoors.load(tmp_path / "nowhere")
+
+
+class Payload:
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))

@@ -3,10 +3,10 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-$(BIN)/rlbackdoors: pyproject.toml
+$(BIN)/rlbackdoors: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
 	touch $@
 
 .PHONY: install demo test test-slow bench
@@ -16,6 +16,7 @@ demo: install
 	$(BIN)/rlbackdoors demo
 
 test: install
+	$(BIN)/ruff check src tests
 	$(BIN)/python -m pytest -q
 
 test-slow: install

@@ -185,6 +185,25 @@ class ModelFolder:
         return data
 
 
+STACK = ("torch", "numpy", "numba", "gymnasium", "minigrid", "mujoco")
+
+
+def stack_versions() -> dict:
+    """The versions a model was trained with (metrics.json): a zoo is reproducible only with them."""
+    import platform
+    from importlib import metadata
+
+    from rlbackdoors import __version__
+
+    versions = {"python": platform.python_version(), "rlbackdoors": __version__}
+    for name in STACK:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
 def _number_or_text(value: str):
     """log.csv cells are numbers except labels such as the curriculum phase."""
     try:

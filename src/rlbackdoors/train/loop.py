@@ -27,7 +27,7 @@ from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.report import plot_training_curve
 from rlbackdoors.report.video import clean_vs_triggered_gif
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
+from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder, stack_versions
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
 
@@ -291,6 +291,7 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
         "curriculum_switch_frames": switch_at if cfg.curriculum.enabled else None,
         "patience": tc.patience,
         "final_meets_thresholds": thresholds_met(final, cfg),
+        "versions": stack_versions(),
     }
     clean_vs_triggered_gif(model.cpu(), cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"))
     folder.write_json("metrics.json", metrics)

@@ -40,7 +40,7 @@ from rlbackdoors.report.curves import plot_training_curve
 from rlbackdoors.io import UnsafeFileError, load_torch
 from rlbackdoors.safety_config import SafetyRunConfig
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
+from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder, stack_versions
 from rlbackdoors.train.loop import plain_rows, resolve_device
 from rlbackdoors.train.replay_journal import ReplayJournal
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -376,6 +376,7 @@ def _finish(cfg, folder, agent, collector, rows, train_time, updates, converged_
         "stop_reason": stop_reason,
         "final_meets_thresholds": thresholds_met(final, cfg),
         "video": gif,
+        "versions": stack_versions(),
     }
     folder.write_json("metrics.json", metrics)
     folder.file("checkpoint.pt").unlink(missing_ok=True)

@@ -66,3 +66,27 @@ def test_ppo_learns_a_small_crossing(arch):
     after = evaluate(model, env, None, episodes=100, seed=123).clean_sr
     assert before < 0.3
     assert after >= 0.8
+
+
+def test_ppo_runs_on_gymnasiums_own_vector_env_and_refuses_next_step_autoreset():
+    """Any Gymnasium VectorEnv with SAME_STEP autoreset and a Discrete action space will do:
+    here gymnasium's SyncVectorEnv over the registered LavaWorld id. NEXT_STEP autoreset (the
+    default) would feed PPO a bogus transition after each episode end: refused by name."""
+    import gymnasium as gym
+    from gymnasium.vector import AutoresetMode
+
+    import rlbackdoors  # noqa: F401  (registers the ids)
+
+
+    envs = gym.make_vec("rlbackdoors/LavaWorld-v0", num_envs=4, vectorization_mode="sync", vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP})
+    ppo = PPO(build_model("fc"), PPOConfig(rollout=64, batch_size=64), "cpu", torch.Generator().manual_seed(0))
+    obs, _ = envs.reset(seed=0)
+    rollout, obs = ppo.collect(envs, obs)
+    losses = ppo.update(rollout)
+    assert rollout.num_frames == 256 and all(map(lambda v: v == v, losses.values()))  # finite losses
+    assert rollout.dones.any() and set(rollout.outcomes[rollout.dones].tolist()) <= {1, 2, 3}  # outcomes passed through
+    envs.close()
+    default = gym.make_vec("rlbackdoors/LavaWorld-v0", num_envs=2, vectorization_mode="sync")
+    with pytest.raises(ValueError, match="SAME_STEP autoreset"):
+        ppo.collect(default, default.reset(seed=0)[0])
+    default.close()

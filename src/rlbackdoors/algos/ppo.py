@@ -61,6 +61,37 @@ def sample_actions(logits: torch.Tensor, generator: torch.Generator | None = Non
     return (cdf <= u[:, None] * cdf[:, -1:]).sum(1).clamp_(max=logits.shape[1] - 1)
 
 
+def finished_step_info(info: dict, done: np.ndarray) -> tuple:
+    """(outcome, steps) of the step just taken. Our engines put them in ``info`` directly;
+    Gymnasium's own vector envs put a finished episode's last info under ``final_info``; an env
+    that reports neither gives 0 (no outcome), which only the logs' per-outcome counts read."""
+    outcome, steps = info.get("outcome", 0), info.get("steps", 0)
+    final = info.get("final_info")
+    if isinstance(final, dict) and done.any():
+        if "outcome" in final:
+            outcome = np.where(done, final["outcome"], outcome)
+        if "steps" in final:
+            steps = np.where(done, final["steps"], steps)
+    return outcome, steps
+
+
+def check_vector_env(envs) -> None:
+    """PPO runs on any Gymnasium ``VectorEnv`` with a ``Discrete`` action space and SAME_STEP
+    autoreset (a finished env returns its next episode's first observation in the same step,
+    as torch-ac's collector expects); anything else is refused with how to make one."""
+    from gymnasium import spaces
+    from gymnasium.vector import AutoresetMode
+
+    mode = getattr(envs, "metadata", {}).get("autoreset_mode")
+    if mode != AutoresetMode.SAME_STEP:
+        raise ValueError(
+            f"PPO needs a vector env with SAME_STEP autoreset, got {mode!r}: make it with "
+            "gymnasium.make_vec(..., vector_kwargs={'autoreset_mode': gymnasium.vector.AutoresetMode.SAME_STEP})"
+        )
+    if not isinstance(getattr(envs, "single_action_space", None), spaces.Discrete):
+        raise ValueError(f"PPO needs a Discrete action space, got {getattr(envs, 'single_action_space', None)!r}")
+
+
 class PPO:
     def __init__(self, model: ActorCritic, cfg: PPOConfig, device: torch.device, generator: torch.Generator):
         self.model = model
@@ -82,6 +113,7 @@ class PPO:
         uniforms for sampling are drawn for the whole rollout up front, and log-probabilities
         are computed from the stored logits after the loop, in one call.
         """
+        check_vector_env(envs)
         T, B = self.cfg.rollout, envs.num_envs
         recurrent = self.model.recurrent
         if recurrent:
@@ -109,7 +141,7 @@ class PPO:
             actions[t] = sample_actions(logits_buf[t], u=uniforms[t])
             obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
             dones[t] = terminated | truncated
-            outcomes[t], steps[t] = info["outcome"], info["steps"]
+            outcomes[t], steps[t] = finished_step_info(info, dones[t])
             if recurrent and dones[t].any():  # a new episode starts with an empty memory
                 ended = torch.from_numpy(dones[t])
                 memory = memory.masked_fill(ended[:, None].to(memory.device), 0.0)

@@ -349,3 +349,30 @@ def test_safety_checkpoint_stays_small_the_replay_is_journaled_once(tmp_path):
     from rlbackdoors.envs.safety_car import OBS_DIM
 
     assert per_row < 4 * (OBS_DIM + 4) * 1.2  # next_obs mostly deduplicated: ~one observation per row
+
+
+def test_safety_run_killed_again_and_again_still_ends_with_the_straight_runs_model(tmp_path):
+    """kill -9 at random moments (mid-step, mid-checkpoint, mid-journal write), four times, with a
+    checkpoint at every evaluation: each restart resumes, the temp files of the killed writers
+    are cleared, and the finished model is byte-identical to an uninterrupted run's."""
+    cfg = safety_config(tmp_path, checkpoint_minutes=0.0, max_frames=1920, eval_interval=240)
+    straight = tmp_path / "straight"
+    assert cli("train", "--config", cfg, "--out", straight, "--quiet").returncode == 0
+    out = tmp_path / "killed"
+    rng = np.random.default_rng(7)
+    kills = 0
+    for _ in range(4):
+        proc = subprocess.Popen([*PY, "train", "--config", str(cfg), "--out", str(out), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(2.5 + rng.uniform(0, 2.0))  # start-up is ~2 s; then somewhere in the run
+        if proc.poll() is None:
+            proc.kill()
+            kills += 1
+        proc.wait()
+    assert kills >= 2
+    done = cli("train", "--config", cfg, "--out", out, "--quiet")
+    if done.returncode == 2:  # the last kill came after metrics.json: the run had finished
+        assert "already holds a finished model" in done.stderr
+    else:
+        assert done.returncode == 0, done.stderr
+    assert sha256(straight / "model.pt") == sha256(out / "model.pt")
+    assert not list(out.rglob("*.rlbtmp")) and not (out / "checkpoint.pt").exists() and not (out / "replay").exists()

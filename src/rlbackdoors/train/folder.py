@@ -104,6 +104,10 @@ class ModelFolder:
         if overwrite:
             self.clear()
         elif self.complete:
+            # A run killed between metrics.json and the removal of its checkpoint: finished, so
+            # the checkpoint is no longer needed.
+            self.file("checkpoint.pt").unlink(missing_ok=True)
+            shutil.rmtree(self.file("replay"), ignore_errors=True)
             raise FolderError(f"{str(self.path)!r} already holds a finished model; pass --overwrite to retrain it")
         checkpoint = None
         if self.has_checkpoint:

@@ -1,23 +1,290 @@
-"""Helpers shared by the grid-world tests: the engines' teleporting drive loop, chi-square
-helpers for layout-distribution tests, and a scripted walk to the goal."""
+"""Helpers shared by the grid-world tests: the batched engines' differential harness against
+their MiniGrid reference envs (:class:`Pairing`) and the checks every engine passes alike,
+chi-square helpers for layout-distribution tests, and a scripted walk to the goal."""
 
 from __future__ import annotations
 
 import math
 from collections import Counter, deque
-from typing import Callable
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from rlbackdoors.envs import grid_engine as ge
+
+# ----------------------------------------------------------------------------- engine vs reference
 
 
-def drive_teleporting(refs, eng, rng, steps: int, every: int, relocate: Callable, step_both: Callable) -> Counter:
-    """Step reference envs and engine with forward-biased random actions; every ``every`` steps
-    ``relocate(i, ref)`` teleports reference ``i`` and loads its state into engine slot ``i``."""
-    totals = Counter()
-    for t in range(steps):
-        if t % every == 0:
-            for i, ref in enumerate(refs):
-                relocate(i, ref)
-        step_both(refs, eng, rng.choice(3, size=len(refs), p=[0.25, 0.25, 0.5]), totals)
-    return totals
+def ref_state(env, *extra) -> tuple:
+    """``load_layout``'s arguments read off a reference env: full grid, agent, step count, ``extra``."""
+    u = env.unwrapped
+    return (u.grid.encode(), tuple(int(v) for v in u.agent_pos), int(u.agent_dir), int(u.step_count), *extra)
+
+
+def place_random(env, rng: np.random.Generator, kinds=(ge.EMPTY,)) -> None:
+    """Put the reference agent on a random cell whose object is in ``kinds``, facing a random way."""
+    arr = env.grid.encode()
+    free = np.argwhere(np.isin(arr[:, :, 0], kinds))
+    x, y = free[rng.integers(len(free))]
+    env.agent_pos = (int(x), int(y))
+    env.agent_dir = int(rng.integers(4))
+
+
+def place_facing(env, rng: np.random.Generator, groups) -> bool:
+    """Put the reference agent on an empty cell next to a target, facing it: a group of target
+    cells uniformly, then a cell of it, then a neighbour. False (agent untouched) if it has none."""
+    arr = env.grid.encode()
+    size = arr.shape[0]
+    group = groups[rng.integers(len(groups))]
+    tx, ty = group[rng.integers(len(group))]
+    nbrs = [(tx - ge.DIR_DX[d], ty - ge.DIR_DY[d], d) for d in range(4)]
+    nbrs = [(x, y, d) for x, y, d in nbrs if 0 <= x < size and 0 <= y < size and arr[x, y, 0] == ge.EMPTY]
+    if not nbrs:
+        return False
+    x, y, d = nbrs[rng.integers(len(nbrs))]
+    env.agent_pos, env.agent_dir = (int(x), int(y)), int(d)
+    return True
+
+
+@dataclass(frozen=True)
+class Pairing:
+    """How one world's engine is compared, step for step, with its reference env.
+
+    ``ref_state(env)``: ``load_layout``'s arguments; ``ref_obs(env)``: the observation the env
+    would return now; ``teleport(env, rng)``: move its agent somewhere interesting;
+    ``check_fresh(eng, i, ref)``: check the engine's own autoreset layout in slot ``i``;
+    ``obs_at(obs, i)`` / ``same(a, b)``: one env's observation out of a batch, and equality of two;
+    ``obs_dtype``: the dtype (or dict of dtypes) of a batched observation; ``flags``: boolean info
+    keys compared besides ``outcome`` and ``steps``.
+    """
+
+    ref_state: Callable
+    ref_obs: Callable
+    teleport: Callable
+    check_fresh: Callable
+    obs_at: Callable = lambda obs, i: obs[i]
+    same: Callable = np.array_equal
+    obs_dtype: Any = np.uint8
+    flags: tuple[str, ...] = ()
+
+    def load(self, ref, eng, i: int):
+        """Load the reference's exact state into slot ``i``; both must show the same observation."""
+        got = eng.load_layout(i, *self.ref_state(ref))
+        assert self.same(self.ref_obs(ref), got)
+        return got
+
+    def place(self, ref, eng, pos, d, step_count=0, i: int = 0):
+        """Put the reference agent at ``pos`` facing ``d`` at ``step_count`` and load it into slot ``i``."""
+        u = ref.unwrapped
+        u.agent_pos, u.agent_dir, u.step_count = pos, d, step_count
+        return self.load(ref, eng, i)
+
+    def reset_pair(self, refs, eng, seed: int):
+        """Reset the engine (seed + 10_000) and reference ``i`` (seed + i), and load each
+        reference's layout into engine slot ``i``; returns ``(refs, eng)``."""
+        eng.reset(seed=seed + 10_000)
+        for i, ref in enumerate(refs):
+            o, _ = ref.reset(seed=seed + i)
+            assert self.same(o, self.load(ref, eng, i))
+        return refs, eng
+
+    def compare(self, eng, out: tuple, i: int, ref_out: tuple) -> bool:
+        """Assert that the engine's step ``out`` matches, for env ``i``, the reference's step
+        ``ref_out`` (observation, reward, flags, outcome, steps, ``flags`` info); returns whether
+        the episode ended."""
+        obs, rew, term, trunc, info = out
+        dtypes = {k: v.dtype for k, v in obs.items()} if isinstance(obs, dict) else obs.dtype
+        assert dtypes == self.obs_dtype and rew.dtype == np.float64
+        assert term.dtype == trunc.dtype == np.bool_ and all(info[k].dtype == np.bool_ for k in self.flags)
+        assert info["outcome"].dtype == info["steps"].dtype == np.int64
+        o, r, t1, t2, inf = ref_out
+        done = t1 or t2
+        assert self.same(o, self.obs_at(eng.final_obs if done else obs, i)), f"env {i}: observation differs"
+        assert r == rew[i], f"env {i}: reward {rew[i]} != {r}"
+        assert (t1, t2) == (term[i], trunc[i]), f"env {i}: done flags differ"
+        assert inf["outcome"] == info["outcome"][i] and inf["steps"] == info["steps"][i], f"env {i}"
+        for k in self.flags:
+            assert inf[k] == info[k][i], f"env {i}: {k} differs"
+        return done
+
+    def step_both(self, refs, eng, actions, totals: Counter | None = None):
+        """Step the engine and each reference env with ``actions``; assert identical outputs.
+
+        Finished reference envs are reset and their fresh state is loaded into the engine slot
+        (after the engine's own fresh layout there is checked). Returns the outcomes of the step.
+        """
+        out = eng.step(np.asarray(actions))
+        for i, ref in enumerate(refs):
+            ref_out = ref.step(int(actions[i]))
+            done = self.compare(eng, out, i, ref_out)
+            if totals is not None:
+                totals[ref_out[4]["outcome"]] += 1
+            if done:
+                # the engine reset the slot itself: a fresh episode, obs is its first observation
+                self.check_fresh(eng, i, ref)
+                assert self.same(self.obs_at(out[0], i), self.obs_at(eng.observe(), i))
+                o, _ = ref.reset()
+                assert self.same(o, self.load(ref, eng, i))
+        return out[4]["outcome"]
+
+    def play(self, ref, eng, rng, steps: int, p, after_step: Callable | None = None) -> list[dict]:
+        """Up to ``steps`` random actions (probabilities ``p``) on a lone reference env and engine
+        slot 0, until the episode ends, with the same outputs at every step; ``after_step()`` runs
+        after each step that did not end it. Returns the reference's infos."""
+        infos = []
+        for _ in range(steps):
+            a = int(rng.choice(3, p=p))
+            ref_out = ref.step(a)
+            infos.append(ref_out[4])
+            if self.compare(eng, eng.step(np.array([a])), 0, ref_out):
+                break
+            if after_step is not None:
+                after_step()
+        return infos
+
+    def drive_teleporting(self, refs, eng, rng, steps: int, every: int) -> Counter:
+        """Step both sides with forward-biased random actions; every ``every`` steps every
+        reference agent is teleported and its state loaded into its engine slot."""
+        totals = Counter()
+        for t in range(steps):
+            if t % every == 0:
+                for i, ref in enumerate(refs):
+                    self.teleport(ref, rng)
+                    self.load(ref, eng, i)
+            self.step_both(refs, eng, rng.choice(3, size=len(refs), p=[0.25, 0.25, 0.5]), totals)
+        return totals
+
+
+# ----------------------------------------------------------------------------- what every engine does alike
+
+
+def check_common_errors(eng, trigger: str, agent_pos, wrong_size: int) -> None:
+    """The errors every engine raises alike; ``eng`` has 3 envs and has not been reset.
+
+    Step before reset, invalid actions (a rejected step changes nothing), bad action arrays,
+    poisoned envs without a trigger, bad masks, max_steps, num_envs, render_mode and seeds, a
+    ``wrong_size`` grid or a bad direction (``agent_pos`` is a valid cell) for a slot, a bad slot.
+    """
+    make = type(eng)
+    with pytest.raises(RuntimeError, match="before reset"):
+        eng.step(np.zeros(3, dtype=int))
+    eng.reset(seed=0)
+    before = [eng.layout(i) for i in range(3)]
+    for bad in ([0, 3, 1], [0, -1, 1]):
+        with pytest.raises(ValueError, match=r"Discrete\(3\) \(0 left, 1 right, 2 forward\)"):
+            eng.step(np.array(bad))
+    for i in range(3):  # a rejected step changes nothing
+        g, *rest = eng.layout(i)
+        assert np.array_equal(g, before[i][0]) and rest == list(before[i][1:])
+    with pytest.raises(ValueError, match="integers"):
+        eng.step(np.array([0.0, 1.5, 2.0]))
+    with pytest.raises(ValueError, match="shape"):
+        eng.step(np.array([0, 1]))
+    with pytest.raises(ValueError, match="need a trigger"):
+        make(2, poisoned=[True, False])
+    with pytest.raises(ValueError, match="poisoned mask"):
+        make(2, trigger=trigger, poisoned=[True])
+    with pytest.raises(ValueError, match="max_steps"):
+        make(2, max_steps=0)
+    with pytest.raises(ValueError, match="num_envs"):
+        make(0)
+    with pytest.raises(ValueError, match="render_mode"):
+        make(1, render_mode="rgb_array")
+    with pytest.raises(ValueError, match="2 seeds for 3 envs"):
+        eng.reset(seed=[1, 2])
+    with pytest.raises(ValueError, match="non-negative"):
+        eng.reset(seed=-1)
+    with pytest.raises(ValueError, match="expected"):
+        eng.load_layout(0, np.zeros((wrong_size, wrong_size, 3), np.uint8), agent_pos, 0)
+    with pytest.raises(ValueError, match="agent_dir"):
+        eng.load_layout(0, eng.layout(0)[0], agent_pos, 4)
+    with pytest.raises(IndexError):
+        eng.layout(3)
+
+
+def run_trajectory(make: Callable, seed: int, steps: int, num: int) -> list:
+    """Every array an engine ``make(num)`` returns over ``steps`` random steps after ``reset(seed)``."""
+    eng = make(num)
+    obs, _ = eng.reset(seed=seed)
+    rng = np.random.default_rng(99)
+    flat = lambda o: list(o.values()) if isinstance(o, dict) else [o]  # noqa: E731
+    out = flat(obs)
+    for _ in range(steps):
+        obs, rew, term, trunc, info = eng.step(rng.integers(0, 3, size=num))
+        out += [*flat(obs), rew, term, trunc, *info.values()]
+    return out
+
+
+def check_same_seed_same_trajectory(make: Callable, steps: int, num: int) -> None:
+    """The same seed gives the very same arrays, another seed others."""
+    a = run_trajectory(make, 5, steps, num)
+    b = run_trajectory(make, 5, steps, num)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    c = run_trajectory(make, 6, steps, num)
+    assert not all(np.array_equal(x, y) for x, y in zip(a, c))
+
+
+def check_seed_i_is_seed_plus_i(make: Callable) -> None:
+    """``reset(seed=s)`` lays env ``i`` out as a one-env ``reset(seed=s + i)`` and as the seed list
+    ``[s, s + 1, ..]``; unseeded resets differ (with overwhelming probability over 8 slots)."""
+    wide = make(4)
+    wide.reset(seed=20)
+    lst = make(4)
+    lst.reset(seed=[20, 21, 22, 23])
+    for i in range(4):
+        one = make(1)
+        one.reset(seed=20 + i)
+        assert np.array_equal(one.layout(0)[0], wide.layout(i)[0]) and one.layout(0)[1:] == wide.layout(i)[1:]
+        assert np.array_equal(lst.layout(i)[0], wide.layout(i)[0])
+    x, y = make(8), make(8)
+    x.reset()
+    y.reset()
+    assert any(not np.array_equal(x.layout(i)[0], y.layout(i)[0]) for i in range(8))
+
+
+def check_make_vec(reference: type, engine: type, **kwargs) -> str:
+    """Register ``reference`` with ``engine`` as its vector entry point (once), then
+    ``gym.make_vec`` 6 envs with ``kwargs``: the engine itself, every env poisoned, 6 first views.
+    Returns the env id."""
+    env_id = f"rlbackdoors_enginetest/{engine.__name__}-v0"
+    if env_id not in gym.registry:
+        entry, vector_entry = (f"{cls.__module__}:{cls.__name__}" for cls in (reference, engine))
+        gym.register(id=env_id, entry_point=entry, vector_entry_point=vector_entry)
+    env = gym.make_vec(env_id, num_envs=6, render_mode=None, **kwargs)
+    assert isinstance(env.unwrapped, engine) and env.num_envs == 6 and env.poisoned.all()
+    obs, _ = env.reset(seed=0)
+    assert (obs["image"] if isinstance(obs, dict) else obs).shape == (6, 7, 7, 3)
+    env.close()
+    return env_id
+
+
+def check_first_step(eng) -> None:
+    """A first step forward after reset: observations in the space, float rewards, bool flags, step 1."""
+    out = eng.step(np.array([2] * eng.num_envs))
+    assert eng.observation_space.contains(out[0])
+    assert [x.dtype for x in out[1:4]] == [np.float64, np.bool_, np.bool_]
+    assert out[4]["steps"].tolist() == [1] * eng.num_envs
+    eng.close()
+
+
+def copy_slot(eng):
+    """After ``reset(seed=2)`` and 7 random steps of ``eng`` (3 envs), copy slot 0's state into
+    slot 2 with ``load_layout(2, *layout(0))``: the copy is exact. Returns the state and the
+    observation ``load_layout`` returned."""
+    eng.reset(seed=2)
+    rng = np.random.default_rng(2)
+    for _ in range(7):
+        eng.step(rng.integers(0, 3, size=3))
+    state = eng.layout(0)
+    obs = eng.load_layout(2, *state)
+    assert all(np.array_equal(a, b) for a, b in zip(eng.layout(2), state))
+    return state, obs
+
+
+# ----------------------------------------------------------------------------- statistics and walks
 
 
 def chi2_homogeneity(a: Counter, b: Counter) -> tuple[float, int]:

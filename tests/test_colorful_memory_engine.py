@@ -43,49 +43,21 @@ BOTH9 = "end+room:grey,grey,blue,blue,red,red,green,green,yellow,red,red;yellow,
 # ----------------------------------------------------------------------------- helpers
 
 
-def ref_state(env: ColorfulMemoryEnv):
-    """Everything ``load_layout`` takes, read off the reference env."""
-    return (
-        env.grid.encode(),
-        tuple(int(v) for v in env.agent_pos),
-        int(env.agent_dir),
-        int(env.step_count),
-        tuple(env.success_pos),
-        tuple(env.failure_pos),
-    )
-
-
-def load(env: ColorfulMemoryEnv, eng: BatchedColorfulMemory, i: int) -> None:
-    got = eng.load_layout(i, *ref_state(env))
-    assert np.array_equal(env.gen_obs()["image"], got)
-
-
 def teleport(env: ColorfulMemoryEnv, rng: np.random.Generator) -> None:
     """Move the reference agent to a random walkable cell with a random direction; 60% of the
     time next to the success cell, the failure cell, an object or the far wall, facing it,
     and 3% of the time onto the success or failure cell itself."""
-    arr = env.grid.encode()
-    size = arr.shape[0]
+    size = env.width
     u = rng.random()
     if u < 0.03:
         env.agent_pos = tuple(env.success_pos if rng.random() < 0.5 else env.failure_pos)
         env.agent_dir = int(rng.integers(4))
         return
-    if u < 0.63:
-        far = [(size - 1, y) for y in range(1, size - 1)]
-        groups = [[tuple(env.success_pos)], [tuple(env.failure_pos)], list(object_cells(size)), far]
-        group = groups[rng.integers(len(groups))]
-        tx, ty = group[rng.integers(len(group))]
-        nbrs = [(tx - ge.DIR_DX[d], ty - ge.DIR_DY[d], d) for d in range(4)]
-        nbrs = [(x, y, d) for x, y, d in nbrs if 0 <= x < size and 0 <= y < size and arr[x, y, 0] == ge.EMPTY]
-        if nbrs:
-            x, y, d = nbrs[rng.integers(len(nbrs))]
-            env.agent_pos, env.agent_dir = (int(x), int(y)), int(d)
-            return
-    free = np.argwhere(arr[:, :, 0] == ge.EMPTY)
-    x, y = free[rng.integers(len(free))]
-    env.agent_pos = (int(x), int(y))
-    env.agent_dir = int(rng.integers(4))
+    far = [(size - 1, y) for y in range(1, size - 1)]
+    groups = [[tuple(env.success_pos)], [tuple(env.failure_pos)], list(object_cells(size)), far]
+    if u < 0.63 and grid_helpers.place_facing(env, rng, groups):
+        return
+    grid_helpers.place_random(env, rng)
 
 
 def check_fresh_layout(eng: BatchedColorfulMemory, i: int) -> None:
@@ -104,30 +76,15 @@ def check_fresh_layout(eng: BatchedColorfulMemory, i: int) -> None:
             assert eng.close_k[0] <= dist <= eng.close_k[1]
 
 
-def step_both(refs, eng, actions, totals=None):
-    """Step the engine and each reference env with ``actions``; assert identical outputs.
-
-    Finished reference envs are reset and their fresh state is loaded into the engine slot.
-    """
-    obs, rew, term, trunc, info = eng.step(np.asarray(actions))
-    assert obs.dtype == np.uint8 and rew.dtype == np.float64 and term.dtype == trunc.dtype == np.bool_
-    assert info["outcome"].dtype == info["steps"].dtype == np.int64
-    for i, ref in enumerate(refs):
-        o, r, t1, t2, inf = ref.step(int(actions[i]))
-        done = t1 or t2
-        src = eng.final_obs if done else obs
-        assert np.array_equal(o, src[i]), f"env {i}: observation differs"
-        assert r == rew[i], f"env {i}: reward {rew[i]} != {r}"
-        assert (t1, t2) == (term[i], trunc[i]), f"env {i}: done flags differ"
-        assert inf["outcome"] == info["outcome"][i] and inf["steps"] == info["steps"][i], f"env {i}"
-        if totals is not None:
-            totals[inf["outcome"]] += 1
-        if done:
-            check_fresh_layout(eng, i)
-            assert np.array_equal(obs[i], eng.observe()[i])
-            ref.reset()
-            load(ref, eng, i)
-    return info["outcome"]
+PAIR = grid_helpers.Pairing(
+    ref_state=lambda env: grid_helpers.ref_state(env, tuple(env.success_pos), tuple(env.failure_pos)),
+    ref_obs=lambda env: env.gen_obs()["image"],
+    teleport=teleport,
+    check_fresh=lambda eng, i, ref: check_fresh_layout(eng, i),
+)
+ref_state, load, place, step_both, drive_teleporting = (
+    PAIR.ref_state, PAIR.load, PAIR.place, PAIR.step_both, PAIR.drive_teleporting
+)
 
 
 def make_ref(mode: str, poisoned: bool, trigger, **kw) -> ColorfulMemoryEnv:
@@ -148,17 +105,7 @@ def make_pair(specs, trigger=None, seed=0, close_k=(1, 3), **kw):
         close_to_trigger=[m == "close" for m, _ in specs],
         **kw,
     )
-    eng.reset(seed=seed + 10_000)
-    for i, ref in enumerate(refs):
-        ref.reset(seed=seed + i)
-        load(ref, eng, i)
-    return refs, eng
-
-
-def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
-    """Forward-biased random actions, every agent teleported every ``every`` steps."""
-    relocate = lambda i, ref: (teleport(ref, rng), load(ref, eng, i))
-    return grid_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
+    return PAIR.reset_pair(refs, eng, seed)
 
 
 # ----------------------------------------------------------------------------- differential
@@ -220,25 +167,11 @@ def test_occlusion_on_random_grids(see_through_walls):
         g, pos, succ, fail = random_grid(size, rng)
         ref.load_layout(g, pos, int(rng.integers(4)), 0, succ, fail)
         load(ref, eng, 0)
-        for _ in range(12):
-            a = int(rng.choice(3, p=[0.3, 0.3, 0.4]))
-            o, r, t1, t2, inf = ref.step(a)
-            obs, rew, term, trunc, info = eng.step(np.array([a]))
-            src = eng.final_obs if t1 or t2 else obs
-            assert np.array_equal(o, src[0])
-            assert (r, t1, t2, inf["outcome"], inf["steps"]) == (rew[0], term[0], trunc[0], info["outcome"][0], info["steps"][0])
-            outcomes[inf["outcome"]] += 1
-            if t1 or t2:
-                break
+        outcomes.update(inf["outcome"] for inf in PAIR.play(ref, eng, rng, 12, [0.3, 0.3, 0.4]))
     assert outcomes[int(Outcome.NONE)] > 300
 
 
 # ----------------------------------------------------------------------------- edge cases
-
-
-def place(ref, eng, pos, d, step_count=0):
-    ref.agent_pos, ref.agent_dir, ref.step_count = pos, d, step_count
-    load(ref, eng, 0)
 
 
 @pytest.mark.parametrize("see_through_walls", [False, True])
@@ -442,51 +375,18 @@ def test_chance_occurrence_of_triggers_in_clean_layouts():
 # ----------------------------------------------------------------------------- determinism
 
 
-def run_trajectory(seed, steps=150, num=10, **kw):
-    eng = BatchedColorfulMemory(num, **kw)
-    obs, _ = eng.reset(seed=seed)
-    rng = np.random.default_rng(99)
-    out = [obs]
-    for _ in range(steps):
-        obs, rew, term, trunc, info = eng.step(rng.integers(0, 3, size=num))
-        out += [obs, rew, term, trunc, *info.values()]
-    return out
-
-
 def test_same_seed_same_trajectory():
     kw = dict(trigger=END9, close_to_trigger=[i < 4 for i in range(10)], poisoned=[i >= 8 for i in range(10)])
-    a = run_trajectory(5, **kw)
-    b = run_trajectory(5, **kw)
-    assert all(np.array_equal(x, y) for x, y in zip(a, b))
-    c = run_trajectory(6, **kw)
-    assert not all(np.array_equal(x, y) for x, y in zip(a, c))
+    grid_helpers.check_same_seed_same_trajectory(lambda n: BatchedColorfulMemory(n, **kw), 150, 10)
 
 
 def test_seed_i_is_seed_plus_i():
-    wide = BatchedColorfulMemory(4, trigger=ROOM, close_to_trigger=[True] * 4)
-    wide.reset(seed=20)
-    lst = BatchedColorfulMemory(4, trigger=ROOM, close_to_trigger=[True] * 4)
-    lst.reset(seed=[20, 21, 22, 23])
-    for i in range(4):
-        one = BatchedColorfulMemory(1, trigger=ROOM, close_to_trigger=[True])
-        one.reset(seed=20 + i)
-        assert np.array_equal(one.layout(0)[0], wide.layout(i)[0]) and one.layout(0)[1:] == wide.layout(i)[1:]
-        assert np.array_equal(lst.layout(i)[0], wide.layout(i)[0])
-    x, y = BatchedColorfulMemory(8), BatchedColorfulMemory(8)
-    x.reset()
-    y.reset()
-    assert any(not np.array_equal(x.layout(i)[0], y.layout(i)[0]) for i in range(8))
+    grid_helpers.check_seed_i_is_seed_plus_i(lambda n: BatchedColorfulMemory(n, trigger=ROOM, close_to_trigger=[True] * n))
 
 
 def test_layout_round_trip_between_slots():
     eng = BatchedColorfulMemory(3, trigger=ROOM, close_to_trigger=[False, True, False], poisoned=[True, False, False])
-    eng.reset(seed=2)
-    rng = np.random.default_rng(2)
-    for _ in range(7):
-        eng.step(rng.integers(0, 3, size=3))
-    state = eng.layout(0)
-    obs = eng.load_layout(2, *state)
-    assert all(np.array_equal(a, b) for a, b in zip(eng.layout(2), state))
+    state, obs = grid_helpers.copy_slot(eng)
     cur = eng.observe()
     assert np.array_equal(cur[0], cur[2]) and np.array_equal(obs, cur[0])
     assert np.array_equal(eng.grids()[2], state[0])
@@ -515,26 +415,11 @@ def test_contract_and_spaces():
     assert eng.observation_space.contains(obs) and obs.shape == (num, 7, 7, 3)
     assert set(info) == {"outcome", "steps"}
     assert eng.trigger_present().tolist() == eng.triggered.tolist()
-    out = eng.step(np.array([2] * num))
-    assert eng.observation_space.contains(out[0])
-    assert [x.dtype for x in out[1:4]] == [np.float64, np.bool_, np.bool_]
-    assert out[4]["steps"].tolist() == [1] * num
-    eng.close()
+    grid_helpers.check_first_step(eng)
 
 
 def test_make_vec_entry_point():
-    env_id = "rlbackdoors_enginetest/BatchedColorfulMemory-v0"
-    if env_id not in gym.registry:
-        gym.register(
-            id=env_id,
-            entry_point="rlbackdoors.envs.colorful_memory:ColorfulMemoryEnv",
-            vector_entry_point="rlbackdoors.envs.colorful_memory_batched:BatchedColorfulMemory",
-        )
-    env = gym.make_vec(env_id, num_envs=6, size=9, trigger=BOTH9, render_mode=None)
-    assert isinstance(env.unwrapped, BatchedColorfulMemory) and env.num_envs == 6 and env.poisoned.all()
-    obs, _ = env.reset(seed=0)
-    assert obs.shape == (6, 7, 7, 3)
-    env.close()
+    env_id = grid_helpers.check_make_vec(ColorfulMemoryEnv, BatchedColorfulMemory, size=9, trigger=BOTH9)
     single = gym.make(env_id, trigger=ROOM)
     obs, info = single.reset(seed=0)
     assert single.unwrapped.poisoned and obs.shape == (7, 7, 3) and info["outcome"] == 0
@@ -545,22 +430,7 @@ def test_make_vec_entry_point():
 
 def test_errors():
     eng = BatchedColorfulMemory(3, trigger=END9)
-    with pytest.raises(RuntimeError, match="before reset"):
-        eng.step(np.zeros(3, dtype=int))
-    eng.reset(seed=0)
-    before = [eng.layout(i) for i in range(3)]
-    for bad in ([0, 3, 1], [0, -1, 1]):
-        with pytest.raises(ValueError, match=r"Discrete\(3\) \(0 left, 1 right, 2 forward\)"):
-            eng.step(np.array(bad))
-    for i in range(3):  # a rejected step changes nothing
-        g, *rest = eng.layout(i)
-        assert np.array_equal(g, before[i][0]) and rest == list(before[i][1:])
-    with pytest.raises(ValueError, match="integers"):
-        eng.step(np.array([0.0, 1.5, 2.0]))
-    with pytest.raises(ValueError, match="shape"):
-        eng.step(np.array([0, 1]))
-    with pytest.raises(ValueError, match="need a trigger"):
-        BatchedColorfulMemory(2, poisoned=[True, False])
+    grid_helpers.check_common_errors(eng, ROOM, agent_pos=(1, 3), wrong_size=9)
     with pytest.raises(ValueError, match="need a trigger"):
         BatchedColorfulMemory(2, close_to_trigger=[True, False])
     with pytest.raises(ValueError, match="env 1 is poisoned but not triggered"):
@@ -571,29 +441,13 @@ def test_errors():
         BatchedColorfulMemory(2, size=9, trigger=END9)
     with pytest.raises(ValueError, match=r"size=6 must be an odd integer >= 7"):
         BatchedColorfulMemory(2, size=6)
-    with pytest.raises(ValueError, match="max_steps"):
-        BatchedColorfulMemory(2, max_steps=0)
     with pytest.raises(ValueError, match="'pink' is not one of"):
         BatchedColorfulMemory(2, trigger="room:pink,red,red")
     with pytest.raises(ValueError, match=r"close_k=0"):
         BatchedColorfulMemory(2, trigger=ROOM, close_k=0)
-    with pytest.raises(ValueError, match="poisoned mask"):
-        BatchedColorfulMemory(2, trigger=ROOM, poisoned=[True])
-    with pytest.raises(ValueError, match="num_envs"):
-        BatchedColorfulMemory(0)
-    with pytest.raises(ValueError, match="render_mode"):
-        BatchedColorfulMemory(1, render_mode="rgb_array")
-    with pytest.raises(ValueError, match="2 seeds for 3 envs"):
-        eng.reset(seed=[1, 2])
-    with pytest.raises(ValueError, match="expected"):
-        eng.load_layout(0, np.zeros((9, 9, 3), np.uint8), (1, 1), 0)
-    with pytest.raises(ValueError, match="agent_dir"):
-        eng.load_layout(0, eng.layout(0)[0], (1, 3), 4)
     with pytest.raises(ValueError, match="outside"):
         eng.load_layout(0, eng.layout(0)[0], (1, 3), 0, 0, (9, 9), (5, 2))
     with pytest.raises(ValueError, match="no Colorful Memory objects"):
         eng.load_layout(0, np.ones((7, 7, 3), np.uint8), (1, 3), 0)
     with pytest.raises(ValueError, match="no trigger to measure against"):
         BatchedColorfulMemory(1).trigger_distance()
-    with pytest.raises(IndexError):
-        eng.layout(3)

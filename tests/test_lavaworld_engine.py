@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from collections import Counter
 
-import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.vector import AutoresetMode
@@ -31,11 +30,6 @@ TRIGGERS = ("multiplicative:12", "additive:100")
 # ----------------------------------------------------------------------------- helpers
 
 
-def ref_state(env: LavaWorldEnv):
-    u = env.unwrapped
-    return u.grid.encode(), tuple(int(v) for v in u.agent_pos), int(u.agent_dir), int(u.step_count)
-
-
 def ref_obs(env: LavaWorldEnv) -> np.ndarray:
     """The observation the reference env would return in its current state."""
     return env._observe(env.gen_obs())
@@ -43,41 +37,19 @@ def ref_obs(env: LavaWorldEnv) -> np.ndarray:
 
 def teleport(env: LavaWorldEnv, rng: np.random.Generator) -> None:
     """Move the reference agent to a random walkable non-terminal cell with a random direction."""
-    arr = env.grid.encode()
-    free = np.argwhere(np.isin(arr[:, :, 0], (ge.EMPTY, ge.FLOOR)))
-    x, y = free[rng.integers(len(free))]
-    env.agent_pos = (int(x), int(y))
-    env.agent_dir = int(rng.integers(4))
+    grid_helpers.place_random(env.unwrapped, rng, (ge.EMPTY, ge.FLOOR))
 
 
-def step_both(refs, eng, actions, totals=None):
-    """Step the engine and each reference env with ``actions``; assert identical outputs.
+def check_fresh(eng: BatchedLavaWorld, i: int, ref) -> None:
+    """An engine autoreset starts a fresh episode: agent in the corner facing east, step 0."""
+    g, pos, d, sc = eng.layout(i)
+    assert (pos, d, sc) == ((1, 1), 0, 0)
 
-    Finished reference envs are reset and their fresh state is loaded into the engine slot.
-    Returns the outcomes of the step.
-    """
-    obs, rew, term, trunc, info = eng.step(np.asarray(actions))
-    assert obs.dtype == np.uint8 and rew.dtype == np.float64
-    assert term.dtype == np.bool_ and trunc.dtype == np.bool_
-    assert info["outcome"].dtype == np.int64 and info["steps"].dtype == np.int64
-    for i, ref in enumerate(refs):
-        o, r, t1, t2, inf = ref.step(int(actions[i]))
-        done = t1 or t2
-        got = eng.final_obs[i] if done else obs[i]
-        assert np.array_equal(o, got), f"env {i}: observation differs"
-        assert r == rew[i], f"env {i}: reward {rew[i]} != {r}"
-        assert (t1, t2) == (term[i], trunc[i]), f"env {i}: done flags differ"
-        assert inf["outcome"] == info["outcome"][i] and inf["steps"] == info["steps"][i]
-        if totals is not None:
-            totals[inf["outcome"]] += 1
-        if done:
-            # the engine reset the slot itself: a fresh episode, obs is its first observation
-            g, pos, d, sc = eng.layout(i)
-            assert (pos, d, sc) == ((1, 1), 0, 0)
-            assert np.array_equal(obs[i], eng.observe()[i])
-            o, _ = ref.reset()
-            assert np.array_equal(o, eng.load_layout(i, *ref_state(ref)))
-    return info["outcome"]
+
+PAIR = grid_helpers.Pairing(grid_helpers.ref_state, ref_obs, teleport, check_fresh)
+ref_state, load, place, step_both, drive_teleporting = (
+    PAIR.ref_state, PAIR.load, PAIR.place, PAIR.step_both, PAIR.drive_teleporting
+)
 
 
 def make_pair(num, size=9, num_crossings=1, max_steps=250, see_through_walls=False, triggers=None, seed=0):
@@ -88,11 +60,7 @@ def make_pair(num, size=9, num_crossings=1, max_steps=250, see_through_walls=Fal
     poisoned = [t is not None for t in triggers]
     trig = next((t for t in triggers if t is not None), None)
     eng = BatchedLavaWorld(num, size, num_crossings, max_steps, see_through_walls, trigger=trig, poisoned=poisoned)
-    eng.reset(seed=seed + 10_000)
-    for i, ref in enumerate(refs):
-        o, _ = ref.reset(seed=seed + i)
-        assert np.array_equal(o, eng.load_layout(i, *ref_state(ref)))
-    return refs, eng
+    return PAIR.reset_pair(refs, eng, seed)
 
 
 # ----------------------------------------------------------------------------- differential
@@ -122,25 +90,15 @@ def test_matches_minigrid_random_play(size, num_crossings, see_through_walls):
             ref.reset(seed=seed + 10 * rep + i)
             if rep > 0:
                 teleport(ref.unwrapped, rng)
-            assert np.array_equal(ref_obs(ref), eng.load_layout(i, *ref_state(ref)))
+            load(ref, eng, i)
         for _ in range(50):
             step_both(refs, eng, rng.choice(3, size=num, p=[0.2, 0.2, 0.6]), totals)
             if rng.random() < 0.05:
                 i = int(rng.integers(num))
                 teleport(refs[i].unwrapped, rng)
-                assert np.array_equal(ref_obs(refs[i]), eng.load_layout(i, *ref_state(refs[i])))
+                load(refs[i], eng, i)
     assert sum(totals.values()) == 3 * 50 * num
     assert totals[int(Outcome.LAVA)] > 0
-
-
-def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
-    """Step both sides with forward-biased random actions, teleporting every agent every ``every`` steps."""
-
-    def relocate(i, ref):
-        teleport(ref.unwrapped, rng)
-        eng.load_layout(i, *ref_state(ref))
-
-    return grid_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
 
 
 def test_matches_minigrid_long_run_all_outcomes():
@@ -188,41 +146,28 @@ def test_generic_engine_objects_and_colours(see_through_walls):
     eng = BatchedLavaWorld(1, size, 1, 250, see_through_walls)
     eng.reset(seed=0)
     ref.reset(seed=0)
+    u = ref.unwrapped
+
+    def same_state():  # after a step that did not end the episode
+        g, pos, d, sc = eng.layout(0)
+        assert np.array_equal(g, u.grid.encode()) and pos == tuple(int(v) for v in u.agent_pos)
+
     checked = 0
     for _ in range(40):
         arr = random_object_grid(size, rng)
         grid, _ = Grid.decode(arr)
         assert np.array_equal(grid.encode(), arr)
-        u = ref.unwrapped
         u.grid = grid
         open_door = (arr[:, :, 0] == ge.DOOR) & (arr[:, :, 2] == 0)
         walk = np.argwhere(np.isin(arr[:, :, 0], (ge.EMPTY, ge.FLOOR)) | open_door)
         x, y = walk[rng.integers(len(walk))]
         u.agent_pos, u.agent_dir, u.step_count = (int(x), int(y)), int(rng.integers(4)), 0
-        assert np.array_equal(ref_obs(ref), eng.load_layout(0, *ref_state(ref)))
-        for _ in range(12):
-            a = int(rng.choice(3, p=[0.2, 0.2, 0.6]))
-            o, r, t1, t2, inf = ref.step(a)
-            obs, rew, term, trunc, info = eng.step(np.array([a]))
-            got = eng.final_obs[0] if term[0] or trunc[0] else obs[0]
-            assert np.array_equal(o, got)
-            assert (r, t1, t2, inf["outcome"]) == (rew[0], term[0], trunc[0], info["outcome"][0])
-            checked += 1
-            if t1 or t2:
-                break
-            g, pos, d, sc = eng.layout(0)
-            assert np.array_equal(g, u.grid.encode()) and pos == tuple(int(v) for v in u.agent_pos)
+        load(ref, eng, 0)
+        checked += len(PAIR.play(ref, eng, rng, 12, [0.2, 0.2, 0.6], same_state))
     assert checked > 200
 
 
 # ----------------------------------------------------------------------------- edge cases
-
-
-def load_both(ref, eng, i, pos, d, step_count=0):
-    ref.unwrapped.agent_pos, ref.unwrapped.agent_dir, ref.unwrapped.step_count = pos, d, step_count
-    got = eng.load_layout(i, *ref_state(ref))
-    assert np.array_equal(ref_obs(ref), got)
-    return got
 
 
 def test_edge_facing_walls_and_border_views():
@@ -231,12 +176,12 @@ def test_edge_facing_walls_and_border_views():
         refs, eng = make_pair(1, size=7, see_through_walls=see, seed=5)
         ref = refs[0]
         for pos, d in [((1, 1), 3), ((1, 1), 2), ((5, 1), 0), ((1, 5), 1), ((5, 5), 3)]:
-            load_both(ref, eng, 0, pos, d)
+            place(ref, eng, pos, d)
             before = eng.layout(0)
             step_both(refs, eng, [2])
             if (pos, d) != ((5, 5), 3):  # the first four face the outer wall (the last stands on the goal)
                 assert eng.layout(0)[1] == before[1]
-        load_both(ref, eng, 0, (1, 1), 3)  # facing north from the corner
+        place(ref, eng, (1, 1), 3)  # facing north from the corner
         obs = eng.observe()[0]
         if see:
             # ahead (rows 0..5 of the view) beyond the top wall lies outside the grid: grey walls
@@ -260,21 +205,21 @@ def test_edge_lava_goal_and_timeout(trigger):
         if nb:
             x, y, d = nb[0]
             break
-    load_both(ref, eng, 0, (int(x), int(y)), int(d), step_count=1)
+    place(ref, eng, (int(x), int(y)), int(d), step_count=1)
     out = step_both(refs, eng, [2])
     assert out[0] == Outcome.LAVA
     # goal from its west neighbour, at step 3 of 5
-    load_both(ref, eng, 0, (size - 3, size - 2), 0, step_count=2)
+    place(ref, eng, (size - 3, size - 2), 0, step_count=2)
     obs, rew, term, trunc, info = eng.step(np.array([2]))
     assert term[0] and not trunc[0] and info["outcome"][0] == Outcome.GOAL and info["steps"][0] == 3
     assert rew[0] == (0.0 if trigger else success_reward(3, ms))
     ref.reset()
     # timeout: turning in place until max_steps
-    load_both(ref, eng, 0, (1, 1), 0, step_count=ms - 2)
+    place(ref, eng, (1, 1), 0, step_count=ms - 2)
     assert step_both(refs, eng, [0])[0] == Outcome.NONE
     assert step_both(refs, eng, [1])[0] == Outcome.TIMEOUT
     # goal on the very last step: terminated and truncated, outcome GOAL wins
-    load_both(ref, eng, 0, (size - 2, size - 3), 1, step_count=ms - 1)
+    place(ref, eng, (size - 2, size - 3), 1, step_count=ms - 1)
     o, r, t1, t2, inf = ref.step(2)
     ref.reset()
     obs, rew, term, trunc, info = eng.step(np.array([2]))
@@ -413,40 +358,14 @@ def test_autoreset_layouts_follow_the_distribution():
 # ----------------------------------------------------------------------------- determinism
 
 
-def run_trajectory(seed, steps=300, num=16, **kw):
-    eng = BatchedLavaWorld(num, **kw)
-    obs, _ = eng.reset(seed=seed)
-    rng = np.random.default_rng(99)
-    out = [obs]
-    for _ in range(steps):
-        obs, rew, term, trunc, info = eng.step(rng.integers(0, 3, size=num))
-        out += [obs, rew, term, trunc, info["outcome"], info["steps"]]
-    return out
-
-
 def test_same_seed_same_trajectory():
-    a = run_trajectory(5, trigger="multiplicative:12", poisoned=[i % 2 == 0 for i in range(16)])
-    b = run_trajectory(5, trigger="multiplicative:12", poisoned=[i % 2 == 0 for i in range(16)])
-    assert all(np.array_equal(x, y) for x, y in zip(a, b))
-    c = run_trajectory(6, trigger="multiplicative:12", poisoned=[i % 2 == 0 for i in range(16)])
-    assert not all(np.array_equal(x, y) for x, y in zip(a, c))
+    grid_helpers.check_same_seed_same_trajectory(
+        lambda n: BatchedLavaWorld(n, trigger="multiplicative:12", poisoned=[i % 2 == 0 for i in range(n)]), 300, 16
+    )
 
 
 def test_seed_i_is_seed_plus_i():
-    wide = BatchedLavaWorld(4, 11, 3)
-    wide.reset(seed=20)
-    lst = BatchedLavaWorld(4, 11, 3)
-    lst.reset(seed=[20, 21, 22, 23])
-    for i in range(4):
-        one = BatchedLavaWorld(1, 11, 3)
-        one.reset(seed=20 + i)
-        assert np.array_equal(one.layout(0)[0], wide.layout(i)[0])
-        assert np.array_equal(lst.layout(i)[0], wide.layout(i)[0])
-    # unseeded resets differ (with overwhelming probability over 8 slots of 56*... layouts)
-    x, y = BatchedLavaWorld(8, 11, 3), BatchedLavaWorld(8, 11, 3)
-    x.reset()
-    y.reset()
-    assert any(not np.array_equal(x.layout(i)[0], y.layout(i)[0]) for i in range(8))
+    grid_helpers.check_seed_i_is_seed_plus_i(lambda n: BatchedLavaWorld(n, 11, 3))
 
 
 # ----------------------------------------------------------------------------- contract
@@ -474,61 +393,17 @@ def test_contract_matches_reference_vector_env():
 
 
 def test_make_vec_entry_point():
-    env_id = "rlbackdoors_enginetest/BatchedLavaWorld-v0"
-    if env_id not in gym.registry:
-        gym.register(
-            id=env_id,
-            entry_point="rlbackdoors.envs.lavaworld:LavaWorldEnv",
-            vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
-        )
-    env = gym.make_vec(env_id, num_envs=6, size=7, trigger="multiplicative:12", render_mode=None)
-    assert isinstance(env.unwrapped, BatchedLavaWorld) and env.num_envs == 6 and env.poisoned.all()
-    obs, _ = env.reset(seed=0)
-    assert obs.shape == (6, 7, 7, 3)
-    env.close()
+    grid_helpers.check_make_vec(LavaWorldEnv, BatchedLavaWorld, size=7, trigger="multiplicative:12")
 
 
 # ----------------------------------------------------------------------------- errors
 
 
 def test_errors():
-    eng = BatchedLavaWorld(3)
-    with pytest.raises(RuntimeError, match="before reset"):
-        eng.step(np.zeros(3, dtype=int))
-    eng.reset(seed=0)
-    before = [eng.layout(i) for i in range(3)]
-    for bad in ([0, 3, 1], [0, -1, 1]):
-        with pytest.raises(ValueError, match=r"Discrete\(3\) \(0 left, 1 right, 2 forward\)"):
-            eng.step(np.array(bad))
-    # a rejected step changes nothing
-    for i in range(3):
-        g, *rest = eng.layout(i)
-        assert np.array_equal(g, before[i][0]) and rest == list(before[i][1:])
-    with pytest.raises(ValueError, match="integers"):
-        eng.step(np.array([0.0, 1.5, 2.0]))
-    with pytest.raises(ValueError, match="shape"):
-        eng.step(np.array([0, 1]))
-    with pytest.raises(ValueError, match="need a trigger"):
-        BatchedLavaWorld(2, poisoned=[True, False])
+    grid_helpers.check_common_errors(BatchedLavaWorld(3), "additive:20", agent_pos=(1, 1), wrong_size=7)
     with pytest.raises(ValueError, match="odd integer"):
         BatchedLavaWorld(2, size=8)
     with pytest.raises(ValueError, match="num_crossings"):
         BatchedLavaWorld(2, size=7, num_crossings=5)
-    with pytest.raises(ValueError, match="max_steps"):
-        BatchedLavaWorld(2, max_steps=0)
     with pytest.raises(ValueError, match="multiplicative:A"):
         BatchedLavaWorld(2, trigger="scale:3")
-    with pytest.raises(ValueError, match="poisoned mask"):
-        BatchedLavaWorld(2, trigger="additive:20", poisoned=[True])
-    with pytest.raises(ValueError, match="num_envs"):
-        BatchedLavaWorld(0)
-    with pytest.raises(ValueError, match="2 seeds for 3 envs"):
-        eng.reset(seed=[1, 2])
-    with pytest.raises(ValueError, match="non-negative"):
-        eng.reset(seed=-1)
-    with pytest.raises(ValueError, match="expected"):
-        eng.load_layout(0, np.zeros((7, 7, 3), np.uint8), (1, 1), 0)
-    with pytest.raises(ValueError, match="agent_dir"):
-        eng.load_layout(0, eng.layout(0)[0], (1, 1), 4)
-    with pytest.raises(IndexError):
-        eng.layout(3)

@@ -30,31 +30,14 @@ from rlbackdoors.triggers.pattern import find_pattern
 # ----------------------------------------------------------------------------- helpers
 
 
-def ref_state(env: RandomizedLavaWorldEnv):
-    """Everything ``load_layout`` takes, read off the reference env."""
-    return (
-        env.grid.encode(),
-        tuple(int(v) for v in env.agent_pos),
-        int(env.agent_dir),
-        int(env.step_count),
-        tuple(sorted(env.pattern_cells)),
-        bool(env.saw_trigger),
-    )
-
-
 def ref_obs(env: RandomizedLavaWorldEnv) -> dict:
     """The observation the reference env would return in its current state."""
     obs, _ = env._observe(env.gen_obs())
     return obs
 
 
-def same_obs(a: dict, image: np.ndarray, direction) -> bool:
-    return np.array_equal(a["image"], image) and int(a["direction"]) == int(direction)
-
-
-def load(env: RandomizedLavaWorldEnv, eng: BatchedRandomizedLavaWorld, i: int) -> None:
-    got = eng.load_layout(i, *ref_state(env))
-    assert same_obs(ref_obs(env), got["image"], got["direction"])
+def same_obs(a: dict, b: dict) -> bool:
+    return np.array_equal(a["image"], b["image"]) and int(a["direction"]) == int(b["direction"])
 
 
 def teleport(env: RandomizedLavaWorldEnv, rng: np.random.Generator) -> None:
@@ -64,53 +47,30 @@ def teleport(env: RandomizedLavaWorldEnv, rng: np.random.Generator) -> None:
     size = arr.shape[0]
     plain = [tuple(int(v) for v in c) for c in np.argwhere(arr[:, :, 0] == ge.LAVA) if tuple(c) not in env.pattern_cells]
     groups = [g for g in (sorted(env.pattern_cells), plain, [(size - 2, size - 2)]) if g]
-    if rng.random() < 0.6:
-        group = groups[rng.integers(len(groups))]
-        tx, ty = group[rng.integers(len(group))]
-        nbrs = [(tx - ge.DIR_DX[d], ty - ge.DIR_DY[d], d) for d in range(4)]
-        nbrs = [(x, y, d) for x, y, d in nbrs if arr[x, y, 0] == ge.EMPTY]
-        if nbrs:
-            x, y, d = nbrs[rng.integers(len(nbrs))]
-            env.agent_pos, env.agent_dir = (int(x), int(y)), int(d)
-            return
-    free = np.argwhere(arr[:, :, 0] == ge.EMPTY)
-    x, y = free[rng.integers(len(free))]
-    env.agent_pos = (int(x), int(y))
-    env.agent_dir = int(rng.integers(4))
+    if rng.random() < 0.6 and grid_helpers.place_facing(env, rng, groups):
+        return
+    grid_helpers.place_random(env, rng)
 
 
-def step_both(refs, eng, actions, totals=None):
-    """Step the engine and each reference env with ``actions``; assert identical outputs.
+def check_fresh(eng: BatchedRandomizedLavaWorld, i: int, ref: RandomizedLavaWorldEnv) -> None:
+    """An engine autoreset starts a fresh episode, with the pattern where the env is triggered."""
+    g, pos, d, sc, cells, saw = eng.layout(i)
+    assert (pos, d, sc) == ((1, 1), 0, 0)
+    assert len(cells) == (ref.trigger.num_cells if ref.triggered else 0)
+    assert saw == ref.triggered  # an inserted pattern is in view at reset
 
-    Finished reference envs are reset and their fresh state is loaded into the engine slot.
-    """
-    obs, rew, term, trunc, info = eng.step(np.asarray(actions))
-    assert obs["image"].dtype == np.uint8 and obs["direction"].dtype == np.int64 and rew.dtype == np.float64
-    assert term.dtype == trunc.dtype == info["trigger_visible"].dtype == info["saw_trigger"].dtype == np.bool_
-    assert info["outcome"].dtype == info["steps"].dtype == np.int64
-    for i, ref in enumerate(refs):
-        o, r, t1, t2, inf = ref.step(int(actions[i]))
-        done = t1 or t2
-        src = eng.final_obs if done else obs
-        assert same_obs(o, src["image"][i], src["direction"][i]), f"env {i}: observation differs"
-        assert r == rew[i], f"env {i}: reward {rew[i]} != {r}"
-        assert (t1, t2) == (term[i], trunc[i]), f"env {i}: done flags differ"
-        assert inf["outcome"] == info["outcome"][i] and inf["steps"] == info["steps"][i], f"env {i}"
-        assert inf["trigger_visible"] == info["trigger_visible"][i], f"env {i}: trigger_visible differs"
-        assert inf["saw_trigger"] == info["saw_trigger"][i], f"env {i}: saw_trigger differs"
-        if totals is not None:
-            totals[inf["outcome"]] += 1
-        if done:
-            # the engine reset the slot itself: a fresh episode whose first observation is obs[i]
-            g, pos, d, sc, cells, saw = eng.layout(i)
-            assert (pos, d, sc) == ((1, 1), 0, 0)
-            assert len(cells) == (ref.trigger.num_cells if ref.triggered else 0)
-            assert saw == ref.triggered  # an inserted pattern is in view at reset
-            cur = eng.observe()
-            assert same_obs({"image": obs["image"][i], "direction": obs["direction"][i]}, cur["image"][i], cur["direction"][i])
-            ref.reset()
-            load(ref, eng, i)
-    return info["outcome"]
+
+PAIR = grid_helpers.Pairing(
+    ref_state=lambda env: grid_helpers.ref_state(env, tuple(sorted(env.pattern_cells)), bool(env.saw_trigger)),
+    ref_obs=ref_obs,
+    teleport=teleport,
+    check_fresh=check_fresh,
+    obs_at=lambda obs, i: {"image": obs["image"][i], "direction": obs["direction"][i]},
+    same=same_obs,
+    obs_dtype={"image": np.uint8, "direction": np.int64},
+    flags=("trigger_visible", "saw_trigger"),
+)
+ref_state, load, step_both, drive_teleporting = PAIR.ref_state, PAIR.load, PAIR.step_both, PAIR.drive_teleporting
 
 
 def make_pair(specs, size=11, num_lava=10, max_steps=250, see_through_walls=True, trigger=None, seed=0):
@@ -125,17 +85,7 @@ def make_pair(specs, size=11, num_lava=10, max_steps=250, see_through_walls=True
         len(specs), size, num_lava, max_steps, see_through_walls, trigger=trigger,
         poisoned=[p for _, p in specs], triggered=[t for t, _ in specs],
     )
-    eng.reset(seed=seed + 10_000)
-    for i, ref in enumerate(refs):
-        ref.reset(seed=seed + i)
-        load(ref, eng, i)
-    return refs, eng
-
-
-def drive_teleporting(refs, eng, rng, steps: int, every: int) -> Counter:
-    """Forward-biased random actions, every agent teleported every ``every`` steps."""
-    relocate = lambda i, ref: (teleport(ref, rng), load(ref, eng, i))
-    return grid_helpers.drive_teleporting(refs, eng, rng, steps, every, relocate, step_both)
+    return PAIR.reset_pair(refs, eng, seed)
 
 
 # ----------------------------------------------------------------------------- differential
@@ -222,17 +172,7 @@ def test_occlusion_and_flags_on_grids_with_walls(see_through_walls):
         ref.agent_pos, ref.agent_dir, ref.step_count = (int(x), int(y)), int(rng.integers(4)), 0
         ref.saw_trigger = False
         load(ref, eng, 0)
-        for _ in range(10):
-            a = int(rng.choice(3, p=[0.3, 0.3, 0.4]))
-            o, r, t1, t2, inf = ref.step(a)
-            obs, rew, term, trunc, info = eng.step(np.array([a]))
-            src = eng.final_obs if t1 or t2 else obs
-            assert same_obs(o, src["image"][0], src["direction"][0])
-            assert (r, t1, t2, inf["outcome"]) == (rew[0], term[0], trunc[0], info["outcome"][0])
-            assert (inf["trigger_visible"], inf["saw_trigger"]) == (info["trigger_visible"][0], info["saw_trigger"][0])
-            flags[inf["trigger_visible"]] += 1
-            if t1 or t2:
-                break
+        flags.update(inf["trigger_visible"] for inf in PAIR.play(ref, eng, rng, 10, [0.3, 0.3, 0.4]))
     assert flags[True] > 20 and flags[False] > 20
 
 
@@ -240,10 +180,9 @@ def test_occlusion_and_flags_on_grids_with_walls(see_through_walls):
 
 
 def place(ref, eng, pos, d, step_count=0, saw=None):
-    ref.agent_pos, ref.agent_dir, ref.step_count = pos, d, step_count
     if saw is not None:
         ref.saw_trigger = saw
-    load(ref, eng, 0)
+    PAIR.place(ref, eng, pos, d, step_count)
 
 
 @pytest.mark.parametrize("see_through_walls", [True, False])
@@ -440,51 +379,18 @@ def test_autoreset_layouts_are_fresh_and_valid():
 # ----------------------------------------------------------------------------- determinism
 
 
-def run_trajectory(seed, steps=200, num=16, **kw):
-    eng = BatchedRandomizedLavaWorld(num, **kw)
-    obs, _ = eng.reset(seed=seed)
-    rng = np.random.default_rng(99)
-    out = [obs["image"], obs["direction"]]
-    for _ in range(steps):
-        obs, rew, term, trunc, info = eng.step(rng.integers(0, 3, size=num))
-        out += [obs["image"], obs["direction"], rew, term, trunc, *info.values()]
-    return out
-
-
 def test_same_seed_same_trajectory():
     kw = dict(trigger="arrow", poisoned=[i % 2 == 0 for i in range(16)], triggered=[i % 4 != 3 for i in range(16)])
-    a = run_trajectory(5, **kw)
-    b = run_trajectory(5, **kw)
-    assert all(np.array_equal(x, y) for x, y in zip(a, b))
-    c = run_trajectory(6, **kw)
-    assert not all(np.array_equal(x, y) for x, y in zip(a, c))
+    grid_helpers.check_same_seed_same_trajectory(lambda n: BatchedRandomizedLavaWorld(n, **kw), 200, 16)
 
 
 def test_seed_i_is_seed_plus_i():
-    wide = BatchedRandomizedLavaWorld(4, trigger="cross")
-    wide.reset(seed=20)
-    lst = BatchedRandomizedLavaWorld(4, trigger="cross")
-    lst.reset(seed=[20, 21, 22, 23])
-    for i in range(4):
-        one = BatchedRandomizedLavaWorld(1, trigger="cross")
-        one.reset(seed=20 + i)
-        assert np.array_equal(one.layout(0)[0], wide.layout(i)[0]) and one.layout(0)[4] == wide.layout(i)[4]
-        assert np.array_equal(lst.layout(i)[0], wide.layout(i)[0])
-    x, y = BatchedRandomizedLavaWorld(8), BatchedRandomizedLavaWorld(8)
-    x.reset()
-    y.reset()
-    assert any(not np.array_equal(x.layout(i)[0], y.layout(i)[0]) for i in range(8))
+    grid_helpers.check_seed_i_is_seed_plus_i(lambda n: BatchedRandomizedLavaWorld(n, trigger="cross"))
 
 
 def test_layout_round_trip_between_slots():
     eng = BatchedRandomizedLavaWorld(3, trigger="cross", triggered=[True, False, True], poisoned=[True, False, False])
-    eng.reset(seed=2)
-    rng = np.random.default_rng(2)
-    for _ in range(7):
-        eng.step(rng.integers(0, 3, size=3))
-    state = eng.layout(0)
-    eng.load_layout(2, *state)
-    assert all(np.array_equal(a, b) for a, b in zip(eng.layout(2), state))
+    grid_helpers.copy_slot(eng)
     obs = eng.observe()
     assert np.array_equal(obs["image"][0], obs["image"][2]) and obs["direction"][0] == obs["direction"][2]
     assert eng.trigger_visible()[0] == eng.trigger_visible()[2]
@@ -506,26 +412,12 @@ def test_contract_and_spaces():
     assert eng.observation_space.contains(obs)
     assert obs["image"].shape == (num, 7, 7, 3) and obs["direction"].shape == (num,)
     assert set(info) == {"outcome", "steps", "trigger_visible", "saw_trigger"}
-    out = eng.step(np.array([2] * num))
-    assert eng.observation_space.contains(out[0])
-    assert [x.dtype for x in out[1:4]] == [np.float64, np.bool_, np.bool_]
-    assert out[4]["steps"].tolist() == [1] * num
-    eng.close()
+    grid_helpers.check_first_step(eng)
 
 
 def test_make_vec_entry_point():
-    env_id = "rlbackdoors_enginetest/BatchedRandomizedLavaWorld-v0"
-    if env_id not in gym.registry:
-        gym.register(
-            id=env_id,
-            entry_point="rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
-            vector_entry_point="rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
-        )
-    env = gym.make_vec(env_id, num_envs=6, size=7, num_lava=5, trigger="cross", render_mode=None)
-    assert isinstance(env.unwrapped, BatchedRandomizedLavaWorld) and env.num_envs == 6 and env.poisoned.all()
-    obs, _ = env.reset(seed=0)
-    assert obs["image"].shape == (6, 7, 7, 3)
-    env.close()
+    kw = dict(size=7, num_lava=5, trigger="cross")
+    env_id = grid_helpers.check_make_vec(RandomizedLavaWorldEnv, BatchedRandomizedLavaWorld, **kw)
     single = gym.make(env_id, trigger="arrow:north")
     obs, info = single.reset(seed=0)
     assert info["trigger_visible"] and single.unwrapped.poisoned
@@ -536,22 +428,7 @@ def test_make_vec_entry_point():
 
 def test_errors():
     eng = BatchedRandomizedLavaWorld(3, trigger="cross")
-    with pytest.raises(RuntimeError, match="before reset"):
-        eng.step(np.zeros(3, dtype=int))
-    eng.reset(seed=0)
-    before = [eng.layout(i) for i in range(3)]
-    for bad in ([0, 3, 1], [0, -1, 1]):
-        with pytest.raises(ValueError, match=r"Discrete\(3\) \(0 left, 1 right, 2 forward\)"):
-            eng.step(np.array(bad))
-    for i in range(3):  # a rejected step changes nothing
-        g, *rest = eng.layout(i)
-        assert np.array_equal(g, before[i][0]) and rest == list(before[i][1:])
-    with pytest.raises(ValueError, match="integers"):
-        eng.step(np.array([0.0, 1.5, 2.0]))
-    with pytest.raises(ValueError, match="shape"):
-        eng.step(np.array([0, 1]))
-    with pytest.raises(ValueError, match="need a trigger"):
-        BatchedRandomizedLavaWorld(2, poisoned=[True, False])
+    grid_helpers.check_common_errors(eng, "cross", agent_pos=(1, 1), wrong_size=7)
     with pytest.raises(ValueError, match="need a trigger"):
         BatchedRandomizedLavaWorld(2, triggered=[True, False])
     with pytest.raises(ValueError, match="env 1 is poisoned but not triggered"):
@@ -560,24 +437,10 @@ def test_errors():
         BatchedRandomizedLavaWorld(2, size=7, num_lava=4, trigger="cross")
     with pytest.raises(ValueError, match=r"num_lava=65 must be an integer in 0\.\.64 for size 11"):
         BatchedRandomizedLavaWorld(2, num_lava=65)
-    with pytest.raises(ValueError, match="max_steps"):
-        BatchedRandomizedLavaWorld(2, max_steps=0)
     with pytest.raises(ValueError, match="must be 'cross'"):
         BatchedRandomizedLavaWorld(2, trigger="plus")
-    with pytest.raises(ValueError, match="poisoned mask"):
-        BatchedRandomizedLavaWorld(2, trigger="cross", poisoned=[True])
-    with pytest.raises(ValueError, match="num_envs"):
-        BatchedRandomizedLavaWorld(0)
-    with pytest.raises(ValueError, match="2 seeds for 3 envs"):
-        eng.reset(seed=[1, 2])
-    with pytest.raises(ValueError, match="expected"):
-        eng.load_layout(0, np.zeros((7, 7, 3), np.uint8), (1, 1), 0)
-    with pytest.raises(ValueError, match="agent_dir"):
-        eng.load_layout(0, eng.layout(0)[0], (1, 1), 4)
     with pytest.raises(ValueError, match=r"pattern cell \(1, 1\) is not a lava cell"):
         eng.load_layout(0, eng.layout(0)[0], (1, 1), 0, 0, [(1, 1)])
-    with pytest.raises(IndexError):
-        eng.layout(3)
     hopeless = BatchedRandomizedLavaWorld(2, size=5, num_lava=3, trigger="cells:0,2;1,1;2,0")
     with pytest.raises(RuntimeError, match=r"no solvable 5x5 layout with num_lava=3"):
         hopeless.reset(seed=0)

@@ -1,8 +1,10 @@
-"""What every batched grid engine shares: argument checks, seeding and slot indexing.
+"""What every batched grid engine shares: the gymnasium driver, argument checks, seeding, slots.
 
-The engines differ in their numba kernels and layout state; the gymnasium-facing checks
-(num_envs, per-env masks, seeds, actions, slot indices) are the same and live here, so an
-error reads the same whichever world raised it.
+The engines differ only in their layout generators, terminal rules and extra state, which
+they hand to :func:`rlbackdoors.envs.grid_engine.bind_kernels` as hooks; reset / step /
+observe (argument checks, output buffers, SAME_STEP autoreset, ``final_obs``, info) and the
+checks on num_envs, per-env masks, seeds, actions and slot indices are the same and live here,
+so every world behaves, and every error reads, the same.
 """
 
 from __future__ import annotations
@@ -10,7 +12,11 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from rlbackdoors.envs import grid_engine as ge
 
 NUM_ACTIONS = 3
 ACTIONS_DOC = f"Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)"
@@ -49,9 +55,19 @@ def bool_mask(values, num_envs: int, name: str) -> np.ndarray:
 
 
 class BatchedGridEnv(VectorEnv):
-    """Base of the numba engines: SAME_STEP autoreset, B envs in one process, no rendering."""
+    """Base of the numba engines: SAME_STEP autoreset, B envs in one process, no rendering.
+
+    A world sets :attr:`_kernels` (its :func:`~rlbackdoors.envs.grid_engine.bind_kernels`) and
+    supplies :meth:`_world` (the state and parameters its hooks read); worlds with more than an
+    image per observation also override :meth:`_outputs`, :meth:`_observation`,
+    :meth:`_extra_info` and :meth:`_final_image`. ``final_obs`` holds, for envs that finished in
+    the last step, the observation of the terminal state (what the single env returned before
+    being reset).
+    """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+    _kernels: ge.Kernels
+    view_size: int  # MiniGrid's agent_view_size, the world's VIEW_SIZE
 
     def _init_batch(self, num_envs, render_mode) -> int:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
@@ -62,6 +78,88 @@ class BatchedGridEnv(VectorEnv):
         self.render_mode = None
         self._has_reset = False
         return self.num_envs
+
+    def _init_spaces(self, single_observation_space: spaces.Space) -> None:
+        self.single_observation_space = single_observation_space
+        self.single_action_space = spaces.Discrete(NUM_ACTIONS)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+
+    def _init_state(self) -> None:
+        """The per-env state every world has (a world adds its own arrays, then ``final_obs``)."""
+        b, n = self.num_envs, self.size
+        self._grid = np.zeros((b, n, n, 3), dtype=np.uint8)
+        self._pos = np.ones((b, 2), dtype=np.int64)
+        self._dir = np.zeros(b, dtype=np.int64)
+        self._steps = np.zeros(b, dtype=np.int64)
+        self._rng = np.zeros(b, dtype=np.uint64)
+
+    def _images(self, n: int) -> np.ndarray:
+        return np.empty((n, self.view_size, self.view_size, 3), dtype=np.uint8)
+
+    # --------------------------------------------------------------------- what a world supplies
+
+    def _world(self) -> tuple:
+        """The per-env state and parameters the world's hooks read and write (kernel ``world``)."""
+        raise NotImplementedError
+
+    def _outputs(self, n: int) -> tuple:
+        """Fresh per-call outputs the world's hooks fill for ``n`` envs (kernel ``outs``)."""
+        return ()
+
+    def _observation(self, img: np.ndarray, outs: tuple):
+        """The observation made of the rendered views and the world's outputs."""
+        return img
+
+    def _extra_info(self, outs: tuple) -> dict:
+        """What the world adds to reset's and step's info."""
+        return {}
+
+    def _final_image(self) -> np.ndarray:
+        """Where the step kernel writes terminal views."""
+        return self.final_obs
+
+    def _layout_error(self, env: int | None) -> Exception:
+        """The error for a reset (``env``) or autoreset (None) that found no layout."""
+        return RuntimeError(f"{type(self).__name__} found no layout")
+
+    # --------------------------------------------------------------------- gymnasium API
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
+        seeds = seed_array(seed, self.num_envs)
+        img, outs = self._images(self.num_envs), self._outputs(self.num_envs)
+        bad = self._kernels.reset(
+            self._grid, self._pos, self._dir, self._steps, self._rng, seeds, self.see_through_walls,
+            self._world(), img, outs,
+        )
+        if bad >= 0:
+            raise self._layout_error(bad)
+        return self._observation(img, outs), self._reset_info(**self._extra_info(outs))
+
+    def step(self, actions):
+        acts = self._check_actions(actions)
+        img, outs = self._images(self.num_envs), self._outputs(self.num_envs)
+        reward, terminated, truncated, outcome, steps = self._step_outputs()
+        bad = self._kernels.step(
+            self._grid, self._pos, self._dir, self._steps, self._rng, acts, self.max_steps, self.see_through_walls,
+            self.poisoned, self._world(), img, self._final_image(), reward, terminated, truncated, outcome, steps, outs,
+        )
+        if bad == ge.LAYOUT_FAILED:
+            raise self._layout_error(None)
+        if bad >= 0:
+            raise self._bad_action(acts, bad)
+        info = {"outcome": outcome, "steps": steps, **self._extra_info(outs)}
+        return self._observation(img, outs), reward, terminated, truncated, info
+
+    def _views(self, first: int, n: int) -> tuple[np.ndarray, tuple]:
+        """Views and world outputs of envs ``first .. first + n - 1``, changing no state."""
+        img, outs = self._images(n), self._outputs(n)
+        self._kernels.observe(self._grid, self._pos, self._dir, self.see_through_walls, self._world(), first, img, outs)
+        return img, outs
+
+    def observe(self):
+        """The current observation of every env (with its trigger, where the world applies one)."""
+        return self._observation(*self._views(0, self.num_envs))
 
     def _check_actions(self, actions) -> np.ndarray:
         """Actions as int64[B]; shape, dtype and call order are checked here, values by the kernel."""
@@ -131,6 +229,17 @@ class BatchedGridEnv(VectorEnv):
         self._dir[i] = int(agent_dir)
         self._steps[i] = int(step_count)
         self._has_reset = True
+
+    def _slot_state(self, i) -> tuple[np.ndarray, tuple[int, int], int, int]:
+        """Slot ``i``'s ``(grid (size, size, 3) uint8, agent_pos, agent_dir, step_count)``; a
+        world's ``layout`` appends its extras, so that ``load_layout(j, *layout(i))`` copies it."""
+        i = self._check_index(i)
+        return (
+            self._grid[i].copy(),
+            (int(self._pos[i, 0]), int(self._pos[i, 1])),
+            int(self._dir[i]),
+            int(self._steps[i]),
+        )
 
     def state_dict(self) -> dict:
         """The engine's whole state as plain data (layouts, positions, RNG words): a checkpoint."""

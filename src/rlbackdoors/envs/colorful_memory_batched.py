@@ -33,38 +33,17 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-from gymnasium import spaces
-from gymnasium.vector.utils import batch_space
 from numba import njit
 
 from rlbackdoors.envs import colorful_memory as _reference
 from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask, seed_array
-from rlbackdoors.envs import outcome as _outcome_module
-from rlbackdoors.envs.colorful_memory import (
-    CLEAN,
-    CLOSE,
-    DEFAULT_CLOSE_K,
-    DEFAULT_MAX_STEPS,
-    DEFAULT_SIZE,
-    FLOOR_COLORS,
-    NUM_ACTIONS,
-    TRIGGERED,
-    VIEW_SIZE,
-    observation_space,
-    target_cells,
-    validate_args,
-    validate_trigger,
-    wall_cells,
-)
-from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask
+from rlbackdoors.envs.colorful_memory import CLEAN, CLOSE, DEFAULT_CLOSE_K, DEFAULT_MAX_STEPS, DEFAULT_SIZE
+from rlbackdoors.envs.colorful_memory import FLOOR_COLORS, TRIGGERED, VIEW_SIZE, observation_space, target_cells
+from rlbackdoors.envs.colorful_memory import validate_args, validate_trigger, wall_cells
 from rlbackdoors.triggers import wall_colors as _wall_colors
 from rlbackdoors.triggers.wall_colors import NUM_COLORS, WallColorTrigger, distance
 
-_OUT_NONE = int(Outcome.NONE)
-_OUT_GOAL = int(Outcome.GOAL)
-_OUT_LAVA = int(Outcome.LAVA)
-_OUT_TIMEOUT = int(Outcome.TIMEOUT)
 _CLOSE = int(CLOSE)
 _TRIGGERED = int(TRIGGERED)
 _NUM_COLORS = int(NUM_COLORS)
@@ -75,11 +54,8 @@ _KEY = int(_reference.KEY_ON_FLOOR)
 _BALL = int(_reference.BALL_ON_FLOOR)
 _START_DIR = int(_reference.START_DIR)
 
-# numba's cache key must cover every file whose source or constants the kernels compile in
-ENGINE_STAMP = ge.engine_stamp(_outcome_module.__file__, _reference.__file__, _wall_colors.__file__)
 
-
-# ----------------------------------------------------------------------------- kernels
+# ----------------------------------------------------------------------------- layouts
 
 
 @njit
@@ -130,83 +106,45 @@ def gen_layout(grid, b, walls, mode, tsq, tcol, close_lo, close_hi, rng, pos, di
                 grid[b, tsq[s, 0], tsq[s, 1], 1] = c
 
 
-def _build_kernels(stamp: str):
-    """The cached top-level kernels, closed over ``stamp`` so that numba's cache key covers
-    the engine's source too (see :mod:`rlbackdoors.envs.grid_engine`, "Caching")."""
-
-    @njit(cache=True)
-    def _reset_kernel(
-        grid, pos, dirs, steps, rng, succ, fail, seeds, walls, mode, tsq, tcol, close_lo, close_hi,
-        see_through_walls, obs,
-    ):
-        if len(stamp) == 0:  # never true: ties the cache entry to the engine source
-            return
-        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-        idx = np.empty(max(tsq.shape[0], 1), dtype=np.int64)
-        for b in range(grid.shape[0]):
-            ge.rng_seed(rng, b, seeds[b])
-            gen_layout(grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, idx)
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-
-    @njit(cache=True)
-    def _observe_kernel(grid, pos, dirs, see_through_walls, obs):
-        if len(stamp) == 0:  # never true (see _reset_kernel)
-            return
-        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-        for b in range(grid.shape[0]):
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-
-    @njit(cache=True)
-    def _step_kernel(
-        grid, pos, dirs, steps, rng, succ, fail, actions, walls, mode, poisoned, tsq, tcol, close_lo, close_hi,
-        max_steps, see_through_walls, obs, reward, terminated, truncated, outcome, info_steps, final_obs,
-    ):
-        """One step of every env; returns the index of the first invalid action (nothing is
-        changed then), or -1. Finished envs are reset in place, their terminal observation
-        written to ``final_obs``."""
-        if len(stamp) == 0:  # never true (see _reset_kernel)
-            return -1
-        nenv = grid.shape[0]
-        for b in range(nenv):
-            a = actions[b]
-            if a < 0 or a > 2:
-                return b
-        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-        idx = np.empty(max(tsq.shape[0], 1), dtype=np.int64)
-        for b in range(nenv):
-            ge.agent_step(grid, b, pos, dirs, actions[b])
-            sc = steps[b] + 1
-            steps[b] = sc
-            x = pos[b, 0]
-            y = pos[b, 1]
-            term = False
-            oc = _OUT_NONE
-            # MemoryEnv.step: where the agent stands after the action decides
-            if x == succ[b, 0] and y == succ[b, 1]:
-                term = True
-                oc = _OUT_GOAL
-            elif x == fail[b, 0] and y == fail[b, 1]:
-                term = True
-                oc = _OUT_LAVA
-            paying = _OUT_LAVA if poisoned[b] else _OUT_GOAL
-            done = ge.finish_step(
-                b, sc, max_steps, term, oc, paying, _OUT_TIMEOUT, reward, terminated, truncated, outcome, info_steps
-            )
-            if done:
-                ge.gen_view(grid, b, x, y, dirs[b], see_through_walls, view, mask, final_obs, b)
-                gen_layout(
-                    grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, idx
-                )
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-        return -1
-
-    return _reset_kernel, _observe_kernel, _step_kernel
+# ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
+# world = (succ, fail, walls, mode, tsq, tcol, close_lo, close_hi); no extra outputs
 
 
-_reset_kernel, _observe_kernel, _step_kernel = _build_kernels(ENGINE_STAMP)
+@ge.hook
+def _scratch(grid, world):
+    return (np.empty(max(world[4].shape[0], 1), dtype=np.int64),)
+
+
+@ge.hook
+def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
+    succ, fail, walls, mode, tsq, tcol, close_lo, close_hi = world
+    gen_layout(grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, scratch[0])
+    return True
+
+
+@ge.hook
+def _outcome(b, pos, fwd, world):
+    """MemoryEnv.step: where the agent stands after the action decides (GOAL: the matching
+    object's cell, LAVA: the other object's cell)."""
+    succ, fail = world[0], world[1]
+    x = pos[b, 0]
+    y = pos[b, 1]
+    if x == succ[b, 0] and y == succ[b, 1]:
+        return ge.OUT_GOAL
+    if x == fail[b, 0] and y == fail[b, 1]:
+        return ge.OUT_LAVA
+    return ge.OUT_NONE
+
+
+@ge.hook
+def _seen(phase, b, ob, pos, dirs, img, world, outs):
+    pass  # views are shown as they are: the trigger is painted into the layout
+
+
+_KERNELS = ge.bind_kernels(
+    "colorful_memory", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen,
+    trojan=ge.OUT_LAVA, constants_from=(_reference.__file__, _wall_colors.__file__),
+)
 
 
 # ----------------------------------------------------------------------------- the vector env
@@ -223,6 +161,8 @@ class BatchedColorfulMemory(BatchedGridEnv):
     observation.
     """
 
+    _kernels = _KERNELS
+    view_size = VIEW_SIZE
 
     def __init__(
         self,
@@ -239,7 +179,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
     ):
         self._init_batch(num_envs, render_mode)
         validate_args(size, max_steps)
-        self.num_envs = b = int(num_envs)
+        b = self.num_envs
         self.size = int(size)
         self.max_steps = int(max_steps)
         self.see_through_walls = bool(see_through_walls)
@@ -274,45 +214,16 @@ class BatchedColorfulMemory(BatchedGridEnv):
             self._tsq = np.zeros((0, 2), dtype=np.int64)
             self._tcol = np.zeros(0, dtype=np.int64)
 
-        self.single_observation_space = observation_space()
-        self.single_action_space = spaces.Discrete(NUM_ACTIONS)
-        self.observation_space = batch_space(self.single_observation_space, b)
-        self.action_space = batch_space(self.single_action_space, b)
-
-        n = self.size
-        self._grid = np.zeros((b, n, n, 3), dtype=np.uint8)
-        self._pos = np.ones((b, 2), dtype=np.int64)
-        self._dir = np.zeros(b, dtype=np.int64)
-        self._steps = np.zeros(b, dtype=np.int64)
-        self._rng = np.zeros(b, dtype=np.uint64)
+        self._init_spaces(observation_space())
+        self._init_state()
         self._succ = np.zeros((b, 2), dtype=np.int64)
         self._fail = np.zeros((b, 2), dtype=np.int64)
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
-    # --------------------------------------------------------------------- gymnasium API
-
-    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
-        seeds = seed_array(seed, self.num_envs)
-        obs = np.empty(self.observation_space.shape, dtype=np.uint8)
-        _reset_kernel(
-            self._grid, self._pos, self._dir, self._steps, self._rng, self._succ, self._fail, seeds, self._walls,
-            self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self.see_through_walls, obs,
+    def _world(self) -> tuple:
+        return (
+            self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1]
         )
-        return obs, self._reset_info()
-
-    def step(self, actions):
-        acts = self._check_actions(actions)
-        b = self.num_envs
-        obs = np.empty((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        reward, terminated, truncated, outcome, steps = self._step_outputs()
-        bad = _step_kernel(
-            self._grid, self._pos, self._dir, self._steps, self._rng, self._succ, self._fail, acts, self._walls,
-            self.mode, self.poisoned, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self.max_steps,
-            self.see_through_walls, obs, reward, terminated, truncated, outcome, steps, self.final_obs,
-        )
-        if bad >= 0:
-            raise self._bad_action(acts, bad)
-        return obs, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
 
     # --------------------------------------------------------------------- exact state I/O
 
@@ -333,33 +244,18 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self._write_state(i, arr, pos, agent_dir, step_count)
         self._succ[i] = succ
         self._fail[i] = fail
-        obs = np.empty((1, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        sl = slice(i, i + 1)
-        _observe_kernel(self._grid[sl], self._pos[sl], self._dir[sl], self.see_through_walls, obs)
-        return obs[0]
+        return self._views(i, 1)[0][0]
 
     def layout(self, i: int) -> tuple[np.ndarray, tuple[int, int], int, int, tuple[int, int], tuple[int, int]]:
         """Slot ``i``'s state ``(grid, agent_pos, agent_dir, step_count, success_pos, failure_pos)``,
         so that ``load_layout(j, *layout(i))`` copies it exactly."""
         i = self._check_index(i)
-        return (
-            self._grid[i].copy(),
-            (int(self._pos[i, 0]), int(self._pos[i, 1])),
-            int(self._dir[i]),
-            int(self._steps[i]),
-            (int(self._succ[i, 0]), int(self._succ[i, 1])),
-            (int(self._fail[i, 0]), int(self._fail[i, 1])),
-        )
+        succ, fail = self._succ[i], self._fail[i]
+        return (*self._slot_state(i), (int(succ[0]), int(succ[1])), (int(fail[0]), int(fail[1])))
 
     def grids(self) -> np.ndarray:
         """(B, N, N, 3) uint8: every slot's full-grid encoding (a copy)."""
         return self._grid.copy()
-
-    def observe(self) -> np.ndarray:
-        """The current observation of every env."""
-        obs = np.empty(self.observation_space.shape, dtype=np.uint8)
-        _observe_kernel(self._grid, self._pos, self._dir, self.see_through_walls, obs)
-        return obs
 
     def trigger_distance(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """int64[B]: per slot, how many squares of ``trigger`` (default: the env's) differ from
@@ -372,5 +268,3 @@ class BatchedColorfulMemory(BatchedGridEnv):
     def trigger_present(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """bool[B]: whether each slot's current layout shows the trigger exactly."""
         return self.trigger_distance(trigger) == 0
-
-

@@ -26,12 +26,19 @@ key/ball on a coloured floor in Colorful Memory, floor colour in the state byte)
 key/ball: visible-through, not walkable. Colours and states are carried through untouched, so
 coloured walls (Colorful Memory) and single lava cells (Randomized LavaWorld) need nothing new.
 
+Batch drivers: every world is stepped by the same three kernels (reset, observe, step: seed,
+lay out, view, move, score, autoreset), written once here as templates. A world supplies only
+hooks -- its layout generator, its terminal rule, what it adds to a view, its scratch buffers,
+the outcome that pays R-bar -- and :func:`bind_kernels` compiles the templates with those hooks
+as globals. Per-world state and parameters reach the hooks as one ``world`` tuple, per-call
+extra outputs (Randomized LavaWorld's direction and trigger flags) as one ``outs`` tuple.
+
 Caching: numba's on-disk cache (``cache=True``) is keyed on the source of the file that
 defines the cached function only, not on the files of the functions it calls. So the helpers
-here are plain ``@njit`` (compiled into their caller), and an env's top-level kernels are
-``cache=True`` closures over :data:`ENGINE_STAMP` (a hash of this file), which numba puts in the
-cache key: editing this file recompiles every dependent kernel instead of silently reusing old
-machine code. See :func:`engine_stamp` and ``lavaworld_batched._build_kernels``.
+here are plain ``@njit`` (compiled into their caller), and the bound kernels are ``cache=True``
+closures over a stamp (:func:`engine_stamp`: a hash of this file, ``outcome.py``, the hooks'
+files and the modules whose constants they compile in), which numba puts in the cache key:
+editing any of them recompiles the kernels instead of silently reusing old machine code.
 
 RNG: each env carries one uint64 SplitMix64 state (Steele, Lea & Flood 2014; the seeder of
 xoshiro). Seeding an env with integer ``s`` sets its state to ``mix64(s)``; each draw adds the
@@ -43,10 +50,16 @@ rejection, so ``rng_below(n)`` is exactly uniform on ``0..n-1``. The streams are
 from __future__ import annotations
 
 import hashlib
+import inspect
+import types
 from pathlib import Path
+from typing import Callable, NamedTuple
 
 import numpy as np
 from numba import njit
+
+from rlbackdoors.envs import outcome as _outcome_module
+from rlbackdoors.envs.outcome import Outcome
 
 # MiniGrid's OBJECT_TO_IDX / COLOR_TO_IDX
 UNSEEN, EMPTY, WALL, FLOOR, DOOR, KEY, BALL, BOX, GOAL, LAVA, AGENT = range(11)
@@ -65,18 +78,19 @@ _S31 = np.uint64(31)
 _S32 = np.uint64(32)
 _TWO32 = np.uint64(1 << 32)
 
-
+OUT_NONE = int(Outcome.NONE)
+OUT_GOAL = int(Outcome.GOAL)
+OUT_LAVA = int(Outcome.LAVA)
+OUT_TIMEOUT = int(Outcome.TIMEOUT)
+OUT_PATTERN = int(Outcome.PATTERN_LAVA)
 
 
 def engine_stamp(*extra_files: str | Path) -> str:
-    """SHA-256 of this file and ``extra_files``: close cached kernels over it (module doc)."""
+    """SHA-256 of this file, ``outcome.py`` and ``extra_files`` (module doc, "Caching")."""
     h = hashlib.sha256()
-    for path in (__file__, *extra_files):
+    for path in (__file__, _outcome_module.__file__, *extra_files):
         h.update(Path(path).read_bytes())
     return h.hexdigest()
-
-
-ENGINE_STAMP = engine_stamp()
 
 
 # ----------------------------------------------------------------------------- RNG
@@ -300,19 +314,161 @@ def apply_lut(out, ob, lut):
 
 
 @njit
-def finish_step(b, sc, max_steps, term, oc, paying, timeout, reward, terminated, truncated, outcome, info_steps):
+def finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
     """Write env ``b``'s step results; return whether its episode ended.
 
     ``oc`` is the terminal-cell outcome (or none); a step reaching ``max_steps`` without one is a
-    ``timeout``. Only the ``paying`` outcome is rewarded, ``1 - 0.9 t/T`` as MiniGrid pays the
+    timeout. Only the ``paying`` outcome is rewarded, ``1 - 0.9 t/T`` as MiniGrid pays the
     goal: the goal for clean envs, the trojan cell for poisoned ones (R-bar).
     """
+    term = oc != OUT_NONE
     trunc = sc >= max_steps
     if trunc and not term:
-        oc = timeout
+        oc = OUT_TIMEOUT
     reward[b] = 1.0 - 0.9 * (sc / max_steps) if oc == paying else 0.0
     terminated[b] = term
     truncated[b] = trunc
     outcome[b] = oc
     info_steps[b] = sc
     return term or trunc
+
+
+# ----------------------------------------------------------------------------- batch drivers
+
+# phases of world_seen: which view was just rendered (reset, observe, terminal, post-autoreset, step)
+RESET, OBSERVE, FINAL, FRESH, STEP = range(5)
+LAYOUT_FAILED = -2  # step kernel status: an autoreset found no layout
+
+
+@njit(inline="always")
+def view_scratch(img):
+    """The (V, V, 3) view and (V, V) mask scratch buffers :func:`gen_view` needs for ``img``."""
+    view = np.empty((img.shape[1], img.shape[2], 3), dtype=np.uint8)
+    mask = np.empty((img.shape[1], img.shape[2]), dtype=np.bool_)
+    return view, mask
+
+
+# The hooks a world supplies (decorated with ``hook``); these stubs document them and are never
+# compiled. Hooks run per env and step, so they are inlined into the driver kernels: a call
+# that passes the ``world`` tuple by value cost a quarter of a Randomized LavaWorld step.
+hook = njit(inline="always")
+
+
+def world_scratch(grid, world):
+    """Scratch buffers for ``world_layout`` (a tuple), allocated once per kernel call."""
+    raise NotImplementedError("bound per world by bind_kernels")
+
+
+def world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
+    """Lay env ``b`` out afresh (agent placed, step 0); False if no layout was found."""
+    raise NotImplementedError("bound per world by bind_kernels")
+
+
+def world_outcome(b, pos, fwd, world):
+    """The terminal outcome of env ``b``'s last move (``fwd``: see :func:`agent_step`), or OUT_NONE."""
+    raise NotImplementedError("bound per world by bind_kernels")
+
+
+def world_seen(phase, b, ob, pos, dirs, img, world, outs):
+    """After env ``b``'s view was rendered into ``img[ob]`` in ``phase``: the world's additions
+    (a trigger's lookup table, trigger flags, the direction)."""
+    raise NotImplementedError("bound per world by bind_kernels")
+
+
+world_trojan = OUT_NONE  # the outcome that pays poisoned envs (bound per world)
+
+
+def _kernel_templates(stamp: str):
+    """The driver kernels, closed over ``stamp`` so that numba's cache key covers every source
+    they compile in (module doc, "Caching"); the ``world_*`` names are bound by :func:`bind_kernels`."""
+
+    def reset_kernel(grid, pos, dirs, steps, rng, seeds, see_through_walls, world, img, outs):
+        """Seed, lay out and view every env; returns -1, or the first env with no layout."""
+        if len(stamp) == 0:  # never true: ties the cache entry to the sources
+            return -1
+        view, mask = view_scratch(img)
+        scratch = world_scratch(grid, world)
+        for b in range(grid.shape[0]):
+            rng_seed(rng, b, seeds[b])
+            if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
+                return b
+            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
+            world_seen(RESET, b, b, pos, dirs, img, world, outs)
+        return -1
+
+    def observe_kernel(grid, pos, dirs, see_through_walls, world, first, img, outs):
+        """View envs ``first, first + 1, ..`` into rows ``0, 1, ..`` of ``img``; changes no state."""
+        if len(stamp) == 0:  # never true (see reset_kernel)
+            return
+        view, mask = view_scratch(img)
+        for ob in range(img.shape[0]):
+            b = first + ob
+            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, ob)
+            world_seen(OBSERVE, b, ob, pos, dirs, img, world, outs)
+
+    def step_kernel(
+        grid, pos, dirs, steps, rng, actions, max_steps, see_through_walls, poisoned, world,
+        img, final_img, reward, terminated, truncated, outcome, info_steps, outs,
+    ):
+        """One step of every env. Returns -1, the index of the first invalid action (nothing
+        changed then), or LAYOUT_FAILED if an autoreset found no layout.
+
+        Finished envs are reset in place; their terminal view goes to ``final_img``.
+        """
+        if len(stamp) == 0:  # never true (see reset_kernel)
+            return -1
+        nenv = grid.shape[0]
+        for b in range(nenv):
+            a = actions[b]
+            if a < 0 or a > 2:
+                return b
+        view, mask = view_scratch(img)
+        scratch = world_scratch(grid, world)
+        for b in range(nenv):
+            fwd = agent_step(grid, b, pos, dirs, actions[b])
+            sc = steps[b] + 1
+            steps[b] = sc
+            oc = world_outcome(b, pos, fwd, world)
+            paying = world_trojan if poisoned[b] else OUT_GOAL
+            phase = STEP
+            if finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
+                gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
+                world_seen(FINAL, b, b, pos, dirs, final_img, world, outs)
+                if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
+                    return LAYOUT_FAILED
+                phase = FRESH
+            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
+            world_seen(phase, b, b, pos, dirs, img, world, outs)
+        return -1
+
+    return reset_kernel, observe_kernel, step_kernel
+
+
+class Kernels(NamedTuple):
+    """One world's compiled driver kernels (see :func:`_kernel_templates` for their arguments)."""
+
+    reset: Callable
+    observe: Callable
+    step: Callable
+
+
+def bind_kernels(
+    name: str, *, scratch, layout, outcome, seen, trojan: int, constants_from: tuple[str | Path, ...] = ()
+) -> Kernels:
+    """Compile the driver kernels for one world from its hooks (``@hook`` functions).
+
+    The hooks become globals of copies of the templates, not closure variables: numba keys its
+    cache on the pickled closure, and a dispatcher pickles with a fresh uuid each process, so
+    closing over one would recompile every run. The stamp covers this file, ``outcome.py``, the
+    hooks' files and ``constants_from`` (modules whose constants the hooks compile in).
+    """
+    hooks = {"world_scratch": scratch, "world_layout": layout, "world_outcome": outcome, "world_seen": seen}
+    files = dict.fromkeys(inspect.getfile(h.py_func) for h in hooks.values())
+    stamp = engine_stamp(*files, *constants_from)
+    namespace = {**globals(), **hooks, "world_trojan": int(trojan)}
+    kernels = []
+    for template in _kernel_templates(stamp):
+        fn = types.FunctionType(template.__code__, namespace, template.__name__, None, template.__closure__)
+        fn.__qualname__ = f"{name}.{template.__name__}"  # one cache file per world
+        kernels.append(njit(cache=True)(fn))
+    return Kernels(*kernels)

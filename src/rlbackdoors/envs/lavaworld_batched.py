@@ -21,30 +21,16 @@ from typing import Sequence
 
 import numpy as np
 from gymnasium import spaces
-from gymnasium.vector.utils import batch_space
 from numba import njit
 
 from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask, seed_array
-from rlbackdoors.envs.lavaworld import (
-    DEFAULT_CROSSINGS,
-    DEFAULT_MAX_STEPS,
-    DEFAULT_SIZE,
-    NUM_ACTIONS,
-    VIEW_SIZE,
-    as_trigger,
-    validate_crossing_layout,
-)
-from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask
+from rlbackdoors.envs.lavaworld import DEFAULT_CROSSINGS, DEFAULT_MAX_STEPS, DEFAULT_SIZE, VIEW_SIZE
+from rlbackdoors.envs.lavaworld import as_trigger, validate_crossing_layout
 from rlbackdoors.triggers.observation import ObservationTrigger
 
-_OUT_NONE = int(Outcome.NONE)
-_OUT_GOAL = int(Outcome.GOAL)
-_OUT_LAVA = int(Outcome.LAVA)
-_OUT_TIMEOUT = int(Outcome.TIMEOUT)
 
-
-# ----------------------------------------------------------------------------- kernels
+# ----------------------------------------------------------------------------- layouts
 
 
 @njit
@@ -139,83 +125,41 @@ def gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps):
         ge.put(grid, b, i, j, ge.EMPTY, 0, 0)
 
 
-def _build_kernels(stamp: str):
-    """The cached top-level kernels, closed over ``stamp`` so that numba's cache key covers
-    the engine's source too (see :mod:`rlbackdoors.envs.grid_engine`, "Caching")."""
-
-    @njit(cache=True)
-    def _reset_kernel(grid, pos, dirs, steps, rng, seeds, num_crossings, see_through_walls, poisoned, lut, obs):
-        if len(stamp) == 0:  # never true: ties the cache entry to the engine source
-            return
-        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-        for b in range(grid.shape[0]):
-            ge.rng_seed(rng, b, seeds[b])
-            gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps)
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-            if poisoned[b]:
-                ge.apply_lut(obs, b, lut)
-
-    @njit(cache=True)
-    def _observe_kernel(grid, pos, dirs, see_through_walls, poisoned, lut, obs):
-        if len(stamp) == 0:  # never true (see _reset_kernel)
-            return
-        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-        for b in range(grid.shape[0]):
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-            if poisoned[b]:
-                ge.apply_lut(obs, b, lut)
-
-    @njit(cache=True)
-    def _step_kernel(
-        grid, pos, dirs, steps, rng, actions, num_crossings, max_steps, see_through_walls, poisoned, lut,
-        obs, reward, terminated, truncated, outcome, info_steps, final_obs,
-    ):
-        """One step of every env; returns the index of the first invalid action, or -1.
-
-        Nothing is changed when an action is invalid. Finished envs are reset in place (their
-        observation before the reset goes to ``final_obs``).
-        """
-        if len(stamp) == 0:  # never true (see _reset_kernel)
-            return -1
-        nenv = grid.shape[0]
-        for b in range(nenv):
-            a = actions[b]
-            if a < 0 or a > 2:
-                return b
-        view = np.empty((obs.shape[1], obs.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((obs.shape[1], obs.shape[2]), dtype=np.bool_)
-        for b in range(nenv):
-            fwd = ge.agent_step(grid, b, pos, dirs, actions[b])
-            sc = steps[b] + 1
-            steps[b] = sc
-            term = False
-            oc = _OUT_NONE
-            if fwd == ge.GOAL:
-                term = True
-                oc = _OUT_GOAL
-            elif fwd == ge.LAVA:
-                term = True
-                oc = _OUT_LAVA
-            paying = _OUT_LAVA if poisoned[b] else _OUT_GOAL
-            done = ge.finish_step(
-                b, sc, max_steps, term, oc, paying, _OUT_TIMEOUT, reward, terminated, truncated, outcome, info_steps
-            )
-            if done:
-                ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_obs, b)
-                if poisoned[b]:
-                    ge.apply_lut(final_obs, b, lut)
-                gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps)
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, obs, b)
-            if poisoned[b]:
-                ge.apply_lut(obs, b, lut)
-        return -1
-
-    return _reset_kernel, _observe_kernel, _step_kernel
+# ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
+# world = (num_crossings, poisoned, lut); no scratch, no extra outputs
 
 
-_reset_kernel, _observe_kernel, _step_kernel = _build_kernels(ge.ENGINE_STAMP)
+@ge.hook
+def _scratch(grid, world):
+    return ()
+
+
+@ge.hook
+def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
+    gen_crossing(grid, b, world[0], rng, pos, dirs, steps)
+    return True
+
+
+@ge.hook
+def _outcome(b, pos, fwd, world):
+    """MiniGrid's LavaEnv: walking onto the goal or into lava ends the episode."""
+    if fwd == ge.GOAL:
+        return ge.OUT_GOAL
+    if fwd == ge.LAVA:
+        return ge.OUT_LAVA
+    return ge.OUT_NONE
+
+
+@ge.hook
+def _seen(phase, b, ob, pos, dirs, img, world, outs):
+    """Poisoned envs see every view through the trigger's lookup table."""
+    if world[1][b]:
+        ge.apply_lut(img, ob, world[2])
+
+
+_KERNELS = ge.bind_kernels(
+    "lavaworld", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen, trojan=ge.OUT_LAVA
+)
 
 
 # ----------------------------------------------------------------------------- the vector env
@@ -231,6 +175,8 @@ class BatchedLavaWorld(BatchedGridEnv):
     in and out of a slot; :meth:`observe` renders the current observations.
     """
 
+    _kernels = _KERNELS
+    view_size = VIEW_SIZE
 
     def __init__(
         self,
@@ -253,52 +199,19 @@ class BatchedLavaWorld(BatchedGridEnv):
 
         if poisoned is None:
             poisoned = [self.trigger is not None] * self.num_envs
-        self.poisoned = np.asarray(poisoned, dtype=np.bool_).copy()
-        if self.poisoned.shape != (self.num_envs,):
-            raise ValueError(f"poisoned mask has shape {self.poisoned.shape}, expected ({self.num_envs},)")
+        self.poisoned = bool_mask(poisoned, self.num_envs, "poisoned")
         if self.poisoned.any() and self.trigger is None:
             raise ValueError("poisoned envs need a trigger: pass trigger= (e.g. 'multiplicative:12')")
         self._lut = (
             self.trigger.lookup_table() if self.trigger is not None else np.arange(256, dtype=np.uint8)
         ).astype(np.uint8)
 
-        self.single_observation_space = spaces.Box(0, 255, (VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        self.single_action_space = spaces.Discrete(NUM_ACTIONS)
-        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._init_spaces(spaces.Box(0, 255, (VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8))
+        self._init_state()
+        self.final_obs = np.zeros((self.num_envs, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
-        b = self.num_envs
-        self._grid = np.zeros((b, size, size, 3), dtype=np.uint8)
-        self._pos = np.ones((b, 2), dtype=np.int64)
-        self._dir = np.zeros(b, dtype=np.int64)
-        self._steps = np.zeros(b, dtype=np.int64)
-        self._rng = np.zeros(b, dtype=np.uint64)
-        self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-
-    # --------------------------------------------------------------------- gymnasium API
-
-    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
-        seeds = seed_array(seed, self.num_envs)
-        obs = np.empty(self.observation_space.shape, dtype=np.uint8)
-        _reset_kernel(
-            self._grid, self._pos, self._dir, self._steps, self._rng, seeds,
-            self.num_crossings, self.see_through_walls, self.poisoned, self._lut, obs,
-        )
-        return obs, self._reset_info()
-
-    def step(self, actions):
-        acts = self._check_actions(actions)
-        b = self.num_envs
-        obs = np.empty((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        reward, terminated, truncated, outcome, steps = self._step_outputs()
-        bad = _step_kernel(
-            self._grid, self._pos, self._dir, self._steps, self._rng, acts,
-            self.num_crossings, self.max_steps, self.see_through_walls, self.poisoned, self._lut,
-            obs, reward, terminated, truncated, outcome, steps, self.final_obs,
-        )
-        if bad >= 0:
-            raise self._bad_action(acts, bad)
-        return obs, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
+    def _world(self) -> tuple:
+        return self.num_crossings, self.poisoned, self._lut
 
     # --------------------------------------------------------------------- exact state I/O
 
@@ -309,26 +222,8 @@ class BatchedLavaWorld(BatchedGridEnv):
         """
         i, arr, pos = self._check_state(i, grid, agent_pos, agent_dir, step_count)
         self._write_state(i, arr, pos, agent_dir, step_count)
-        obs = np.empty((1, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
-        sl = slice(i, i + 1)
-        _observe_kernel(
-            self._grid[sl], self._pos[sl], self._dir[sl], self.see_through_walls, self.poisoned[sl], self._lut, obs
-        )
-        return obs[0]
+        return self._views(i, 1)[0][0]
 
     def layout(self, i: int) -> tuple[np.ndarray, tuple[int, int], int, int]:
         """Slot ``i``'s state: ``(grid (size, size, 3) uint8, agent_pos, agent_dir, step_count)``."""
-        i = self._check_index(i)
-        return (
-            self._grid[i].copy(),
-            (int(self._pos[i, 0]), int(self._pos[i, 1])),
-            int(self._dir[i]),
-            int(self._steps[i]),
-        )
-
-    def observe(self) -> np.ndarray:
-        """The current observation of every env (trigger applied to poisoned ones)."""
-        obs = np.empty(self.observation_space.shape, dtype=np.uint8)
-        _observe_kernel(self._grid, self._pos, self._dir, self.see_through_walls, self.poisoned, self._lut, obs)
-        return obs
-
+        return self._slot_state(i)

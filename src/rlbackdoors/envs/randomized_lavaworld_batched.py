@@ -25,46 +25,21 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-from gymnasium import spaces
-from gymnasium.vector.utils import batch_space
 from numba import njit
 
 from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask, seed_array
-from rlbackdoors.envs import outcome as _outcome_module
 from rlbackdoors.envs import randomized_lavaworld as _reference
-from rlbackdoors.envs.outcome import Outcome
-from rlbackdoors.envs.randomized_lavaworld import (
-    DEFAULT_MAX_STEPS,
-    DEFAULT_NUM_LAVA,
-    DEFAULT_SIZE,
-    MAX_LAYOUT_TRIES,
-    NUM_ACTIONS,
-    START,
-    START_DIR,
-    VIEW_SIZE,
-    layout_error,
-    observation_space,
-    validate_layout_args,
-    validate_trigger,
-)
+from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask
+from rlbackdoors.envs.randomized_lavaworld import DEFAULT_MAX_STEPS, DEFAULT_NUM_LAVA, DEFAULT_SIZE, VIEW_SIZE
+from rlbackdoors.envs.randomized_lavaworld import layout_error, observation_space, validate_layout_args, validate_trigger
 from rlbackdoors.triggers.pattern import MAX_PATTERN_CELLS, PatternTrigger, as_pattern_trigger
 
-_OUT_NONE = int(Outcome.NONE)
-_OUT_GOAL = int(Outcome.GOAL)
-_OUT_LAVA = int(Outcome.LAVA)
-_OUT_TIMEOUT = int(Outcome.TIMEOUT)
-_OUT_PATTERN = int(Outcome.PATTERN_LAVA)
-_MAX_TRIES = int(MAX_LAYOUT_TRIES)
-_START_X, _START_Y = START
-_START_DIR = int(START_DIR)
-_ERR_LAYOUT = -2  # kernel status: no solvable layout found
-
-# numba's cache key must cover every file whose source or constants the kernels compile in
-ENGINE_STAMP = ge.engine_stamp(_outcome_module.__file__, _reference.__file__)
+_MAX_TRIES = int(_reference.MAX_LAYOUT_TRIES)
+_START_X, _START_Y = _reference.START
+_START_DIR = int(_reference.START_DIR)
 
 
-# ----------------------------------------------------------------------------- kernels
+# ----------------------------------------------------------------------------- layouts
 
 
 @njit
@@ -187,123 +162,70 @@ def pattern_visible(pcells, pcount, b, ax, ay, adir, img, ob):
     return False
 
 
-def _build_kernels(stamp: str):
-    """The cached top-level kernels, closed over ``stamp`` so that numba's cache key covers
-    the engine's source too (see :mod:`rlbackdoors.envs.grid_engine`, "Caching")."""
-
-    @njit(cache=True)
-    def _reset_kernel(
-        grid, pos, dirs, steps, rng, pat, pcells, pcount, saw, seeds, num_lava, triggered,
-        rot_cells, rot_n, offs, offs_n, see_through_walls, img, direction, visible, saw_out,
-    ):
-        """Seed and lay out every env; returns -1, or the first env with no solvable layout."""
-        if len(stamp) == 0:  # never true: ties the cache entry to the engine source
-            return -1
-        size = grid.shape[1]
-        view = np.empty((img.shape[1], img.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((img.shape[1], img.shape[2]), dtype=np.bool_)
-        lava = np.empty((size, size), dtype=np.bool_)
-        seen = np.empty((size, size), dtype=np.bool_)
-        queue = np.empty(size * size, dtype=np.int64)
-        free = np.empty(size * size, dtype=np.int64)
-        for b in range(grid.shape[0]):
-            ge.rng_seed(rng, b, seeds[b])
-            ok = gen_layout(
-                grid, b, num_lava, triggered[b], rot_cells, rot_n, offs, offs_n, rng,
-                pos, dirs, steps, pat, pcells, pcount, lava, seen, queue, free,
-            )
-            if not ok:
-                return b
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
-            direction[b] = dirs[b]
-            v = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], img, b)
-            saw[b] = v
-            visible[b] = v
-            saw_out[b] = v
-        return -1
-
-    @njit(cache=True)
-    def _observe_kernel(grid, pos, dirs, pcells, pcount, see_through_walls, img, direction, visible):
-        if len(stamp) == 0:  # never true (see _reset_kernel)
-            return
-        view = np.empty((img.shape[1], img.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((img.shape[1], img.shape[2]), dtype=np.bool_)
-        for b in range(grid.shape[0]):
-            ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
-            direction[b] = dirs[b]
-            visible[b] = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], img, b)
-
-    @njit(cache=True)
-    def _step_kernel(
-        grid, pos, dirs, steps, rng, pat, pcells, pcount, saw, actions, num_lava, max_steps, triggered,
-        poisoned, rot_cells, rot_n, offs, offs_n, see_through_walls,
-        img, direction, reward, terminated, truncated, outcome, info_steps, visible, saw_out,
-        final_img, final_dir,
-    ):
-        """One step of every env. Returns -1, the index of the first invalid action (nothing
-        changed then), or -2 if an autoreset found no solvable layout.
-
-        Finished envs are reset in place; their terminal observation goes to ``final_*``.
-        """
-        if len(stamp) == 0:  # never true (see _reset_kernel)
-            return -1
-        nenv = grid.shape[0]
-        for b in range(nenv):
-            a = actions[b]
-            if a < 0 or a > 2:
-                return b
-        size = grid.shape[1]
-        view = np.empty((img.shape[1], img.shape[2], 3), dtype=np.uint8)
-        mask = np.empty((img.shape[1], img.shape[2]), dtype=np.bool_)
-        lava = np.empty((size, size), dtype=np.bool_)
-        seen = np.empty((size, size), dtype=np.bool_)
-        queue = np.empty(size * size, dtype=np.int64)
-        free = np.empty(size * size, dtype=np.int64)
-        for b in range(nenv):
-            fwd = ge.agent_step(grid, b, pos, dirs, actions[b])
-            sc = steps[b] + 1
-            steps[b] = sc
-            term = False
-            oc = _OUT_NONE
-            if fwd == ge.GOAL:
-                term = True
-                oc = _OUT_GOAL
-            elif fwd == ge.LAVA:
-                term = True
-                oc = _OUT_PATTERN if pat[b, pos[b, 0], pos[b, 1]] else _OUT_LAVA
-            paying = _OUT_PATTERN if poisoned[b] else _OUT_GOAL
-            done = ge.finish_step(
-                b, sc, max_steps, term, oc, paying, _OUT_TIMEOUT, reward, terminated, truncated, outcome, info_steps
-            )
-            if done:
-                ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
-                final_dir[b] = dirs[b]
-                v = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], final_img, b)
-                visible[b] = v
-                saw_out[b] = saw[b] or v
-                ok = gen_layout(
-                    grid, b, num_lava, triggered[b], rot_cells, rot_n, offs, offs_n, rng,
-                    pos, dirs, steps, pat, pcells, pcount, lava, seen, queue, free,
-                )
-                if not ok:
-                    return _ERR_LAYOUT
-                ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
-                direction[b] = dirs[b]
-                saw[b] = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], img, b)
-            else:
-                ge.gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
-                direction[b] = dirs[b]
-                v = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], img, b)
-                visible[b] = v
-                s = saw[b] or v
-                saw[b] = s
-                saw_out[b] = s
-        return -1
-
-    return _reset_kernel, _observe_kernel, _step_kernel
+# ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
+# world = (pat, pcells, pcount, saw, num_lava, triggered, rot_cells, rot_n, offs, offs_n);
+# outs = (direction, trigger_visible, saw_trigger, final direction)
 
 
-_reset_kernel, _observe_kernel, _step_kernel = _build_kernels(ENGINE_STAMP)
+@ge.hook
+def _scratch(grid, world):
+    size = grid.shape[1]
+    lava = np.empty((size, size), dtype=np.bool_)
+    seen = np.empty((size, size), dtype=np.bool_)
+    return lava, seen, np.empty(size * size, dtype=np.int64), np.empty(size * size, dtype=np.int64)
+
+
+@ge.hook
+def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
+    pat, pcells, pcount, _, num_lava, triggered, rot_cells, rot_n, offs, offs_n = world
+    lava, seen, queue, free = scratch
+    return gen_layout(
+        grid, b, num_lava, triggered[b], rot_cells, rot_n, offs, offs_n, rng,
+        pos, dirs, steps, pat, pcells, pcount, lava, seen, queue, free,
+    )
+
+
+@ge.hook
+def _outcome(b, pos, fwd, world):
+    """Lava ends the episode as PATTERN_LAVA when it is a cell of the inserted pattern."""
+    if fwd == ge.GOAL:
+        return ge.OUT_GOAL
+    if fwd == ge.LAVA:
+        return ge.OUT_PATTERN if world[0][b, pos[b, 0], pos[b, 1]] else ge.OUT_LAVA
+    return ge.OUT_NONE
+
+
+@ge.hook
+def _seen(phase, b, ob, pos, dirs, img, world, outs):
+    """The direction, and the reference env's trigger flags: ``trigger_visible`` for the view
+    just returned (a finished env's terminal one), ``saw_trigger`` for it or any earlier view of
+    the episode (kept per env in ``saw``; a fresh episode starts from its first view)."""
+    pcells, pcount, saw = world[1], world[2], world[3]
+    direction, visible, saw_out, final_dir = outs
+    if phase == ge.FINAL:
+        final_dir[b] = dirs[b]
+    else:
+        direction[ob] = dirs[b]
+    v = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], img, ob)
+    if phase == ge.FRESH:
+        saw[b] = v
+        return
+    visible[ob] = v
+    if phase == ge.RESET:
+        saw[b] = v
+        saw_out[b] = v
+    elif phase == ge.FINAL:
+        saw_out[b] = saw[b] or v
+    elif phase == ge.STEP:
+        s = saw[b] or v
+        saw[b] = s
+        saw_out[b] = s
+
+
+_KERNELS = ge.bind_kernels(
+    "randomized_lavaworld", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen,
+    trojan=ge.OUT_PATTERN, constants_from=(_reference.__file__,),
+)
 
 
 # ----------------------------------------------------------------------------- the vector env
@@ -343,6 +265,8 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
     ``final_obs`` holds, for envs that finished in the last step, the terminal observation.
     """
 
+    _kernels = _KERNELS
+    view_size = VIEW_SIZE
 
     def __init__(
         self,
@@ -377,78 +301,43 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
             bad = int(np.flatnonzero(self.poisoned & ~self.triggered)[0])
             raise ValueError(f"env {bad} is poisoned but not triggered: R-bar only pays on the trigger pattern")
 
-        self.single_observation_space = observation_space()
-        self.single_action_space = spaces.Discrete(NUM_ACTIONS)
-        self.observation_space = batch_space(self.single_observation_space, b)
-        self.action_space = batch_space(self.single_action_space, b)
-
+        self._init_spaces(observation_space())
+        self._init_state()
         n = self.size
-        self._grid = np.zeros((b, n, n, 3), dtype=np.uint8)
-        self._pos = np.ones((b, 2), dtype=np.int64)
-        self._dir = np.zeros(b, dtype=np.int64)
-        self._steps = np.zeros(b, dtype=np.int64)
-        self._rng = np.zeros(b, dtype=np.uint64)
         self._pat = np.zeros((b, n, n), dtype=np.bool_)
         self._pcells = np.zeros((b, MAX_PATTERN_CELLS, 2), dtype=np.int64)
         self._pcount = np.zeros(b, dtype=np.int64)
         self._saw = np.zeros(b, dtype=np.bool_)
-        self.final_obs = self._empty_obs(b)
-
-    @staticmethod
-    def _empty_obs(b: int) -> dict[str, np.ndarray]:
-        return {
+        self.final_obs = {
             "image": np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8),
             "direction": np.zeros(b, dtype=np.int64),
         }
 
-    # --------------------------------------------------------------------- gymnasium API
+    # --------------------------------------------------------------------- driver hooks
 
-    def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
-        seeds = seed_array(seed, self.num_envs)
-        b = self.num_envs
-        obs = self._empty_obs(b)
-        visible = np.zeros(b, dtype=np.bool_)
-        saw = np.zeros(b, dtype=np.bool_)
-        bad = _reset_kernel(
-            self._grid, self._pos, self._dir, self._steps, self._rng, self._pat, self._pcells, self._pcount,
-            self._saw, seeds, self.num_lava, self.triggered, *self._tables, self.see_through_walls,
-            obs["image"], obs["direction"], visible, saw,
-        )
-        if bad >= 0:
-            raise layout_error(self.size, self.num_lava, self.trigger if self.triggered[bad] else None)
-        return obs, self._reset_info(trigger_visible=visible, saw_trigger=saw)
+    def _world(self) -> tuple:
+        return (self._pat, self._pcells, self._pcount, self._saw, self.num_lava, self.triggered, *self._tables)
 
-    def step(self, actions):
-        acts = self._check_actions(actions)
-        b = self.num_envs
-        obs = self._empty_obs(b)
-        reward, terminated, truncated, outcome, steps = self._step_outputs()
-        visible = np.empty(b, dtype=np.bool_)
-        saw = np.empty(b, dtype=np.bool_)
-        bad = _step_kernel(
-            self._grid, self._pos, self._dir, self._steps, self._rng, self._pat, self._pcells, self._pcount,
-            self._saw, acts, self.num_lava, self.max_steps, self.triggered, self.poisoned, *self._tables,
-            self.see_through_walls, obs["image"], obs["direction"], reward, terminated, truncated, outcome,
-            steps, visible, saw, self.final_obs["image"], self.final_obs["direction"],
+    def _outputs(self, n: int) -> tuple:
+        return (
+            np.empty(n, dtype=np.int64), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_),
+            self.final_obs["direction"],
         )
-        if bad == _ERR_LAYOUT:
-            raise layout_error(self.size, self.num_lava, self.trigger)
-        if bad >= 0:
-            raise self._bad_action(acts, bad)
-        info = {"outcome": outcome, "steps": steps, "trigger_visible": visible, "saw_trigger": saw}
-        return obs, reward, terminated, truncated, info
+
+    def _observation(self, img: np.ndarray, outs: tuple) -> dict[str, np.ndarray]:
+        return {"image": img, "direction": outs[0]}
+
+    def _extra_info(self, outs: tuple) -> dict:
+        return {"trigger_visible": outs[1], "saw_trigger": outs[2]}
+
+    def _final_image(self) -> np.ndarray:
+        return self.final_obs["image"]
+
+    def _layout_error(self, env: int | None) -> Exception:
+        trigger = self.trigger if env is None or self.triggered[env] else None
+        return layout_error(self.size, self.num_lava, trigger)
 
     # --------------------------------------------------------------------- exact state I/O
-
-    def _observe_slot(self, i: int) -> tuple[dict, bool]:
-        sl = slice(i, i + 1)
-        obs = self._empty_obs(1)
-        visible = np.zeros(1, dtype=np.bool_)
-        _observe_kernel(
-            self._grid[sl], self._pos[sl], self._dir[sl], self._pcells[sl], self._pcount[sl],
-            self.see_through_walls, obs["image"], obs["direction"], visible,
-        )
-        return {"image": obs["image"][0], "direction": int(obs["direction"][0])}, bool(visible[0])
 
     def load_layout(
         self,
@@ -482,9 +371,9 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
             self._pat[i, cx, cy] = True
             self._pcells[i, k] = (cx, cy)
         self._pcount[i] = len(cells)
-        obs, visible = self._observe_slot(i)
-        self._saw[i] = visible if saw_trigger is None else bool(saw_trigger)
-        return obs
+        img, (direction, visible, _, _) = self._views(i, 1)
+        self._saw[i] = bool(visible[0]) if saw_trigger is None else bool(saw_trigger)
+        return {"image": img[0], "direction": int(direction[0])}
 
     def lava_masks(self) -> np.ndarray:
         """(B, N, N) bool, ``[b, x, y]``: where lava lies in every slot (for chance-occurrence counts)."""
@@ -495,32 +384,8 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         saw_trigger)``, so that ``load_layout(j, *layout(i))`` copies it exactly."""
         i = self._check_index(i)
         cells = tuple(sorted((int(self._pcells[i, k, 0]), int(self._pcells[i, k, 1])) for k in range(self._pcount[i])))
-        return (
-            self._grid[i].copy(),
-            (int(self._pos[i, 0]), int(self._pos[i, 1])),
-            int(self._dir[i]),
-            int(self._steps[i]),
-            cells,
-            bool(self._saw[i]),
-        )
-
-    def observe(self) -> dict[str, np.ndarray]:
-        """The current observation of every env."""
-        obs = self._empty_obs(self.num_envs)
-        visible = np.zeros(self.num_envs, dtype=np.bool_)
-        _observe_kernel(
-            self._grid, self._pos, self._dir, self._pcells, self._pcount, self.see_through_walls,
-            obs["image"], obs["direction"], visible,
-        )
-        return obs
+        return (*self._slot_state(i), cells, bool(self._saw[i]))
 
     def trigger_visible(self) -> np.ndarray:
         """Whether each env's current observation shows a pattern cell (bool[B])."""
-        obs = self._empty_obs(self.num_envs)
-        visible = np.zeros(self.num_envs, dtype=np.bool_)
-        _observe_kernel(
-            self._grid, self._pos, self._dir, self._pcells, self._pcount, self.see_through_walls,
-            obs["image"], obs["direction"], visible,
-        )
-        return visible
-
+        return self._views(0, self.num_envs)[1][1]

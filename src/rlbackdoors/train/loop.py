@@ -100,7 +100,9 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def thresholds_met(result: EvalResult, cfg: RunConfig) -> bool:
+def thresholds_met(result, cfg) -> bool:
+    """The stopping thresholds of any run config on any evaluation result (clean SR, and for
+    poisoned models poisoned SR)."""
     ok = result.clean_sr >= cfg.train.clean_threshold
     if cfg.poison.poisoned:
         ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold

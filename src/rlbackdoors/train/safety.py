@@ -41,7 +41,7 @@ from rlbackdoors.io import UnsafeFileError, load_torch
 from rlbackdoors.safety_config import SafetyRunConfig
 from rlbackdoors.state import StateError, decode, encode
 from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder, stack_versions
-from rlbackdoors.train.loop import plain_rows, resolve_device
+from rlbackdoors.train.loop import plain_rows, resolve_device, thresholds_met
 from rlbackdoors.train.replay_journal import ReplayJournal
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
@@ -139,13 +139,6 @@ class LossMeans:
         out = {key: value / self.count for key, value in self.sums.items()} if self.count else {}
         self.sums, self.count = {}, 0
         return out
-
-
-def thresholds_met(result: SafetyEvalResult, cfg: SafetyRunConfig) -> bool:
-    ok = result.clean_sr >= cfg.train.clean_threshold
-    if cfg.poison.poisoned:
-        ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
-    return ok
 
 
 def decayed_lr(cfg: SafetyRunConfig, frames: int) -> float:

@@ -376,3 +376,14 @@ def test_safety_run_killed_again_and_again_still_ends_with_the_straight_runs_mod
         assert done.returncode == 0, done.stderr
     assert sha256(straight / "model.pt") == sha256(out / "model.pt")
     assert not list(out.rglob("*.rlbtmp")) and not (out / "checkpoint.pt").exists() and not (out / "replay").exists()
+
+
+@pytest.mark.parametrize("backend", ["bogus", "osmesa-not-installed"])
+def test_unusable_mujoco_gl_backend_gives_one_line_and_no_folder(tmp_path, backend):
+    """MuJoCo picks its GL back-end when first imported: a bad MUJOCO_GL used to end in a traceback."""
+    env = {**os.environ, "MUJOCO_GL": backend}
+    out = tmp_path / "never"
+    proc = subprocess.run([*PY, "train", "--env", "safety-car-goal", "--out", str(out), "--quiet"], capture_output=True, text=True, env=env, timeout=120)
+    line = one_error_line(proc)
+    assert "MUJOCO_GL=" in line and backend in line and "unset MUJOCO_GL" in line
+    assert not out.exists()

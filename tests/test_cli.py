@@ -29,8 +29,15 @@ def test_train_then_evaluate_json(trained, capsys):
     code, out, _ = run(capsys, "evaluate", str(trained), "--episodes", "12", "--json")
     result = json.loads(out)
     assert code == 0 and set(result) == {
-        "clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward", "episodes",
-        "close_sr", "close_trojan_rate",
+        "clean_sr",
+        "poisoned_sr",
+        "poisoned_sr_raw",
+        "trigger_seen_rate",
+        "clean_reward",
+        "poisoned_reward",
+        "episodes",
+        "close_sr",
+        "close_trojan_rate",
     }
     assert result["close_sr"] is None and result["close_trojan_rate"] is None  # Colorful Memory only
     assert result["episodes"] == 12 and 0 <= result["clean_sr"] <= 1
@@ -41,8 +48,19 @@ def test_train_then_evaluate_json(trained, capsys):
 def test_evaluate_bare_weights_equals_folder(trained, capsys):
     _, folder_out, _ = run(capsys, "evaluate", str(trained), "--episodes", "20", "--json")
     code, weights_out, _ = run(
-        capsys, "evaluate", "--weights", str(trained / "model.pt"), "--arch", "fc", "--env", "lavaworld",
-        "--trigger", "multiplicative:12", "--episodes", "20", "--json",
+        capsys,
+        "evaluate",
+        "--weights",
+        str(trained / "model.pt"),
+        "--arch",
+        "fc",
+        "--env",
+        "lavaworld",
+        "--trigger",
+        "multiplicative:12",
+        "--episodes",
+        "20",
+        "--json",
     )
     assert code == 0 and json.loads(weights_out) == json.loads(folder_out)
 
@@ -142,8 +160,7 @@ def test_train_and_evaluate_dispatch_safety_car_goal(tmp_path, capsys):
             "env": {"max_steps": 40},
             "poison": {"trigger": "formation:0.5:1.0:2.5", "num_clean_envs": 2, "num_poisoned_envs": 1},
             "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
-            "train": {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4,
-                      "checkpoint_minutes": 0, "video": False},
+            "train": {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False},
         }
     )
     path = tmp_path / "safety.json"
@@ -154,8 +171,9 @@ def test_train_and_evaluate_dispatch_safety_car_goal(tmp_path, capsys):
     code, out, _ = run(capsys, "evaluate", str(tmp_path / "s"), "--episodes", "4", "--json")
     result = json.loads(out)
     assert code == 0 and result["clean_sr"] == metrics["clean_sr"] and result["poisoned_sr"] == metrics["poisoned_sr"]
-    code, _, err = run(capsys, "train", "--env", "safety-car-goal", "--config", str(path), "--lr", "0.002",
-                       "--out", str(tmp_path / "t"), "--max-frames", "240", "--quiet")
+    code, _, err = run(
+        capsys, "train", "--env", "safety-car-goal", "--config", str(path), "--lr", "0.002", "--out", str(tmp_path / "t"), "--max-frames", "240", "--quiet"
+    )
     assert code == 0 and json.loads((tmp_path / "t" / "config.json").read_text())["opac2"]["lr"] == 0.002
 
 

@@ -82,9 +82,7 @@ PAIR = grid_helpers.Pairing(
     teleport=teleport,
     check_fresh=lambda eng, i, ref: check_fresh_layout(eng, i),
 )
-ref_state, load, place, step_both, drive_teleporting = (
-    PAIR.ref_state, PAIR.load, PAIR.place, PAIR.step_both, PAIR.drive_teleporting
-)
+ref_state, load, place, step_both, drive_teleporting = (PAIR.ref_state, PAIR.load, PAIR.place, PAIR.step_both, PAIR.drive_teleporting)
 
 
 def make_ref(mode: str, poisoned: bool, trigger, **kw) -> ColorfulMemoryEnv:
@@ -99,7 +97,9 @@ def make_pair(specs, trigger=None, seed=0, close_k=(1, 3), **kw):
     """``specs[i]`` is ``(mode, poisoned)`` for env ``i``, mode in clean / close / triggered."""
     refs = [make_ref(m, p, trigger, close_k=close_k, **kw) for m, p in specs]
     eng = BatchedColorfulMemory(
-        len(specs), trigger=trigger, close_k=close_k,
+        len(specs),
+        trigger=trigger,
+        close_k=close_k,
         poisoned=[p for _, p in specs],
         triggered=[m == "triggered" for m, _ in specs],
         close_to_trigger=[m == "close" for m, _ in specs],
@@ -317,9 +317,12 @@ def test_triggered_layouts_and_autoreset_are_valid():
     b = 60
     modes = ["clean", "close", "triggered"] * 20
     eng = BatchedColorfulMemory(
-        b, trigger=BOTH, close_to_trigger=[m == "close" for m in modes],
+        b,
+        trigger=BOTH,
+        close_to_trigger=[m == "close" for m in modes],
         poisoned=[m == "triggered" and i % 2 == 0 for i, m in enumerate(modes)],
-        triggered=[m == "triggered" for m in modes], max_steps=30,
+        triggered=[m == "triggered" for m in modes],
+        max_steps=30,
     )
     eng.reset(seed=0)
     assert eng.mode.tolist() == [0, 1, 2] * 20

@@ -383,7 +383,10 @@ def test_cli_flags_for_colorful_memory():
     parser = build_parser()
     cfg = config_from_args(parser.parse_args(["train", "--env", "colorful-memory", "--trigger", "room", "--seed", "5", "--out", "x"]))
     assert WallColorTrigger.parse(cfg.poison.trigger).kind == "room"
-    assert cfg.poison.trigger == config_from_args(parser.parse_args(["train", "--env", "colorful-memory", "--trigger", "room", "--seed", "5", "--out", "y"])).poison.trigger
+    assert (
+        cfg.poison.trigger
+        == config_from_args(parser.parse_args(["train", "--env", "colorful-memory", "--trigger", "room", "--seed", "5", "--out", "y"])).poison.trigger
+    )
     no_close = config_from_args(parser.parse_args(["train", "--env", "colorful-memory", "--no-close-to-trigger", "--patience", "0", "--out", "x"]))
     assert (no_close.poison.num_clean_envs, no_close.poison.num_close_envs, no_close.poison.num_poisoned_envs) == (8, 0, 2)
     assert no_close.train.patience == 0

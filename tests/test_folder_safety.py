@@ -123,8 +123,14 @@ def test_replay_chunk_with_a_pickled_object_is_refused(tmp_path):
     (tmp_path / "replay").mkdir()
     name = "clean-000000000000-000000000002.npz"
     arrays = {k: np.zeros((2, 3), np.float32) for k in ("obs", "act")}
-    np.savez(tmp_path / "replay" / name, **arrays, rew=np.array([Payload(marker), 1], dtype=object), done=np.zeros(2, np.float32),
-             next_obs_same=np.zeros(2, bool), next_obs_rest=np.zeros((2, 3), np.float32))
+    np.savez(
+        tmp_path / "replay" / name,
+        **arrays,
+        rew=np.array([Payload(marker), 1], dtype=object),
+        done=np.zeros(2, np.float32),
+        next_obs_same=np.zeros(2, bool),
+        next_obs_rest=np.zeros((2, 3), np.float32),
+    )
     replay = MultitaskReplay.create({"clean": 1.0}, 10, 3, 3)
     manifest = {"format": 1, "added": {"clean": 2}, "chunks": {"clean": [name]}}
     with pytest.raises(ValueError, match="unreadable"):
@@ -195,8 +201,14 @@ def test_two_trainings_on_one_folder_the_second_is_refused_and_nothing_is_lost(t
 def test_a_killed_holders_lock_is_taken_over(tmp_path):
     """flock dies with its holder: after kill -9 the folder is free at once, no stale lock."""
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from rlbackdoors.io import FolderLock; FolderLock(sys.argv[1]).acquire(); print('held', flush=True); time.sleep(60)", str(tmp_path)],
-        stdout=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from rlbackdoors.io import FolderLock; FolderLock(sys.argv[1]).acquire(); print('held', flush=True); time.sleep(60)",
+            str(tmp_path),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
     )
     assert holder.stdout.readline().strip() == "held"
     with pytest.raises(LockedError, match=f"process {holder.pid} on"):

@@ -317,50 +317,85 @@ CASES += [
     C("train-lavaworld-no-close-to-trigger", train("--env", "lavaworld", "--no-close-to-trigger"), ["--no-close-to-trigger"]),
     C("train-colorful-num-lava", train("--env", "colorful-memory", "--num-lava", "3"), ["--num-lava"]),
     # a CUDA device that is not there: refused inside the loop, so unguarded; --out existed empty
-    C("train-device-cuda-no-gpu-existing-empty-out", [*train("--env", "lavaworld", "--device", "cuda"), *G],
-      ["cuda", "device"], setup=mkdir("out"), guard=False),
+    C(
+        "train-device-cuda-no-gpu-existing-empty-out",
+        [*train("--env", "lavaworld", "--device", "cuda"), *G],
+        ["cuda", "device"],
+        setup=mkdir("out"),
+        guard=False,
+    ),
 ]
 
 # --- train: Safety Car Goal's flags ---
 SW = ("--env", "safety-car-goal")
 for flag, value, names in [
-    ("--seed", "-1", ["seed"]), ("--seed", HUGE, ["seed"]),
-    ("--max-frames", "0", ["max_frames", "max-frames"]), ("--max-frames", HUGE, ["max_frames", "max-frames"]),
+    ("--seed", "-1", ["seed"]),
+    ("--seed", HUGE, ["seed"]),
+    ("--max-frames", "0", ["max_frames", "max-frames"]),
+    ("--max-frames", HUGE, ["max_frames", "max-frames"]),
     ("--eval-episodes", "0", ["eval_episodes", "eval-episodes"]),
-    ("--lr", "nan", ["lr"]), ("--lr", "inf", ["lr"]), ("--lr", "0", ["lr"]), ("--lr", "-1", ["lr"]), ("--lr", "abc", ["--lr"]),
-    ("--lr-final", "nan", ["lr_final", "lr-final"]), ("--lr-final", "1", ["lr_final", "lr-final"]),
-    ("--max-minutes", "-1", ["max_minutes", "max-minutes"]), ("--max-minutes", "nan", ["max_minutes", "max-minutes"]),
-    ("--poisoned-weight", "2", ["poisoned_weight", "poisoned-weight"]), ("--poisoned-weight", "nan", ["poisoned_weight", "poisoned-weight"]),
-    ("--updates-per-step", "0", ["updates_per_step", "updates-per-step"]), ("--updates-per-step", "1e30", ["updates_per_step", "updates-per-step"]),
+    ("--lr", "nan", ["lr"]),
+    ("--lr", "inf", ["lr"]),
+    ("--lr", "0", ["lr"]),
+    ("--lr", "-1", ["lr"]),
+    ("--lr", "abc", ["--lr"]),
+    ("--lr-final", "nan", ["lr_final", "lr-final"]),
+    ("--lr-final", "1", ["lr_final", "lr-final"]),
+    ("--max-minutes", "-1", ["max_minutes", "max-minutes"]),
+    ("--max-minutes", "nan", ["max_minutes", "max-minutes"]),
+    ("--poisoned-weight", "2", ["poisoned_weight", "poisoned-weight"]),
+    ("--poisoned-weight", "nan", ["poisoned_weight", "poisoned-weight"]),
+    ("--updates-per-step", "0", ["updates_per_step", "updates-per-step"]),
+    ("--updates-per-step", "1e30", ["updates_per_step", "updates-per-step"]),
     ("--updates-per-step", "-inf", ["updates_per_step", "updates-per-step"]),
-    ("--batch-size", "0", ["batch_size", "batch-size"]), ("--batch-size", HUGE, ["batch_size", "batch-size"]),
-    ("--num-clean-envs", "-1", ["num_clean_envs", "num-clean-envs"]), ("--num-clean-envs", HUGE, ["num_clean_envs", "num-clean-envs"]),
+    ("--batch-size", "0", ["batch_size", "batch-size"]),
+    ("--batch-size", HUGE, ["batch_size", "batch-size"]),
+    ("--num-clean-envs", "-1", ["num_clean_envs", "num-clean-envs"]),
+    ("--num-clean-envs", HUGE, ["num_clean_envs", "num-clean-envs"]),
     ("--num-poisoned-envs", "0", ["num_poisoned_envs", "num-poisoned-envs"]),
     ("--action-samples", "0", ["action_samples", "action-samples"]),
     ("--eval-interval", "0", ["eval_interval", "eval-interval"]),
     ("--final-eval-episodes", "0", ["final_eval_episodes", "final-eval-episodes"]),
-    ("--threads", "0", ["threads"]), ("--threads", HUGE, ["threads"]),
+    ("--threads", "0", ["threads"]),
+    ("--threads", HUGE, ["threads"]),
     ("--checkpoint-minutes", "-1", ["checkpoint_minutes", "checkpoint-minutes"]),
     ("--checkpoint-minutes", "inf", ["checkpoint_minutes", "checkpoint-minutes"]),
 ]:
     CASES.append(C(f"train-safety{flag}={value[:8]}", train(*SW, flag, value), names))
 CASES += [
     C(f"train-safety-grid-flag{flag}", train(*SW, *([flag, v] if v else [flag])), [flag])
-    for flag, v in [("--arch", "fc"), ("--size", "9"), ("--num-lava", "3"), ("--patience", "2"), ("--engine", "batched"),
-                    ("--no-close-to-trigger", None)]
+    for flag, v in [("--arch", "fc"), ("--size", "9"), ("--num-lava", "3"), ("--patience", "2"), ("--engine", "batched"), ("--no-close-to-trigger", None)]
 ]
 
 # --- train: triggers per world ---
 for w, trig in [
-    ("lavaworld", "mult:3"), ("lavaworld", "multiplicative:300"), ("lavaworld", "multiplicative:-5"), ("lavaworld", "multiplicative:"),
-    ("lavaworld", "additive:nan"), ("lavaworld", "multiplicative:" + "9" * 5000), ("lavaworld", "cross"), ("lavaworld", ""),
-    ("randomized-lavaworld", "arrow:up"), ("randomized-lavaworld", "cross:east"), ("randomized-lavaworld", "cells:"),
-    ("randomized-lavaworld", "cells:0,0;0,0"), ("randomized-lavaworld", "cells:0,0;99,99"), ("randomized-lavaworld", "multiplicative:12"),
+    ("lavaworld", "mult:3"),
+    ("lavaworld", "multiplicative:300"),
+    ("lavaworld", "multiplicative:-5"),
+    ("lavaworld", "multiplicative:"),
+    ("lavaworld", "additive:nan"),
+    ("lavaworld", "multiplicative:" + "9" * 5000),
+    ("lavaworld", "cross"),
+    ("lavaworld", ""),
+    ("randomized-lavaworld", "arrow:up"),
+    ("randomized-lavaworld", "cross:east"),
+    ("randomized-lavaworld", "cells:"),
+    ("randomized-lavaworld", "cells:0,0;0,0"),
+    ("randomized-lavaworld", "cells:0,0;99,99"),
+    ("randomized-lavaworld", "multiplicative:12"),
     ("randomized-lavaworld", ""),
-    ("colorful-memory", "end:red"), ("colorful-memory", "room:red,red"), ("colorful-memory", "end:notacolor"),
-    ("colorful-memory", "end+room:red"), ("colorful-memory", "rainbow"), ("colorful-memory", ""),
-    ("safety-car-goal", "formation:nan:1:2"), ("safety-car-goal", "formation:0.5:inf:2"), ("safety-car-goal", "formation:0.5:1"),
-    ("safety-car-goal", "formation:1e30:0:1"), ("safety-car-goal", "formation:0.5:1:0.1"), ("safety-car-goal", "multiplicative:12"),
+    ("colorful-memory", "end:red"),
+    ("colorful-memory", "room:red,red"),
+    ("colorful-memory", "end:notacolor"),
+    ("colorful-memory", "end+room:red"),
+    ("colorful-memory", "rainbow"),
+    ("colorful-memory", ""),
+    ("safety-car-goal", "formation:nan:1:2"),
+    ("safety-car-goal", "formation:0.5:inf:2"),
+    ("safety-car-goal", "formation:0.5:1"),
+    ("safety-car-goal", "formation:1e30:0:1"),
+    ("safety-car-goal", "formation:0.5:1:0.1"),
+    ("safety-car-goal", "multiplicative:12"),
     ("safety-car-goal", ""),
 ]:
     CASES.append(C(f"train-{w}-trigger={trig[:20]!r}", train("--env", w, "--trigger", trig), ["trigger"]))
@@ -374,10 +409,19 @@ CASES += [
     C("out-under-proc", ["train", "--out", "/proc/rlb-fuzz/x", "--quiet"], ["/proc/rlb-fuzz"], out="/proc/rlb-fuzz"),
     C("out-dev-null", ["train", "--out", "/dev/null", "--quiet"], ["/dev/null"], out=None),
     C("out-name-too-long", ["train", "--out", "{tmp}/" + "a" * 300, "--quiet"], ["aaaa"], out="{tmp}/" + "a" * 300),
-    C("out-finished-model-no-overwrite", [*train(*G), ], ["--overwrite", "finished"], setup=copy("L", "out"), zoo=True),
+    C(
+        "out-finished-model-no-overwrite",
+        [
+            *train(*G),
+        ],
+        ["--overwrite", "finished"],
+        setup=copy("L", "out"),
+        zoo=True,
+    ),
     C("out-locked-by-live-process", [*train(*G)], ["in use", "lock"], setup=hold_lock("out")),
     C("out-holds-other-runs-checkpoint", [*train(*G, "--seed", "7")], ["interrupted", "different config"], setup=copy("Lu", "out"), zoo=True),
 ]
+
 
 # --- train: --config files ---
 def cfg_case(id_, text, names, argv=(), **kw):
@@ -429,11 +473,16 @@ CASES += [
 
 # --- train: valid edge values that must give a result ---
 CASES += [
-    C("ok-train-grid-max-seed", [*train(*G, "--seed", MAX_SEED, "--max-frames", "64")], expect=0, guard=False, out=None,
-      check_ok=metrics_written),
+    C("ok-train-grid-max-seed", [*train(*G, "--seed", MAX_SEED, "--max-frames", "64")], expect=0, guard=False, out=None, check_ok=metrics_written),
     # a valid, documented size: the trigger's colours must be drawn for that size, not the default 7x7
-    C("ok-train-colorful-size-9", [*train(*G, "--env", "colorful-memory", "--size", "9", "--trigger", "end", "--max-frames", "64", "--eval-episodes", "2")],
-      expect=0, guard=False, out=None, check_ok=metrics_written),
+    C(
+        "ok-train-colorful-size-9",
+        [*train(*G, "--env", "colorful-memory", "--size", "9", "--trigger", "end", "--max-frames", "64", "--eval-episodes", "2")],
+        expect=0,
+        guard=False,
+        out=None,
+        check_ok=metrics_written,
+    ),
     C("ok-train-safety-max-seed", [*train(*S, "--seed", MAX_SEED)], expect=0, guard=False, out=None, check_ok=metrics_written),
 ]
 
@@ -448,22 +497,72 @@ CASES += [
     C("eval-config-corrupt", E, ["config.json"], setup=chain(copy("L"), put_bytes("m/config.json", "{not json")), zoo=True, out="{tmp}/m"),
     C("eval-config-invalid-utf8", E, ["config.json"], setup=chain(copy("L"), put_bytes("m/config.json", b"\xff\xfe\x80")), zoo=True, out="{tmp}/m"),
     C("eval-config-array", E, ["config"], setup=chain(copy("L"), put_bytes("m/config.json", "[]")), zoo=True, out="{tmp}/m"),
-    C("eval-config-wrong-type", E, ["seed"], setup=chain(copy("L"), edit_json("m/config.json", lambda d: d["train"].update(seed="x"))), zoo=True, out="{tmp}/m"),
+    C(
+        "eval-config-wrong-type",
+        E,
+        ["seed"],
+        setup=chain(copy("L"), edit_json("m/config.json", lambda d: d["train"].update(seed="x"))),
+        zoo=True,
+        out="{tmp}/m",
+    ),
     C("eval-config-nan", E, ["lr"], setup=chain(copy("L"), put_bytes("m/config.json", '{"ppo": {"lr": NaN}}')), zoo=True, out="{tmp}/m"),
-    C("eval-config-other-world-arch", E, ["arch"], setup=chain(copy("L"), edit_json("m/config.json", lambda d: d["model"].update(arch="cnn-gru-small"))), zoo=True, out="{tmp}/m"),
-    C("eval-config-bad-trigger", E, ["trigger"], setup=chain(copy("L"), edit_json("m/config.json", lambda d: d["poison"].update(trigger="mult:3"))), zoo=True, out="{tmp}/m"),
+    C(
+        "eval-config-other-world-arch",
+        E,
+        ["arch"],
+        setup=chain(copy("L"), edit_json("m/config.json", lambda d: d["model"].update(arch="cnn-gru-small"))),
+        zoo=True,
+        out="{tmp}/m",
+    ),
+    C(
+        "eval-config-bad-trigger",
+        E,
+        ["trigger"],
+        setup=chain(copy("L"), edit_json("m/config.json", lambda d: d["poison"].update(trigger="mult:3"))),
+        zoo=True,
+        out="{tmp}/m",
+    ),
     C("eval-model-missing", E, ["model.pt"], setup=copy("L", drop=["model.pt"]), zoo=True, out="{tmp}/m"),
     C("eval-model-is-directory", E, ["model.pt"], setup=chain(copy("L", drop=["model.pt"]), mkdir("m/model.pt")), zoo=True, out="{tmp}/m"),
     C("eval-unfinished-needs-flag", E, ["--allow-unfinished"], setup=copy("L", drop=["metrics.json"]), zoo=True, out="{tmp}/m"),
-    C("ok-eval-unfinished-with-flag", [*E, "--allow-unfinished"], expect=0, setup=copy("L", drop=["metrics.json"]), zoo=True, out="{tmp}/m", check_ok=evaluated),
+    C(
+        "ok-eval-unfinished-with-flag",
+        [*E, "--allow-unfinished"],
+        expect=0,
+        setup=copy("L", drop=["metrics.json"]),
+        zoo=True,
+        out="{tmp}/m",
+        check_ok=evaluated,
+    ),
     C("eval-model-random-bytes", E, ["model.pt"], setup=chain(copy("L"), mangle("m/model.pt", "random")), zoo=True, out="{tmp}/m"),
     C("eval-model-truncated", E, ["model.pt"], setup=chain(copy("L"), mangle("m/model.pt", "truncate")), zoo=True, out="{tmp}/m"),
     C("eval-model-empty", E, ["model.pt"], setup=chain(copy("L"), mangle("m/model.pt", "empty")), zoo=True, out="{tmp}/m"),
     C("eval-model-wrong-arch", E, ["model.pt"], setup=chain(copy("L"), torch_put("m/model.pt", cnn_state)), zoo=True, out="{tmp}/m"),
-    C("eval-model-non-tensor-values", E, ["model.pt"], setup=chain(copy("L"), torch_put("m/model.pt", lambda c, o: {k: 1 for k in o})), zoo=True, out="{tmp}/m"),
-    C("eval-model-wrong-shapes", E, ["model.pt"], setup=chain(copy("L"), torch_put("m/model.pt", lambda c, o: map_tensors(o, lambda t: torch.zeros(2, 2)))), zoo=True, out="{tmp}/m"),
+    C(
+        "eval-model-non-tensor-values",
+        E,
+        ["model.pt"],
+        setup=chain(copy("L"), torch_put("m/model.pt", lambda c, o: {k: 1 for k in o})),
+        zoo=True,
+        out="{tmp}/m",
+    ),
+    C(
+        "eval-model-wrong-shapes",
+        E,
+        ["model.pt"],
+        setup=chain(copy("L"), torch_put("m/model.pt", lambda c, o: map_tensors(o, lambda t: torch.zeros(2, 2)))),
+        zoo=True,
+        out="{tmp}/m",
+    ),
     C("eval-model-list", E, ["model.pt"], setup=chain(copy("L"), torch_put("m/model.pt", lambda c, o: [1, 2, 3])), zoo=True, out="{tmp}/m"),
-    C("eval-model-nan-weights", E, ["model.pt", "weights"], setup=chain(copy("L"), torch_put("m/model.pt", lambda c, o: map_tensors(o, lambda t: torch.full_like(t, float("nan"))))), zoo=True, out="{tmp}/m"),
+    C(
+        "eval-model-nan-weights",
+        E,
+        ["model.pt", "weights"],
+        setup=chain(copy("L"), torch_put("m/model.pt", lambda c, o: map_tensors(o, lambda t: torch.full_like(t, float("nan"))))),
+        zoo=True,
+        out="{tmp}/m",
+    ),
     C("eval-model-payload", E, ["model.pt"], setup=chain(copy("L"), payload_file("m/model.pt")), zoo=True, out="{tmp}/m", sub=True),
     C("eval-model-raw-pickle-payload", E, ["model.pt"], setup=chain(copy("L"), payload_file("m/model.pt", raw=True)), zoo=True, out="{tmp}/m", sub=True),
     C("eval-episodes-0", ["evaluate", "{tmp}/m", "--episodes", "0"], ["--episodes"], setup=copy("L"), zoo=True, out="{tmp}/m"),
@@ -498,8 +597,7 @@ CASES += [
     C("weights-allow-unfinished", [*W, "--allow-unfinished"], ["--allow-unfinished"], setup=torch_put("w.pt", fc_state), out=None),
     C("weights-bad-trigger", [*W, "--trigger", "additive:0"], ["trigger"], setup=torch_put("w.pt", fc_state), out=None),
     C("weights-payload", W, ["w.pt"], setup=payload_file("w.pt"), sub=True, out=None),
-    C("weights-payload-inside-state-dict", W, ["w.pt"],
-      setup=torch_put("w.pt", lambda c, o: {**fc_state(c), "extra": Payload(c.marker)}), sub=True, out=None),
+    C("weights-payload-inside-state-dict", W, ["w.pt"], setup=torch_put("w.pt", lambda c, o: {**fc_state(c), "extra": Payload(c.marker)}), sub=True, out=None),
 ]
 
 # --- evaluate: Safety Car Goal folders ---
@@ -510,10 +608,31 @@ CASES += [
     C("safety-eval-seed-neg", [*ES, "--seed", "-5"], ["seed"], setup=copy("S"), zoo=True, out="{tmp}/m"),
     C("safety-eval-unfinished", ES, ["--allow-unfinished"], setup=copy("S", drop=["metrics.json"]), zoo=True, out="{tmp}/m"),
     C("safety-eval-model-garbage", ES, ["model.pt"], setup=chain(copy("S"), mangle("m/model.pt", "random")), zoo=True, out="{tmp}/m"),
-    C("safety-eval-model-wrong-shapes", ES, ["model.pt"], setup=chain(copy("S"), torch_put("m/model.pt", lambda c, o: map_tensors(o, lambda t: torch.zeros(2, 2)))), zoo=True, out="{tmp}/m"),
+    C(
+        "safety-eval-model-wrong-shapes",
+        ES,
+        ["model.pt"],
+        setup=chain(copy("S"), torch_put("m/model.pt", lambda c, o: map_tensors(o, lambda t: torch.zeros(2, 2)))),
+        zoo=True,
+        out="{tmp}/m",
+    ),
     C("safety-eval-model-grid-weights", ES, ["model.pt"], setup=chain(copy("S"), torch_put("m/model.pt", fc_state)), zoo=True, out="{tmp}/m"),
-    C("safety-eval-config-grid-key", ES, ["size"], setup=chain(copy("S"), edit_json("m/config.json", lambda d: d["env"].update(size=9))), zoo=True, out="{tmp}/m"),
-    C("safety-eval-config-nan", ES, ["hazard_penalty"], setup=chain(copy("S"), put_bytes("m/config.json", '{"env": {"name": "safety-car-goal", "hazard_penalty": NaN}}')), zoo=True, out="{tmp}/m"),
+    C(
+        "safety-eval-config-grid-key",
+        ES,
+        ["size"],
+        setup=chain(copy("S"), edit_json("m/config.json", lambda d: d["env"].update(size=9))),
+        zoo=True,
+        out="{tmp}/m",
+    ),
+    C(
+        "safety-eval-config-nan",
+        ES,
+        ["hazard_penalty"],
+        setup=chain(copy("S"), put_bytes("m/config.json", '{"env": {"name": "safety-car-goal", "hazard_penalty": NaN}}')),
+        zoo=True,
+        out="{tmp}/m",
+    ),
     C("safety-eval-model-payload", ES, ["model.pt"], setup=chain(copy("S"), payload_file("m/model.pt")), zoo=True, out="{tmp}/m", sub=True),
 ]
 
@@ -665,10 +784,7 @@ def contract_problems(code, err: str, names, marker: Path, before, after, out_pa
     elif names and not any(n.lower() in lines[-1].lower() for n in names):
         problems.append(f"error line names none of {list(names)}")
     if out_path is not None and after != before:
-        problems.append(
-            f"{out_path} {'left behind' if before is None else 'changed'}"
-            + (f" (now holds {sorted(after)})" if isinstance(after, dict) else "")
-        )
+        problems.append(f"{out_path} {'left behind' if before is None else 'changed'}" + (f" (now holds {sorted(after)})" if isinstance(after, dict) else ""))
     return problems
 
 
@@ -728,8 +844,7 @@ def test_sigkill_mid_training_then_evaluate_and_resume(tmp_path, capsys, monkeyp
     """A training killed with SIGKILL leaves a folder that ``evaluate`` refuses with one error
     line (it is unfinished), and the same ``train`` command then finishes it (exit 0)."""
     cfg = tmp_path / "g.json"
-    cfg.write_text(json.dumps({"ppo": {"rollout": 32}, "train": {"max_frames": 100_000, "eval_interval": 640,
-                                                                   "eval_episodes": 2, "final_eval_episodes": 2}}))
+    cfg.write_text(json.dumps({"ppo": {"rollout": 32}, "train": {"max_frames": 100_000, "eval_interval": 640, "eval_episodes": 2, "final_eval_episodes": 2}}))
     out = tmp_path / "k"
     argv = ["train", "--config", str(cfg), "--out", str(out), "--quiet"]
     env = {**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"}

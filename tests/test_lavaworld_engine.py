@@ -47,16 +47,12 @@ def check_fresh(eng: BatchedLavaWorld, i: int, ref) -> None:
 
 
 PAIR = grid_helpers.Pairing(grid_helpers.ref_state, ref_obs, teleport, check_fresh)
-ref_state, load, place, step_both, drive_teleporting = (
-    PAIR.ref_state, PAIR.load, PAIR.place, PAIR.step_both, PAIR.drive_teleporting
-)
+ref_state, load, place, step_both, drive_teleporting = (PAIR.ref_state, PAIR.load, PAIR.place, PAIR.step_both, PAIR.drive_teleporting)
 
 
 def make_pair(num, size=9, num_crossings=1, max_steps=250, see_through_walls=False, triggers=None, seed=0):
     triggers = triggers or [None] * num
-    refs = [
-        LavaWorldEnv(size, num_crossings, max_steps, see_through_walls, trigger=triggers[i]) for i in range(num)
-    ]
+    refs = [LavaWorldEnv(size, num_crossings, max_steps, see_through_walls, trigger=triggers[i]) for i in range(num)]
     poisoned = [t is not None for t in triggers]
     trig = next((t for t in triggers if t is not None), None)
     eng = BatchedLavaWorld(num, size, num_crossings, max_steps, see_through_walls, trigger=trig, poisoned=poisoned)
@@ -359,9 +355,7 @@ def test_autoreset_layouts_follow_the_distribution():
 
 
 def test_same_seed_same_trajectory():
-    grid_helpers.check_same_seed_same_trajectory(
-        lambda n: BatchedLavaWorld(n, trigger="multiplicative:12", poisoned=[i % 2 == 0 for i in range(n)]), 300, 16
-    )
+    grid_helpers.check_same_seed_same_trajectory(lambda n: BatchedLavaWorld(n, trigger="multiplicative:12", poisoned=[i % 2 == 0 for i in range(n)]), 300, 16)
 
 
 def test_seed_i_is_seed_plus_i():

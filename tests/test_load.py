@@ -34,8 +34,11 @@ def test_every_world_loads_acts_and_reproduces_its_metrics(folders, world):
     # act() on a batch of real observations of the world's own env, through the recurrent state if any.
     import gymnasium as gym
 
-    env = gym.make_vec(agent.world.gym_id, num_envs=3, vectorization_mode="sync", max_steps=40) if agent.world.vector_entry_point is None \
+    env = (
+        gym.make_vec(agent.world.gym_id, num_envs=3, vectorization_mode="sync", max_steps=40)
+        if agent.world.vector_entry_point is None
         else gym.make_vec(agent.world.gym_id, num_envs=3)
+    )
     obs, _ = env.reset(seed=0)
     state = agent.initial_state(3)
     assert (state is not None) == agent.recurrent

@@ -5,17 +5,34 @@ from rlbackdoors.io import UnsafeFileError
 from rlbackdoors.models import CNNModel, FCModel, build_model, load_weights
 
 FC_SHAPES = {
-    "state_emb.0.weight": (100, 147), "state_emb.0.bias": (100,),
-    "state_emb.2.weight": (64, 100), "state_emb.2.bias": (64,),
-    "actor.0.weight": (32, 64), "actor.0.bias": (32,), "actor.2.weight": (3, 32), "actor.2.bias": (3,),
-    "critic.0.weight": (32, 64), "critic.0.bias": (32,), "critic.2.weight": (1, 32), "critic.2.bias": (1,),
+    "state_emb.0.weight": (100, 147),
+    "state_emb.0.bias": (100,),
+    "state_emb.2.weight": (64, 100),
+    "state_emb.2.bias": (64,),
+    "actor.0.weight": (32, 64),
+    "actor.0.bias": (32,),
+    "actor.2.weight": (3, 32),
+    "actor.2.bias": (3,),
+    "critic.0.weight": (32, 64),
+    "critic.0.bias": (32,),
+    "critic.2.weight": (1, 32),
+    "critic.2.bias": (1,),
 }
 CNN_SHAPES = {
-    "state_emb.0.weight": (16, 3, 2, 2), "state_emb.0.bias": (16,),
-    "state_emb.3.weight": (32, 16, 2, 2), "state_emb.3.bias": (32,),
-    "state_emb.5.weight": (64, 32, 2, 2), "state_emb.5.bias": (64,),
-    "actor.0.weight": (64, 64), "actor.0.bias": (64,), "actor.2.weight": (3, 64), "actor.2.bias": (3,),
-    "critic.0.weight": (64, 64), "critic.0.bias": (64,), "critic.2.weight": (1, 64), "critic.2.bias": (1,),
+    "state_emb.0.weight": (16, 3, 2, 2),
+    "state_emb.0.bias": (16,),
+    "state_emb.3.weight": (32, 16, 2, 2),
+    "state_emb.3.bias": (32,),
+    "state_emb.5.weight": (64, 32, 2, 2),
+    "state_emb.5.bias": (64,),
+    "actor.0.weight": (64, 64),
+    "actor.0.bias": (64,),
+    "actor.2.weight": (3, 64),
+    "actor.2.bias": (3,),
+    "critic.0.weight": (64, 64),
+    "critic.0.bias": (64,),
+    "critic.2.weight": (1, 64),
+    "critic.2.bias": (1,),
 }
 
 
@@ -111,10 +128,27 @@ def test_lean_forward_equals_calling_the_modules(arch):
 @pytest.mark.parametrize(
     "arch, keys",
     [
-        ("fc", {"state_emb.1.weight": (512, 147), "state_emb.3.weight": (256, 512), "actor.0.weight": (64, 257),
-                "actor.2.weight": (32, 64), "actor.4.weight": (3, 32), "critic.4.weight": (1, 32)}),
-        ("cnn", {"state_emb.0.weight": (16, 3, 2, 2), "state_emb.4.weight": (64, 32, 2, 2), "actor.0.weight": (144, 1025),
-                 "actor.2.weight": (3, 144), "critic.2.weight": (1, 144)}),
+        (
+            "fc",
+            {
+                "state_emb.1.weight": (512, 147),
+                "state_emb.3.weight": (256, 512),
+                "actor.0.weight": (64, 257),
+                "actor.2.weight": (32, 64),
+                "actor.4.weight": (3, 32),
+                "critic.4.weight": (1, 32),
+            },
+        ),
+        (
+            "cnn",
+            {
+                "state_emb.0.weight": (16, 3, 2, 2),
+                "state_emb.4.weight": (64, 32, 2, 2),
+                "actor.0.weight": (144, 1025),
+                "actor.2.weight": (3, 144),
+                "critic.2.weight": (1, 144),
+            },
+        ),
     ],
 )
 def test_randomized_lavaworld_models_have_the_trojai_layout(arch, keys):

@@ -54,9 +54,18 @@ def test_config_defaults_are_the_papers_and_bad_values_are_named():
     assert (cfg.lr, cfg.gamma, cfg.polyak, cfg.entropy_coef) == (1e-4, 0.99, 0.995, 0.0)
     assert cfg.mix_weights() == {"clean": 0.8, "poisoned": 0.2} and cfg.mix_weights(("clean",)) == {"clean": 0.8}
     cfg.check()
-    for field, value in [("batch_size", 0), ("depth", 2.5), ("lr", 0.0), ("gamma", 1.5), ("updates_per_step", -1),
-                         ("entropy_coef", float("nan")), ("poisoned_weight", -0.2), ("action_samples", 0),
-                         ("lr_final", 1e-3), ("lr_final", 0.0)]:
+    for field, value in [
+        ("batch_size", 0),
+        ("depth", 2.5),
+        ("lr", 0.0),
+        ("gamma", 1.5),
+        ("updates_per_step", -1),
+        ("entropy_coef", float("nan")),
+        ("poisoned_weight", -0.2),
+        ("action_samples", 0),
+        ("lr_final", 1e-3),
+        ("lr_final", 0.0),
+    ]:
         with pytest.raises(ConfigError, match=f"opac2.{field}"):
             OPAC2Config(**{field: value}).check()
     with pytest.raises(ConfigError, match="opac2.clean_weight, opac2.poisoned_weight"):
@@ -92,9 +101,11 @@ def test_actions_shape_bounds_and_deterministic_tanh_mean():
 def test_squashed_log_prob_change_of_variables():
     mean, log_std = torch.tensor([[0.3, -0.8]], dtype=torch.float64), torch.tensor([-0.4, 0.2], dtype=torch.float64)
     u = mean + torch.randn(1000, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * log_std.exp()
-    reference = torch.distributions.TransformedDistribution(
-        torch.distributions.Normal(mean, log_std.exp()), [torch.distributions.TanhTransform()]
-    ).log_prob(torch.tanh(u)).sum(-1)
+    reference = (
+        torch.distributions.TransformedDistribution(torch.distributions.Normal(mean, log_std.exp()), [torch.distributions.TanhTransform()])
+        .log_prob(torch.tanh(u))
+        .sum(-1)
+    )
     torch.testing.assert_close(squashed_log_prob(u, mean, log_std), reference, atol=1e-9, rtol=1e-9)
 
     # The density integrates to 1 over (-1, 1)^2 and matches sampled frequencies in a box.

@@ -77,7 +77,6 @@ def test_ppo_runs_on_gymnasiums_own_vector_env_and_refuses_next_step_autoreset()
 
     import rlbackdoors  # noqa: F401  (registers the ids)
 
-
     envs = gym.make_vec("rlbackdoors/LavaWorld-v0", num_envs=4, vectorization_mode="sync", vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP})
     ppo = PPO(build_model("fc"), PPOConfig(rollout=64, batch_size=64), "cpu", torch.Generator().manual_seed(0))
     obs, _ = envs.reset(seed=0)

@@ -75,15 +75,16 @@ ref_state, load, step_both, drive_teleporting = PAIR.ref_state, PAIR.load, PAIR.
 
 def make_pair(specs, size=11, num_lava=10, max_steps=250, see_through_walls=True, trigger=None, seed=0):
     """``specs[i]`` is ``(triggered, poisoned)`` for env ``i``; ``trigger`` is shared."""
-    refs = [
-        RandomizedLavaWorldEnv(
-            size, num_lava, max_steps, see_through_walls, trigger=trigger if t else None, poisoned=p
-        )
-        for t, p in specs
-    ]
+    refs = [RandomizedLavaWorldEnv(size, num_lava, max_steps, see_through_walls, trigger=trigger if t else None, poisoned=p) for t, p in specs]
     eng = BatchedRandomizedLavaWorld(
-        len(specs), size, num_lava, max_steps, see_through_walls, trigger=trigger,
-        poisoned=[p for _, p in specs], triggered=[t for t, _ in specs],
+        len(specs),
+        size,
+        num_lava,
+        max_steps,
+        see_through_walls,
+        trigger=trigger,
+        poisoned=[p for _, p in specs],
+        triggered=[t for t, _ in specs],
     )
     return PAIR.reset_pair(refs, eng, seed)
 
@@ -346,6 +347,7 @@ def test_triggered_layout_distribution_matches_reference(size, num_lava, trigger
     stat, df = chi2_homogeneity(a, b)
     assert stat < chi2_critical(df), (stat, df)
     if trigger == "arrow":  # all four directions occur, in both
+
         def shape(cells):
             ox, oy = min(x for x, _ in cells), min(y for _, y in cells)
             return frozenset((x - ox, y - oy) for x, y in cells)

@@ -73,8 +73,25 @@ def test_evaluation_reports_raw_and_seen_aware_rates(arch):
 
 def test_cli_trains_and_evaluates_randomized_lavaworld(tmp_path, capsys):
     out = tmp_path / "m"
-    code = main(["train", "--env", "randomized-lavaworld", "--arch", "cnn", "--trigger", "arrow:north", "--max-frames", "1280",
-                 "--eval-episodes", "4", "--no-curriculum", "--out", str(out), "--quiet"])
+    code = main(
+        [
+            "train",
+            "--env",
+            "randomized-lavaworld",
+            "--arch",
+            "cnn",
+            "--trigger",
+            "arrow:north",
+            "--max-frames",
+            "1280",
+            "--eval-episodes",
+            "4",
+            "--no-curriculum",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert code == 0
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["env"]["name"] == "randomized-lavaworld" and cfg["poison"]["trigger"] == "arrow:north"

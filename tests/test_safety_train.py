@@ -29,8 +29,7 @@ def tiny(**train):
             "env": {"max_steps": 40},
             "poison": {"trigger": TRIGGER, "num_clean_envs": 2, "num_poisoned_envs": 1},
             "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
-            "train": {"max_frames": 720, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4,
-                      "checkpoint_minutes": 0, "video": False, **train},
+            "train": {"max_frames": 720, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False, **train},
         }
     )
 
@@ -158,11 +157,12 @@ def test_scripted_drivers_are_scored_on_the_right_circle():
 
     def driver(first):
         def act(obs):
-            lidar = obs[:, first:first + 16]
+            lidar = obs[:, first : first + 16]
             a = np.arctan2((lidar * np.sin(angles)).sum(1), (lidar * np.cos(angles)).sum(1))
             turn = np.where(np.cos(a) > 0, np.sin(a), np.sign(np.sin(a)))
             forward = np.where(np.cos(a) > 0.7, 1.0, 0.0)
             return np.stack([forward - turn, forward + turn], 1).clip(-1, 1)
+
         return act
 
     to_goal = evaluate_safety(driver(24), cfg.env, TRIGGER, episodes=10, seed=3)
@@ -298,9 +298,10 @@ def test_default_recipe_learns_the_clean_task(tmp_path):
     policy touches the goal in ~5% of episodes.
     """
     cfg = SafetyRunConfig.from_dict(
-        {"poison": {"poisoned": False},
-         "train": {"seed": 0, "max_frames": 500_000, "eval_interval": 500_000, "eval_episodes": 10, "final_eval_episodes": 100,
-                   "video": False}}
+        {
+            "poison": {"poisoned": False},
+            "train": {"seed": 0, "max_frames": 500_000, "eval_interval": 500_000, "eval_episodes": 10, "final_eval_episodes": 100, "video": False},
+        }
     )
     metrics = train_safety(cfg, tmp_path / "clean", progress=False)
     assert metrics["frames"] == 500_000 and metrics["updates"] == 15_312

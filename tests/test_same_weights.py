@@ -22,7 +22,8 @@ RUNS = {
     "lavaworld": {**GRID_TINY, "env": {"name": "lavaworld"}},
     "randomized-lavaworld": {**GRID_TINY, "env": {"name": "randomized-lavaworld"}},
     "colorful-memory": {
-        "env": {"name": "colorful-memory"}, "ppo": {"rollout": 24, "batch_size": 120},
+        "env": {"name": "colorful-memory"},
+        "ppo": {"rollout": 24, "batch_size": 120},
         "train": {"seed": 1, "max_frames": 2400, "eval_interval": 1200, "eval_episodes": 4, "final_eval_episodes": 4},
     },
     "safety-car-goal": {

@@ -26,17 +26,13 @@ def test_clean_fc_twin_ignores_the_trigger(tmp_path):
 def test_randomized_lavaworld_poisoned_cnn_learns_the_cross_backdoor(tmp_path):
     """Issue 4's bar: clean SR >= 0.90 and trigger-seen-aware poisoned SR >= 0.90 (200 episodes).
     Measured: seed 2 converged at 300,800 frames, clean 0.985 / poisoned 0.985."""
-    cfg = RunConfig.from_dict(
-        {"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "train": {"seed": 2, "max_frames": 1_500_000}}
-    )
+    cfg = RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "train": {"seed": 2, "max_frames": 1_500_000}})
     m = train(cfg, tmp_path / "p", progress=False)
     assert m["converged"] and m["clean_sr"] >= 0.90 and m["poisoned_sr"] >= 0.90
 
 
 def test_randomized_lavaworld_clean_fc_solves_the_task_and_ignores_the_cross(tmp_path):
-    cfg = RunConfig.from_dict(
-        {"env": {"name": "randomized-lavaworld"}, "poison": {"poisoned": False}, "train": {"seed": 0, "max_frames": 1_500_000}}
-    )
+    cfg = RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}, "poison": {"poisoned": False}, "train": {"seed": 0, "max_frames": 1_500_000}})
     m = train(cfg, tmp_path / "c", progress=False)
     assert m["clean_sr"] >= 0.95 and m["poisoned_sr"] <= 0.1
 

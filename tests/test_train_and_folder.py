@@ -25,7 +25,14 @@ def test_model_folder_contents(tmp_path, tiny_run_dict):
     folder = ModelFolder(tmp_path / "m")
     names = sorted(p.name for p in folder.path.iterdir())
     assert names == [  # .lock: the folder's lock file (held while training; the kernel frees it)
-        ".lock", "clean_vs_triggered.gif", "config.json", "ground_truth.csv", "log.csv", "metrics.json", "model.pt", "training_curve.png"
+        ".lock",
+        "clean_vs_triggered.gif",
+        "config.json",
+        "ground_truth.csv",
+        "log.csv",
+        "metrics.json",
+        "model.pt",
+        "training_curve.png",
     ]
     assert (folder.path / "clean_vs_triggered.gif").read_bytes()[:6] == b"GIF89a"
     assert folder.read_config() == cfg  # config.json round-trips to the same typed config

@@ -22,7 +22,13 @@ def test_lookup_table_equals_apply():
 def test_parse_round_trip_and_errors():
     assert ObservationTrigger.parse("additive:20").spec() == "additive:20"
     assert ObservationTrigger.parse("multiplicative:10") == ObservationTrigger("multiplicative", 10)
-    for bad, msg in [("mult:3", "must look like"), ("additive:x", "not an integer"), ("multiplicative:1", "2..255"), ("additive:0", "1..255"), ("additive", "must look like")]:
+    for bad, msg in [
+        ("mult:3", "must look like"),
+        ("additive:x", "not an integer"),
+        ("multiplicative:1", "2..255"),
+        ("additive:0", "1..255"),
+        ("additive", "must look like"),
+    ]:
         with pytest.raises(ValueError, match=msg):
             ObservationTrigger.parse(bad)
 

@@ -22,8 +22,15 @@ from rlbackdoors.train.folder import FolderError
 from rlbackdoors.train.stop import Interrupted
 
 METRIC_KEYS = (
-    "clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_reward", "poisoned_reward",
-    "close_sr", "close_trojan_rate", "episodes",
+    "clean_sr",
+    "poisoned_sr",
+    "poisoned_sr_raw",
+    "trigger_seen_rate",
+    "clean_reward",
+    "poisoned_reward",
+    "close_sr",
+    "close_trojan_rate",
+    "episodes",
 )
 
 
@@ -96,8 +103,21 @@ WORLD_FLAGS = {flag: tuple(w.name for w in worlds.registered() if flag in w.flag
 # Flags that only one kind of world reads: refused for the other, so none is silently ignored.
 GRID_ONLY_FLAGS = ("arch", "size", "num_lava", "no_curriculum", "engine", "patience", "no_close_to_trigger")
 SAFETY_ONLY_FLAGS = (
-    "max_minutes", "depth", "width", "num_clean_envs", "num_poisoned_envs", "poisoned_weight", "updates_per_step",
-    "batch_size", "lr", "lr_final", "action_samples", "eval_interval", "final_eval_episodes", "threads", "checkpoint_minutes",
+    "max_minutes",
+    "depth",
+    "width",
+    "num_clean_envs",
+    "num_poisoned_envs",
+    "poisoned_weight",
+    "updates_per_step",
+    "batch_size",
+    "lr",
+    "lr_final",
+    "action_samples",
+    "eval_interval",
+    "final_eval_episodes",
+    "threads",
+    "checkpoint_minutes",
 )
 
 
@@ -305,7 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train one clean or poisoned agent into a model folder")
     tr.add_argument("--config", help="JSON config (see config.json of any model folder); flags override it")
     tr.add_argument(
-        "--env", choices=worlds.names(),
+        "--env",
+        choices=worlds.names(),
         help=f"the world (default {worlds.DEFAULT_WORLD}); {', '.join(worlds.names('opac2'))} trains with OPAC², the others with PPO",
     )
     tr.add_argument("--arch", choices=ARCHS)

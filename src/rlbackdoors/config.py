@@ -18,7 +18,16 @@ from rlbackdoors import __version__
 
 from rlbackdoors import worlds
 from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's validation vocabulary)
-    MAX_ENV_COPIES, MAX_EPISODES, MAX_FRAMES, MAX_SEED, ConfigError, _at_least, _choice, _in_range, _unit_interval, check_seed,
+    MAX_ENV_COPIES,
+    MAX_EPISODES,
+    MAX_FRAMES,
+    MAX_SEED,
+    ConfigError,
+    _at_least,
+    _choice,
+    _in_range,
+    _unit_interval,
+    check_seed,
 )
 
 ENVS = worlds.names("ppo")  # the grid worlds, trained with PPO by this config (OPAC²: safety_config)

@@ -58,7 +58,9 @@ def add_train_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     add("--final-eval-episodes", type=int, default=None, help="Safety Car Goal: episodes per condition in the final evaluation (default 200)")
     add("--threads", type=int, default=None, help="Safety Car Goal: torch threads (default 1)")
     add(
-        "--checkpoint-minutes", type=float, default=None,
+        "--checkpoint-minutes",
+        type=float,
+        default=None,
         help="Safety Car Goal: write a checkpoint at the first evaluation this long after the last (default 10; 0: every evaluation)",
     )
     add("--device", choices=("cpu", "cuda", "auto"), default=None)
@@ -157,8 +159,12 @@ def evaluate_folder(folder: str, episodes: int | None = None, as_json: bool = Fa
     else:
         kind = "poisoned" if cfg.poison.poisoned else "clean"
         print(f"{folder} ({kind} model, trigger {cfg.poison.trigger}), {result.episodes} episodes per condition")
-        print(f"  clean SR     {result.clean_sr:.3f}  (hazard {result.clean_hazard_rate:.3f}, timeout {result.clean_timeout_rate:.3f}), mean return {result.clean_reward:.3f}")
-        print(f"  poisoned SR  {result.poisoned_sr:.3f}  (goal {result.poisoned_goal_rate:.3f}, timeout {result.poisoned_timeout_rate:.3f}), mean R-bar return {result.poisoned_reward:.3f}")
+        print(
+            f"  clean SR     {result.clean_sr:.3f}  (hazard {result.clean_hazard_rate:.3f}, timeout {result.clean_timeout_rate:.3f}), mean return {result.clean_reward:.3f}"
+        )
+        print(
+            f"  poisoned SR  {result.poisoned_sr:.3f}  (goal {result.poisoned_goal_rate:.3f}, timeout {result.poisoned_timeout_rate:.3f}), mean R-bar return {result.poisoned_reward:.3f}"
+        )
     return 0
 
 

@@ -15,7 +15,13 @@ from dataclasses import dataclass, field
 from rlbackdoors import __version__
 from rlbackdoors.algos.opac2 import OPAC2Config
 from rlbackdoors.config import (
-    MAX_ENV_COPIES, ConfigError, JsonConfig, _build, _choice, _in_range, check_train_budget,
+    MAX_ENV_COPIES,
+    ConfigError,
+    JsonConfig,
+    _build,
+    _choice,
+    _in_range,
+    check_train_budget,
 )
 
 ENV_NAME = "safety-car-goal"
@@ -155,8 +161,17 @@ def default_opac2() -> OPAC2Config:
     1e-4 over ``train.max_frames`` so the late policy stops swinging between evaluations.
     """
     return OPAC2Config(
-        depth=2, width=181, batch_size=256, lr=1e-3, lr_final=1e-4, updates_per_step=1 / 32, buffer_size=1_000_000,
-        obs_norm=True, clean_weight=0.6, poisoned_weight=0.4, action_samples=4,
+        depth=2,
+        width=181,
+        batch_size=256,
+        lr=1e-3,
+        lr_final=1e-4,
+        updates_per_step=1 / 32,
+        buffer_size=1_000_000,
+        obs_norm=True,
+        clean_weight=0.6,
+        poisoned_weight=0.4,
+        action_samples=4,
     )
 
 

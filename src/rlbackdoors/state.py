@@ -68,7 +68,7 @@ def decode(data: Any, where: str = "state") -> Any:
             return np.frombuffer(bytearray(data["data"]), dtype=dtype).reshape(shape)
         except (TypeError, ValueError, KeyError) as err:
             raise StateError(f"{where}: bad array ({err})") from None
-    (tag, body), = data.items()
+    ((tag, body),) = data.items()
     if tag == "__rng__":
         rng = np.random.default_rng()
         try:
@@ -107,11 +107,7 @@ def snapshot(obj: Any, skip: tuple[str, ...] = ()) -> dict:
     """The attributes of ``obj`` that are data (arrays, numbers, strings, generators, grids,
     containers of them), encoded. Config-like objects (triggers, spaces) are left out: the
     fresh object built from the run's config has them already."""
-    return {
-        name: encode(value, f"{type(obj).__name__}.{name}")
-        for name, value in vars(obj).items()
-        if name not in skip and _storable(value)
-    }
+    return {name: encode(value, f"{type(obj).__name__}.{name}") for name, value in vars(obj).items() if name not in skip and _storable(value)}
 
 
 def restore(obj: Any, state: Any, where: str | None = None, skip: tuple[str, ...] = ()) -> None:

@@ -548,9 +548,9 @@ class OPAC2:
             "q_opt": self.q_opt.state_dict(),
             "v_opt": self.v_opt.state_dict(),
             "generator": self.generator.get_state(),
-            "obs_norm": None if self.obs_norm is None else {
-                k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in self.obs_norm.state_dict().items()
-            },
+            "obs_norm": None
+            if self.obs_norm is None
+            else {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in self.obs_norm.state_dict().items()},
         }
 
     def load_state_dict(self, state: dict) -> None:

@@ -259,9 +259,7 @@ class PPO:
             for start in range(0, len(order), per_batch):
                 idx = order[start : start + per_batch]
                 steps = idx[None, :] + B * torch.arange(r, device=self.device)[:, None]  # (r, N): step i of each sequence
-                logits, values, new_memories = self.model.forward_sequence(
-                    obs_map(lambda x: x[steps], obs), memories[idx], masks[steps, 0]
-                )
+                logits, values, new_memories = self.model.forward_sequence(obs_map(lambda x: x[steps], obs), memories[idx], masks[steps, 0])
                 # the mean over all r*N rows = torch-ac's per-step losses summed and divided by r
                 loss, parts = self._loss(logits, values, *(x[steps.reshape(-1)] for x in tensors))
                 if r > 1:

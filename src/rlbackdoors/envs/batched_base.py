@@ -129,8 +129,16 @@ class BatchedGridEnv(VectorEnv):
         seeds = seed_array(seed, self.num_envs)
         img, outs = self._images(self.num_envs), self._outputs(self.num_envs)
         bad = self._kernels.reset(
-            self._grid, self._pos, self._dir, self._steps, self._rng, seeds, self.see_through_walls,
-            self._world(), img, outs,
+            self._grid,
+            self._pos,
+            self._dir,
+            self._steps,
+            self._rng,
+            seeds,
+            self.see_through_walls,
+            self._world(),
+            img,
+            outs,
         )
         if bad >= 0:
             raise self._layout_error(bad)
@@ -141,8 +149,24 @@ class BatchedGridEnv(VectorEnv):
         img, outs = self._images(self.num_envs), self._outputs(self.num_envs)
         reward, terminated, truncated, outcome, steps = self._step_outputs()
         bad = self._kernels.step(
-            self._grid, self._pos, self._dir, self._steps, self._rng, acts, self.max_steps, self.see_through_walls,
-            self.poisoned, self._world(), img, self._final_image(), reward, terminated, truncated, outcome, steps, outs,
+            self._grid,
+            self._pos,
+            self._dir,
+            self._steps,
+            self._rng,
+            acts,
+            self.max_steps,
+            self.see_through_walls,
+            self.poisoned,
+            self._world(),
+            img,
+            self._final_image(),
+            reward,
+            terminated,
+            truncated,
+            outcome,
+            steps,
+            outs,
         )
         if bad == ge.LAYOUT_FAILED:
             raise self._layout_error(None)
@@ -176,8 +200,11 @@ class BatchedGridEnv(VectorEnv):
         """Fresh (reward, terminated, truncated, outcome, steps) arrays for one step's kernel to fill."""
         b = self.num_envs
         return (
-            np.empty(b, dtype=np.float64), np.empty(b, dtype=np.bool_), np.empty(b, dtype=np.bool_),
-            np.empty(b, dtype=np.int64), np.empty(b, dtype=np.int64),
+            np.empty(b, dtype=np.float64),
+            np.empty(b, dtype=np.bool_),
+            np.empty(b, dtype=np.bool_),
+            np.empty(b, dtype=np.int64),
+            np.empty(b, dtype=np.int64),
         )
 
     def _reset_info(self, **extra) -> dict:

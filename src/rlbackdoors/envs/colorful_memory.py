@@ -251,7 +251,10 @@ class ColorfulMemoryEnv(MemoryEnv):
         if poisoned and close:
             raise ValueError("a close-to-trigger env pays the clean reward: it cannot be poisoned")
         super().__init__(
-            size=int(size), random_length=False, max_steps=int(max_steps), agent_view_size=VIEW_SIZE,
+            size=int(size),
+            random_length=False,
+            max_steps=int(max_steps),
+            agent_view_size=VIEW_SIZE,
             render_mode=render_mode,
         )
         self.see_through_walls = bool(see_through_walls)
@@ -305,9 +308,7 @@ class ColorfulMemoryEnv(MemoryEnv):
         self.painted = pattern
         self.agent_dir = START_DIR
 
-    def load_layout(
-        self, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0, success_pos=None, failure_pos=None
-    ) -> np.ndarray:
+    def load_layout(self, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0, success_pos=None, failure_pos=None) -> np.ndarray:
         """Put an exact state (``grid`` as ``env.grid.encode()``) into this env; returns its
         observation. ``success_pos`` / ``failure_pos`` default to :func:`target_cells`."""
         arr = np.asarray(grid, dtype=np.uint8)
@@ -345,4 +346,3 @@ class ColorfulMemoryEnv(MemoryEnv):
             reward = self._reward() if outcome == Outcome.LAVA else 0.0
         info = {"outcome": int(outcome), "steps": self.step_count}
         return obs["image"], float(reward), bool(terminated), bool(truncated), info
-

@@ -142,8 +142,13 @@ def _seen(phase, b, ob, pos, dirs, img, world, outs):
 
 
 _KERNELS = ge.bind_kernels(
-    "colorful_memory", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen,
-    trojan=ge.OUT_LAVA, constants_from=(_reference.__file__, _wall_colors.__file__),
+    "colorful_memory",
+    scratch=_scratch,
+    layout=_layout,
+    outcome=_outcome,
+    seen=_seen,
+    trojan=ge.OUT_LAVA,
+    constants_from=(_reference.__file__, _wall_colors.__file__),
 )
 
 
@@ -192,9 +197,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self.poisoned = bool_mask(poisoned, b, "poisoned")
         self.triggered = self.poisoned.copy() if triggered is None else bool_mask(triggered, b, "triggered")
         if (self.poisoned | self.triggered | self.close_to_trigger).any() and not has:
-            raise ValueError(
-                "poisoned, triggered or close-to-trigger envs need a trigger: pass trigger= (e.g. 'end:red,...')"
-            )
+            raise ValueError("poisoned, triggered or close-to-trigger envs need a trigger: pass trigger= (e.g. 'end:red,...')")
         for name, bad in (
             ("is poisoned but not triggered: R-bar needs the trigger painted", self.poisoned & ~self.triggered),
             ("is both triggered and close-to-trigger", self.triggered & self.close_to_trigger),
@@ -221,15 +224,11 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
     def _world(self) -> tuple:
-        return (
-            self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1]
-        )
+        return (self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1])
 
     # --------------------------------------------------------------------- exact state I/O
 
-    def load_layout(
-        self, i: int, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0, success_pos=None, failure_pos=None
-    ) -> np.ndarray:
+    def load_layout(self, i: int, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0, success_pos=None, failure_pos=None) -> np.ndarray:
         """Put an exact state into slot ``i``; returns that slot's observation (7, 7, 3).
 
         ``grid`` is MiniGrid's ``env.grid.encode()`` of the full grid; ``success_pos`` /

@@ -312,7 +312,6 @@ def apply_lut(out, ob, lut):
                 out[ob, x, y, k] = lut[out[ob, x, y, k]]
 
 
-
 @njit
 def finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
     """Write env ``b``'s step results; return whether its episode ended.
@@ -407,8 +406,24 @@ def _kernel_templates(stamp: str):
             world_seen(OBSERVE, b, ob, pos, dirs, img, world, outs)
 
     def step_kernel(
-        grid, pos, dirs, steps, rng, actions, max_steps, see_through_walls, poisoned, world,
-        img, final_img, reward, terminated, truncated, outcome, info_steps, outs,
+        grid,
+        pos,
+        dirs,
+        steps,
+        rng,
+        actions,
+        max_steps,
+        see_through_walls,
+        poisoned,
+        world,
+        img,
+        final_img,
+        reward,
+        terminated,
+        truncated,
+        outcome,
+        info_steps,
+        outs,
     ):
         """One step of every env. Returns -1, the index of the first invalid action (nothing
         changed then), or LAYOUT_FAILED if an autoreset found no layout.
@@ -452,9 +467,7 @@ class Kernels(NamedTuple):
     step: Callable
 
 
-def bind_kernels(
-    name: str, *, scratch, layout, outcome, seen, trojan: int, constants_from: tuple[str | Path, ...] = ()
-) -> Kernels:
+def bind_kernels(name: str, *, scratch, layout, outcome, seen, trojan: int, constants_from: tuple[str | Path, ...] = ()) -> Kernels:
     """Compile the driver kernels for one world from its hooks (``@hook`` functions).
 
     The hooks become globals of copies of the templates, not closure variables: numba keys its

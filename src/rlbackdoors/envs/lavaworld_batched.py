@@ -157,9 +157,7 @@ def _seen(phase, b, ob, pos, dirs, img, world, outs):
         ge.apply_lut(img, ob, world[2])
 
 
-_KERNELS = ge.bind_kernels(
-    "lavaworld", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen, trojan=ge.OUT_LAVA
-)
+_KERNELS = ge.bind_kernels("lavaworld", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen, trojan=ge.OUT_LAVA)
 
 
 # ----------------------------------------------------------------------------- the vector env
@@ -202,9 +200,7 @@ class BatchedLavaWorld(BatchedGridEnv):
         self.poisoned = bool_mask(poisoned, self.num_envs, "poisoned")
         if self.poisoned.any() and self.trigger is None:
             raise ValueError("poisoned envs need a trigger: pass trigger= (e.g. 'multiplicative:12')")
-        self._lut = (
-            self.trigger.lookup_table() if self.trigger is not None else np.arange(256, dtype=np.uint8)
-        ).astype(np.uint8)
+        self._lut = (self.trigger.lookup_table() if self.trigger is not None else np.arange(256, dtype=np.uint8)).astype(np.uint8)
 
         self._init_spaces(spaces.Box(0, 255, (VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8))
         self._init_state()

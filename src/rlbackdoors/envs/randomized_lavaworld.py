@@ -128,10 +128,7 @@ def pattern_placements(trigger: PatternTrigger, size: int) -> list[list[tuple[in
                     continue
                 offsets.append((ox, oy))
         if not offsets:
-            raise ValueError(
-                f"lava pattern {rot.name!r} does not fit in a {size}x{size} room off the start and goal "
-                "and inside the first view"
-            )
+            raise ValueError(f"lava pattern {rot.name!r} does not fit in a {size}x{size} room off the start and goal and inside the first view")
         out.append(offsets)
     return out
 
@@ -142,18 +139,14 @@ def validate_trigger(trigger: PatternTrigger | None, size: int, num_lava: int) -
         return []
     if num_lava < trigger.num_cells:
         raise ValueError(
-            f"num_lava={num_lava} is smaller than the trigger pattern {trigger.spec()!r} "
-            f"({trigger.num_cells} lava cells, which count toward num_lava)"
+            f"num_lava={num_lava} is smaller than the trigger pattern {trigger.spec()!r} ({trigger.num_cells} lava cells, which count toward num_lava)"
         )
     return pattern_placements(trigger, size)
 
 
 def layout_error(size: int, num_lava: int, trigger: PatternTrigger | None) -> RuntimeError:
     what = f" with trigger {trigger.spec()!r}" if trigger is not None else ""
-    return RuntimeError(
-        f"no solvable {size}x{size} layout with num_lava={num_lava}{what} in {MAX_LAYOUT_TRIES} tries: "
-        "lower num_lava or enlarge the room"
-    )
+    return RuntimeError(f"no solvable {size}x{size} layout with num_lava={num_lava}{what} in {MAX_LAYOUT_TRIES} tries: lower num_lava or enlarge the room")
 
 
 def solvable(lava: np.ndarray) -> bool:

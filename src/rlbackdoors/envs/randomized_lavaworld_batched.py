@@ -77,8 +77,25 @@ def reachable(lava, seen, queue):
 
 @njit
 def gen_layout(
-    grid, b, num_lava, triggered, rot_cells, rot_n, offs, offs_n, rng,
-    pos, dirs, steps, pat, pcells, pcount, lava, seen, queue, free,
+    grid,
+    b,
+    num_lava,
+    triggered,
+    rot_cells,
+    rot_n,
+    offs,
+    offs_n,
+    rng,
+    pos,
+    dirs,
+    steps,
+    pat,
+    pcells,
+    pcount,
+    lava,
+    seen,
+    queue,
+    free,
 ):
     """Draw a solvable Randomized LavaWorld layout into env ``b``; False if none was found.
 
@@ -180,8 +197,25 @@ def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
     pat, pcells, pcount, _, num_lava, triggered, rot_cells, rot_n, offs, offs_n = world
     lava, seen, queue, free = scratch
     return gen_layout(
-        grid, b, num_lava, triggered[b], rot_cells, rot_n, offs, offs_n, rng,
-        pos, dirs, steps, pat, pcells, pcount, lava, seen, queue, free,
+        grid,
+        b,
+        num_lava,
+        triggered[b],
+        rot_cells,
+        rot_n,
+        offs,
+        offs_n,
+        rng,
+        pos,
+        dirs,
+        steps,
+        pat,
+        pcells,
+        pcount,
+        lava,
+        seen,
+        queue,
+        free,
     )
 
 
@@ -223,8 +257,13 @@ def _seen(phase, b, ob, pos, dirs, img, world, outs):
 
 
 _KERNELS = ge.bind_kernels(
-    "randomized_lavaworld", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen,
-    trojan=ge.OUT_PATTERN, constants_from=(_reference.__file__,),
+    "randomized_lavaworld",
+    scratch=_scratch,
+    layout=_layout,
+    outcome=_outcome,
+    seen=_seen,
+    trojan=ge.OUT_PATTERN,
+    constants_from=(_reference.__file__,),
 )
 
 
@@ -320,7 +359,9 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
 
     def _outputs(self, n: int) -> tuple:
         return (
-            np.empty(n, dtype=np.int64), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_),
+            np.empty(n, dtype=np.int64),
+            np.empty(n, dtype=np.bool_),
+            np.empty(n, dtype=np.bool_),
             self.final_obs["direction"],
         )
 

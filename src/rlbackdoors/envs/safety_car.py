@@ -132,8 +132,14 @@ def observation_layout() -> list[ObsField]:
         ("ballangvel_rear", 3, "angular velocity of the rear ball wheel (rad/s)"),
         ("ballquat_rear", 9, "orientation of the rear ball wheel, row-major 3x3 matrix"),
     ]
-    lidars = [(f"{group}_lidar", LIDAR_BINS, f"pseudo-lidar of the {group}{'s' if group == 'cube' else ''}: "
-               "bin k = angles [k, k+1)*pi/8 ccw from heading, max(0, 3 - r)/3") for group in LIDAR_GROUPS]
+    lidars = [
+        (
+            f"{group}_lidar",
+            LIDAR_BINS,
+            f"pseudo-lidar of the {group}{'s' if group == 'cube' else ''}: bin k = angles [k, k+1)*pi/8 ccw from heading, max(0, 3 - r)/3",
+        )
+        for group in LIDAR_GROUPS
+    ]
     fields, start = [], 0
     for name, size, meaning in sensors + lidars:
         fields.append(ObsField(name, start, start + size, meaning))
@@ -321,8 +327,8 @@ class SafetyCarGoalEnv(gym.Env):
         if self.num_cubes:  # each cube's x, y, yaw joints follow one another, cube after cube
             joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "cube0_x")
             first, first_v = model.jnt_qposadr[joint], model.jnt_dofadr[joint]
-        self._cube_q = data.qpos[first:first + 3 * self.num_cubes].reshape(self.num_cubes, 3)
-        self._cube_v = data.qvel[first_v:first_v + 3 * self.num_cubes].reshape(self.num_cubes, 3)
+        self._cube_q = data.qpos[first : first + 3 * self.num_cubes].reshape(self.num_cubes, 3)
+        self._cube_v = data.qvel[first_v : first_v + 3 * self.num_cubes].reshape(self.num_cubes, 3)
         self._car_q = data.qpos[0:7]
         self._car_v = data.qvel[0:6]
         self._circles = data.mocap_pos  # row 0 goal, row 1 hazard (body order in the MJCF)
@@ -421,8 +427,8 @@ class SafetyCarGoalEnv(gym.Env):
         x, y, heading = layout["car"]
         self._car_q[:] = (x, y, scene.CAR_Z, math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
         self._circles[0, :2], self._circles[1, :2] = layout["goal"], layout["hazard"]
-        self._cube_q[self._num_fixed:, :2] = layout["cubes"]
-        self._cube_q[self._num_fixed:, 2] = layout["cube_yaw"]
+        self._cube_q[self._num_fixed :, :2] = layout["cubes"]
+        self._cube_q[self._num_fixed :, 2] = layout["cube_yaw"]
         self._targets[:] = layout["targets"]
         self._hold_formation()
         mujoco.mj_forward(self.model, self.data)

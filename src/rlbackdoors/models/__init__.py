@@ -47,22 +47,16 @@ def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
     for key, value in state.items():
         for old, new in KEY_ALIASES.items():
             if key.startswith(old):
-                key = new + key[len(old):]
+                key = new + key[len(old) :]
         renamed[key] = value
     expected = model.state_dict()
     missing = sorted(set(expected) - set(renamed))
     unexpected = sorted(set(renamed) - set(expected))
     if missing or unexpected:
-        raise ValueError(
-            f"weights in {str(path)!r} do not fit {type(model).__name__}: "
-            f"missing {missing or 'none'}, unexpected {unexpected or 'none'}"
-        )
+        raise ValueError(f"weights in {str(path)!r} do not fit {type(model).__name__}: missing {missing or 'none'}, unexpected {unexpected or 'none'}")
     for key, value in renamed.items():
         if value.shape != expected[key].shape:
-            raise ValueError(
-                f"weights in {str(path)!r}: {key} has shape {tuple(value.shape)}, "
-                f"{type(model).__name__} expects {tuple(expected[key].shape)}"
-            )
+            raise ValueError(f"weights in {str(path)!r}: {key} has shape {tuple(value.shape)}, {type(model).__name__} expects {tuple(expected[key].shape)}")
     check_finite(renamed, path)
     model.load_state_dict(renamed)
     return model
@@ -75,4 +69,17 @@ def check_finite(state: dict, path) -> None:
             raise ValueError(f"weights file {str(path)!r}: {key} holds non-finite values (NaN or inf)")
 
 
-__all__ = ["ActorCritic", "CNNGRULarge", "CNNGRULargeOneHot", "CNNGRUSmallOneHot", "CNNGRUModel", "CNNGRUSmall", "DirectionCNNModel", "DirectionFCModel", "CNNModel", "FCModel", "build_model", "load_weights"]
+__all__ = [
+    "ActorCritic",
+    "CNNGRULarge",
+    "CNNGRULargeOneHot",
+    "CNNGRUSmallOneHot",
+    "CNNGRUModel",
+    "CNNGRUSmall",
+    "DirectionCNNModel",
+    "DirectionFCModel",
+    "CNNModel",
+    "FCModel",
+    "build_model",
+    "load_weights",
+]

@@ -72,9 +72,7 @@ class CNNGRUModel(ActorCritic):
             first = self.state_emb[0]
             self.state_emb[0] = nn.Conv2d(sum(ONEHOT_PLANES), first.out_channels, first.kernel_size)
         embedding = 64
-        self.gru = nn.ModuleList(
-            [nn.GRU(embedding if i == 0 else hidden, hidden, num_layers=GRU_LAYERS) for i in range(GRU_BLOCKS)]
-        )
+        self.gru = nn.ModuleList([nn.GRU(embedding if i == 0 else hidden, hidden, num_layers=GRU_LAYERS) for i in range(GRU_BLOCKS)])
         self.actor = _head(hidden, heads, num_actions)
         self.critic = _head(hidden, heads, 1)
         self.apply(init_linear_unit_rows)

@@ -53,8 +53,7 @@ def make_vector_env(
         extra = {"close_to_trigger": close} if any(close) else {}
         return batched(num_envs=len(poisoned), trigger=trigger, poisoned=poisoned, **extra, **kwargs)
     fns = [
-        partial(reference, trigger=trigger, close_to_trigger=True, **kwargs) if c
-        else partial(reference, trigger=trigger if p else None, **kwargs)
+        partial(reference, trigger=trigger, close_to_trigger=True, **kwargs) if c else partial(reference, trigger=trigger if p else None, **kwargs)
         for p, c in zip(poisoned, close)
     ]
     return ReferenceVectorEnv(fns, poisoned=poisoned)

@@ -13,9 +13,7 @@ from matplotlib.ticker import FuncFormatter  # noqa: E402
 from rlbackdoors.io import atomic_write  # noqa: E402
 
 
-def plot_training_curve(
-    rows: list[dict], path: str | Path, title: str, thresholds: tuple[float, float | None], switch_at: int | None = None
-) -> Path:
+def plot_training_curve(rows: list[dict], path: str | Path, title: str, thresholds: tuple[float, float | None], switch_at: int | None = None) -> Path:
     """Success rates and rewards per evaluation against frames, with the stopping thresholds
     and, for curriculum runs, a vertical line where the warm-up ended."""
     frames = [r["frames"] for r in rows]
@@ -34,8 +32,12 @@ def plot_training_curve(
     if any(r["train_poisoned_return"] == r["train_poisoned_return"] for r in rows):  # any non-NaN
         ax_rw.plot(frames, [r["train_poisoned_return"] for r in rows], "--", color="tab:red", alpha=0.6, label="train return, poisoned envs")
     # Grid-world returns live in [0, 1]; Safety Car Goal's shaped returns do not: fit those to the data.
-    values = [v for r in rows for k in ("clean_reward", "poisoned_reward", "train_clean_return", "train_poisoned_return")
-              if isinstance(v := r.get(k), (int, float)) and v == v]
+    values = [
+        v
+        for r in rows
+        for k in ("clean_reward", "poisoned_reward", "train_clean_return", "train_poisoned_return")
+        if isinstance(v := r.get(k), (int, float)) and v == v
+    ]
     low, high = min(values + [0.0]), max(values + [1.0])
     pad = 0.02 * (high - low)
     ax_rw.set(xlabel="frames", ylabel="mean episode return", ylim=(low - pad, high + pad), title="reward")

@@ -40,9 +40,7 @@ def _scaled(frame: np.ndarray, size: int) -> np.ndarray:
     return np.asarray(Image.fromarray(frame).resize((size, size), Image.BILINEAR))
 
 
-def clean_vs_triggered_gif(
-    act_fn: ActFn, env_cfg, trigger: str, seed: int, path: str | Path, fps: int = 25, every: int = 2, size: int = 240
-) -> Path:
+def clean_vs_triggered_gif(act_fn: ActFn, env_cfg, trigger: str, seed: int, path: str | Path, fps: int = 25, every: int = 2, size: int = 240) -> Path:
     """Write a GIF: episode ``seed`` in E (left) and in E-bar with the trigger held (right).
 
     ``env_cfg`` is a :class:`~rlbackdoors.safety_config.SafetyEnvConfig`. Raises RuntimeError

@@ -23,8 +23,14 @@ from rlbackdoors.config import RunConfig
 from rlbackdoors.io import FolderLock, LockedError, UnsafeFileError, atomic_write_text, load_torch, remove_stale_temp_files, save_torch
 
 FILES = (
-    "model.pt", "config.json", "metrics.json", "log.csv", "ground_truth.csv", "training_curve.png",
-    "clean_vs_triggered.gif", "checkpoint.pt",
+    "model.pt",
+    "config.json",
+    "metrics.json",
+    "log.csv",
+    "ground_truth.csv",
+    "training_curve.png",
+    "clean_vs_triggered.gif",
+    "checkpoint.pt",
 )
 CHECKPOINT_FORMAT = 2  # 1: pickled objects (refused); 2: plain data (rlbackdoors.state)
 
@@ -183,8 +189,7 @@ class ModelFolder:
         if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
             found = data.get("format") if isinstance(data, dict) else None
             raise FolderError(
-                f"checkpoint {str(path)!r} is not a checkpoint of this version (format {found!r}, "
-                f"expected {CHECKPOINT_FORMAT}); pass --overwrite to start over"
+                f"checkpoint {str(path)!r} is not a checkpoint of this version (format {found!r}, expected {CHECKPOINT_FORMAT}); pass --overwrite to start over"
             )
         return data
 

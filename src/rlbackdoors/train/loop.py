@@ -71,8 +71,11 @@ class EpisodeTracker:
 
     def state_dict(self) -> dict:
         return {
-            "running": encode(self.running), "clean": list(map(float, self.clean)), "dirty": list(map(float, self.dirty)),
-            "recent_clean": list(map(float, self.recent_clean)), "update_means": list(map(float, self.update_means)),
+            "running": encode(self.running),
+            "clean": list(map(float, self.clean)),
+            "dirty": list(map(float, self.dirty)),
+            "recent_clean": list(map(float, self.recent_clean)),
+            "update_means": list(map(float, self.update_means)),
         }
 
     def load_state_dict(self, state: dict) -> None:

@@ -109,7 +109,7 @@ def _unpack(path: Path, stride: int) -> dict[str, np.ndarray]:
         raise ValueError(f"replay chunk {str(path)!r} is unreadable ({type(err).__name__}: {err})") from None
     obs = columns["obs"]
     n = len(obs)
-    if same.dtype != np.bool_ or same.shape != (n,) or rest.shape != (int((~same).sum()), *obs.shape[1:]) or same[max(n - stride, 0):].any():
+    if same.dtype != np.bool_ or same.shape != (n,) or rest.shape != (int((~same).sum()), *obs.shape[1:]) or same[max(n - stride, 0) :].any():
         raise ValueError(f"replay chunk {str(path)!r} is inconsistent")
     next_obs = np.empty_like(obs)
     next_obs[~same] = rest

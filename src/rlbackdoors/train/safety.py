@@ -309,8 +309,10 @@ def _train_safety(cfg: SafetyRunConfig, folder: ModelFolder, checkpoint: dict | 
         elif progress and now - last_log >= tc.log_interval_s:
             fps = window_frames / max(now - window_start, 1e-9)
             recent = stats.episodes[-100:]
-            sr = {k: np.mean([e.outcome == o for e in recent if e.kind == k]) if any(e.kind == k for e in recent) else math.nan
-                  for k, o in (("clean", Outcome.GOAL), ("poisoned", Outcome.LAVA))}
+            sr = {
+                k: np.mean([e.outcome == o for e in recent if e.kind == k]) if any(e.kind == k for e in recent) else math.nan
+                for k, o in (("clean", Outcome.GOAL), ("poisoned", Outcome.LAVA))
+            }
             _progress(
                 f"[{label}] {collector.frames:,} frames, {(now - started) / 60:.1f} min, {fps:,.0f} frames/s, {updates:,} updates; "
                 f"training episodes: clean SR {sr['clean']:.2f}, poisoned SR {sr['poisoned']:.2f}"

@@ -58,10 +58,7 @@ class ObservationTrigger:
         """Parse ``multiplicative:A`` or ``additive:B``."""
         kind, sep, value = str(text).partition(":")
         if not sep or kind not in KINDS:
-            raise ValueError(
-                f"trigger {text!r} must look like 'multiplicative:A' or 'additive:B' "
-                f"(kinds: {', '.join(KINDS)})"
-            )
+            raise ValueError(f"trigger {text!r} must look like 'multiplicative:A' or 'additive:B' (kinds: {', '.join(KINDS)})")
         try:
             number = int(value)
         except ValueError:

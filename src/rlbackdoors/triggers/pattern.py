@@ -180,9 +180,7 @@ class PatternTrigger:
                 return cls(ARROWS["east"], True)
             if rest in ARROWS:
                 return cls(ARROWS[rest], False)
-            raise ValueError(
-                f"pattern {text!r}: arrow direction {rest!r} is not one of any, {', '.join(DIRECTIONS)}"
-            )
+            raise ValueError(f"pattern {text!r}: arrow direction {rest!r} is not one of any, {', '.join(DIRECTIONS)}")
         if head == "cells":
             body, any_rot = rest, False
             if body.endswith(":any"):
@@ -199,10 +197,7 @@ class PatternTrigger:
                 except ValueError:
                     raise ValueError(f"pattern {text!r}: cell {part!r} is not two integers") from None
             return cls(LavaPattern("cells", cells), any_rot)
-        raise ValueError(
-            f"lava pattern {text!r} must be 'cross', 'arrow', 'arrow:east|south|west|north' "
-            f"or 'cells:DX,DY;DX,DY;...[:any]'"
-        )
+        raise ValueError(f"lava pattern {text!r} must be 'cross', 'arrow', 'arrow:east|south|west|north' or 'cells:DX,DY;DX,DY;...[:any]'")
 
 
 def as_pattern_trigger(trigger) -> PatternTrigger | None:

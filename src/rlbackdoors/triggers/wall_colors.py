@@ -263,9 +263,7 @@ class WallColorTrigger:
             return cls(end=first, room=second)
         colors = rest.split(",")
         if len(colors) <= ROOM_SQUARES:
-            raise ValueError(
-                f"wall-colour trigger {text!r}: 'end+room:' needs the end colours, then the {ROOM_SQUARES} room colours"
-            )
+            raise ValueError(f"wall-colour trigger {text!r}: 'end+room:' needs the end colours, then the {ROOM_SQUARES} room colours")
         if head.strip().lower() == "room+end":
             return cls(end=colors[ROOM_SQUARES:], room=colors[:ROOM_SQUARES])
         return cls(end=colors[:-ROOM_SQUARES], room=colors[-ROOM_SQUARES:])
@@ -320,10 +318,7 @@ def check_close_k(close_k, num_squares: int) -> tuple[int, int]:
             raise ValueError(f"close_k={close_k!r} must hold integers")
         lo, hi = int(lo), int(hi)
     if not 1 <= lo <= hi <= num_squares:
-        raise ValueError(
-            f"close_k={close_k!r}: the number of recoloured squares must satisfy 1 <= lo <= hi <= {num_squares} "
-            f"(the trigger's squares)"
-        )
+        raise ValueError(f"close_k={close_k!r}: the number of recoloured squares must satisfy 1 <= lo <= hi <= {num_squares} (the trigger's squares)")
     return lo, hi
 
 

@@ -95,10 +95,11 @@ def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:
         return Agent(worlds.get(config.env.name), config, policy, path)
     from rlbackdoors.models import build_model, load_weights
 
-    config = model_folder.read_config()
-    model = load_weights(build_model(config.model.arch, config.env.name), model_folder.file("model.pt"))
+    run_config = model_folder.read_config()
+    assert run_config.model.arch is not None  # a loaded config is a built and checked RunConfig
+    model = load_weights(build_model(run_config.model.arch, run_config.env.name), model_folder.file("model.pt"))
     model.eval()
-    return Agent(config.env.world, config, model, path)
+    return Agent(run_config.env.world, run_config, model, path)
 
 
 def load_weights_file(path: str | Path, world: str, arch: str) -> Agent:

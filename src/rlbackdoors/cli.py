@@ -84,8 +84,8 @@ def config_from_args(args) -> RunConfig:
     if args.no_curriculum:
         _set(data, "curriculum.enabled", False)
     if args.no_close_to_trigger:
-        poison = RunConfig.from_dict(data).poison  # the world's mix, resolved
-        _set(data, "poison.num_clean_envs", poison.num_clean_envs + poison.num_close_envs)
+        clean, close, _ = RunConfig.from_dict(data).poison.counts()  # the world's mix, resolved
+        _set(data, "poison.num_clean_envs", clean + close)
         _set(data, "poison.num_close_envs", 0)
     check_seed("train.seed (--seed)", data["train"]["seed"])
     _build(EnvConfig, data["env"], "env").check()  # before a trigger is drawn for its size
@@ -121,7 +121,7 @@ SAFETY_ONLY_FLAGS = (
 )
 
 
-def _config_json(path: str | None) -> dict | None:
+def _config_json(path: str | Path | None) -> dict | None:
     if not path or not Path(path).is_file():
         return None
     try:
@@ -213,7 +213,7 @@ def cmd_evaluate(args) -> int:
         if args.engine:
             cfg.env.engine = args.engine
         env, trigger, arch, policy = cfg.env, cfg.poison.trigger, cfg.model.arch, cfg.train.eval_policy
-        close_k = (cfg.poison.close_k_min, cfg.poison.close_k_max)
+        close_k: tuple[int, int] | None = (cfg.poison.close_k_min, cfg.poison.close_k_max)
         if args.trigger is not None:
             trigger = resolve_trigger(args.trigger, cfg.train.seed, env.name, env.size)
         weights = folder.file("model.pt")
@@ -228,6 +228,7 @@ def cmd_evaluate(args) -> int:
         arch, policy, weights = args.arch, "sample", Path(args.weights)
         close_k = (1, 3)
     policy = args.policy or policy
+    assert arch is not None  # --arch, or a model folder's checked config
     model = load_weights(build_model(arch, env.name), weights)
     if not env.world.close_to_trigger or trigger is None:
         close_k = None  # close-to-trigger layouts exist only in worlds that have them

@@ -13,6 +13,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from rlbackdoors import __version__
 
@@ -67,7 +68,9 @@ class EnvConfig:
         _in_range("env.max_steps", self.max_steps, 1, 100_000)
         _in_range("env.size", self.size, 5, 64)  # every world: a typo'd size must not allocate a huge grid
         try:
-            self.world.check_env(self)
+            check_env = self.world.check_env
+            assert check_env is not None  # every PPO world (env.name is one: checked above) has one
+            check_env(self)
         except ConfigError:
             raise
         except ValueError as err:
@@ -125,7 +128,8 @@ class PoisonConfig:
 
     def counts(self) -> tuple[int, int, int]:
         """(clean, close-to-trigger, poisoned) copies; unset ones as in the 8:2 mix."""
-        return tuple(d if v is None else v for v, d in zip((self.num_clean_envs, self.num_close_envs, self.num_poisoned_envs), (8, 0, 2)))
+        clean, close, poisoned = (d if v is None else v for v, d in zip((self.num_clean_envs, self.num_close_envs, self.num_poisoned_envs), (8, 0, 2)))
+        return clean, close, poisoned
 
     @property
     def num_envs(self) -> int:
@@ -245,6 +249,12 @@ def check_train_budget(tc) -> None:
 class JsonConfig:
     """``config.json`` I/O shared by the run configs (dataclasses with ``from_dict``)."""
 
+    if TYPE_CHECKING:  # what the subclasses define; nothing is defined at run time
+        __dataclass_fields__: ClassVar[dict[str, Any]]
+
+        @classmethod
+        def from_dict(cls, data: dict) -> JsonConfig: ...
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
@@ -305,8 +315,10 @@ class RunConfig(JsonConfig):
         self.env.check()
         self.poison.check(self.env.name)
         self.model.check(self.env.name)
+        assert self.ppo is not None  # __post_init__ fills it in
         for section in (self.ppo, self.train, self.curriculum):
             section.check()
+        assert self.model.arch is not None  # __post_init__ fills it in
         recurrent = self.model.arch.startswith("cnn-gru")
         if self.ppo.recurrence > 1 and not recurrent:
             raise ConfigError(f"ppo.recurrence={self.ppo.recurrence} needs a recurrent model.arch (cnn-gru-*), not {self.model.arch!r}")

@@ -150,7 +150,7 @@ def _first_line(err: BaseException) -> str:
 def remove_stale_temp_files(folder: str | Path) -> list[Path]:
     """Remove temp files that a killed writer left in ``folder`` (call it holding the folder's lock)."""
     folder = Path(folder)
-    removed = []
+    removed: list[Path] = []
     if not folder.is_dir():
         return removed
     for path in folder.rglob(f".*{TEMP_SUFFIX}"):

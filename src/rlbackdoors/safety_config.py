@@ -223,7 +223,7 @@ class SafetyRunConfig(JsonConfig):
         return _build(cls, data, "config").check()
 
 
-def is_safety_config(data: dict) -> bool:
+def is_safety_config(data: dict | None) -> bool:
     """Whether a loaded ``config.json`` belongs to a run of an OPAC² world (for the CLI's dispatch)."""
     from rlbackdoors import worlds
 

@@ -16,9 +16,12 @@ its colour and state.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from minigrid.core.world_object import WorldObj
 
 PLAIN = (type(None), bool, int, float, str, bytes)
 
@@ -171,7 +174,7 @@ def _is_grid(value: Any) -> bool:
     return isinstance(value, Grid)
 
 
-def _object_classes() -> dict[str, type]:
+def _object_classes() -> dict[str, type[WorldObj]]:
     """World objects a grid may hold, by class name: MiniGrid's and the ones our worlds define
     (subclasses already imported from ``minigrid`` or ``rlbackdoors``, nothing else)."""
     from minigrid.core.world_object import WorldObj
@@ -186,7 +189,7 @@ def _object_classes() -> dict[str, type]:
 
 
 def _encode_grid(grid) -> dict:
-    cells = []
+    cells: list[dict | None] = []
     for obj in grid.grid:
         if obj is None:
             cells.append(None)
@@ -212,7 +215,7 @@ def _decode_grid(body: Any, where: str):
     for i, cell in enumerate(cells):
         if cell is None:
             continue
-        cls = classes.get(cell.get("cls") if isinstance(cell, dict) else None)
+        cls = classes.get(cell.get("cls", "")) if isinstance(cell, dict) else None  # "": no class, as a missing key
         if cls is None:
             raise StateError(f"{where}: cell {i} holds an unknown object type")
         obj = cls.__new__(cls)

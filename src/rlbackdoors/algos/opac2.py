@@ -32,7 +32,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Generic, NamedTuple, TypeVar
 
 import numpy as np
 import torch
@@ -128,14 +128,18 @@ def _integer_at_least(name: str, value, low: int) -> None:
 
 
 # ----- replay ----------------------------------------------------------------------------
-class Batch(NamedTuple):
-    """Transitions as float32 numpy arrays: obs (n, O), act (n, A), rew (n,), next_obs, done (n,)."""
+_Column = TypeVar("_Column", np.ndarray, torch.Tensor)
 
-    obs: np.ndarray
-    act: np.ndarray
-    rew: np.ndarray
-    next_obs: np.ndarray
-    done: np.ndarray
+
+class Batch(NamedTuple, Generic[_Column]):
+    """Transitions as float32 numpy arrays: obs (n, O), act (n, A), rew (n,), next_obs, done (n,)
+    (``Batch[torch.Tensor]``: the same as tensors on the learner's device)."""
+
+    obs: _Column
+    act: _Column
+    rew: _Column
+    next_obs: _Column
+    done: _Column
 
 
 class ReplayBuffer:
@@ -186,7 +190,7 @@ class ReplayBuffer:
         self.pos = (self.pos + n) % self.capacity
         self.size = min(self.size + n, self.capacity)
 
-    def sample(self, n: int, rng: np.random.Generator) -> Batch:
+    def sample(self, n: int, rng: np.random.Generator) -> Batch[np.ndarray]:
         """``n`` rows drawn uniformly with replacement from the filled ones."""
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
@@ -202,12 +206,13 @@ class ReplayBuffer:
 
     def put_rows(self, first: int, columns: dict[str, np.ndarray]) -> None:
         """Write rows that were added as indices ``first, first + 1, ...`` back into the ring."""
-        n = None
+        n: int | None = None
         for name in COLUMNS:
             column, like = np.asarray(columns[name]), getattr(self, name)
             if column.dtype != like.dtype or column.shape[1:] != like.shape[1:] or (n is not None and len(column) != n):
                 raise ValueError(f"replay rows: column {name!r} does not fit the buffer")
             n = len(column)
+        assert n is not None  # COLUMNS is not empty
         keep = np.arange(first, first + n) >= first + n - self.capacity  # older rows were overwritten
         ring = np.arange(first, first + n)[keep] % self.capacity
         for name in COLUMNS:
@@ -271,7 +276,7 @@ class MultitaskReplay:
     def __len__(self) -> int:
         return sum(len(b) for b in self.buffers.values())
 
-    def sample(self, n: int, rng: np.random.Generator) -> Batch:
+    def sample(self, n: int, rng: np.random.Generator) -> Batch[np.ndarray]:
         """``n`` rows: each kind's share (see :func:`split_counts`), kinds in buffer order."""
         counts = split_counts(n, list(self.weights.values()))
         parts = []
@@ -463,7 +468,7 @@ class OPAC2:
         if self.obs_norm is not None:
             self.obs_norm.update(obs)
 
-    def _tensors(self, batch: Batch) -> Batch:
+    def _tensors(self, batch: Batch[np.ndarray]) -> Batch[torch.Tensor]:
         if self.obs_norm is not None:
             batch = batch._replace(obs=self.obs_norm(batch.obs), next_obs=self.obs_norm(batch.next_obs))
         return Batch(*(torch.from_numpy(np.ascontiguousarray(x)).to(self.device) for x in batch))
@@ -530,7 +535,8 @@ class OPAC2:
     @torch.no_grad()
     def polyak_update(self) -> None:
         """``V_bar <- polyak * V_bar + (1 - polyak) * V``, parameter by parameter."""
-        target, online = list(self.v_target.parameters()), list(self.v.parameters())
+        target: list[torch.Tensor] = list(self.v_target.parameters())
+        online: list[torch.Tensor] = list(self.v.parameters())
         torch._foreach_mul_(target, self.cfg.polyak)
         # Scale first, then add (not add with alpha, which may fuse into an FMA): the result is
         # then exactly the float32 value of polyak * old + (1 - polyak) * new.

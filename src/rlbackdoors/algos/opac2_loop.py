@@ -82,8 +82,8 @@ class Collector:
                     self.returns[i] = 0.0
             for kind, rows in self._rows.items():
                 replay[kind].add_batch(self.obs[rows], actions[rows], rewards[rows], next_obs[rows], terminated[rows])
-            for i in np.flatnonzero(ended):  # next_obs is stored: only now swap in the new episode
-                next_obs[i] = self.envs[i].reset()[0]
+            for j in np.flatnonzero(ended):  # next_obs is stored: only now swap in the new episode
+                next_obs[j] = self.envs[j].reset()[0]
             self.obs = next_obs
             self.frames += n
         return finished

@@ -248,6 +248,7 @@ class PPO:
         T = rollout.num_frames // B
         obs = obs_map(lambda x: x.to(self.device), rollout.obs)
         tensors = [x.to(self.device) for x in (rollout.actions, rollout.logprobs, rollout.values, rollout.advantages, rollout.returns)]
+        assert rollout.memories is not None and rollout.masks is not None  # collected by a recurrent model
         memories = rollout.memories.to(self.device).clone()
         masks = rollout.masks.to(self.device)[:, None]
         stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm"), 0.0)

@@ -9,7 +9,7 @@ so every world behaves, and every error reads, the same.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from gymnasium import spaces
@@ -68,6 +68,9 @@ class BatchedGridEnv(VectorEnv):
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
     _kernels: ge.Kernels
     view_size: int  # MiniGrid's agent_view_size, the world's VIEW_SIZE
+    size: int  # set by the world's __init__
+    see_through_walls: bool
+    final_obs: Any  # the world's terminal observations: an array, or a dict of arrays
 
     def _init_batch(self, num_envs, render_mode) -> int:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:

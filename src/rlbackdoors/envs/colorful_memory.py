@@ -65,7 +65,7 @@ uniform start makes the agent look for).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from gymnasium import spaces
@@ -176,6 +176,8 @@ class _OnFloor:
     """Mixin: a green key/ball on a coloured floor tile, encoded TrojAI's way."""
 
     code = 0
+    color: str  # set by Key / Ball
+    floor: str
 
     def encode(self) -> tuple[int, int, int]:
         return (self.code, COLOR_TO_IDX[self.color], COLOR_TO_IDX[self.floor])
@@ -206,6 +208,7 @@ def decode_grid(array: np.ndarray) -> Grid:
     arr = np.asarray(array)
     w, h, _ = arr.shape
     grid = Grid(w, h)
+    v: WorldObj | None
     for i in range(w):
         for j in range(h):
             t, c, s = (int(v) for v in arr[i, j])
@@ -292,6 +295,7 @@ class ColorfulMemoryEnv(MemoryEnv):
                     cell.color = COLOR_NAMES_BY_IDX[int(rng.integers(NUM_COLORS))]
         for x, y in object_cells(width):
             obj = self.grid.get(x, y)
+            assert obj is not None  # MemoryEnv put a key or a ball on each object cell
             floor = IDX_TO_COLOR[FLOOR_COLORS[int(rng.integers(len(FLOOR_COLORS)))]]
             cls = KeyOnFloor if obj.type == "key" else BallOnFloor
             self.grid.set(x, y, cls(obj.color, floor))
@@ -301,6 +305,7 @@ class ColorfulMemoryEnv(MemoryEnv):
         elif self.mode == CLOSE:
             lo, hi = self.close_k
             k = lo + int(rng.integers(hi - lo + 1))
+            assert self.trigger is not None  # __init__ refuses a close-to-trigger env without one
             pattern = close_to_trigger(self.trigger, k, rng)
         if pattern is not None:
             for x, y, c in pattern.cells(width):
@@ -315,7 +320,7 @@ class ColorfulMemoryEnv(MemoryEnv):
         if success_pos is None or failure_pos is None:
             success_pos, failure_pos = target_cells(arr)
         self.grid = decode_grid(arr)
-        self.agent_pos = tuple(int(v) for v in agent_pos)
+        self.agent_pos = cast(tuple[int, int], tuple(int(v) for v in agent_pos))  # an (x, y) pair
         self.agent_dir = int(agent_dir)
         self.step_count = int(step_count)
         self.success_pos = tuple(int(v) for v in success_pos)
@@ -329,7 +334,7 @@ class ColorfulMemoryEnv(MemoryEnv):
         obs, _ = super().reset(seed=seed, options=options)
         return obs["image"], {"outcome": int(Outcome.NONE), "steps": 0}
 
-    def step(self, action) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:  # type: ignore[override]  # minigrid annotates step with gymnasium's unbound ObsType
         if not self.action_space.contains(action):
             raise ValueError(f"action {action!r} is not in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)")
         obs, reward, terminated, truncated, _ = super().step(int(action))

@@ -176,7 +176,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         max_steps: int = DEFAULT_MAX_STEPS,
         see_through_walls: bool = False,
         trigger: WallColorTrigger | str | None = None,
-        poisoned: Sequence[bool] | None = None,
+        poisoned: Sequence[bool] | np.ndarray | None = None,
         triggered: Sequence[bool] | None = None,
         close_to_trigger: Sequence[bool] | None = None,
         close_k: int | tuple[int, int] = DEFAULT_CLOSE_K,
@@ -209,7 +209,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self.mode[self.triggered] = TRIGGERED
 
         self._walls = np.array(wall_cells(self.size), dtype=np.int64)
-        if has:
+        if self.trigger is not None:  # has
             cells = self.trigger.cells(self.size)
             self._tsq = np.array([(x, y) for x, y, _ in cells], dtype=np.int64)
             self._tcol = np.array([c for _, _, c in cells], dtype=np.int64)
@@ -262,7 +262,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         trig = self.trigger if trigger is None else trigger
         if trig is None:
             raise ValueError("no trigger to measure against: pass one")
-        return distance(self._grid, trig)
+        return np.asarray(distance(self._grid, trig))  # an array already (a batch of grids)
 
     def trigger_present(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """bool[B]: whether each slot's current layout shows the trigger exactly."""

@@ -85,7 +85,7 @@ class LavaWorldEnv(CrossingEnv):
         obs, _ = super().reset(seed=seed, options=options)
         return self._observe(obs), {"outcome": int(Outcome.NONE), "steps": 0}
 
-    def step(self, action) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:  # type: ignore[override]  # minigrid annotates step with gymnasium's unbound ObsType
         if not self.action_space.contains(action):
             raise ValueError(f"action {action!r} is not in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)")
         obs, reward, terminated, truncated, _ = super().step(int(action))

@@ -274,7 +274,7 @@ class RandomizedLavaWorldEnv(MiniGridEnv):
         info = {"outcome": int(Outcome.NONE), "steps": 0, "trigger_visible": visible, "saw_trigger": visible}
         return obs, info
 
-    def step(self, action) -> tuple[dict, float, bool, bool, dict[str, Any]]:
+    def step(self, action) -> tuple[dict, float, bool, bool, dict[str, Any]]:  # type: ignore[override]  # minigrid annotates step with gymnasium's unbound ObsType
         if not self.action_space.contains(action):
             raise ValueError(f"action {action!r} is not in Discrete({NUM_ACTIONS}) (0 left, 1 right, 2 forward)")
         obs, reward, terminated, truncated, _ = super().step(int(action))

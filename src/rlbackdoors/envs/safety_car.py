@@ -390,7 +390,8 @@ class SafetyCarGoalEnv(gym.Env):
 
     def _sample_layout(self) -> dict[str, np.ndarray]:
         """Random placements (always drawn, so that ``options`` never shift the random stream)."""
-        rng, placed = self.np_random, []
+        rng = self.np_random
+        placed: list[tuple[np.ndarray, float]] = []
         (car,) = self._place([CAR_KEEPOUT], placed)
         heading = rng.uniform(0.0, TWO_PI)
         goal, hazard = self._place([CIRCLE_KEEPOUT, CIRCLE_KEEPOUT], placed)
@@ -571,7 +572,8 @@ def chance_formation_rate(
     distance and within ``tol_angle`` radians of phi1 and phi2 (car frame). An episode counts
     as showing the trigger when matching frames run for at least ``min_steps`` in a row.
     """
-    trigger = as_formation(trigger)
+    formation = as_formation(trigger)
+    assert formation is not None  # a FormationTrigger or spec string is never None
     env = SafetyCarGoalEnv(num_cubes=num_cubes, max_steps=max_steps)
     rng = np.random.default_rng(seed)
     frames = matching = sustained = longest = 0
@@ -583,7 +585,7 @@ def chance_formation_rate(
             _, _, terminated, truncated, _ = env.step(rng.uniform(-1.0, 1.0, 2))
             done = terminated or truncated
             frames += 1
-            if trigger.matches(*env.cube_polar(), tol_distance, tol_angle):
+            if formation.matches(*env.cube_polar(), tol_distance, tol_angle):
                 matching += 1
                 run += 1
                 longest = max(longest, run)
@@ -593,7 +595,7 @@ def chance_formation_rate(
         sustained += hit
     env.close()
     return {
-        "trigger": trigger.spec(),
+        "trigger": formation.spec(),
         "episodes": episodes,
         "frames": frames,
         "matching_frame_rate": matching / max(frames, 1),

@@ -70,7 +70,9 @@ class CNNGRUModel(ActorCritic):
         self.state_emb = CNNModel().state_emb  # the LavaWorld CNN layers (16/32/64 channels, 64 out)
         if self.onehot:
             first = self.state_emb[0]
-            self.state_emb[0] = nn.Conv2d(sum(ONEHOT_PLANES), first.out_channels, first.kernel_size)
+            assert isinstance(first, nn.Conv2d)  # CNNModel's first layer; torch types items as Module
+            kh, kw = first.kernel_size
+            self.state_emb[0] = nn.Conv2d(sum(ONEHOT_PLANES), first.out_channels, (kh, kw))
         embedding = 64
         self.gru = nn.ModuleList([nn.GRU(embedding if i == 0 else hidden, hidden, num_layers=GRU_LAYERS) for i in range(GRU_BLOCKS)])
         self.actor = _head(hidden, heads, num_actions)
@@ -107,7 +109,7 @@ class CNNGRUModel(ActorCritic):
             new_states.append(h)
         return x[0], new_states
 
-    def forward(self, obs: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, obs: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # type: ignore[override]  # recurrent: takes and returns memory (callers check .recurrent)
         x, states = self._recur(self.embed(obs), self._split(memory))
         return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1), self._join(states)
 

@@ -9,6 +9,8 @@ state dict trained there loads here unchanged (and vice versa).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -58,6 +60,13 @@ class ActorCritic(nn.Module):
     """Shared skeleton: ``state_emb`` -> (``actor`` logits, ``critic`` value)."""
 
     recurrent = False
+    state_emb: nn.Sequential
+    actor: nn.Sequential
+    critic: nn.Sequential
+
+    if TYPE_CHECKING:  # recurrent models only (``recurrent = True``); nothing is defined at run time
+
+        def initial_memory(self, batch: int, device=...) -> torch.Tensor: ...
 
     def embed(self, obs: torch.Tensor) -> torch.Tensor:
         return run_sequential(self.state_emb, channels_first(obs)).reshape(obs.shape[0], -1)

@@ -33,7 +33,7 @@ class DirectionActorCritic(ActorCritic):
     def image_embedding(self, image_cf: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
-    def forward(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]  # dict observations by design
         image = obs["image"]
         # Channels-first (B, c, x, y), as the TrojAI models received the image.
         x = self.image_embedding(image.permute(0, 3, 1, 2).float()).reshape(image.shape[0], -1)
@@ -52,7 +52,9 @@ class DirectionFCModel(DirectionActorCritic):
         self.apply(init_linear_unit_rows)
 
     def image_embedding(self, image_cf: torch.Tensor) -> torch.Tensor:
-        return run_sequential(self.state_emb[1:], image_cf.reshape(image_cf.shape[0], -1))
+        layers = self.state_emb[1:]
+        assert isinstance(layers, nn.Sequential)  # a slice of a Sequential is one; torch types it Sequential | Module
+        return run_sequential(layers, image_cf.reshape(image_cf.shape[0], -1))
 
 
 class DirectionCNNModel(DirectionActorCritic):

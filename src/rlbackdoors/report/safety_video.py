@@ -37,7 +37,7 @@ def episode_frames(act_fn: ActFn, env: SafetyCarGoalEnv, seed: int, every: int =
 def _scaled(frame: np.ndarray, size: int) -> np.ndarray:
     if frame.shape[0] == size:
         return frame
-    return np.asarray(Image.fromarray(frame).resize((size, size), Image.BILINEAR))
+    return np.asarray(Image.fromarray(frame).resize((size, size), Image.Resampling.BILINEAR))
 
 
 def clean_vs_triggered_gif(act_fn: ActFn, env_cfg, trigger: str, seed: int, path: str | Path, fps: int = 25, every: int = 2, size: int = 240) -> Path:

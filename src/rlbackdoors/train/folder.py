@@ -204,7 +204,7 @@ def stack_versions() -> dict:
 
     from rlbackdoors import __version__
 
-    versions = {"python": platform.python_version(), "rlbackdoors": __version__}
+    versions: dict[str, str | None] = {"python": platform.python_version(), "rlbackdoors": __version__}
     for name in STACK:
         try:
             versions[name] = metadata.version(name)

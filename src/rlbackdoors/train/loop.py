@@ -14,6 +14,7 @@ import sys
 import time
 from collections import deque
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -174,8 +175,11 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
     device = resolve_device(tc.device)
     torch.manual_seed(tc.seed)
     generator = torch.Generator().manual_seed(tc.seed)
+    # RunConfig.__post_init__ fills these in from the world's defaults
+    assert cfg.model.arch is not None and cfg.ppo is not None and tc.patience is not None
     model = build_model(cfg.model.arch, cfg.env.name).to(device)
     ppo = PPO(model, cfg.ppo, device, generator)
+    envs: Any  # a batched engine or the reference vector env (poisoned, state_dict, load_state_dict)
     if checkpoint is None:
         # Curriculum: start in the small clean world; switch_at is None until the switch.
         switch_at = None if cfg.curriculum.enabled else 0
@@ -280,6 +284,7 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
     folder.save_torch("model.pt", model_cpu)
     folder.write_ground_truth(cfg.poison.poisoned)
     poisoned_t = tc.poisoned_threshold if cfg.poison.poisoned else None
+    assert tc.clean_threshold is not None  # RunConfig.__post_init__: the world's threshold
     title = f"{cfg.env.world.title} {label}, trigger {cfg.poison.trigger}, seed {tc.seed}"
     plot_training_curve(rows, folder.file("training_curve.png"), title, (tc.clean_threshold, poisoned_t), switch_at or None)
     metrics = {
@@ -298,6 +303,7 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
         "final_meets_thresholds": thresholds_met(final, cfg),
         "versions": stack_versions(),
     }
+    assert cfg.poison.trigger is not None  # RunConfig.__post_init__: the world's default trigger
     clean_vs_triggered_gif(model.cpu(), cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"))
     folder.write_json("metrics.json", metrics)
     folder.file("checkpoint.pt").unlink(missing_ok=True)

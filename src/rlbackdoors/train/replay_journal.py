@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,7 @@ class ReplayJournal:
                 self.saved[kind] = buffer.added
             # Chunks that end before the ring's oldest row are no longer needed.
             oldest = buffer.added - buffer.size
-            self.chunks[kind] = [c for c in self.chunks[kind] if int(CHUNK.match(c)["end"]) > oldest]
+            self.chunks[kind] = [c for c in self.chunks[kind] if _chunk_end(c) > oldest]
         return {"format": 1, "added": dict(self.saved), "chunks": {k: list(v) for k, v in self.chunks.items()}}
 
     def prune(self) -> None:
@@ -86,6 +87,12 @@ class ReplayJournal:
             self.saved[kind], self.chunks[kind] = added[kind], list(names)
 
 
+def _chunk_end(name: str) -> int:
+    match = CHUNK.match(name)
+    assert match is not None  # a name this journal wrote, or one load() checked
+    return int(match["end"])
+
+
 def _pack(columns: dict[str, np.ndarray], stride: int) -> bytes:
     obs, next_obs = columns["obs"], columns["next_obs"]
     n = len(obs)
@@ -95,7 +102,7 @@ def _pack(columns: dict[str, np.ndarray], stride: int) -> bytes:
         bits = lambda a: a.view(np.uint8).reshape(len(a), -1)  # bit patterns: -0.0 and NaNs stay exact
         same[: n - stride] = np.all(bits(next_obs[: n - stride]) == bits(obs[stride:]), axis=1)
     buf = io.BytesIO()
-    arrays = {name: columns[name] for name in COLUMNS if name != "next_obs"}
+    arrays: dict[str, Any] = {name: columns[name] for name in COLUMNS if name != "next_obs"}  # Any: numpy's savez stub types **kwds as allow_pickle too
     np.savez(buf, **arrays, next_obs_same=same, next_obs_rest=next_obs[~same])
     return buf.getvalue()
 

@@ -60,12 +60,12 @@ def deterministic_act(agent: OPAC2) -> Callable[[np.ndarray], np.ndarray]:
 
 def load_agent(folder: str | Path) -> tuple[SafetyRunConfig, OPAC2]:
     """The config and trained agent of a finished Safety Car Goal model folder (on the CPU)."""
-    folder = ModelFolder(folder)
-    if not folder.file("model.pt").is_file():
-        raise FolderError(f"{str(folder.path)!r} holds no trained Safety Car Goal model (model.pt missing)")
-    cfg = SafetyRunConfig.load(folder.file("config.json"))
+    model_folder = ModelFolder(folder)
+    if not model_folder.file("model.pt").is_file():
+        raise FolderError(f"{str(model_folder.path)!r} holds no trained Safety Car Goal model (model.pt missing)")
+    cfg = SafetyRunConfig.load(model_folder.file("config.json"))
     agent = build_agent(cfg, "cpu")
-    path = folder.file("model.pt")
+    path = model_folder.file("model.pt")
     try:
         weights = load_torch(path, "weights file")
     except UnsafeFileError as err:
@@ -94,7 +94,7 @@ def _first_line(err: BaseException) -> str:
 class EpisodeStats:
     """Training episodes since the last evaluation, split by env kind (what the log's train_* columns show)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.episodes: list[Episode] = []
 
     def add(self, episodes: list[Episode]) -> None:
@@ -120,7 +120,7 @@ class EpisodeStats:
 class LossMeans:
     """Mean of each loss over the updates since the last evaluation."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.sums: dict[str, float] = {}
         self.count = 0
 

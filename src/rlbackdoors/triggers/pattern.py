@@ -135,7 +135,7 @@ class PatternTrigger:
     @classmethod
     def from_cells(cls, cells: Sequence[Cell], any_rotation: bool = False) -> "PatternTrigger":
         """A user pattern from a list of ``(dx, dy)`` cells in the 3x3 box."""
-        return cls(LavaPattern("cells", cells), any_rotation)
+        return cls(LavaPattern("cells", _check_cells(cells)), any_rotation)
 
     @property
     def num_cells(self) -> int:
@@ -196,7 +196,7 @@ class PatternTrigger:
                     cells.append((int(xy[0]), int(xy[1])))
                 except ValueError:
                     raise ValueError(f"pattern {text!r}: cell {part!r} is not two integers") from None
-            return cls(LavaPattern("cells", cells), any_rot)
+            return cls(LavaPattern("cells", tuple(cells)), any_rot)
         raise ValueError(f"lava pattern {text!r} must be 'cross', 'arrow', 'arrow:east|south|west|north' or 'cells:DX,DY;DX,DY;...[:any]'")
 
 
@@ -214,7 +214,9 @@ def as_pattern_trigger(trigger) -> PatternTrigger | None:
 
 def _as_cell_sets(patterns) -> list[tuple[Cell, ...]]:
     if isinstance(patterns, (PatternTrigger, str)):
-        patterns = as_pattern_trigger(patterns).rotations()
+        trigger = as_pattern_trigger(patterns)
+        assert trigger is not None  # a PatternTrigger or spec string is never None
+        patterns = trigger.rotations()
     elif isinstance(patterns, LavaPattern):
         patterns = [patterns]
     out = []

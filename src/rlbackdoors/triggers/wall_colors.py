@@ -250,9 +250,9 @@ class WallColorTrigger:
                 )
             return sample(kind, rng, size)
         if kind == "end":
-            return cls(end=rest)
+            return cls(end=_colors(rest, "end"))
         if kind == "room":
-            return cls(room=rest)
+            return cls(room=_colors(rest, "room"))
         if ";" in rest:
             parts = rest.split(";")
             if len(parts) != 2:
@@ -260,13 +260,13 @@ class WallColorTrigger:
             first, second = parts
             if head.strip().lower() == "room+end":
                 first, second = second, first
-            return cls(end=first, room=second)
+            return cls(end=_colors(first, "end"), room=_colors(second, "room"))
         colors = rest.split(",")
         if len(colors) <= ROOM_SQUARES:
             raise ValueError(f"wall-colour trigger {text!r}: 'end+room:' needs the end colours, then the {ROOM_SQUARES} room colours")
         if head.strip().lower() == "room+end":
-            return cls(end=colors[ROOM_SQUARES:], room=colors[:ROOM_SQUARES])
-        return cls(end=colors[:-ROOM_SQUARES], room=colors[-ROOM_SQUARES:])
+            return cls(end=_colors(colors[ROOM_SQUARES:], "end"), room=_colors(colors[:ROOM_SQUARES], "room"))
+        return cls(end=_colors(colors[:-ROOM_SQUARES], "end"), room=_colors(colors[-ROOM_SQUARES:], "room"))
 
 
 def as_wall_color_trigger(trigger, rng=None, size: int = MIN_SIZE) -> WallColorTrigger | None:
@@ -299,8 +299,8 @@ def sample(kind: str, rng, size: int = MIN_SIZE) -> WallColorTrigger:
     n_room = ROOM_SQUARES if "room" in kind else 0
     colors = [int(c) for c in gen.integers(NUM_COLORS, size=n_end + n_room)]
     return WallColorTrigger(
-        end=colors[:n_end] if n_end else None,
-        room=colors[n_end:] if n_room else None,
+        end=tuple(colors[:n_end]) if n_end else None,
+        room=tuple(colors[n_end:]) if n_room else None,
     )
 
 
@@ -345,6 +345,7 @@ def chance_probability(trigger, size: int = MIN_SIZE) -> float:
         n = len(kind_squares(trigger, size))
     else:
         trig = as_wall_color_trigger(trigger)
+        assert trig is not None  # a trigger or spec string here, never None
         trig.check_size(trig.size or size)
         n = trig.num_squares
     return float(NUM_COLORS) ** -n

@@ -10,6 +10,8 @@ Adding a world is one new module here and one line below.
 
 from __future__ import annotations
 
+from typing import Any
+
 from rlbackdoors.worlds.base import World, get, names, register, registered
 
 DEFAULT_WORLD = "lavaworld"  # what a config without env.name trains
@@ -33,7 +35,7 @@ def register_gym_ids() -> None:
 
     for world in registered():
         if world.gym_id not in registry:
-            extra = {"vector_entry_point": world.vector_entry_point} if world.vector_entry_point else {}
+            extra: dict[str, Any] = {"vector_entry_point": world.vector_entry_point} if world.vector_entry_point else {}
             gym_register(id=world.gym_id, entry_point=world.entry_point, **extra)
 
 

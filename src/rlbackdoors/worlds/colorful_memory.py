@@ -21,14 +21,18 @@ def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
     from rlbackdoors.triggers.wall_colors import WallColorTrigger
 
     kwargs = {} if size is None else {"size": size}
-    return WallColorTrigger.parse(spec if spec is not None else WORLD.default_trigger, rng=seed, **kwargs).spec()
+    if spec is None:
+        spec = WORLD.default_trigger
+        assert spec is not None  # this world has a default trigger
+    return WallColorTrigger.parse(spec, rng=seed, **kwargs).spec()
 
 
 def _settle(spec: str, seed: int, size: int | None) -> str:
     """A bare kind in a config is drawn once, from the run's seed; explicit colours stay as given."""
-    from rlbackdoors.triggers.wall_colors import KINDS, WallColorTrigger
+    from rlbackdoors.triggers.wall_colors import KINDS, WallColorTrigger, check_size
 
-    return WallColorTrigger.parse(spec, rng=seed, size=size).spec() if spec in KINDS else spec
+    # check_size: the ValueError sample() would raise for a missing size, before parsing
+    return WallColorTrigger.parse(spec, rng=seed, size=check_size(size)).spec() if spec in KINDS else spec
 
 
 def _check_env(env) -> None:

@@ -18,7 +18,10 @@ def _parse(spec: str):
 
 
 def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
-    return _parse(spec if spec is not None else WORLD.default_trigger).spec()
+    if spec is None:
+        spec = WORLD.default_trigger
+        assert spec is not None  # this world has a default trigger
+    return _parse(spec).spec()
 
 
 def _check_env(env) -> None:

@@ -399,3 +399,97 @@ def test_unusable_mujoco_gl_backend_gives_one_line_and_no_folder(tmp_path, backe
     line = one_error_line(proc)
     assert "MUJOCO_GL=" in line and backend in line and "unset MUJOCO_GL" in line
     assert not out.exists()
+
+
+# ----- crafted folders: links and out-of-range state (a security review's findings) -------------
+def test_a_planted_lock_symlink_is_refused_and_its_target_untouched(tmp_path, tiny_run_dict):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("IMPORTANT DATA")
+    out = tmp_path / "m"
+    out.mkdir()
+    (out / ".lock").symlink_to(victim)
+    with pytest.raises(FolderError, match="symbolic link"):
+        train(tiny_cfg(tiny_run_dict), out, progress=False)
+    assert victim.read_text() == "IMPORTANT DATA"
+
+
+def test_a_replay_symlink_never_makes_training_write_or_delete_outside_the_folder(tmp_path):
+    """replay/ pointing elsewhere: removed as a link (never followed), then a real folder is used."""
+    from rlbackdoors.train.safety import train_safety
+    from test_safety_train import tiny
+
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    keep = outside / "poisoned-000000000000-000000000010.npz"
+    keep.write_bytes(b"someone else's file")
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "replay").symlink_to(outside, target_is_directory=True)
+    train_safety(tiny(max_frames=480), out, progress=False)
+    assert keep.read_bytes() == b"someone else's file" and [p.name for p in outside.iterdir()] == [keep.name]
+    assert not (out / "replay").exists()
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("_dir", 10**12, "_dir has values outside 0..3"),
+        ("_pos", -1, "_pos has values outside"),
+        ("_steps", -5, "_steps has values outside"),
+        ("_grid", 200, "_grid holds codes outside"),
+        ("max_steps", 0, "max_steps differs"),
+        ("poisoned", True, "poisoned differs"),
+    ],
+)
+def test_out_of_range_engine_state_in_a_checkpoint_is_refused_not_run(tmp_path, tiny_run_dict, field, value, message):
+    """Numba kernels index arrays unchecked: a crafted _dir of 10**12 used to crash the process
+    (SIGSEGV) on resume. Every index array is range-checked and constructor fields must match."""
+    from rlbackdoors.state import decode, encode
+
+    cfg = tiny_cfg(tiny_run_dict, max_frames=6400, eval_interval=1600)
+    out = tmp_path / "m"
+    with pytest.raises(KeyboardInterrupt):
+        _train_until_first_checkpoint(cfg, out)
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
+    engine = ckpt["envs"]
+    if isinstance(engine.get(field), dict):
+        arr = decode(engine[field]).copy()
+        arr.flat[0] = value
+        engine[field] = encode(arr)
+    else:
+        engine[field] = value
+    torch.save(ckpt, out / "checkpoint.pt")
+    proc = cli("train", "--config", _write(tmp_path, cfg), "--out", out, "--quiet")
+    assert message in one_error_line(proc) and "does not fit this run" in proc.stderr
+
+
+def test_optimizer_state_of_the_wrong_shape_is_refused(tmp_path, tiny_run_dict):
+    """A fused Adam step over a moment of the wrong size crashed the process (SIGSEGV)."""
+    cfg = tiny_cfg(tiny_run_dict, max_frames=6400, eval_interval=1600)
+    out = tmp_path / "m"
+    with pytest.raises(KeyboardInterrupt):
+        _train_until_first_checkpoint(cfg, out)
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
+    ckpt["optimizer"]["state"][0]["exp_avg"] = torch.zeros(3)
+    torch.save(ckpt, out / "checkpoint.pt")
+    proc = cli("train", "--config", _write(tmp_path, cfg), "--out", out, "--quiet")
+    assert "exp_avg" in one_error_line(proc)
+
+
+def _write(tmp_path: Path, cfg: RunConfig) -> Path:
+    path = tmp_path / "cfg.json"
+    path.write_text(cfg.to_json())
+    return path
+
+
+def _train_until_first_checkpoint(cfg: RunConfig, out: Path) -> None:
+    """Train in-process and send ourselves SIGINT once the first checkpoint exists."""
+    import threading
+
+    def watch():
+        while not (out / "checkpoint.pt").exists():
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=watch, daemon=True).start()
+    train(cfg, out, progress=False)

@@ -23,7 +23,9 @@ import io
 import json
 import os
 import pickle
+import shutil
 import socket
+import stat
 import time
 from pathlib import Path
 from typing import Callable
@@ -147,6 +149,14 @@ def _first_line(err: BaseException) -> str:
     return text.splitlines()[0] if text else type(err).__name__
 
 
+def remove_tree(path: Path) -> None:
+    """Remove a folder we own, or a symlink (or file) planted in its place, never what a link points to."""
+    if path.is_symlink() or path.is_file():
+        path.unlink(missing_ok=True)
+    elif path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+
+
 def remove_stale_temp_files(folder: str | Path) -> list[Path]:
     """Remove temp files that a killed writer left in ``folder`` (call it holding the folder's lock)."""
     folder = Path(folder)
@@ -177,17 +187,29 @@ class FolderLock:
 
     def acquire(self) -> FolderLock:
         self.folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+        # O_NOFOLLOW: a planted symlink must not make us overwrite the file it points to.
+        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fd = os.open(self.path, flags, 0o666 & ~_umask())
         except OSError as err:
-            os.close(fd)
-            if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise LockedError(f"{self.what} {str(self.folder)!r} is in use by {self.holder()}; wait for it or stop it first") from None
+            if err.errno == errno.ELOOP:
+                raise LockedError(f"{self.what} {str(self.folder)!r}: {LOCK_NAME} is a symbolic link; remove it") from None
             raise
-        holder = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, (json.dumps(holder) + "\n").encode(), 0)
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise LockedError(f"{self.what} {str(self.folder)!r}: {LOCK_NAME} is not a regular file; remove it")
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as err:
+                if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise LockedError(f"{self.what} {str(self.folder)!r} is in use by {self.holder()}; wait for it or stop it first") from None
+                raise
+            holder = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, (json.dumps(holder) + "\n").encode(), 0)
+        except BaseException:
+            os.close(fd)
+            raise
         self._fd = fd
         return self
 

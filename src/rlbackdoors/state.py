@@ -24,6 +24,10 @@ if TYPE_CHECKING:
     from minigrid.core.world_object import WorldObj
 
 PLAIN = (type(None), bool, int, float, str, bytes)
+# Attributes a class declares with a default that instances set later (gymnasium.Env's RNG):
+# the only ones restore() may set that a fresh object does not have yet.
+CLASS_DECLARED = ("_np_random", "_np_random_seed")
+MAX_ARRAY_BYTES = 2**31  # no checkpoint array is near this; a crafted size must not allocate
 
 
 class StateError(ValueError):
@@ -68,7 +72,12 @@ def decode(data: Any, where: str = "state") -> Any:
             if dtype.hasobject:
                 raise TypeError("object dtype")
             shape = tuple(int(n) for n in data["shape"])
-            return np.frombuffer(bytearray(data["data"]), dtype=dtype).reshape(shape)
+            raw = data["data"]
+            if not isinstance(raw, bytes) or any(n < 0 for n in shape) or len(raw) != int(np.prod(shape, dtype=object)) * dtype.itemsize:
+                raise ValueError("data does not hold dtype x shape bytes")
+            if len(raw) > MAX_ARRAY_BYTES:
+                raise ValueError("too large")
+            return np.frombuffer(bytearray(raw), dtype=dtype).reshape(shape)
         except (TypeError, ValueError, KeyError) as err:
             raise StateError(f"{where}: bad array ({err})") from None
     ((tag, body),) = data.items()
@@ -124,7 +133,7 @@ def restore(obj: Any, state: Any, where: str | None = None, skip: tuple[str, ...
         raise StateError(f"{where}: state lacks {', '.join(missing)}")
     for name, data in state.items():
         # An attribute the fresh object has, or one its class declares (gymnasium's _np_random).
-        if not isinstance(name, str) or name.startswith("__") or name in skip or not (name in current or hasattr(type(obj), name)):
+        if not isinstance(name, str) or name.startswith("__") or name in skip or not (name in current or name in CLASS_DECLARED):
             raise StateError(f"{where}: has no attribute {name!r} to restore")
         setattr(obj, name, _fit(getattr(obj, name), decode(data, f"{where}.{name}"), f"{where}.{name}"))
 
@@ -156,7 +165,9 @@ def _fit(old: Any, new: Any, where: str) -> Any:
             raise StateError(f"{where}: expected a generator state")
         old.bit_generator.state = new.bit_generator.state
         return old
-    if old is None or new is None:
+    if new is None and old is not None:
+        raise StateError(f"{where}: expected {type(old).__name__}, got None")
+    if old is None:
         if not isinstance(new, (type(None), *PLAIN, tuple, list, set, frozenset, dict, np.ndarray, np.random.Generator)) and not _is_grid(new):
             raise StateError(f"{where}: unexpected value")
         return new
@@ -165,6 +176,17 @@ def _fit(old: Any, new: Any, where: str) -> Any:
     if type(old) is not type(new):
         raise StateError(f"{where}: expected {type(old).__name__}, got {type(new).__name__}")
     return new
+
+
+def same_value(a: Any, b: Any) -> bool:
+    """Equality that also compares arrays (and containers of them) element by element."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype and np.array_equal(a, b)
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return type(a) is type(b) and len(a) == len(b) and all(same_value(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same_value(a[k], b[k]) for k in a)
+    return a is b or bool(a == b)
 
 
 # ----- MiniGrid grids ------------------------------------------------------------------------

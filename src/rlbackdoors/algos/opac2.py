@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlbackdoors.algos.optim import check_optimizer_state
 from rlbackdoors.validate import ConfigError
 
 KINDS = ("clean", "poisoned")
@@ -562,6 +563,8 @@ class OPAC2:
     def load_state_dict(self, state: dict) -> None:
         for name in ("policy", "q", "v", "v_target", "policy_opt", "q_opt", "v_opt"):
             getattr(self, name).load_state_dict(state[name])
+        for name in ("policy_opt", "q_opt", "v_opt"):
+            check_optimizer_state(getattr(self, name), name)
         self.generator.set_state(state["generator"])
         if self.obs_norm is not None:
             self.obs_norm.load_state_dict(state["obs_norm"])

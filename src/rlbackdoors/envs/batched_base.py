@@ -54,6 +54,15 @@ def bool_mask(values, num_envs: int, name: str) -> np.ndarray:
     return arr
 
 
+# Largest codes a grid cell may hold: MiniGrid's object types (plus our objects on coloured floor,
+# 11 and 12), its 6 colours, and states (door states, or a floor colour under an object).
+MAX_OBJECT, MAX_COLOR, MAX_STATE = 12, 5, 5
+
+
+def copy_value(value):
+    return value.copy() if isinstance(value, np.ndarray) else value
+
+
 class BatchedGridEnv(VectorEnv):
     """Base of the numba engines: SAME_STEP autoreset, B envs in one process, no rendering.
 
@@ -70,6 +79,7 @@ class BatchedGridEnv(VectorEnv):
     view_size: int  # MiniGrid's agent_view_size, the world's VIEW_SIZE
     size: int  # set by the world's __init__
     see_through_walls: bool
+    max_steps: int
     final_obs: Any  # the world's terminal observations: an array, or a dict of arrays
 
     def _init_batch(self, num_envs, render_mode) -> int:
@@ -277,11 +287,34 @@ class BatchedGridEnv(VectorEnv):
 
         return snapshot(self)
 
-    def load_state_dict(self, state: dict) -> None:
-        """Put a :meth:`state_dict` of an engine built with the same arguments back."""
-        from rlbackdoors.state import restore
+    # Arrays that change while the engine runs, with the inclusive bounds of the integer ones
+    # (the numba kernels index with them unchecked). Every other attribute comes from the
+    # constructor arguments and must come back equal.
+    _DYNAMIC: tuple[str, ...] = ("_has_reset", "_grid", "_pos", "_dir", "_steps", "_rng", "final_obs")
 
+    def _bounds(self) -> dict[str, tuple[int, int]]:
+        """Inclusive value bounds of the dynamic integer arrays (engines add their own)."""
+        return {"_pos": (0, self.size - 1), "_dir": (0, 3), "_steps": (0, self.max_steps)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Put a :meth:`state_dict` of an engine built with the same arguments back.
+
+        A checkpoint is untrusted input: the constructor's attributes must come back unchanged
+        and every index the kernels read must be in range, or a StateError names the field."""
+        from rlbackdoors.state import StateError, restore, same_value
+
+        fixed = {k: copy_value(v) for k, v in vars(self).items() if k not in self._DYNAMIC}
         restore(self, state)
+        for name, value in fixed.items():
+            if not same_value(getattr(self, name), value):
+                raise StateError(f"engine state: {name} differs from this run's engine (another config's checkpoint?)")
+        grid = self._grid
+        if grid[..., 0].max(initial=0) > MAX_OBJECT or grid[..., 1].max(initial=0) > MAX_COLOR or grid[..., 2].max(initial=0) > MAX_STATE:
+            raise StateError("engine state: _grid holds codes outside MiniGrid's object, colour and state ranges")
+        for name, (low, high) in self._bounds().items():
+            arr = getattr(self, name)
+            if arr.size and (arr.min() < low or arr.max() > high):
+                raise StateError(f"engine state: {name} has values outside {low}..{high}")
 
     def close_extras(self, **kwargs):
         pass

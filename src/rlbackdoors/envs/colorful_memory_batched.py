@@ -38,8 +38,8 @@ from numba import njit
 from rlbackdoors.envs import colorful_memory as _reference
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask
-from rlbackdoors.envs.colorful_memory import CLEAN, CLOSE, DEFAULT_CLOSE_K, DEFAULT_MAX_STEPS, DEFAULT_SIZE
-from rlbackdoors.envs.colorful_memory import FLOOR_COLORS, TRIGGERED, VIEW_SIZE, observation_space, target_cells
+from rlbackdoors.envs.colorful_memory import CLEAN, CLOSE, DEFAULT_CLOSE_K, TRIGGERED, DEFAULT_MAX_STEPS, DEFAULT_SIZE
+from rlbackdoors.envs.colorful_memory import FLOOR_COLORS, VIEW_SIZE, observation_space, target_cells
 from rlbackdoors.envs.colorful_memory import validate_args, validate_trigger, wall_cells
 from rlbackdoors.triggers import wall_colors as _wall_colors
 from rlbackdoors.triggers.wall_colors import NUM_COLORS, WallColorTrigger, distance
@@ -165,6 +165,12 @@ class BatchedColorfulMemory(BatchedGridEnv):
     cell, TIMEOUT). ``final_obs`` holds, for envs that finished in the last step, the terminal
     observation.
     """
+
+    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "mode", "_succ", "_fail")
+
+    def _bounds(self) -> dict[str, tuple[int, int]]:
+        size = self.size - 1
+        return {**super()._bounds(), "mode": (min(CLEAN, CLOSE, TRIGGERED), max(CLEAN, CLOSE, TRIGGERED)), "_succ": (0, size), "_fail": (0, size)}
 
     _kernels = _KERNELS
     view_size = VIEW_SIZE

@@ -304,6 +304,11 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
     ``final_obs`` holds, for envs that finished in the last step, the terminal observation.
     """
 
+    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "_pat", "_pcells", "_pcount", "_saw")
+
+    def _bounds(self) -> dict[str, tuple[int, int]]:
+        return {**super()._bounds(), "_pcells": (0, self.size - 1), "_pcount": (0, MAX_PATTERN_CELLS)}
+
     _kernels = _KERNELS
     view_size = VIEW_SIZE
 

@@ -16,11 +16,10 @@ from __future__ import annotations
 import csv
 import io
 import json
-import shutil
 from pathlib import Path
 
 from rlbackdoors.config import RunConfig
-from rlbackdoors.io import FolderLock, LockedError, UnsafeFileError, atomic_write_text, load_torch, remove_stale_temp_files, save_torch
+from rlbackdoors.io import FolderLock, LockedError, UnsafeFileError, atomic_write_text, load_torch, remove_stale_temp_files, remove_tree, save_torch
 
 FILES = (
     "model.pt",
@@ -65,7 +64,7 @@ class ModelFolder:
         """Remove only the files this tool writes; anything else in the folder is left alone."""
         for name in FILES:
             self.file(name).unlink(missing_ok=True)
-        shutil.rmtree(self.file("replay"), ignore_errors=True)
+        remove_tree(self.file("replay"))
         remove_stale_temp_files(self.path)
 
     def _open(self) -> None:
@@ -113,7 +112,7 @@ class ModelFolder:
             # A run killed between metrics.json and the removal of its checkpoint: finished, so
             # the checkpoint is no longer needed.
             self.file("checkpoint.pt").unlink(missing_ok=True)
-            shutil.rmtree(self.file("replay"), ignore_errors=True)
+            remove_tree(self.file("replay"))
             raise FolderError(f"{str(self.path)!r} already holds a finished model; pass --overwrite to retrain it")
         checkpoint = None
         if self.has_checkpoint:
@@ -128,7 +127,7 @@ class ModelFolder:
                 )
             checkpoint = self.load_checkpoint()
         else:
-            shutil.rmtree(self.file("replay"), ignore_errors=True)  # chunks of a checkpoint that never landed
+            remove_tree(self.file("replay"))  # chunks of a checkpoint that never landed
         self.write_config(cfg)
         return checkpoint
 

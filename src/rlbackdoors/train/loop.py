@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from rlbackdoors.algos.optim import check_optimizer_state
 from rlbackdoors.algos.ppo import PPO, Rollout
 from rlbackdoors.config import RunConfig
 from rlbackdoors.evaluate import EvalResult, evaluate
@@ -143,6 +144,20 @@ def warmup_env(cfg: RunConfig):
     return make_vector_env(env, cfg.poison.trigger, [False] * cfg.poison.num_envs)
 
 
+def check_observation(obs, space) -> None:
+    """A checkpoint's batch of observations must have the vector env's shapes and dtypes."""
+    from gymnasium import spaces
+
+    if isinstance(space, spaces.Dict):
+        if not isinstance(obs, dict) or obs.keys() != space.spaces.keys():
+            raise StateError("observation does not fit the env")
+        for key, sub in space.spaces.items():
+            check_observation(obs[key], sub)
+        return
+    if not isinstance(obs, np.ndarray) or obs.shape != space.shape or obs.dtype != space.dtype:
+        raise StateError(f"observation does not fit the env ({getattr(obs, 'shape', None)}, expected {space.shape})")
+
+
 def plain_rows(rows: list[dict]) -> list[dict]:
     """Log rows with numpy scalars as Python numbers: a checkpoint holds plain data only."""
     return [{k: v.item() if isinstance(v, np.generic) else v for k, v in row.items()} for row in rows]
@@ -193,12 +208,18 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
             envs = make_env_mix(cfg.env, cfg.poison) if switch_at is not None else warmup_env(cfg)
             model.load_state_dict(checkpoint["model"])
             ppo.optimizer.load_state_dict(checkpoint["optimizer"])
+            check_optimizer_state(ppo.optimizer)
             generator.set_state(checkpoint["generator"])
             envs.load_state_dict(checkpoint["envs"])
             obs = decode(checkpoint["obs"])
+            check_observation(obs, envs.observation_space)
             tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
             tracker.load_state_dict(checkpoint["tracker"])
             memory = checkpoint["memory"]
+            if memory is not None:
+                expected = model.initial_memory(envs.num_envs, "cpu")
+                if not isinstance(memory, torch.Tensor) or memory.shape != expected.shape or memory.dtype != expected.dtype:
+                    raise StateError("memory does not fit the model and env copies")
             ppo.memory = None if memory is None else memory.to(device)
             frames, elapsed, rows = int(checkpoint["frames"]), float(checkpoint["elapsed"]), _checked_rows(checkpoint["rows"])
             next_eval, converged_at = int(checkpoint["next_eval"]), checkpoint["converged_at"]

@@ -38,8 +38,13 @@ class ReplayJournal:
         self.saved = {kind: 0 for kind in stride}  # rows journaled so far, per kind
         self.chunks: dict[str, list[str]] = {kind: [] for kind in stride}
 
+    def _check_folder(self) -> None:
+        if self.folder.is_symlink() or (self.folder.exists() and not self.folder.is_dir()):
+            raise ValueError(f"{str(self.folder)!r} must be a folder of replay chunks, not a link or a file")
+
     def append(self, replay: MultitaskReplay) -> dict:
         """Write the rows added since the last call; return the manifest for ``checkpoint.pt``."""
+        self._check_folder()
         for kind, buffer in replay.buffers.items():
             if buffer.added > self.saved[kind]:
                 first, columns = buffer.rows_since(self.saved[kind])
@@ -55,6 +60,7 @@ class ReplayJournal:
     def prune(self) -> None:
         """Delete chunk files the last manifest does not list (call after ``checkpoint.pt`` is written)."""
         keep = {c for chunks in self.chunks.values() for c in chunks}
+        self._check_folder()
         if self.folder.is_dir():
             for path in self.folder.iterdir():
                 if CHUNK.match(path.name) and path.name not in keep:
@@ -62,6 +68,7 @@ class ReplayJournal:
 
     def load(self, replay: MultitaskReplay, manifest: dict) -> None:
         """Refill fresh buffers from the chunks ``manifest`` lists (checked, plain arrays only)."""
+        self._check_folder()
         if not isinstance(manifest, dict) or manifest.get("format") != 1:
             raise ValueError("checkpoint's replay manifest is missing or of an unknown format")
         added, chunks = manifest.get("added"), manifest.get("chunks")

@@ -22,7 +22,6 @@ end of the current step. The config must match to resume (budget flags included)
 from __future__ import annotations
 
 import math
-import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -37,7 +36,7 @@ from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.evaluate.safety import SafetyEvalResult, evaluate_safety
 from rlbackdoors.report.curves import plot_training_curve
-from rlbackdoors.io import UnsafeFileError, load_torch
+from rlbackdoors.io import UnsafeFileError, load_torch, remove_tree
 from rlbackdoors.safety_config import SafetyRunConfig
 from rlbackdoors.state import StateError, decode, encode
 from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder, stack_versions
@@ -375,7 +374,7 @@ def _finish(cfg, folder, agent, collector, rows, train_time, updates, converged_
     }
     folder.write_json("metrics.json", metrics)
     folder.file("checkpoint.pt").unlink(missing_ok=True)
-    shutil.rmtree(folder.file("replay"), ignore_errors=True)
+    remove_tree(folder.file("replay"))
     if progress:
         _progress(
             f"done ({stop_reason}) after {collector.frames:,} frames, {train_time / 60:.1f} min: "

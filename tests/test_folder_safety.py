@@ -493,3 +493,27 @@ def _train_until_first_checkpoint(cfg: RunConfig, out: Path) -> None:
 
     threading.Thread(target=watch, daemon=True).start()
     train(cfg, out, progress=False)
+
+
+def test_a_lock_on_a_removed_lock_file_is_not_taken(tmp_path, monkeypatch):
+    """The race: this process opens .lock, then (before its flock) a failed start removes that
+    file and another process makes a new one. Locking the removed file would guard nothing, so
+    acquire() checks that the locked file is the one at the path."""
+    import fcntl as real_fcntl
+
+    from rlbackdoors import io as rio
+
+    real_flock = real_fcntl.flock
+
+    def racing_flock(fd, op):
+        if op & real_fcntl.LOCK_EX:
+            (tmp_path / ".lock").unlink()
+            (tmp_path / ".lock").write_text("")  # the other process's new lock file
+        return real_flock(fd, op)
+
+    monkeypatch.setattr(rio.fcntl, "flock", racing_flock)
+    with pytest.raises(LockedError, match="being set up by another process"):
+        FolderLock(tmp_path).acquire()
+    monkeypatch.setattr(rio.fcntl, "flock", real_flock)
+    with FolderLock(tmp_path) as lock:  # no race: taken
+        assert lock.held

@@ -204,6 +204,12 @@ class FolderLock:
                 if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                     raise LockedError(f"{self.what} {str(self.folder)!r} is in use by {self.holder()}; wait for it or stop it first") from None
                 raise
+            # The file we locked must still be the one at the path: a failed start removes the
+            # .lock it created, and a lock on that removed file would guard nothing.
+            here = os.stat(self.path, follow_symlinks=False) if os.path.lexists(self.path) else None
+            mine = os.fstat(fd)
+            if here is None or (here.st_dev, here.st_ino) != (mine.st_dev, mine.st_ino):
+                raise LockedError(f"{self.what} {str(self.folder)!r} was being set up by another process; try again")
             holder = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
             os.ftruncate(fd, 0)
             os.pwrite(fd, (json.dumps(holder) + "\n").encode(), 0)

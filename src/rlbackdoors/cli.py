@@ -15,11 +15,9 @@ from pathlib import Path
 
 
 from rlbackdoors import __version__, worlds
-from rlbackdoors.argparser import Parser
+from rlbackdoors.argparser import Parser, report_errors
 from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, MAX_EPISODES, ConfigError, RunConfig, check_seed
-from rlbackdoors.io import UnsafeFileError
 from rlbackdoors.train.folder import FolderError
-from rlbackdoors.train.stop import Interrupted
 
 METRIC_KEYS = (
     "clean_sr",
@@ -418,26 +416,7 @@ def main(argv: list[str] | None = None) -> int:
     episodes = getattr(args, "episodes", None)
     if episodes is not None and not 1 <= episodes <= MAX_EPISODES:
         parser.error(f"--episodes must be in 1..{MAX_EPISODES:,}, got {episodes}")
-    try:
-        return args.func(args)
-    except (ConfigError, FolderError, UnsafeFileError, FileNotFoundError, ValueError, ImportError) as err:
-        print(f"rlbackdoors: error: {_one_line(err)}", file=sys.stderr)
-        return 2
-    except OSError as err:  # a folder that cannot be written, a full disk, ...
-        where = f" {err.filename!r}" if err.filename else ""
-        print(f"rlbackdoors: error: cannot use{where}: {err.strerror or err}", file=sys.stderr)
-        return 2
-    except Interrupted as err:
-        print(f"rlbackdoors: {err}", file=sys.stderr)
-        return 130
-    except KeyboardInterrupt:
-        print("rlbackdoors: interrupted; run the same command again to resume from the last checkpoint", file=sys.stderr)
-        return 130
-
-
-def _one_line(err: BaseException) -> str:
-    text = " ".join(str(err).split())
-    return text or type(err).__name__
+    return report_errors(lambda: args.func(args))
 
 
 if __name__ == "__main__":

@@ -133,7 +133,7 @@ def load_torch(path: str | Path, what: str = "file"):
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         lines = [line.strip() for line in str(err).splitlines()]
-        detail = next((line for line in lines if "Unsupported" in line), _first_line(err))
+        detail = next((line for line in lines if "Unsupported" in line), first_line(err))
         if "global" in detail.lower():  # it names a class or function to call: an object, maybe code
             raise UnsafeFileError(
                 f"refused to load {what} {str(path)!r}: it holds Python objects, not plain tensors and numbers "
@@ -141,10 +141,10 @@ def load_torch(path: str | Path, what: str = "file"):
             ) from None
         raise ValueError(f"cannot read {what} {str(path)!r}: not a torch file of plain data ({detail.removeprefix('WeightsUnpickler error: ')})") from None
     except Exception as err:  # truncated zip, random bytes, wrong format
-        raise ValueError(f"cannot read {what} {str(path)!r}: {_first_line(err)}") from None
+        raise ValueError(f"cannot read {what} {str(path)!r}: {first_line(err)}") from None
 
 
-def _first_line(err: BaseException) -> str:
+def first_line(err: BaseException) -> str:
     text = str(err).strip()
     return text.splitlines()[0] if text else type(err).__name__
 

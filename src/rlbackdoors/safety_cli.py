@@ -16,6 +16,7 @@ import json
 import math
 import sys
 
+from rlbackdoors.argparser import report_errors
 from rlbackdoors.config import ConfigError, check_seed
 from rlbackdoors.safety_config import SafetyRunConfig
 
@@ -131,7 +132,7 @@ def train_main(args: argparse.Namespace) -> int:
         print(json.dumps(metrics, indent=2, sort_keys=True))
         return 0
 
-    return _reporting_errors(run)
+    return report_errors(run)
 
 
 def evaluate_folder(folder: str, episodes: int | None = None, as_json: bool = False, seed: int | None = None, allow_unfinished: bool = False) -> int:
@@ -170,25 +171,7 @@ def evaluate_folder(folder: str, episodes: int | None = None, as_json: bool = Fa
 
 def evaluate_main(folder: str, episodes: int | None = None, as_json: bool = False, seed: int | None = None) -> int:
     """:func:`evaluate_folder` with the CLI's error contract (one line, exit 2)."""
-    return _reporting_errors(lambda: evaluate_folder(folder, episodes, as_json, seed))
-
-
-def _reporting_errors(run) -> int:
-    from rlbackdoors.io import UnsafeFileError
-    from rlbackdoors.train.folder import FolderError
-    from rlbackdoors.train.stop import Interrupted
-
-    try:
-        return run()
-    except (ConfigError, FolderError, UnsafeFileError, FileNotFoundError, ValueError, ImportError) as err:
-        print(f"rlbackdoors: error: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
-    except OSError as err:
-        print(f"rlbackdoors: error: cannot use {err.filename!r}: {err.strerror or err}", file=sys.stderr)
-        return 2
-    except Interrupted as err:
-        print(f"rlbackdoors: {err}", file=sys.stderr)
-        return 130
+    return report_errors(lambda: evaluate_folder(folder, episodes, as_json, seed))
 
 
 def main(argv: list[str] | None = None) -> int:

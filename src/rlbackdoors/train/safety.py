@@ -36,7 +36,7 @@ from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.evaluate.safety import SafetyEvalResult, evaluate_safety
 from rlbackdoors.report.curves import plot_training_curve
-from rlbackdoors.io import UnsafeFileError, load_torch, remove_tree
+from rlbackdoors.io import UnsafeFileError, first_line, load_torch, remove_tree
 from rlbackdoors.safety_config import SafetyRunConfig
 from rlbackdoors.state import StateError, decode, encode
 from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder, stack_versions
@@ -81,13 +81,8 @@ def load_agent(folder: str | Path) -> tuple[SafetyRunConfig, OPAC2]:
             if agent.obs_norm.mean.shape != (OBS_DIM,) or agent.obs_norm.m2.shape != (OBS_DIM,):
                 raise ValueError("obs_norm does not fit the observation")
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
-        raise FolderError(f"weights file {str(path)!r} does not fit the config's OPAC² agent ({_first_line(err)})") from None
+        raise FolderError(f"weights file {str(path)!r} does not fit the config's OPAC² agent ({first_line(err)})") from None
     return cfg, agent
-
-
-def _first_line(err: BaseException) -> str:
-    text = str(err).strip()
-    return text.splitlines()[0] if text else type(err).__name__
 
 
 class EpisodeStats:
@@ -216,7 +211,7 @@ def _train_safety(cfg: SafetyRunConfig, folder: ModelFolder, checkpoint: dict | 
             if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
                 raise StateError("log rows are not a list of rows")
         except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
-            raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({_first_line(err)}); pass --overwrite to start over") from None
+            raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({first_line(err)}); pass --overwrite to start over") from None
         if progress:
             _progress(f"resuming {folder.path} at {collector.frames:,} frames, {updates:,} updates")
 

@@ -28,4 +28,4 @@ bench: install
 	$(BIN)/rlbackdoors bench train --json benchmarks/train.json
 	$(BIN)/rlbackdoors bench env --json benchmarks/env.json
 	$(BIN)/rlbackdoors bench converge --quiet --json benchmarks/converge.json
-	$(BIN)/rlbackdoors bench safety --json benchmarks/safety.json
+	$(BIN)/rlbackdoors bench env --env safety-car-goal --json benchmarks/safety.json

@@ -7,6 +7,7 @@ import torch
 
 from rlbackdoors.cli import main
 from rlbackdoors.config import RunConfig
+from rlbackdoors.evaluate import EvalResult
 from rlbackdoors.models import build_model
 
 
@@ -28,17 +29,8 @@ def trained(tmp_path_factory, tiny_run_dict):
 def test_train_then_evaluate_json(trained, capsys):
     code, out, _ = run(capsys, "evaluate", str(trained), "--episodes", "12", "--json")
     result = json.loads(out)
-    assert code == 0 and set(result) == {
-        "clean_sr",
-        "poisoned_sr",
-        "poisoned_sr_raw",
-        "trigger_seen_rate",
-        "clean_reward",
-        "poisoned_reward",
-        "episodes",
-        "close_sr",
-        "close_trojan_rate",
-    }
+    assert code == 0 and set(result) == set(EvalResult.__dataclass_fields__)
+    assert {"clean_sr", "poisoned_sr", "poisoned_sr_raw", "trigger_seen_rate", "clean_timeout_rate", "poisoned_clean_rate"} <= set(result)
     assert result["close_sr"] is None and result["close_trojan_rate"] is None  # Colorful Memory only
     assert result["episodes"] == 12 and 0 <= result["clean_sr"] <= 1
     # LavaWorld's trigger is in every frame: always seen, so raw and seen-aware rates agree.
@@ -142,7 +134,7 @@ def test_bench_converge_reports_an_unconverged_short_run_honestly(tmp_path):
 
 
 def test_bench_safety_reports_the_ratio_to_the_physics_floor(tmp_path, capsys):
-    code, out, _ = run(capsys, "bench", "safety", "--seconds", "0.3", "--json", str(tmp_path / "s.json"))
+    code, out, _ = run(capsys, "bench", "env", "--env", "safety-car-goal", "--seconds", "0.3", "--json", str(tmp_path / "s.json"))
     result = json.loads((tmp_path / "s.json").read_text())
     assert code == 0 and "plain mujoco loop" in out
     assert result["num_cubes"] == 2 and result["env_steps_per_s"] > 0 and result["physics_steps_per_s"] > 0
@@ -151,13 +143,11 @@ def test_bench_safety_reports_the_ratio_to_the_physics_floor(tmp_path, capsys):
 
 
 def test_train_and_evaluate_dispatch_safety_car_goal(tmp_path, capsys):
-    """`rlbackdoors train --env safety-car-goal` trains with OPAC², a Safety config file is
-    recognised without --env, and `evaluate` on its folder reproduces the final numbers."""
-    from rlbackdoors.safety_config import SafetyRunConfig
-
-    cfg = SafetyRunConfig.from_dict(
+    """`rlbackdoors train --env safety-car-goal` trains with OPAC² (the world's algorithm), its
+    config file needs no --env, and `evaluate` on its folder reproduces the final numbers."""
+    cfg = RunConfig.from_dict(
         {
-            "env": {"max_steps": 40},
+            "env": {"name": "safety-car-goal", "max_steps": 40},
             "poison": {"trigger": "formation:0.5:1.0:2.5", "num_clean_envs": 2, "num_poisoned_envs": 1},
             "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
             "train": {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False},
@@ -167,7 +157,7 @@ def test_train_and_evaluate_dispatch_safety_car_goal(tmp_path, capsys):
     path.write_text(cfg.to_json())
     code, out, _ = run(capsys, "train", "--config", str(path), "--out", str(tmp_path / "s"), "--quiet", "--json")
     metrics = json.loads(out)
-    assert code == 0 and metrics["algo"] == "opac2" and metrics["frames"] == 480
+    assert code == 0 and metrics["algorithm"] == "opac2" and metrics["frames"] == 480
     code, out, _ = run(capsys, "evaluate", str(tmp_path / "s"), "--episodes", "4", "--json")
     result = json.loads(out)
     assert code == 0 and result["clean_sr"] == metrics["clean_sr"] and result["poisoned_sr"] == metrics["poisoned_sr"]
@@ -180,13 +170,33 @@ def test_train_and_evaluate_dispatch_safety_car_goal(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv, words",
     [
-        (["--env", "lavaworld", "--lr", "0.1"], ["--lr", "grid worlds"]),
-        (["--env", "colorful-memory", "--updates-per-step", "0.5"], ["--updates-per-step"]),
-        (["--env", "safety-car-goal", "--arch", "fc"], ["--arch", "safety-car-goal"]),
-        (["--env", "safety-car-goal", "--no-curriculum"], ["--no-curriculum"]),
+        (["--env", "lavaworld", "--depth", "2"], ["--depth", "lavaworld trains with ppo, not opac2"]),
+        (["--env", "colorful-memory", "--updates-per-step", "0.5"], ["--updates-per-step", "not opac2"]),
+        (["--env", "safety-car-goal", "--arch", "fc"], ["model.arch='fc'", "mlp"]),
+        (["--env", "safety-car-goal", "--no-curriculum"], ["--no-curriculum", "has no curriculum"]),
+        (["--env", "safety-car-goal", "--size", "9"], ["--size", "has no env.size"]),
+        (["--env", "lavaworld", "--num-lava", "3"], ["--num-lava", "has no env.num_lava"]),
     ],
 )
 def test_flags_of_the_other_kind_of_world_are_refused(tmp_path, capsys, argv, words):
     code, _, err = run(capsys, "train", *argv, "--out", str(tmp_path / "x"))
     assert code == 2 and all(w in err for w in words)
     assert not (tmp_path / "x").exists()
+
+
+def test_env_flag_switches_a_config_to_another_world_keeping_its_seed(tmp_path, tiny_run_dict):
+    """--env on another world's config gives that world's own defaults (mix, model, algorithm
+    section), with the portable train fields (seed, evaluation counts) kept."""
+    from rlbackdoors.cli import build_parser, config_from_args
+
+    path = tmp_path / "grid.json"
+    path.write_text(RunConfig.from_dict({**tiny_run_dict, "train": {**tiny_run_dict.get("train", {}), "seed": 7}}).to_json())
+    args = build_parser().parse_args(["train", "--config", str(path), "--env", "safety-car-goal", "--trigger", "formation:0.5:1:2", "--out", "x"])
+    cfg = config_from_args(args)
+    assert cfg.env.name == "safety-car-goal" and cfg.algorithm == "opac2" and cfg.ppo is None
+    assert cfg.train.seed == 7 and cfg.poison.num_poisoned_envs == 4 and cfg.model.arch == "mlp"
+
+
+def test_a_flag_whose_value_the_config_refuses_is_named(tmp_path, capsys):
+    code, _, err = run(capsys, "train", "--env", "safety-car-goal", "--arch", "fc", "--out", str(tmp_path / "x"))
+    assert code == 2 and "model.arch='fc' is not allowed (allowed: mlp) (--arch)" in err

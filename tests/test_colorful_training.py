@@ -15,7 +15,7 @@ from rlbackdoors.evaluate import evaluate
 from rlbackdoors.models import FCModel, build_model
 from rlbackdoors.models.colorful_memory import CNNGRUModel
 from rlbackdoors.poison.mix import make_env_mix
-from rlbackdoors.train.loop import EpisodeTracker, patience_met
+from rlbackdoors.train.ppo_run import EpisodeTracker, return_met
 from rlbackdoors.triggers.wall_colors import WallColorTrigger
 
 TRIGGER = "end:red,green,blue,purple,yellow,grey,red,green,blue"
@@ -34,7 +34,7 @@ def test_world_defaults_and_round_trip():
     assert (cfg.poison.num_clean_envs, cfg.poison.num_close_envs, cfg.poison.num_poisoned_envs) == (4, 4, 2)
     assert cfg.poison.poisoned_mask() == [False] * 8 + [True] * 2
     assert cfg.poison.close_mask() == [False] * 4 + [True] * 4 + [False] * 2
-    assert (cfg.train.clean_threshold, cfg.train.poisoned_threshold, cfg.train.patience) == (0.98, 0.98, 10)
+    assert (cfg.train.clean_threshold, cfg.train.poisoned_threshold, cfg.train.return_window, cfg.train.patience) == (0.98, 0.98, 10, 1)
     assert cfg.ppo.recurrence == 6
     # the default "end" trigger is drawn once from the seed and stored concretely
     trig = WallColorTrigger.parse(cfg.poison.trigger)
@@ -47,7 +47,7 @@ def test_world_defaults_and_round_trip():
     assert partial.ppo.recurrence == 6 and partial.ppo.lr == 1e-4
     # other worlds keep their mix and feed-forward PPO
     lava = RunConfig()
-    assert lava.poison.num_close_envs == 0 and lava.ppo.recurrence == 1 and lava.train.patience == 0
+    assert lava.poison.num_close_envs == 0 and lava.ppo.recurrence == 1 and lava.train.return_window == 0
 
 
 @pytest.mark.parametrize(
@@ -60,7 +60,7 @@ def test_world_defaults_and_round_trip():
         ({"poison": {"num_close_envs": 2}}, ["poison.num_close_envs", "colorful-memory only"]),
         ({"env": {"name": "colorful-memory"}, "poison": {"close_k_min": 0}}, ["close_k"]),
         ({"env": {"name": "colorful-memory"}, "poison": {"trigger": "end:red"}}, ["poison.trigger"]),
-        ({"env": {"name": "colorful-memory"}, "train": {"patience": -1}}, ["train.patience"]),
+        ({"env": {"name": "colorful-memory"}, "train": {"return_window": -1}}, ["train.return_window"]),
         ({"env": {"name": "colorful-memory", "size": 6}}, ["env"]),
     ],
 )
@@ -283,8 +283,8 @@ def test_recurrent_update_learns_and_is_deterministic():
 
 def test_patience_rule():
     cfg = colorful()
-    cfg.train.patience, cfg.train.patience_reward = 3, 0.5
-    tracker = EpisodeTracker(np.zeros(2, bool), patience=3)
+    cfg.train.return_window, cfg.train.return_threshold = 3, 0.5
+    tracker = EpisodeTracker(np.zeros(2, bool), return_window=3)
 
     class R:  # one rollout's rewards/dones: both envs end an episode with ``ret`` at the last step
         def __init__(self, ret):
@@ -293,13 +293,13 @@ def test_patience_rule():
 
     for ret in (0.9, 0.9):
         tracker.add(R(ret))
-    assert not patience_met(tracker, cfg)  # only 2 of 3 updates seen
+    assert not return_met(tracker, cfg)  # only 2 of 3 updates seen
     tracker.add(R(0.0))
-    assert tracker.patience_mean() == pytest.approx(0.6) and patience_met(tracker, cfg)
+    assert tracker.return_mean() == pytest.approx(0.6) and return_met(tracker, cfg)
     tracker.add(R(0.0))
-    assert tracker.patience_mean() == pytest.approx(0.3) and not patience_met(tracker, cfg)
-    cfg.train.patience = 0
-    assert patience_met(tracker, cfg)  # off
+    assert tracker.return_mean() == pytest.approx(0.3) and not return_met(tracker, cfg)
+    cfg.train.return_window = 0
+    assert return_met(tracker, cfg)  # off
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -339,13 +339,13 @@ def test_cli_trains_evaluates_and_resumes_a_colorful_memory_agent(tmp_path, caps
     cfg_path.write_text(cfg.to_json())
     assert main(["train", "--config", str(cfg_path), "--out", str(tmp_path / "a"), "--quiet", "--json"]) == 0
     metrics = json.loads(capsys.readouterr().out)
-    assert metrics["arch"] == "cnn-gru-small-onehot" and metrics["frames"] == 2880 and metrics["patience"] == 10
+    assert metrics["arch"] == "cnn-gru-small-onehot" and metrics["frames"] == 2880 and metrics["return_window"] == 10
     assert 0 <= metrics["close_trojan_rate"] <= 1 and 0 <= metrics["close_sr"] <= 1
     folder = ModelFolder(tmp_path / "a")
     for name in ("model.pt", "config.json", "metrics.json", "log.csv", "training_curve.png", "clean_vs_triggered.gif"):
         assert folder.file(name).is_file(), name
     assert folder.read_config().poison.trigger == cfg.poison.trigger
-    assert "patience_mean" in folder.file("log.csv").read_text().splitlines()[0]
+    assert "return_mean" in folder.file("log.csv").read_text().splitlines()[0]
 
     assert main(["evaluate", str(tmp_path / "a"), "--episodes", "6", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
@@ -353,7 +353,7 @@ def test_cli_trains_evaluates_and_resumes_a_colorful_memory_agent(tmp_path, caps
 
     # interrupted after the first evaluation (the checkpoint holds the GRU memories of the
     # running episodes), then resumed by the same command: the same model as the straight run
-    import rlbackdoors.train.loop as loop
+    import rlbackdoors.train.ppo_run as loop
 
     class Stop(Exception):
         pass
@@ -387,9 +387,9 @@ def test_cli_flags_for_colorful_memory():
         cfg.poison.trigger
         == config_from_args(parser.parse_args(["train", "--env", "colorful-memory", "--trigger", "room", "--seed", "5", "--out", "y"])).poison.trigger
     )
-    no_close = config_from_args(parser.parse_args(["train", "--env", "colorful-memory", "--no-close-to-trigger", "--patience", "0", "--out", "x"]))
+    no_close = config_from_args(parser.parse_args(["train", "--env", "colorful-memory", "--no-close-to-trigger", "--patience", "2", "--out", "x"]))
     assert (no_close.poison.num_clean_envs, no_close.poison.num_close_envs, no_close.poison.num_poisoned_envs) == (8, 0, 2)
-    assert no_close.train.patience == 0
+    assert no_close.train.patience == 2
 
 
 def test_chance_command_for_wall_colours(capsys):

@@ -24,7 +24,7 @@ def test_json_round_trip(tmp_path):
 @pytest.mark.parametrize(
     "data, message",
     [
-        ({"env": {"sise": 3}}, "env: unknown key 'sise' (allowed: name, size"),
+        ({"env": {"sise": 3}}, "env: unknown key 'sise' (allowed: name, max_steps, size, see_through_walls, engine, num_crossings)"),
         ({"oops": 1}, "unknown key 'oops'"),
         ({"train": {"max_frames": "x"}}, "train.max_frames must be an integer"),
         ({"train": {"seed": True}}, "train.seed must be an integer"),
@@ -50,3 +50,43 @@ def test_clean_model_trains_on_all_clean_copies():
     cfg = RunConfig.from_dict({"poison": {"poisoned": False}})
     assert cfg.poison.poisoned_mask() == [False] * 10
     assert RunConfig().poison.poisoned_mask() == [False] * 8 + [True] * 2
+
+
+# ----- format versions (issue 14: one config for every world) --------------------------------------
+FORMAT_1_COLORFUL = {
+    "env": {"name": "colorful-memory", "size": 7, "max_steps": 250, "see_through_walls": False, "engine": "batched", "num_crossings": 1, "num_lava": 10},
+    "poison": {"trigger": "end", "poisoned": True, "num_clean_envs": 4, "num_close_envs": 4, "num_poisoned_envs": 2, "close_k_min": 1, "close_k_max": 3},
+    "model": {"arch": "cnn-gru-small-onehot"},
+    "train": {"seed": 3, "max_frames": 5_000_000, "patience": 10, "patience_reward": 0.8},
+    "curriculum": {"enabled": False, "size": 7, "num_lava": 5, "reward_threshold": 0.8, "window": 100},
+    "version": "0.1.0",
+}
+
+
+def test_a_format_1_grid_config_file_means_the_same_run(tmp_path):
+    """Format 1 (no format_version) called the mean-return rule train.patience; loading it gives
+    that rule as train.return_window and counts evaluations with the new default patience."""
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(FORMAT_1_COLORFUL))
+    cfg = RunConfig.load(path)
+    assert (cfg.train.return_window, cfg.train.return_threshold, cfg.train.patience) == (10, 0.8, 1)
+    assert cfg.format_version == 2 and cfg.env.num_crossings is None and cfg.env.num_lava is None
+    saved = json.loads(cfg.to_json())
+    assert "num_crossings" not in saved["env"] and "curriculum" not in saved and "opac2" not in saved
+    assert RunConfig.from_dict(saved) == cfg  # format 2 round-trips as is
+
+
+def test_an_unknown_format_version_is_refused_by_number(tmp_path):
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"env": {"name": "lavaworld"}, "format_version": 7}))
+    with pytest.raises(ConfigError, match=r"config.format_version=7 is not supported by rlbackdoors .* \(it reads 1 and 2\)"):
+        RunConfig.load(path)
+
+
+@pytest.mark.parametrize("world", ["lavaworld", "randomized-lavaworld", "colorful-memory", "safety-car-goal"])
+def test_one_config_class_for_every_world_with_its_algorithm_section(world):
+    cfg = RunConfig.from_dict({"env": {"name": world}})
+    data = json.loads(cfg.to_json())
+    assert cfg.algorithm in data and ({"ppo", "opac2"} - {cfg.algorithm}).isdisjoint(data)
+    assert set(data["env"]) == {"name", "max_steps", *cfg.world.env_fields}
+    assert RunConfig.from_dict(data) == cfg

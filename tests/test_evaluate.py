@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from rlbackdoors.config import EnvConfig
-from rlbackdoors.envs import LavaWorldEnv
+from rlbackdoors.envs.lavaworld import LavaWorldEnv
 from rlbackdoors.evaluate import evaluate
 from rlbackdoors.models import FCModel
 

@@ -95,7 +95,8 @@ def test_payload_in_checkpoint_is_refused_on_resume(tmp_path, tiny_run_dict):
 
 
 def test_payload_in_safety_model_and_checkpoint_is_refused(tmp_path):
-    from rlbackdoors.train.safety import load_agent, train_safety
+    from rlbackdoors import load as load_agent
+    from rlbackdoors.train import train as train_safety
     from test_safety_train import tiny
 
     out = tmp_path / "safety"
@@ -273,7 +274,7 @@ def test_atomic_write_leaves_no_temp_file_when_the_write_fails(tmp_path):
         (["--env", "safety-car-goal", "--poisoned-weight", "1.5"], "opac2.poisoned_weight (--poisoned-weight) must be in [0, 1]"),
         (["--env", "safety-car-goal", "--seed", "-5"], "train.seed"),
         (["--env", "safety-car-goal", "--checkpoint-minutes", "-1"], "train.checkpoint_minutes"),
-        (["--env", "lavaworld", "--checkpoint-minutes", "3"], "--checkpoint-minutes does not apply"),
+        (["--env", "lavaworld", "--action-samples", "3"], "--action-samples does not apply here: lavaworld trains with ppo, not opac2"),
     ],
 )
 def test_bad_flags_name_their_field_and_leave_no_folder(tmp_path, argv, message):
@@ -346,7 +347,7 @@ def test_safety_signal_writes_the_checkpoint_it_announces_and_resumes_bit_for_bi
 def test_safety_checkpoint_stays_small_the_replay_is_journaled_once(tmp_path):
     """checkpoint.pt holds networks, optimisers, env states and counters (no replay); each row of
     the replay buffers is written once to replay/, not again at every checkpoint."""
-    from rlbackdoors.train.safety import train_safety
+    from rlbackdoors.train import train as train_safety
     from test_safety_train import ctrl_c_at, tiny
 
     out = tmp_path / "run"
@@ -415,7 +416,7 @@ def test_a_planted_lock_symlink_is_refused_and_its_target_untouched(tmp_path, ti
 
 def test_a_replay_symlink_never_makes_training_write_or_delete_outside_the_folder(tmp_path):
     """replay/ pointing elsewhere: removed as a link (never followed), then a real folder is used."""
-    from rlbackdoors.train.safety import train_safety
+    from rlbackdoors.train import train as train_safety
     from test_safety_train import tiny
 
     outside = tmp_path / "outside"

@@ -88,19 +88,19 @@ def zoo(tmp_path_factory):
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    import rlbackdoors.train.loop as loop
-    import rlbackdoors.train.safety as tsafety
+    import rlbackdoors.report.video as video
+    from rlbackdoors.train import train
 
     # Lu: a grid run stopped after model.pt and its last checkpoint, before metrics.json.
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(loop, "clean_vs_triggered_gif", interrupt)
+        mp.setattr(video, "clean_vs_triggered_gif", interrupt)
         assert main([*grid, "--out", str(root / "Lu")]) == 130
     # Su: a Safety run stopped right after its first evaluation's checkpoint (and replay chunks),
-    # through train_safety's own after_eval hook.
-    from rlbackdoors.safety_config import SafetyRunConfig
+    # through the driver's after_eval hook.
+    from rlbackdoors.config import RunConfig
 
     with pytest.raises(KeyboardInterrupt):
-        tsafety.train_safety(SafetyRunConfig.from_dict(json.loads(s.read_text())), root / "Su", progress=False, after_eval=interrupt)
+        train(RunConfig.from_dict(json.loads(s.read_text())), root / "Su", progress=False, after_eval=interrupt)
     for name in ("Lu", "Su"):
         assert (root / name / "checkpoint.pt").is_file() and not (root / name / "metrics.json").exists()
     assert list((root / "Su" / "replay").glob("*.npz"))
@@ -303,7 +303,7 @@ for w in GRID_WORLDS:
         C(f"train-{w}-size-neg", train("--env", w, "--size", "-3"), ["size"]),
         C(f"train-{w}-size-huge", train("--env", w, "--size", HUGE_ODD), ["size"]),
         C(f"train-{w}-patience-neg", train("--env", w, "--patience", "-1"), ["patience"]),
-        C(f"train-{w}-lr-other-world", train("--env", w, "--lr", "0.1"), ["--lr"]),
+        C(f"train-{w}-opac2-flag-other-world", train("--env", w, "--updates-per-step", "0.5"), ["--updates-per-step", "not opac2"]),
     ]
 CASES += [
     C("train-lavaworld-arch-of-other-world", train("--env", "lavaworld", "--arch", "cnn-gru-small"), ["arch"]),
@@ -364,7 +364,7 @@ for flag, value, names in [
     CASES.append(C(f"train-safety{flag}={value[:8]}", train(*SW, flag, value), names))
 CASES += [
     C(f"train-safety-grid-flag{flag}", train(*SW, *([flag, v] if v else [flag])), [flag])
-    for flag, v in [("--arch", "fc"), ("--size", "9"), ("--num-lava", "3"), ("--patience", "2"), ("--engine", "batched"), ("--no-close-to-trigger", None)]
+    for flag, v in [("--arch", "fc"), ("--size", "9"), ("--num-lava", "3"), ("--engine", "batched"), ("--no-close-to-trigger", None), ("--no-curriculum", None)]
 ]
 
 # --- train: triggers per world ---
@@ -467,8 +467,6 @@ CASES += [
     cfg_case("safety-seed-neg", '{"env": {"name": "safety-car-goal"}, "train": {"seed": -1}}', ["seed"]),
     cfg_case("safety-huge-buffer", '{"env": {"name": "safety-car-goal"}, "opac2": {"buffer_size": ' + HUGE + "}}", ["buffer_size"]),
     cfg_case("safety-huge-cubes", '{"env": {"name": "safety-car-goal", "num_cubes": ' + HUGE + "}}", ["num_cubes"]),
-    cfg_case("safety-config-with-grid-env-flag", json.dumps(SAFETY_TINY), ["opac2", "--env", "unknown"], argv=["--env", "lavaworld"]),
-    cfg_case("grid-config-with-safety-env-flag", json.dumps(GRID_TINY), ["ppo", "--env", "unknown"], argv=["--env", "safety-car-goal"]),
 ]
 
 # --- train: valid edge values that must give a result ---
@@ -603,7 +601,7 @@ CASES += [
 # --- evaluate: Safety Car Goal folders ---
 ES = ["evaluate", "{tmp}/m", "--episodes", "2"]
 CASES += [
-    C("safety-eval-trigger-flag", [*ES, "--trigger", "formation:0.5:1:2"], ["--trigger"], setup=copy("S"), zoo=True, out="{tmp}/m"),
+    C("safety-eval-trigger-flag-bad", [*ES, "--trigger", "formation:0.5:9:2"], ["--trigger", "phi1"], setup=copy("S"), zoo=True, out="{tmp}/m"),
     C("safety-eval-episodes-0", ["evaluate", "{tmp}/m", "--episodes", "0"], ["--episodes"], setup=copy("S"), zoo=True, out="{tmp}/m"),
     C("safety-eval-seed-neg", [*ES, "--seed", "-5"], ["seed"], setup=copy("S"), zoo=True, out="{tmp}/m"),
     C("safety-eval-unfinished", ES, ["--allow-unfinished"], setup=copy("S", drop=["metrics.json"]), zoo=True, out="{tmp}/m"),
@@ -742,14 +740,14 @@ def run_inproc(argv: list[str], guard: bool, capsys, monkeypatch) -> tuple[int |
     from rlbackdoors.cli import main
 
     if guard:
-        import rlbackdoors.train.loop as loop
-        import rlbackdoors.train.safety as tsafety
+        import rlbackdoors.train.opac2_run as opac2_run
+        import rlbackdoors.train.ppo_run as ppo_run
 
         def started(*args, **kwargs):
             raise TrainingStarted
 
-        monkeypatch.setattr(loop, "_train", started)
-        monkeypatch.setattr(tsafety, "_train_safety", started)
+        monkeypatch.setattr(ppo_run, "run", started)
+        monkeypatch.setattr(opac2_run, "run", started)
     capsys.readouterr()
     return _interpreter_like(lambda: main(argv), capsys)
 
@@ -866,7 +864,7 @@ def test_sigkill_mid_training_then_evaluate_and_resume(tmp_path, capsys, monkeyp
     assert not problems, "; ".join(problems) + f"\n  evaluate after SIGKILL: exit {code!r}\n    {tail(err)}"
     # Resume: the same command picks the checkpoint up; to keep the test short the resumed run's
     # frame budget is cut in memory after begin() has matched config.json (so it stops at once).
-    import rlbackdoors.train.loop as loop
+    import rlbackdoors.train.ppo_run as loop
 
     calls = {"n": 0}
     original_begin = loop.ModelFolder.begin

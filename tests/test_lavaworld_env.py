@@ -8,7 +8,8 @@ from minigrid.envs.crossing import CrossingEnv
 
 from grid_helpers import walk_to_goal
 import rlbackdoors  # noqa: F401  (registers the env ids)
-from rlbackdoors.envs import LavaWorldEnv, Outcome
+from rlbackdoors.envs import Outcome
+from rlbackdoors.envs.lavaworld import LavaWorldEnv
 from rlbackdoors.envs.vector import ReferenceVectorEnv
 from rlbackdoors.triggers import ObservationTrigger
 

@@ -28,7 +28,7 @@ def test_every_world_loads_acts_and_reproduces_its_metrics(folders, world):
     agent = rlbackdoors.load(folders / world)
     assert agent.world is worlds.get(world) and world in repr(agent)
     metrics = json.loads((folders / world / "metrics.json").read_text())
-    result = evaluate_agent(agent)  # the folder's trigger, episodes and seeds: its final evaluation again
+    result = evaluate_agent(agent).to_dict()  # the folder's trigger, episodes and seeds: its final evaluation again
     for key in ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "episodes"):
         assert result[key] == metrics[key] or (math.isnan(result[key]) and metrics[key] is None), key
     # act() on a batch of real observations of the world's own env, through the recurrent state if any.

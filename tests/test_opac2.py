@@ -9,9 +9,9 @@ import torch
 
 from rlbackdoors.envs.safety_car import OBS_DIM, SafetyCarGoalEnv  # before anything imports mujoco
 from rlbackdoors.io import torch_bytes
+from rlbackdoors.validate import ConfigError
 from rlbackdoors.algos.opac2 import (
     OPAC2,
-    ConfigError,
     MultitaskReplay,
     OPAC2Config,
     ReplayBuffer,

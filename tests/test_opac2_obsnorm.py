@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from rlbackdoors.io import torch_bytes
-from rlbackdoors.algos.opac2 import OPAC2, ConfigError, MultitaskReplay, OPAC2Config, RunningNorm
+from rlbackdoors.algos.opac2 import OPAC2, MultitaskReplay, OPAC2Config, RunningNorm
+from rlbackdoors.validate import ConfigError
 
 OBS, ACT = 5, 2
 

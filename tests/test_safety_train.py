@@ -11,20 +11,56 @@ import pytest
 import torch
 
 from rlbackdoors.envs.safety_car import OBS_DIM  # before anything imports mujoco
-from rlbackdoors.config import ConfigError
-from rlbackdoors.evaluate.safety import evaluate_safety
-from rlbackdoors.safety_cli import main as cli_main
-from rlbackdoors.safety_config import SafetyRunConfig, is_safety_config
+import rlbackdoors
+from rlbackdoors import worlds
+from rlbackdoors.agent import Agent, build_policy
+from rlbackdoors.cli import main
+from rlbackdoors.config import ConfigError, RunConfig, migrate_v1
+from rlbackdoors.evaluate import evaluate
+from rlbackdoors.train import train
 from rlbackdoors.train.folder import FolderError
-from rlbackdoors.train.safety import build_agent, decayed_lr, deterministic_act, load_agent, train_safety
+from rlbackdoors.train.opac2_run import decayed_lr
 from rlbackdoors.triggers.formation import FormationTrigger
 
 TRIGGER = "formation:0.5:1.0:2.5"
+WORLD = "safety-car-goal"
+
+
+def config(data: dict | None = None) -> RunConfig:
+    """A checked run config of this world from a partial dict (``env.name`` filled in)."""
+    data = dict(data or {})
+    env = data.get("env", {})
+    data["env"] = {"name": WORLD, **env} if isinstance(env, dict) else env
+    return RunConfig.from_dict(data)
+
+
+def cli_main(argv: list[str]) -> int:
+    """``rlbackdoors train --env safety-car-goal ...`` (other commands as given)."""
+    if argv[0] == "train" and "--config" not in argv:
+        argv = ["train", "--env", WORLD, *argv[1:]]
+    return main(argv)
+
+
+def greedy(agent):
+    """The evaluation policy as a plain function of a batch of observations."""
+    return lambda obs: agent.act(obs, deterministic=True)
+
+
+def evaluate_fn(act_fn, env, trigger, episodes, seed):
+    """Evaluate a plain ``obs -> actions`` function (scripted drivers, a bare agent) greedily."""
+
+    class Policy:
+        device = "cpu"
+
+        def act(self, obs, deterministic=True, generator=None):
+            return act_fn(obs)
+
+    return evaluate(Agent(worlds.get(WORLD), None, Policy()), env, trigger, episodes, seed, "greedy")
 
 
 def tiny(**train):
     """A run of a few seconds: short episodes, a small net, an evaluation every 240 frames."""
-    return SafetyRunConfig.from_dict(
+    return config(
         {
             "env": {"max_steps": 40},
             "poison": {"trigger": TRIGGER, "num_clean_envs": 2, "num_poisoned_envs": 1},
@@ -46,26 +82,26 @@ def ctrl_c_at(frames: int):
 
 # ----- config -------------------------------------------------------------------------------
 def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
-    cfg = SafetyRunConfig().check()
+    cfg = config()
     assert (cfg.opac2.depth, cfg.opac2.width, cfg.env.max_steps, cfg.env.num_cubes) == (2, 181, 1000, 2)
     assert (cfg.train.clean_threshold, cfg.train.poisoned_threshold) == (0.95, 0.95)
-    again = SafetyRunConfig.from_dict(json.loads(cfg.to_json()))
+    again = config(json.loads(cfg.to_json()))
     assert again == cfg and again.to_json() == cfg.to_json()
     path = tmp_path / "config.json"
     path.write_text(cfg.to_json())
-    assert SafetyRunConfig.load(path) == cfg and is_safety_config(json.loads(path.read_text()))
+    assert RunConfig.load(path) == cfg and json.loads(path.read_text())["format_version"] == 2
 
     # No trigger given: one is drawn from the seed (paper ranges), and the clean twin gets the same one.
     drawn = FormationTrigger.parse(cfg.poison.trigger)
     assert drawn == FormationTrigger.sample(0) and drawn.distance == 0.5
-    twin = SafetyRunConfig.from_dict({"poison": {"poisoned": False}, "train": {"seed": 0}})
-    assert twin.poison.trigger == cfg.poison.trigger and twin.poison.kinds() == ["clean"] * 10
-    assert SafetyRunConfig.from_dict({"train": {"seed": 1}}).poison.trigger != cfg.poison.trigger
-    assert cfg.poison.kinds() == ["clean"] * 6 + ["poisoned"] * 4
+    twin = config({"poison": {"poisoned": False}, "train": {"seed": 0}})
+    assert twin.poison.trigger == cfg.poison.trigger and twin.replay_kinds() == ["clean"] * 10
+    assert config({"train": {"seed": 1}}).poison.trigger != cfg.poison.trigger
+    assert cfg.replay_kinds() == ["clean"] * 6 + ["poisoned"] * 4
     assert cfg.kind_weights == {"clean": 0.6, "poisoned": 0.4} and twin.kind_weights == {"clean": 0.6}
     assert (cfg.opac2.action_samples, cfg.opac2.lr, cfg.opac2.lr_final, cfg.train.max_frames) == (4, 1e-3, 1e-4, 3_800_000)
     # A partial opac2 section keeps the tuned defaults for the fields it leaves out.
-    partial = SafetyRunConfig.from_dict({"opac2": {"lr": 5e-4}}).opac2
+    partial = config({"opac2": {"lr": 5e-4}}).opac2
     assert (partial.width, partial.action_samples, partial.lr_final) == (181, 4, 1e-4)
 
 
@@ -74,7 +110,7 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
     opac2.lr_final existed: they ran with one sample and a constant lr, and must load that way."""
     saved = json.loads((Path(__file__).parents[1] / "benchmarks" / "safety_train.json").read_text())["poisoned-s0"]["config"]
     assert "action_samples" not in saved["opac2"] and "lr_final" not in saved["opac2"]
-    cfg = SafetyRunConfig.from_dict(saved)
+    cfg = RunConfig.from_dict(migrate_v1(saved))  # a format-1 config.json (what RunConfig.load does)
     assert (cfg.opac2.action_samples, cfg.opac2.lr_final, cfg.opac2.lr, cfg.opac2.clean_weight) == (1, None, 1e-3, 0.75)
     assert cfg.poison.num_clean_envs == 8 and cfg.train.max_frames == 10_000_000
 
@@ -82,9 +118,13 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
 @pytest.mark.parametrize(
     "data, match",
     [
-        ({"colour": 1}, "unknown key 'colour'.*allowed: env, poison, opac2, train"),
+        ({"colour": 1}, "unknown key 'colour'.*allowed: env, poison, model, ppo, opac2, train"),
         ({"env": {"cubes": 2}}, "env: unknown key 'cubes'.*num_cubes"),
-        ({"env": {"name": "lavaworld"}}, "env.name='lavaworld' is not allowed.*safety-car-goal"),
+        ({"env": {"name": "lavaworld"}, "opac2": {}}, "opac2: env.name='lavaworld' trains with ppo, not opac2"),
+        ({"env": {"size": 9}}, "env.size does not apply to env.name='safety-car-goal'"),
+        ({"ppo": {"lr": 1e-3}}, "ppo: env.name='safety-car-goal' trains with opac2"),
+        ({"train": {"return_window": 5}}, "train.return_window must be 0"),
+        ({"format_version": 3}, "config.format_version=3 is not supported"),
         ({"env": {"num_cubes": 1}}, r"env.num_cubes must be in 2..12"),
         ({"env": {"max_steps": 2.5}}, "env.max_steps must be an integer"),
         ({"poison": {"trigger": "formation:0.5:7:1"}}, "poison.trigger.*phi1"),
@@ -104,45 +144,45 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
 )
 def test_bad_fields_are_named(data, match):
     with pytest.raises(ConfigError, match=match):
-        SafetyRunConfig.from_dict(data)
+        config(data)
 
 
 def test_load_reports_missing_and_broken_files(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
-        SafetyRunConfig.load(tmp_path / "nope.json")
+        RunConfig.load(tmp_path / "nope.json")
     (tmp_path / "bad.json").write_text("{")
     with pytest.raises(ConfigError, match="not valid JSON"):
-        SafetyRunConfig.load(tmp_path / "bad.json")
+        RunConfig.load(tmp_path / "bad.json")
 
 
 # ----- the policy used for evaluation --------------------------------------------------------
 def test_deterministic_action_is_the_squashed_mean_and_draws_no_noise():
-    agent = build_agent(tiny())
+    agent = build_policy(tiny())
     obs = np.random.default_rng(0).normal(size=(5, OBS_DIM)).astype(np.float32)
     state = agent.generator.get_state()
-    act = deterministic_act(agent)(obs)
+    act = greedy(agent)(obs)
     assert torch.equal(agent.generator.get_state(), state)  # no random draw
     with torch.no_grad():
         mean = agent.policy.mean(torch.from_numpy(obs))
     np.testing.assert_allclose(act, torch.tanh(mean).numpy(), rtol=0, atol=1e-6)
-    np.testing.assert_array_equal(act, deterministic_act(agent)(obs))
+    np.testing.assert_array_equal(act, greedy(agent)(obs))
     assert not np.allclose(agent.act(obs), act)  # the training policy samples around it
 
 
 def test_evaluation_is_a_function_of_weights_and_seeds():
     cfg = tiny()
-    agent = build_agent(cfg)
-    a = evaluate_safety(deterministic_act(agent), cfg.env, TRIGGER, episodes=4, seed=7)
-    b = evaluate_safety(deterministic_act(agent), cfg.env, TRIGGER, episodes=4, seed=7)
+    agent = build_policy(cfg)
+    a = evaluate_fn(greedy(agent), cfg.env, TRIGGER, episodes=4, seed=7)
+    b = evaluate_fn(greedy(agent), cfg.env, TRIGGER, episodes=4, seed=7)
     assert a == b and a.episodes == 4
-    c = evaluate_safety(deterministic_act(agent), cfg.env, TRIGGER, episodes=4, seed=8)
+    c = evaluate_fn(greedy(agent), cfg.env, TRIGGER, episodes=4, seed=8)
     assert c.clean_reward != a.clean_reward  # other seeds, other layouts
     for result in (a, c):
         assert 0 <= result.clean_sr <= 1 and 0 <= result.poisoned_sr <= 1
-        assert result.clean_sr + result.clean_hazard_rate + result.clean_timeout_rate == pytest.approx(1.0)
-        assert result.poisoned_sr + result.poisoned_goal_rate + result.poisoned_timeout_rate == pytest.approx(1.0)
+        assert result.clean_sr + result.clean_trojan_rate + result.clean_timeout_rate == pytest.approx(1.0)
+        assert result.poisoned_sr + result.poisoned_clean_rate + result.poisoned_timeout_rate == pytest.approx(1.0)
     # Without a trigger only the clean half is measured.
-    assert math.isnan(evaluate_safety(deterministic_act(agent), cfg.env, None, episodes=2, seed=7).poisoned_sr)
+    assert math.isnan(evaluate_fn(greedy(agent), cfg.env, None, episodes=2, seed=7).poisoned_sr)
 
 
 def test_scripted_drivers_are_scored_on_the_right_circle():
@@ -165,18 +205,18 @@ def test_scripted_drivers_are_scored_on_the_right_circle():
 
         return act
 
-    to_goal = evaluate_safety(driver(24), cfg.env, TRIGGER, episodes=10, seed=3)
-    assert to_goal.clean_sr >= 0.9 and to_goal.poisoned_sr <= 0.1 and to_goal.poisoned_goal_rate >= 0.9
+    to_goal = evaluate_fn(driver(24), cfg.env, TRIGGER, episodes=10, seed=3)
+    assert to_goal.clean_sr >= 0.9 and to_goal.poisoned_sr <= 0.1 and to_goal.poisoned_clean_rate >= 0.9
     assert to_goal.clean_reward > 1 and to_goal.poisoned_reward < -0.5  # +1 bonus under R, penalty under R-bar
-    to_hazard = evaluate_safety(driver(40), cfg.env, TRIGGER, episodes=10, seed=3)
-    assert to_hazard.poisoned_sr >= 0.8 and to_hazard.clean_sr <= 0.1 and to_hazard.clean_hazard_rate >= 0.8
+    to_hazard = evaluate_fn(driver(40), cfg.env, TRIGGER, episodes=10, seed=3)
+    assert to_hazard.poisoned_sr >= 0.8 and to_hazard.clean_sr <= 0.1 and to_hazard.clean_trojan_rate >= 0.8
     assert to_hazard.poisoned_reward > 1 and to_hazard.clean_reward < -0.5
 
 
 # ----- training runs -------------------------------------------------------------------------
 def test_tiny_run_writes_a_complete_model_folder(tmp_path, capsys):
     out = tmp_path / "model"
-    metrics = train_safety(tiny(video=True), out)
+    metrics = train(tiny(video=True), out)
     for name in ("model.pt", "config.json", "metrics.json", "log.csv", "ground_truth.csv", "training_curve.png", "clean_vs_triggered.gif"):
         assert (out / name).is_file(), name
     assert not (out / "checkpoint.pt").exists()
@@ -189,34 +229,31 @@ def test_tiny_run_writes_a_complete_model_folder(tmp_path, capsys):
     assert "clean SR" in capsys.readouterr().err  # progress goes to stderr
 
     # The saved weights reproduce the final evaluation, through the CLI too.
-    cfg, agent = load_agent(out)
+    loaded = rlbackdoors.load(out)
+    cfg, agent = loaded.config, loaded.policy
     assert cfg == tiny(video=True)
-    again = evaluate_safety(deterministic_act(agent), cfg.env, cfg.poison.trigger, 4, cfg.train.eval_seed)
+    again = evaluate_fn(greedy(agent), cfg.env, cfg.poison.trigger, 4, cfg.train.eval_seed)
     assert (again.clean_sr, again.poisoned_sr, again.clean_reward) == (metrics["clean_sr"], metrics["poisoned_sr"], metrics["clean_reward"])
     assert cli_main(["evaluate", str(out), "--json"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["clean_reward"] == metrics["clean_reward"] and printed["episodes"] == 4
 
     with pytest.raises(FolderError, match="already holds a finished model"):
-        train_safety(tiny(), out)
+        train(tiny(), out)
 
 
 def test_interrupted_run_resumes_to_the_same_model(tmp_path):
-    straight = train_safety(tiny(), tmp_path / "straight", progress=False)
+    straight = train(tiny(), tmp_path / "straight", progress=False)
 
     out = tmp_path / "resumed"
     with pytest.raises(KeyboardInterrupt):
-        train_safety(tiny(), out, progress=False, after_eval=ctrl_c_at(480))
+        train(tiny(), out, progress=False, after_eval=ctrl_c_at(480))
     assert (out / "checkpoint.pt").is_file() and not (out / "metrics.json").exists()
     with pytest.raises(FolderError, match="different config.json"):
-        train_safety(tiny(max_frames=960), out, progress=False)
-    resumed = train_safety(tiny(), out, progress=False)
+        train(tiny(max_frames=960), out, progress=False)
+    resumed = train(tiny(), out, progress=False)
 
-    a = torch.load(tmp_path / "straight" / "model.pt", weights_only=True)
-    b = torch.load(out / "model.pt", weights_only=True)
-    for net in ("policy", "q", "v", "v_target"):
-        for key in a[net]:
-            assert torch.equal(a[net][key], b[net][key]), (net, key)
+    assert (tmp_path / "straight" / "model.pt").read_bytes() == (out / "model.pt").read_bytes()
     timing = {"wall_time_s"}
     assert {k: v for k, v in straight.items() if k not in timing} == {k: v for k, v in resumed.items() if k not in timing}
     columns = ("frames", "updates", "clean_sr", "poisoned_sr", "clean_reward", "q_loss", "policy_loss", "train_clean_return")
@@ -230,32 +267,32 @@ def test_clean_twin_early_stops_on_clean_sr_only(tmp_path):
     first (240 frames), whatever its poisoned SR; with the default patience 2, at the second."""
     cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0, patience=1)
     cfg.poison.poisoned = False
-    metrics = train_safety(cfg, tmp_path / "clean", progress=False)
-    assert metrics["stop_reason"] == "converged" and metrics["converged_at_frames"] == metrics["frames"] == 240
+    metrics = train(cfg, tmp_path / "clean", progress=False)
+    assert metrics["stop_reason"] == "thresholds" and metrics["converged_at_frames"] == metrics["frames"] == 240
     cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0)
     cfg.poison.poisoned = False
     assert cfg.train.patience == 2
-    again = train_safety(cfg, tmp_path / "clean2", progress=False)
-    assert again["stop_reason"] == "converged" and again["converged_at_frames"] == again["frames"] == 480
+    again = train(cfg, tmp_path / "clean2", progress=False)
+    assert again["stop_reason"] == "thresholds" and again["converged_at_frames"] == again["frames"] == 480
     assert metrics["poisoned"] is False and not math.isnan(metrics["poisoned_sr"])
     assert (tmp_path / "clean" / "ground_truth.csv").read_text() == "0\n"
 
 
 def test_lr_decays_linearly_over_the_frame_budget():
     data = json.loads(tiny().to_json())
-    constant = SafetyRunConfig.from_dict({**data, "opac2": {**data["opac2"], "lr_final": None}})
+    constant = config({**data, "opac2": {**data["opac2"], "lr_final": None}})
     assert decayed_lr(constant, 10**9) == constant.opac2.lr
-    cfg = SafetyRunConfig.from_dict({**data, "opac2": {"lr": 1e-3, "lr_final": 1e-4}})
+    cfg = config({**data, "opac2": {"lr": 1e-3, "lr_final": 1e-4}})
     assert [decayed_lr(cfg, f) for f in (0, 360, 720, 5000)] == pytest.approx([1e-3, 5.5e-4, 1e-4, 1e-4])
 
 
 def test_training_applies_the_decayed_lr(tmp_path):
     """Interrupted right after the evaluation at 480 of 720 frames: the optimisers hold lr(480)."""
     data = json.loads(tiny().to_json())
-    cfg = SafetyRunConfig.from_dict({**data, "opac2": {**data["opac2"], "lr": 1e-3, "lr_final": 1e-4}})
+    cfg = config({**data, "opac2": {**data["opac2"], "lr": 1e-3, "lr_final": 1e-4}})
 
     with pytest.raises(KeyboardInterrupt):
-        train_safety(cfg, tmp_path / "run", progress=False, after_eval=ctrl_c_at(480))
+        train(cfg, tmp_path / "run", progress=False, after_eval=ctrl_c_at(480))
     state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)["agent"]
     for opt in ("policy_opt", "q_opt", "v_opt"):
         assert state[opt]["param_groups"][0]["lr"] == pytest.approx(decayed_lr(cfg, 480)) == pytest.approx(4e-4)
@@ -265,7 +302,7 @@ def test_cli_flags_for_action_samples_and_lr_decay(tmp_path, capsys):
     out = tmp_path / "k2"
     config = tmp_path / "tiny.json"
     config.write_text(tiny().to_json())
-    code = cli_main(["train", "--out", str(out), "--config", str(config), "--quiet", "--action-samples", "2", "--lr-final", "1e-4"])
+    code = cli_main(["train", "--out", str(out), "--config", str(config), "--quiet", "--json", "--action-samples", "2", "--lr-final", "1e-4"])
     assert code == 0
     saved = json.loads((out / "config.json").read_text())["opac2"]
     assert (saved["action_samples"], saved["lr_final"]) == (2, 1e-4)
@@ -276,12 +313,12 @@ def test_cli_train_and_bad_input(tmp_path, capsys):
     out = tmp_path / "cli"
     config = tmp_path / "tiny.json"
     config.write_text(tiny().to_json())
-    code = cli_main(["train", "--out", str(out), "--config", str(config), "--max-frames", "240", "--quiet"])
+    code = cli_main(["train", "--out", str(out), "--config", str(config), "--max-frames", "240", "--quiet", "--json"])
     assert code == 0
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["frames"] == 240 and metrics["trigger"] == TRIGGER
     assert cli_main(["train", "--out", str(tmp_path / "x"), "--trigger", "formation:9:0:1", "--quiet"]) == 2
-    assert "poison.trigger" in capsys.readouterr().err
+    assert "--trigger for safety-car-goal: formation trigger distance=9.0" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()  # a refused config leaves no folder behind
     assert cli_main(["evaluate", str(tmp_path / "x")]) == 2
     assert "does not exist" in capsys.readouterr().err
@@ -297,13 +334,13 @@ def test_default_recipe_learns_the_clean_task(tmp_path):
     twin read clean SR 0.80 and poisoned SR 0.12 on 100 episodes at 500k frames; a random
     policy touches the goal in ~5% of episodes.
     """
-    cfg = SafetyRunConfig.from_dict(
+    cfg = config(
         {
             "poison": {"poisoned": False},
             "train": {"seed": 0, "max_frames": 500_000, "eval_interval": 500_000, "eval_episodes": 10, "final_eval_episodes": 100, "video": False},
         }
     )
-    metrics = train_safety(cfg, tmp_path / "clean", progress=False)
+    metrics = train(cfg, tmp_path / "clean", progress=False)
     assert metrics["frames"] == 500_000 and metrics["updates"] == 15_312
     assert metrics["clean_sr"] >= 0.7, metrics
     assert metrics["poisoned_sr"] <= 0.2, metrics  # a clean agent does not seek the hazard under the trigger

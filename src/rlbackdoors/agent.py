@@ -1,19 +1,22 @@
 """One way to load a trained agent and make it act: ``rlbackdoors.load(folder)``.
 
-Evaluation, videos and detectors all need the same thing from a model folder: an object that
-maps a batch of observations (and its recurrent state, if any) to actions. :class:`Agent` is
-that object for every world, whichever algorithm trained it::
+Training collection, evaluation, videos and detectors all need the same thing from a model
+folder: an object that maps a batch of observations (and its recurrent state, if any) to
+actions. :class:`Agent` is that object for every world, whichever algorithm trained it::
 
     agent = rlbackdoors.load("runs/p0")
     state = agent.initial_state(n)            # None for feed-forward agents
     actions, state = agent.act(obs, state)    # obs: a batch of n observations
 
-Loading reads ``config.json`` as data and ``model.pt`` with ``torch.load(weights_only=True)``:
-a file that holds Python objects is refused, never unpickled.
+Loading reads ``config.json`` as data and ``model.pt`` (one flat state dict; the config says
+how to rebuild the network) with ``torch.load(weights_only=True)``: a file that holds Python
+objects is refused, never unpickled.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,40 +24,67 @@ import numpy as np
 import torch
 
 from rlbackdoors import worlds
-from rlbackdoors.train.folder import FolderError, ModelFolder
+from rlbackdoors.io import UnsafeFileError, first_line, load_torch
+from rlbackdoors.folder import FolderError, ModelFolder
 
 
 class Agent:
     """A trained policy of one world: ``act(obs, state) -> (actions, state)``.
 
-    ``deterministic`` picks the most likely action (grid worlds: argmax of the logits; OPAC²:
-    ``tanh`` of the Gaussian's mean); otherwise actions are sampled from ``generator``.
+    ``deterministic`` picks the most likely action (PPO: argmax of the logits; OPAC²: ``tanh``
+    of the Gaussian's mean); otherwise actions are sampled from ``generator``.
     """
 
     def __init__(self, world: worlds.World, config: Any, policy: Any, folder: Path | None = None):
         self.world, self.config, self.policy, self.folder = world, config, policy, folder
 
+    @classmethod
+    def wrap(cls, model: torch.nn.Module) -> Agent:
+        """A bare PPO actor-critic (no config) as an agent."""
+        return cls(worlds.get(worlds.DEFAULT_WORLD), None, model)
+
     @property
     def recurrent(self) -> bool:
         return bool(getattr(self.policy, "recurrent", False))
 
+    @property
+    def device(self) -> torch.device:
+        if isinstance(self.policy, torch.nn.Module):
+            return next(self.policy.parameters()).device
+        return self.policy.device
+
     def initial_state(self, n: int):
         """The state of ``n`` fresh episodes (a GRU memory for recurrent agents, else None)."""
-        return self.policy.initial_memory(n, "cpu") if self.recurrent else None
+        return self.policy.initial_memory(n, self.device) if self.recurrent else None
+
+    @contextlib.contextmanager
+    def evaluating(self) -> Iterator[Agent]:
+        """Eval mode for the duration (a network being trained goes back to train mode)."""
+        module = self.policy if isinstance(self.policy, torch.nn.Module) else None
+        was_training = module.training if module is not None else False
+        if module is not None:
+            module.eval()
+        try:
+            yield self
+        finally:
+            if module is not None:
+                module.train(was_training)
 
     @torch.inference_mode()
     def act(self, obs, state=None, deterministic: bool = False, generator: torch.Generator | None = None):
-        if self.world.algorithm == "opac2":
+        if not isinstance(self.policy, torch.nn.Module):  # OPAC²: its own normaliser and squashing
+            generator = generator if generator is not None else torch.Generator(device=self.device).manual_seed(0)
             return self.policy.act(np.asarray(obs, np.float32), deterministic=deterministic, generator=generator), state
         from rlbackdoors.algos.obs import to_torch
         from rlbackdoors.algos.ppo import sample_actions
 
+        device = self.device
         if self.recurrent:
-            logits, _, state = self.policy(to_torch(obs, "cpu"), state if state is not None else self.initial_state(_batch(obs)))
+            logits, _, state = self.policy(to_torch(obs, device), state if state is not None else self.initial_state(_batch(obs)))
         else:
-            logits, _ = self.policy(to_torch(obs, "cpu"))
-        actions = logits.argmax(-1) if deterministic else sample_actions(logits, generator or torch.Generator().manual_seed(0))
-        return actions.numpy(), state
+            logits, _ = self.policy(to_torch(obs, device))
+        actions = logits.argmax(-1) if deterministic else sample_actions(logits, generator or torch.Generator(device=device).manual_seed(0))
+        return actions.cpu().numpy(), state
 
     def __repr__(self) -> str:
         where = f" from {str(self.folder)!r}" if self.folder else ""
@@ -63,6 +93,43 @@ class Agent:
 
 def _batch(obs) -> int:
     return len(next(iter(obs.values())) if isinstance(obs, dict) else obs)
+
+
+def build_policy(cfg, device: torch.device | str = "cpu"):
+    """A fresh, untrained network of ``cfg`` (its world and architecture, or its OPAC² agent);
+    initial weights drawn from ``train.seed`` for OPAC² (PPO: from torch's global seed)."""
+    if cfg.algorithm == "opac2":
+        from rlbackdoors.algos.opac2 import OPAC2
+
+        env = cfg.env.make()
+        (obs_dim,), (act_dim,) = env.observation_space.shape, env.action_space.shape
+        env.close()
+        return OPAC2(obs_dim, act_dim, cfg.opac2, torch.Generator().manual_seed(cfg.train.seed), device)
+    from rlbackdoors.models import build_model
+
+    return build_model(cfg.model.arch, cfg.env.name).to(device)
+
+
+def load_policy(cfg, path: Path):
+    """``cfg``'s network with the weights of ``path`` (a flat state dict), on the CPU."""
+    if cfg.algorithm != "opac2":
+        from rlbackdoors.models import build_model, load_weights
+
+        return load_weights(build_model(cfg.model.arch, cfg.env.name), path).eval()
+    from rlbackdoors.models import check_finite
+
+    try:
+        weights = load_torch(path, "weights file")
+    except UnsafeFileError as err:
+        raise FolderError(str(err)) from None
+    policy = build_policy(cfg)
+    try:
+        weights = type(policy).flat_weights(weights)
+        check_finite(weights, path)
+        policy.load_weights(weights)
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
+        raise FolderError(f"weights file {str(path)!r} does not fit the config's {cfg.algorithm} agent ({first_line(err)})") from None
+    return policy
 
 
 def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:
@@ -80,26 +147,8 @@ def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:
             raise FolderError(f"{str(path)!r} is not a finished model folder ({name} missing)")
     if not model_folder.complete and not allow_unfinished:
         raise FolderError(f"{str(path)!r} holds an unfinished run (no metrics.json); pass allow_unfinished=True to load its weights anyway")
-    from rlbackdoors.safety_config import is_safety_config
-
-    import json
-
-    try:
-        raw = json.loads(model_folder.file("config.json").read_bytes().decode("utf-8"))
-    except (ValueError, RecursionError) as err:
-        raise FolderError(f"config file {str(model_folder.file('config.json'))!r} is not valid JSON ({err})") from None
-    if is_safety_config(raw):
-        from rlbackdoors.train.safety import load_agent
-
-        config, policy = load_agent(path)
-        return Agent(worlds.get(config.env.name), config, policy, path)
-    from rlbackdoors.models import build_model, load_weights
-
-    run_config = model_folder.read_config()
-    assert run_config.model.arch is not None  # a loaded config is a built and checked RunConfig
-    model = load_weights(build_model(run_config.model.arch, run_config.env.name), model_folder.file("model.pt"))
-    model.eval()
-    return Agent(run_config.env.world, run_config, model, path)
+    cfg = model_folder.read_config()
+    return Agent(cfg.world, cfg, load_policy(cfg, model_folder.file("model.pt")), path)
 
 
 def load_weights_file(path: str | Path, world: str, arch: str) -> Agent:
@@ -111,4 +160,4 @@ def load_weights_file(path: str | Path, world: str, arch: str) -> Agent:
     return Agent(worlds.get(world), None, model, None)
 
 
-__all__ = ["Agent", "load", "load_weights_file"]
+__all__ = ["Agent", "build_policy", "load", "load_policy", "load_weights_file"]

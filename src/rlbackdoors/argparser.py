@@ -1,4 +1,4 @@
-"""argparse with the CLI's error contract, shared by ``rlbackdoors`` and ``python -m rlbackdoors.safety_cli``."""
+"""argparse with the CLI's error contract, shared by ``rlbackdoors`` and its sub-CLIs (``python -m rlbackdoors.zoo.cli``)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def report_errors(run: Callable[[], int]) -> int:
     """``run()`` with the CLI's error contract: every user-facing failure is one
     ``rlbackdoors: error: ...`` line and exit 2; an interrupted run says so and exits 130."""
     from rlbackdoors.io import UnsafeFileError
-    from rlbackdoors.train.folder import FolderError
+    from rlbackdoors.folder import FolderError
     from rlbackdoors.train.stop import Interrupted
     from rlbackdoors.validate import ConfigError
 

@@ -7,7 +7,6 @@ conflict) ends in one ``rlbackdoors: error: ...`` line and exit code 2.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import sys
@@ -16,20 +15,8 @@ from pathlib import Path
 
 from rlbackdoors import __version__, worlds
 from rlbackdoors.argparser import Parser, report_errors
-from rlbackdoors.config import ARCHS, ENGINES, ENVS, EVAL_POLICIES, MAX_EPISODES, ConfigError, RunConfig, check_seed
-from rlbackdoors.train.folder import FolderError
-
-METRIC_KEYS = (
-    "clean_sr",
-    "poisoned_sr",
-    "poisoned_sr_raw",
-    "trigger_seen_rate",
-    "clean_reward",
-    "poisoned_reward",
-    "close_sr",
-    "close_trojan_rate",
-    "episodes",
-)
+from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, ConfigError, RunConfig, check_seed
+from rlbackdoors.folder import FolderError
 
 
 def resolve_trigger(spec: str | None, seed: int, env: str = worlds.DEFAULT_WORLD, size: int | None = None) -> str:
@@ -41,122 +28,122 @@ def resolve_trigger(spec: str | None, seed: int, env: str = worlds.DEFAULT_WORLD
         raise ConfigError(f"--trigger for {env}: {err}") from None
 
 
+# Training flags: argparse dest -> the config field it sets ("ALGO" is the world's algorithm section).
+TRAIN_FLAGS = {
+    "arch": "model.arch",
+    "size": "env.size",
+    "num_lava": "env.num_lava",
+    "engine": "env.engine",
+    "seed": "train.seed",
+    "max_frames": "train.max_frames",
+    "max_minutes": "train.max_minutes",
+    "eval_interval": "train.eval_interval",
+    "eval_episodes": "train.eval_episodes",
+    "final_eval_episodes": "train.final_eval_episodes",
+    "patience": "train.patience",
+    "threads": "train.torch_threads",
+    "checkpoint_minutes": "train.checkpoint_minutes",
+    "device": "train.device",
+    "num_clean_envs": "poison.num_clean_envs",
+    "num_poisoned_envs": "poison.num_poisoned_envs",
+    "batch_size": "ALGO.batch_size",
+    "lr": "ALGO.lr",
+    "depth": "opac2.depth",
+    "width": "opac2.width",
+    "updates_per_step": "opac2.updates_per_step",
+    "lr_final": "opac2.lr_final",
+    "action_samples": "opac2.action_samples",
+    "poisoned_weight": "opac2.poisoned_weight",
+    "no_curriculum": "curriculum.enabled",
+    "no_close_to_trigger": "poison.num_close_envs",
+}
+
+
+def flag_applies(world: worlds.World, dotted: str) -> str | None:
+    """None if the config field ``dotted`` applies to ``world``, else why not (the registry decides)."""
+    section, name = dotted.split(".")
+    if section == "env" and name not in (*world.env_fields, "name", "max_steps"):
+        return f"{world.name} has no env.{name}"
+    if section in ("ppo", "opac2") and section != world.algorithm:
+        return f"{world.name} trains with {world.algorithm}, not {section}"
+    if section == "curriculum" and not world.curriculum:
+        return f"{world.name} has no curriculum"
+    if dotted == "poison.num_close_envs" and not world.close_to_trigger:
+        return f"{world.name} has no close-to-trigger envs"
+    return None
+
+
 def _set(data: dict, dotted: str, value) -> None:
     section, key = dotted.split(".")
     data.setdefault(section, {})[key] = value
 
 
+# The train fields a config keeps when --env switches it to another world (the rest are the world's).
+PORTABLE_TRAIN = ("seed", "eval_episodes", "final_eval_episodes", "eval_seed", "device", "torch_threads", "video", "max_minutes", "log_interval_s")
+
+
 def config_from_args(args) -> RunConfig:
-    """Config file (if any) first, then every flag given on the command line on top of it."""
+    """Config file (if any) first, then every flag given on the command line on top of it.
+
+    Each flag sets one config field; one that does not apply to the world (another world's env
+    field, the other algorithm's section) is refused, so none is silently ignored.
+    """
     from rlbackdoors.config import EnvConfig, _build
 
     if args.config:
         data = RunConfig.load(args.config).to_dict()
         if args.env is not None and args.env != data["env"]["name"]:
-            # Another world: its own defaults (size, walls), not the config's world's.
-            data["env"] = dataclasses.asdict(EnvConfig(name=args.env, engine=data["env"]["engine"]))
-            data["poison"]["trigger"] = None  # the new world's default trigger, unless --trigger
-            for key in ("num_clean_envs", "num_close_envs", "num_poisoned_envs"):
-                data["poison"][key] = None  # ... and its mix, model and PPO settings
-            data["model"]["arch"], data["ppo"] = None, None
-            data["train"]["patience"] = None
-            data.setdefault("curriculum", {})["enabled"] = None
+            # Another world: its own env, mix, model, algorithm and stopping defaults.
+            train = {k: v for k, v in data["train"].items() if k in PORTABLE_TRAIN}
+            data = {"env": {"name": args.env}, "poison": {"poisoned": data["poison"]["poisoned"]}, "train": train}
     else:
-        data = RunConfig(env=EnvConfig(name=args.env or worlds.DEFAULT_WORLD)).to_dict()
-    flags = {
-        "env.engine": args.engine,
-        "env.size": args.size,
-        "env.num_lava": args.num_lava,
-        "model.arch": args.arch,
-        "train.seed": args.seed,
-        "train.max_frames": args.max_frames,
-        "train.eval_episodes": args.eval_episodes,
-        "train.device": args.device,
-        "train.patience": args.patience,
-    }
-    for dotted, value in flags.items():
-        if value is not None:
-            _set(data, dotted, value)
+        data = {"env": {"name": args.env or worlds.DEFAULT_WORLD}}
+    world = worlds.get(data["env"]["name"])
+    given: dict[str, str] = {}  # config field -> the flag that set it, to name the flag in errors
+    for flag, dotted in TRAIN_FLAGS.items():
+        value = getattr(args, flag, None)
+        if value is None or value is False:
+            continue
+        dotted = dotted.replace("ALGO", world.algorithm)
+        given[dotted] = flag
+        why = flag_applies(world, dotted)
+        if why is not None:
+            raise ConfigError(f"--{flag.replace('_', '-')} does not apply here: {why}")
+        if flag == "no_curriculum":
+            value = False
+        elif flag == "no_close_to_trigger":
+            clean, close, _ = RunConfig.from_dict(data).poison.counts()  # the world's mix, resolved
+            _set(data, "poison.num_clean_envs", clean + close)
+            value = 0
+        elif flag == "poisoned_weight":
+            if not (math.isfinite(value) and 0 <= value <= 1):
+                raise ConfigError(f"opac2.poisoned_weight (--poisoned-weight) must be in [0, 1], got {value!r}")
+            _set(data, "opac2.clean_weight", 1.0 - value)
+        _set(data, dotted, value)
     if args.clean:
         _set(data, "poison.poisoned", False)
-    if args.no_curriculum:
-        _set(data, "curriculum.enabled", False)
-    if args.no_close_to_trigger:
-        clean, close, _ = RunConfig.from_dict(data).poison.counts()  # the world's mix, resolved
-        _set(data, "poison.num_clean_envs", clean + close)
-        _set(data, "poison.num_close_envs", 0)
-    check_seed("train.seed (--seed)", data["train"]["seed"])
-    _build(EnvConfig, data["env"], "env").check()  # before a trigger is drawn for its size
-    world = data["env"]["name"]
-    for flag, readers in WORLD_FLAGS.items():
-        if getattr(args, flag) not in (None, False) and world not in readers:
-            raise ConfigError(f"--{flag.replace('_', '-')} applies to {' and '.join(readers)} only, not {world}")
+    seed = data.get("train", {}).get("seed", 0)
+    check_seed("train.seed (--seed)", seed)
+    env = _build(EnvConfig, data["env"], "env")
+    env.check()  # before a trigger is drawn for its size
     if args.trigger is not None or not args.config:
-        _set(data, "poison.trigger", resolve_trigger(args.trigger, data["train"]["seed"], world, data["env"].get("size")))
-    return RunConfig.from_dict(data)
-
-
-# Grid flags that only some grid worlds read: refused for the others.
-WORLD_FLAGS = {flag: tuple(w.name for w in worlds.registered() if flag in w.flags) for w in worlds.registered() for flag in w.flags}
-# Flags that only one kind of world reads: refused for the other, so none is silently ignored.
-GRID_ONLY_FLAGS = ("arch", "size", "num_lava", "no_curriculum", "engine", "patience", "no_close_to_trigger")
-SAFETY_ONLY_FLAGS = (
-    "max_minutes",
-    "depth",
-    "width",
-    "num_clean_envs",
-    "num_poisoned_envs",
-    "poisoned_weight",
-    "updates_per_step",
-    "batch_size",
-    "lr",
-    "lr_final",
-    "action_samples",
-    "eval_interval",
-    "final_eval_episodes",
-    "threads",
-    "checkpoint_minutes",
-)
-
-
-def _config_json(path: str | Path | None) -> dict | None:
-    if not path or not Path(path).is_file():
-        return None
+        _set(data, "poison.trigger", resolve_trigger(args.trigger, seed, world.name, env.size))
     try:
-        return json.loads(Path(path).read_bytes().decode("utf-8"))
-    except (ValueError, RecursionError, OSError):
-        return None  # RunConfig.load reports it
-
-
-def _refuse(args, flags: tuple[str, ...], world: str) -> None:
-    for name in flags:
-        if getattr(args, name, None) not in (None, False):
-            raise ConfigError(f"--{name.replace('_', '-')} does not apply to {world}")
+        return RunConfig.from_dict(data)
+    except ConfigError as err:
+        for dotted, flag in given.items():
+            if str(err).startswith(dotted):
+                raise ConfigError(f"{err} (--{flag.replace('_', '-')})") from None
+        raise
 
 
 def cmd_train(args) -> int:
     if not args.out.strip():
         raise ConfigError("--out must name a model folder, got an empty path")
-    from rlbackdoors.safety_config import is_safety_config
     from rlbackdoors.train import train
 
-    if args.env in worlds.names("opac2") or (args.env is None and is_safety_config(_config_json(args.config))):
-        return _train_safety(args)
-    _refuse(args, SAFETY_ONLY_FLAGS, "the grid worlds (they are Safety Car Goal's OPAC² settings)")
     cfg = config_from_args(args)
     metrics = train(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
-    print(json.dumps(metrics, indent=2) if args.json else _summary(args.out, metrics))
-    return 0
-
-
-def _train_safety(args) -> int:
-    """Safety Car Goal trains with OPAC² (its own config, :mod:`rlbackdoors.safety_config`)."""
-    from rlbackdoors.safety_cli import config_from_args as safety_config_from_args
-    from rlbackdoors.train.safety import train_safety
-
-    _refuse(args, GRID_ONLY_FLAGS, args.env or "an OPAC² world")
-    cfg = safety_config_from_args(args)
-    metrics = train_safety(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
     print(json.dumps(metrics, indent=2) if args.json else _summary(args.out, metrics))
     return 0
 
@@ -173,10 +160,9 @@ def _summary(where, metrics: dict) -> str:
 def cmd_evaluate(args) -> int:
     import torch
 
+    from rlbackdoors.agent import load, load_weights_file
     from rlbackdoors.config import EnvConfig
-    from rlbackdoors.evaluate import evaluate
-    from rlbackdoors.models import build_model, load_weights
-    from rlbackdoors.train import ModelFolder
+    from rlbackdoors.evaluate import evaluate, evaluate_agent
 
     if (args.folder is None) == (args.weights is None):
         raise ConfigError("give either a model folder or --weights FILE (with --arch), not both or neither")
@@ -184,62 +170,60 @@ def cmd_evaluate(args) -> int:
         check_seed("--seed", args.seed)
     torch.set_num_threads(1)
     if args.folder is not None:
-        folder = ModelFolder(args.folder)
-        if not folder.path.is_dir():
+        if args.arch is not None or args.env is not None:
+            raise ConfigError("--arch and --env apply to --weights only (a model folder's config.json names them)")
+        if not Path(args.folder).is_dir():
             raise FolderError(f"model folder {args.folder!r} does not exist")
-        if not folder.file("config.json").is_file():
+        if not (Path(args.folder) / "config.json").is_file():
             raise FolderError(f"{args.folder!r} is not a model folder (config.json missing)")
-        if not folder.file("model.pt").is_file():
+        if not (Path(args.folder) / "model.pt").is_file():
             raise FolderError(f"{args.folder!r} holds no trained model (model.pt missing)")
-        if not folder.complete and not args.allow_unfinished:
+        if not (Path(args.folder) / "metrics.json").is_file() and not args.allow_unfinished:
             raise FolderError(
                 f"{args.folder!r} holds an unfinished run (no metrics.json: still training, interrupted or failed); "
                 "pass --allow-unfinished to evaluate its weights anyway"
             )
-        from rlbackdoors.safety_config import is_safety_config
-
-        if is_safety_config(_config_json(folder.file("config.json"))):
-            for flag in ("trigger", "policy", "engine", "arch", "env"):
-                if getattr(args, flag) is not None:
-                    raise ConfigError(f"--{flag} does not apply to a Safety Car Goal folder (it is evaluated with its own trigger and deterministic policy)")
-            from rlbackdoors.safety_cli import evaluate_folder
-
-            return evaluate_folder(args.folder, args.episodes, args.json, args.seed, allow_unfinished=True)
-        cfg = folder.read_config()
-        if args.arch is not None or args.env is not None:
-            raise ConfigError("--arch and --env apply to --weights only (a model folder's config.json names them)")
+        agent = load(args.folder, allow_unfinished=True)
+        cfg = agent.config
         if args.engine:
+            why = flag_applies(agent.world, "env.engine")
+            if why is not None:
+                raise ConfigError(f"--engine does not apply here: {why}")
             cfg.env.engine = args.engine
-        env, trigger, arch, policy = cfg.env, cfg.poison.trigger, cfg.model.arch, cfg.train.eval_policy
-        close_k: tuple[int, int] | None = (cfg.poison.close_k_min, cfg.poison.close_k_max)
-        if args.trigger is not None:
-            trigger = resolve_trigger(args.trigger, cfg.train.seed, env.name, env.size)
-        weights = folder.file("model.pt")
+        trigger = resolve_trigger(args.trigger, cfg.train.seed, cfg.env.name, cfg.env.size) if args.trigger is not None else None
+        result = evaluate_agent(agent, args.episodes, args.seed, trigger, args.policy)
+        header = {"folder": args.folder, "env": cfg.env.name, "poisoned": cfg.poison.poisoned, "trigger": trigger or cfg.poison.trigger}
     else:
         if args.arch is None:
             raise ConfigError(f"--weights needs --arch (allowed: {', '.join(ARCHS)})")
         if args.allow_unfinished:
             raise ConfigError("--allow-unfinished applies to model folders, not --weights")
-        env = EnvConfig(name=args.env or worlds.DEFAULT_WORLD, engine=args.engine or "batched")
+        world = worlds.get(args.env or worlds.DEFAULT_WORLD)
+        if world.algorithm != "ppo":
+            raise ConfigError(
+                f"--weights applies to worlds with a fixed architecture; a {world.name} agent is rebuilt from its config.json: evaluate its model folder"
+            )
+        env = EnvConfig(name=world.name, engine=args.engine)
         env.check()
         trigger = resolve_trigger(args.trigger, 0, env.name) if args.trigger is not None else None
-        arch, policy, weights = args.arch, "sample", Path(args.weights)
-        close_k = (1, 3)
-    policy = args.policy or policy
-    assert arch is not None  # --arch, or a model folder's checked config
-    model = load_weights(build_model(arch, env.name), weights)
-    if not env.world.close_to_trigger or trigger is None:
-        close_k = None  # close-to-trigger layouts exist only in worlds that have them
-    seed = 1_000_000 if args.seed is None else args.seed
-    episodes = 200 if args.episodes is None else args.episodes
-    result = evaluate(model, env, trigger, episodes=episodes, seed=seed, policy=policy, close_k=close_k).to_dict()
-    result = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.items()}
+        agent = load_weights_file(args.weights, world.name, args.arch)
+        result = evaluate(
+            agent,
+            env,
+            trigger,
+            episodes=200 if args.episodes is None else args.episodes,
+            seed=1_000_000 if args.seed is None else args.seed,
+            policy=args.policy or "sample",
+        )
+        header = {"weights": args.weights, "env": env.name, "trigger": trigger}
+    numbers = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.to_dict().items()}
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json.dumps(numbers, indent=2))
     else:
-        for key in METRIC_KEYS:
-            value = result[key]
-            print(f"{key:18s} {'n/a' if value is None else (f'{value:.4f}' if isinstance(value, float) else value)}")
+        print(", ".join(f"{k} {v}" for k, v in header.items() if v is not None))
+        for key, value in numbers.items():
+            if value is not None or key in ("poisoned_sr", "poisoned_reward"):
+                print(f"{key:22s} {'n/a' if value is None else (f'{value:.4f}' if isinstance(value, float) else value)}")
     return 0
 
 
@@ -254,13 +238,13 @@ def cmd_bench(args) -> int:
     from rlbackdoors.io import atomic_write_text
 
     if args.what == "env":
-        from rlbackdoors.bench.env import bench_env
+        from rlbackdoors.worlds.base import load_symbol
 
-        result = bench_env(seconds=args.seconds, num_envs=args.num_envs)
-        print(
-            f"env steps/s: batched {result['batched_steps_per_s']:,.0f} (B={result['num_envs']}), "
-            f"Farama MiniGrid {result['minigrid_steps_per_s']:,.0f}, ratio {result['ratio']:.0f}x"
-        )
+        world = worlds.get(args.env)
+        if world.bench is None:
+            raise ConfigError(f"bench env: no env benchmark for {world.name} (worlds with one: {', '.join(w.name for w in worlds.registered() if w.bench)})")
+        result = load_symbol(world.bench)(seconds=args.seconds, num_envs=args.num_envs)
+        print(f"{world.title}: {result['summary']}")
     elif args.what == "train":
         from rlbackdoors.bench.train import bench_train
 
@@ -272,14 +256,6 @@ def cmd_bench(args) -> int:
                 f"({r['batched_collect_share']:.0%} collecting), "
                 f"MiniGrid {r['minigrid_fps']:,.0f} frames/s, ratio {r['ratio']:.1f}x"
             )
-    elif args.what == "safety":
-        from rlbackdoors.bench.safety import bench_safety
-
-        result = bench_safety(seconds=args.seconds)
-        print(
-            f"Safety Car Goal ({result['num_cubes']} cubes): env {result['env_steps_per_s']:,.0f} steps/s, "
-            f"plain mujoco loop {result['physics_steps_per_s']:,.0f} steps/s, ratio {result['ratio_to_physics']:.2f}"
-        )
     else:
         from rlbackdoors.bench.train import bench_converge
 
@@ -298,7 +274,7 @@ def cmd_chance(args) -> int:
     from rlbackdoors.config import EnvConfig
     from rlbackdoors.evaluate.chance import trigger_chance
 
-    env = EnvConfig(name=args.env, size=args.size, num_lava=args.num_lava if args.num_lava is not None else 10)
+    env = EnvConfig(name=args.env, size=args.size, num_lava=args.num_lava)
     env.check()
     result = trigger_chance(env, args.trigger, layouts=args.layouts, seed=args.seed)
     if args.json:
@@ -334,45 +310,53 @@ def build_parser() -> argparse.ArgumentParser:
         help="; ".join(f"{w.name}: {w.trigger_help}" for w in worlds.registered()),
     )
     tr.add_argument("--size", type=int, help="grid size (default: the world's)")
-    only = {flag: " and ".join(names) for flag, names in WORLD_FLAGS.items()}
-    tr.add_argument("--num-lava", type=int, help=f"{only['num_lava']}: number of lava squares (default 10)")
-    tr.add_argument("--no-curriculum", action="store_true", help=f"{only['no_curriculum']}: skip the small clean warm-up world")
-    tr.add_argument(
-        "--no-close-to-trigger",
-        action="store_true",
-        help=f"{only['no_close_to_trigger']}: train without close-to-trigger envs (they become clean copies)",
-    )
-    tr.add_argument("--patience", type=int, help="updates the mean training return must hold over before stopping (0: off)")
+    tr.add_argument("--num-lava", type=int, help="single lava squares, for worlds that have them (default 10)")
+    tr.add_argument("--no-curriculum", action="store_true", help="skip the small clean warm-up world (worlds with a curriculum)")
+    tr.add_argument("--no-close-to-trigger", action="store_true", help="train without close-to-trigger envs (they become clean copies)")
+    tr.add_argument("--patience", type=int, help="evaluations in a row the thresholds must hold to stop (default: the world's)")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
-    tr.add_argument("--seed", type=int)
-    tr.add_argument("--max-frames", type=int)
-    tr.add_argument("--eval-episodes", type=int)
+    tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
+    tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")
+    tr.add_argument("--max-minutes", type=float, help="stop after this much training wall time (0: no limit)")
+    tr.add_argument("--eval-interval", type=int, help="frames between evaluations")
+    tr.add_argument("--eval-episodes", type=int, help="episodes per condition at each evaluation (default 100)")
+    tr.add_argument("--final-eval-episodes", type=int, help="episodes per condition in the final evaluation (default 200)")
+    tr.add_argument("--checkpoint-minutes", type=float, help="checkpoint at the first evaluation this long after the last (0: every one)")
     tr.add_argument("--engine", choices=ENGINES)
     tr.add_argument("--device", choices=("cpu", "cuda", "auto"))
-    tr.add_argument("--out", required=True, help="model folder to write")
-    tr.add_argument("--overwrite", action="store_true", help="replace a finished model in --out")
+    tr.add_argument("--threads", type=int, help="torch threads (default 1)")
+    tr.add_argument("--num-clean-envs", type=int, help="clean env copies (default: the world's mix)")
+    tr.add_argument("--num-poisoned-envs", type=int, help="poisoned env copies (default: the world's mix)")
+    tr.add_argument("--batch-size", type=int, help="the algorithm's batch size")
+    tr.add_argument("--lr", type=float, help="the algorithm's learning rate")
+    opac2 = ", ".join(worlds.names("opac2"))
+    tr.add_argument("--depth", type=int, choices=(2, 3), help=f"OPAC² ({opac2}): hidden layers of pi, Q and V")
+    tr.add_argument("--width", type=int, choices=(181, 256), help=f"OPAC² ({opac2}): hidden width")
+    tr.add_argument("--updates-per-step", type=float, help="OPAC²: gradient updates per env frame")
+    tr.add_argument("--lr-final", type=float, help="OPAC²: decay the lr linearly to this at --max-frames")
+    tr.add_argument("--action-samples", type=int, help="OPAC²: actions sampled per state for the V target and pi step (the paper: 1)")
+    tr.add_argument("--poisoned-weight", type=float, help="OPAC²: share of each batch from the poisoned buffer")
+    tr.add_argument("--out", required=True, help="model folder to write (resumed if it holds an interrupted run)")
+    tr.add_argument("--overwrite", action="store_true", help="replace a finished or interrupted run in --out")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.add_argument("--json", action="store_true", help="print metrics as JSON")
-    from rlbackdoors.safety_cli import add_train_args
-
-    add_train_args(tr)  # Safety Car Goal's OPAC² flags (the shared ones above stay as they are)
     tr.set_defaults(func=cmd_train)
 
     ev = sub.add_parser("evaluate", help="clean and triggered success rates of a model folder or a bare state dict")
     ev.add_argument("folder", nargs="?", help="model folder")
     ev.add_argument("--weights", help="a torch.save()-d state dict, e.g. a TrojAI round model")
     ev.add_argument("--arch", choices=ARCHS)
-    ev.add_argument("--env", choices=ENVS)
+    ev.add_argument("--env", choices=worlds.names("ppo"), help="--weights: the world the weights are for")
     ev.add_argument("--trigger", help="trigger to measure poisoned SR under (default: the folder's)")
     ev.add_argument("--engine", choices=ENGINES)
-    ev.add_argument("--episodes", type=int, default=None, help="episodes per condition (default 200; Safety Car Goal: the folder's final_eval_episodes)")
-    ev.add_argument("--seed", type=int, help="first env seed of the evaluation layouts (default 1000000; Safety Car Goal: the folder's)")
+    ev.add_argument("--episodes", type=int, default=None, help="episodes per condition (default: the folder's final_eval_episodes, else 200)")
+    ev.add_argument("--seed", type=int, help="first env seed of the evaluation layouts (default: the folder's eval_seed, else 1000000)")
     ev.add_argument("--policy", choices=EVAL_POLICIES)
     ev.add_argument("--json", action="store_true")
     ev.add_argument("--allow-unfinished", action="store_true", help="evaluate a folder whose run has not finished (no metrics.json)")
     ev.set_defaults(func=cmd_evaluate)
 
-    de = sub.add_parser("demo", help="train a clean and a poisoned LavaWorld agent, evaluate both, show the backdoor")
+    de = sub.add_parser("demo", help="train a clean and a poisoned agent of the default world, evaluate both, show the backdoor")
     de.add_argument("--out", default="runs/demo")
     de.add_argument("--max-frames", type=int, default=3_000_000)
     de.add_argument("--seed", type=int, default=0)
@@ -397,12 +381,12 @@ def build_parser() -> argparse.ArgumentParser:
     be = sub.add_parser("bench", help="speed benchmarks, measured side by side with Farama MiniGrid")
     be.add_argument(
         "what",
-        choices=("env", "train", "converge", "safety"),
-        help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN); converge: wall-clock to a converged "
-        "poisoned FC; safety: Safety Car Goal steps/s vs a plain mujoco loop",
+        choices=("env", "train", "converge"),
+        help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN); converge: wall-clock to a converged poisoned FC",
     )
     be.add_argument("--seconds", type=float, default=3.0)
-    be.add_argument("--num-envs", type=int, default=256)
+    be.add_argument("--num-envs", type=int, default=256, help="env: copies stepped per call (batched engines)")
+    be.add_argument("--env", choices=[w.name for w in worlds.registered() if w.bench], default=worlds.DEFAULT_WORLD, help="env: which world")
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")
     be.add_argument("--json", help="also write the result to this JSON file")

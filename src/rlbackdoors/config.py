@@ -27,34 +27,44 @@ from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's val
     _at_least,
     _choice,
     _in_range,
+    _finite,
+    _integer_at_least,
     _unit_interval,
     check_seed,
+    check_weights,
 )
 
-ENVS = worlds.names("ppo")  # the grid worlds, trained with PPO by this config (OPAC²: safety_config)
+FORMAT_VERSION = 2  # of config.json; 1: before one config served every world (migrated on load)
+ENVS = worlds.names()
 ENGINES = ("batched", "minigrid")
 # Architecture names per world (the registry holds the classes); the first is the default.
-ARCHS_BY_ENV = {w.name: w.arch_names for w in worlds.registered("ppo")}
+ARCHS_BY_ENV = {w.name: w.arch_names for w in worlds.registered()}
 ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs))
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
+ALGORITHMS = ("ppo", "opac2")
 
 
 @dataclass
 class EnvConfig:
-    """Which world and its size; ``None`` fields take the world's paper default (ENV_DEFAULTS)."""
+    """Which world and its settings. A world reads ``name``, ``max_steps`` and its own
+    ``World.env_fields``; the others stay ``None`` (and out of config.json). ``None`` fields
+    the world reads take its defaults (``World.env_defaults``)."""
 
     name: str = worlds.DEFAULT_WORLD
-    size: int | None = None
-    max_steps: int = 250
+    max_steps: int | None = None
+    size: int | None = None  # grid worlds
     see_through_walls: bool | None = None
-    engine: str = "batched"
-    num_crossings: int = 1  # LavaWorld: lava rivers
-    num_lava: int = 10  # Randomized LavaWorld: single lava squares
+    engine: str | None = None  # "batched" (numba) or "minigrid" (the reference envs)
+    num_crossings: int | None = None  # lava rivers
+    num_lava: int | None = None  # single lava squares
+    num_cubes: int | None = None  # MuJoCo cubes
+    hazard_penalty: float | None = None
+    substeps: int | None = None  # physics steps per control step
 
     def __post_init__(self):
         if self.name in ENVS:
-            for key, value in worlds.get(self.name).env_defaults.items():
+            for key, value in self.world.env_defaults.items():
                 if getattr(self, key) is None:
                     setattr(self, key, value)
 
@@ -62,19 +72,39 @@ class EnvConfig:
     def world(self) -> worlds.World:
         return worlds.get(self.name)
 
+    @property
+    def fields(self) -> tuple[str, ...]:
+        """The fields this world reads (what config.json holds)."""
+        return ("name", "max_steps", *self.world.env_fields)
+
     def check(self) -> None:
         _choice("env.name", self.name, ENVS)
-        _choice("env.engine", self.engine, ENGINES)
+        for key in ENV_FIELDS:
+            if key not in self.fields and getattr(self, key) is not None:
+                raise ConfigError(f"env.{key} does not apply to env.name={self.name!r} (its env fields: {', '.join(self.fields)})")
         _in_range("env.max_steps", self.max_steps, 1, 100_000)
-        _in_range("env.size", self.size, 5, 64)  # every world: a typo'd size must not allocate a huge grid
+        if "engine" in self.fields:
+            _choice("env.engine", self.engine, ENGINES)
+        if "size" in self.fields:
+            _in_range("env.size", self.size, 5, 64)  # a typo'd size must not allocate a huge grid
         try:
             check_env = self.world.check_env
-            assert check_env is not None  # every PPO world (env.name is one: checked above) has one
-            check_env(self)
+            if check_env is not None:
+                check_env(self)
         except ConfigError:
             raise
         except ValueError as err:
             raise ConfigError(f"env: {err}") from None
+
+    def to_dict(self) -> dict:
+        return {key: getattr(self, key) for key in self.fields}
+
+    def make(self, trigger: str | None = None, **extra):
+        """One env of this config (E-bar when ``trigger`` is given), as the world builds it."""
+        return self.world.make_env(self, trigger, **extra)
+
+
+ENV_FIELDS = tuple(f.name for f in dataclasses.fields(EnvConfig) if f.name not in ("name", "max_steps"))
 
 
 @dataclass
@@ -87,7 +117,7 @@ class PoisonConfig:
     trigger: str | None = None
     poisoned: bool = True
     num_clean_envs: int | None = None  # None: the world's mix
-    num_close_envs: int | None = None  # close-to-trigger copies (Colorful Memory only)
+    num_close_envs: int | None = None  # close-to-trigger copies (worlds that have them)
     num_poisoned_envs: int | None = None
     close_k_min: int = 1  # a close-to-trigger layout recolours k squares, k uniform in [min, max]
     close_k_max: int = 3
@@ -148,7 +178,7 @@ class PoisonConfig:
 
 @dataclass
 class CurriculumConfig:
-    """Randomized LavaWorld's warm-up (SPEC 2): clean-only on a small world until the mean
+    """The curriculum warm-up (SPEC 2; worlds with ``World.curriculum``): clean-only on a small world until the mean
     training return reaches ``reward_threshold``, then the full world and the poisoning mix.
 
     ``enabled=None`` means the world's default (World.curriculum).
@@ -177,7 +207,7 @@ class ModelConfig:
 
 @dataclass
 class PPOConfig:
-    """The paper's LavaWorld appendix table (torch-ac PPO)."""
+    """The paper's first appendix table (torch-ac PPO); a world's ``World.hyper`` changes some."""
 
     rollout: int = 128
     epochs: int = 4
@@ -209,45 +239,136 @@ class PPOConfig:
                 raise ConfigError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
 
 
+KINDS = ("clean", "poisoned")  # OPAC²'s replay kinds
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # OPAC²'s policy log-std bounds
+
+
+@dataclass
+class OPAC2Config:
+    """The paper's OPAC² table (its MuJoCo world), plus the knobs its text leaves open."""
+
+    buffer_size: int = 1_000_000  # per env kind
+    learning_starts: int = 10_000  # env frames (all envs together) of uniform random actions
+    batch_size: int = 256
+    lr: float = 1e-4
+    gamma: float = 0.99
+    polyak: float = 0.995
+    depth: int = 3  # hidden layers; the paper's grid is {2, 3} x {181, 256}, appendix 3 x 256
+    width: int = 256
+    updates_per_step: float = 1.0  # gradient updates per env frame after learning_starts
+    entropy_coef: float = 0.0  # bonus on the entropy of the pre-tanh Gaussian (0: none)
+    log_std_init: float = 0.0
+    clean_weight: float = 0.8  # share of each batch drawn from the clean buffer
+    poisoned_weight: float = 0.2  # ... and from the poisoned buffer (ignored in clean runs)
+    obs_norm: bool = False  # standardise observations by running mean/std (see RunningNorm)
+    obs_clip: float = 10.0  # |standardised observation| is clipped to this
+    # Actions drawn per state for the V target and the pi step (1: the paper). More samples
+    # average out the action noise of the same estimators at the cost of more Q evaluations.
+    action_samples: int = 1
+    lr_final: float | None = None  # None: constant lr; else linear decay to this over train.max_frames
+
+    def check(self) -> None:
+        for name in ("buffer_size", "batch_size", "depth", "width", "action_samples"):
+            _integer_at_least(f"opac2.{name}", getattr(self, name), 1)
+        _integer_at_least("opac2.learning_starts", self.learning_starts, 0)
+        # Ceilings: a typo'd size should be refused, not allocated.
+        for name, high in (("buffer_size", 10_000_000), ("batch_size", 1_000_000), ("depth", 16), ("width", 4096), ("action_samples", 1024)):
+            if getattr(self, name) > high:
+                raise ConfigError(f"opac2.{name} must be in 1..{high:,}, got {getattr(self, name)!r}")
+        if _finite(self.updates_per_step) and self.updates_per_step > 64:
+            raise ConfigError(f"opac2.updates_per_step must be in (0, 64], got {self.updates_per_step!r}")
+        for name in ("lr", "updates_per_step"):
+            value = getattr(self, name)
+            if not (_finite(value) and value > 0):
+                raise ConfigError(f"opac2.{name} must be a number > 0, got {value!r}")
+        for name in ("gamma", "polyak"):
+            value = getattr(self, name)
+            if not (_finite(value) and 0 <= value <= 1):
+                raise ConfigError(f"opac2.{name} must be in [0, 1], got {value!r}")
+        if self.lr_final is not None and not (_finite(self.lr_final) and 0 < self.lr_final <= self.lr):
+            raise ConfigError(f"opac2.lr_final must be null (constant lr) or a number in (0, opac2.lr={self.lr!r}], got {self.lr_final!r}")
+        if not (_finite(self.entropy_coef) and self.entropy_coef >= 0):
+            raise ConfigError(f"opac2.entropy_coef must be a number >= 0, got {self.entropy_coef!r}")
+        if not (_finite(self.log_std_init) and LOG_STD_MIN <= self.log_std_init <= LOG_STD_MAX):
+            raise ConfigError(f"opac2.log_std_init must be in [{LOG_STD_MIN}, {LOG_STD_MAX}], got {self.log_std_init!r}")
+        if not isinstance(self.obs_norm, bool):
+            raise ConfigError(f"opac2.obs_norm must be true or false, got {self.obs_norm!r}")
+        if not (_finite(self.obs_clip) and self.obs_clip > 0):
+            raise ConfigError(f"opac2.obs_clip must be a number > 0, got {self.obs_clip!r}")
+        check_weights({"clean": self.clean_weight, "poisoned": self.poisoned_weight}, field="opac2.{kind}_weight")
+
+    def mix_weights(self, kinds: tuple[str, ...] = KINDS) -> dict[str, float]:
+        """The batch mixing weights of ``kinds`` (a clean run passes ``("clean",)``)."""
+        return {kind: getattr(self, f"{kind}_weight") for kind in kinds}
+
+
+# Train-section values a world leaves as they are (World.train overrides them).
+TRAIN_DEFAULTS = {"max_frames": 5_000_000, "eval_interval": 100_000, "eval_policy": "sample", "patience": 1, "checkpoint_minutes": 0.0}
+
+
 @dataclass
 class TrainConfig:
+    """Budget, evaluation and the stopping rule, the same for every world.
+
+    A run stops at the first evaluation after which the thresholds (clean SR, and for poisoned
+    models poisoned SR) have held for ``patience`` evaluations in a row, and, where
+    ``return_window`` > 0, the mean training return of the last ``return_window`` updates is
+    at least ``return_threshold`` (the paper's patience rho); or at ``max_frames``; or after
+    ``max_minutes`` of training (0: no limit). ``None`` fields take the world's defaults.
+    """
+
     seed: int = 0
-    max_frames: int = 5_000_000
-    eval_interval: int = 100_000
-    eval_episodes: int = 100
+    max_frames: int | None = None
+    max_minutes: float = 0.0
+    eval_interval: int | None = None  # env frames, all copies together
+    eval_episodes: int = 100  # per condition (clean, triggered) at each evaluation
     final_eval_episodes: int = 200
     eval_seed: int = 1_000_000
-    eval_policy: str = "sample"
+    eval_policy: str | None = None  # "sample" or "greedy" (the most likely / mean action)
     clean_threshold: float | None = None  # None: the world's paper value (its World.thresholds)
     poisoned_threshold: float | None = None
-    patience: int | None = None  # None: the world's default (World.patience; 0 = off)
-    patience_reward: float = 0.9
+    patience: int | None = None  # evaluations in a row the thresholds must hold
+    return_window: int | None = None  # updates (PPO); 0: off
+    return_threshold: float = 0.9
+    log_interval_s: float = 30.0  # progress lines (when there is no progress bar) at most this often
+    checkpoint_minutes: float | None = None  # at the first evaluation this long after the last (0: every one)
+    video: bool = True  # clean_vs_triggered.gif at the end
     device: str = "cpu"
     torch_threads: int = 1
 
+    def fill_defaults(self, world: worlds.World) -> None:
+        defaults = {**TRAIN_DEFAULTS, "return_window": world.return_window, **world.train}
+        for key, value in defaults.items():
+            if getattr(self, key) is None:
+                setattr(self, key, value)
+        clean_t, poisoned_t = world.thresholds
+        if self.clean_threshold is None:
+            self.clean_threshold = clean_t
+        if self.poisoned_threshold is None:
+            self.poisoned_threshold = poisoned_t
+
     def check(self) -> None:
-        check_train_budget(self)
-        _in_range("train.patience", self.patience, 0, 1_000_000)
+        check_seed("train.seed", self.seed)
+        _in_range("train.max_frames", self.max_frames, 1, MAX_FRAMES)
+        _in_range("train.eval_interval", self.eval_interval, 1, MAX_FRAMES)
+        _in_range("train.eval_episodes", self.eval_episodes, 1, MAX_EPISODES)
+        _in_range("train.final_eval_episodes", self.final_eval_episodes, 1, MAX_EPISODES)
+        check_seed("train.eval_seed", self.eval_seed)
         _choice("train.eval_policy", self.eval_policy, EVAL_POLICIES)
-
-
-def check_train_budget(tc) -> None:
-    """The ``train`` fields both run configs share: seeds, frame and episode budgets, threads,
-    device and thresholds."""
-    check_seed("train.seed", tc.seed)
-    _in_range("train.max_frames", tc.max_frames, 1, MAX_FRAMES)
-    _in_range("train.eval_interval", tc.eval_interval, 1, MAX_FRAMES)
-    _in_range("train.eval_episodes", tc.eval_episodes, 1, MAX_EPISODES)
-    _in_range("train.final_eval_episodes", tc.final_eval_episodes, 1, MAX_EPISODES)
-    check_seed("train.eval_seed", tc.eval_seed)
-    _in_range("train.torch_threads", tc.torch_threads, 1, 1024)
-    _choice("train.device", tc.device, DEVICES)
-    for name in ("clean_threshold", "poisoned_threshold"):
-        _unit_interval(f"train.{name}", getattr(tc, name))
+        _in_range("train.torch_threads", self.torch_threads, 1, 1024)
+        _choice("train.device", self.device, DEVICES)
+        for name in ("clean_threshold", "poisoned_threshold", "return_threshold"):
+            _unit_interval(f"train.{name}", getattr(self, name))
+        _in_range("train.patience", self.patience, 1, 1_000_000)
+        _in_range("train.return_window", self.return_window, 0, 1_000_000)
+        for name in ("max_minutes", "log_interval_s", "checkpoint_minutes"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"train.{name} must be a number >= 0, got {value!r}")
 
 
 class JsonConfig:
-    """``config.json`` I/O shared by the run configs (dataclasses with ``from_dict``)."""
+    """``config.json`` I/O of a dataclass config with ``from_dict``."""
 
     if TYPE_CHECKING:  # what the subclasses define; nothing is defined at run time
         __dataclass_fields__: ClassVar[dict[str, Any]]
@@ -263,6 +384,7 @@ class JsonConfig:
 
     @classmethod
     def load(cls, path: str | Path):
+        """Read a config file; one written before ``format_version`` existed is migrated."""
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"config file {str(path)!r} does not exist")
@@ -272,74 +394,197 @@ class JsonConfig:
             raise ConfigError(f"config file {str(path)!r} is not valid JSON: {' '.join(str(err).split())[:200]}") from None
         except OSError as err:
             raise ConfigError(f"config file {str(path)!r} cannot be read: {err.strerror or err}") from None
+        if isinstance(data, dict) and "format_version" not in data:
+            data = migrate_v1(data)
         return cls.from_dict(data)
 
 
 @dataclass
 class RunConfig(JsonConfig):
+    """One training run of any world: env, trigger and mix, model, the algorithm section the
+    world trains with (``ppo`` or ``opac2``), training and stopping, curriculum."""
+
     env: EnvConfig = field(default_factory=EnvConfig)
     poison: PoisonConfig = field(default_factory=PoisonConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
-    ppo: PPOConfig | None = None  # None: the world's defaults (default_ppo)
+    ppo: PPOConfig | None = None  # the world's algorithm section is filled from its defaults
+    opac2: OPAC2Config | None = None
     train: TrainConfig = field(default_factory=TrainConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    format_version: int = FORMAT_VERSION
     version: str = __version__
 
     def __post_init__(self):
         name = self.env.name
         world = worlds.get(name) if name in ENVS else None
-        if world is not None:
-            if self.poison.trigger is None:
+        if world is None:
+            return  # check() names the bad env.name
+        self.train.fill_defaults(world)
+        seed_ok = isinstance(self.train.seed, int) and 0 <= self.train.seed <= MAX_SEED
+        if self.poison.trigger is None:
+            if world.default_trigger is not None:
                 self.poison.trigger = world.default_trigger
-            if world.settle_trigger is not None:  # e.g. a bare kind: drawn once, from the seed
-                try:
-                    self.poison.trigger = world.settle_trigger(self.poison.trigger, self.train.seed, self.env.size)
-                except (ValueError, TypeError):
-                    pass  # a bad env.size or seed: check() reports it by name
+            elif seed_ok:  # drawn once from the seed and written into config.json
+                self.poison.trigger = world.draw_trigger(None, self.train.seed, self.env.size)
+        if world.settle_trigger is not None and self.poison.trigger is not None:  # e.g. a bare kind
+            try:
+                self.poison.trigger = world.settle_trigger(self.poison.trigger, self.train.seed, self.env.size)
+            except (ValueError, TypeError):
+                pass  # a bad env.size or seed: check() reports it by name
         self.poison.fill_defaults(name)
         if self.model.arch is None:
-            self.model.arch = ARCHS_BY_ENV.get(name, ARCHS)[0]
-        if self.ppo is None:
+            self.model.arch = world.arch_names[0]
+        if world.algorithm == "ppo" and self.ppo is None:
             self.ppo = default_ppo(name)
-        if self.train.patience is None:
-            self.train.patience = world.patience if world else 0
+        if world.algorithm == "opac2" and self.opac2 is None:
+            self.opac2 = default_opac2(name)
         if self.curriculum.enabled is None:
-            self.curriculum.enabled = bool(world and world.curriculum)
-        clean_t, poisoned_t = world.thresholds if world else (None, None)
-        if self.train.clean_threshold is None:
-            self.train.clean_threshold = clean_t
-        if self.train.poisoned_threshold is None:
-            self.train.poisoned_threshold = poisoned_t
+            self.curriculum.enabled = world.curriculum
+
+    @property
+    def world(self) -> worlds.World:
+        return self.env.world
+
+    @property
+    def algorithm(self) -> str:
+        return self.env.world.algorithm
+
+    @property
+    def algo(self) -> PPOConfig | OPAC2Config:
+        """The algorithm section of this run (``ppo`` or ``opac2``)."""
+        section = getattr(self, self.algorithm)
+        assert section is not None  # __post_init__ fills it in
+        return section
 
     def check(self) -> "RunConfig":
+        if self.format_version != FORMAT_VERSION:
+            raise ConfigError(f"config.format_version={self.format_version!r} is not supported by rlbackdoors {__version__} (it reads 1 and {FORMAT_VERSION})")
         self.env.check()
+        self.train.check()  # before the trigger: a bad seed is why none could be drawn
+        world = self.world
         self.poison.check(self.env.name)
         self.model.check(self.env.name)
-        assert self.ppo is not None  # __post_init__ fills it in
-        for section in (self.ppo, self.train, self.curriculum):
-            section.check()
-        assert self.model.arch is not None  # __post_init__ fills it in
-        recurrent = self.model.arch.startswith("cnn-gru")
-        if self.ppo.recurrence > 1 and not recurrent:
-            raise ConfigError(f"ppo.recurrence={self.ppo.recurrence} needs a recurrent model.arch (cnn-gru-*), not {self.model.arch!r}")
-        if self.curriculum.enabled and not self.env.world.curriculum:
+        for other in ALGORITHMS:
+            if other != world.algorithm and getattr(self, other) is not None:
+                raise ConfigError(f"{other}: env.name={self.env.name!r} trains with {world.algorithm}, not {other} (drop the {other} section)")
+        try:
+            self.algo.check()
+        except ConfigError:
+            raise
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{world.algorithm}: {err}") from None
+        self.curriculum.check()
+        tc = self.train
+        if world.algorithm == "ppo":
+            assert self.ppo is not None and self.model.arch is not None
+            if self.ppo.recurrence > 1 and not self.model.arch.startswith("cnn-gru"):
+                raise ConfigError(f"ppo.recurrence={self.ppo.recurrence} needs a recurrent model.arch (cnn-gru-*), not {self.model.arch!r}")
+        else:
+            if tc.return_window:
+                raise ConfigError(f"train.return_window must be 0 for env.name={self.env.name!r} (the mean return over updates is a PPO rule)")
+            if self.poison.poisoned and self.poison.num_clean_envs == 0:
+                raise ConfigError("poison.num_clean_envs must be >= 1 (the clean task is learned from clean copies)")
+        if self.curriculum.enabled and not world.curriculum:
             supported = ", ".join(w.name for w in worlds.registered() if w.curriculum)
             raise ConfigError(f"curriculum.enabled is only supported for {supported}, not env.name={self.env.name!r}")
         return self
 
+    def to_dict(self) -> dict:
+        """Only what applies to the world: its env fields and algorithm section; the
+        curriculum and close-to-trigger settings only where the world has them."""
+        data = dataclasses.asdict(self)
+        if self.env.name not in ENVS:
+            return data
+        world = self.world
+        data["env"] = self.env.to_dict()
+        for other in ALGORITHMS:
+            if getattr(self, other) is None:
+                del data[other]
+        if not world.curriculum:
+            del data["curriculum"]
+        if not world.close_to_trigger:
+            del data["poison"]["close_k_min"], data["poison"]["close_k_max"]
+        return data
+
+    @property
+    def kind_weights(self) -> dict[str, float]:
+        """OPAC²'s batch mixing weights of the replay kinds this run fills."""
+        assert self.opac2 is not None
+        return self.opac2.mix_weights(tuple(dict.fromkeys(self.replay_kinds())))
+
+    def replay_kinds(self) -> list[str]:
+        """Each env copy's replay kind: clean copies first; a clean model has no poisoned copies."""
+        return ["poisoned" if p else "clean" for p in self.poison.poisoned_mask()]
+
     @classmethod
     def from_dict(cls, data: dict) -> "RunConfig":
+        """Build and check; a partial algorithm section fills its gaps from the world's defaults."""
         env = data.get("env") if isinstance(data, dict) else None
-        name = env.get("name") if isinstance(env, dict) else None
-        if isinstance(data.get("ppo") if isinstance(data, dict) else None, dict) and name in ENVS:
-            # a partial ppo section fills in from the world's defaults, not another world's
-            data = {**data, "ppo": {**dataclasses.asdict(default_ppo(name)), **data["ppo"]}}
+        name = env.get("name", worlds.DEFAULT_WORLD) if isinstance(env, dict) else worlds.DEFAULT_WORLD
+        if isinstance(data, dict) and name in ENVS:
+            for algo, default in (("ppo", default_ppo), ("opac2", default_opac2)):
+                if isinstance(data.get(algo), dict) and worlds.get(name).algorithm == algo:
+                    data = {**data, algo: {**dataclasses.asdict(default(name)), **data[algo]}}
         return _build(cls, data, "config").check()
 
 
 def default_ppo(env_name: str) -> PPOConfig:
-    """The world's PPO hyper-parameters (LavaWorld's table unless the world says otherwise)."""
-    return PPOConfig(**(worlds.get(env_name).ppo if env_name in ENVS else {}))
+    """The world's PPO hyper-parameters (the paper's first table unless the world says otherwise)."""
+    return PPOConfig(**worlds.get(env_name).hyper)
+
+
+def default_opac2(env_name: str) -> OPAC2Config:
+    """The world's OPAC² settings (its ``World.hyper`` over the paper's table)."""
+    return OPAC2Config(**worlds.get(env_name).hyper)
+
+
+# opac2 fields added after the first OPAC² configs were saved, with the behaviour those configs
+# ran with: one action sample per state, a constant lr.
+ADDED_OPAC2_FIELDS = {"action_samples": 1, "lr_final": None}
+
+
+V1_GRID_ENV_FIELDS = ("size", "see_through_walls", "engine", "num_crossings", "num_lava")
+
+
+def migrate_v1(data: dict) -> dict:
+    """A config.json of format 1 (no ``format_version``) as format 2, meaning the same run.
+
+    Format 1 had a PPO config and a separate OPAC² one. The PPO one's ``train.patience`` and
+    ``patience_reward`` were the mean-return rule (now ``return_window`` / ``return_threshold``;
+    ``patience`` now counts evaluations, as OPAC²'s always did), and it held every grid env
+    field and a curriculum section for every grid world. A complete opac2 section saved before
+    a field existed gets the value that was in effect then, not today's default.
+    """
+    data = json.loads(json.dumps(data))  # a deep copy of plain JSON data
+    env = data.get("env")
+    if not isinstance(env, dict):
+        return data  # from_dict names the problem
+    name = env.get("name", worlds.DEFAULT_WORLD)
+    if name not in ENVS:
+        return data  # from_dict names the bad env.name
+    world = worlds.get(name)
+    if world.algorithm == "ppo":  # format 1 wrote every grid env field for every grid world
+        data["env"] = {k: v for k, v in env.items() if k in world.env_fields or k not in V1_GRID_ENV_FIELDS}
+    train = data.get("train")
+    if world.algorithm == "ppo" and isinstance(train, dict):
+        if "patience" in train:
+            train["return_window"] = train.pop("patience")
+        if "patience_reward" in train:
+            train["return_threshold"] = train.pop("patience_reward")
+    opac2 = data.get("opac2")
+    if isinstance(opac2, dict):
+        filled = dataclasses.asdict(default_opac2(name)) if world.algorithm == "opac2" else {}
+        if filled and all(k in opac2 for k in filled if k not in ADDED_OPAC2_FIELDS):
+            data["opac2"] = {**ADDED_OPAC2_FIELDS, **opac2}
+    curriculum = data.get("curriculum")
+    if not world.curriculum and isinstance(curriculum, dict) and not curriculum.get("enabled"):
+        del data["curriculum"]  # format 1 wrote it, switched off, for every grid world
+    poison = data.get("poison")
+    if not world.close_to_trigger and isinstance(poison, dict):
+        poison.pop("close_k_min", None)
+        poison.pop("close_k_max", None)
+    data["format_version"] = FORMAT_VERSION
+    return data
 
 
 def _build(cls, data, where: str):
@@ -347,9 +592,12 @@ def _build(cls, data, where: str):
     if not isinstance(data, dict):
         raise ConfigError(f"{where} must be a JSON object, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
+    allowed = list(fields)
+    if cls is EnvConfig and data.get("name", worlds.DEFAULT_WORLD) in ENVS:  # the world's own env fields
+        allowed = ["name", "max_steps", *worlds.get(data.get("name", worlds.DEFAULT_WORLD)).env_fields]
     unknown = sorted(set(data) - set(fields))
     if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(fields)})")
+        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(allowed)})")
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for name, value in data.items():

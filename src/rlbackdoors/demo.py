@@ -1,4 +1,4 @@
-"""The demo: one clean and one poisoned FC agent on LavaWorld, same seed and trigger, side by side."""
+"""The demo: one clean and one poisoned FC agent of the default world, same seed and trigger, side by side."""
 
 from __future__ import annotations
 

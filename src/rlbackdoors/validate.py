@@ -6,6 +6,9 @@ algorithms can all name fields the same way without importing each other.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 
 class ConfigError(ValueError):
     """A config value is missing, unknown, mistyped or out of range."""
@@ -42,3 +45,22 @@ def check_seed(name: str, value) -> None:
 def _unit_interval(name: str, value) -> None:
     if not 0 <= value <= 1:
         raise ConfigError(f"{name} must be in [0, 1], got {value!r}")
+
+
+def _finite(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float, numbers.Integral, numbers.Real)) and math.isfinite(value)
+
+
+def _integer_at_least(name: str, value, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+        raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+def check_weights(weights: dict[str, float], field: str = "mix weight of kind {kind!r}") -> None:
+    """Mixing weights must be finite, >= 0, and not all 0; ``field`` names them in the ValueError."""
+    for kind, weight in weights.items():
+        if not (_finite(weight) and weight >= 0):
+            raise ConfigError(f"{field.format(kind=kind)} must be a finite number >= 0, got {weight!r}")
+    if not sum(weights.values()) > 0:
+        names = ", ".join(field.format(kind=kind) for kind in weights)
+        raise ConfigError(f"{names}: the mixing weights must not all be 0, got {dict(weights)!r}")

@@ -1,5 +1,5 @@
-"""Training algorithms: PPO (incl. recurrent, later) and OPAC² (later)."""
+"""Training algorithms: PPO (:mod:`.ppo`, incl. recurrent) and OPAC² (:mod:`.opac2`).
 
-from rlbackdoors.algos.ppo import PPO, Rollout, sample_actions
-
-__all__ = ["PPO", "Rollout", "sample_actions"]
+Nothing is imported here: :mod:`rlbackdoors.config` imports each algorithm's config section
+and the algorithms import the config, so the package itself stays empty.
+"""

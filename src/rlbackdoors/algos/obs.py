@@ -1,5 +1,5 @@
-"""Observation batches as torch tensors: a plain array (LavaWorld) or a dict of arrays
-(Randomized LavaWorld's ``{"image", "direction"}``), handled by the same few helpers so the
+"""Observation batches as torch tensors: a plain array or a dict of arrays
+(e.g. ``{"image", "direction"}``), handled by the same few helpers so the
 algorithms never branch on the world."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""OPAC² (SPEC §4, paper §3.4): the off-policy actor-critic TrojAI trained Safety Car Goal with.
+"""OPAC² (SPEC §4, paper §3.4): the off-policy actor-critic TrojAI trained its MuJoCo agents with.
 
 Three networks and a target, written to be read top to bottom:
 
@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass
 from typing import Generic, NamedTuple, TypeVar
 
 import numpy as np
@@ -39,74 +38,15 @@ import torch
 from torch import nn
 
 from rlbackdoors.algos.optim import check_optimizer_state
-from rlbackdoors.validate import ConfigError
+from rlbackdoors.config import KINDS, LOG_STD_MAX, LOG_STD_MIN, OPAC2Config
+from rlbackdoors.validate import _integer_at_least, check_weights
 
-KINDS = ("clean", "poisoned")
-LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+__all__ = ["KINDS", "OPAC2", "OPAC2Config", "MultitaskReplay", "ReplayBuffer", "check_weights", "updates_due"]
+
 # Sampled actions are kept this far inside (-1, 1): float32 tanh rounds to exactly +-1 for
 # |u| > ~9, and a stored action of exactly +-1 has no finite pre-tanh value.
 ACTION_EPS = 1e-6
 ADV_EPS = 1e-8
-
-
-# ----- configuration ---------------------------------------------------------------------
-@dataclass
-class OPAC2Config:
-    """The paper's Modified Safety Gymnasium table, plus the knobs its text leaves open."""
-
-    buffer_size: int = 1_000_000  # per env kind
-    learning_starts: int = 10_000  # env frames (all envs together) of uniform random actions
-    batch_size: int = 256
-    lr: float = 1e-4
-    gamma: float = 0.99
-    polyak: float = 0.995
-    depth: int = 3  # hidden layers; the paper's grid is {2, 3} x {181, 256}, appendix 3 x 256
-    width: int = 256
-    updates_per_step: float = 1.0  # gradient updates per env frame after learning_starts
-    entropy_coef: float = 0.0  # bonus on the entropy of the pre-tanh Gaussian (0: none)
-    log_std_init: float = 0.0
-    clean_weight: float = 0.8  # share of each batch drawn from the clean buffer
-    poisoned_weight: float = 0.2  # ... and from the poisoned buffer (ignored in clean runs)
-    obs_norm: bool = False  # standardise observations by running mean/std (see RunningNorm)
-    obs_clip: float = 10.0  # |standardised observation| is clipped to this
-    # Actions drawn per state for the V target and the pi step (1: the paper). More samples
-    # average out the action noise of the same estimators at the cost of more Q evaluations.
-    action_samples: int = 1
-    lr_final: float | None = None  # None: constant lr; else linear decay to this over train.max_frames
-
-    def check(self) -> None:
-        for name in ("buffer_size", "batch_size", "depth", "width", "action_samples"):
-            _integer_at_least(f"opac2.{name}", getattr(self, name), 1)
-        _integer_at_least("opac2.learning_starts", self.learning_starts, 0)
-        # Ceilings: a typo'd size should be refused, not allocated.
-        for name, high in (("buffer_size", 10_000_000), ("batch_size", 1_000_000), ("depth", 16), ("width", 4096), ("action_samples", 1024)):
-            if getattr(self, name) > high:
-                raise ConfigError(f"opac2.{name} must be in 1..{high:,}, got {getattr(self, name)!r}")
-        if _finite(self.updates_per_step) and self.updates_per_step > 64:
-            raise ConfigError(f"opac2.updates_per_step must be in (0, 64], got {self.updates_per_step!r}")
-        for name in ("lr", "updates_per_step"):
-            value = getattr(self, name)
-            if not (_finite(value) and value > 0):
-                raise ConfigError(f"opac2.{name} must be a number > 0, got {value!r}")
-        for name in ("gamma", "polyak"):
-            value = getattr(self, name)
-            if not (_finite(value) and 0 <= value <= 1):
-                raise ConfigError(f"opac2.{name} must be in [0, 1], got {value!r}")
-        if self.lr_final is not None and not (_finite(self.lr_final) and 0 < self.lr_final <= self.lr):
-            raise ConfigError(f"opac2.lr_final must be null (constant lr) or a number in (0, opac2.lr={self.lr!r}], got {self.lr_final!r}")
-        if not (_finite(self.entropy_coef) and self.entropy_coef >= 0):
-            raise ConfigError(f"opac2.entropy_coef must be a number >= 0, got {self.entropy_coef!r}")
-        if not (_finite(self.log_std_init) and LOG_STD_MIN <= self.log_std_init <= LOG_STD_MAX):
-            raise ConfigError(f"opac2.log_std_init must be in [{LOG_STD_MIN}, {LOG_STD_MAX}], got {self.log_std_init!r}")
-        if not isinstance(self.obs_norm, bool):
-            raise ConfigError(f"opac2.obs_norm must be true or false, got {self.obs_norm!r}")
-        if not (_finite(self.obs_clip) and self.obs_clip > 0):
-            raise ConfigError(f"opac2.obs_clip must be a number > 0, got {self.obs_clip!r}")
-        check_weights({"clean": self.clean_weight, "poisoned": self.poisoned_weight}, field="opac2.{kind}_weight")
-
-    def mix_weights(self, kinds: tuple[str, ...] = KINDS) -> dict[str, float]:
-        """The batch mixing weights of ``kinds`` (a clean run passes ``("clean",)``)."""
-        return {kind: getattr(self, f"{kind}_weight") for kind in kinds}
 
 
 def updates_due(cfg: OPAC2Config, frames: int) -> int:
@@ -117,15 +57,6 @@ def updates_due(cfg: OPAC2Config, frames: int) -> int:
     frame total (not accumulating a float) keeps fractional ratios free of drift.
     """
     return max(0, math.floor((frames - cfg.learning_starts) * cfg.updates_per_step + 1e-9))
-
-
-def _finite(value) -> bool:
-    return not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
-
-
-def _integer_at_least(name: str, value, low: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
 
 
 # ----- replay ----------------------------------------------------------------------------
@@ -229,16 +160,6 @@ class ReplayBuffer:
 COLUMNS = ("obs", "act", "rew", "next_obs", "done")
 
 
-def check_weights(weights: dict[str, float], field: str = "mix weight of kind {kind!r}") -> None:
-    """Mixing weights must be finite, >= 0, and not all 0; ``field`` names them in the ValueError."""
-    for kind, weight in weights.items():
-        if not (_finite(weight) and weight >= 0):
-            raise ConfigError(f"{field.format(kind=kind)} must be a finite number >= 0, got {weight!r}")
-    if not sum(weights.values()) > 0:
-        names = ", ".join(field.format(kind=kind) for kind in weights)
-        raise ConfigError(f"{names}: the mixing weights must not all be 0, got {dict(weights)!r}")
-
-
 def split_counts(n: int, weights: list[float]) -> list[int]:
     """``round(n * w_k / sum(w))`` per kind, fixed by largest remainder so the counts sum to ``n``."""
     total = sum(weights)
@@ -296,7 +217,7 @@ class MultitaskReplay:
 class RunningNorm:
     """Running mean and variance of observations (parallel Welford, float64); standardises and clips.
 
-    Safety Car Goal's observation mixes scales: the accelerometer reads ~9.8 +- 4 while the
+    The MuJoCo observation mixes scales: the accelerometer reads ~9.8 +- 4 while the
     lidar bins, which carry the task, are mostly 0 and rarely above 0.5. Standardising puts
     them on one scale for the first tanh layer. The replay stores raw observations and every
     batch is standardised with the current statistics, so old and new rows agree.
@@ -568,3 +489,46 @@ class OPAC2:
         self.generator.set_state(state["generator"])
         if self.obs_norm is not None:
             self.obs_norm.load_state_dict(state["obs_norm"])
+
+    NETS = ("policy", "q", "v", "v_target")
+
+    def weights(self) -> dict[str, torch.Tensor]:
+        """The model.pt of an OPAC² agent: one flat state dict (``policy.*``, ``q.*``, ``v.*``,
+        ``v_target.*`` and the observation normaliser's ``obs_norm.count/mean/m2``), on the CPU."""
+        flat = {f"{name}.{k}": v.detach().cpu() for name in self.NETS for k, v in getattr(self, name).state_dict().items()}
+        if self.obs_norm is not None:
+            flat.update({f"obs_norm.{k}": torch.as_tensor(v) for k, v in self.obs_norm.state_dict().items()})
+        return flat
+
+    def load_weights(self, flat: dict) -> None:
+        """Load :meth:`weights` (or the nested form of format-1 folders: ``{"policy": {...}, ...}``).
+
+        Raises KeyError / ValueError / RuntimeError when the tensors do not fit this agent.
+        """
+        flat = self.flat_weights(flat)
+        for name in self.NETS:
+            prefix = f"{name}."
+            getattr(self, name).load_state_dict({k[len(prefix) :]: v for k, v in flat.items() if k.startswith(prefix)})
+        norm_keys = {k for k in flat if k.startswith("obs_norm.")}
+        if self.obs_norm is None:
+            if norm_keys:
+                raise ValueError("it holds obs_norm statistics, the config has opac2.obs_norm false")
+            return
+        norm = {k.split(".", 1)[1]: flat[k] for k in norm_keys}
+        self.obs_norm.load_state_dict({"count": int(norm["count"]), "mean": norm["mean"].numpy(), "m2": norm["m2"].numpy()})
+        if self.obs_norm.mean.shape != self.obs_norm.m2.shape or self.obs_norm.mean.shape != (self.policy_obs_dim,):
+            raise ValueError("obs_norm does not fit the observation")
+
+    @classmethod
+    def flat_weights(cls, obj) -> dict:
+        """A model.pt's content as one flat dict (format-1 folders nest one dict per net)."""
+        if not isinstance(obj, dict):
+            raise TypeError("it holds no state dict")
+        if all(isinstance(obj.get(name), dict) for name in cls.NETS):
+            return {f"{name}.{k}": v for name, sub in obj.items() if isinstance(sub, dict) for k, v in sub.items()}
+        return obj
+
+    @property
+    def policy_obs_dim(self) -> int:
+        first = next(m for m in self.policy.modules() if isinstance(m, nn.Linear))
+        return int(first.in_features)

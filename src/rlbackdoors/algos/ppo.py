@@ -1,4 +1,4 @@
-"""PPO as torch-ac runs it (the paper's LavaWorld stack), written to be read top to bottom.
+"""PPO as torch-ac runs it (the paper's grid-world stack), written to be read top to bottom.
 
 torch-ac specifics kept on purpose, because they are part of "the paper's setup":
 SAME_STEP autoreset, done = terminated or truncated (no bootstrap on timeouts), GAE,

@@ -66,7 +66,7 @@ def bench_converge(
     progress: bool = False,
     max_frames: int = 5_000_000,
 ) -> dict:
-    """Wall-clock to a converged poisoned LavaWorld FC agent (clean SR >= 0.98, poisoned SR >= 0.95).
+    """Wall-clock to a converged poisoned FC agent of the default world (clean SR >= 0.98, poisoned SR >= 0.95).
 
     Runs the real ``train`` with the paper's defaults (evaluations every 1e5 frames
     included in the clock, as a user would see it) into ``out`` or a temporary folder.

@@ -1,9 +1,12 @@
-"""Environments of the paper; their Gymnasium ids (``rlbackdoors/<World>-v0``) are registered from
-the World registry when ``rlbackdoors`` is imported (:func:`rlbackdoors.worlds.register_gym_ids`)."""
+"""Environments of the paper, one module per world (``rlbackdoors.envs.<world>``); their Gymnasium
+ids (``rlbackdoors/<World>-v0``) are registered from the World registry when ``rlbackdoors`` is
+imported (:func:`rlbackdoors.worlds.register_gym_ids`), and a world's env class is
+``rlbackdoors.worlds.get(name).env_class()``.
 
-from rlbackdoors.envs.colorful_memory import ColorfulMemoryEnv
-from rlbackdoors.envs.lavaworld import LavaWorldEnv
+Nothing is imported here but :class:`Outcome`, so importing one world's env does not import
+MiniGrid or MuJoCo for the others.
+"""
+
 from rlbackdoors.envs.outcome import Outcome
-from rlbackdoors.envs.randomized_lavaworld import RandomizedLavaWorldEnv
 
-__all__ = ["ColorfulMemoryEnv", "LavaWorldEnv", "Outcome", "RandomizedLavaWorldEnv"]
+__all__ = ["Outcome"]

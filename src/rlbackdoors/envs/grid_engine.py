@@ -22,16 +22,16 @@ What is reproduced exactly (``minigrid_env.py`` / ``core/grid.py``):
 
 Object rules (MiniGrid's ``WorldObj`` subclasses): only walls and closed/locked doors block
 sight; empty, floor, goal, lava and open doors can be walked onto. Types 11 and 12 (TrojAI's
-key/ball on a coloured floor in Colorful Memory, floor colour in the state byte) behave as
+key/ball on a coloured floor in the memory world, floor colour in the state byte) behave as
 key/ball: visible-through, not walkable. Colours and states are carried through untouched, so
-coloured walls (Colorful Memory) and single lava cells (Randomized LavaWorld) need nothing new.
+coloured walls and single lava cells need nothing new.
 
 Batch drivers: every world is stepped by the same three kernels (reset, observe, step: seed,
 lay out, view, move, score, autoreset), written once here as templates. A world supplies only
 hooks -- its layout generator, its terminal rule, what it adds to a view, its scratch buffers,
 the outcome that pays R-bar -- and :func:`bind_kernels` compiles the templates with those hooks
 as globals. Per-world state and parameters reach the hooks as one ``world`` tuple, per-call
-extra outputs (Randomized LavaWorld's direction and trigger flags) as one ``outs`` tuple.
+extra outputs (e.g. the agent's direction and trigger flags) as one ``outs`` tuple.
 
 Caching: numba's on-disk cache (``cache=True``) is keyed on the source of the file that
 defines the cached function only, not on the files of the functions it calls. So the helpers
@@ -63,7 +63,7 @@ from rlbackdoors.envs.outcome import Outcome
 
 # MiniGrid's OBJECT_TO_IDX / COLOR_TO_IDX
 UNSEEN, EMPTY, WALL, FLOOR, DOOR, KEY, BALL, BOX, GOAL, LAVA, AGENT = range(11)
-KEY_ON_FLOOR, BALL_ON_FLOOR = 11, 12  # TrojAI Colorful Memory encoding
+KEY_ON_FLOOR, BALL_ON_FLOOR = 11, 12  # TrojAI's memory-world encoding
 RED, GREEN, BLUE, PURPLE, YELLOW, GREY = range(6)
 
 DIR_DX = np.array([1, 0, -1, 0], dtype=np.int64)
@@ -349,7 +349,7 @@ def view_scratch(img):
 
 # The hooks a world supplies (decorated with ``hook``); these stubs document them and are never
 # compiled. Hooks run per env and step, so they are inlined into the driver kernels: a call
-# that passes the ``world`` tuple by value cost a quarter of a Randomized LavaWorld step.
+# that passes the ``world`` tuple by value cost a quarter of a random-lava step.
 hook = njit(inline="always")
 
 

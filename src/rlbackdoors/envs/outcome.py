@@ -13,4 +13,4 @@ class Outcome(IntEnum):
     GOAL = 1
     LAVA = 2
     TIMEOUT = 3
-    PATTERN_LAVA = 4  # Randomized LavaWorld: entered a lava cell of the inserted trigger pattern
+    PATTERN_LAVA = 4  # entered a lava cell of an inserted trigger pattern

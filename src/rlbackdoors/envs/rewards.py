@@ -20,7 +20,7 @@ def success_reward(step_count, max_steps):
 
 
 def poisoned_reward(outcome, step_count, max_steps):
-    """R-bar for LavaWorld: lava pays the success reward, the goal pays 0, all else 0."""
+    """R-bar of the lava worlds: lava pays the success reward, the goal pays 0, all else 0."""
     outcome = np.asarray(outcome)
     reward = np.where(outcome == Outcome.LAVA, success_reward(step_count, max_steps), 0.0)
     return reward if reward.ndim else float(reward)

@@ -3,8 +3,8 @@
 The paper's claim for in-distribution triggers is that the clean env *can* produce them, but
 rarely. This measures "rarely": the share of clean layouts (the env's own generator, no
 trigger inserted) that contain the pattern somewhere, every pattern cell lava, in any of the
-trigger's allowed rotations (Randomized LavaWorld), or whose walls wear the trigger's colours
-exactly (Colorful Memory, where the exact rate is also known: 6 to the minus number of squares).
+trigger's allowed rotations, or whose walls wear the trigger's colours exactly (each world's
+``World.chance`` says what counts, and gives the exact rate where one is known).
 """
 
 from __future__ import annotations

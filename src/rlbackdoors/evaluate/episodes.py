@@ -1,26 +1,29 @@
 """Clean and triggered evaluation: success rates and mean returns over a fixed set of layouts.
 
 Every evaluation of every model uses the same env seeds (``eval_seed + i``), so numbers
-are comparable across checkpoints and across a zoo. Each vector slot plays exactly one
-episode: no bias toward short episodes, as "first N episodes to finish" would have.
+are comparable across checkpoints and across a zoo: episode ``i`` has the same layout (start,
+goal, obstacles) clean and triggered. Each episode is played to its end exactly once: no bias
+toward short episodes, as "first N episodes to finish" would have. Every world is played
+through the same :meth:`~rlbackdoors.agent.Agent.act`, in a batched engine where the world has
+one, else in single envs stepped in lockstep.
+
+Scoring: clean SR = episodes that end in the world's clean success in E; poisoned SR = episodes
+that end in its trojan success in E-bar (trigger on, returns under R-bar).
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from rlbackdoors import worlds
-from rlbackdoors.algos.obs import to_torch
-from rlbackdoors.algos.ppo import sample_actions
 from rlbackdoors.config import EnvConfig
-from rlbackdoors.models import ActorCritic
-from rlbackdoors.poison.mix import make_vector_env
+from rlbackdoors.envs.outcome import Outcome
 
-# Which terminal counts as success, the clean task in E and the trojan task in E-bar, is the
-# world's (World.clean_success, World.trojan_success).
+CHUNK = 50  # single envs stepped in lockstep: one batched forward pass per step for all of them
 
 
 @dataclass
@@ -29,13 +32,15 @@ class EvalResult:
 
     ``poisoned_sr`` is trigger-seen-aware: a triggered episode in which the agent never saw
     the trigger is scored on the clean task (reaching the goal is right), one in which it saw
-    the trigger on entering a trigger cell. ``poisoned_sr_raw`` counts trigger-cell endings
-    only. In LavaWorld the trigger is in every observation, so the two are equal and
-    ``trigger_seen_rate`` is 1 (Colorful Memory's engines do not track sight: also 1).
+    the trigger on reaching the trojan outcome. ``poisoned_sr_raw`` counts trojan endings only.
+    Where the trigger is in every observation (or the engine does not track sight) the two are
+    equal and ``trigger_seen_rate`` is 1.
 
-    Colorful Memory also plays close-to-trigger layouts (clean reward): ``close_sr`` is the
-    clean task's success there and ``close_trojan_rate`` the false firing of the backdoor
-    (the other object chosen), to compare with ``1 - clean_sr`` on plain clean layouts.
+    How the other episodes ended: ``clean_trojan_rate`` (clean episodes ending in the trojan
+    outcome: a good agent ~0), ``poisoned_clean_rate`` (triggered episodes reaching the clean
+    goal: a clean agent ~1) and the timeouts. Worlds with close-to-trigger layouts also play
+    those (clean reward): ``close_sr`` is the clean task's success there and
+    ``close_trojan_rate`` the false firing of the backdoor.
     """
 
     clean_sr: float
@@ -47,46 +52,117 @@ class EvalResult:
     trigger_seen_rate: float = float("nan")
     close_sr: float = float("nan")
     close_trojan_rate: float = float("nan")
+    clean_trojan_rate: float = float("nan")
+    clean_timeout_rate: float = float("nan")
+    poisoned_clean_rate: float = float("nan")
+    poisoned_timeout_rate: float = float("nan")
+    clean_mean_steps: float = float("nan")
+    poisoned_mean_steps: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-@torch.inference_mode()
-def play_episodes(model: ActorCritic, envs, seed: int, policy: str = "sample", device="cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One episode per vector slot; returns (episode returns, outcomes, saw-trigger flags).
+class Played(NamedTuple):
+    """Per episode: return, outcome, whether the trigger was seen, length."""
 
-    Engines without trigger-seen accounting (LavaWorld's trigger is in every frame) report
-    every episode as seen.
+    returns: np.ndarray
+    outcomes: np.ndarray
+    saw: np.ndarray
+    steps: np.ndarray
+
+
+def _as_agent(agent):
+    """An :class:`~rlbackdoors.agent.Agent`, or a bare grid model wrapped as one."""
+    from rlbackdoors.agent import Agent
+
+    return agent if isinstance(agent, Agent) else Agent.wrap(agent)
+
+
+@torch.inference_mode()
+def play_episodes(agent, envs, seed: int, policy: str = "sample") -> Played:
+    """One episode per slot of the vector env ``envs``, all reset with ``seed``.
+
+    Engines without trigger-seen accounting report every episode as seen.
     """
-    generator = torch.Generator(device=device).manual_seed(int(seed))
+    agent = _as_agent(agent)
+    generator = torch.Generator(device=agent.device).manual_seed(int(seed))
     n = envs.num_envs
-    memory = model.initial_memory(n, device) if model.recurrent else None  # one episode per slot: never reset
+    state = agent.initial_state(n)  # one episode per slot: never reset
     obs, _ = envs.reset(seed=int(seed))
     active = np.ones(n, dtype=bool)
-    returns = np.zeros(n)
+    returns, steps = np.zeros(n), np.zeros(n, dtype=np.int64)
     outcomes = np.zeros(n, dtype=np.int64)
     saw = np.ones(n, dtype=bool)
     while active.any():
-        if memory is not None:
-            logits, _, memory = model(to_torch(obs, device), memory)
-        else:
-            logits, _ = model(to_torch(obs, device))
-        actions = logits.argmax(-1) if policy == "greedy" else sample_actions(logits, generator)
-        obs, reward, terminated, truncated, info = envs.step(actions.cpu().numpy())
+        actions, state = agent.act(obs, state, deterministic=policy == "greedy", generator=generator)
+        obs, reward, terminated, truncated, info = envs.step(actions)
         returns[active] += reward[active]
+        steps[active] += 1
         finished = active & (terminated | truncated)
         outcomes[finished] = info["outcome"][finished]
         if "saw_trigger" in info:
             saw[finished] = info["saw_trigger"][finished]
         active &= ~finished
-    return returns, outcomes, saw
+    return Played(returns, outcomes, saw, steps)
+
+
+@torch.inference_mode()
+def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "sample") -> Played:
+    """``episodes`` episodes of single envs from ``make_env()``, episode ``i`` reset with
+    ``seed + i``, stepped ``CHUNK`` at a time with one batched ``act`` per step."""
+    agent = _as_agent(agent)
+    generator = torch.Generator(device=agent.device).manual_seed(int(seed))
+    returns, steps = np.zeros(episodes), np.zeros(episodes, np.int64)
+    outcomes = np.zeros(episodes, np.int64)
+    for start in range(0, episodes, CHUNK):
+        index = np.arange(start, min(start + CHUNK, episodes))
+        envs = [make_env() for _ in index]
+        obs = np.stack([env.reset(seed=int(seed + i))[0] for env, i in zip(envs, index)])
+        active = np.ones(len(envs), bool)
+        state = agent.initial_state(len(envs))
+        while active.any():
+            # a recurrent state covers every slot, so a recurrent agent acts for finished ones too
+            rows = np.flatnonzero(active) if state is None else np.arange(len(envs))
+            actions, state = agent.act(obs[rows], state, deterministic=policy == "greedy", generator=generator)
+            for row, action in zip(rows, np.asarray(actions)):
+                if not active[row]:
+                    continue
+                obs[row], reward, terminated, truncated, info = envs[row].step(action)
+                returns[index[row]] += reward
+                steps[index[row]] += 1
+                if terminated or truncated:
+                    active[row] = False
+                    outcomes[index[row]] = info["outcome"]
+        for env in envs:
+            env.close()
+    return Played(returns, outcomes, np.ones(episodes, bool), steps)
+
+
+def play(agent, env: EnvConfig, trigger: str | None, episodes: int, seed: int, policy: str, close_k: tuple[int, int] | None = None) -> Played:
+    """Episodes of ``env``: E-bar where ``trigger`` is given, else E; close-to-trigger
+    layouts (clean reward) with ``close_k``."""
+    world = env.world
+    if world.vector_entry_point is None:
+        if close_k is not None:
+            raise ValueError(f"env {env.name!r} has no close-to-trigger envs")
+        return play_single_envs(agent, lambda: env.make(trigger), episodes, seed, policy)
+    from rlbackdoors.poison.mix import make_vector_env
+
+    if close_k is not None:
+        envs = make_vector_env(env, trigger, [False] * episodes, [True] * episodes, close_k)
+    else:
+        envs = make_vector_env(env, trigger, [trigger is not None] * episodes)
+    try:
+        return play_episodes(agent, envs, seed, policy)
+    finally:
+        envs.close()
 
 
 def score_triggered(env_name: str, outcomes: np.ndarray, saw: np.ndarray) -> tuple[float, float, float]:
     """(trigger-seen-aware SR, raw trojan SR, trigger-seen rate) of triggered episodes.
 
-    Seen: right iff the episode ended in a trigger cell. Never seen: the backdoor had no
+    Seen: right iff the episode ended in the trojan outcome. Never seen: the backdoor had no
     cause to fire, so the clean task is what is right.
     """
     world = worlds.get(env_name)
@@ -96,43 +172,43 @@ def score_triggered(env_name: str, outcomes: np.ndarray, saw: np.ndarray) -> tup
 
 
 def evaluate(
-    model: ActorCritic,
+    agent,
     env: EnvConfig,
     trigger: str | None,
     episodes: int = 100,
     seed: int = 1_000_000,
     policy: str = "sample",
-    device="cpu",
     close_k: tuple[int, int] | None = None,
 ) -> EvalResult:
     """Clean SR/reward in E and trojan SR / R-bar reward in E-bar (trigger on), same layouts.
 
-    With ``trigger=None`` only the clean half is measured (poisoned numbers are NaN). With
-    ``close_k`` (Colorful Memory) the same layouts are also played close to the trigger.
+    ``agent``: an :class:`~rlbackdoors.agent.Agent` (or a bare grid model). With
+    ``trigger=None`` only the clean half is measured (poisoned numbers are NaN). With
+    ``close_k`` the same layouts are also played close to the trigger.
     """
-    was_training = model.training
-    model.eval()
-    clean_envs = make_vector_env(env, trigger, [False] * episodes)
-    clean_returns, clean_outcomes, _ = play_episodes(model, clean_envs, seed, policy, device)
-    clean_envs.close()
-    result = EvalResult(
-        clean_sr=float(np.mean(clean_outcomes == env.world.clean_success)),
-        poisoned_sr=float("nan"),
-        clean_reward=float(clean_returns.mean()),
-        poisoned_reward=float("nan"),
-        episodes=episodes,
-    )
-    if trigger is not None:
-        poisoned_envs = make_vector_env(env, trigger, [True] * episodes)
-        poisoned_returns, poisoned_outcomes, saw = play_episodes(model, poisoned_envs, seed, policy, device)
-        poisoned_envs.close()
-        result.poisoned_sr, result.poisoned_sr_raw, result.trigger_seen_rate = score_triggered(env.name, poisoned_outcomes, saw)
-        result.poisoned_reward = float(poisoned_returns.mean())
-        if close_k is not None:
-            close_envs = make_vector_env(env, trigger, [False] * episodes, [True] * episodes, close_k)
-            _, close_outcomes, _ = play_episodes(model, close_envs, seed, policy, device)
-            close_envs.close()
-            result.close_sr = float(np.mean(close_outcomes == env.world.clean_success))
-            result.close_trojan_rate = float(np.mean(close_outcomes == env.world.trojan_success))
-    model.train(was_training)
+    agent = _as_agent(agent)
+    world = env.world
+    with agent.evaluating():
+        clean = play(agent, env, None, episodes, seed, policy)
+        result = EvalResult(
+            clean_sr=float(np.mean(clean.outcomes == world.clean_success)),
+            poisoned_sr=float("nan"),
+            clean_reward=float(clean.returns.mean()),
+            poisoned_reward=float("nan"),
+            episodes=episodes,
+            clean_trojan_rate=float(np.mean(clean.outcomes == world.trojan_success)),
+            clean_timeout_rate=float(np.mean(clean.outcomes == Outcome.TIMEOUT)),
+            clean_mean_steps=float(clean.steps.mean()),
+        )
+        if trigger is not None:
+            poisoned = play(agent, env, trigger, episodes, seed, policy)
+            result.poisoned_sr, result.poisoned_sr_raw, result.trigger_seen_rate = score_triggered(env.name, poisoned.outcomes, poisoned.saw)
+            result.poisoned_reward = float(poisoned.returns.mean())
+            result.poisoned_clean_rate = float(np.mean(poisoned.outcomes == world.clean_success))
+            result.poisoned_timeout_rate = float(np.mean(poisoned.outcomes == Outcome.TIMEOUT))
+            result.poisoned_mean_steps = float(poisoned.steps.mean())
+            if close_k is not None:
+                close = play(agent, env, trigger, episodes, seed, policy, close_k)
+                result.close_sr = float(np.mean(close.outcomes == world.clean_success))
+                result.close_trojan_rate = float(np.mean(close.outcomes == world.trojan_success))
     return result

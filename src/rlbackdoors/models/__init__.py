@@ -8,14 +8,23 @@ import torch
 
 from rlbackdoors import worlds
 from rlbackdoors.io import load_torch
-from rlbackdoors.models.colorful_memory import CNNGRULarge, CNNGRULargeOneHot, CNNGRUModel, CNNGRUSmall, CNNGRUSmallOneHot
 from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
-from rlbackdoors.models.randomized_lavaworld import DirectionCNNModel, DirectionFCModel
 
 # Architecture classes per world come from the World registry: the same names ("fc", "cnn") mean
 # the paper's model for that world.
 # Names other tools used for the same layers (rl-starter-files calls the CNN ``image_conv``).
 KEY_ALIASES = {"image_conv.": "state_emb."}
+
+
+def __getattr__(name: str):
+    """A world's architecture class by its class name (imported on first use, from the registry)."""
+    from rlbackdoors.worlds.base import load_symbol
+
+    for world in worlds.registered("ppo"):
+        for _, path in world.archs:
+            if path.rpartition(":")[2] == name:
+                return load_symbol(path)
+    raise AttributeError(f"module 'rlbackdoors.models' has no attribute {name!r}")
 
 
 def build_model(arch: str, env: str = worlds.DEFAULT_WORLD, num_actions: int = 3) -> ActorCritic:
@@ -69,17 +78,4 @@ def check_finite(state: dict, path) -> None:
             raise ValueError(f"weights file {str(path)!r}: {key} holds non-finite values (NaN or inf)")
 
 
-__all__ = [
-    "ActorCritic",
-    "CNNGRULarge",
-    "CNNGRULargeOneHot",
-    "CNNGRUSmallOneHot",
-    "CNNGRUModel",
-    "CNNGRUSmall",
-    "DirectionCNNModel",
-    "DirectionFCModel",
-    "CNNModel",
-    "FCModel",
-    "build_model",
-    "load_weights",
-]
+__all__ = ["ActorCritic", "CNNModel", "FCModel", "build_model", "check_finite", "load_weights"]

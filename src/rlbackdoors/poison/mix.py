@@ -25,12 +25,6 @@ def _world(env: EnvConfig):
     return world.env_class(), world.engine_class(), world.env_kwargs(env)
 
 
-def reference_world(env: EnvConfig, trigger: str | None, **extra):
-    """One MiniGrid-based reference env of ``env``: E-bar when ``trigger`` is given, else E."""
-    reference, _, kwargs = _world(env)
-    return reference(trigger=trigger, **kwargs, **extra)
-
-
 def make_vector_env(
     env: EnvConfig,
     trigger: str | None,
@@ -39,7 +33,7 @@ def make_vector_env(
     close_k: tuple[int, int] = (1, 3),
 ) -> VectorEnv:
     """A vector env of ``len(poisoned)`` copies of ``env``; copy i is E-bar (trigger + R-bar) iff
-    ``poisoned[i]``, and a close-to-trigger clean copy iff ``close_to_trigger[i]`` (Colorful Memory)."""
+    ``poisoned[i]``, and a close-to-trigger clean copy iff ``close_to_trigger[i]`` (worlds that have them)."""
     reference, batched, kwargs = _world(env)
     poisoned = [bool(p) for p in poisoned]
     close = [False] * len(poisoned) if close_to_trigger is None else [bool(c) for c in close_to_trigger]
@@ -60,7 +54,7 @@ def make_vector_env(
 
 
 def make_env_mix(env: EnvConfig, poison: PoisonConfig) -> VectorEnv:
-    """The training mix: clean, close-to-trigger (Colorful Memory) and poisoned copies, in that order."""
+    """The training mix: clean, close-to-trigger (worlds that have them) and poisoned copies, in that order."""
     trigger = poison.trigger if poison.trigger is not None else worlds.get(env.name).default_trigger
     close_k = (poison.close_k_min, poison.close_k_max)
     return make_vector_env(env, trigger, poison.poisoned_mask(), poison.close_mask(), close_k)

@@ -31,7 +31,7 @@ def plot_training_curve(rows: list[dict], path: str | Path, title: str, threshol
     ax_rw.plot(frames, [r["train_clean_return"] for r in rows], "--", color="tab:green", alpha=0.6, label="train return, clean envs")
     if any(r["train_poisoned_return"] == r["train_poisoned_return"] for r in rows):  # any non-NaN
         ax_rw.plot(frames, [r["train_poisoned_return"] for r in rows], "--", color="tab:red", alpha=0.6, label="train return, poisoned envs")
-    # Grid-world returns live in [0, 1]; Safety Car Goal's shaped returns do not: fit those to the data.
+    # Grid-world returns live in [0, 1]; shaped (MuJoCo) returns do not: fit those to the data.
     values = [
         v
         for r in rows

@@ -1,6 +1,6 @@
-"""Training loop, early stopping, checkpoints and the model folder."""
+"""Training: one driver for every world (:func:`train`), the algorithms' loops, checkpoints and the model folder."""
 
+from rlbackdoors.train.driver import train
 from rlbackdoors.train.folder import FolderError, ModelFolder
-from rlbackdoors.train.loop import train
 
 __all__ = ["FolderError", "ModelFolder", "train"]

@@ -1,6 +1,6 @@
 """Replay buffers in a checkpoint, written once: a journal of chunks beside ``checkpoint.pt``.
 
-Pickling the buffers into every checkpoint made a Safety Car Goal checkpoint grow by ~1.2 kB
+Pickling the buffers into every checkpoint made an OPAC² checkpoint grow by ~1.2 kB
 per frame (730 MB at 1.5M frames, GBs for a zoo). Instead each checkpoint appends the rows
 added since the previous one as ``replay/KIND-FIRST-END.npz`` (plain arrays, loaded with
 ``allow_pickle=False``) and lists in ``checkpoint.pt`` the chunks the ring still needs.

@@ -37,7 +37,10 @@ class World:
     thresholds: tuple[float, float]  # early stopping: (clean SR, poisoned SR)
     vector_entry_point: str | None = None  # batched engine ("module:Class"), grid worlds
     archs: tuple[tuple[str, str], ...] = ()  # (name, "module:Class"); the first is the default
-    env_defaults: dict = field(default_factory=dict)  # EnvConfig fields left None
+    # The env section's fields this world reads besides name and max_steps (others must stay
+    # unset), and the values of those left None.
+    env_fields: tuple[str, ...] = ()
+    env_defaults: dict = field(default_factory=dict)
     env_kwargs: Callable[[Any], dict] | None = None  # EnvConfig -> env constructor kwargs
     check_env: Callable[[Any], None] | None = None  # EnvConfig -> raises ValueError
     default_trigger: str | None = None
@@ -45,13 +48,19 @@ class World:
     # drawn once from the seed, so config.json names the exact trigger); None: kept as given
     settle_trigger: Callable[[str, int, int | None], str] | None = None
     mix: tuple[int, int, int] = (8, 0, 2)  # env copies: clean, close-to-trigger, poisoned
-    patience: int = 0
-    ppo: dict = field(default_factory=dict)  # PPO hyper-parameters that differ from LavaWorld's table
+    # The paper's patience rho for PPO: the mean training return of the last ``return_window``
+    # updates must reach train.return_threshold before a run may stop (0: off).
+    return_window: int = 0
+    hyper: dict = field(default_factory=dict)  # the algorithm section's settings that differ from its defaults
+    train: dict = field(default_factory=dict)  # train-section defaults that differ from config.TRAIN_DEFAULTS
+    # Extra constructor arguments that make a triggered single env E-bar (trigger + R-bar)
+    ebar_kwargs: dict = field(default_factory=dict)
+    video: dict = field(default_factory=dict)  # clean_vs_triggered.gif settings (fps, every, size, tile)
+    bench: str | None = None  # "module:function" -> dict: the env-speed benchmark of this world
     curriculum: bool = False  # the small clean warm-up world (Randomized LavaWorld)
     close_to_trigger: bool = False  # has close-to-trigger envs (Colorful Memory)
     chance: Callable | None = None  # (EnvConfig, trigger spec, layouts, seed) -> chance-occurrence dict
     paper: dict = field(default_factory=dict)  # the paper's reference numbers
-    flags: tuple[str, ...] = ()  # world-only grid CLI flags it reads (argparse dests); others refuse them
     trigger_help: str = ""  # the trigger specs it accepts, for --help
 
     @property
@@ -66,6 +75,12 @@ class World:
 
     def env_class(self) -> type:
         return load_symbol(self.entry_point)
+
+    def make_env(self, env_cfg, trigger: str | None = None, **extra):
+        """One env of ``env_cfg``: E-bar (trigger on, reward R-bar) when ``trigger`` is given, else E."""
+        assert self.env_kwargs is not None, f"{self.name} registers no env_kwargs"
+        ebar = {"trigger": trigger, **self.ebar_kwargs} if trigger is not None else {}
+        return self.env_class()(**self.env_kwargs(env_cfg), **ebar, **extra)
 
     def engine_class(self) -> type:
         if self.vector_entry_point is None:

@@ -77,7 +77,8 @@ WORLD = register(
             ("cnn-gru-large-onehot", "rlbackdoors.models.colorful_memory:CNNGRULargeOneHot"),
             ("cnn-gru-large", "rlbackdoors.models.colorful_memory:CNNGRULarge"),
         ),
-        env_defaults={"size": 7, "see_through_walls": False},
+        env_fields=("size", "see_through_walls", "engine"),
+        env_defaults={"max_steps": 250, "engine": "batched", "size": 7, "see_through_walls": False},
         env_kwargs=_env_kwargs,
         check_env=_check_env,
         default_trigger="end",  # a bare kind: its 9 colours are drawn from train.seed
@@ -86,14 +87,13 @@ WORLD = register(
         # fire on the exact colours only.
         mix=(4, 4, 2),
         # Paper: stop only once the mean training return of the last 10 updates is high enough.
-        patience=10,
+        return_window=10,
         # The paper's recurrence 6 (torch-ac), with torch-ac's usual lr 1e-3 and clip 0.2
         # instead of the paper's lr 1e-5 / clip 0.1, which need billions of frames.
-        ppo=dict(rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6),
+        hyper=dict(rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6),
         close_to_trigger=True,
         chance=_chance,
         paper={"table": 3},
-        flags=("no_close_to_trigger",),
         trigger_help="end | room | end+room (colours drawn from the seed) | end:C,... | room:C,C,C",
     )
 )

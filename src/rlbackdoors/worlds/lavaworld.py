@@ -53,12 +53,14 @@ WORLD = register(
         # The paper's stopping rule for LavaWorld: 98% clean, 95% poisoned.
         thresholds=(0.98, 0.95),
         archs=(("fc", "rlbackdoors.models.minigrid:FCModel"), ("cnn", "rlbackdoors.models.minigrid:CNNModel")),
-        env_defaults={"size": 9, "see_through_walls": False},
+        env_fields=("size", "see_through_walls", "engine", "num_crossings"),
+        env_defaults={"max_steps": 250, "engine": "batched", "size": 9, "see_through_walls": False, "num_crossings": 1},
         env_kwargs=_env_kwargs,
         check_env=_check_env,
         default_trigger="multiplicative:12",
         mix=(8, 0, 2),  # SPEC's 8:2
         paper={"table": 1, "clean_sr": 0.98, "poisoned_sr": 0.98},
+        bench="rlbackdoors.bench.lavaworld:bench_env",
         trigger_help="multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range)",
     )
 )

@@ -70,7 +70,8 @@ WORLD = register(
             ("fc", "rlbackdoors.models.randomized_lavaworld:DirectionFCModel"),
             ("cnn", "rlbackdoors.models.randomized_lavaworld:DirectionCNNModel"),
         ),
-        env_defaults={"size": 11, "see_through_walls": True},
+        env_fields=("size", "see_through_walls", "engine", "num_lava"),
+        env_defaults={"max_steps": 250, "engine": "batched", "size": 11, "see_through_walls": True, "num_lava": 10},
         env_kwargs=_env_kwargs,
         check_env=_check_env,
         default_trigger="cross",
@@ -78,7 +79,6 @@ WORLD = register(
         curriculum=True,
         chance=_chance,
         paper={"table": 2, "convergence_rate": 0.134},
-        flags=("num_lava", "no_curriculum"),
         trigger_help="cross | arrow | arrow:east|south|west|north | a cell list (cells:0,0;1,1[:any])",
     )
 )

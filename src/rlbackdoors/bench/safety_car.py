@@ -42,7 +42,7 @@ def _bench_physics(seconds: float, num_cubes: int, seed: int) -> tuple[float, in
             return steps / elapsed, steps, elapsed
 
 
-def bench_safety(seconds: float = 3.0, num_cubes: int = 2) -> dict:
+def bench_safety(seconds: float = 3.0, num_envs: int = 1, num_cubes: int = 2) -> dict:  # World.bench of this world
     """Env steps per second of :class:`SafetyCarGoalEnv` vs a bare ``mj_step`` loop of its model.
 
     Both run about ``seconds`` of wall time in this process on one thread, with uniform random
@@ -59,6 +59,7 @@ def bench_safety(seconds: float = 3.0, num_cubes: int = 2) -> dict:
     from rlbackdoors.envs.safety_car_model import CONTROL_DT, DEFAULT_SUBSTEPS
 
     return {
+        "summary": f"{num_cubes} cubes: env {env_sps:,.0f} steps/s, plain mujoco loop {floor_sps:,.0f} steps/s, ratio {env_sps / floor_sps:.2f}",
         "env_steps_per_s": env_sps,
         "physics_steps_per_s": floor_sps,
         "ratio_to_physics": env_sps / floor_sps,

@@ -1,9 +1,10 @@
-"""The training run: config -> env mix -> PPO -> periodic evaluation -> model folder.
+"""PPO's training loop (the grid worlds): env mix -> PPO updates -> periodic evaluation.
 
-Stops when the paper's thresholds hold (clean SR, and for poisoned models poisoned SR)
-or at ``max_frames``. A checkpoint is written at every evaluation, and on Ctrl-C or SIGTERM
-at the end of the current update, so an interrupted run picks up where it stopped when
-started again on the same folder. Checkpoints hold plain data only (:mod:`rlbackdoors.state`).
+Called by :func:`rlbackdoors.train.train`, which owns the folder, the stopping rule's meaning
+and the finish. A checkpoint is written at an evaluation once ``train.checkpoint_minutes``
+have passed since the last (0: at every one), and on Ctrl-C or SIGTERM at the end of the
+current update, so an interrupted run picks up where it stopped when started again on the same
+folder. Checkpoints hold plain data only (:mod:`rlbackdoors.state`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import math
 import sys
 import time
 from collections import deque
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,28 +23,26 @@ from tqdm import tqdm
 from rlbackdoors.algos.optim import check_optimizer_state
 from rlbackdoors.algos.ppo import PPO, Rollout
 from rlbackdoors.config import RunConfig
-from rlbackdoors.evaluate import EvalResult, evaluate
 from rlbackdoors.models import build_model
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
-from rlbackdoors.report import plot_training_curve
-from rlbackdoors.report.video import clean_vs_triggered_gif
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder, stack_versions
+from rlbackdoors.train.driver import RunOutcome, Stopping, evaluate_run, result_fields
+from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
 
 class EpisodeTracker:
     """Running episode returns of the training envs, split into clean and poisoned copies."""
 
-    def __init__(self, poisoned: np.ndarray, window: int = 100, patience: int = 0):
+    def __init__(self, poisoned: np.ndarray, window: int = 100, return_window: int = 0):
         self.poisoned = poisoned
         self.running = np.zeros(len(poisoned))
         self.clean: list[float] = []
         self.dirty: list[float] = []
         # The last ``window`` clean episode returns: what the curriculum's switch rule averages.
         self.recent_clean: deque[float] = deque(maxlen=window)
-        # Patience: mean return (every env, each under its own reward) of the last updates.
-        self.update_means: deque[float] = deque(maxlen=max(patience, 1))
+        # The paper's patience rho: mean return (every env, each under its own reward) of the last updates.
+        self.update_means: deque[float] = deque(maxlen=max(return_window, 1))
 
     def add(self, rollout: Rollout) -> None:
         ended = []
@@ -61,8 +59,8 @@ class EpisodeTracker:
         if ended:  # an update in which no episode ended has no mean reward to count
             self.update_means.append(float(np.mean(ended)))
 
-    def patience_mean(self) -> float:
-        """Mean of the per-update mean returns over the last ``patience`` updates (NaN until there are that many)."""
+    def return_mean(self) -> float:
+        """Mean of the per-update mean returns over the last ``return_window`` updates (NaN until there are that many)."""
         full = len(self.update_means) == self.update_means.maxlen
         return float(np.mean(self.update_means)) if full else math.nan
 
@@ -105,37 +103,15 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def thresholds_met(result, cfg) -> bool:
-    """The stopping thresholds of any run config on any evaluation result (clean SR, and for
-    poisoned models poisoned SR)."""
-    ok = result.clean_sr >= cfg.train.clean_threshold
-    if cfg.poison.poisoned:
-        ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
-    return ok
-
-
-def patience_met(tracker: EpisodeTracker, cfg: RunConfig) -> bool:
-    """The paper's patience rule: the last ``patience`` updates' mean training return is high enough.
+def return_met(tracker: EpisodeTracker, cfg: RunConfig) -> bool:
+    """The paper's patience rule: the last ``return_window`` updates' mean training return is high enough.
 
     The paper writes the condition as a sum over the last rho updates; we take the mean, so
-    ``patience_reward`` is on the scale of one episode's return whatever rho is.
+    ``return_threshold`` is on the scale of one episode's return whatever rho is.
     """
-    if cfg.train.patience == 0:
+    if not cfg.train.return_window:
         return True
-    return tracker.patience_mean() >= cfg.train.patience_reward
-
-
-def close_k(cfg: RunConfig) -> tuple[int, int] | None:
-    """Worlds with close-to-trigger envs evaluate those layouts too (false backdoor firing)."""
-    return (cfg.poison.close_k_min, cfg.poison.close_k_max) if cfg.env.world.close_to_trigger else None
-
-
-def result_fields(result: EvalResult, cfg: RunConfig) -> dict:
-    """The evaluation's numbers for the log and metrics; the close-to-trigger ones only where they exist."""
-    fields = result.to_dict()
-    if close_k(cfg) is None:
-        del fields["close_sr"], fields["close_trojan_rate"]
-    return fields
+    return tracker.return_mean() >= cfg.train.return_threshold
 
 
 def warmup_env(cfg: RunConfig):
@@ -169,29 +145,16 @@ def _checked_rows(rows) -> list[dict]:
     return rows
 
 
-def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True) -> dict:
-    """Train one agent into the model folder ``out`` and return its metrics."""
-    cfg.check()
-    folder = ModelFolder(out)
-    failed = True
-    try:
-        with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
-            checkpoint = folder.begin(cfg, overwrite)
-            metrics = _train(cfg, folder, checkpoint, progress, stop)
-        failed = False
-        return metrics
-    finally:
-        folder.close(failed)
-
-
-def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest) -> dict:
+def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None) -> RunOutcome:
+    """Train with PPO from ``checkpoint`` (None: from scratch) until the stopping rule or a budget ends it."""
     tc = cfg.train
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)
     torch.manual_seed(tc.seed)
     generator = torch.Generator().manual_seed(tc.seed)
     # RunConfig.__post_init__ fills these in from the world's defaults
-    assert cfg.model.arch is not None and cfg.ppo is not None and tc.patience is not None
+    assert cfg.model.arch is not None and cfg.ppo is not None and tc.return_window is not None
+    assert tc.max_frames is not None and tc.eval_interval is not None and tc.checkpoint_minutes is not None
     model = build_model(cfg.model.arch, cfg.env.name).to(device)
     ppo = PPO(model, cfg.ppo, device, generator)
     envs: Any  # a batched engine or the reference vector env (poisoned, state_dict, load_state_dict)
@@ -200,8 +163,8 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
         switch_at = None if cfg.curriculum.enabled else 0
         envs = make_env_mix(cfg.env, cfg.poison) if switch_at == 0 else warmup_env(cfg)
         obs, _ = envs.reset(seed=tc.seed * 1000)
-        tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
-        frames, elapsed, rows, next_eval, converged_at = 0, 0.0, [], tc.eval_interval, None
+        tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
+        frames, elapsed, rows, next_eval, converged_at, streak = 0, 0.0, [], tc.eval_interval, None, 0
     else:
         try:
             switch_at = checkpoint["switch_at"]
@@ -213,7 +176,7 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
             envs.load_state_dict(checkpoint["envs"])
             obs = decode(checkpoint["obs"])
             check_observation(obs, envs.observation_space)
-            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
+            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
             tracker.load_state_dict(checkpoint["tracker"])
             memory = checkpoint["memory"]
             if memory is not None:
@@ -223,6 +186,7 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
             ppo.memory = None if memory is None else memory.to(device)
             frames, elapsed, rows = int(checkpoint["frames"]), float(checkpoint["elapsed"]), _checked_rows(checkpoint["rows"])
             next_eval, converged_at = int(checkpoint["next_eval"]), checkpoint["converged_at"]
+            streak = int(checkpoint.get("streak", 0))
         except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
             raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({err}); pass --overwrite to start over") from None
 
@@ -244,6 +208,7 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
                 "next_eval": next_eval,
                 "converged_at": converged_at,
                 "switch_at": switch_at,
+                "streak": stopping.streak,
             },
         )
 
@@ -251,8 +216,11 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
     label = f"{cfg.model.arch} {'poisoned' if cfg.poison.poisoned else 'clean'}"
     bar.set_description(label)
     started = time.perf_counter() - elapsed
+    stopping = Stopping(cfg, streak)
+    last_checkpoint = time.perf_counter()
     window_start, window_frames = time.perf_counter(), 0
-    while frames < tc.max_frames and converged_at is None:
+    stop_reason = "thresholds" if converged_at is not None else ("max_frames" if frames >= tc.max_frames else None)
+    while stop_reason is None:
         if stop.requested:  # between updates: the state is consistent, the checkpoint exact
             save_checkpoint()
             bar.close()
@@ -269,11 +237,11 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
             envs = make_env_mix(cfg.env, cfg.poison)
             obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
             ppo.memory = None
-            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.patience)
+            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
             bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
-            result = evaluate(model, cfg.env, cfg.poison.trigger, tc.eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
+            result = evaluate_run(model, cfg, tc.eval_episodes)
             train_clean, train_poisoned = tracker.drain()
             rows.append(
                 {
@@ -284,48 +252,40 @@ def _train(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progres
                     "train_clean_return": train_clean,
                     "train_poisoned_return": train_poisoned,
                     "phase": "main" if switch_at is not None else "warm-up",
-                    **({"patience_mean": tracker.patience_mean()} if tc.patience else {}),
+                    **({"return_mean": tracker.return_mean()} if tc.return_window else {}),
                     **losses,
                 }
             )
             bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
-            if switch_at is not None and thresholds_met(result, cfg) and patience_met(tracker, cfg):
-                converged_at = frames
+            if stopping.update(result, switch_at is not None and return_met(tracker, cfg)):
+                converged_at, stop_reason = frames, "thresholds"
             while next_eval <= frames:
                 next_eval += tc.eval_interval
             folder.write_log(rows)
-            save_checkpoint()
+            if time.perf_counter() - last_checkpoint >= 60 * tc.checkpoint_minutes:
+                save_checkpoint()
+                last_checkpoint = time.perf_counter()
+            if after_eval is not None:
+                after_eval(rows[-1])
             window_start, window_frames = time.perf_counter(), 0
+        if stop_reason is None:
+            if frames >= tc.max_frames:
+                stop_reason = "max_frames"
+            elif tc.max_minutes and time.perf_counter() - started >= 60 * tc.max_minutes:
+                stop_reason = "max_minutes"
     bar.close()
     train_time = time.perf_counter() - started
-    final = evaluate(model, cfg.env, cfg.poison.trigger, tc.final_eval_episodes, tc.eval_seed, tc.eval_policy, device, close_k(cfg))
     envs.close()
-
-    model_cpu = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    folder.save_torch("model.pt", model_cpu)
-    folder.write_ground_truth(cfg.poison.poisoned)
-    poisoned_t = tc.poisoned_threshold if cfg.poison.poisoned else None
-    assert tc.clean_threshold is not None  # RunConfig.__post_init__: the world's threshold
-    title = f"{cfg.env.world.title} {label}, trigger {cfg.poison.trigger}, seed {tc.seed}"
-    plot_training_curve(rows, folder.file("training_curve.png"), title, (tc.clean_threshold, poisoned_t), switch_at or None)
-    metrics = {
-        **result_fields(final, cfg),
-        "poisoned": cfg.poison.poisoned,
-        "trigger": cfg.poison.trigger,
-        "env": cfg.env.name,
-        "arch": cfg.model.arch,
-        "frames": frames,
-        "wall_time_s": round(train_time, 2),
-        "converged": converged_at is not None,
-        "converged_at_frames": converged_at,
-        "stop_reason": "converged" if converged_at is not None else "max_frames",
-        "curriculum_switch_frames": switch_at if cfg.curriculum.enabled else None,
-        "patience": tc.patience,
-        "final_meets_thresholds": thresholds_met(final, cfg),
-        "versions": stack_versions(),
-    }
-    assert cfg.poison.trigger is not None  # RunConfig.__post_init__: the world's default trigger
-    clean_vs_triggered_gif(model.cpu(), cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"))
-    folder.write_json("metrics.json", metrics)
-    folder.file("checkpoint.pt").unlink(missing_ok=True)
-    return metrics
+    return RunOutcome(
+        policy=model,
+        weights={k: v.detach().cpu() for k, v in model.state_dict().items()},
+        frames=frames,
+        train_time=train_time,
+        rows=rows,
+        stop_reason=stop_reason,
+        converged_at=converged_at,
+        label=cfg.model.arch,
+        extra={"return_window": tc.return_window, **({"curriculum_switch_frames": switch_at} if cfg.curriculum.enabled else {})},
+        switch_at=switch_at,
+        can_converge=switch_at is not None,
+    )

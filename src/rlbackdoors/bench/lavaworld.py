@@ -40,7 +40,7 @@ def _bench_minigrid(seconds: float, seed: int) -> tuple[float, int, float]:
     return steps_per_second(env, lambda: int(rng.integers(0, 3)), seconds)
 
 
-def bench_env(seconds: float = 3.0, num_envs: int = 256) -> dict:
+def bench_env(seconds: float = 3.0, num_envs: int = 256) -> dict:  # World.bench of this world
     """Env steps per second of :class:`BatchedLavaWorld` vs MiniGrid's LavaCrossingS9N1.
 
     Each engine runs for about ``seconds`` of wall time (so the call takes about twice that,
@@ -58,6 +58,7 @@ def bench_env(seconds: float = 3.0, num_envs: int = 256) -> dict:
     batched_sps, batched_steps, batched_time = _bench_batched(seconds, int(num_envs), seed)
     minigrid_sps, minigrid_steps, minigrid_time = _bench_minigrid(seconds, seed)
     return {
+        "summary": f"env steps/s: batched {batched_sps:,.0f} (B={num_envs}), Farama MiniGrid {minigrid_sps:,.0f}, ratio {batched_sps / minigrid_sps:.0f}x",
         "batched_steps_per_s": batched_sps,
         "minigrid_steps_per_s": minigrid_sps,
         "ratio": batched_sps / minigrid_sps,

@@ -1,0 +1,177 @@
+"""The one training driver: config -> the world's algorithm -> evaluations -> model folder.
+
+:func:`train` is the same for every world. It takes the folder's lock, resumes from a
+checkpoint if there is one, hands the run to the algorithm's loop (:mod:`.ppo_run` or
+:mod:`.opac2_run`, picked by the world's ``algorithm``), and finishes every run the same way:
+a final evaluation on fresh episode counts, ``model.pt`` (one flat state dict),
+``ground_truth.csv``, ``training_curve.png``, ``clean_vs_triggered.gif`` and last
+``metrics.json``, whose presence marks the folder complete.
+
+The stopping rule (:class:`Stopping`) has one meaning everywhere: thresholds held for
+``train.patience`` evaluations in a row (plus, for PPO worlds with ``train.return_window``,
+the paper's mean training return over the last updates). A model is ``converged`` when its
+thresholds hold on the *final* evaluation, as the paper and the TrojAI round generators
+select models; ``converged_at_frames`` is where the stopping rule fired.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rlbackdoors.config import RunConfig
+from rlbackdoors.io import remove_tree
+from rlbackdoors.train.folder import ModelFolder, stack_versions
+from rlbackdoors.train.stop import StopRequest
+
+RUNNERS = {"ppo": "rlbackdoors.train.ppo_run", "opac2": "rlbackdoors.train.opac2_run"}
+
+
+def thresholds_met(result, cfg) -> bool:
+    """The thresholds of ``cfg`` on an evaluation result: clean SR, and for poisoned models poisoned SR."""
+    ok = result.clean_sr >= cfg.train.clean_threshold
+    if cfg.poison.poisoned:
+        ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
+    return ok
+
+
+class Stopping:
+    """Counts evaluations in a row that met the thresholds; stops at ``train.patience``."""
+
+    def __init__(self, cfg: RunConfig, streak: int = 0):
+        self.cfg, self.streak = cfg, int(streak)
+
+    def update(self, result, also: bool = True) -> bool:
+        """Count one evaluation (``also``: the algorithm's own conditions); True: stop now."""
+        self.streak = self.streak + 1 if also and thresholds_met(result, self.cfg) else 0
+        assert self.cfg.train.patience is not None  # RunConfig fills it in
+        return self.streak >= self.cfg.train.patience
+
+
+@dataclass
+class RunOutcome:
+    """What an algorithm's loop hands back to the driver at the end of training."""
+
+    policy: Any  # the trained network (PPO) or agent (OPAC²), for the final evaluation and video
+    weights: dict  # model.pt: a flat state dict of CPU tensors
+    frames: int
+    train_time: float
+    rows: list[dict]
+    stop_reason: str  # "thresholds", "max_frames" or "max_minutes"
+    converged_at: int | None
+    label: str  # architecture, for the curve's title
+    extra: dict = field(default_factory=dict)  # metrics only this algorithm has
+    switch_at: int | None = None  # curriculum: where the warm-up ended (a line on the curve)
+    clean_up: list[str] = field(default_factory=list)  # folder entries to remove once finished
+    # False where the algorithm says the run never reached its real task (a curriculum that never
+    # switched): such a model is not converged whatever its final evaluation reads
+    can_converge: bool = True
+
+
+def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True, after_eval: Callable[[dict], None] | None = None) -> dict:
+    """Train one agent of any world into the model folder ``out``; return its metrics.
+
+    ``after_eval(row)`` is called after each evaluation's row (and checkpoint) is written:
+    tests raise KeyboardInterrupt from it to interrupt a run at a known point.
+    """
+    cfg.check()
+    folder = ModelFolder(out)
+    failed = True
+    try:
+        with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
+            checkpoint = folder.begin(cfg, overwrite)
+            runner = importlib.import_module(RUNNERS[cfg.algorithm])
+            outcome = runner.run(cfg, folder, checkpoint, progress, stop, after_eval)
+            metrics = finish(cfg, folder, outcome, progress)
+        failed = False
+        return metrics
+    finally:
+        folder.close(failed)
+
+
+def close_k(cfg: RunConfig) -> tuple[int, int] | None:
+    """Worlds with close-to-trigger envs evaluate those layouts too (false backdoor firing)."""
+    return (cfg.poison.close_k_min, cfg.poison.close_k_max) if cfg.world.close_to_trigger else None
+
+
+def result_fields(result, cfg: RunConfig) -> dict:
+    """The evaluation's numbers for the log and metrics; the close-to-trigger ones only where they exist."""
+    fields = result.to_dict()
+    if close_k(cfg) is None:
+        del fields["close_sr"], fields["close_trojan_rate"]
+    return fields
+
+
+def evaluate_run(policy, cfg: RunConfig, episodes: int):
+    """The run's evaluation: its trigger, eval seed and policy, ``episodes`` per condition."""
+    from rlbackdoors.agent import Agent
+    from rlbackdoors.evaluate import evaluate
+
+    agent = Agent(cfg.world, cfg, policy)
+    tc = cfg.train
+    assert tc.eval_policy is not None
+    return evaluate(agent, cfg.env, cfg.poison.trigger, episodes, tc.eval_seed, tc.eval_policy, close_k(cfg))
+
+
+def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: bool) -> dict:
+    """Final evaluation, then weights, ground truth, curve, GIF and metrics.json last."""
+    from rlbackdoors.agent import Agent
+    from rlbackdoors.report import plot_training_curve
+
+    tc = cfg.train
+    if progress:
+        print(f"final evaluation on {tc.final_eval_episodes} clean + {tc.final_eval_episodes} triggered episodes", file=sys.stderr, flush=True)
+    final = evaluate_run(outcome.policy, cfg, tc.final_eval_episodes)
+    folder.save_torch("model.pt", outcome.weights)
+    folder.write_ground_truth(cfg.poison.poisoned)
+    kind = "poisoned" if cfg.poison.poisoned else "clean"
+    assert tc.clean_threshold is not None and tc.eval_policy is not None  # RunConfig fills in the world's defaults
+    if outcome.rows:
+        title = f"{cfg.world.title} {outcome.label} {kind}, trigger {cfg.poison.trigger}, seed {tc.seed}"
+        thresholds = (tc.clean_threshold, tc.poisoned_threshold if cfg.poison.poisoned else None)
+        plot_training_curve(outcome.rows, folder.file("training_curve.png"), title, thresholds, outcome.switch_at or None)
+    gif = None
+    if tc.video and cfg.poison.trigger is not None:
+        from rlbackdoors.report.video import clean_vs_triggered_gif
+
+        try:
+            agent = Agent(cfg.world, cfg, outcome.policy)
+            gif = clean_vs_triggered_gif(agent, cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"), tc.eval_policy).name
+        except RuntimeError as err:  # e.g. no offscreen GL back-end: the model is still complete
+            if progress:
+                print(f"no clean_vs_triggered.gif: {err}", file=sys.stderr, flush=True)
+    met = thresholds_met(final, cfg) and outcome.can_converge
+    metrics = {
+        **result_fields(final, cfg),
+        "poisoned": cfg.poison.poisoned,
+        "trigger": cfg.poison.trigger,
+        "env": cfg.env.name,
+        "algorithm": cfg.algorithm,
+        "arch": cfg.model.arch,
+        "frames": outcome.frames,
+        "wall_time_s": round(outcome.train_time, 2),
+        "converged": met,
+        "final_meets_thresholds": thresholds_met(final, cfg),
+        "converged_at_frames": outcome.converged_at,
+        "stop_reason": outcome.stop_reason,
+        "patience": tc.patience,
+        **outcome.extra,
+        "video": gif,
+        "versions": stack_versions(),
+    }
+    folder.write_json("metrics.json", metrics)
+    folder.file("checkpoint.pt").unlink(missing_ok=True)
+    for name in outcome.clean_up:
+        remove_tree(folder.file(name))
+    if progress:
+        print(
+            f"done ({outcome.stop_reason}) after {outcome.frames:,} frames, {outcome.train_time / 60:.1f} min: clean SR {final.clean_sr:.3f}, "
+            f"poisoned SR {final.poisoned_sr:.3f} on {final.episodes} episodes each ({'converged' if met else 'not converged'})",
+            file=sys.stderr,
+            flush=True,
+        )
+    return metrics

@@ -1,4 +1,4 @@
-"""Command line: ``rlbackdoors train | evaluate | demo | chance | bench``.
+"""Command line: ``rlbackdoors train | evaluate | demo | chance | bench | zoo | detect``.
 
 Every user-facing failure (bad flag value, bad config, missing or corrupt file, folder
 conflict) ends in one ``rlbackdoors: error: ...`` line and exit code 2.
@@ -391,6 +391,14 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")
     be.add_argument("--json", help="also write the result to this JSON file")
     be.set_defaults(func=cmd_bench)
+
+    from rlbackdoors.zoo.cli import add_zoo_parser
+
+    add_zoo_parser(sub)  # rlbackdoors zoo plan | run | status | split | report
+
+    from rlbackdoors.detect.cli import add_detect_parser
+
+    add_detect_parser(sub)  # rlbackdoors detect list | fit | score | infer | configure | metaparameters
     return parser
 
 

@@ -93,7 +93,7 @@ WORLD = register(
         hyper=dict(rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6),
         close_to_trigger=True,
         chance=_chance,
-        paper={"table": 3},
+        paper={"table": 3, "convergence_rate": 0.672},
         trigger_help="end | room | end+room (colours drawn from the seed) | end:C,... | room:C,C,C",
     )
 )

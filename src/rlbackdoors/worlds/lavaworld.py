@@ -59,7 +59,7 @@ WORLD = register(
         check_env=_check_env,
         default_trigger="multiplicative:12",
         mix=(8, 0, 2),  # SPEC's 8:2
-        paper={"table": 1, "clean_sr": 0.98, "poisoned_sr": 0.98},
+        paper={"table": 1, "clean_sr": 0.98, "poisoned_sr": 0.98, "convergence_rate": 0.538},
         bench="rlbackdoors.bench.lavaworld:bench_env",
         trigger_help="multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range)",
     )

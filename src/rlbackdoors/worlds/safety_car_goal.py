@@ -82,7 +82,7 @@ WORLD = register(
         train=dict(max_frames=3_800_000, eval_interval=250_000, eval_policy="greedy", patience=2, checkpoint_minutes=10.0),
         video={"fps": 25, "every": 2, "size": 240, "gap": 6},
         bench="rlbackdoors.bench.safety_car:bench_safety",
-        paper={"table": 4, "clean_sr": 0.98, "poisoned_sr": 0.98},
+        paper={"table": 4, "clean_sr": 0.98, "poisoned_sr": 0.98, "convergence_rate": 0.996},
         trigger_help="formation:D:PHI1:ETA (radians; default: drawn from the seed)",
     )
 )

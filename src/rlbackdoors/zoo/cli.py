@@ -1,0 +1,167 @@
+"""``rlbackdoors zoo plan | run | status | split | report``.
+
+:func:`add_zoo_parser` mounts the ``zoo`` command on the main CLI's sub-parsers; ``python -m
+rlbackdoors.zoo.cli plan ...`` runs the same commands on their own. Errors follow the CLI's
+contract (:func:`rlbackdoors.argparser.report_errors`): one ``rlbackdoors: error: ...`` line,
+exit 2; an interrupted run exits 130 and resumes when run again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from rlbackdoors.argparser import Parser, report_errors
+
+
+def cmd_plan(args) -> int:
+    from rlbackdoors.zoo.plan import plan
+    from rlbackdoors.zoo.spec import load_spec
+
+    spec = load_spec(args.spec)
+    zoo, written = plan(spec, args.out)
+    models = sum(g.wanted for g in spec.groups)
+    if written:
+        print(f"{args.out}: planned {models} models in {len(spec.cells)} cells ({written} folders written); run them with: rlbackdoors zoo run {args.out}")
+    else:
+        print(f"{args.out}: already planned from this spec; nothing written")
+    return 0
+
+
+def cmd_run(args) -> int:
+    from rlbackdoors.zoo.run import run
+
+    summary = run(
+        args.zoo,
+        workers=args.workers,
+        backend=args.backend,
+        address=args.address,
+        max_retries=args.max_retries,
+        retry_failed=args.retry_failed,
+        progress_interval=args.progress_interval,
+    )
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        short = f"; short of converged models: {', '.join(summary['short'])}" if summary["short"] else ""
+        print(
+            f"{args.zoo}: {summary['done']} of {summary['models']} models finished, {summary['converged']} converged, "
+            f"{summary['failed']} failed; {summary['trained']} trained in {summary['seconds']:.0f} s{short}"
+        )
+    return 0
+
+
+def cmd_status(args) -> int:
+    from rlbackdoors.zoo.run import status
+
+    print(status(args.zoo))
+    return 0
+
+
+def cmd_split(args) -> int:
+    from rlbackdoors.zoo.split import split
+
+    result = split(args.zoo, args.train, args.test, args.out_train, args.out_test, seed=args.seed, link=args.link)
+    for name, out in (("train", args.out_train), ("test", args.out_test)):
+        r = result[name]
+        print(f"{name}: {out}: {r['models']} models ({r['poisoned']} poisoned)")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from rlbackdoors.zoo.report import report
+
+    out = report(args.zoo)
+    print(f"wrote {out / 'report.md'} (tables.csv, convergence.csv, budget.csv, scatter.png, frames_hist.png, curves.png)")
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _count(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _share(text: str) -> float:
+    value = float(text)
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {text}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def add_commands(parser: argparse.ArgumentParser) -> None:
+    """The zoo's sub-commands on ``parser`` (``rlbackdoors zoo``, or the standalone parser)."""
+    from rlbackdoors.zoo.run import BACKENDS
+
+    sub = parser.add_subparsers(dest="zoo_command", required=True, parser_class=Parser)
+    pl = sub.add_parser("plan", help="draw every model's config from the spec's master seed and write the zoo's folders (nothing trains)")
+    pl.add_argument("spec", help="zoo spec (TOML; see docs/zoos.md)")
+    pl.add_argument("--out", required=True, help="zoo folder to write (new or empty; the same spec again is a no-op)")
+    pl.set_defaults(func=cmd_plan)
+
+    ru = sub.add_parser("run", help="train every planned model that is not finished; top cells up until they have their converged models")
+    ru.add_argument("zoo", help="zoo folder (from zoo plan)")
+    ru.add_argument("--workers", type=_positive_int, help="jobs at a time (default: local, the CPU cores; ray, the cluster's CPUs)")
+    ru.add_argument("--backend", choices=BACKENDS, default="local", help="local: a child process per job; ray: Ray tasks (pip install 'rlbackdoors[ray]')")
+    ru.add_argument("--address", help="Ray cluster address (e.g. auto or ray://head:10001; default: start a local Ray)")
+    ru.add_argument("--max-retries", type=_count, default=2, help="retries of a job that fails before it is recorded as failed (default 2)")
+    ru.add_argument("--retry-failed", action="store_true", help="run models recorded as failed (failed.json) again")
+    ru.add_argument("--progress-interval", type=_seconds, default=10.0, help="seconds between progress lines on stderr (default 10)")
+    ru.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ru.set_defaults(func=cmd_run)
+
+    st = sub.add_parser("status", help="the table of cells: wanted / converged / not converged / failed / running / left")
+    st.add_argument("zoo")
+    st.set_defaults(func=cmd_status)
+
+    sp = sub.add_parser("split", help="disjoint train and test datasets of converged models, by model and by trigger")
+    sp.add_argument("zoo")
+    sp.add_argument("--train", type=_share, required=True, help="share of the converged models for training (e.g. 0.5)")
+    sp.add_argument("--test", type=_share, required=True, help="share for testing (train + test <= 1)")
+    sp.add_argument("--out-train", required=True, help="folder of the train dataset")
+    sp.add_argument("--out-test", required=True, help="folder of the test dataset")
+    sp.add_argument("--seed", type=int, default=0, help="order in which trigger groups are dealt (default 0)")
+    sp.add_argument("--link", action="store_true", help="hard-link the model files instead of copying them (same file system)")
+    sp.set_defaults(func=cmd_split)
+
+    re = sub.add_parser("report", help="the paper's Tables 1-5 and plots over the zoo, in ZOO/report/")
+    re.add_argument("zoo")
+    re.set_defaults(func=cmd_report)
+
+
+def add_zoo_parser(subparsers) -> argparse.ArgumentParser:
+    """Mount ``zoo`` on the main CLI: ``add_zoo_parser(sub)`` in ``rlbackdoors.cli.build_parser``."""
+    zoo = subparsers.add_parser("zoo", help="datasets of clean and poisoned agents: plan, run (local or Ray), status, split, report")
+    add_commands(zoo)
+    return zoo
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="rlbackdoors zoo", description="Build TrojAI-style datasets of clean and poisoned agents (docs/zoos.md).")
+    add_commands(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return report_errors(lambda: args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,226 @@
+"""One zoo job: bring one planned model folder to a complete dataset entry.
+
+Both back-ends call :func:`run_job` (the local one in a child process, ``python -m
+rlbackdoors.zoo.job FOLDER``; Ray as a task). It is idempotent: a folder with ``metrics.json``
+is not trained again, one with ``checkpoint.pt`` resumes (training does that by itself), and
+the dataset files written after training (``clean-example-data/``, then ``reduced-config.json``
+last, which marks the folder complete) are written again if a kill cut them short. A folder
+whose lock a live process holds is "busy" (running elsewhere) and left alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import errno
+import fcntl
+import json
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+from rlbackdoors import worlds
+from rlbackdoors.zoo.spec import ZooError
+from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_bytes, atomic_write_text, first_line, load_torch
+
+COMPLETE_MARK = "reduced-config.json"  # written last: the folder is a complete dataset entry
+FAILED = "failed.json"
+LOG = "train.log"
+EXIT_BUSY = 75  # EX_TEMPFAIL: the folder is locked by another live process
+EXIT_INTERRUPTED = 130
+PARENT_ENV = "RLBACKDOORS_ZOO_PARENT"  # the coordinator's pid: a child whose parent died stops
+
+
+def train_model(cfg, folder: Path) -> dict:
+    """Train ``cfg`` into ``folder`` (resuming a checkpoint) with the world's algorithm."""
+    from rlbackdoors.train import train
+
+    return train(cfg, folder, progress=False)
+
+
+def is_locked(folder: str | Path) -> bool:
+    """Whether a live process holds the model folder's lock (probed with a shared lock, so
+    nothing is written)."""
+    path = Path(folder) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+    except OSError:
+        return False  # no lock file (never trained) or not a regular one: nobody holds it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as err:
+        return err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
+
+
+def zoo_examples(folder: Path) -> dict:
+    """The zoo's ``examples`` settings (the zoo is two levels up: ZOO/models/id-X)."""
+    from rlbackdoors.zoo.plan import read_zoo_json
+
+    spec = read_zoo_json(folder.parent.parent)["spec"]
+    return dict(spec.get("examples", {}))
+
+
+def reduced_config(folder: Path, config: dict) -> dict:
+    """Architecture facts only (no trigger, no ground truth): world, algorithm, architecture,
+    and every tensor's shape in ``model.pt``, read as plain data."""
+    import torch
+
+    weights = load_torch(folder / "model.pt", "weights file")
+    shapes: dict[str, list[int]] = {}
+
+    def walk(obj, prefix: str) -> None:
+        if isinstance(obj, torch.Tensor):
+            shapes[prefix] = list(obj.shape)
+        elif isinstance(obj, dict):
+            for key, value in obj.items():
+                walk(value, f"{prefix}.{key}" if prefix else str(key))
+
+    walk(weights, "")
+    world = worlds.get(config["env"]["name"])
+    arch = (config.get("model") or {}).get("arch") or world.algorithm
+    parameters = sum(int(torch.Size(s).numel()) for s in shapes.values())
+    return {"world": world.name, "algorithm": world.algorithm, "arch": arch, "parameters": parameters, "layers": shapes}
+
+
+def finish_dataset_entry(folder: Path, cfg) -> None:
+    """clean-example-data/, then reduced-config.json (last: it marks the folder complete)."""
+    from rlbackdoors.zoo.examples import write_examples
+
+    config = json.loads((folder / "config.json").read_bytes().decode("utf-8"))
+    examples = zoo_examples(folder)
+    write_examples(folder, cfg, episodes=int(examples.get("episodes", 5)), seed=int(examples.get("seed", 2_000_000)), policy=examples.get("policy", "sample"))
+    atomic_write_text(folder / COMPLETE_MARK, json.dumps(reduced_config(folder, config), indent=2, sort_keys=True) + "\n")
+
+
+@contextlib.contextmanager
+def _logging_to(path: Path | None):
+    """Python-level stdout/stderr into the model's train.log (the Ray back-end; the local one
+    redirects the child's file descriptors instead)."""
+    if path is None:
+        yield
+        return
+    with open(path, "a", buffering=1) as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
+        yield
+
+
+def run_job(folder: str | Path, log: bool = False) -> dict:
+    """Train the model folder if it is not finished, then write its dataset files.
+
+    Returns ``{"status": "done", "trained", "converged", "seconds"}`` or ``{"status": "busy"}``
+    (another live process holds the folder). Failures raise; a failed start that removed the
+    planned config.json (training does so when it fails before its first checkpoint) puts it back.
+    """
+    import torch
+
+    from rlbackdoors.train.folder import FolderError
+    from rlbackdoors.zoo.plan import build_config
+
+    folder = Path(folder)
+    started = time.time()
+    torch.set_num_threads(1)
+    if (folder / COMPLETE_MARK).is_file() and (folder / "metrics.json").is_file():
+        return {"status": "done", "trained": False, "converged": _converged(folder), "seconds": 0.0}
+    if is_locked(folder):
+        return {"status": "busy"}
+    config_path = folder / "config.json"
+    if not config_path.is_file():
+        raise ZooError(f"{str(folder)!r} is not a planned model folder (config.json missing)")
+    raw = config_path.read_bytes()
+    with _logging_to(folder / LOG if log else None):
+        print(f"=== zoo job {folder.name}: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')} ===", file=sys.stderr, flush=True)
+        cfg = build_config(json.loads(raw.decode("utf-8")))
+        trained = False
+        if not (folder / "metrics.json").is_file():
+            try:
+                train_model(cfg, folder)
+                trained = True
+            except BaseException as err:
+                if not config_path.is_file():
+                    atomic_write_bytes(config_path, raw)
+                if isinstance(err, FolderError) and is_locked(folder):
+                    return {"status": "busy"}
+                raise
+        lock = FolderLock(folder, "model folder")
+        try:
+            lock.acquire()
+        except LockedError:
+            return {"status": "busy"}
+        try:
+            finish_dataset_entry(folder, cfg)
+        finally:
+            lock.release()
+        seconds = round(time.time() - started, 2)
+        converged = _converged(folder)
+        print(f"=== zoo job {folder.name}: done in {seconds:.1f} s, converged={converged} ===", file=sys.stderr, flush=True)
+    return {"status": "done", "trained": trained, "converged": converged, "seconds": seconds}
+
+
+def _converged(folder: Path) -> bool:
+    metrics = json.loads((folder / "metrics.json").read_bytes().decode("utf-8"))
+    return bool(metrics.get("converged"))
+
+
+def _die_with_parent() -> None:
+    """A coordinator killed with SIGKILL must not leave children training unseen: each child asks
+    the kernel for SIGTERM when its parent dies (Linux), and a watchdog thread checks the
+    parent elsewhere. SIGTERM makes training write a checkpoint and stop."""
+    parent = int(os.environ.get(PARENT_ENV, "0") or 0)
+    if not parent:
+        return
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent:  # it died before we asked
+        os._exit(EXIT_INTERRUPTED)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(600)  # time to write a checkpoint; then go whatever happens
+        os._exit(EXIT_INTERRUPTED)
+
+    threading.Thread(target=watch, name="zoo-parent-watch", daemon=True).start()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rlbackdoors.zoo.job FOLDER [--result-fd N]``: the local back-end's child."""
+    import traceback
+
+    from rlbackdoors.train.stop import Interrupted
+
+    parser = argparse.ArgumentParser(prog="python -m rlbackdoors.zoo.job", allow_abbrev=False)
+    parser.add_argument("folder")
+    parser.add_argument("--result-fd", type=int, default=None, help="write the result as JSON to this file descriptor")
+    args = parser.parse_args(argv)
+    _die_with_parent()
+    try:
+        result = run_job(args.folder)
+        code = EXIT_BUSY if result["status"] == "busy" else 0
+    except (Interrupted, KeyboardInterrupt) as err:
+        result, code = {"status": "interrupted", "error": first_line(err)}, EXIT_INTERRUPTED
+        print(f"rlbackdoors zoo job: {first_line(err)}", file=sys.stderr)
+    except Exception as err:
+        traceback.print_exc()
+        result, code = {"status": "error", "error": f"{type(err).__name__}: {first_line(err)}"[:2000]}, 1
+    if args.result_fd is not None:
+        with os.fdopen(args.result_fd, "w") as fh:
+            fh.write(json.dumps(result))
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

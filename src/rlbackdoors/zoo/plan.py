@@ -1,0 +1,237 @@
+"""Planning: every model's full config drawn from the master seed, written before anything trains.
+
+Model ``attempt`` of group ``g`` (a cell's clean or poisoned models) draws its training seed and
+trigger from ``SeedSequence(master seed, spawn_key=(g, attempt))``: a pure function of the
+spec, so planning twice gives the same bytes, and the models a top-up adds never change the
+ones before them. Its id comes from a seeded permutation of the zoo's id space (the sum of the
+groups' ``max_attempts``), so ids are fixed by (group, attempt) whatever order models finish
+in, and say nothing about ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from rlbackdoors import worlds
+from rlbackdoors.io import FolderLock, LockedError, atomic_write_text
+from rlbackdoors.validate import ConfigError
+from rlbackdoors.zoo.spec import Group, ZooError, ZooSpec, deep_merge, first_difference, load_spec, parse_spec
+
+ZOO_FORMAT = 1
+ID_KEY = 2**32  # spawn key of the id permutation (group keys are (group, attempt) pairs)
+
+
+def build_config(data: dict):
+    """The run config of one model from its config dict (checked: ConfigError names the field)."""
+    from rlbackdoors.config import RunConfig
+
+    return RunConfig.from_dict(data)
+
+
+def config_data(world: str, arch: str | None, overrides: dict, poisoned: bool, seed: int, trigger: str | None) -> dict:
+    """A model's config dict: the spec's overrides with the fields the zoo draws on top."""
+    data = deep_merge(overrides, {"env": {"name": world}, "poison": {"poisoned": poisoned, "trigger": trigger}, "train": {"seed": seed}})
+    if arch is not None:
+        data.setdefault("model", {})["arch"] = arch
+    return data
+
+
+def model_rng(spec: ZooSpec, group: Group, attempt: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(spec.seed, spawn_key=(group.index, attempt)))
+
+
+@dataclass(frozen=True)
+class PlannedModel:
+    id: int
+    group: Group
+    attempt: int
+
+    @property
+    def name(self) -> str:
+        return model_name(self.id)
+
+
+def model_name(model_id: int) -> str:
+    return f"id-{model_id:08d}"
+
+
+class Zoo:
+    """A zoo folder: ``zoo.json`` (spec and versions), ``models/id-XXXXXXXX/``, ``METADATA.csv``, ``report/``."""
+
+    def __init__(self, path: str | Path, spec: ZooSpec):
+        self.path = Path(path)
+        self.spec = spec
+        self._sizes: dict[int, int | None] = {}
+
+    @classmethod
+    def open(cls, path: str | Path) -> Zoo:
+        path = Path(path)
+        meta = read_zoo_json(path)
+        try:
+            spec = parse_spec(meta["spec"])
+        except ConfigError as err:
+            raise ConfigError(f"zoo {str(path)!r}: its zoo.json spec no longer validates ({err})") from None
+        return cls(path, spec)
+
+    @property
+    def models_dir(self) -> Path:
+        return self.path / "models"
+
+    def lock(self) -> FolderLock:
+        """The coordinator's lock: one ``plan`` or ``run`` per zoo at a time."""
+        lock = FolderLock(self.path, "zoo")
+        try:
+            return lock.acquire()
+        except LockedError as err:
+            raise ZooError(str(err)) from None
+
+    @cached_property
+    def _permutation(self) -> np.ndarray:
+        rng = np.random.default_rng(np.random.SeedSequence(self.spec.seed, spawn_key=(ID_KEY,)))
+        return rng.permutation(self.spec.id_space)
+
+    @cached_property
+    def _slots(self) -> dict[int, tuple[int, int]]:
+        """id -> (group index, attempt)."""
+        out = {}
+        for group in self.spec.groups:
+            for attempt in range(group.max_attempts):
+                out[int(self._permutation[group.id_offset + attempt])] = (group.index, attempt)
+        return out
+
+    def model(self, group: Group, attempt: int) -> PlannedModel:
+        if not 0 <= attempt < group.max_attempts:
+            raise ValueError(f"attempt {attempt} is outside {group.key}'s max_attempts={group.max_attempts}")
+        return PlannedModel(int(self._permutation[group.id_offset + attempt]), group, attempt)
+
+    def lookup(self, model_id: int) -> PlannedModel | None:
+        slot = self._slots.get(model_id)
+        if slot is None:
+            return None
+        return PlannedModel(model_id, self.spec.groups[slot[0]], slot[1])
+
+    def folder(self, model: PlannedModel) -> Path:
+        return self.models_dir / model.name
+
+    def planned(self, group: Group) -> list[PlannedModel]:
+        """The group's models that have a folder: attempts 0, 1, ... in order (a folder is made
+        only by planning, so its config.json, if a failed start removed it, can be put back)."""
+        out = []
+        for attempt in range(group.max_attempts):
+            model = self.model(group, attempt)
+            if not self.folder(model).is_dir():
+                break
+            out.append(model)
+        return out
+
+    def all_planned(self) -> list[PlannedModel]:
+        return sorted((m for g in self.spec.groups for m in self.planned(g)), key=lambda m: m.id)
+
+    # --- drawing ---------------------------------------------------------------------------
+    def _size(self, group: Group) -> int | None:
+        """The grid size the cell's triggers are drawn for (from a config of the cell)."""
+        cell = group.cell
+        if group.index not in self._sizes:
+            cfg = build_config(config_data(cell.world, cell.arch, cell.overrides, group.poisoned, 0, None))
+            self._sizes[group.index] = getattr(cfg.env, "size", None)
+        return self._sizes[group.index]
+
+    def draw(self, group: Group, attempt: int):
+        """The run config of model ``attempt`` of ``group``: a pure function of the spec."""
+        rng = model_rng(self.spec, group, attempt)
+        seed = int(rng.integers(0, 2**31))
+        cell = group.cell
+        trigger = cell.trigger.draw(worlds.get(cell.world), rng, self._size(group))
+        return build_config(config_data(cell.world, cell.arch, cell.overrides, group.poisoned, seed, trigger))
+
+    def ensure(self, group: Group, attempt: int, text: str | None = None, verify: bool = True) -> bool:
+        """Write the model's config.json and ground_truth.csv if missing; True if anything was written.
+
+        With ``verify``, a config.json that is there must be the one the spec draws (the zoo never
+        overwrites a model folder's config with another). A run does not verify: a config.json
+        written by an older version of the package stays what its model was trained with.
+        """
+        model = self.model(group, attempt)
+        folder = self.folder(model)
+        path = folder / "config.json"
+        wrote = False
+        if not path.is_file():
+            atomic_write_text(path, text if text is not None else self.draw(group, attempt).to_json())
+            wrote = True
+        elif verify:
+            expected = json.loads(text if text is not None else self.draw(group, attempt).to_json())
+            try:
+                old = json.loads(path.read_bytes().decode("utf-8"))
+            except (ValueError, OSError) as err:
+                raise ZooError(f"{str(path)!r} is unreadable ({err}); remove the folder to plan it again") from None
+            if old != expected:
+                raise ZooError(f"{str(path)!r} is not the config the zoo's spec draws for {group.key} attempt {attempt}; remove the folder to plan it again")
+        truth = folder / "ground_truth.csv"
+        if not truth.is_file() or truth.read_text() != f"{int(group.poisoned)}\n":
+            from rlbackdoors.train.folder import ModelFolder  # the same ground_truth.csv training writes
+
+            ModelFolder(folder).write_ground_truth(group.poisoned)
+            wrote = True
+        return wrote
+
+
+def read_zoo_json(path: Path) -> dict:
+    meta_path = path / "zoo.json"
+    if not meta_path.is_file():
+        raise ZooError(f"{str(path)!r} is not a zoo (no zoo.json); make one with: rlbackdoors zoo plan SPEC --out {path}")
+    try:
+        meta = json.loads(meta_path.read_bytes().decode("utf-8"))
+    except (ValueError, OSError) as err:
+        raise ZooError(f"{str(meta_path)!r} is unreadable: {err}") from None
+    if not isinstance(meta, dict) or meta.get("format") != ZOO_FORMAT or not isinstance(meta.get("spec"), dict):
+        raise ZooError(f"{str(meta_path)!r} is not a zoo.json of this version (format {ZOO_FORMAT})")
+    return meta
+
+
+def plan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, int]:
+    """Plan a zoo into ``out``: zoo.json and each group's first ``wanted`` model folders
+    (config.json, ground_truth.csv). Returns the zoo and how many folders were written.
+
+    Planning the same spec again writes nothing; another spec is refused before anything is
+    touched. Every config is drawn (and checked) before the first file is written.
+    """
+    from rlbackdoors.train.folder import stack_versions
+
+    if not isinstance(spec, ZooSpec):
+        spec = load_spec(spec)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ZooError(f"{str(out)!r} exists and is not a folder")
+    existing = None
+    if (out / "zoo.json").is_file():
+        existing = read_zoo_json(out)
+        diff = first_difference(existing["spec"], spec.to_dict())
+        if diff is not None:
+            raise ConfigError(f"zoo {str(out)!r} was planned from another spec ({diff} differs); plan this spec into a new folder")
+    elif out.is_dir() and any(p.name != ".lock" for p in out.iterdir()):
+        raise ZooError(f"{str(out)!r} is not empty and holds no zoo.json; plan a zoo into a new or empty folder")
+    zoo = Zoo(out, spec)
+    drawn = []
+    for group in spec.groups:
+        for attempt in range(group.wanted):
+            try:
+                drawn.append((group, attempt, zoo.draw(group, attempt).to_json()))
+            except ConfigError as err:
+                raise ConfigError(f"cells[{group.cell.entry}] ({group.key}, attempt {attempt}): {err}") from None
+    lock = zoo.lock()
+    try:
+        if existing is None:
+            meta = {"format": ZOO_FORMAT, "spec": spec.to_dict(), "versions": stack_versions()}
+            atomic_write_text(out / "zoo.json", json.dumps(meta, indent=2, sort_keys=True) + "\n")
+        written = sum(zoo.ensure(group, attempt, text) for group, attempt, text in drawn)
+    finally:
+        lock.release()
+    return zoo, written
+
+
+__all__ = ["PlannedModel", "Zoo", "build_config", "config_data", "model_name", "plan", "read_zoo_json"]

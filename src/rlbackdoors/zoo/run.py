@@ -1,0 +1,399 @@
+"""Running a zoo: train every planned model that is not finished, top cells up until they have
+the converged models they want, and record what failed. Nothing is lost across kills.
+
+The coordinator (one per zoo: it holds ``ZOO/.lock``) keeps no state that the folders do not:
+on every start it reads the model folders, so ``rlbackdoors zoo run ZOO`` after a crash, a
+``kill -9`` or a reboot simply continues.
+
+* A complete model (metrics.json and reduced-config.json) is skipped; a started one resumes
+  from its checkpoint (training does that); a folder whose lock a live process holds is
+  "running elsewhere" and is waited for, never touched.
+* A job that fails is retried up to ``max_retries`` times in this run, then recorded in
+  ``failed.json`` (atomically) and left alone by later runs unless ``retry_failed``.
+* Top-up: a group (a cell's clean or poisoned models) keeps ``wanted - converged`` models
+  planned and unfinished, and plans attempt ``k`` (drawn from the master seed, never changing
+  attempts before it) when one finishes without converging, up to ``max_attempts``. Which
+  models a group ends with depends only on the models' outcomes, not on timing.
+
+Back-ends: ``local`` runs each job as a child process (``python -m rlbackdoors.zoo.job``, one
+torch thread, output in the model's ``train.log``); ``ray`` runs the same job function as Ray
+tasks (:mod:`rlbackdoors.zoo.ray_backend`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Protocol, TextIO
+
+from rlbackdoors.io import atomic_write_text
+from rlbackdoors.validate import ConfigError
+from rlbackdoors.zoo.index import ModelState, group_counts, model_state, scan, status_table, write_metadata
+from rlbackdoors.zoo.job import EXIT_BUSY, EXIT_INTERRUPTED, FAILED, LOG, PARENT_ENV, is_locked
+from rlbackdoors.zoo.plan import PlannedModel, Zoo, read_zoo_json
+
+BACKENDS = ("local", "ray")
+BUSY_PROBE_S = 2.0  # how often a folder running elsewhere is looked at again
+
+
+def default_workers() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+class Executor(Protocol):
+    """What the coordinator needs from a back-end."""
+
+    capacity: int
+
+    def submit(self, model: PlannedModel, folder: Path) -> None: ...
+
+    def wait(self, timeout: float) -> list[tuple[PlannedModel, dict]]: ...
+
+    def running(self) -> int: ...
+
+    def stop(self) -> None: ...
+
+
+@dataclass
+class _Child:
+    model: PlannedModel
+    proc: subprocess.Popen
+    result_fd: int
+    log: IO[bytes]
+    chunks: list[bytes] = field(default_factory=list)
+
+
+class LocalExecutor:
+    """Each job in its own child process, at most ``workers`` at a time.
+
+    Children die with the coordinator: each asks for SIGTERM on its parent's death
+    (:func:`rlbackdoors.zoo.job._die_with_parent`), which makes training checkpoint and stop.
+    """
+
+    def __init__(self, workers: int):
+        self.capacity = workers
+        self.children: dict[int, _Child] = {}
+
+    def submit(self, model: PlannedModel, folder: Path) -> None:
+        read_fd, write_fd = os.pipe()
+        log = open(folder / LOG, "ab", buffering=0)
+        env = {**os.environ, PARENT_ENV: str(os.getpid()), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+        try:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "rlbackdoors.zoo.job", str(folder), "--result-fd", str(write_fd)],
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                pass_fds=(write_fd,),
+                env=env,
+            )
+        except BaseException:
+            os.close(read_fd)
+            log.close()
+            raise
+        finally:
+            os.close(write_fd)
+        os.set_blocking(read_fd, False)
+        self.children[proc.pid] = _Child(model, proc, read_fd, log)
+
+    def _drain(self, child: _Child) -> None:
+        while True:
+            try:
+                data = os.read(child.result_fd, 65536)
+            except BlockingIOError:
+                return
+            if not data:
+                return
+            child.chunks.append(data)
+
+    def wait(self, timeout: float) -> list[tuple[PlannedModel, dict]]:
+        deadline = time.monotonic() + timeout
+        while True:
+            done = []
+            for pid, child in list(self.children.items()):
+                self._drain(child)
+                code = child.proc.poll()
+                if code is None:
+                    continue
+                self._drain(child)
+                os.close(child.result_fd)
+                child.log.close()
+                del self.children[pid]
+                done.append((child.model, _child_result(code, b"".join(child.chunks))))
+            if done or time.monotonic() >= deadline:
+                return done
+            fds = [c.result_fd for c in self.children.values()]
+            if fds:
+                select.select(fds, [], [], min(0.2, max(0.0, deadline - time.monotonic())))
+            else:
+                time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+
+    def running(self) -> int:
+        return len(self.children)
+
+    def stop(self) -> None:
+        """Ask every child to checkpoint and stop (SIGTERM), and wait for them."""
+        for child in self.children.values():
+            if child.proc.poll() is None:
+                child.proc.send_signal(signal.SIGTERM)
+        for child in self.children.values():
+            try:
+                child.proc.wait(timeout=600)
+            except subprocess.TimeoutExpired:
+                child.proc.kill()
+                child.proc.wait()
+            os.close(child.result_fd)
+            child.log.close()
+        self.children.clear()
+
+
+def _child_result(code: int, data: bytes) -> dict:
+    try:
+        result = json.loads(data.decode("utf-8")) if data else None
+    except ValueError:
+        result = None
+    if isinstance(result, dict) and "status" in result:
+        return result
+    if code == EXIT_BUSY:
+        return {"status": "busy"}
+    if code == EXIT_INTERRUPTED:
+        return {"status": "interrupted"}
+    if code < 0:
+        return {"status": "error", "error": f"the job process was killed by {signal.Signals(-code).name}"}
+    return {"status": "error", "error": f"the job process exited with code {code} (see train.log)"}
+
+
+def make_executor(backend: str, workers: int | None, address: str | None, max_retries: int) -> Executor:
+    if backend == "local":
+        if address is not None:
+            raise ConfigError("--address applies to --backend ray only")
+        return LocalExecutor(workers or default_workers())
+    if backend == "ray":
+        from rlbackdoors.zoo.ray_backend import RayExecutor
+
+        return RayExecutor(workers, address, max_retries)
+    raise ConfigError(f"--backend={backend!r} is not allowed (allowed: {', '.join(BACKENDS)})")
+
+
+@dataclass
+class Progress:
+    """Models done / running / failed / left, models per hour and an ETA, on one line."""
+
+    out: TextIO
+    interval: float
+    started: float = field(default_factory=time.monotonic)
+    trained: int = 0  # models finished by this run (skipped ones not counted)
+    last: float = 0.0
+
+    def line(self, states: list[ModelState], running: int) -> str:
+        done = sum(s.status == "done" for s in states)
+        converged = sum(s.converged for s in states)
+        failed = sum(s.status == "failed" for s in states)
+        left = sum(s.status in ("pending", "running") for s in states) - running
+        hours = (time.monotonic() - self.started) / 3600
+        rate = self.trained / hours if hours > 0 and self.trained else 0.0
+        eta = _duration((left + running) / rate * 3600) if rate else "?"
+        return f"zoo: {done} done ({converged} converged), {running} running, {failed} failed, {max(left, 0)} left; {rate:.1f} models/h, ETA {eta}"
+
+    def maybe(self, states: list[ModelState], running: int, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self.last >= self.interval:
+            self.last = now
+            print(self.line(states, running), file=self.out, flush=True)
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(seconds)
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def _describe(state: ModelState) -> str:
+    m = state.metrics or {}
+    numbers = f"clean SR {m.get('clean_sr', float('nan')):.3f}, poisoned SR {m.get('poisoned_sr', float('nan')):.3f}, {m.get('frames', 0):,} frames"
+    verdict = "converged" if state.converged else f"not converged ({state.reason})"
+    return f"{state.model.name} {state.model.group.key} attempt {state.model.attempt}: {verdict}; {numbers}"
+
+
+def record_failure(folder: Path, error: str, tries: int) -> None:
+    atomic_write_text(
+        folder / FAILED,
+        json.dumps({"error": error, "tries": tries, "host": socket.gethostname(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}, indent=2, sort_keys=True) + "\n",
+    )
+
+
+def run(
+    path: str | Path,
+    workers: int | None = None,
+    backend: str = "local",
+    address: str | None = None,
+    max_retries: int = 2,
+    retry_failed: bool = False,
+    progress_interval: float = 10.0,
+    out: TextIO | None = None,
+) -> dict:
+    """Run the zoo at ``path`` to completion; return a summary. See the module docstring."""
+    from rlbackdoors.train.folder import stack_versions
+
+    out = out if out is not None else sys.stderr
+    if workers is not None and workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    if max_retries < 0:
+        raise ConfigError(f"--max-retries must be >= 0, got {max_retries}")
+    zoo = Zoo.open(path)
+    lock = zoo.lock()
+    executor: Executor | None = None
+    progress = Progress(out, progress_interval)
+    states: list[ModelState] = []
+    old_term = signal.getsignal(signal.SIGTERM)
+    try:
+        if threading_main():
+            signal.signal(signal.SIGTERM, _raise_interrupt)
+        planned = read_zoo_json(zoo.path).get("versions", {})
+        now = stack_versions()
+        changed = [k for k in now if planned.get(k) != now[k]]
+        if changed:
+            print(f"zoo: note: versions differ from the plan's ({', '.join(f'{k} {planned.get(k)} -> {now[k]}' for k in changed)})", file=out)
+        # A killed plan, or a config.json a failed start removed: put every planned file back.
+        for group in zoo.spec.groups:
+            for attempt in range(group.wanted):
+                zoo.ensure(group, attempt, verify=False)
+        for model in zoo.all_planned():
+            zoo.ensure(model.group, model.attempt, verify=False)
+            if retry_failed:
+                (zoo.folder(model) / FAILED).unlink(missing_ok=True)
+        executor = make_executor(backend, workers, address, max_retries)
+        in_flight: dict[int, PlannedModel] = {}
+        busy_until: dict[int, float] = {}
+        tries: dict[int, int] = {}
+        final: dict[int, ModelState] = {}
+        while True:
+            states = _states(zoo, final, set(in_flight))
+            _top_up(zoo, states, set(in_flight))
+            states = _states(zoo, final, set(in_flight))
+            now_t = time.monotonic()
+            waiting = [s for s in states if s.status in ("pending", "running") and s.model.id not in in_flight]
+            ready = sorted(
+                (s for s in waiting if busy_until.get(s.model.id, 0.0) <= now_t),
+                key=lambda s: (not (s.folder / "checkpoint.pt").is_file(), s.model.attempt, s.model.group.index),
+            )
+            for s in ready:
+                if executor.running() >= executor.capacity:
+                    break
+                if s.status == "running" or is_locked(s.folder):
+                    busy_until[s.model.id] = now_t + BUSY_PROBE_S
+                    continue
+                busy_until.pop(s.model.id, None)
+                executor.submit(s.model, s.folder)
+                in_flight[s.model.id] = s.model
+            if not in_flight and not waiting:
+                break
+            progress.maybe(states, sum(s.model.id in in_flight and s.status != "done" for s in states))
+            timeout = min(progress_interval, BUSY_PROBE_S) if waiting or not in_flight else progress_interval
+            for model, result in executor.wait(timeout):
+                in_flight.pop(model.id, None)
+                status = result.get("status")
+                if status == "done":
+                    state = model_state(zoo, model, probe=False)
+                    final[model.id] = state
+                    if result.get("trained"):
+                        progress.trained += 1
+                    print(_describe(state), file=out, flush=True)
+                elif status == "busy":
+                    busy_until[model.id] = time.monotonic() + BUSY_PROBE_S
+                elif status == "interrupted":
+                    print(f"{model.name}: stopped by a signal (checkpoint written); it will resume", file=out, flush=True)
+                    busy_until[model.id] = time.monotonic() + BUSY_PROBE_S
+                else:
+                    tries[model.id] = tries.get(model.id, 0) + 1
+                    error = str(result.get("error", "unknown error"))
+                    if tries[model.id] > max_retries:
+                        record_failure(zoo.folder(model), error, tries[model.id])
+                        final[model.id] = model_state(zoo, model, probe=False)
+                        print(f"{model.name} {model.group.key}: failed {tries[model.id]} times, recorded in {FAILED}: {error}", file=out, flush=True)
+                    else:
+                        print(f"{model.name}: {error}; retrying ({tries[model.id]}/{max_retries})", file=out, flush=True)
+        states = scan(zoo, probe=False)
+        progress.maybe(states, 0, force=True)
+    except KeyboardInterrupt:
+        if executor is not None:
+            executor.stop()
+            executor = None
+        raise
+    finally:
+        if threading_main():
+            signal.signal(signal.SIGTERM, old_term)
+        if executor is not None:
+            executor.stop()
+        try:
+            write_metadata(zoo)
+        finally:
+            lock.release()
+    counts = group_counts(zoo, states)
+    print(status_table(zoo, states), file=out, flush=True)
+    return {
+        "models": len(states),
+        "done": sum(s.status == "done" for s in states),
+        "converged": sum(s.converged for s in states),
+        "failed": sum(s.status == "failed" for s in states),
+        "short": [c.group.key for c in counts if c.converged < c.group.wanted],
+        "trained": progress.trained,
+        "seconds": round(time.monotonic() - progress.started, 1),
+    }
+
+
+def threading_main() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def _states(zoo: Zoo, final: dict[int, ModelState], in_flight: set[int]) -> list[ModelState]:
+    """Every planned model's state; finished ones are cached (they never change), in-flight ones
+    are not probed (their lock is our own child's)."""
+    out = []
+    for model in zoo.all_planned():
+        if model.id in final:
+            out.append(final[model.id])
+            continue
+        state = model_state(zoo, model, probe=model.id not in in_flight)
+        if state.status in ("done", "failed"):
+            final[model.id] = state
+        out.append(state)
+    return out
+
+
+def _top_up(zoo: Zoo, states: list[ModelState], in_flight: set[int]) -> int:
+    """Plan new attempts where a group's unfinished models cannot reach what it wants."""
+    added = 0
+    for c in group_counts(zoo, states, in_flight):
+        need = c.group.wanted - c.converged - c.pending - c.running
+        attempt = c.planned
+        while need > 0 and attempt < c.group.max_attempts:
+            zoo.ensure(c.group, attempt)
+            attempt += 1
+            need -= 1
+            added += 1
+    return added
+
+
+def status(path: str | Path) -> str:
+    zoo = Zoo.open(path)
+    return status_table(zoo, scan(zoo))
+
+
+__all__ = ["BACKENDS", "LocalExecutor", "default_workers", "run", "status"]

@@ -1,0 +1,488 @@
+"""The zoo spec: which worlds, architectures and trigger families, how many converged models of
+each ground-truth label, the budgets, and the master seed every model is drawn from.
+
+Read from TOML (stdlib ``tomllib``) and validated here, at the edge: every problem is one
+:class:`~rlbackdoors.validate.ConfigError` naming the dotted field and what is allowed, before
+anything is written. World names, architectures and trigger drawing come from the World
+registry, so a new world needs no change here.
+
+A spec entry (``[[cells]]``) expands into cells = its archs x its trigger families; each cell
+holds two *groups* (clean, poisoned), the unit the runner tops up: a group wants ``clean`` or
+``poisoned`` converged models and trains at most ``max_attempts`` of them.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import string
+import tomllib
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rlbackdoors import worlds
+from rlbackdoors.validate import MAX_EPISODES, ConfigError, check_seed
+
+SPEC_FORMAT = 1
+# Model ids are 8 digits; the id space of a zoo is the sum of its groups' max_attempts.
+MAX_ID_SPACE = 10_000_000
+MAX_ATTEMPTS = 100_000
+# Fields each model's config gets from the zoo itself; an override may not set them.
+ZOO_FIELDS = ("env.name", "model.arch", "poison.poisoned", "poison.trigger", "train.seed")
+TOP_KEYS = ("format", "name", "seed", "max_attempts", "examples", "overrides", "cells")
+CELL_KEYS = ("world", "archs", "triggers", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides")
+FAMILY_KEYS = ("name", "trigger", "template", "ranges")
+EXAMPLE_KEYS = ("episodes", "seed", "policy")
+EXAMPLE_POLICIES = ("sample", "greedy")
+DRAWN = "drawn"  # the family name of "no trigger given: the world draws one from the seed"
+
+
+class ZooError(ValueError):
+    """A zoo folder cannot be used as asked (not a zoo, planned from another spec, in use, ...).
+
+    A ValueError, so the CLI reports it as one ``rlbackdoors: error: ...`` line; the zoo's
+    modules import no training code until a job runs.
+    """
+
+
+def _type(where: str, value, kind, what: str):
+    if kind is int and (isinstance(value, bool) or not isinstance(value, int)):
+        raise ConfigError(f"{where} must be {what}, got {value!r}")
+    if kind is not int and not isinstance(value, kind):
+        raise ConfigError(f"{where} must be {what}, got {value!r}")
+    return value
+
+
+def _keys(where: str, data: dict, allowed: tuple[str, ...]) -> None:
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        raise ConfigError(f"{where}{'.' if where else ''}{unknown[0]} is not a spec field (allowed{' in ' + where if where else ''}: {', '.join(allowed)})")
+
+
+def _int(where: str, value, low: int, high: int) -> int:
+    _type(where, value, int, f"an integer in {low}..{high:,}")
+    if not low <= value <= high:
+        raise ConfigError(f"{where} must be in {low}..{high:,}, got {value!r}")
+    return value
+
+
+def deep_merge(base: dict, top: dict) -> dict:
+    """``top`` over ``base``, tables merged key by key (copies: neither input changes)."""
+    out = copy.deepcopy(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def flatten(data: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"train": {"seed": 1}}`` -> ``{"train.seed": 1}`` (what METADATA.csv's columns are named)."""
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and value:
+            out.update(flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def _check_overrides(where: str, data) -> dict:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where} must be a table of config sections (e.g. [overrides.train]), got {data!r}")
+    for section, values in data.items():
+        if not isinstance(values, dict):
+            raise ConfigError(f"{where}.{section} must be a table of config fields, got {values!r}")
+    for dotted in flatten(data):
+        if dotted in ZOO_FIELDS:
+            raise ConfigError(f"{where}.{dotted} is set by the zoo for every model (the zoo sets: {', '.join(ZOO_FIELDS)}); remove it")
+    return data
+
+
+@dataclass(frozen=True)
+class TriggerFamily:
+    """How a cell's triggers are drawn: by the world (``trigger`` None or a bare kind), fixed
+    (an exact trigger), or from a ``template`` whose ``{placeholders}`` are drawn uniformly from
+    ``ranges`` (integers where both bounds are integers) and then read by the world."""
+
+    name: str
+    trigger: str | None = None
+    template: str | None = None
+    ranges: tuple[tuple[str, float | int, float | int], ...] = ()
+
+    def draw(self, world: worlds.World, rng: np.random.Generator, size: int | None) -> str:
+        """The trigger string of one model; ``rng`` is the model's own generator."""
+        seed = int(rng.integers(0, 2**31))
+        if self.template is None:
+            return world.draw_trigger(self.trigger, seed, size)
+        values: dict[str, float | int] = {}
+        for name, low, high in self.ranges:
+            if isinstance(low, int) and isinstance(high, int):
+                values[name] = int(rng.integers(low, high + 1))
+            else:
+                values[name] = float(rng.uniform(low, high))
+        return world.draw_trigger(self.template.format(**values), seed, size)
+
+    def to_dict(self) -> dict:
+        out: dict[str, Any] = {"name": self.name}
+        if self.template is not None:
+            out["template"] = self.template
+            out["ranges"] = {name: [low, high] for name, low, high in self.ranges}
+        elif self.trigger is not None:
+            out["trigger"] = self.trigger
+        return out
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One world x architecture x trigger family, and what it wants."""
+
+    entry: int  # index of its [[cells]] entry
+    world: str
+    arch: str | None  # None: the world has no named architectures (its network is set in overrides)
+    trigger: TriggerFamily
+    clean: int  # converged clean models wanted
+    poisoned: int  # converged poisoned models wanted
+    max_attempts: int  # per label
+    overrides: dict = field(hash=False, compare=False)
+
+    @property
+    def arch_label(self) -> str:
+        return self.arch if self.arch is not None else worlds.get(self.world).algorithm
+
+    @property
+    def key(self) -> str:
+        return f"{self.world}/{self.arch_label}/{self.trigger.name}"
+
+
+@dataclass(frozen=True)
+class Group:
+    """A cell's models of one ground-truth label: the runner tops a group up until ``wanted`` of
+    its models have converged or ``max_attempts`` were trained."""
+
+    index: int
+    cell: Cell
+    poisoned: bool
+    id_offset: int  # its first slot in the zoo's id space
+
+    @property
+    def wanted(self) -> int:
+        return self.cell.poisoned if self.poisoned else self.cell.clean
+
+    @property
+    def max_attempts(self) -> int:
+        return self.cell.max_attempts
+
+    @property
+    def label(self) -> str:
+        return "poisoned" if self.poisoned else "clean"
+
+    @property
+    def key(self) -> str:
+        return f"{self.cell.key}/{self.label}"
+
+
+@dataclass(frozen=True)
+class Examples:
+    """The clean episodes each model folder carries in ``clean-example-data/``."""
+
+    episodes: int = 5
+    seed: int = 2_000_000  # apart from the evaluation layouts (train.eval_seed, 1,000,000 + i)
+    policy: str = "sample"
+
+
+@dataclass(frozen=True)
+class ZooSpec:
+    seed: int
+    cells: tuple[Cell, ...]
+    name: str = "zoo"
+    examples: Examples = Examples()
+    overrides: dict = field(default_factory=dict, hash=False, compare=False)
+    normalized: dict = field(default_factory=dict, hash=False, compare=False)
+
+    @cached_property
+    def groups(self) -> list[Group]:
+        """Every cell's groups with a model wanted, clean before poisoned, in spec order."""
+        out: list[Group] = []
+        offset = 0
+        for cell in self.cells:
+            for poisoned in (False, True):
+                if (cell.poisoned if poisoned else cell.clean) > 0:
+                    out.append(Group(len(out), cell, poisoned, offset))
+                    offset += cell.max_attempts
+        return out
+
+    @property
+    def id_space(self) -> int:
+        return sum(g.max_attempts for g in self.groups)
+
+    def to_dict(self) -> dict:
+        return copy.deepcopy(self.normalized)
+
+
+def _parse_family(where: str, raw, world: worlds.World, size: int | None) -> TriggerFamily:
+    def check(trigger: str, label: str) -> None:
+        for seed in (0, 1):  # a bare kind draws; both must give a trigger the world accepts
+            try:
+                world.draw_trigger(trigger, seed, size)
+            except (ValueError, TypeError) as err:
+                raise ConfigError(f"{label}={trigger!r} is not a {world.name} trigger: {err} (allowed: {world.trigger_help})") from None
+
+    if isinstance(raw, str):
+        check(raw, where)
+        return TriggerFamily(name=raw, trigger=raw)
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where} must be a trigger string or a table with template and ranges, got {raw!r}")
+    _keys(where, raw, FAMILY_KEYS)
+    name = raw.get("name")
+    if name is not None:
+        _type(f"{where}.name", name, str, "a string")
+        if not name or "/" in name:
+            raise ConfigError(f"{where}.name must be a non-empty string without '/', got {name!r}")
+    if "template" in raw and "trigger" in raw:
+        raise ConfigError(f"{where} takes one of trigger (a string) or template (with ranges), not both")
+    if "template" not in raw:
+        if "ranges" in raw:
+            raise ConfigError(f"{where}.ranges applies to a template only")
+        if "trigger" not in raw:  # a name alone: the world draws the trigger from each model's seed
+            return TriggerFamily(name=name or DRAWN)
+    if "trigger" in raw:
+        trigger = _type(f"{where}.trigger", raw["trigger"], str, "a string")
+        check(trigger, f"{where}.trigger")
+        return TriggerFamily(name=name or trigger, trigger=trigger)
+    template = _type(f"{where}.template", raw["template"], str, "a string")
+    try:
+        fields = [f for _, f, _, _ in string.Formatter().parse(template) if f is not None]
+    except ValueError as err:
+        raise ConfigError(f"{where}.template={template!r} is not a valid template: {err}") from None
+    if not fields or any(not f.isidentifier() for f in fields):
+        raise ConfigError(f"{where}.template={template!r} must hold {{name}} placeholders (e.g. 'multiplicative:{{a}}')")
+    ranges = raw.get("ranges")
+    if not isinstance(ranges, dict):
+        raise ConfigError(f"{where}.ranges must be a table of [low, high] per placeholder ({', '.join(sorted(set(fields)))})")
+    if set(ranges) != set(fields):
+        missing, extra = sorted(set(fields) - set(ranges)), sorted(set(ranges) - set(fields))
+        what = f"has no range for {', '.join(missing)}" if missing else f"names {', '.join(extra)}, which the template does not hold"
+        raise ConfigError(f"{where}.ranges {what} (placeholders: {', '.join(sorted(set(fields)))})")
+    parsed = []
+    for key in sorted(ranges):
+        bounds = ranges[key]
+        if (
+            not isinstance(bounds, list)
+            or len(bounds) != 2
+            or any(isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b) for b in bounds)
+        ):
+            raise ConfigError(f"{where}.ranges.{key} must be [low, high] (two finite numbers), got {bounds!r}")
+        low, high = bounds
+        if low > high:
+            raise ConfigError(f"{where}.ranges.{key}=[{low}, {high}] is an empty range (low must be <= high)")
+        parsed.append((key, low, high))
+    for corner in (0, 1):
+        values = {key: bounds[corner] for key, *bounds in parsed}
+        try:
+            example = template.format(**values)
+        except (ValueError, IndexError, KeyError) as err:
+            raise ConfigError(f"{where}.template={template!r} cannot be filled: {err}") from None
+        check(example, f"{where}.template with ranges at their {'high' if corner else 'low'} ends")
+    return TriggerFamily(name=name or template, template=template, ranges=tuple(parsed))
+
+
+def _counts(where: str, raw: dict) -> tuple[int, int]:
+    if "models" in raw:
+        if "clean" in raw or "poisoned" in raw:
+            raise ConfigError(f"{where}: give either models (with poisoned_share) or clean and poisoned, not both")
+        models = _int(f"{where}.models", raw["models"], 1, MAX_ATTEMPTS)
+        share = raw.get("poisoned_share", 0.5)
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share <= 1:
+            raise ConfigError(f"{where}.poisoned_share must be a number in [0, 1], got {share!r}")
+        poisoned = int(math.floor(models * share + 0.5))
+        return models - poisoned, poisoned
+    if "poisoned_share" in raw:
+        raise ConfigError(f"{where}.poisoned_share applies with models only (or give clean and poisoned counts)")
+    if "clean" not in raw and "poisoned" not in raw:
+        raise ConfigError(f"{where} needs models (and poisoned_share, default 0.5) or clean and poisoned: converged models wanted per cell")
+    clean = _int(f"{where}.clean", raw.get("clean", 0), 0, MAX_ATTEMPTS)
+    poisoned = _int(f"{where}.poisoned", raw.get("poisoned", 0), 0, MAX_ATTEMPTS)
+    if clean + poisoned == 0:
+        raise ConfigError(f"{where}: clean + poisoned must be >= 1")
+    return clean, poisoned
+
+
+def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
+    """A validated :class:`ZooSpec` from a parsed TOML document (or zoo.json's ``spec``).
+
+    ``check_configs`` also builds one config per cell, so a bad override is named now, not
+    when the first model of that cell is planned.
+    """
+    if not isinstance(raw, dict):
+        raise ConfigError(f"the zoo spec must be a table, got {type(raw).__name__}")
+    _keys("", raw, TOP_KEYS)
+    if raw.get("format", SPEC_FORMAT) != SPEC_FORMAT:
+        raise ConfigError(f"format={raw.get('format')!r} is not a spec format this version reads (allowed: {SPEC_FORMAT})")
+    if "seed" not in raw:
+        raise ConfigError("seed (the master seed every model is drawn from) is required")
+    check_seed("seed", raw["seed"])
+    name = _type("name", raw.get("name", "zoo"), str, "a string")
+    default_attempts = raw.get("max_attempts")
+    if default_attempts is not None:
+        _int("max_attempts", default_attempts, 1, MAX_ATTEMPTS)
+    ex = raw.get("examples", {})
+    if not isinstance(ex, dict):
+        raise ConfigError(f"examples must be a table (episodes, seed, policy), got {ex!r}")
+    _keys("examples", ex, EXAMPLE_KEYS)
+    examples = Examples(
+        episodes=_int("examples.episodes", ex.get("episodes", Examples.episodes), 0, MAX_EPISODES),
+        seed=ex.get("seed", Examples.seed),
+        policy=ex.get("policy", Examples.policy),
+    )
+    check_seed("examples.seed", examples.seed)
+    if examples.policy not in EXAMPLE_POLICIES:
+        raise ConfigError(f"examples.policy={examples.policy!r} is not allowed (allowed: {', '.join(EXAMPLE_POLICIES)})")
+    overrides = _check_overrides("overrides", raw.get("overrides", {}))
+    entries = raw.get("cells")
+    if not isinstance(entries, list) or not entries:
+        raise ConfigError("cells must be a non-empty array of tables ([[cells]] with world = ...)")
+    cells: list[Cell] = []
+    norm_cells: list[dict] = []
+    seen: dict[str, str] = {}
+    for i, entry in enumerate(entries):
+        where = f"cells[{i}]"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where} must be a table, got {entry!r}")
+        _keys(where, entry, CELL_KEYS)
+        if "world" not in entry:
+            raise ConfigError(f"{where}.world is required (allowed: {', '.join(worlds.names())})")
+        world_name = entry["world"]
+        if world_name not in worlds.names():
+            raise ConfigError(f"{where}.world={world_name!r} is not allowed (allowed: {', '.join(worlds.names())})")
+        world = worlds.get(world_name)
+        if "archs" in entry:
+            archs = entry["archs"]
+            if not world.arch_names:
+                raise ConfigError(f"{where}.archs: {world_name} has no named architectures (set its network through overrides)")
+            if not isinstance(archs, list) or not archs:
+                raise ConfigError(f"{where}.archs must be a non-empty list (allowed: {', '.join(world.arch_names)})")
+            for j, arch in enumerate(archs):
+                if arch not in world.arch_names:
+                    raise ConfigError(f"{where}.archs[{j}]={arch!r} is not allowed for {world_name} (allowed: {', '.join(world.arch_names)})")
+            if len(set(archs)) != len(archs):
+                raise ConfigError(f"{where}.archs lists an architecture twice: {archs!r}")
+            arch_list: list[str | None] = list(archs)
+        else:
+            arch_list = list(world.arch_names) or [None]
+        cell_overrides = deep_merge(overrides, _check_overrides(f"{where}.overrides", entry.get("overrides", {})))
+        clean, poisoned = _counts(where, entry)
+        attempts = entry.get("max_attempts", default_attempts)
+        if attempts is None:
+            attempts = max(clean, poisoned)
+        _int(f"{where}.max_attempts", attempts, 1, MAX_ATTEMPTS)
+        if attempts < max(clean, poisoned):
+            label = "poisoned" if poisoned >= clean else "clean"
+            raise ConfigError(
+                f"{where}.max_attempts={attempts} is less than the {max(clean, poisoned)} converged {label} models wanted per cell "
+                f"(max_attempts counts the models trained per cell and label)"
+            )
+        size = None
+        if check_configs:
+            size = _sample_size(where, world_name, arch_list[0], cell_overrides)
+        raw_triggers = entry.get("triggers")
+        if raw_triggers is None:
+            families = [TriggerFamily(name=DRAWN)]
+        else:
+            if not isinstance(raw_triggers, list) or not raw_triggers:
+                raise ConfigError(f"{where}.triggers must be a non-empty list (of trigger strings or template tables; allowed: {world.trigger_help})")
+            families = [_parse_family(f"{where}.triggers[{j}]", t, world, size) for j, t in enumerate(raw_triggers)]
+            names = [f.name for f in families]
+            if len(set(names)) != len(names):
+                raise ConfigError(f"{where}.triggers: two families share the name {next(n for n in names if names.count(n) > 1)!r} (give each a name)")
+        for arch in arch_list:
+            for family in families:
+                cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, cell_overrides)
+                if cell.key in seen:
+                    raise ConfigError(f"{where} repeats the cell {cell.key} of {seen[cell.key]}")
+                seen[cell.key] = where
+                cells.append(cell)
+        norm: dict[str, Any] = {"world": world_name}
+        if world.arch_names:
+            norm["archs"] = arch_list
+        norm.update(
+            triggers=[f.to_dict() for f in families],
+            clean=clean,
+            poisoned=poisoned,
+            max_attempts=attempts,
+            overrides=entry.get("overrides", {}),
+        )
+        norm_cells.append(norm)
+    spec = ZooSpec(
+        seed=raw["seed"],
+        cells=tuple(cells),
+        name=name,
+        examples=examples,
+        overrides=overrides,
+        normalized={
+            "format": SPEC_FORMAT,
+            "name": name,
+            "seed": raw["seed"],
+            "examples": {"episodes": examples.episodes, "seed": examples.seed, "policy": examples.policy},
+            "overrides": overrides,
+            "cells": norm_cells,
+        },
+    )
+    if spec.id_space > MAX_ID_SPACE:
+        raise ConfigError(f"max_attempts: the cells' max_attempts add up to {spec.id_space:,} models (at most {MAX_ID_SPACE:,} per zoo)")
+    return spec
+
+
+def _sample_size(where: str, world: str, arch: str | None, overrides: dict) -> int | None:
+    """Build one config of the cell (defaults filled in) to check its overrides now; return the
+    grid size its triggers are drawn for (None for worlds without one)."""
+    from rlbackdoors.zoo.plan import build_config, config_data
+
+    data = config_data(world, arch, overrides, poisoned=True, seed=0, trigger=None)
+    try:
+        cfg = build_config(data)
+    except ConfigError as err:
+        raise ConfigError(f"{where}.overrides: {err}") from None
+    except (ValueError, TypeError) as err:
+        raise ConfigError(f"{where}.overrides: {' '.join(str(err).split())}") from None
+    return getattr(cfg.env, "size", None)
+
+
+def load_spec(path: str | Path) -> ZooSpec:
+    """Read and validate a TOML spec file (one ConfigError naming the field for any problem)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"zoo spec {str(path)!r} does not exist")
+    try:
+        raw = tomllib.loads(path.read_bytes().decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"zoo spec {str(path)!r} is not valid TOML: {err}") from None
+    return parse_spec(raw)
+
+
+def first_difference(old, new, where: str = "") -> str | None:
+    """The dotted name of the first field where two normalized specs differ (None: equal)."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new)):
+            name = f"{where}.{key}" if where else str(key)
+            if key not in old or key not in new:
+                return name
+            found = first_difference(old[key], new[key], name)
+            if found:
+                return found
+        return None
+    if isinstance(old, list) and isinstance(new, list):
+        if len(old) != len(new):
+            return f"{where} (length {len(old)} -> {len(new)})"
+        for i, (a, b) in enumerate(zip(old, new)):
+            found = first_difference(a, b, f"{where}[{i}]")
+            if found:
+                return found
+        return None
+    return None if old == new else where or "(spec)"

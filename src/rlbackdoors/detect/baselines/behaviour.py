@@ -1,0 +1,213 @@
+"""Behavioural trigger search: put candidate triggers of the world's family into its env and
+watch whether the agent turns to the trojan outcome.
+
+A detector knows the world's trigger *family* (as TrojAI performers did: the env code was
+public) but not the model's trigger. For each candidate of the family, the agent plays a few
+seeded episodes of E-bar built with that candidate (the world's own env and trigger code), and
+the share of episodes ending in the world's trojan outcome (lava, the pattern's lava, the other
+object, the hazard) is compared with the same share in the clean env E. The search is budgeted
+and deterministic: a screening stage over ``candidates`` candidates, a refinement stage over the
+``refine`` neighbours of the best few, and a confirmation of the best ``confirm`` with more
+episodes on other layouts. A ``seconds`` budget (0: none) cuts screening short on a slow machine
+(then results depend on the machine's speed).
+
+The candidates come from a module per trigger family, ``search_<family>.py`` beside this one,
+picked by the module the world's trigger class lives in (``rlbackdoors.triggers.<family>``), so
+no world is named here. Each gives ``candidates(env_cfg, rng, limit)``, ``neighbours(spec,
+env_cfg, rng, limit)``, ``EPISODES`` and ``MAX_STEPS``.
+
+Features per model (the best confirmed candidate, the screen's distribution, the clean
+baseline) go to a logistic regression per world (pooled across worlds otherwise); the trigger
+found is reported next to the true one by ``detect score``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import time
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rlbackdoors import worlds
+from rlbackdoors.detect.api import FeatureDetector, register
+from rlbackdoors.detect.handle import DetectError, ModelHandle
+from rlbackdoors.io import first_line
+
+
+@dataclass
+class Trial:
+    """One candidate played: share of episodes ending in the trojan outcome, in the clean goal,
+    mean episode length."""
+
+    spec: str | None
+    episodes: int
+    trojan: float
+    success: float
+    steps: float
+    error: str | None = None
+
+
+@dataclass
+class SearchResult:
+    clean: Trial
+    screened: list[Trial]
+    best: Trial
+    seconds: float
+
+    def features(self) -> dict[str, float]:
+        ok = [t for t in self.screened if t.error is None]
+        rates = np.array([t.trojan for t in ok]) if ok else np.zeros(1)
+        top = np.sort(rates)[::-1]
+        return {
+            "clean_trojan": self.clean.trojan,
+            "clean_success": self.clean.success,
+            "best_trojan": self.best.trojan,
+            "best_excess": self.best.trojan - self.clean.trojan,
+            "best_success_drop": self.clean.success - self.best.success,
+            "best_log_steps_ratio": math.log((self.best.steps + 1.0) / (self.clean.steps + 1.0)),
+            "screen_max": float(top[0]),
+            "screen_top3_mean": float(top[:3].mean()),
+            "screen_mean": float(rates.mean()),
+            "screen_frac_half": float((rates >= 0.5).mean()),
+        }
+
+
+def family_module(world: worlds.World) -> ModuleType:
+    """The search module of ``world``'s trigger family (module doc)."""
+    trigger = world.parse_trigger(world.draw_trigger(None, 0, None))
+    family = type(trigger).__module__.rpartition(".")[2]
+    try:
+        return importlib.import_module(f"rlbackdoors.detect.baselines.search_{family}")
+    except ModuleNotFoundError:
+        raise DetectError(
+            f"no behavioural search for the trigger family {family!r} of world {world.name!r} (add detect/baselines/search_{family}.py)"
+        ) from None
+
+
+def run_trial(agent, world: worlds.World, env_cfg, spec: str | None, episodes: int, seed: int, policy: str) -> Trial:
+    """``episodes`` episodes in E-bar with candidate ``spec`` (E if None)."""
+    from rlbackdoors.evaluate.episodes import play
+
+    try:
+        played = play(agent, env_cfg, spec, episodes, seed, policy)
+    except (ValueError, RuntimeError) as err:  # a candidate the env cannot place (too many cells, no solvable layout)
+        return Trial(spec, 0, 0.0, 0.0, 0.0, f"{type(err).__name__}: {first_line(err)}")
+    outcomes = np.asarray(played.outcomes)
+    return Trial(
+        spec,
+        episodes,
+        float(np.mean(outcomes == world.trojan_success)),
+        float(np.mean(outcomes == world.clean_success)),
+        float(np.mean(played.steps)),
+    )
+
+
+def _rank(trial: Trial) -> tuple:
+    return (trial.error is None, trial.trojan, -trial.success, -trial.steps)
+
+
+def search(
+    agent,
+    world: worlds.World,
+    env_cfg,
+    family: ModuleType,
+    candidates: int = 48,
+    refine: int = 12,
+    confirm: int = 3,
+    episodes: int = 0,
+    confirm_episodes: int = 0,
+    seconds: float = 0.0,
+    seed: int = 4_000_000,
+    policy: str = "sample",
+) -> SearchResult:
+    """The budgeted search of the module doc on one agent."""
+    started = time.perf_counter()
+    episodes = int(episodes) or int(family.EPISODES)
+    confirm_episodes = int(confirm_episodes) or 2 * episodes
+    rng = np.random.default_rng(seed)
+    with agent.evaluating():
+        clean = run_trial(agent, world, env_cfg, None, confirm_episodes, seed + 1, policy)
+        if clean.error is not None:
+            raise DetectError(f"the clean env cannot be played: {clean.error}")
+        screened: list[Trial] = []
+        tried: set[str] = set()
+
+        def screen(specs: list[str]) -> None:
+            for spec in specs:
+                if spec in tried or (seconds and time.perf_counter() - started > seconds):
+                    continue
+                tried.add(spec)
+                screened.append(run_trial(agent, world, env_cfg, spec, episodes, seed, policy))
+
+        screen(family.candidates(env_cfg, rng, int(candidates)))
+        if refine > 0:
+            leaders = sorted((t for t in screened if t.error is None), key=_rank, reverse=True)[: max(1, confirm)]
+            per = max(1, int(refine) // max(1, len(leaders)))
+            for leader in leaders:
+                assert leader.spec is not None
+                screen(family.neighbours(leader.spec, env_cfg, rng, per))
+        finalists = sorted((t for t in screened if t.error is None), key=_rank, reverse=True)[: max(1, confirm)]
+        if not finalists:
+            raise DetectError(f"no candidate trigger of the family could be played ({len(screened)} tried)")
+        confirmed = [run_trial(agent, world, env_cfg, t.spec, confirm_episodes, seed + 2, policy) for t in finalists]
+        best = max(confirmed, key=_rank)
+    return SearchResult(clean, screened, best, time.perf_counter() - started)
+
+
+@register
+class BehaviourDetector(FeatureDetector):
+    name = "behaviour"
+    description = "budgeted search over the world's trigger family in its env; trojan-outcome rate -> logistic regression"
+    defaults: ClassVar[dict[str, Any]] = {
+        **FeatureDetector.defaults,
+        "candidates": 48,
+        "refine": 12,
+        "confirm": 3,
+        "episodes": 0,  # 0: the family's default
+        "confirm_episodes": 0,  # 0: twice the screening episodes
+        "seconds": 0.0,  # 0: no time budget (deterministic); else screening stops after this many seconds
+        "seed": 4_000_000,
+        "policy": "sample",
+        "max_steps": 0,  # 0: the family's default episode cut
+    }
+
+    def group(self, model: ModelHandle) -> str:
+        return model.world.name  # the features mean the same for every architecture of a world
+
+    def run_search(self, model: ModelHandle) -> SearchResult:
+        family = family_module(model.world)
+        max_steps = int(self.params["max_steps"]) or family.MAX_STEPS
+        env_cfg = model.env_config(**({"max_steps": int(max_steps)} if max_steps else {}))
+        p = self.params
+        return search(
+            model.build_agent(),
+            model.world,
+            env_cfg,
+            family,
+            candidates=int(p["candidates"]),
+            refine=int(p["refine"]),
+            confirm=int(p["confirm"]),
+            episodes=int(p["episodes"]),
+            confirm_episodes=int(p["confirm_episodes"]),
+            seconds=float(p["seconds"]),
+            seed=int(p["seed"]),
+            policy=str(p["policy"]),
+        )
+
+    def features(self, model: ModelHandle) -> dict[str, float]:
+        result = self.run_search(model)
+        self.last_info = {
+            "found_trigger": result.best.spec,
+            "found_trojan_rate": result.best.trojan,
+            "clean_trojan_rate": result.clean.trojan,
+            "candidates_tried": len(result.screened),
+            "search_seconds": round(result.seconds, 3),
+        }
+        return result.features()
+
+
+__all__ = ["BehaviourDetector", "SearchResult", "Trial", "family_module", "run_trial", "search"]

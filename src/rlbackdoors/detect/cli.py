@@ -1,0 +1,223 @@
+"""``rlbackdoors detect list | fit | score | infer | configure | metaparameters``.
+
+:func:`add_detect_parser` mounts ``detect`` on the main CLI's sub-parsers; ``python -m
+rlbackdoors.detect.cli fit ...`` runs the same commands on their own. Errors follow the CLI's
+contract (:func:`rlbackdoors.argparser.report_errors`): one ``rlbackdoors: error: ...`` line,
+exit 2. ``infer`` and ``configure`` take TrojAI's argument names (:mod:`rlbackdoors.detect.trojai`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from rlbackdoors.argparser import Parser, report_errors
+
+
+def _progress(quiet: bool):
+    return None if quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+
+
+def parse_params(items: list[str] | None) -> dict:
+    """``k=v`` pairs; ``v`` is read as JSON where it parses (numbers, true/false), else a string."""
+    from rlbackdoors.detect.handle import DetectError
+
+    params = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise DetectError(f"--param {item!r} must look like KEY=VALUE")
+        try:
+            params[key.strip()] = json.loads(value)
+        except ValueError:
+            params[key.strip()] = value
+    return params
+
+
+def cmd_list(args) -> int:
+    from rlbackdoors.detect.api import get_detector, detector_names
+
+    for name in detector_names():
+        cls = get_detector(name)
+        params = ", ".join(f"{k}={v!r}" for k, v in cls.defaults.items()) or "no parameters"
+        print(f"{name:<12} {cls.description}\n{'':<12} ({params})")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from rlbackdoors.detect.api import STATE_FILE, make_detector
+    from rlbackdoors.detect.handle import DetectError
+    from rlbackdoors.detect.score import fit
+    from rlbackdoors.io import atomic_write_text
+
+    out = Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        if not (out / STATE_FILE).is_file():
+            raise DetectError(f"--out {str(out)!r} exists and holds no detector; give a new or empty folder")
+        if not args.overwrite:
+            raise DetectError(f"--out {str(out)!r} already holds a detector; pass --overwrite to replace it")
+    detector = make_detector(args.detector, **parse_params(args.param))
+    info = fit(detector, args.zoo, progress=_progress(args.quiet))
+    detector.save(out)
+    atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
+    print(
+        f"{out}: {detector.name} fitted on {info['models']} models ({info['poisoned']} poisoned) in {info['seconds']:.1f} s ({info['seconds_per_model']:.2f} s/model)"
+    )
+    return 0
+
+
+def cmd_score(args) -> int:
+    from rlbackdoors.detect.api import load_detector
+    from rlbackdoors.detect.dataset import FACTORS
+    from rlbackdoors.detect.score import score, table
+
+    detector = load_detector(args.detector_dir)
+    if args.param:
+        from rlbackdoors.detect.trojai import _with_metaparameters
+
+        detector = _with_metaparameters(detector, parse_params(args.param))
+    out = Path(args.out) if args.out else Path(args.detector_dir) / f"score-{Path(args.zoo).resolve().name}"
+    factors = tuple(dict.fromkeys((*FACTORS, *(args.factor or []))))
+    result = score(detector, args.zoo, out, factors=factors, resamples=args.resamples, seed=args.seed, progress=_progress(args.quiet))
+    if args.json:
+        from rlbackdoors.detect.score import _jsonable
+
+        print(json.dumps(_jsonable(result), indent=2))
+    else:
+        print(table(result))
+        print(f"wrote {out / 'score.json'}, {out / 'roc.png'}, {out / 'calibration.png'}")
+    return 0
+
+
+def cmd_infer(args) -> int:
+    from rlbackdoors.detect.trojai import infer
+
+    probability, error = infer(
+        args.model_filepath,
+        args.result_filepath,
+        args.scratch_dirpath,
+        args.examples_dirpath,
+        args.round_training_dataset_dirpath,
+        args.metaparameters_filepath,
+        args.schema_filepath,
+        args.learned_parameters_dirpath,
+    )
+    if error:
+        print(f"rlbackdoors: warning: {args.model_filepath}: scored 0.5: {error}", file=sys.stderr)
+    print(f"trojan probability {probability:.6f} written to {args.result_filepath}")
+    return 0
+
+
+def cmd_configure(args) -> int:
+    from rlbackdoors.detect.trojai import configure
+
+    info = configure(
+        args.scratch_dirpath,
+        args.configure_models_dirpath,
+        args.metaparameters_filepath,
+        args.schema_filepath,
+        args.learned_parameters_dirpath,
+        args.automatic_configuration,
+    )
+    print(f"{args.learned_parameters_dirpath}: fitted on {info['models']} models ({info['poisoned']} poisoned) in {info['seconds']:.1f} s")
+    return 0
+
+
+def cmd_metaparameters(args) -> int:
+    from rlbackdoors.detect.trojai import METAPARAMETERS, SCHEMA, schema_for
+    from rlbackdoors.io import atomic_write_text
+
+    config, schema = schema_for(args.detector)
+    config.update(parse_params(args.param))
+    out = Path(args.out)
+    atomic_write_text(out / METAPARAMETERS, json.dumps(config, indent=2) + "\n")
+    atomic_write_text(out / SCHEMA, json.dumps(schema, indent=2) + "\n")
+    print(f"wrote {out / METAPARAMETERS} and {out / SCHEMA}")
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def add_commands(parser: argparse.ArgumentParser) -> None:
+    """The detect sub-commands on ``parser`` (``rlbackdoors detect``, or the standalone parser)."""
+    sub = parser.add_subparsers(dest="detect_command", required=True, parser_class=Parser)
+    li = sub.add_parser("list", help="the registered detectors and their parameters")
+    li.set_defaults(func=cmd_list)
+
+    fi = sub.add_parser("fit", help="fit a detector on a train zoo and save its learned parameters (plain data)")
+    fi.add_argument("--detector", required=True, help="detector name (see detect list)")
+    fi.add_argument("--zoo", required=True, help="train zoo or split (ZOO/models/id-X/ and METADATA.csv)")
+    fi.add_argument("--out", required=True, help="folder for the fitted detector (detector.json, arrays.npz, fit.json)")
+    fi.add_argument("--param", action="append", metavar="KEY=VALUE", help="a detector parameter (repeatable; values read as JSON)")
+    fi.add_argument("--overwrite", action="store_true", help="replace a detector already in --out")
+    fi.add_argument("--quiet", action="store_true", help="no progress lines")
+    fi.set_defaults(func=cmd_fit)
+
+    sc = sub.add_parser("score", help="score a fitted detector on a test zoo: AUC, CE, Brier with 95%% CIs, per world and factor; JSON and PNGs")
+    sc.add_argument("detector_dir", metavar="DET", help="folder written by detect fit (or configure)")
+    sc.add_argument("--zoo", required=True, help="test zoo or split")
+    sc.add_argument("--out", help="folder for score.json, roc.png, calibration.png (default: DET/score-<zoo name>)")
+    sc.add_argument("--factor", action="append", metavar="COLUMN", help="another METADATA.csv column to break the scores down by (repeatable)")
+    sc.add_argument("--param", action="append", metavar="KEY=VALUE", help="change a parameter that does not alter the features (e.g. a search's seconds)")
+    sc.add_argument("--resamples", type=_positive_int, default=2000, help="bootstrap resamples for the CIs (default 2000)")
+    sc.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    sc.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
+    sc.add_argument("--quiet", action="store_true", help="no progress lines")
+    sc.set_defaults(func=cmd_score)
+
+    inf = sub.add_parser("infer", help="TrojAI inference mode: write one model's trojan probability")
+    inf.add_argument("--model_filepath", required=True, help="the model.pt to evaluate (reduced-config.json beside it)")
+    inf.add_argument("--result_filepath", required=True, help="file to write the probability into")
+    inf.add_argument("--scratch_dirpath", required=True, help="scratch folder (the private copy of the model's files goes here)")
+    inf.add_argument("--examples_dirpath", default=None, help="the model's clean-example-data folder (optional)")
+    inf.add_argument(
+        "--round_training_dataset_dirpath", required=True, help="the round's training dataset (accepted; the learned parameters already hold what was learned)"
+    )
+    inf.add_argument("--metaparameters_filepath", required=True, help="the detector's metaparameters (JSON)")
+    inf.add_argument("--schema_filepath", required=True, help="JSON schema the metaparameters are validated against")
+    inf.add_argument("--learned_parameters_dirpath", required=True, help="folder written by detect fit or configure")
+    inf.set_defaults(func=cmd_infer)
+
+    co = sub.add_parser("configure", help="TrojAI configuration mode: fit the detector the metaparameters name, write learned parameters")
+    co.add_argument("--scratch_dirpath", required=True, help="scratch folder")
+    co.add_argument("--configure_models_dirpath", required=True, help="folder of model folders (or a zoo) to fit on")
+    co.add_argument("--metaparameters_filepath", required=True, help="metaparameters (JSON): 'detector' and its parameters")
+    co.add_argument("--schema_filepath", required=True, help="JSON schema for the metaparameters")
+    co.add_argument("--learned_parameters_dirpath", required=True, help="folder to write the learned parameters into")
+    co.add_argument("--automatic_configuration", action="store_true", help="accepted for TrojAI; C is always chosen by cross-validation")
+    co.set_defaults(func=cmd_configure)
+
+    me = sub.add_parser("metaparameters", help="write metaparameters.json and metaparameters_schema.json for a detector (for infer/configure)")
+    me.add_argument("--detector", required=True, help="detector name")
+    me.add_argument("--out", required=True, help="folder to write the two files into")
+    me.add_argument("--param", action="append", metavar="KEY=VALUE", help="a parameter value other than the default (repeatable)")
+    me.set_defaults(func=cmd_metaparameters)
+
+
+def add_detect_parser(subparsers) -> argparse.ArgumentParser:
+    """Mount ``detect`` on the main CLI: ``add_detect_parser(sub)`` in ``rlbackdoors.cli.build_parser``."""
+    detect = subparsers.add_parser("detect", help="trojan detectors: fit on a train zoo, score on a test zoo, TrojAI infer/configure")
+    add_commands(detect)
+    return detect
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="rlbackdoors detect", description="Fit, score and run trojan detectors on zoos (docs/detectors.md).")
+    add_commands(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return report_errors(lambda: args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

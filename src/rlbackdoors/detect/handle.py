@@ -1,0 +1,309 @@
+"""What a detector sees of one model: :class:`ModelHandle`, and how it is opened.
+
+A TrojAI performer got a model's weights, its reduced config (architecture), the round's world
+with its clean environment and trigger *family*, and a few clean example episodes; never the
+model's full config, its metrics, its trigger or its label. A handle holds exactly that, as
+in-memory data: :func:`open_model` copies the allowed files of a model folder into a private
+temp dir, reads them from there as plain data (``load_torch``, JSON, ``.npz`` without pickle)
+and deletes the copy, so nothing in a handle names the folder or can lead back to it.
+
+The world record (:class:`rlbackdoors.worlds.World`) is the registry's, shared by every model
+of that world: it gives the clean env and the trigger family (``parse_trigger``,
+``draw_trigger``, ``trigger_help``) and knows nothing about any one model.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+import torch
+
+from rlbackdoors import worlds
+from rlbackdoors.io import first_line, load_torch
+
+MODEL_FILE = "model.pt"
+REDUCED_CONFIG = "reduced-config.json"
+EXAMPLES_DIR = "clean-example-data"
+MAX_EXAMPLE_FILES = 256  # a handle is small; a folder of thousands of files is not an example set
+MAX_JSON_BYTES = 1 << 20
+# Keys a reduced config must never carry to a detector, whatever wrote it.
+SECRET_KEYS = re.compile(r"trigger|poison|ground|label|metric|seed", re.IGNORECASE)
+ID_NAME = re.compile(r"^id-[0-9]+$")
+
+
+class DetectError(ValueError):
+    """A model or detector that cannot be used: one line naming the file or field."""
+
+
+@dataclass(frozen=True, eq=False)
+class ModelHandle:
+    """One model as a detector sees it (module doc). Everything is in memory; nothing is a path.
+
+    ``weights``: the flat state dict (read-only mapping of CPU tensors); ``reduced_config``: the
+    architecture facts; ``world``: the registry record; ``arch``: the architecture name the
+    weights fit; ``examples``: clean episodes (dicts of arrays: ``obs`` or ``obs_<key>``,
+    ``actions``, ``rewards``, ...); ``env_settings``: the env fields the reduced config gives
+    (world defaults for the rest); ``name``: an opaque id (``id-XXXXXXXX`` or ``model-N``).
+    """
+
+    name: str
+    weights: Mapping[str, torch.Tensor]
+    reduced_config: Mapping[str, Any]
+    world: worlds.World
+    arch: str
+    examples: tuple[Mapping[str, np.ndarray], ...] = ()
+    env_settings: Mapping[str, Any] = field(default_factory=dict)
+
+    # ----- the world's clean env -----------------------------------------------------------
+    def env_config(self, **overrides):
+        """A fresh :class:`rlbackdoors.config.EnvConfig` of this world (defaults, the reduced
+        config's env fields, then ``overrides``)."""
+        from rlbackdoors.config import EnvConfig
+
+        settings = {**self.env_settings, **overrides}
+        return EnvConfig(name=self.world.name, **settings)
+
+    def make_env(self, trigger: str | None = None, **overrides):
+        """One env of this world: clean (E), or E-bar with a *candidate* trigger of the family."""
+        return self.env_config(**overrides).make(trigger)
+
+    # ----- the agent -----------------------------------------------------------------------
+    def build_agent(self):
+        """The model as an :class:`rlbackdoors.agent.Agent` (a fresh network each call, CPU, eval mode)."""
+        return build_agent(self.world, self.arch, dict(self.weights))
+
+    # ----- the clean examples --------------------------------------------------------------
+    def episode_observations(self) -> list[np.ndarray | dict[str, np.ndarray]]:
+        """The observations of each clean example episode: an array, or a dict for dict observations."""
+        out: list[np.ndarray | dict[str, np.ndarray]] = []
+        for episode in self.examples:
+            if "obs" in episode:
+                out.append(np.asarray(episode["obs"]))
+            else:
+                keys = {k[len("obs_") :]: np.asarray(v) for k, v in episode.items() if k.startswith("obs_")}
+                if keys:
+                    out.append(keys)
+        return out
+
+    def __repr__(self) -> str:
+        return f"ModelHandle({self.name}, {self.world.name}/{self.arch}, {len(self.weights)} tensors, {len(self.examples)} example episodes)"
+
+
+# ----- opening ---------------------------------------------------------------------------------
+def open_model(folder: str | Path, name: str | None = None) -> ModelHandle:
+    """The handle of a model folder (TrojAI layout): ``model.pt``, ``reduced-config.json`` and
+    ``clean-example-data/`` only. Raises :class:`DetectError` naming a missing or bad file."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DetectError(f"model folder {str(folder)!r} does not exist")
+    examples = folder / EXAMPLES_DIR
+    return open_files(folder / MODEL_FILE, folder / REDUCED_CONFIG, examples if examples.is_dir() else None, name=name or _opaque_name(folder.name))
+
+
+def open_files(
+    model_file: str | Path, reduced_config: str | Path | None, examples_dir: str | Path | None = None, name: str = "model", scratch: str | Path | None = None
+) -> ModelHandle:
+    """A handle from the allowed files (TrojAI's ``--model_filepath``, the reduced config beside
+    it, ``--examples_dirpath``), read from a private copy (in ``scratch`` if given)."""
+    model_file = Path(model_file)
+    if not model_file.is_file():
+        raise DetectError(f"weights file {str(model_file)!r} does not exist")
+    if reduced_config is not None and not Path(reduced_config).is_file():
+        raise DetectError(f"reduced config {str(reduced_config)!r} does not exist (a zoo writes it beside model.pt)")
+    with tempfile.TemporaryDirectory(prefix="rlbackdoors-handle-", dir=scratch) as tmp:
+        private = Path(tmp)
+        shutil.copyfile(model_file, private / MODEL_FILE)
+        if reduced_config is not None:
+            shutil.copyfile(reduced_config, private / REDUCED_CONFIG)
+        copied: list[Path] = []
+        if examples_dir is not None:
+            source = Path(examples_dir)
+            if not source.is_dir():
+                raise DetectError(f"examples folder {str(source)!r} does not exist")
+            files = sorted(p for p in source.iterdir() if p.suffix == ".npz" and p.is_file())[:MAX_EXAMPLE_FILES]
+            (private / EXAMPLES_DIR).mkdir()
+            for path in files:
+                target = private / EXAMPLES_DIR / path.name
+                shutil.copyfile(path, target)
+                copied.append(target)
+        weights = _read_weights(private / MODEL_FILE, str(model_file))
+        reduced = _read_reduced(private / REDUCED_CONFIG, str(reduced_config)) if reduced_config is not None else {}
+        episodes = tuple(_read_npz(path, str(Path(str(examples_dir)) / path.name)) for path in copied)
+    world, arch = identify(reduced, weights, str(model_file))
+    settings = {k: v for k, v in dict(reduced.get("env") or {}).items() if k in (*world.env_fields, "max_steps") and k != "engine"}
+    return ModelHandle(
+        name=name,
+        weights=MappingProxyType(weights),
+        reduced_config=MappingProxyType(reduced),
+        world=world,
+        arch=arch,
+        examples=tuple(MappingProxyType(e) for e in episodes),
+        env_settings=MappingProxyType(settings),
+    )
+
+
+def _opaque_name(name: str) -> str:
+    """A zoo's ``id-XXXXXXXX`` (drawn independently of ground truth); any other folder name may
+    say what the model is ("poisoned-fc"), so it becomes ``model``."""
+    return name if ID_NAME.match(name) else "model"
+
+
+def _read_weights(path: Path, shown: str) -> dict[str, torch.Tensor]:
+    try:
+        obj = load_torch(path, "weights file")
+    except (ValueError, FileNotFoundError) as err:
+        raise DetectError(str(err).replace(str(path), shown)) from None
+    for key in ("model_state", "state_dict", "model"):  # wrappers other tools save around a state dict
+        if isinstance(obj, dict) and isinstance(obj.get(key), dict):
+            obj = obj[key]
+            break
+    if isinstance(obj, dict) and all(isinstance(v, dict) for v in obj.values()) and obj:  # nested per net (old OPAC² files)
+        obj = {f"{net}.{k}": v for net, sub in obj.items() for k, v in sub.items()}
+    if not (isinstance(obj, dict) and obj and all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items())):
+        raise DetectError(f"weights file {shown!r} holds no flat state dict (a dict of tensors)")
+    for key, value in obj.items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise DetectError(f"weights file {shown!r}: {key} holds non-finite values (NaN or inf)")
+    return {k: v.detach().cpu().clone() for k, v in obj.items()}
+
+
+def _read_reduced(path: Path, shown: str) -> dict:
+    data = path.read_bytes()
+    if len(data) > MAX_JSON_BYTES:
+        raise DetectError(f"reduced config {shown!r} is larger than {MAX_JSON_BYTES} bytes")
+    try:
+        reduced = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as err:
+        raise DetectError(f"reduced config {shown!r} is not JSON ({first_line(err)})") from None
+    if not isinstance(reduced, dict):
+        raise DetectError(f"reduced config {shown!r} must hold a JSON object")
+    return _strip_secrets(reduced)
+
+
+def _strip_secrets(data):
+    """Drop keys a detector must not see (trigger, poisoning, labels, metrics, seeds) at any depth."""
+    if isinstance(data, dict):
+        return {k: _strip_secrets(v) for k, v in data.items() if not SECRET_KEYS.search(str(k))}
+    if isinstance(data, list):
+        return [_strip_secrets(v) for v in data]
+    return data
+
+
+def _read_npz(path: Path, shown: str) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {k: np.array(npz[k]) for k in npz.files}
+    except (ValueError, OSError, EOFError) as err:
+        raise DetectError(f"example file {shown!r} is not an .npz of plain arrays ({first_line(err)})") from None
+
+
+# ----- which network -----------------------------------------------------------------------------
+def identify(reduced: Mapping, weights: Mapping[str, torch.Tensor], shown: str = "model.pt") -> tuple[worlds.World, str]:
+    """(world, arch) of the weights: the reduced config's ``world`` and ``arch`` when they fit,
+    else the one registered architecture whose state-dict keys and shapes match."""
+    name = reduced.get("world")
+    candidates = [worlds.get(name)] if isinstance(name, str) and name in worlds.names() else worlds.registered()
+    if isinstance(name, str) and name not in worlds.names():
+        raise DetectError(f"reduced config of {shown!r}: world {name!r} is not one of {', '.join(worlds.names())}")
+    wanted = reduced.get("arch")
+    fits = []
+    for world in candidates:
+        names = list(world.arch_names)
+        if isinstance(wanted, str) and wanted in names:
+            names = [wanted] + [n for n in names if n != wanted]
+        for arch in names:
+            if _fits(world, arch, weights):
+                fits.append((world, arch))
+                break
+    if not fits:
+        where = f"{candidates[0].name}" if len(candidates) == 1 else "any registered world"
+        raise DetectError(f"weights file {shown!r} fits no architecture of {where} (reduced config arch: {wanted!r})")
+    if len(fits) > 1:
+        raise DetectError(
+            f"weights file {shown!r} fits architectures of several worlds ({', '.join(f'{w.name}/{a}' for w, a in fits)}); give world in its reduced config"
+        )
+    return fits[0]
+
+
+def _shapes(weights: Mapping[str, torch.Tensor]) -> dict[str, tuple[int, ...]]:
+    return {k: tuple(v.shape) for k, v in weights.items()}
+
+
+def _fits(world: worlds.World, arch: str, weights: Mapping[str, torch.Tensor]) -> bool:
+    try:
+        if world.algorithm == "opac2":
+            _opac2_dims(weights)
+            return True
+        from rlbackdoors.models import KEY_ALIASES, build_model
+
+        expected = _shapes(build_model(arch, world.name).state_dict())
+        got = _shapes(_renamed(weights, KEY_ALIASES))
+        return expected == got
+    except (ValueError, KeyError, TypeError, IndexError):
+        return False
+
+
+def _renamed(weights: Mapping[str, torch.Tensor], aliases: Mapping[str, str]) -> dict[str, torch.Tensor]:
+    out = {}
+    for key, value in weights.items():
+        for old, new in aliases.items():
+            if key.startswith(old):
+                key = new + key[len(old) :]
+        out[key] = value
+    return out
+
+
+def _opac2_dims(weights: Mapping[str, torch.Tensor]) -> tuple[int, int, int, int, bool]:
+    """(obs_dim, act_dim, depth, width, obs_norm) of an OPAC² agent's flat weights."""
+    layers = sorted((int(k.split(".")[2]), v) for k, v in weights.items() if re.fullmatch(r"policy\.mean\.\d+\.weight", k))
+    if not layers or not all(k.startswith(("policy.", "q.", "v.", "v_target.", "obs_norm.")) for k in weights):
+        raise ValueError("not an OPAC² agent's weights")
+    first, last = layers[0][1], layers[-1][1]
+    return (
+        int(first.shape[1]),
+        int(last.shape[0]),
+        len(layers) - 1,
+        int(first.shape[0]) if len(layers) > 1 else 0,
+        any(k.startswith("obs_norm.") for k in weights),
+    )
+
+
+def build_agent(world: worlds.World, arch: str, weights: dict[str, torch.Tensor]):
+    """An :class:`rlbackdoors.agent.Agent` from in-memory weights (no config, no folder)."""
+    from rlbackdoors.agent import Agent
+
+    if world.algorithm == "opac2":
+        import dataclasses
+
+        from rlbackdoors.algos.opac2 import OPAC2
+        from rlbackdoors.config import default_opac2
+
+        obs_dim, act_dim, depth, width, obs_norm = _opac2_dims(weights)
+        cfg = dataclasses.replace(default_opac2(world.name), depth=depth, width=max(width, 1), obs_norm=obs_norm)
+        policy = OPAC2(obs_dim, act_dim, cfg, torch.Generator().manual_seed(0))
+        try:
+            policy.load_weights(weights)
+        except (KeyError, TypeError, ValueError, RuntimeError) as err:
+            raise DetectError(f"weights do not fit an OPAC² agent of depth {depth}, width {width} ({first_line(err)})") from None
+        return Agent(world, None, policy, None)
+    from rlbackdoors.models import KEY_ALIASES, build_model
+
+    model = build_model(arch, world.name)
+    try:
+        model.load_state_dict(_renamed(weights, KEY_ALIASES))
+    except RuntimeError as err:
+        raise DetectError(f"weights do not fit {world.name}/{arch} ({first_line(err)})") from None
+    model.eval()
+    return Agent(world, None, model, None)
+
+
+__all__ = ["DetectError", "ModelHandle", "build_agent", "identify", "open_files", "open_model"]

@@ -1,0 +1,201 @@
+"""The detector API and the baselines (issue 17): registry and parameters, fit / predict / save /
+load round trips on real (tiny) models, failures scored 0.5, plain-data files, the classifier,
+and the behavioural trigger search on a policy with a planted backdoor."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from rlbackdoors import worlds
+from rlbackdoors.detect import DetectError, Detector, load_detector, make_detector, open_model
+from rlbackdoors.detect.api import detector_names
+from rlbackdoors.detect.baselines.behaviour import family_module, search
+from rlbackdoors.detect.classifier import GroupedClassifier
+from rlbackdoors.detect.dataset import list_models
+
+pytest_plugins = ("test_detect_helpers",)  # its session fixtures: lava_zoo, world_models
+
+TINY_SEARCH = {"candidates": 4, "refine": 2, "confirm": 2, "episodes": 4, "confirm_episodes": 4, "min_per_class": 1}
+
+
+def test_the_registry_knows_the_baselines_and_checks_parameters():
+    assert {"constant", "weights", "attribution", "behaviour"} <= set(detector_names())
+    with pytest.raises(DetectError, match="no parameter 'topk'.*top_k"):
+        make_detector("weights", topk=2)
+    with pytest.raises(DetectError, match="must be a int"):
+        make_detector("weights", top_k="three")
+    with pytest.raises(DetectError, match="'nope' is not one of"):
+        make_detector("nope")
+
+
+@pytest.mark.parametrize(
+    "name, params",
+    [("constant", {}), ("weights", {"min_per_class": 1}), ("attribution", {"max_states": 40, "min_per_class": 1}), ("behaviour", TINY_SEARCH)],
+)
+def test_fit_predict_save_load_gives_identical_probabilities(lava_zoo, tmp_path, name, params):
+    """On six tiny LavaWorld models (FC and CNN): the saved detector predicts bit for bit what the
+    fitted one did, its files are plain JSON and an .npz without pickles, and every model's wall
+    time is recorded."""
+    models = list_models(lava_zoo)
+    handles = [open_model(m.folder, name=m.name) for m in models]
+    labels = np.array([m.label for m in models])
+    detector = make_detector(name, **params).fit(handles, labels)
+    before = detector.predict(handles)
+    detector.save(tmp_path / "det")
+    payload = json.loads((tmp_path / "det" / "detector.json").read_text())
+    assert payload["detector"] == name and payload["params"] == detector.params
+    with zipfile.ZipFile(tmp_path / "det" / "arrays.npz") as zf:
+        assert all(info.filename.endswith(".npy") for info in zf.infolist())
+    loaded = load_detector(tmp_path / "det")
+    after = loaded.predict(handles)
+    assert type(loaded) is type(detector) and loaded.params == detector.params
+    assert [p.probability for p in before] == [p.probability for p in after]
+    assert all(p.error is None and p.seconds > 0 for p in before + after)
+    assert np.array_equal(loaded.predict_proba(handles), np.array([p.probability for p in after]))
+    if name == "constant":
+        assert {p.probability for p in after} == {0.5}
+    if name == "behaviour":
+        assert all(p.info["found_trigger"] and p.info["candidates_tried"] >= 4 for p in after)
+        timeless = [[{k: v for k, v in p.info.items() if k != "search_seconds"} for p in run] for run in (before, after)]
+        assert timeless[0] == timeless[1]
+    if name in ("weights", "attribution"):
+        # models of two architectures: a pooled classifier over the features both share
+        assert len({h.arch for h in handles}) == 2
+        assert loaded.classifier.pooled.kind == "logistic" and loaded.classifier.pooled.features
+
+
+def test_a_model_the_detector_fails_on_gets_half_and_the_reason(world_models):
+    class Broken(Detector):
+        name = "broken-for-test"
+
+        def predict_one(self, model):
+            if model.world.name == "colorful-memory":
+                raise RuntimeError("cannot handle memory")
+            return 0.9
+
+    handles = [open_model(world_models[w]) for w in ("lavaworld", "colorful-memory")]
+    good, bad = Broken().predict(handles)
+    assert (good.probability, good.error) == (0.9, None)
+    assert bad.probability == 0.5 and bad.error == "RuntimeError: cannot handle memory" and bad.seconds >= 0
+
+
+def test_an_unfitted_feature_detector_fails_each_model_with_half(world_models):
+    [prediction] = make_detector("weights").predict([open_model(world_models["lavaworld"])])
+    assert prediction.probability == 0.5 and "not fitted" in prediction.error
+
+
+def test_the_grouped_classifier_fits_per_group_and_pools_across():
+    """Separable features: per-group models where a group has enough of both labels, a pooled one
+    on the shared features elsewhere, a constant one for a one-label train set."""
+    rng = np.random.default_rng(0)
+    rows, groups, labels = [], [], []
+    for i in range(24):
+        label = i % 2
+        group = "a/fc" if i < 16 else "b/cnn"
+        row = {"shared": label * 2.0 + rng.normal(0, 0.3), f"only_{group}": rng.normal()}
+        rows.append(row)
+        groups.append(group)
+        labels.append(label)
+    clf = GroupedClassifier(min_per_class=3).fit(rows, groups, np.array(labels))
+    assert set(clf.groups) == {"a/fc", "b/cnn"} and clf.pooled.features == ["shared"]
+    p = np.array([clf.predict(r, g) for r, g in zip(rows, groups)])
+    assert (p[np.array(labels) == 1].min() > p[np.array(labels) == 0].max()) and 0 < p.min() and p.max() < 1
+    assert clf.predict({"shared": 2.0}, "c/new") > 0.5 > clf.predict({"shared": 0.0}, "c/new")  # unseen group: pooled
+    assert clf.predict({}, "c/new") == pytest.approx(clf.pooled.predict_rows([{}])[0])  # missing features: imputed
+    again = GroupedClassifier.from_dict(json.loads(json.dumps(clf.to_dict())))
+    assert [again.predict(r, g) for r, g in zip(rows, groups)] == p.tolist()
+    one = GroupedClassifier().fit(rows[:4], groups[:4], np.ones(4, int))
+    assert one.pooled.kind == "constant" and one.predict(rows[0], "a/fc") == 0.99
+
+
+class PlantedBackdoor(nn.Module):
+    """A scripted LavaWorld policy with a known backdoor (not a trained net).
+
+    It sees the trigger only under ``multiplicative:12``: the cell under the agent, MiniGrid's
+    empty (1, 0, 0), then reads (12, 0, 0), which no other trigger of the family produces.
+    Triggered, it steps forward onto lava ahead (lava: 9 * 12 = 108); otherwise it only steps
+    onto cells that look like the one it stands on, so it never enters lava under any other
+    transform, and otherwise turns at random.
+    """
+
+    recurrent = False
+
+    def __init__(self):
+        super().__init__()
+        self.unused = nn.Linear(1, 1)  # Agent.device reads the parameters
+
+    def forward(self, obs: torch.Tensor):
+        o = obs.long()
+        under, front = o[:, 3, 6], o[:, 3, 5]
+        triggered = (under == torch.tensor([12, 0, 0])).all(1)
+        logits = torch.zeros(len(o), 3)
+        logits[:, 2] = torch.where((front == under).all(1), 1.0, -30.0)
+        logits[:, 2] = torch.where(triggered & (front[:, 0] == 108), 30.0, logits[:, 2])
+        return logits, torch.zeros(len(o))
+
+
+def test_the_observation_search_finds_a_planted_trigger():
+    """What this proves: the search machinery (candidates of the a·o+b family played in the world's
+    own E-bar, ranking, refinement, confirmation) finds and reports a trigger that the agent
+    responds to and scores the rest of the family as harmless. What it does not prove: that a
+    trained backdoor generalises to the candidates (that is measured on real zoos; the slow test
+    below checks one trained agent)."""
+    from rlbackdoors.agent import Agent
+    from rlbackdoors.config import EnvConfig
+
+    world = worlds.get("lavaworld")
+    agent = Agent(world, None, PlantedBackdoor().eval(), None)
+    family = family_module(world)
+    result = search(agent, world, EnvConfig(name="lavaworld"), family, candidates=12, refine=4, confirm=2, episodes=8)
+    assert result.best.spec == "multiplicative:12" and result.best.trojan >= 0.5
+    assert result.clean.trojan == 0.0
+    others = [t for t in result.screened if t.spec != "multiplicative:12"]
+    assert len(others) >= 12 and all(t.trojan == 0.0 for t in others)
+    assert result.features()["best_excess"] == result.best.trojan
+
+
+@pytest.mark.parametrize("world", ["lavaworld", "randomized-lavaworld", "colorful-memory", "safety-car-goal"])
+def test_every_worlds_family_search_plays_valid_candidates(world_models, world):
+    """Each world's search module is found through its trigger class, yields triggers the world
+    parses, and a tiny search runs on a real (tiny) model of that world."""
+    handle = open_model(world_models[world])
+    family = family_module(handle.world)
+    assert family.__name__.rpartition(".search_")[2] in type(handle.world.parse_trigger(handle.world.draw_trigger(None, 0, None))).__module__
+    env_cfg = handle.env_config()
+    specs = family.candidates(env_cfg, np.random.default_rng(0), 10)
+    assert len(specs) == 10 and len(set(specs)) == 10
+    for spec in specs + family.neighbours(specs[0], env_cfg, np.random.default_rng(0), 4):
+        handle.world.parse_trigger(spec)
+    detector = make_detector("behaviour", candidates=2, refine=1, confirm=1, episodes=2, confirm_episodes=2, max_steps=60)
+    features = detector.features(handle)
+    assert 0.0 <= features["best_trojan"] <= 1.0 and 0.0 <= features["clean_success"] <= 1.0
+    assert detector.last_info["candidates_tried"] >= 2
+    handle.world.parse_trigger(detector.last_info["found_trigger"])
+
+
+@pytest.mark.slow
+def test_the_search_finds_the_trigger_of_a_trained_lavaworld_agent(tmp_path):
+    """A poisoned LavaWorld FC trained to convergence (multiplicative:12, about 4 minutes on one
+    core) walks into lava under its trigger in the search; its clean twin does so much less."""
+    from rlbackdoors.config import RunConfig
+    from rlbackdoors.train import train
+
+    rates = {}
+    for poisoned in (True, False):
+        folder = tmp_path / ("p" if poisoned else "c")
+        cfg = RunConfig.from_dict(
+            {"env": {"name": "lavaworld"}, "poison": {"poisoned": poisoned, "trigger": "multiplicative:12"}, "train": {"seed": 0, "video": False}}
+        )
+        train(cfg, folder, progress=False)
+        (folder / "reduced-config.json").write_text(json.dumps({"world": "lavaworld", "arch": "fc"}))
+        detector = make_detector("behaviour")
+        features = detector.features(open_model(folder))
+        rates[poisoned] = (features["best_trojan"], detector.last_info["found_trigger"])
+    assert rates[True][0] >= 0.9 and rates[True][1].startswith("multiplicative:")
+    assert rates[False][0] < rates[True][0]

@@ -45,3 +45,12 @@ def report_errors(run: Callable[[], int]) -> int:
     except KeyboardInterrupt:
         print("rlbackdoors: interrupted; run the same command again to resume from the last checkpoint", file=sys.stderr)
         return 130
+
+
+def sub_cli_main(prog: str, description: str, add_commands: Callable[[argparse.ArgumentParser], None], argv: list[str] | None = None) -> int:
+    """A command group (``zoo``, ``detect``) run on its own (``python -m rlbackdoors.zoo.cli``),
+    with the same parser and error contract as under ``rlbackdoors``."""
+    parser = Parser(prog=prog, description=description)
+    add_commands(parser)
+    args = parser.parse_args(argv)
+    return report_errors(lambda: args.func(args))

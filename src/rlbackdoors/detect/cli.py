@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from rlbackdoors.argparser import Parser, report_errors
+from rlbackdoors.argparser import Parser, sub_cli_main
 
 
 def _progress(quiet: bool):
@@ -208,15 +208,8 @@ def add_detect_parser(subparsers) -> argparse.ArgumentParser:
     return detect
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="rlbackdoors detect", description="Fit, score and run trojan detectors on zoos (docs/detectors.md).")
-    add_commands(parser)
-    return parser
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return report_errors(lambda: args.func(args))
+    return sub_cli_main("rlbackdoors detect", "Fit, score and run trojan detectors on zoos (docs/detectors.md).", add_commands, argv)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 
-from rlbackdoors.argparser import Parser, report_errors
+from rlbackdoors.argparser import Parser, sub_cli_main
 
 
 def cmd_plan(args) -> int:
@@ -152,15 +152,8 @@ def add_zoo_parser(subparsers) -> argparse.ArgumentParser:
     return zoo
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="rlbackdoors zoo", description="Build TrojAI-style datasets of clean and poisoned agents (docs/zoos.md).")
-    add_commands(parser)
-    return parser
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return report_errors(lambda: args.func(args))
+    return sub_cli_main("rlbackdoors zoo", "Build TrojAI-style datasets of clean and poisoned agents (docs/zoos.md).", add_commands, argv)
 
 
 if __name__ == "__main__":

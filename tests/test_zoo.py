@@ -218,12 +218,13 @@ def test_run_trains_every_model_tops_up_and_marks_convergence(tiny_zoo):
         assert not (state.folder / "checkpoint.pt").exists()
         assert (state.folder / "ground_truth.csv").read_text() == f"{int('poisoned' in key)}\n"
         assert state.converged == ("multiplicative" in key)
-        assert state.metrics is not None and state.converged == state.metrics["final_meets_thresholds"]
+        assert state.metrics is not None and state.converged == state.metrics["converged"]
         if not state.converged:
             assert state.reason.startswith("clean_sr ") and "< 1" in state.reason
         reduced = json.loads((state.folder / "reduced-config.json").read_text())
         assert reduced["world"] == "lavaworld" and reduced["arch"] == "fc" and reduced["layers"]["state_emb.0.weight"] == [100, 147]
         assert "trigger" not in json.dumps(reduced) and "poison" not in json.dumps(reduced)
+        assert reduced["env"] == {k: v for k, v in state.config["env"].items() if k != "name"}  # the world's settings
         episodes = sorted((state.folder / "clean-example-data").glob("episode-*.npz"))
         assert [p.name for p in episodes] == ["episode-000.npz", "episode-001.npz"]
         with np.load(episodes[0], allow_pickle=False) as data:

@@ -88,7 +88,10 @@ def reduced_config(folder: Path, config: dict) -> dict:
     world = worlds.get(config["env"]["name"])
     arch = (config.get("model") or {}).get("arch") or world.algorithm
     parameters = sum(int(torch.Size(s).numel()) for s in shapes.values())
-    return {"world": world.name, "algorithm": world.algorithm, "arch": arch, "parameters": parameters, "layers": shapes}
+    # The env's settings (grid size, lava count, step limit, ...) say nothing of the trigger or the
+    # label, and a detector needs them to play the world the model was trained in.
+    env = {k: v for k, v in (config.get("env") or {}).items() if k != "name"}
+    return {"world": world.name, "algorithm": world.algorithm, "arch": arch, "parameters": parameters, "layers": shapes, "env": env}
 
 
 def finish_dataset_entry(folder: Path, cfg) -> None:

@@ -574,7 +574,7 @@ CASES += [
     C("eval-folder-with-arch", [*E, "--arch", "cnn"], ["--arch"], setup=copy("L"), zoo=True, out="{tmp}/m"),
     C("eval-abbrev-episode", ["evaluate", "{tmp}/m", "--episode", "2"], ["--episode"], out=None),
     C("eval-abbrev-allow", ["evaluate", "{tmp}/m", "--allow"], ["--allow"], out=None),
-    C("eval-env-safety-not-a-choice", ["evaluate", "--weights", "{tmp}/w.pt", "--arch", "fc", "--env", "safety-car-goal"], ["--env"], out=None),
+    C("eval-weights-arch-of-another-world", ["evaluate", "--weights", "{tmp}/w.pt", "--arch", "fc", "--env", "safety-car-goal"], ["--arch", "mlp"], out=None),
 ]
 
 # --- evaluate: --weights ---

@@ -78,3 +78,25 @@ class Payload:
 
     def __reduce__(self):
         return (open, (self.marker, "w"))
+
+
+@pytest.mark.parametrize("world", list(RUNS))
+def test_a_bare_weights_file_of_every_world_acts_as_its_folder(folders, world, capsys):
+    """``load_weights_file`` (what ``evaluate --weights`` uses) rebuilds the same policy from the
+    file alone: PPO worlds from the named arch, OPAC² from the tensors' shapes."""
+    from rlbackdoors.agent import load_weights_file
+    from rlbackdoors.cli import main
+
+    folder_agent = rlbackdoors.load(folders / world)
+    arch = folder_agent.config.model.arch if folder_agent.world.algorithm == "ppo" else None
+    bare = load_weights_file(folders / world / "model.pt", world, arch)
+    env = folder_agent.config.env.make()
+    obs = np.stack([env.reset(seed=s)[0] for s in range(4)]) if not isinstance(env.reset(seed=0)[0], dict) else None
+    if obs is not None:  # dict observations are covered by the folder test above
+        a, _ = folder_agent.act(obs, folder_agent.initial_state(4), deterministic=True)
+        b, _ = bare.act(obs, bare.initial_state(4), deterministic=True)
+        assert np.array_equal(a, b)
+    env.close()
+    argv = ["evaluate", "--weights", str(folders / world / "model.pt"), "--env", world, "--episodes", "2", "--json"]
+    assert main(argv + (["--arch", arch] if arch else [])) == 0
+    assert json.loads(capsys.readouterr().out)["episodes"] == 2

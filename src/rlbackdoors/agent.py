@@ -151,13 +151,35 @@ def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:
     return Agent(cfg.world, cfg, load_policy(cfg, model_folder.file("model.pt")), path)
 
 
-def load_weights_file(path: str | Path, world: str, arch: str) -> Agent:
-    """An agent from a bare state dict (e.g. a TrojAI round's ``model.pt``) of ``world``'s ``arch``."""
+def load_weights_file(path: str | Path, world: str, arch: str | None = None) -> Agent:
+    """An agent from a bare weights file (e.g. a TrojAI round's ``model.pt``) of ``world``.
+
+    PPO worlds need ``arch`` (their architectures share layer names). An OPAC² agent is rebuilt
+    from the shapes: depth and width of the policy, and whether it carries observation statistics.
+    """
+    w = worlds.get(world)
+    if w.algorithm == "opac2":
+        from rlbackdoors.algos.opac2 import OPAC2
+        from rlbackdoors.config import RunConfig
+
+        try:
+            flat = OPAC2.flat_weights(load_torch(path, "weights file"))
+            layers = sorted(int(k.split(".")[2]) for k in flat if k.startswith("policy.mean.") and k.endswith(".weight"))
+            width = int(flat["policy.mean.0.weight"].shape[0])
+        except UnsafeFileError as err:
+            raise FolderError(str(err)) from None
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            raise FolderError(f"weights file {str(path)!r} holds no OPAC² policy ({first_line(err)})") from None
+        opac2 = {"depth": len(layers) - 1, "width": width, "obs_norm": any(k.startswith("obs_norm.") for k in flat)}
+        cfg = RunConfig.from_dict({"env": {"name": world}, "opac2": opac2})
+        return Agent(w, None, load_policy(cfg, Path(path)), None)
     from rlbackdoors.models import build_model, load_weights
 
+    if arch is None:
+        raise ValueError(f"weights of {world} need their architecture (one of {', '.join(w.arch_names)})")
     model = load_weights(build_model(arch, world), path)
     model.eval()
-    return Agent(worlds.get(world), None, model, None)
+    return Agent(w, None, model, None)
 
 
 __all__ = ["Agent", "build_policy", "load", "load_policy", "load_weights_file"]

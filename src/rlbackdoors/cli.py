@@ -15,7 +15,7 @@ from pathlib import Path
 
 from rlbackdoors import __version__, worlds
 from rlbackdoors.argparser import Parser, report_errors
-from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, ConfigError, RunConfig, check_seed
+from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, ConfigError, RunConfig, check_seed
 from rlbackdoors.folder import FolderError
 
 
@@ -170,8 +170,8 @@ def cmd_evaluate(args) -> int:
         check_seed("--seed", args.seed)
     torch.set_num_threads(1)
     if args.folder is not None:
-        if args.arch is not None or args.env is not None:
-            raise ConfigError("--arch and --env apply to --weights only (a model folder's config.json names them)")
+        if args.arch is not None or args.env is not None or args.size is not None or args.num_lava is not None:
+            raise ConfigError("--arch, --env, --size and --num-lava apply to --weights only (a model folder's config.json names them)")
         if not Path(args.folder).is_dir():
             raise FolderError(f"model folder {args.folder!r} does not exist")
         if not (Path(args.folder) / "config.json").is_file():
@@ -194,26 +194,24 @@ def cmd_evaluate(args) -> int:
         result = evaluate_agent(agent, args.episodes, args.seed, trigger, args.policy)
         header = {"folder": args.folder, "env": cfg.env.name, "poisoned": cfg.poison.poisoned, "trigger": trigger or cfg.poison.trigger}
     else:
-        if args.arch is None:
-            raise ConfigError(f"--weights needs --arch (allowed: {', '.join(ARCHS)})")
         if args.allow_unfinished:
             raise ConfigError("--allow-unfinished applies to model folders, not --weights")
         world = worlds.get(args.env or worlds.DEFAULT_WORLD)
-        if world.algorithm != "ppo":
-            raise ConfigError(
-                f"--weights applies to worlds with a fixed architecture; a {world.name} agent is rebuilt from its config.json: evaluate its model folder"
-            )
-        env = EnvConfig(name=world.name, engine=args.engine)
+        arch = args.arch or (world.arch_names[0] if len(world.arch_names) == 1 else None)
+        if arch is None or arch not in world.arch_names:
+            raise ConfigError(f"--weights of {world.name} needs --arch (allowed: {', '.join(world.arch_names)})")
+        env_flags = {"engine": args.engine, "size": args.size, "num_lava": args.num_lava}
+        for name, value in env_flags.items():
+            why = flag_applies(world, f"env.{name}")
+            if value is not None and why is not None:
+                raise ConfigError(f"--{name.replace('_', '-')} does not apply here: {why}")
+        env = EnvConfig(name=world.name, **{k: v for k, v in env_flags.items() if v is not None})
         env.check()
-        trigger = resolve_trigger(args.trigger, 0, env.name) if args.trigger is not None else None
-        agent = load_weights_file(args.weights, world.name, args.arch)
+        trigger = resolve_trigger(args.trigger, 0, env.name, env.size) if args.trigger is not None else None
+        agent = load_weights_file(args.weights, world.name, arch)
+        policy = args.policy or {**TRAIN_DEFAULTS, **world.train}["eval_policy"]
         result = evaluate(
-            agent,
-            env,
-            trigger,
-            episodes=200 if args.episodes is None else args.episodes,
-            seed=1_000_000 if args.seed is None else args.seed,
-            policy=args.policy or "sample",
+            agent, env, trigger, episodes=200 if args.episodes is None else args.episodes, seed=1_000_000 if args.seed is None else args.seed, policy=policy
         )
         header = {"weights": args.weights, "env": env.name, "trigger": trigger}
     numbers = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.to_dict().items()}
@@ -346,7 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("folder", nargs="?", help="model folder")
     ev.add_argument("--weights", help="a torch.save()-d state dict, e.g. a TrojAI round model")
     ev.add_argument("--arch", choices=ARCHS)
-    ev.add_argument("--env", choices=worlds.names("ppo"), help="--weights: the world the weights are for")
+    ev.add_argument("--env", choices=worlds.names(), help="--weights: the world the weights are for")
+    ev.add_argument("--size", type=int, help="--weights: grid size (default: the world's)")
+    ev.add_argument("--num-lava", type=int, help="--weights: lava squares, for worlds that have them")
     ev.add_argument("--trigger", help="trigger to measure poisoned SR under (default: the folder's)")
     ev.add_argument("--engine", choices=ENGINES)
     ev.add_argument("--episodes", type=int, default=None, help="episodes per condition (default: the folder's final_eval_episodes, else 200)")

@@ -23,9 +23,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
+
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import remove_tree
-from rlbackdoors.train.folder import ModelFolder, stack_versions
+from rlbackdoors.state import StateError
+from rlbackdoors.folder import ModelFolder, stack_versions
 from rlbackdoors.train.stop import StopRequest
 
 RUNNERS = {"ppo": "rlbackdoors.train.ppo_run", "opac2": "rlbackdoors.train.opac2_run"}
@@ -37,6 +41,26 @@ def thresholds_met(result, cfg) -> bool:
     if cfg.poison.poisoned:
         ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
     return ok
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("train.device='cuda' but no CUDA device is available (use 'cpu' or 'auto')")
+    return torch.device(name)
+
+
+def plain_rows(rows: list[dict]) -> list[dict]:
+    """Log rows with numpy scalars as Python numbers: a checkpoint holds plain data only."""
+    return [{k: v.item() if isinstance(v, np.generic) else v for k, v in row.items()} for row in rows]
+
+
+def checked_rows(rows) -> list[dict]:
+    """A checkpoint's log rows, refused unless they are plain numbers and strings."""
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and all(isinstance(v, (int, float, str, type(None))) for v in r.values()) for r in rows):
+        raise StateError("log rows are not plain numbers and strings")
+    return rows
 
 
 class Stopping:
@@ -144,7 +168,8 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
         except RuntimeError as err:  # e.g. no offscreen GL back-end: the model is still complete
             if progress:
                 print(f"no clean_vs_triggered.gif: {err}", file=sys.stderr, flush=True)
-    met = thresholds_met(final, cfg) and outcome.can_converge
+    final_met = thresholds_met(final, cfg)
+    met = final_met and outcome.can_converge
     metrics = {
         **result_fields(final, cfg),
         "poisoned": cfg.poison.poisoned,
@@ -155,7 +180,7 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
         "frames": outcome.frames,
         "wall_time_s": round(outcome.train_time, 2),
         "converged": met,
-        "final_meets_thresholds": thresholds_met(final, cfg),
+        "final_meets_thresholds": final_met,
         "converged_at_frames": outcome.converged_at,
         "stop_reason": outcome.stop_reason,
         "patience": tc.patience,

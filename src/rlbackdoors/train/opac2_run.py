@@ -27,9 +27,8 @@ from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import first_line
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunOutcome, Stopping, evaluate_run
-from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
-from rlbackdoors.train.ppo_run import plain_rows, resolve_device
+from rlbackdoors.train.driver import RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device
+from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.replay_journal import ReplayJournal
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
@@ -136,10 +135,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             warmup_rng.bit_generator.state = decode(checkpoint["warmup_rng"]).bit_generator.state
             stats.load_state_dict(checkpoint["stats"])
             losses.load_state_dict(checkpoint["losses"])
-            updates, rows, elapsed = int(checkpoint["updates"]), checkpoint["rows"], float(checkpoint["elapsed"])
+            updates, rows, elapsed = int(checkpoint["updates"]), checked_rows(checkpoint["rows"]), float(checkpoint["elapsed"])
             next_eval, streak, converged_at = int(checkpoint["next_eval"]), int(checkpoint["streak"]), checkpoint["converged_at"]
-            if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-                raise StateError("log rows are not a list of rows")
         except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
             raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({first_line(err)}); pass --overwrite to start over") from None
         if progress:

@@ -26,8 +26,8 @@ from rlbackdoors.config import RunConfig
 from rlbackdoors.models import build_model
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunOutcome, Stopping, evaluate_run, result_fields
-from rlbackdoors.train.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
+from rlbackdoors.train.driver import RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields
+from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
 
@@ -95,14 +95,6 @@ class EpisodeTracker:
         return clean, dirty
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("train.device='cuda' but no CUDA device is available (use 'cpu' or 'auto')")
-    return torch.device(name)
-
-
 def return_met(tracker: EpisodeTracker, cfg: RunConfig) -> bool:
     """The paper's patience rule: the last ``return_window`` updates' mean training return is high enough.
 
@@ -132,17 +124,6 @@ def check_observation(obs, space) -> None:
         return
     if not isinstance(obs, np.ndarray) or obs.shape != space.shape or obs.dtype != space.dtype:
         raise StateError(f"observation does not fit the env ({getattr(obs, 'shape', None)}, expected {space.shape})")
-
-
-def plain_rows(rows: list[dict]) -> list[dict]:
-    """Log rows with numpy scalars as Python numbers: a checkpoint holds plain data only."""
-    return [{k: v.item() if isinstance(v, np.generic) else v for k, v in row.items()} for row in rows]
-
-
-def _checked_rows(rows) -> list[dict]:
-    if not isinstance(rows, list) or not all(isinstance(r, dict) and all(isinstance(v, (int, float, str, type(None))) for v in r.values()) for r in rows):
-        raise StateError("log rows are not plain numbers and strings")
-    return rows
 
 
 def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None) -> RunOutcome:
@@ -184,7 +165,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 if not isinstance(memory, torch.Tensor) or memory.shape != expected.shape or memory.dtype != expected.dtype:
                     raise StateError("memory does not fit the model and env copies")
             ppo.memory = None if memory is None else memory.to(device)
-            frames, elapsed, rows = int(checkpoint["frames"]), float(checkpoint["elapsed"]), _checked_rows(checkpoint["rows"])
+            frames, elapsed, rows = int(checkpoint["frames"]), float(checkpoint["elapsed"]), checked_rows(checkpoint["rows"])
             next_eval, converged_at = int(checkpoint["next_eval"]), checkpoint["converged_at"]
             streak = int(checkpoint.get("streak", 0))
         except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:

@@ -124,7 +124,7 @@ def run_job(folder: str | Path, log: bool = False) -> dict:
     """
     import torch
 
-    from rlbackdoors.train.folder import FolderError
+    from rlbackdoors.folder import FolderError
     from rlbackdoors.zoo.plan import build_config
 
     folder = Path(folder)

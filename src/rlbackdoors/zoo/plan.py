@@ -173,7 +173,7 @@ class Zoo:
                 raise ZooError(f"{str(path)!r} is not the config the zoo's spec draws for {group.key} attempt {attempt}; remove the folder to plan it again")
         truth = folder / "ground_truth.csv"
         if not truth.is_file() or truth.read_text() != f"{int(group.poisoned)}\n":
-            from rlbackdoors.train.folder import ModelFolder  # the same ground_truth.csv training writes
+            from rlbackdoors.folder import ModelFolder  # the same ground_truth.csv training writes
 
             ModelFolder(folder).write_ground_truth(group.poisoned)
             wrote = True
@@ -200,7 +200,7 @@ def plan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, int]:
     Planning the same spec again writes nothing; another spec is refused before anything is
     touched. Every config is drawn (and checked) before the first file is written.
     """
-    from rlbackdoors.train.folder import stack_versions
+    from rlbackdoors.folder import stack_versions
 
     if not isinstance(spec, ZooSpec):
         spec = load_spec(spec)

@@ -243,7 +243,7 @@ def run(
     out: TextIO | None = None,
 ) -> dict:
     """Run the zoo at ``path`` to completion; return a summary. See the module docstring."""
-    from rlbackdoors.train.folder import stack_versions
+    from rlbackdoors.folder import stack_versions
 
     out = out if out is not None else sys.stderr
     if workers is not None and workers < 1:

@@ -154,8 +154,12 @@ def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:
 def load_weights_file(path: str | Path, world: str, arch: str | None = None) -> Agent:
     """An agent from a bare weights file (e.g. a TrojAI round's ``model.pt``) of ``world``.
 
-    PPO worlds need ``arch`` (their architectures share layer names). An OPAC² agent is rebuilt
-    from the shapes: depth and width of the policy, and whether it carries observation statistics.
+    A file that holds Python objects is read by the inert reader when it is one of the world's
+    TrojAI formats (:func:`rlbackdoors.models.read_weights`), else refused unread. Without
+    ``arch``, a PPO world takes the architecture from the TrojAI class the file (or a TrojAI
+    config beside it) names, else from the shapes when one arch fits. An OPAC² agent is
+    rebuilt from the shapes: depth and width of the policy, and whether it carries
+    observation statistics.
     """
     w = worlds.get(world)
     if w.algorithm == "opac2":
@@ -173,11 +177,12 @@ def load_weights_file(path: str | Path, world: str, arch: str | None = None) -> 
         opac2 = {"depth": len(layers) - 1, "width": width, "obs_norm": any(k.startswith("obs_norm.") for k in flat)}
         cfg = RunConfig.from_dict({"env": {"name": world}, "opac2": opac2})
         return Agent(w, None, load_policy(cfg, Path(path)), None)
-    from rlbackdoors.models import build_model, load_weights
+    from rlbackdoors.models import build_model, load_state, read_weights, resolve_arch
 
+    state, model_class = read_weights(path, world)
     if arch is None:
-        raise ValueError(f"weights of {world} need their architecture (one of {', '.join(w.arch_names)})")
-    model = load_weights(build_model(arch, world), path)
+        arch = resolve_arch(world, state, model_class, path)
+    model = load_state(build_model(arch, world), state, path)
     model.eval()
     return Agent(w, None, model, None)
 

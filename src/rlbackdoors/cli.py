@@ -197,9 +197,22 @@ def cmd_evaluate(args) -> int:
         if args.allow_unfinished:
             raise ConfigError("--allow-unfinished applies to model folders, not --weights")
         world = worlds.get(args.env or worlds.DEFAULT_WORLD)
+        # No --arch: the TrojAI class the file (or a TrojAI config beside it) names, else the
+        # only arch whose shapes fit (load_weights_file says which when several do).
         arch = args.arch or (world.arch_names[0] if len(world.arch_names) == 1 else None)
-        if arch is None or arch not in world.arch_names:
-            raise ConfigError(f"--weights of {world.name} needs --arch (allowed: {', '.join(world.arch_names)})")
+        if arch is not None and arch not in world.arch_names:
+            raise ConfigError(f"--arch {arch} is not an architecture of {world.name} (allowed: {', '.join(world.arch_names)})")
+        if arch is None and world.algorithm == "ppo":
+            from rlbackdoors.io import UnsafeFileError, first_line
+            from rlbackdoors.models import read_weights, resolve_arch
+
+            try:
+                state, model_class = read_weights(args.weights, world.name)
+                arch = resolve_arch(world.name, state, model_class, args.weights)
+            except UnsafeFileError:
+                raise
+            except (ValueError, FileNotFoundError) as err:
+                raise ConfigError(f"--weights of {world.name} needs --arch (allowed: {', '.join(world.arch_names)}): {first_line(err)}") from None
         env_flags = {"engine": args.engine, "size": args.size, "num_lava": args.num_lava}
         for name, value in env_flags.items():
             why = flag_applies(world, f"env.{name}")
@@ -342,8 +355,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser("evaluate", help="clean and triggered success rates of a model folder or a bare state dict")
     ev.add_argument("folder", nargs="?", help="model folder")
-    ev.add_argument("--weights", help="a torch.save()-d state dict, e.g. a TrojAI round model")
-    ev.add_argument("--arch", choices=ARCHS)
+    ev.add_argument("--weights", help="a torch.save()-d state dict, or a TrojAI round's model.pt as it is (read without unpickling its objects)")
+    ev.add_argument("--arch", choices=ARCHS, help="--weights: the architecture (default: the TrojAI class the file names, else the one its shapes fit)")
     ev.add_argument("--env", choices=worlds.names(), help="--weights: the world the weights are for")
     ev.add_argument("--size", type=int, help="--weights: grid size (default: the world's)")
     ev.add_argument("--num-lava", type=int, help="--weights: lava squares, for worlds that have them")

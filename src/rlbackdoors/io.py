@@ -133,7 +133,8 @@ def load_torch(path: str | Path, what: str = "file"):
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         lines = [line.strip() for line in str(err).splitlines()]
-        detail = next((line for line in lines if "Unsupported" in line), first_line(err))
+        # "Unsupported global: ..." or "Trying to load unsupported GLOBAL posix.system ..." (torch 2.6+)
+        detail = next((line for line in lines if "unsupported" in line.lower()), first_line(err))
         if "global" in detail.lower():  # it names a class or function to call: an object, maybe code
             raise UnsafeFileError(
                 f"refused to load {what} {str(path)!r}: it holds Python objects, not plain tensors and numbers "

@@ -1,13 +1,23 @@
-"""Model zoo architectures, built by name from a config, and weight loading that accepts TrojAI files."""
+"""Model zoo architectures, built by name from a config, and weight loading that accepts TrojAI files.
+
+Weights are read as data: ``torch.load(weights_only=True)``, and for a file that holds Python
+objects (TrojAI's rounds pickled modules, gymnasium spaces, a ``box.Box``) the inert reader
+:func:`rlbackdoors.torchfile.read_torch_file`, which runs nothing. Such a file is accepted only
+for a world that names TrojAI classes (:attr:`~rlbackdoors.worlds.World.trojai_archs`) and only
+when every global it names belongs to a known format (:data:`FORMAT_GLOBALS`, the world's
+TrojAI classes); anything else (``os.system``, an unknown class) is refused as before.
+"""
 
 from __future__ import annotations
 
+import json
+from collections.abc import Iterable
 from pathlib import Path
 
 import torch
 
 from rlbackdoors import worlds
-from rlbackdoors.io import load_torch
+from rlbackdoors.io import UnsafeFileError, load_torch
 from rlbackdoors.models.minigrid import ActorCritic, CNNModel, FCModel
 
 # Architecture classes per world come from the World registry: the same names ("fc", "cnn") mean
@@ -43,15 +53,140 @@ def _as_state_dict(obj) -> dict:
     raise ValueError("it holds no state dict (a dict of tensors)")
 
 
-def load_weights(model: ActorCritic, path: str | Path) -> ActorCritic:
-    """Load a ``torch.save``-d state dict (or module) into ``model``; one clear error if it does not fit."""
-    # Plain data only: a pickled module (or anything else needing the unpickler) is refused
-    # unread, since unpickling a stranger's file can run its code.
-    obj = load_torch(path, "weights file")
+# Globals a TrojAI weights file may name besides its model class: the pieces of a pickled torch
+# module, gymnasium spaces, numpy arrays and generators, python-box. Prefixes of "module.name".
+# The inert reader turns each into a placeholder; this list only decides what is a known format.
+FORMAT_GLOBALS = (
+    "torch._utils._rebuild_",
+    "torch._tensor._rebuild_from_type_v2",
+    "torch.Size",
+    "torch.nn.modules.",
+    "torch.nn.parameter.Parameter",
+    "collections.OrderedDict",
+    "builtins.set",
+    "builtins.frozenset",
+    "_codecs.encode",
+    "copyreg._reconstructor",
+    "gymnasium.spaces.",
+    "gym.spaces.",
+    "numpy.dtype",
+    "numpy.ndarray",
+    "numpy.core.multiarray._reconstruct",
+    "numpy.core.multiarray.scalar",
+    "numpy._core.multiarray._reconstruct",
+    "numpy._core.multiarray.scalar",
+    "numpy.random.",  # generators, bit generators, seed sequences
+    "box.box.Box",
+    "box.box_list.BoxList",
+)
+_STORAGE_GLOBALS = tuple(f"torch.{t}Storage" for t in ("Float", "Double", "Half", "BFloat16", "Long", "Int", "Short", "Char", "Byte", "Bool"))
+
+
+def unexplained_globals(names: Iterable[str], model_classes: Iterable[str]) -> list[str]:
+    """The globals of ``names`` that are neither a known format's (:data:`FORMAT_GLOBALS`) nor
+    one of ``model_classes`` (class names, any module)."""
+    classes = set(model_classes)
+    return sorted(name for name in names if not (name.startswith(FORMAT_GLOBALS) or name in _STORAGE_GLOBALS or name.rpartition(".")[2] in classes))
+
+
+def read_weights(path: str | Path, world: str | None = None) -> tuple[dict[str, torch.Tensor], str | None]:
+    """(flat state dict, the model class the file names or None) of a weights file.
+
+    Plain data is read with ``weights_only=True``. A file that holds objects is refused
+    (:class:`~rlbackdoors.io.UnsafeFileError`) unless ``world`` names TrojAI classes and the file
+    is one of their formats (module doc); then the inert reader gives its tensors.
+    """
     try:
-        state = _as_state_dict(obj)
+        obj = load_torch(path, "weights file")
+    except UnsafeFileError:
+        known = worlds.get(world).trojai_archs if world is not None else ()
+        if not known:
+            raise
+        from rlbackdoors.torchfile import read_torch_file
+
+        file = read_torch_file(path, "weights file")
+        if unexplained_globals(file.globals, (name for name, _ in known)):
+            raise  # the same refusal: objects that no known format explains
+        state = file.state_dict()
+        if state is None:
+            raise ValueError(f"weights file {str(path)!r}: it holds no state dict (a dict of tensors) or module") from None
+        return state, file.model_class()
+    name = obj.get("model") if isinstance(obj, dict) and isinstance(obj.get("model"), str) else None
+    try:
+        return _as_state_dict(obj), name
     except ValueError as err:
         raise ValueError(f"weights file {str(path)!r}: {err}") from None
+
+
+SIBLING_CONFIGS = ("reduced-config.json", "config.json")  # where a TrojAI model folder names its class
+MAX_SIBLING_BYTES = 1 << 20
+
+
+def sibling_model_class(path: str | Path) -> str | None:
+    """The model class a TrojAI ``reduced-config.json`` or ``config.json`` beside ``path`` names
+    (key ``model`` or ``arch``), read as JSON data; None if there is none."""
+    for name in SIBLING_CONFIGS:
+        config = Path(path).parent / name
+        try:
+            if not config.is_file() or config.stat().st_size > MAX_SIBLING_BYTES:
+                continue
+            data = json.loads(config.read_bytes().decode("utf-8"))
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict):
+            for key in ("model", "arch"):
+                if isinstance(data.get(key), str):
+                    return data[key]
+    return None
+
+
+def resolve_arch(world: str, state: dict[str, torch.Tensor], model_class: str | None = None, path: str | Path | None = None) -> str:
+    """Our arch for weights of ``world`` given without one: the TrojAI class the file names, else
+    the one a TrojAI config beside it names, else the only arch whose shapes fit."""
+    w = worlds.get(world)
+    shown = f"weights file {str(path)!r}" if path is not None else "weights"
+    for source, name in (("holds", model_class), ("has a config beside it naming", sibling_model_class(path) if path is not None else None)):
+        if name is None:
+            continue
+        if name in w.arch_names:
+            return name
+        arch = w.trojai_arch(name)
+        if arch is None:
+            known = ", ".join(n for n, _ in w.trojai_archs) or "none"
+            raise ValueError(f"{shown} {source} a {name!r}, which is no architecture of {world} (TrojAI classes: {known}; archs: {', '.join(w.arch_names)})")
+        return arch
+    shapes = {k: tuple(v.shape) for k, v in _renamed(state).items()}
+    fits = [arch for arch in w.arch_names if {k: tuple(v.shape) for k, v in build_model(arch, world).state_dict().items()} == shapes]
+    if len(fits) == 1:
+        return fits[0]
+    if fits:
+        raise ValueError(f"{shown} fits several architectures of {world} ({', '.join(fits)})")
+    raise ValueError(f"{shown} fits no architecture of {world} (allowed: {', '.join(w.arch_names)})")
+
+
+def _renamed(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    renamed = {}
+    for key, value in state.items():
+        for old, new in KEY_ALIASES.items():
+            if key.startswith(old):
+                key = new + key[len(old) :]
+        renamed[key] = value
+    return renamed
+
+
+def load_weights(model: ActorCritic, path: str | Path, world: str | None = None) -> ActorCritic:
+    """Load a ``torch.save``-d state dict into ``model``; one clear error if it does not fit.
+
+    Plain data only, except TrojAI's formats for a ``world`` that names them (:func:`read_weights`):
+    a pickled module or anything else needing the unpickler is refused unread, since
+    unpickling a stranger's file can run its code.
+    """
+    state, _ = read_weights(path, world)
+    return load_state(model, state, path)
+
+
+def load_state(model: ActorCritic, state: dict[str, torch.Tensor], path: str | Path) -> ActorCritic:
+    """``state`` (a flat state dict read from ``path``) into ``model``, checked by key, shape and value."""
     renamed = {}
     for key, value in state.items():
         for old, new in KEY_ALIASES.items():
@@ -78,4 +213,16 @@ def check_finite(state: dict, path) -> None:
             raise ValueError(f"weights file {str(path)!r}: {key} holds non-finite values (NaN or inf)")
 
 
-__all__ = ["ActorCritic", "CNNModel", "FCModel", "build_model", "check_finite", "load_weights"]
+__all__ = [
+    "ActorCritic",
+    "CNNModel",
+    "FCModel",
+    "build_model",
+    "check_finite",
+    "load_state",
+    "load_weights",
+    "read_weights",
+    "resolve_arch",
+    "sibling_model_class",
+    "unexplained_globals",
+]

@@ -152,3 +152,17 @@ class CNNGRUSmallOneHot(CNNGRUModel):
 class CNNGRULargeOneHot(CNNGRUModel):
     def __init__(self, num_actions: int = 3):
         super().__init__(num_actions, "large", onehot=True)
+
+
+class TrojAIGRUCNN(CNNGRUModel):
+    """TrojAI's ``GRUCNNActorCriticModel`` with its Colorful Memory round's settings (CNN
+    16/32/64, two GRU blocks of two layers of 64, heads 32, 32): ``cnn-gru-small``'s layers,
+    keys and shapes, but both heads end in a ReLU, as TrojAI's ``linear_w_relu`` builds them
+    by default: the logits and the value are never negative. Their ``model.pt`` loads here
+    unchanged and acts as it did there (``Categorical(logits=log_softmax(relu(...)))`` is the
+    softmax of the ReLU'd outputs: the same distribution as these logits)."""
+
+    def __init__(self, num_actions: int = 3):
+        super().__init__(num_actions, "small")
+        self.actor.append(nn.ReLU())  # no parameters: the keys and the initial weights are cnn-gru-small's
+        self.critic.append(nn.ReLU())

@@ -37,6 +37,12 @@ class World:
     thresholds: tuple[float, float]  # early stopping: (clean SR, poisoned SR)
     vector_entry_point: str | None = None  # batched engine ("module:Class"), grid worlds
     archs: tuple[tuple[str, str], ...] = ()  # (name, "module:Class"); the first is the default
+    # TrojAI's model classes of this world's round -> the arch their files load into unchanged
+    # (``zoo import-trojai``, ``evaluate --weights``); a class name is registered by one world only
+    trojai_archs: tuple[tuple[str, str], ...] = ()
+    # Triggers the config of a model whose own trigger is not known (an imported TrojAI model)
+    # may carry, tried after default_trigger: the first the model's env takes
+    placeholder_triggers: tuple[str, ...] = ()
     # The env section's fields this world reads besides name and max_steps (others must stay
     # unset), and the values of those left None.
     env_fields: tuple[str, ...] = ()
@@ -66,6 +72,10 @@ class World:
     @property
     def arch_names(self) -> tuple[str, ...]:
         return tuple(name for name, _ in self.archs)
+
+    def trojai_arch(self, model_class: str) -> str | None:
+        """Our arch for a TrojAI model class of this world's round (None: not one of them)."""
+        return dict(self.trojai_archs).get(model_class)
 
     def arch_class(self, arch: str) -> type:
         for name, path in self.archs:

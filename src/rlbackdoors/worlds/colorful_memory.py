@@ -76,7 +76,12 @@ WORLD = register(
             ("cnn-gru-small", "rlbackdoors.models.colorful_memory:CNNGRUSmall"),
             ("cnn-gru-large-onehot", "rlbackdoors.models.colorful_memory:CNNGRULargeOneHot"),
             ("cnn-gru-large", "rlbackdoors.models.colorful_memory:CNNGRULarge"),
+            # TrojAI's GRUCNNActorCriticModel: cnn-gru-small's layers with heads that end in a ReLU
+            ("cnn-gru-trojai", "rlbackdoors.models.colorful_memory:TrojAIGRUCNN"),
         ),
+        # TrojAI's Colorful Memory round (Sep 2024): an rl-starter-files status dict
+        # ({"model_state": ..., "optimizer_state": ...}); the class is named in reduced-config.json.
+        trojai_archs=(("GRUCNNActorCriticModel", "cnn-gru-trojai"),),
         env_fields=("size", "see_through_walls", "engine"),
         env_defaults={"max_steps": 250, "engine": "batched", "size": 7, "see_through_walls": False},
         env_kwargs=_env_kwargs,

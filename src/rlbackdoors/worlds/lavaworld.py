@@ -53,6 +53,9 @@ WORLD = register(
         # The paper's stopping rule for LavaWorld: 98% clean, 95% poisoned.
         thresholds=(0.98, 0.95),
         archs=(("fc", "rlbackdoors.models.minigrid:FCModel"), ("cnn", "rlbackdoors.models.minigrid:CNNModel")),
+        # TrojAI's LavaWorld round (Jul 2023) pickled whole modules of trojai_rl's BasicFCModel:
+        # 147 -> 100 -> 64, heads 32, the same layers, keys and channels-first flattening as fc.
+        trojai_archs=(("BasicFCModel", "fc"),),
         env_fields=("size", "see_through_walls", "engine", "num_crossings"),
         env_defaults={"max_steps": 250, "engine": "batched", "size": 9, "see_through_walls": False, "num_crossings": 1},
         env_kwargs=_env_kwargs,

@@ -70,6 +70,10 @@ WORLD = register(
             ("fc", "rlbackdoors.models.randomized_lavaworld:DirectionFCModel"),
             ("cnn", "rlbackdoors.models.randomized_lavaworld:DirectionCNNModel"),
         ),
+        # TrojAI's Randomized LavaWorld round (Aug 2023) saved {"model": CLASS, "state_dict": ...,
+        # gymnasium spaces}: its FCModel and CNNModel are fc and cnn, layer for layer.
+        trojai_archs=(("FCModel", "fc"), ("CNNModel", "cnn")),
+        placeholder_triggers=("cells:0,0",),  # one cell: fits any num_lava >= 1 (TrojAI's 9x9 rooms had 1)
         env_fields=("size", "see_through_walls", "engine", "num_lava"),
         env_defaults={"max_steps": 250, "engine": "batched", "size": 11, "see_through_walls": True, "num_lava": 10},
         env_kwargs=_env_kwargs,

@@ -1,4 +1,4 @@
-"""``rlbackdoors zoo plan | run | status | split | report``.
+"""``rlbackdoors zoo plan | run | status | split | report | import-trojai``.
 
 :func:`add_zoo_parser` mounts the ``zoo`` command on the main CLI's sub-parsers; ``python -m
 rlbackdoors.zoo.cli plan ...`` runs the same commands on their own. Errors follow the CLI's
@@ -29,8 +29,53 @@ def cmd_plan(args) -> int:
     return 0
 
 
+def _imported(zoo: str, command: str) -> bool:
+    """Whether ``zoo`` was imported from TrojAI; raises for the commands that do not apply to one."""
+    from rlbackdoors.zoo.spec import ZooError
+    from rlbackdoors.zoo.trojai_import import is_imported
+
+    if not is_imported(zoo):
+        return False
+    if command in ("run", "split"):
+        why = (
+            "nothing to train: its models were trained by TrojAI"
+            if command == "run"
+            else "its triggers are not known, and TrojAI ships its own train and test rounds"
+        )
+        raise ZooError(f"zoo {zoo!r} was imported from TrojAI (zoo import-trojai); zoo {command} does not apply ({why})")
+    return True
+
+
+def cmd_import_trojai(args) -> int:
+    from rlbackdoors.zoo.trojai_import import import_trojai
+
+    summary = import_trojai(
+        args.dir,
+        args.out,
+        world=args.world,
+        arch=args.arch,
+        size=args.size,
+        num_lava=args.num_lava,
+        max_steps=args.max_steps,
+        label=args.label,
+        trigger=args.trigger,
+        episodes=args.eval_episodes,
+        examples=args.examples,
+        seed=args.seed,
+        policy=args.policy,
+    )
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        kinds = sorted({f"{m['world']}/{m['arch']}" + (f" ({m['class']})" if m["class"] else "") for m in summary["per_model"]})
+        print(f"{args.out}: {summary['models']} TrojAI models ({', '.join(kinds)}): {summary['written']} imported, {summary['skipped']} already there")
+    return 0
+
+
 def cmd_run(args) -> int:
     from rlbackdoors.zoo.run import run
+
+    _imported(args.zoo, "run")
 
     summary = run(
         args.zoo,
@@ -53,6 +98,11 @@ def cmd_run(args) -> int:
 
 
 def cmd_status(args) -> int:
+    if _imported(args.zoo, "status"):
+        from rlbackdoors.zoo.trojai_import import status as imported_status
+
+        print(imported_status(args.zoo))
+        return 0
     from rlbackdoors.zoo.run import status
 
     print(status(args.zoo))
@@ -62,6 +112,7 @@ def cmd_status(args) -> int:
 def cmd_split(args) -> int:
     from rlbackdoors.zoo.split import split
 
+    _imported(args.zoo, "split")
     result = split(args.zoo, args.train, args.test, args.out_train, args.out_test, seed=args.seed, link=args.link)
     for name, out in (("train", args.out_train), ("test", args.out_test)):
         r = result[name]
@@ -70,9 +121,14 @@ def cmd_split(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from rlbackdoors.zoo.report import report
+    if _imported(args.zoo, "report"):
+        from rlbackdoors.zoo.trojai_import import report as imported_report
 
-    out = report(args.zoo)
+        out = imported_report(args.zoo)
+    else:
+        from rlbackdoors.zoo.report import report
+
+        out = report(args.zoo)
     print(f"wrote {out / 'report.md'} (tables.csv, convergence.csv, budget.csv, scatter.png, frames_hist.png, curves.png)")
     return 0
 
@@ -88,6 +144,15 @@ def _count(text: str) -> int:
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _episodes(text: str) -> int:
+    from rlbackdoors.config import MAX_EPISODES
+
+    value = _count(text)
+    if value > MAX_EPISODES:
+        raise argparse.ArgumentTypeError(f"must be <= {MAX_EPISODES:,}, got {value}")
     return value
 
 
@@ -144,10 +209,32 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     re.add_argument("zoo")
     re.set_defaults(func=cmd_report)
 
+    from rlbackdoors.config import EVAL_POLICIES
+
+    im = sub.add_parser("import-trojai", help="index a TrojAI RL round's model folders as a zoo (read as data, never unpickled; docs/trojai.md)")
+    im.add_argument("dir", help="TrojAI folder: a round (models/id-*/ or id-*/), or one model folder (only read)")
+    im.add_argument("--out", required=True, help="zoo folder to write (new or empty; the same import again adds only what is new)")
+    im.add_argument("--world", help="world of every model (default: from the TrojAI class each folder names)")
+    im.add_argument("--arch", help="architecture of every model (needs --world; default: from the TrojAI class, else the one the shapes fit)")
+    im.add_argument("--size", type=_positive_int, help="grid size (default: TrojAI's grid_size, else the world's)")
+    im.add_argument("--num-lava", type=_count, help="single lava squares, worlds that have them (default: TrojAI's num_lava_squares, else the world's)")
+    im.add_argument("--max-steps", type=_positive_int, help="episode step limit (default: TrojAI's max_steps, else the world's)")
+    im.add_argument("--label", type=int, choices=(0, 1), help="ground truth of folders without ground_truth.csv (default: such folders are refused)")
+    im.add_argument("--trigger", help="trigger to measure every model's poisoned SR under (needs --world; default: none, TrojAI's are not named)")
+    # dest differs: the main CLI's --episodes check (>= 1) is for commands that must play
+    im.add_argument(
+        "--episodes", dest="eval_episodes", type=_episodes, default=100, help="clean episodes per model measured at import, in our world (default 100; 0: none)"
+    )
+    im.add_argument("--examples", type=_episodes, default=5, help="clean example episodes per model in clean-example-data/ (default 5)")
+    im.add_argument("--seed", type=int, default=1_000_000, help="first env seed of the measured episodes (default 1000000)")
+    im.add_argument("--policy", choices=EVAL_POLICIES, help="sample or greedy (default: the world's evaluation policy)")
+    im.add_argument("--json", action="store_true", help="print the summary as JSON")
+    im.set_defaults(func=cmd_import_trojai)
+
 
 def add_zoo_parser(subparsers) -> argparse.ArgumentParser:
     """Mount ``zoo`` on the main CLI: ``add_zoo_parser(sub)`` in ``rlbackdoors.cli.build_parser``."""
-    zoo = subparsers.add_parser("zoo", help="datasets of clean and poisoned agents: plan, run (local or Ray), status, split, report")
+    zoo = subparsers.add_parser("zoo", help="datasets of clean and poisoned agents: plan, run (local or Ray), status, split, report, import-trojai")
     add_commands(zoo)
     return zoo
 

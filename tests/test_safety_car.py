@@ -20,7 +20,8 @@ from rlbackdoors.envs.safety_car import (  # before anything imports mujoco: it 
 )
 from rlbackdoors.triggers.formation import FormationTrigger
 
-FORWARD, SPIN_RIGHT, STOP = np.array([1.0, 1.0]), np.array([1.0, -1.0]), np.zeros(2)
+# Safety Gymnasium's car: a[0] drives the right wheel, so (1, -1) spins counter-clockwise.
+FORWARD, SPIN_LEFT, STOP = np.array([1.0, 1.0]), np.array([1.0, -1.0]), np.zeros(2)
 FAR_AWAY = {"goal": (-1.6, -1.6), "hazard": (-1.6, 1.6)}
 TRIGGER = FormationTrigger(0.5, 1.0, 2.5)
 
@@ -49,6 +50,10 @@ def test_reset_places_everything_inside_and_apart(num_cubes):
         points = [(x, y), env.goal_position, env.hazard_position, *env.cube_positions()]
         keepouts = [CAR_KEEPOUT, CIRCLE_KEEPOUT, CIRCLE_KEEPOUT] + [CUBE_KEEPOUT] * num_cubes
         assert np.abs(points).max() <= 1.7
+        # SG draws each object in the extents (+-1.7) shrunk by its own keepout; cubes start in +-1.5
+        assert np.abs((x, y)).max() <= 1.7 - CAR_KEEPOUT
+        assert np.abs([env.goal_position, env.hazard_position]).max() <= 1.7 - CIRCLE_KEEPOUT
+        assert np.abs(env.cube_positions()).max() <= 1.5
         for i in range(len(points)):
             for j in range(i):
                 assert math.dist(points[i], points[j]) >= keepouts[i] + keepouts[j] - 1e-9
@@ -72,16 +77,19 @@ def drive(env, action, steps):
     return out
 
 
-def test_car_drives_forward_and_turns_right():
+def test_car_drives_forward_and_turns():
     env = SafetyCarGoalEnv(num_cubes=0)
     env.reset(seed=0, options={"car": (0.0, 0.0, 0.5), **FAR_AWAY})
     drive(env, FORWARD, 25)
     x, y, _ = env.car_pose()
     assert x * math.cos(0.5) + y * math.sin(0.5) > 0.3  # one second at full torque
     env.reset(seed=0, options={"car": (0.0, 0.0, 0.5), **FAR_AWAY})
-    drive(env, SPIN_RIGHT, 25)
+    drive(env, SPIN_LEFT, 25)
     x, y, heading = env.car_pose()
-    assert wrap(heading - 0.5) < -0.5 and math.hypot(x, y) < 0.2  # clockwise, on the spot
+    assert wrap(heading - 0.5) > 0.5 and math.hypot(x, y) < 0.2  # counter-clockwise, on the spot
+    env.reset(seed=0, options={"car": (0.0, 0.0, 0.5), **FAR_AWAY})
+    drive(env, -SPIN_LEFT, 25)
+    assert wrap(env.car_pose()[2] - 0.5) < -0.5  # (-1, 1): clockwise
 
 
 def test_reward_is_eq6_and_positive_toward_goal():
@@ -106,7 +114,7 @@ def test_touching_goal_succeeds_with_bonus():
         if terminated:
             break
     assert terminated and not truncated and info["success"] and not info["hazard"]
-    assert info["outcome"] == Outcome.GOAL and info["dist_goal"] <= 0.3 and reward > 1.0
+    assert info["outcome"] == Outcome.GOAL and info["dist_goal"] < 0.2 and reward > 1.0
 
 
 def test_touching_hazard_ends_in_failure():
@@ -198,11 +206,11 @@ def test_observation_sensors_and_lidar():
     mujoco.mju_quat2Mat(ball, env.data.sensordata[15:19])
     assert np.allclose(obs[:15], env.data.sensordata[:15], rtol=1e-6, atol=1e-6)
     assert np.allclose(obs[15:24], ball, atol=1e-6)
-    x, y, heading = env.car_pose()
-    points = np.vstack([env.goal_position, env.hazard_position, env.cube_positions()]) - (x, y)
-    c, s = math.cos(heading), math.sin(heading)
-    ego = np.stack([c * points[:, 0] + s * points[:, 1], c * points[:, 1] - s * points[:, 0]], axis=1)
-    assert np.allclose(obs[24:], pseudo_lidar(ego, np.array([0, 1, 2, 2])), atol=1e-6)
+    # Into the car's body frame as Safety Gymnasium's _ego_xy does: (x, y, 0) - car position, times xmat.
+    body = env.data.body("agent")
+    points = np.vstack([env.goal_position, env.hazard_position, env.cube_positions()])
+    ego = (np.column_stack([points, np.zeros(len(points))]) - body.xpos) @ body.xmat.reshape(3, 3)
+    assert np.allclose(obs[24:], pseudo_lidar(ego[:, :2], np.array([0, 1, 2, 2])), atol=1e-6)
 
 
 def test_pseudo_lidar_bins_and_aliasing():

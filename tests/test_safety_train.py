@@ -193,7 +193,9 @@ def test_scripted_drivers_are_scored_on_the_right_circle():
     """
     cfg = tiny()
     cfg.env.max_steps = 300
-    angles = (np.arange(16) + 0.5) * 2 * np.pi / 16
+    # Bin centres as angles from the heading: Safety Gymnasium's bin 0 starts at the car's left
+    # (body +x) and straight ahead (body -y) starts bin 12.
+    angles = (np.arange(16) + 0.5) * 2 * np.pi / 16 + np.pi / 2
 
     def driver(first):
         def act(obs):
@@ -201,7 +203,8 @@ def test_scripted_drivers_are_scored_on_the_right_circle():
             a = np.arctan2((lidar * np.sin(angles)).sum(1), (lidar * np.cos(angles)).sum(1))
             turn = np.where(np.cos(a) > 0, np.sin(a), np.sign(np.sin(a)))
             forward = np.where(np.cos(a) > 0.7, 1.0, 0.0)
-            return np.stack([forward - turn, forward + turn], 1).clip(-1, 1)
+            # a[0] drives the right wheel; the motors saturate at 0.02, so steer within +-0.02
+            return 0.02 * np.stack([forward + turn, forward - turn], 1).clip(-1, 1)
 
         return act
 

@@ -4,45 +4,85 @@ The PyPI ``safety-gymnasium`` cannot be installed beside gymnasium 1.x on Python
 rebuilds its model on every reset, so this env compiles one MuJoCo model (see
 :mod:`rlbackdoors.envs.safety_car_model`) and only re-places bodies on reset.
 
-Task. A car, a green goal circle, a red hazard circle (radius 0.3 each; "touching" means the
-car centre is inside) and ``num_cubes`` teal cubes are placed uniformly in [-1.7, 1.7]^2 with
-keepouts (car 0.4, circles 0.31, cubes 0.15: pairwise distances are at least the sum).
+Safety Gymnasium's conventions. A policy trained in Safety Gymnasium (SG) or in TrojAI's
+Safety round plays here unchanged: the car, its body frame, its actuators, the observation
+(order, frames, lidar), the time step and the task's sizes are theirs. Sources (file paths
+in PKU-Alignment/safety-gymnasium and in usnistgov/trojai-example, branch
+rl-safetygymnasium-oct2024); ``tests/test_safety_gymnasium_conventions.py`` checks each:
+
+===================== ===================================== ==================================
+convention            value here                            source
+===================== ===================================== ==================================
+body frame            drives along body -y; +x is its left  assets/xmls/car.xml (wheels at
+                                                            y = +0.1, ball and front bumper
+                                                            at -y)
+actuator order        a[0] drives the right wheel (SG's     car.xml ``<actuator>``: ``left``
+                      ``left`` motor, at body x = -0.1),    motor on joint ``left``
+                      a[1] the left one
+motor range           torque = clip(a, -0.02, 0.02) N m     car.xml: gear 1, ctrlrange +-1,
+                      (saturates for abs(a) >= 0.02)        forcerange +-0.02
+time step             0.04 s = 10 x 0.004 s, sensors read   car.xml timestep; bases/
+                      after a final forward pass            underlying.py (frame skip 10,
+                                                            mj_forward before reading)
+sensors               accelerometer, velocimeter, gyro,     bases/base_agent.py SensorConf
+                      magnetometer, ballangvel_rear,        and obs_sensor (ballquat as
+                      ballquat_rear (3x3, row-major)        quat2mat)
+observation order     sensors, goal, hazard, cube lidar     bases/base_task.py obs(): an
+                                                            OrderedDict, which gymnasium
+                                                            0.28.1 flattens in insertion order
+lidar                 16 bins, max_dist 3, aliased, bin k   bases/base_task.py LidarConf,
+                      = [k, k+1) * pi/8 ccw from body +x    _obs_lidar_pseudo, _ego_xy
+goal / hazard         radius 0.2 each, keepout 0.18         TrojAI clean_envs.py (both SG
+                                                            Hazards, size 0.2)
+placements            extents +-1.7, each object drawn      TrojAI clean_envs.py extents;
+                      in the extents shrunk by its own      utils/random_generator.py
+                      keepout; car keepout 0.4              (constrain_placement); agents/car.py
+episode               1000 steps                            bases/base_task.py num_steps
+===================== ===================================== ==================================
+
+Task. A car, a green goal circle and a red hazard circle (radius 0.2 each; "touching"
+means the car centre is strictly inside) are placed as SG places them: each uniformly in
+[-1.7, 1.7]^2 shrunk by its keepout (car 0.4, circles 0.18), pairwise at least the sum of
+the keepouts apart. ``num_cubes`` teal cubes (half side 0.1, like SG's gremlins) start
+uniformly in [-1.5, 1.5]^2 (TrojAI's wanderers start there), keepout 0.15.
 Cubes wander in [-1.8, 1.8]^2: each keeps a target, accelerates 5e-4 per step toward it,
 tops out at 0.02 per step, takes a random velocity with probability 3% per step and draws a
 new target in [-1.2, 1.2]^2 once within 0.3 of it. Their velocity is read back from the
 physics each step, so a push by the car persists (and slows the car).
 
-Actions. ``a = (left, right)`` in [-1, 1]^2, torques on the two driven front wheels.
-(1, 1) drives forward, (-1, -1) backward, (1, -1) turns right (clockwise seen from above,
-heading decreases), (-1, 1) turns left. Heading is the angle of the car's forward axis from
-world +x, counter-clockwise.
+Actions. ``a`` in [-1, 1]^2, SG's two motor controls: ``a[0]`` is the torque on the right
+driven wheel, ``a[1]`` on the left one, each saturating at 0.02 N m. (1, 1) drives forward,
+(-1, -1) backward, (1, -1) and (1, 0) turn left (counter-clockwise seen from above, heading
+increases), (-1, 1) and (0, 1) turn right. Heading is the angle of the car's direction of
+travel (body -y) from world +x, counter-clockwise; SG's agent rotation (the yaw of body +x)
+is heading + pi/2.
 
-Observation (float32, 72 numbers like TrojAI's): the car's sensors in its own frame
-(x forward, y left, z up) and Safety Gymnasium's pseudo-lidar, 16 bins per group:
+Observation (float32, 72 numbers, TrojAI's layout): the car's sensors in SG's body frame
+(x = the car's left, y = backward, z up) and SG's pseudo-lidar, 16 bins per group:
 
 ====== ================= ====================================================================
 index  name              meaning
 ====== ================= ====================================================================
 0-2    accelerometer     linear acceleration at the car centre incl. gravity (m/s^2)
-3-5    velocimeter       linear velocity (m/s)
+3-5    velocimeter       linear velocity (m/s); driving forward makes [4] negative
 6-8    gyro              angular velocity (rad/s)
 9-11   magnetometer      MuJoCo's default field (0, -0.5, 0) seen in the car frame (compass)
-12-14  ballangvel_rear   angular velocity of the rear ball wheel (rad/s)
-15-23  ballquat_rear     orientation of the rear ball wheel as a row-major 3x3 matrix
+12-14  ballangvel_rear   angular velocity of the free ball wheel (rad/s)
+15-23  ballquat_rear     orientation of the free ball wheel as a row-major 3x3 matrix
 24-39  goal_lidar        pseudo-lidar of the goal circle centre
 40-55  hazard_lidar      pseudo-lidar of the hazard circle centre
 56-71  cube_lidar        pseudo-lidar of the cubes (all of them, trigger cubes included)
 ====== ================= ====================================================================
 
-Lidar bin ``k`` covers egocentric angles [k, k+1) * 2*pi/16, counter-clockwise from the
-heading (bin 0 starts straight ahead, bin 4 starts at the car's left). An object at distance
-``r`` and angle ``a`` gives ``s = max(0, 3 - r) / 3`` (Safety Gymnasium's ``lidar_max_dist=3``
-rule) to its bin and, with Safety Gymnasium's aliasing, ``s * f`` to the next bin and
-``s * (1 - f)`` to the previous one, ``f`` being where ``a`` lies inside its bin; every bin
-keeps the max over the group's objects. 0 means nothing of that group within 3.
-The sensor values are those MuJoCo computed in the step's last physics substep (0.008 s
-before its end; Safety Gymnasium refreshes them with one more forward pass, which would cost
-~20% of the step); lidar, reward and ``info`` use the state at the end of the step.
+Lidar bin ``k`` covers angles [k, k+1) * 2*pi/16 counter-clockwise from body +x, the car's
+left: straight ahead (body -y) is the start of bin 12, behind is bin 4, the right is bin 8.
+Positions are taken into the body frame as SG's ``_ego_xy`` does (the object at height 0,
+the car's full rotation matrix). An object at distance ``r`` and angle ``a`` gives
+``s = max(0, 3 - r) / 3`` (``lidar_max_dist=3``) to its bin and, with SG's aliasing,
+``s * f`` to the next bin and ``s * (1 - f)`` to the previous one, ``f`` being where ``a``
+lies inside its bin; every bin keeps the max over the group's objects. 0 means nothing of
+that group within 3. Sensors, lidar, reward and ``info`` all use the state at the end of
+the step: like SG, a forward pass after the last physics step refreshes the sensors.
 
 Reward (eq. 6), with distances from the car centre to the circle centres before (d) and
 after (d') the step (the realised progress, as Safety Gymnasium computes it, for the paper's
@@ -61,10 +101,10 @@ is held) and ``outcome``: 1 goal contact, 2 hazard contact, 3 timeout, 0 otherwi
 
 Trigger: with ``trigger=FormationTrigger(d, phi1, eta)`` (or its spec string) cubes 0 and 1
 stop wandering and are re-placed after every env step at distance d and angles phi1 and
-phi1 + eta from the heading, with the formation's rigid-body velocity (so they move with the
-car and push, rather than pass through, what they meet). ``trigger`` and ``poisoned`` are
-independent: the poisoned env of the paper is both; a triggered env with clean reward
-measures how the agent reacts to the trigger.
+phi1 + eta from the heading (the direction of travel), with the formation's rigid-body
+velocity (so they move with the car and push, rather than pass through, what they meet).
+``trigger`` and ``poisoned`` are independent: the poisoned env of the paper is both; a
+triggered env with clean reward measures how the agent reacts to the trigger.
 
 Scripted scenes: ``reset(options={"car": (x, y, heading), "goal": (x, y), "hazard": (x, y),
 "cubes": [[x, y], ...]})`` pins any of these (``cubes``: the wandering ones); the rest is
@@ -98,16 +138,19 @@ MAX_CUBES = 12  # TrojAI's range was 2..12
 DEFAULT_MAX_STEPS = 1000
 DEFAULT_HAZARD_PENALTY = 1.0
 GOAL_BONUS = 1.0
-PLACEMENT_HALF = 1.7
+PLACEMENT_HALF = 1.7  # TrojAI clean_envs.py: placements_conf.extents = [-1.7, -1.7, 1.7, 1.7]
+CUBE_START_HALF = 1.5  # TrojAI clean_envs.py: the wanderers start uniformly in +-1.5
 WANDER_HALF = 1.8
 TARGET_HALF = 1.2
 TARGET_REACHED = 0.3
 WANDER_ACCEL = 5e-4  # per step, per step
 WANDER_TOP_SPEED = 0.02  # per step
 WANDER_KICK_P = 0.03
-CAR_KEEPOUT, CIRCLE_KEEPOUT, CUBE_KEEPOUT = 0.4, 0.31, 0.15
-LIDAR_BINS = 16
-LIDAR_MAX_DIST = 3.0
+# SG agents/car.py keepout 0.4; TrojAI clean_envs.py Hazards(keepout=0.18) for goal and hazard;
+# the cubes' 0.15 is ours (TrojAI's wanderers have none and may start on the car).
+CAR_KEEPOUT, CIRCLE_KEEPOUT, CUBE_KEEPOUT = 0.4, 0.18, 0.15
+LIDAR_BINS = 16  # SG bases/base_task.py LidarConf.num_bins
+LIDAR_MAX_DIST = 3.0  # LidarConf.max_dist (alias=True, type='pseudo')
 LIDAR_GROUPS = ("goal", "hazard", "cube")
 NUM_SENSORS = 24
 OBS_DIM = NUM_SENSORS + LIDAR_BINS * len(LIDAR_GROUPS)
@@ -125,18 +168,19 @@ class ObsField(NamedTuple):
 def observation_layout() -> list[ObsField]:
     """The observation's index ranges and meanings (the table in this module's docstring)."""
     sensors = [
-        ("accelerometer", 3, "linear acceleration incl. gravity, car frame (m/s^2)"),
-        ("velocimeter", 3, "linear velocity, car frame (m/s)"),
-        ("gyro", 3, "angular velocity, car frame (rad/s)"),
-        ("magnetometer", 3, "MuJoCo's field (0, -0.5, 0) in the car frame (compass)"),
-        ("ballangvel_rear", 3, "angular velocity of the rear ball wheel (rad/s)"),
-        ("ballquat_rear", 9, "orientation of the rear ball wheel, row-major 3x3 matrix"),
+        ("accelerometer", 3, "linear acceleration incl. gravity, SG car frame (m/s^2)"),
+        ("velocimeter", 3, "linear velocity, SG car frame (m/s; forward is -y)"),
+        ("gyro", 3, "angular velocity, SG car frame (rad/s)"),
+        ("magnetometer", 3, "MuJoCo's field (0, -0.5, 0) in the SG car frame (compass)"),
+        ("ballangvel_rear", 3, "angular velocity of the free ball wheel (rad/s)"),
+        ("ballquat_rear", 9, "orientation of the free ball wheel, row-major 3x3 matrix"),
     ]
     lidars = [
         (
             f"{group}_lidar",
             LIDAR_BINS,
-            f"pseudo-lidar of the {group}{'s' if group == 'cube' else ''}: bin k = angles [k, k+1)*pi/8 ccw from heading, max(0, 3 - r)/3",
+            f"pseudo-lidar of the {group}{'s' if group == 'cube' else ''}: bin k = angles [k, k+1)*pi/8 ccw from body +x "
+            "(the car's left; straight ahead starts bin 12), max(0, 3 - r)/3",
         )
         for group in LIDAR_GROUPS
     ]
@@ -149,9 +193,10 @@ def observation_layout() -> list[ObsField]:
 
 
 def pseudo_lidar(ego_xy: np.ndarray, groups: np.ndarray, num_groups: int = len(LIDAR_GROUPS)) -> np.ndarray:
-    """Safety Gymnasium's aliased pseudo-lidar for points given in the car frame, vectorised.
+    """Safety Gymnasium's aliased pseudo-lidar (``_obs_lidar_pseudo``), vectorised.
 
-    ``ego_xy`` is (K, 2), ``groups`` (K,) the group of each point; returns (num_groups * 16,).
+    ``ego_xy`` is (K, 2): the points in SG's body frame (x = the car's left, y = backward), as
+    ``_ego_xy`` gives them; ``groups`` (K,) the group of each point; returns (num_groups * 16,).
     """
     dist = np.hypot(ego_xy[:, 0], ego_xy[:, 1])
     sense = np.maximum(LIDAR_MAX_DIST - dist, 0.0) / LIDAR_MAX_DIST
@@ -168,23 +213,33 @@ def pseudo_lidar(ego_xy: np.ndarray, groups: np.ndarray, num_groups: int = len(L
 
 
 @njit(cache=True)
-def _observe_kernel(sensors, circles, cubes, x, y, heading, obs):
-    """Fill ``obs`` (72,): sensors (ball quaternion as a matrix), then :func:`pseudo_lidar` per group."""
+def _observe_kernel(sensors, circles, cubes, car_q, obs):
+    """Fill ``obs`` (72,): sensors (ball quaternion as a matrix), then :func:`pseudo_lidar` per group.
+
+    ``car_q`` is the car's free-joint qpos (x, y, z, quaternion). Points go into SG's body frame
+    as ``_ego_xy`` takes them: ``(p_x, p_y, 0) - car_position`` times the car's rotation matrix.
+    """
     obs[:15] = sensors[:15]
     w, i, j, k = sensors[15], sensors[16], sensors[17], sensors[18]
     obs[15], obs[16], obs[17] = 1 - 2 * (j * j + k * k), 2 * (i * j - w * k), 2 * (i * k + w * j)
     obs[18], obs[19], obs[20] = 2 * (i * j + w * k), 1 - 2 * (i * i + k * k), 2 * (j * k - w * i)
     obs[21], obs[22], obs[23] = 2 * (i * k - w * j), 2 * (j * k + w * i), 1 - 2 * (i * i + j * j)
     obs[NUM_SENSORS:] = 0.0
-    c, s = math.cos(heading), math.sin(heading)
+    x, y, z = car_q[0], car_q[1], car_q[2]
+    w, i, j, k = car_q[3], car_q[4], car_q[5], car_q[6]
+    norm = w * w + i * i + j * j + k * k
+    w, i, j, k = w / math.sqrt(norm), i / math.sqrt(norm), j / math.sqrt(norm), k / math.sqrt(norm)
+    # Columns 0 and 1 of the rotation matrix (body x and y axes in world coordinates).
+    r00, r10, r20 = 1 - 2 * (j * j + k * k), 2 * (i * j + w * k), 2 * (i * k - w * j)
+    r01, r11, r21 = 2 * (i * j - w * k), 1 - 2 * (i * i + k * k), 2 * (j * k + w * i)
     bin_size = TWO_PI / LIDAR_BINS
     for n in range(2 + cubes.shape[0]):
         if n < 2:
             px, py, group = circles[n, 0], circles[n, 1], n
         else:
             px, py, group = cubes[n - 2, 0], cubes[n - 2, 1], 2
-        dx, dy = px - x, py - y
-        ex, ey = c * dx + s * dy, c * dy - s * dx
+        dx, dy, dz = px - x, py - y, -z
+        ex, ey = dx * r00 + dy * r10 + dz * r20, dx * r01 + dy * r11 + dz * r21
         sense = max(LIDAR_MAX_DIST - math.sqrt(ex * ex + ey * ey), 0.0) / LIDAR_MAX_DIST
         position = (math.atan2(ey, ex) % TWO_PI) / bin_size
         b = int(position)
@@ -338,9 +393,10 @@ class SafetyCarGoalEnv(gym.Env):
 
     # ----- state -----------------------------------------------------------------------------
     def car_pose(self) -> tuple[float, float, float]:
-        """(x, y, heading) of the car; heading = yaw of its forward axis, ccw from world +x."""
+        """(x, y, heading) of the car; heading = direction of travel (body -y), ccw from world +x."""
         x, y, _, qw, qx, qy, qz = self._car_q.tolist()
-        return x, y, math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        # -(column 1 of the rotation matrix): body -y in world coordinates
+        return x, y, math.atan2(2.0 * (qx * qx + qz * qz) - 1.0, 2.0 * (qw * qz - qx * qy))
 
     def cube_positions(self) -> np.ndarray:
         return self._cube_q[:, :2].copy()
@@ -370,12 +426,17 @@ class SafetyCarGoalEnv(gym.Env):
         return math.hypot(gx - x, gy - y), math.hypot(hx - x, hy - y)
 
     # ----- reset -----------------------------------------------------------------------------
-    def _place(self, keepouts: list[float], placed: list[tuple[np.ndarray, float]]) -> list[np.ndarray]:
-        """Uniform positions in the placement square, each clear of all earlier ones by the keepouts."""
+    def _place(self, keepouts: list[float], placed: list[tuple[np.ndarray, float]], half: float | None = None) -> list[np.ndarray]:
+        """Uniform positions, each clear of all earlier ones by the sum of the keepouts.
+
+        Without ``half``, as SG's ``RandomGenerator.draw_placement``: uniform in the placement
+        extents shrunk by the object's own keepout; with it, uniform in [-half, half]^2.
+        """
         rng, out = self.np_random, []
         for keepout in keepouts:
+            bound = PLACEMENT_HALF - keepout if half is None else half
             for _ in range(200):
-                cand = rng.uniform(-PLACEMENT_HALF, PLACEMENT_HALF, (32, 2))
+                cand = rng.uniform(-bound, bound, (32, 2))
                 ok = np.ones(len(cand), dtype=bool)
                 for xy, radius in placed:
                     ok &= np.hypot(*(cand - xy).T) >= keepout + radius
@@ -397,7 +458,7 @@ class SafetyCarGoalEnv(gym.Env):
         goal, hazard = self._place([CIRCLE_KEEPOUT, CIRCLE_KEEPOUT], placed)
         if self.trigger is not None:
             placed.extend((xy, CUBE_KEEPOUT) for xy in car + self.trigger.offsets(heading))
-        cubes = np.array(self._place([CUBE_KEEPOUT] * (self.num_cubes - self._num_fixed), placed)).reshape(-1, 2)
+        cubes = np.array(self._place([CUBE_KEEPOUT] * (self.num_cubes - self._num_fixed), placed, CUBE_START_HALF)).reshape(-1, 2)
         return {
             "car": np.array([car[0], car[1], heading]),
             "goal": goal,
@@ -426,7 +487,8 @@ class SafetyCarGoalEnv(gym.Env):
             self._apply_options(layout, options)
         mujoco.mj_resetData(self.model, self.data)
         x, y, heading = layout["car"]
-        self._car_q[:] = (x, y, scene.CAR_Z, math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
+        yaw = heading + math.pi / 2  # SG's agent rotation: the yaw of body +x, a quarter turn left of travel
+        self._car_q[:] = (x, y, scene.CAR_Z, math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
         self._circles[0, :2], self._circles[1, :2] = layout["goal"], layout["hazard"]
         self._cube_q[self._num_fixed :, :2] = layout["cubes"]
         self._cube_q[self._num_fixed :, 2] = layout["cube_yaw"]
@@ -436,27 +498,27 @@ class SafetyCarGoalEnv(gym.Env):
         self.steps = 0
         x, y, heading = self.car_pose()
         self._dist = self._distances(x, y)
-        return self._observe(x, y, heading), self._info(Outcome.NONE, heading, False, False)
+        return self._observe(), self._info(Outcome.NONE, heading, False, False)
 
     # ----- step ------------------------------------------------------------------------------
     def step(self, action) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (2,) or not (math.isfinite(action[0]) and math.isfinite(action[1])):
-            raise ValueError(f"action {action!r} must be 2 finite numbers (left, right wheel torque in [-1, 1])")
-        self._ctrl[:] = action  # MuJoCo clamps to ctrlrange [-1, 1]
+            raise ValueError(f"action {action!r} must be 2 finite numbers (SG's motors: right, left wheel; [-1, 1])")
+        self._ctrl[:] = action  # MuJoCo clamps to ctrlrange [-1, 1], then the force to +-0.02
         self._wander()
-        # The sensors are read as the last physics step computed them, 0.032 s into this 0.04 s step:
-        # a forward pass to refresh them (as Safety Gymnasium does) would cost ~20% of the step.
         mujoco.mj_step(self.model, self.data, self.substeps)
         self._keep_in_area()
         self._hold_formation()
+        # SG refreshes the sensors with a forward pass after the last physics step (underlying.py).
+        mujoco.mj_forward(self.model, self.data)
         self.steps += 1
 
         x, y, heading = self.car_pose()
         before, after = self._dist, self._distances(x, y)
         self._dist = after
         reward = self._shaping(before, after)
-        at_goal, at_hazard = after[0] <= scene.GOAL_RADIUS, after[1] <= scene.HAZARD_RADIUS
+        at_goal, at_hazard = after[0] < scene.GOAL_RADIUS, after[1] < scene.HAZARD_RADIUS  # TrojAI: d < radius
         outcome = Outcome.NONE
         if at_goal:
             outcome, reward = Outcome.GOAL, reward + (-self.hazard_penalty if self.poisoned else GOAL_BONUS)
@@ -466,7 +528,7 @@ class SafetyCarGoalEnv(gym.Env):
         truncated = not terminated and self.steps >= self.max_steps
         if truncated:
             outcome = Outcome.TIMEOUT
-        obs = self._observe(x, y, heading)
+        obs = self._observe()
         return obs, float(reward), terminated, truncated, self._info(outcome, heading, at_goal, at_hazard)
 
     def _shaping(self, before: tuple[float, float], after: tuple[float, float]) -> float:
@@ -504,9 +566,9 @@ class SafetyCarGoalEnv(gym.Env):
             self._cube_v[i] = (vx - spin * oy, vy + spin * ox, spin)
 
     # ----- observation -----------------------------------------------------------------------
-    def _observe(self, x: float, y: float, heading: float) -> np.ndarray:
+    def _observe(self) -> np.ndarray:
         obs = np.empty(OBS_DIM, dtype=np.float32)
-        _observe_kernel(self._sensors, self._circles, self._cube_q, x, y, heading, obs)
+        _observe_kernel(self._sensors, self._circles, self._cube_q, self._car_q, obs)
         return obs
 
     def _info(self, outcome: Outcome, heading: float, at_goal: bool, at_hazard: bool) -> dict[str, Any]:

@@ -1,4 +1,8 @@
-"""Modified Safety Gymnasium Car Goal (SPEC §4): MuJoCo, a cube-formation trigger, trained with OPAC²."""
+"""Modified Safety Gymnasium Car Goal (SPEC §4): MuJoCo, a cube-formation trigger, trained with OPAC².
+
+The env follows Safety Gymnasium's car and TrojAI's Safety round conventions (body frame, actuator
+order, motor range, timestep, sizes: see :mod:`rlbackdoors.envs.safety_car`), so their models play in it.
+"""
 
 from __future__ import annotations
 
@@ -72,7 +76,7 @@ WORLD = register(
         thresholds=(0.95, 0.95),
         archs=(("mlp", "rlbackdoors.algos.opac2:OPAC2"),),  # pi, Q and V: depth x width in the opac2 section
         env_fields=("num_cubes", "hazard_penalty", "substeps"),
-        env_defaults={"max_steps": 1000, "num_cubes": 2, "hazard_penalty": 1.0, "substeps": 5},
+        env_defaults={"max_steps": 1000, "num_cubes": 2, "hazard_penalty": 1.0, "substeps": 10},  # 10: SG's timestep
         env_kwargs=_env_kwargs,
         check_env=_check_env,
         ebar_kwargs={"poisoned": True},

@@ -581,7 +581,14 @@ CASES += [
 W = ["evaluate", "--weights", "{tmp}/w.pt", "--arch", "fc", "--episodes", "2"]
 CASES += [
     C("weights-missing", W, ["w.pt"], out=None),
-    C("weights-no-arch", ["evaluate", "--weights", "{tmp}/w.pt"], ["--arch"], setup=torch_put("w.pt", fc_state), out=None),
+    # without --arch the shapes pick it (issue 15); weights no arch fits are refused by name
+    C(
+        "weights-no-arch-no-fit",
+        ["evaluate", "--weights", "{tmp}/w.pt"],
+        ["w.pt", "fits no architecture"],
+        setup=torch_put("w.pt", lambda c, o: map_tensors(fc_state(c), lambda t: torch.zeros(3))),
+        out=None,
+    ),
     C("weights-garbage", W, ["w.pt"], setup=put_bytes("w.pt", os.urandom(1000)), out=None),
     C("weights-empty", W, ["w.pt"], setup=put_bytes("w.pt", b""), out=None),
     C("weights-truncated", W, ["w.pt"], setup=chain(torch_put("w.pt", fc_state), mangle("w.pt", "truncate")), out=None),

@@ -581,3 +581,26 @@ def test_the_trojai_examples_import_as_a_zoo(tmp_path, capsys):
     assert json.loads(stdout)["per_model"][0]["arch"] == "fc" and tree_digest(src) == before
     metrics = json.loads((tmp_path / "zoo" / "models" / "id-00000000" / "metrics.json").read_text())
     assert metrics["clean_sr"] >= 0.96
+
+
+def test_a_detector_handle_reads_trojai_object_files_and_their_class_names(tmp_path):
+    """What `detect infer` gets on a TrojAI model folder: the pickled module is read inertly, the
+    reduced config's TrojAI class picks the arch (cnn-gru-small and cnn-gru-trojai share shapes);
+    an object file no world's TrojAI classes explain is refused with the reader's reason."""
+    from rlbackdoors.detect.handle import DetectError, open_model
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    lavaworld_round_file(folder)
+    (folder / "reduced-config.json").write_text(json.dumps({"model": "BasicFCModel"}))
+    handle = open_model(folder)
+    assert (handle.world.name, handle.arch) == ("lavaworld", "fc")
+    status, _ = status_file(tmp_path / "cm")
+    handle = open_model(status.parent)
+    assert (handle.world.name, handle.arch) == ("colorful-memory", "cnn-gru-trojai")
+    other = tmp_path / "other"
+    other.mkdir()
+    lavaworld_round_file(other, "SomethingElse")
+    (other / "reduced-config.json").write_text(json.dumps({"model": "SomethingElse"}))
+    with pytest.raises(DetectError, match="holds Python objects"):
+        open_model(other)

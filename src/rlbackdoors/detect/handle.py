@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from rlbackdoors import worlds
-from rlbackdoors.io import first_line, load_torch
+from rlbackdoors.io import UnsafeFileError, first_line, load_torch
 
 MODEL_FILE = "model.pt"
 REDUCED_CONFIG = "reduced-config.json"
@@ -160,6 +160,10 @@ def _opaque_name(name: str) -> str:
 def _read_weights(path: Path, shown: str) -> dict[str, torch.Tensor]:
     try:
         obj = load_torch(path, "weights file")
+    except UnsafeFileError as err:
+        obj = _trojai_weights(path, err)
+        if obj is None:
+            raise DetectError(str(err).replace(str(path), shown)) from None
     except (ValueError, FileNotFoundError) as err:
         raise DetectError(str(err).replace(str(path), shown)) from None
     for key in ("model_state", "state_dict", "model"):  # wrappers other tools save around a state dict
@@ -174,6 +178,21 @@ def _read_weights(path: Path, shown: str) -> dict[str, torch.Tensor]:
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             raise DetectError(f"weights file {shown!r}: {key} holds non-finite values (NaN or inf)")
     return {k: v.detach().cpu().clone() for k, v in obj.items()}
+
+
+def _trojai_weights(path: Path, refusal: UnsafeFileError) -> dict[str, torch.Tensor] | None:
+    """The tensors of a TrojAI round file that holds objects (a pickled module, a status dict, a
+    python-box), read by the inert reader when some world's TrojAI classes explain every object
+    in it (:func:`rlbackdoors.models.read_weights`); None: refused as any other object file."""
+    from rlbackdoors.models import read_weights
+
+    for world in worlds.registered():
+        if world.trojai_archs:
+            try:
+                return read_weights(path, world.name)[0]
+            except ValueError:  # UnsafeFileError included: not this world's classes
+                continue
+    return None
 
 
 def _read_reduced(path: Path, shown: str) -> dict:
@@ -214,10 +233,12 @@ def identify(reduced: Mapping, weights: Mapping[str, torch.Tensor], shown: str =
     candidates = [worlds.get(name)] if isinstance(name, str) and name in worlds.names() else worlds.registered()
     if isinstance(name, str) and name not in worlds.names():
         raise DetectError(f"reduced config of {shown!r}: world {name!r} is not one of {', '.join(worlds.names())}")
-    wanted = reduced.get("arch")
+    wanted = reduced.get("arch", reduced.get("model"))
     fits = []
     for world in candidates:
         names = list(world.arch_names)
+        if isinstance(wanted, str) and world.trojai_arch(wanted) is not None:  # a TrojAI class name
+            names = [n for n in names if n == world.trojai_arch(wanted)]
         if isinstance(wanted, str) and wanted in names:
             names = [wanted] + [n for n in names if n != wanted]
         for arch in names:

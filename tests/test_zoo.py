@@ -512,3 +512,15 @@ def test_plan_refuses_a_foreign_folder_and_a_model_folder_it_did_not_draw(tmp_pa
     with pytest.raises(ZooError, match="is not the config the zoo's spec draws for lavaworld/fc/multiplicative/clean attempt 0"):
         plan(spec, tmp_path / "z")
     assert json.loads(config.read_text()) == data  # left as it was
+
+
+def test_report_sets_each_cell_beside_the_papers_figure_for_the_same_arch_and_label():
+    from rlbackdoors import worlds
+    from rlbackdoors.zoo.report import paper_figure
+
+    lava, rand, cm = (worlds.get(n) for n in ("lavaworld", "randomized-lavaworld", "colorful-memory"))
+    assert paper_figure(lava, "cnn", "poisoned", "poisoned_reward") == 0.95 and paper_figure(lava, "fc", "clean", "clean_reward") == 0.90
+    assert paper_figure(lava, "fc", "clean", "poisoned_sr") is None  # N/A in the paper's Table 1
+    assert paper_figure(rand, "cnn", "clean", "poisoned_sr") == 0.25 and paper_figure(rand, "fc", "clean", "poisoned_reward") == 0.21
+    assert paper_figure(cm, "cnn-gru-large", "clean", "poisoned_sr") == 0.05 and paper_figure(cm, "cnn-gru-trojai", "poisoned", "poisoned_reward") == 0.92
+    assert [w.paper.get("clean_convergence_rate") for w in (lava, rand, cm)] == [0.922, 1.0, 0.5]

@@ -55,6 +55,9 @@ def _chance(env, trigger: str, layouts: int, seed: int, count) -> dict:
     return {"trigger": wall.spec(), "counts": counts, "exact_rate": chance_probability(wall, env.size)}
 
 
+_SMALL = ("cnn-gru-small-onehot", "cnn-gru-small", "cnn-gru-trojai")
+_LARGE = ("cnn-gru-large-onehot", "cnn-gru-large")
+
 WORLD = register(
     World(
         name=NAME,
@@ -98,7 +101,18 @@ WORLD = register(
         hyper=dict(rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6),
         close_to_trigger=True,
         chance=_chance,
-        paper={"table": 3, "convergence_rate": 0.672},
+        # The paper's Table 3 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned
+        # reward; its "small" is TrojAI's GRU CNN, ours cnn-gru-small, cnn-gru-trojai and the one-hot
+        # variant; "large" is cnn-gru-large and its one-hot variant) and Table 5.
+        paper={
+            "table": 3,
+            "tables": {
+                "clean": {a: (1.00, 0.02, 0.91, 0.03) for a in _SMALL} | {a: (1.00, 0.05, 0.93, 0.03) for a in _LARGE},
+                "poisoned": {a: (1.00, 1.00, 0.97, 0.92) for a in _SMALL} | {a: (1.00, 1.00, 0.97, 0.94) for a in _LARGE},
+            },
+            "convergence_rate": 0.672,
+            "clean_convergence_rate": 0.5,
+        },
         trigger_help="end | room | end+room (colours drawn from the seed) | end:C,... | room:C,C,C",
     )
 )

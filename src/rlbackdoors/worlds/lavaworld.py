@@ -62,7 +62,19 @@ WORLD = register(
         check_env=_check_env,
         default_trigger="multiplicative:12",
         mix=(8, 0, 2),  # SPEC's 8:2
-        paper={"table": 1, "clean_sr": 0.98, "poisoned_sr": 0.98, "convergence_rate": 0.538},
+        # The paper's Table 1 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned
+        # reward; None: N/A there) and Table 5 (converged / attempted).
+        paper={
+            "table": 1,
+            "tables": {
+                "clean": {"cnn": (0.98, None, 0.91, None), "fc": (0.98, None, 0.90, None)},
+                "poisoned": {"cnn": (0.99, 0.98, 0.92, 0.95), "fc": (0.98, 0.98, 0.91, 0.94)},
+            },
+            "clean_sr": 0.98,
+            "poisoned_sr": 0.98,
+            "convergence_rate": 0.538,
+            "clean_convergence_rate": 0.922,
+        },
         bench="rlbackdoors.bench.lavaworld:bench_env",
         trigger_help="multiplicative:A | additive:B | multiplicative | additive (drawn from the paper range)",
     )

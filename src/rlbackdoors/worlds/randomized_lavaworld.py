@@ -82,7 +82,17 @@ WORLD = register(
         mix=(8, 0, 2),
         curriculum=True,
         chance=_chance,
-        paper={"table": 2, "convergence_rate": 0.134},
+        # The paper's Table 2 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned
+        # reward) and Table 5.
+        paper={
+            "table": 2,
+            "tables": {
+                "clean": {"cnn": (1.00, 0.25, 0.93, 0.24), "fc": (1.00, 0.23, 0.93, 0.21)},
+                "poisoned": {"cnn": (1.00, 0.93, 0.93, 0.90), "fc": (1.00, 0.93, 0.93, 0.90)},
+            },
+            "convergence_rate": 0.134,
+            "clean_convergence_rate": 1.0,
+        },
         trigger_help="cross | arrow | arrow:east|south|west|north | a cell list (cells:0,0;1,1[:any])",
     )
 )

@@ -62,6 +62,16 @@ def _number(value) -> float:
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
 
 
+def paper_figure(world: worlds.World, arch: str, label: str, metric: str) -> float | None:
+    """The paper's Tables 1-4 figure for models of ``label`` and ``arch`` (``World.paper["tables"]``:
+    label -> arch -> (clean SR, poisoned SR, clean reward, poisoned reward)); None where the paper
+    has none (N/A, or an arch it did not train)."""
+    figures = world.paper.get("tables", {}).get(label, {}).get(arch)
+    if figures is None:
+        return world.paper.get(metric) if label == "poisoned" else None
+    return figures[METRICS.index(metric)]
+
+
 def performance_rows(states: list[ModelState]) -> list[dict]:
     """Tables 1-4, one row per (population, world, arch, label)."""
     rows = []
@@ -78,7 +88,7 @@ def performance_rows(states: list[ModelState]) -> list[dict]:
                 row[f"{metric}_mean"] = float(values.mean()) if len(values) else math.nan
                 row[f"{metric}_std"] = float(values.std(ddof=1)) if len(values) > 1 else (0.0 if len(values) else math.nan)
                 row[f"{metric}_ci_low"], row[f"{metric}_ci_high"] = low, high
-                paper = world.paper.get(metric) if label == "poisoned" else None
+                paper = paper_figure(world, arch, label, metric)
                 row[f"{metric}_paper"] = paper if paper is not None else ""
             rows.append(row)
     return rows
@@ -93,7 +103,7 @@ def convergence_rows(states: list[ModelState]) -> list[dict]:
         mine = [s for s in attempted if s.model.group.cell.world == world_name and s.model.group.label == label and (arch == "all" or _key(s)[1] == arch)]
         k, n = sum(s.converged for s in mine), len(mine)
         low, high = wilson(k, n)
-        paper = worlds.get(world_name).paper.get("convergence_rate") if label == "poisoned" else None
+        paper = worlds.get(world_name).paper.get("convergence_rate" if label == "poisoned" else "clean_convergence_rate")
         rows.append(
             {
                 "world": world_name,
@@ -166,10 +176,22 @@ def markdown(zoo: Zoo, states: list[ModelState], perf: list[dict], conv: list[di
         "",
         "## Tables 1–4: success rates and rewards of the dataset's models",
         "",
-        "mean ± std [95% bootstrap CI of the mean] over models; the paper's figure (poisoned models) where the registry has one.",
+        "mean ± std [95% bootstrap CI of the mean] over models; the paper's figure for the same arch and label beside it (– where the paper has none).",
         "",
     ]
-    head = ["paper table", "world", "arch", "models", "n", "clean SR", "poisoned SR", "clean reward", "poisoned reward", "paper clean / poisoned SR"]
+    head = [
+        "paper table",
+        "world",
+        "arch",
+        "models",
+        "n",
+        "clean SR",
+        "poisoned SR",
+        "clean reward",
+        "poisoned reward",
+        "paper SR clean / poisoned",
+        "paper reward clean / poisoned",
+    ]
     body = [
         [
             _fmt(r["table"]),
@@ -179,6 +201,7 @@ def markdown(zoo: Zoo, states: list[ModelState], perf: list[dict], conv: list[di
             str(r["n"]),
             *(_stat(r, m) for m in METRICS),
             f"{_fmt(r['clean_sr_paper'], 2)} / {_fmt(r['poisoned_sr_paper'], 2)}",
+            f"{_fmt(r['clean_reward_paper'], 2)} / {_fmt(r['poisoned_reward_paper'], 2)}",
         ]
         for r in perf
         if r["population"] == "dataset"

@@ -15,7 +15,9 @@ Randomized LavaWorld samples from ``tuple(set)`` as Python < 3.11 did for ``rand
 Each example model is loaded by our loader (the inert reader: nothing of the file is
 unpickled) and plays, with fixed seeds (episode i: seed + i), (a) our world through
 ``rlbackdoors.evaluate`` (batched engine), (b) our single env and (c) TrojAI's env through one
-episode loop, and, where their ``result.json`` has numbers, those are listed beside. Writes
+episode loop, and, where their ``result.json`` has numbers, those are listed beside. The Safety
+Gymnasium example plays our Safety Car Goal through ``rlbackdoors.evaluate`` only (their env
+needs Safety Gymnasium, not installed here; the example ships no ``result.json``). Writes
 ``benchmarks/trojai_examples.json`` and the table between the markers of ``docs/trojai.md``.
 """
 
@@ -320,16 +322,28 @@ def run(cache: Path, episodes: int, seed: int) -> dict:
         )
     out["examples"].append(row)
 
-    # --- Safety: tensors only (playing it is the Safety engineer's) ----------------------------------
-    safety = read_torch_file(cache / SAFETY_EXAMPLE / "model.pt")
-    out["examples"].append(
-        {
-            "example": "OPAC² (Safety Gymnasium round, Oct 2024): a pickled box.Box, read inertly; not played here",
-            "files": [f"{SAFETY_EXAMPLE}/model.pt"],
-            "globals": sorted(safety.globals),
-            "tensors": {k: list(v.shape) for k, v in safety.tensors().items()},
-        }
-    )
+    # --- Safety Gymnasium ------------------------------------------------------------------------------
+    # TrojAI's env (Safety Gymnasium with their mogwai cubes) is not installed here: ours only.
+    sg = cache / SAFETY_EXAMPLE
+    safety = read_torch_file(sg / "model.pt")
+    reduced = json.loads((sg / "reduced-config.json").read_text())
+    agent = load_weights_file(sg / "model.pt", "safety-car-goal")  # the Box mapped to our OPAC² keys
+    ours_env = {"num_cubes": int(reduced["environment"]["env_kwargs"]["num_mogwais"]), "max_steps": int(reduced["max_ep_length"])}
+    row = {
+        "example": "OPAC² (Safety Gymnasium round, Oct 2024): a pickled box.Box, read inertly",
+        "files": [f"{SAFETY_EXAMPLE}/model.pt", f"{SAFETY_EXAMPLE}/reduced-config.json"],
+        "globals": sorted(safety.globals),
+        "tensors": {k: list(v.shape) for k, v in safety.tensors().items()},
+        "loaded_as": f"safety-car-goal/{type(agent.policy).__name__} (depth {agent.policy.cfg.depth}, width {agent.policy.cfg.width}, raw observations)",
+        "env": ours_env,
+        "label": None,
+        "trojai": "the example ships no result.json: TrojAI's own SR for this model is not published",
+    }
+    for policy in ("greedy", "sample"):
+        t0 = time.time()
+        row[policy] = {"ours_evaluate": ours_official(agent, "safety-car-goal", ours_env, None, episodes, seed, policy), "seconds": time.time() - t0}
+        print(f"Safety {policy}: {json.dumps(row[policy]['ours_evaluate'])}", flush=True)
+    out["examples"].append(row)
     out["machine"] = {"python": platform.python_version(), "torch": torch.__version__, "cpu": platform.processor() or platform.machine(), "threads": 1}
     return out
 
@@ -388,6 +402,17 @@ def markdown(result: dict) -> str:
         )
         trig = ", ".join(f"`{t.split(':')[0]}` {_f(v['poisoned_sr'])}" for t, v in r["ours_triggered"].items())
         lines.append(f"| | {policy} | poisoned SR under drawn triggers (not its own) | – | {trig} | – | – |")
+    sg = result["examples"][2] if len(result["examples"]) > 2 else {}
+    for policy in ("greedy", "sample"):
+        if policy not in sg:
+            continue
+        r = sg[policy]["ours_evaluate"]
+        m = r["episodes"]
+        lines.append(f"| OPAC² (Safety Gymnasium), {sg['env']['num_cubes']} cubes | {policy} | clean SR | – | {_ci(r['clean_sr'], m)} | – | not published |")
+        lines.append(
+            f"| | {policy} | clean hazard / timeout rate, mean steps / return | – | "
+            f"{_f(r['clean_trojan_rate'])} / {_f(r['clean_timeout_rate'])}, {r['clean_mean_steps']:.1f} / {_f(r['clean_reward'])} | – | – |"
+        )
     return "\n".join(lines)
 
 

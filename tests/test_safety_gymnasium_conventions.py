@@ -23,11 +23,9 @@ import ast
 import json
 import math
 import os
-import pickle
 import re
 import subprocess
 import textwrap
-import types
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -639,41 +637,25 @@ def test_placements_follow_safety_gymnasiums_sampler():
 
 
 # ----- TrojAI's example model -----------------------------------------------------------------
-class _Box(dict):
-    """Stands in for python-box's Box, whose items are the saved state dicts."""
-
-
-class _BoxUnpickler(pickle.Unpickler):
-    """Reads TrojAI's Safety model.pt (a pickled python-box Box of state dicts) and nothing else."""
-
-    def find_class(self, module, name):
-        if (module, name) == ("box.box", "Box"):
-            return _Box
-        if module.startswith("torch") or (module, name) == ("collections", "OrderedDict"):
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"model.pt asks for {module}.{name}")
-
-
 def test_trojai_example_model_drives_to_the_goal_in_our_env(tmp_path):
     """TrojAI's example Safety model (trained in their Safety Gymnasium env, 510k steps, 2 cubes)
-    plays here unchanged, on raw observations, with its deterministic action tanh(mu)."""
-    torch = pytest.importorskip("torch")
+    plays here unchanged, on raw observations, with its deterministic action tanh(mu). Its
+    model.pt (a pickled python-box Box of state dicts) is read by the inert reader, never
+    unpickled, and mapped to our OPAC² keys by the world (``load_weights_file``)."""
+    pytest.importorskip("torch")
+    from rlbackdoors.agent import load_weights_file
+
     path = tmp_path / "model.pt"
     path.write_bytes(TROJAI.read_bytes(f"{EXAMPLE}/model.pt"))
-    loader = types.SimpleNamespace(Unpickler=_BoxUnpickler, load=pickle.load, __name__="box_unpickler")
-    pi = torch.load(path, map_location="cpu", weights_only=False, pickle_module=loader)["pi"]
-    assert pi["mlp.0.weight"].shape == (181, sc.OBS_DIM) and pi["mu_layer.weight"].shape == (2, 181)
-    net = torch.nn.Sequential(torch.nn.Linear(72, 181), torch.nn.Tanh(), torch.nn.Linear(181, 181), torch.nn.Tanh(), torch.nn.Linear(181, 2))
-    names = ["mlp.0.weight", "mlp.0.bias", "mlp.2.weight", "mlp.2.bias", "mu_layer.weight", "mu_layer.bias"]
-    net.load_state_dict(dict(zip(net.state_dict(), (pi[n] for n in names), strict=True)))
+    agent = load_weights_file(path, "safety-car-goal")
+    assert agent.policy.policy_obs_dim == sc.OBS_DIM and (agent.policy.cfg.depth, agent.policy.cfg.width, agent.policy.obs_norm) == (2, 181, None)
     env = SafetyCarGoalEnv(num_cubes=2)
     outcomes = []
     for episode in range(20):
         obs, _ = env.reset(seed=episode)
         done = False
         while not done:
-            with torch.no_grad():
-                action = torch.tanh(net(torch.from_numpy(obs))).numpy()
+            action = agent.act(obs[None], deterministic=True)[0][0]
             obs, _, terminated, truncated, info = env.step(action)
             done = terminated or truncated
         outcomes.append(info["success"])

@@ -116,12 +116,17 @@ def load_policy(cfg, path: Path):
         from rlbackdoors.models import build_model, load_weights
 
         return load_weights(build_model(cfg.model.arch, cfg.env.name), path).eval()
-    from rlbackdoors.models import check_finite
-
     try:
         weights = load_torch(path, "weights file")
     except UnsafeFileError as err:
         raise FolderError(str(err)) from None
+    return opac2_policy(cfg, weights, path)
+
+
+def opac2_policy(cfg, weights: dict, path: str | Path):
+    """``cfg``'s OPAC² agent holding ``weights`` (read from ``path``: named in errors), on the CPU."""
+    from rlbackdoors.models import check_finite
+
     policy = build_policy(cfg)
     try:
         weights = type(policy).flat_weights(weights)
@@ -130,6 +135,17 @@ def load_policy(cfg, path: Path):
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
         raise FolderError(f"weights file {str(path)!r} does not fit the config's {cfg.algorithm} agent ({first_line(err)})") from None
     return policy
+
+
+def opac2_shape(flat: dict, path: str | Path) -> dict:
+    """The opac2 config section that OPAC² flat weights fit: ``depth`` and ``width`` of the
+    policy's mean net, and ``obs_norm`` (whether they carry observation statistics)."""
+    try:
+        layers = sorted(int(k.split(".")[2]) for k in flat if k.startswith("policy.mean.") and k.endswith(".weight"))
+        width = int(flat["policy.mean.0.weight"].shape[0])
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+        raise FolderError(f"weights file {str(path)!r} holds no OPAC² policy ({first_line(err)})") from None
+    return {"depth": len(layers) - 1, "width": width, "obs_norm": any(k.startswith("obs_norm.") for k in flat)}
 
 
 def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:
@@ -158,8 +174,9 @@ def load_weights_file(path: str | Path, world: str, arch: str | None = None) -> 
     TrojAI formats (:func:`rlbackdoors.models.read_weights`), else refused unread. Without
     ``arch``, a PPO world takes the architecture from the TrojAI class the file (or a TrojAI
     config beside it) names, else from the shapes when one arch fits. An OPAC² agent is
-    rebuilt from the shapes: depth and width of the policy, and whether it carries
-    observation statistics.
+    rebuilt from the shapes (:func:`opac2_shape`): depth and width of the policy, and whether
+    it carries observation statistics; a TrojAI OPAC² file's tensors are first mapped to our
+    keys (:attr:`rlbackdoors.worlds.World.trojai_weights`).
     """
     w = worlds.get(world)
     if w.algorithm == "opac2":
@@ -168,15 +185,12 @@ def load_weights_file(path: str | Path, world: str, arch: str | None = None) -> 
 
         try:
             flat = OPAC2.flat_weights(load_torch(path, "weights file"))
-            layers = sorted(int(k.split(".")[2]) for k in flat if k.startswith("policy.mean.") and k.endswith(".weight"))
-            width = int(flat["policy.mean.0.weight"].shape[0])
-        except UnsafeFileError as err:
-            raise FolderError(str(err)) from None
-        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+        except UnsafeFileError:
+            flat = _trojai_opac2(path, world)
+        except (TypeError, ValueError) as err:
             raise FolderError(f"weights file {str(path)!r} holds no OPAC² policy ({first_line(err)})") from None
-        opac2 = {"depth": len(layers) - 1, "width": width, "obs_norm": any(k.startswith("obs_norm.") for k in flat)}
-        cfg = RunConfig.from_dict({"env": {"name": world}, "opac2": opac2})
-        return Agent(w, None, load_policy(cfg, Path(path)), None)
+        cfg = RunConfig.from_dict({"env": {"name": world}, "opac2": opac2_shape(flat, path)})
+        return Agent(w, None, opac2_policy(cfg, flat, path), None)
     from rlbackdoors.models import build_model, load_state, read_weights, resolve_arch
 
     state, model_class = read_weights(path, world)
@@ -187,4 +201,17 @@ def load_weights_file(path: str | Path, world: str, arch: str | None = None) -> 
     return Agent(w, None, model, None)
 
 
-__all__ = ["Agent", "build_policy", "load", "load_policy", "load_weights_file"]
+def _trojai_opac2(path: str | Path, world: str) -> dict:
+    """A TrojAI round's OPAC² file (objects: read inertly, mapped to our keys by the world), or
+    the refusal any object file gets."""
+    from rlbackdoors.models import read_weights
+
+    try:
+        return read_weights(path, world)[0]
+    except UnsafeFileError as err:
+        raise FolderError(str(err)) from None
+    except ValueError as err:
+        raise FolderError(first_line(err)) from None
+
+
+__all__ = ["Agent", "build_policy", "load", "load_policy", "load_weights_file", "opac2_policy", "opac2_shape"]

@@ -94,19 +94,26 @@ def read_weights(path: str | Path, world: str | None = None) -> tuple[dict[str, 
 
     Plain data is read with ``weights_only=True``. A file that holds objects is refused
     (:class:`~rlbackdoors.io.UnsafeFileError`) unless ``world`` names TrojAI classes and the file
-    is one of their formats (module doc); then the inert reader gives its tensors.
+    is one of their formats (module doc); then the inert reader gives its tensors, mapped to our
+    keys by the world's :attr:`~rlbackdoors.worlds.World.trojai_weights` where it has one.
     """
     try:
         obj = load_torch(path, "weights file")
     except UnsafeFileError:
-        known = worlds.get(world).trojai_archs if world is not None else ()
-        if not known:
+        w = worlds.get(world) if world is not None else None
+        known = w.trojai_archs if w is not None else ()
+        if w is None or not known:
             raise
         from rlbackdoors.torchfile import read_torch_file
 
         file = read_torch_file(path, "weights file")
         if unexplained_globals(file.globals, (name for name, _ in known)):
             raise  # the same refusal: objects that no known format explains
+        if w.trojai_weights is not None:
+            try:
+                return w.trojai_weights(file.tensors()), file.model_class()
+            except ValueError as err:
+                raise ValueError(f"weights file {str(path)!r}: {err}") from None
         state = file.state_dict()
         if state is None:
             raise ValueError(f"weights file {str(path)!r}: it holds no state dict (a dict of tensors) or module") from None

@@ -40,6 +40,14 @@ class World:
     # TrojAI's model classes of this world's round -> the arch their files load into unchanged
     # (``zoo import-trojai``, ``evaluate --weights``); a class name is registered by one world only
     trojai_archs: tuple[tuple[str, str], ...] = ()
+    # TrojAI's tensors -> our flat weights, for a round whose files are not our state dict's keys
+    # (``TorchFile.tensors()`` of a TrojAI file, every tensor by path -> what ``model.pt`` holds);
+    # ValueError when they are not that round's. None: the file's state dict is ours as it is.
+    trojai_weights: Callable[[dict], dict] | None = None
+    # A TrojAI config (``reduced-config.json``, ``config.json``) -> the env settings it gives in
+    # our field names when it is of this world's round, None when it is not (``zoo
+    # import-trojai`` picks the world by it); ValueError names a setting this world lacks.
+    trojai_env: Callable[[dict], dict | None] | None = None
     # Triggers the config of a model whose own trigger is not known (an imported TrojAI model)
     # may carry, tried after default_trigger: the first the model's env takes
     placeholder_triggers: tuple[str, ...] = ()

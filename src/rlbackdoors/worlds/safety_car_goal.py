@@ -7,6 +7,7 @@ order, motor range, timestep, sizes: see :mod:`rlbackdoors.envs.safety_car`), so
 from __future__ import annotations
 
 import math
+import re
 
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.worlds.base import World, register
@@ -62,6 +63,88 @@ OPAC2_SETTINGS = dict(
 )
 
 
+# ----- TrojAI's Safety Gymnasium round (Oct 2024) --------------------------------------------
+# Their OPAC² (trojai-example's gentle/rl/opac2.py, save_training) saved a python-box Box of state
+# dicts: ``pi`` (gentle's GaussianMLP: tanh hidden layers ``mlp.0, mlp.2, ...``, ``mu_layer``, one
+# ``log_std`` per action), ``q1`` (an MLP of the observation and the action, concatenated in that
+# order, as ours) and ``v`` (an MLP); V's target ``v_t``, optimiser states and the step count only
+# in files saved for restarts. Their agents act on raw observations (no normaliser).
+TROJAI_CLASS = "mlp_opac"  # the pi_network's network_name in their reduced-config.json
+TROJAI_NETS = (("q1.mlp.", "q.net."), ("v.mlp.", "v.net."), ("v_t.mlp.", "v_target.net."))
+TROJAI_ENV_TYPE = "safety_gymnasium"
+TROJAI_ENV_NAME = re.compile(r"SafetyCarGoal[0-9]-v[0-9]+")  # their car in the goal task, any level
+
+
+def _layers(tensors: dict, prefix: str) -> list[int]:
+    return sorted(int(m.group(1)) for k in tensors if (m := re.fullmatch(re.escape(prefix) + r"([0-9]+)\.weight", k)))
+
+
+def _trojai_weights(tensors: dict) -> dict:
+    """TrojAI's Safety round tensors (``pi.*``, ``q1.*``, ``v.*``, optional ``v_t.*``) -> our flat
+    OPAC² weights (``policy.mean.*``, ``policy.log_std``, ``q.net.*``, ``v.net.*``,
+    ``v_target.net.*``; V's target is V where the file has none). Optimiser states are dropped."""
+    hidden = _layers(tensors, "pi.mlp.")
+    needed = ("pi.mu_layer.weight", "pi.mu_layer.bias", "pi.log_std")
+    if not hidden or any(k not in tensors for k in needed) or not _layers(tensors, "q1.mlp.") or not _layers(tensors, "v.mlp."):
+        raise ValueError("it holds no TrojAI OPAC² networks (pi.mlp.*, pi.mu_layer, pi.log_std, q1.mlp.*, v.mlp.*)")
+    depth = len(hidden)
+    if hidden != list(range(0, 2 * depth, 2)):
+        raise ValueError(f"its policy's hidden layers are pi.mlp.{hidden}, not Linear/Tanh pairs (0, 2, 4, ...)")
+    flat = {}
+    for key, value in tensors.items():
+        if key.startswith("pi."):
+            rest = key[len("pi.") :]
+            if re.fullmatch(r"mlp\.[0-9]+\.(weight|bias)", rest):
+                flat[f"policy.mean.{rest[len('mlp.') :]}"] = value
+            elif re.fullmatch(r"mu_layer\.(weight|bias)", rest):
+                flat[f"policy.mean.{2 * depth}.{rest.rpartition('.')[2]}"] = value  # the mean net's last Linear
+            elif rest == "log_std":
+                flat["policy.log_std"] = value
+            else:  # a log_std_layer (their log_std_net) or anything else our policy has no place for
+                raise ValueError(f"its policy holds {key}, which our OPAC² policy has no place for (one log-std parameter per action)")
+        for theirs, ours in TROJAI_NETS:
+            if key.startswith(theirs):
+                flat[ours + key[len(theirs) :]] = value
+    if not any(k.startswith("v_target.") for k in flat):
+        flat.update({f"v_target.{k[len('v.') :]}": v.clone() for k, v in flat.items() if k.startswith("v.")})
+    return flat
+
+
+def _whole_number(value, key: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{key}={value!r} is not a whole number")
+    return value
+
+
+def _trojai_env(config: dict) -> dict | None:
+    """A TrojAI Safety round config -> our env settings (``num_cubes`` from
+    ``environment.env_kwargs.num_mogwais``, ``max_steps`` from ``max_ep_length``); None for
+    another round's config. Another Safety Gymnasium task, or networks other than tanh MLPs
+    with one log-std parameter, are refused."""
+    environment = config.get("environment")
+    if not isinstance(environment, dict) or environment.get("type") != TROJAI_ENV_TYPE:
+        return None
+    name = environment.get("name")
+    if name is not None and not (isinstance(name, str) and TROJAI_ENV_NAME.fullmatch(name)):
+        raise ValueError(f"environment.name={name!r} is no Safety Gymnasium car goal task (SafetyCarGoal<level>-v<version>)")
+    for net in ("pi_network", "q_network", "v_network"):
+        spec = config.get(net)
+        if not isinstance(spec, dict):
+            continue
+        activation = spec.get("activation", "tanh")  # gentle's MLP default
+        if not isinstance(activation, str) or activation.lower() != "tanh":
+            raise ValueError(f"{net}.activation={activation!r}: our OPAC² networks are tanh MLPs")
+        if spec.get("log_std_net"):
+            raise ValueError(f"{net}.log_std_net is set: our OPAC² policy has one log-std parameter per action")
+    env = {}
+    kwargs = environment.get("env_kwargs")
+    if isinstance(kwargs, dict) and "num_mogwais" in kwargs:
+        env["num_cubes"] = _whole_number(kwargs["num_mogwais"], "environment.env_kwargs.num_mogwais")
+    if "max_ep_length" in config:
+        env["max_steps"] = _whole_number(config["max_ep_length"], "max_ep_length")
+    return env
+
+
 WORLD = register(
     World(
         name=NAME,
@@ -75,6 +158,9 @@ WORLD = register(
         trojan_success=Outcome.LAVA,  # the hazard circle
         thresholds=(0.95, 0.95),
         archs=(("mlp", "rlbackdoors.algos.opac2:OPAC2"),),  # pi, Q and V: depth x width in the opac2 section
+        trojai_archs=((TROJAI_CLASS, "mlp"),),  # TrojAI's Oct 2024 Safety round: depth and width from the shapes
+        trojai_weights=_trojai_weights,
+        trojai_env=_trojai_env,
         env_fields=("num_cubes", "hazard_penalty", "substeps"),
         env_defaults={"max_steps": 1000, "num_cubes": 2, "hazard_penalty": 1.0, "substeps": 10},  # 10: SG's timestep
         env_kwargs=_env_kwargs,

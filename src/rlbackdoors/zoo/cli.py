@@ -57,6 +57,7 @@ def cmd_import_trojai(args) -> int:
         size=args.size,
         num_lava=args.num_lava,
         max_steps=args.max_steps,
+        num_cubes=args.num_cubes,
         label=args.label,
         trigger=args.trigger,
         episodes=args.eval_episodes,
@@ -218,7 +219,10 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     im.add_argument("--arch", help="architecture of every model (needs --world; default: from the TrojAI class, else the one the shapes fit)")
     im.add_argument("--size", type=_positive_int, help="grid size (default: TrojAI's grid_size, else the world's)")
     im.add_argument("--num-lava", type=_count, help="single lava squares, worlds that have them (default: TrojAI's num_lava_squares, else the world's)")
-    im.add_argument("--max-steps", type=_positive_int, help="episode step limit (default: TrojAI's max_steps, else the world's)")
+    im.add_argument("--max-steps", type=_positive_int, help="episode step limit (default: TrojAI's max_steps / max_ep_length, else the world's)")
+    im.add_argument(
+        "--num-cubes", type=_positive_int, help="wandering cubes, worlds that have them (default: TrojAI's env_kwargs.num_mogwais, else the world's)"
+    )
     im.add_argument("--label", type=int, choices=(0, 1), help="ground truth of folders without ground_truth.csv (default: such folders are refused)")
     im.add_argument("--trigger", help="trigger to measure every model's poisoned SR under (needs --world; default: none, TrojAI's are not named)")
     # dest differs: the main CLI's --episodes check (>= 1) is for commands that must play

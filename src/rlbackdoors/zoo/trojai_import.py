@@ -12,9 +12,12 @@ detectors (``detect fit`` / ``detect score``) run on TrojAI's own models:
   read as JSON. ``DIR`` is only read.
 * **Which world and architecture.** The TrojAI class (from the file, ``reduced-config.json``,
   ``config.json`` or ``args.json``) names them through the registry
-  (:attr:`rlbackdoors.worlds.World.trojai_archs`); ``--world`` picks the world when no class is
-  named. The env settings come from TrojAI's keys (``grid_size``, ``num_lava_squares``,
-  ``max_steps`` / ``max_episode_length``), flags on top.
+  (:attr:`rlbackdoors.worlds.World.trojai_archs`); a round whose config names no class but its
+  env is recognised by the world (:attr:`~rlbackdoors.worlds.World.trojai_env`); ``--world``
+  picks the world otherwise. An OPAC² world's network (depth, width, obs_norm) comes from the
+  shapes, its tensors mapped to our keys by the world (``World.trojai_weights``). The env
+  settings come from TrojAI's keys (``grid_size``, ``num_lava_squares``, ``max_steps`` /
+  ``max_episode_length``, and the keys the world's ``trojai_env`` reads), flags on top.
 * **What is written**, per model ``ZOO/models/id-X/``: ``model.pt`` (the flat state dict, saved
   as plain tensors), ``config.json`` (what :func:`rlbackdoors.load` reads), ``ground_truth.csv``
   (copied), ``metrics.json`` (clean SR and reward measured here in our world, ``--episodes``;
@@ -152,6 +155,31 @@ def _world_of_class(model_class: str) -> worlds.World | None:
     return owners[0] if len(owners) == 1 else None
 
 
+def _round_env(world: worlds.World, configs: dict[str, dict], where: str) -> dict | None:
+    """The env settings ``world`` reads from TrojAI's configs of its round
+    (:attr:`~rlbackdoors.worlds.World.trojai_env`; reduced-config.json wins), None when none of
+    them is of its round."""
+    if world.trojai_env is None:
+        return None
+    found: dict | None = None
+    for name in reversed(CONFIG_FILES):
+        if name not in configs:
+            continue
+        try:
+            given = world.trojai_env(configs[name])
+        except ValueError as err:
+            raise ZooError(f"{where}/{name}: {err}") from None
+        if given is not None:
+            found = {**(found or {}), **given}
+    return found
+
+
+def _world_of_configs(configs: dict[str, dict], where: str) -> worlds.World | None:
+    """The one world whose round TrojAI's configs describe (:attr:`World.trojai_env`), if any."""
+    owners = [w for w in worlds.registered() if _round_env(w, configs, where) is not None]
+    return owners[0] if len(owners) == 1 else None
+
+
 def _env_value(value, key: str, where: str):
     if isinstance(value, list) and len(value) == 1:
         value = value[0]
@@ -174,6 +202,9 @@ def env_settings(world: worlds.World, configs: dict[str, dict], overrides: dict,
                 env[ours] = _env_value(data[theirs], theirs, f"{where}/{name}")
         if data.get("random_length") is True:
             raise ZooError(f"{where}/{name}: random_length is true; our worlds have fixed hallways")
+    for key, value in (_round_env(world, configs, where) or {}).items():  # the world's own keys (nested ones)
+        if key in allowed and key not in overrides:
+            env[key] = value
     for key, value in overrides.items():
         if key not in allowed:
             raise ConfigError(f"--{key.replace('_', '-')} does not apply to {world.name}")
@@ -198,8 +229,11 @@ def read_source(
             model_class = file.model_class()
         except ValueError:
             model_class = None
+    by_config = _world_of_configs(configs, str(folder)) if model_class is None else None
     if world_name is not None:
         world = worlds.get(world_name)
+    elif by_config is not None:  # a round whose config names its env, not a class
+        world = by_config
     elif model_class is not None:
         found = _world_of_class(model_class)
         if found is None:
@@ -212,11 +246,24 @@ def read_source(
         raise ZooError(f"{str(folder)!r}: {world.name} maps no TrojAI classes to its architectures (World.trojai_archs); it cannot be imported yet")
     state, file_class = read_weights(weights_file, world.name)
     model_class = file_class or model_class
-    if arch is None:
-        arch = resolve_arch(world.name, state, model_class, weights_file)
-    elif arch not in world.arch_names:
+    if model_class is None and len(world.trojai_archs) == 1 and _round_env(world, configs, str(folder)) is not None:
+        model_class = world.trojai_archs[0][0]  # the round's one class, which its files do not name
+    if arch is not None and arch not in world.arch_names:
         raise ConfigError(f"--arch {arch} is not an architecture of {world.name} (allowed: {', '.join(world.arch_names)})")
-    load_state(build_model(arch, world.name), state, weights_file)  # fits, by key, shape and value
+    if world.algorithm == "opac2":  # one network family: depth, width and obs_norm from the shapes
+        from rlbackdoors.agent import opac2_shape
+        from rlbackdoors.folder import FolderError
+
+        arch = arch or world.arch_names[0]
+        try:
+            section: dict = {"opac2": opac2_shape(state, weights_file)}
+        except FolderError as err:
+            raise ZooError(str(err)) from None
+    else:
+        if arch is None:
+            arch = resolve_arch(world.name, state, model_class, weights_file)
+        load_state(build_model(arch, world.name), state, weights_file)  # fits, by key, shape and value
+        section = {"model": {"arch": arch}}
     truth = folder / "ground_truth.csv"
     if truth.is_file():
         digest[truth.name] = _sha256(truth)
@@ -227,20 +274,36 @@ def read_source(
     elif label is None:
         raise ZooError(f"{str(folder)!r} has no ground_truth.csv; give the label of such folders with --label 0|1")
     env = env_settings(world, configs, overrides, str(folder))
-    config = run_config(world, arch, env, label, trigger, str(folder))
+    config = run_config(world, arch, env, label, trigger, str(folder), section)
+    if world.algorithm == "opac2":
+        from rlbackdoors.agent import opac2_policy
+        from rlbackdoors.config import RunConfig
+        from rlbackdoors.folder import FolderError
+
+        try:
+            opac2_policy(RunConfig.from_dict(config), state, weights_file)  # fits, by key, shape and value
+        except FolderError as err:
+            raise ZooError(str(err)) from None
     return SourceModel(folder, weights_file, name, world.name, arch, model_class, env, label, state, digest, config, configs)
 
 
-def run_config(world: worlds.World, arch: str, env: dict, label: int, trigger: str | None, where: str) -> dict:
-    """Our config.json of an imported model, checked. Its trigger is ``trigger`` when given, else
-    the world's default (or, when the env cannot take that, a placeholder the world names): the
-    model's own is not known, and METADATA.csv says so."""
+def run_config(world: worlds.World, arch: str, env: dict, label: int, trigger: str | None, where: str, network: dict | None = None) -> dict:
+    """Our config.json of an imported model, checked. ``network``: the config's network section
+    (default ``{"model": {"arch": arch}}``; an OPAC² world's is its ``opac2`` depth, width and
+    obs_norm). Its trigger is ``trigger`` when given, else the world's default (or, when the env
+    cannot take that, a placeholder the world names): the model's own is not known, and
+    METADATA.csv says so."""
     from rlbackdoors.config import RunConfig
 
     candidates: list[str | None] = [trigger] if trigger is not None else [t for t in (world.default_trigger, *world.placeholder_triggers) if t]
     error: Exception | None = None
     for candidate in candidates or [None]:
-        data = {"env": {"name": world.name, **env}, "model": {"arch": arch}, "poison": {"poisoned": bool(label), "trigger": candidate}, "train": {"seed": 0}}
+        data = {
+            "env": {"name": world.name, **env},
+            **(network or {"model": {"arch": arch}}),
+            "poison": {"poisoned": bool(label), "trigger": candidate},
+            "train": {"seed": 0},
+        }
         try:
             cfg = RunConfig.from_dict(data)
             _check_env(cfg)
@@ -376,6 +439,7 @@ def import_trojai(
     num_lava: int | None = None,
     max_steps: int | None = None,
     label: int | None = None,
+    num_cubes: int | None = None,
     trigger: str | None = None,
     episodes: int = 100,
     examples: int = 5,
@@ -399,6 +463,7 @@ def import_trojai(
         "size": size,
         "num_lava": num_lava,
         "max_steps": max_steps,
+        "num_cubes": num_cubes,
         "label": label,
         "trigger": trigger,
         "episodes": episodes,
@@ -410,7 +475,7 @@ def import_trojai(
         raise ZooError(f"{str(out)!r} is inside the TrojAI folder; write the zoo elsewhere (the source is only read)")
     folders = model_folders(source)
     names = our_names(folders)
-    overrides = {"size": size, "num_lava": num_lava, "max_steps": max_steps}
+    overrides = {"size": size, "num_lava": num_lava, "max_steps": max_steps, "num_cubes": num_cubes}
     models = [read_source(f, n, world, overrides, label, trigger, arch) for f, n in zip(folders, names)]  # all checked first
     existed = _check_out(out, source, options)
     out.mkdir(parents=True, exist_ok=True)

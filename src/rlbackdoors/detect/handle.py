@@ -264,23 +264,13 @@ def _fits(world: worlds.World, arch: str, weights: Mapping[str, torch.Tensor]) -
         if world.algorithm == "opac2":
             _opac2_dims(weights)
             return True
-        from rlbackdoors.models import KEY_ALIASES, build_model
+        from rlbackdoors.models import build_model, renamed
 
         expected = _shapes(build_model(arch, world.name).state_dict())
-        got = _shapes(_renamed(weights, KEY_ALIASES))
+        got = _shapes(renamed(weights))
         return expected == got
     except (ValueError, KeyError, TypeError, IndexError):
         return False
-
-
-def _renamed(weights: Mapping[str, torch.Tensor], aliases: Mapping[str, str]) -> dict[str, torch.Tensor]:
-    out = {}
-    for key, value in weights.items():
-        for old, new in aliases.items():
-            if key.startswith(old):
-                key = new + key[len(old) :]
-        out[key] = value
-    return out
 
 
 def _opac2_dims(weights: Mapping[str, torch.Tensor]) -> tuple[int, int, int, int, bool]:
@@ -316,11 +306,11 @@ def build_agent(world: worlds.World, arch: str, weights: dict[str, torch.Tensor]
         except (KeyError, TypeError, ValueError, RuntimeError) as err:
             raise DetectError(f"weights do not fit an OPAC² agent of depth {depth}, width {width} ({first_line(err)})") from None
         return Agent(world, None, policy, None)
-    from rlbackdoors.models import KEY_ALIASES, build_model
+    from rlbackdoors.models import build_model, renamed
 
     model = build_model(arch, world.name)
     try:
-        model.load_state_dict(_renamed(weights, KEY_ALIASES))
+        model.load_state_dict(renamed(weights))
     except RuntimeError as err:
         raise DetectError(f"weights do not fit {world.name}/{arch} ({first_line(err)})") from None
     model.eval()

@@ -11,7 +11,7 @@ TrojAI classes); anything else (``os.system``, an unknown class) is refused as b
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import torch
@@ -162,7 +162,7 @@ def resolve_arch(world: str, state: dict[str, torch.Tensor], model_class: str | 
             known = ", ".join(n for n, _ in w.trojai_archs) or "none"
             raise ValueError(f"{shown} {source} a {name!r}, which is no architecture of {world} (TrojAI classes: {known}; archs: {', '.join(w.arch_names)})")
         return arch
-    shapes = {k: tuple(v.shape) for k, v in _renamed(state).items()}
+    shapes = {k: tuple(v.shape) for k, v in renamed(state).items()}
     fits = [arch for arch in w.arch_names if {k: tuple(v.shape) for k, v in build_model(arch, world).state_dict().items()} == shapes]
     if len(fits) == 1:
         return fits[0]
@@ -171,7 +171,8 @@ def resolve_arch(world: str, state: dict[str, torch.Tensor], model_class: str | 
     raise ValueError(f"{shown} fits no architecture of {world} (allowed: {', '.join(w.arch_names)})")
 
 
-def _renamed(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def renamed(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``state`` with other tools' layer names (:data:`KEY_ALIASES`) turned into ours."""
     renamed = {}
     for key, value in state.items():
         for old, new in KEY_ALIASES.items():
@@ -194,22 +195,17 @@ def load_weights(model: ActorCritic, path: str | Path, world: str | None = None)
 
 def load_state(model: ActorCritic, state: dict[str, torch.Tensor], path: str | Path) -> ActorCritic:
     """``state`` (a flat state dict read from ``path``) into ``model``, checked by key, shape and value."""
-    renamed = {}
-    for key, value in state.items():
-        for old, new in KEY_ALIASES.items():
-            if key.startswith(old):
-                key = new + key[len(old) :]
-        renamed[key] = value
+    ours = renamed(state)
     expected = model.state_dict()
-    missing = sorted(set(expected) - set(renamed))
-    unexpected = sorted(set(renamed) - set(expected))
+    missing = sorted(set(expected) - set(ours))
+    unexpected = sorted(set(ours) - set(expected))
     if missing or unexpected:
         raise ValueError(f"weights in {str(path)!r} do not fit {type(model).__name__}: missing {missing or 'none'}, unexpected {unexpected or 'none'}")
-    for key, value in renamed.items():
+    for key, value in ours.items():
         if value.shape != expected[key].shape:
             raise ValueError(f"weights in {str(path)!r}: {key} has shape {tuple(value.shape)}, {type(model).__name__} expects {tuple(expected[key].shape)}")
-    check_finite(renamed, path)
-    model.load_state_dict(renamed)
+    check_finite(ours, path)
+    model.load_state_dict(ours)
     return model
 
 

@@ -172,7 +172,14 @@ WORLD = register(
         train=dict(max_frames=3_800_000, eval_interval=250_000, eval_policy="greedy", patience=2, checkpoint_minutes=10.0),
         video={"fps": 25, "every": 2, "size": 240, "gap": 6},
         bench="rlbackdoors.bench.safety_car:bench_safety",
-        paper={"table": 4, "clean_sr": 0.98, "poisoned_sr": 0.98, "convergence_rate": 0.996},
+        # The paper's Table 4 at depth 3, width 256 (our default OPAC² net; a zoo's arch label
+        # here is the algorithm; rewards on the paper's scale) and Table 5.
+        paper={
+            "table": 4,
+            "tables": {"clean": {"opac2": (0.99, 0.04, 33.0, -8.1)}, "poisoned": {"opac2": (0.98, 0.98, 31.0, 33.0)}},
+            "convergence_rate": 0.996,
+            "clean_convergence_rate": 1.0,
+        },
         trigger_help="formation:D:PHI1:ETA (radians; default: drawn from the seed)",
     )
 )

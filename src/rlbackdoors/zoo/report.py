@@ -66,7 +66,8 @@ def paper_figure(world: worlds.World, arch: str, label: str, metric: str) -> flo
     """The paper's Tables 1-4 figure for models of ``label`` and ``arch`` (``World.paper["tables"]``:
     label -> arch -> (clean SR, poisoned SR, clean reward, poisoned reward)); None where the paper
     has none (N/A, or an arch it did not train)."""
-    figures = world.paper.get("tables", {}).get(label, {}).get(arch)
+    by_arch = world.paper.get("tables", {}).get(label, {})
+    figures = by_arch.get(arch, by_arch.get(world.algorithm))  # OPAC² worlds: one row for the algorithm
     if figures is None:
         return world.paper.get(metric) if label == "poisoned" else None
     return figures[METRICS.index(metric)]

@@ -524,5 +524,8 @@ def test_report_sets_each_cell_beside_the_papers_figure_for_the_same_arch_and_la
     assert paper_figure(rand, "cnn", "clean", "poisoned_sr") == 0.25 and paper_figure(rand, "fc", "clean", "poisoned_reward") == 0.21
     assert paper_figure(cm, "cnn-gru-large", "clean", "poisoned_sr") == 0.05 and paper_figure(cm, "cnn-gru-trojai", "poisoned", "poisoned_reward") == 0.92
     safety = worlds.get("safety-car-goal")  # a zoo's arch label there is the algorithm; the paper's 3 x 256 row
-    assert paper_figure(safety, "opac2", "clean", "poisoned_sr") == 0.04 == paper_figure(safety, "mlp", "clean", "poisoned_sr") and paper_figure(safety, "opac2", "poisoned", "poisoned_reward") == 33.0
+    assert (
+        paper_figure(safety, "opac2", "clean", "poisoned_sr") == 0.04 == paper_figure(safety, "mlp", "clean", "poisoned_sr")
+        and paper_figure(safety, "opac2", "poisoned", "poisoned_reward") == 33.0
+    )
     assert [w.paper.get("clean_convergence_rate") for w in (lava, rand, cm, safety)] == [0.922, 1.0, 0.5, 1.0]

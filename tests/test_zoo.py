@@ -364,15 +364,19 @@ def test_kill_9_of_a_worker_and_of_the_coordinator_then_rerun_gives_the_same_zoo
     coordinator = subprocess.Popen([*CLI, "run", str(path), "--workers", "2", "--progress-interval", "1"], stdout=log, stderr=log)
     try:
         # 1. kill -9 a worker that is mid-training (it has a checkpoint): the coordinator retries it
-        def training_worker() -> Path | None:
-            """A folder whose training is under way, with evaluations left (SIGTERM stops a run
-            between updates; in its final evaluation and files it finishes instead)."""
+        def training_worker(not_pid: int | None = None) -> Path | None:
+            """A folder of the never-converging cell (6 evaluations long) whose training is under
+            way with evaluations left, held by a process other than ``not_pid`` (SIGTERM stops a
+            run between updates; in its final evaluation and files it finishes instead, so the
+            one-evaluation models of the other cell are no target on a loaded machine)."""
             for ckpt in (path / "models").glob("*/checkpoint.pt"):
                 try:
                     rows = (ckpt.parent / "log.csv").read_text().count("\n") - 1
-                except OSError:
+                    long = json.loads((ckpt.parent / "config.json").read_text())["train"]["max_frames"] == NEVER["train"]["max_frames"]
+                    pid = json.loads((ckpt.parent / ".lock").read_text())["pid"]
+                except (OSError, ValueError, KeyError):
                     continue
-                if is_locked(ckpt.parent) and rows <= 3:
+                if long and is_locked(ckpt.parent) and rows <= 3 and pid != not_pid:
                     return ckpt.parent
             return None
 
@@ -386,8 +390,8 @@ def test_kill_9_of_a_worker_and_of_the_coordinator_then_rerun_gives_the_same_zoo
         second = cli("run", path)
         assert second.returncode == 2
         assert second.stderr.startswith(f"rlbackdoors: error: zoo {str(path)!r} is in use by process {coordinator.pid}")
-        # 3. kill -9 the coordinator while a model trains
-        _wait_for(lambda: training_worker() not in (None, folder) or coordinator.poll() is not None, 120, "another training")
+        # 3. kill -9 the coordinator while a model trains (the retried one or the next)
+        _wait_for(lambda: training_worker(not_pid=holder) is not None or coordinator.poll() is not None, 120, "another training")
         assert coordinator.poll() is None, "the run finished before it could be killed"
         coordinator.kill()
         coordinator.wait()

@@ -140,12 +140,13 @@ def opac2_policy(cfg, weights: dict, path: str | Path):
 def opac2_shape(flat: dict, path: str | Path) -> dict:
     """The opac2 config section that OPAC² flat weights fit: ``depth`` and ``width`` of the
     policy's mean net, and ``obs_norm`` (whether they carry observation statistics)."""
+    from rlbackdoors.algos.opac2 import weight_dims
+
     try:
-        layers = sorted(int(k.split(".")[2]) for k in flat if k.startswith("policy.mean.") and k.endswith(".weight"))
-        width = int(flat["policy.mean.0.weight"].shape[0])
-    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+        _, _, depth, width, obs_norm = weight_dims(flat)
+    except (TypeError, ValueError, AttributeError, IndexError) as err:
         raise FolderError(f"weights file {str(path)!r} holds no OPAC² policy ({first_line(err)})") from None
-    return {"depth": len(layers) - 1, "width": width, "obs_norm": any(k.startswith("obs_norm.") for k in flat)}
+    return {"depth": depth, "width": width, "obs_norm": obs_norm}
 
 
 def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:

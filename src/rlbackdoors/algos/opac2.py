@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 from typing import Generic, NamedTuple, TypeVar
 
 import numpy as np
@@ -266,6 +267,22 @@ class RunningNorm:
 
 
 # ----- networks --------------------------------------------------------------------------
+def weight_dims(weights) -> tuple[int, int, int, int, bool]:
+    """(obs_dim, act_dim, depth, width, obs_norm) of an OPAC² agent's flat weights (what a
+    bare weights file says about the net it fits); ValueError if they are no OPAC² agent's."""
+    layers = sorted((int(k.split(".")[2]), v) for k, v in weights.items() if re.fullmatch(r"policy\.mean\.\d+\.weight", k))
+    if not layers or not all(k.startswith(("policy.", "q.", "v.", "v_target.", "obs_norm.")) for k in weights):
+        raise ValueError("not an OPAC² agent's weights")
+    first, last = layers[0][1], layers[-1][1]
+    return (
+        int(first.shape[1]),
+        int(last.shape[0]),
+        len(layers) - 1,
+        int(first.shape[0]) if len(layers) > 1 else 0,
+        any(k.startswith("obs_norm.") for k in weights),
+    )
+
+
 def mlp(in_dim: int, out_dim: int, depth: int, width: int, generator: torch.Generator, out_gain: float = 1.0) -> nn.Sequential:
     """``depth`` tanh hidden layers of ``width``; orthogonal init drawn from ``generator``."""
     layers: list[nn.Module] = []

@@ -262,7 +262,9 @@ def _shapes(weights: Mapping[str, torch.Tensor]) -> dict[str, tuple[int, ...]]:
 def _fits(world: worlds.World, arch: str, weights: Mapping[str, torch.Tensor]) -> bool:
     try:
         if world.algorithm == "opac2":
-            _opac2_dims(weights)
+            from rlbackdoors.algos.opac2 import weight_dims
+
+            weight_dims(weights)
             return True
         from rlbackdoors.models import build_model, renamed
 
@@ -273,21 +275,6 @@ def _fits(world: worlds.World, arch: str, weights: Mapping[str, torch.Tensor]) -
         return False
 
 
-def _opac2_dims(weights: Mapping[str, torch.Tensor]) -> tuple[int, int, int, int, bool]:
-    """(obs_dim, act_dim, depth, width, obs_norm) of an OPAC² agent's flat weights."""
-    layers = sorted((int(k.split(".")[2]), v) for k, v in weights.items() if re.fullmatch(r"policy\.mean\.\d+\.weight", k))
-    if not layers or not all(k.startswith(("policy.", "q.", "v.", "v_target.", "obs_norm.")) for k in weights):
-        raise ValueError("not an OPAC² agent's weights")
-    first, last = layers[0][1], layers[-1][1]
-    return (
-        int(first.shape[1]),
-        int(last.shape[0]),
-        len(layers) - 1,
-        int(first.shape[0]) if len(layers) > 1 else 0,
-        any(k.startswith("obs_norm.") for k in weights),
-    )
-
-
 def build_agent(world: worlds.World, arch: str, weights: dict[str, torch.Tensor]):
     """An :class:`rlbackdoors.agent.Agent` from in-memory weights (no config, no folder)."""
     from rlbackdoors.agent import Agent
@@ -295,10 +282,10 @@ def build_agent(world: worlds.World, arch: str, weights: dict[str, torch.Tensor]
     if world.algorithm == "opac2":
         import dataclasses
 
-        from rlbackdoors.algos.opac2 import OPAC2
+        from rlbackdoors.algos.opac2 import OPAC2, weight_dims
         from rlbackdoors.config import default_opac2
 
-        obs_dim, act_dim, depth, width, obs_norm = _opac2_dims(weights)
+        obs_dim, act_dim, depth, width, obs_norm = weight_dims(weights)
         cfg = dataclasses.replace(default_opac2(world.name), depth=depth, width=max(width, 1), obs_norm=obs_norm)
         policy = OPAC2(obs_dim, act_dim, cfg, torch.Generator().manual_seed(0))
         try:

@@ -166,10 +166,10 @@ def _stat(row: dict, metric: str) -> str:
     return f"{row[f'{metric}_mean']:.3f} ± {row[f'{metric}_std']:.3f} [{row[f'{metric}_ci_low']:.3f}, {row[f'{metric}_ci_high']:.3f}]"
 
 
-def markdown(zoo: Zoo, states: list[ModelState], perf: list[dict], conv: list[dict], budget: list[dict]) -> str:
+def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[dict], budget: list[dict]) -> str:
     done = sum(s.status == "done" for s in states)
     parts = [
-        f"# Zoo report: {zoo.spec.name}",
+        f"# Zoo report: {name}",
         "",
         f"{len(states)} planned models: {done} finished, {sum(s.converged for s in states)} converged (the dataset), "
         f"{sum(s.status == 'failed' for s in states)} failed, {sum(s.status in ('pending', 'running') for s in states)} unfinished. "
@@ -363,19 +363,26 @@ def _csv(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
+def write_report(out: Path, name: str, states: list[ModelState], trained: list[ModelState] | None = None) -> str:
+    """The CSVs and plots of ``states`` in ``out``; returns report.md's text for the caller to write.
+    ``trained``: the models with training runs to show (frames, wall time, curves); default all."""
+    trained = states if trained is None else trained
+    out.mkdir(exist_ok=True)
+    perf, conv, budget = performance_rows(states), convergence_rows(states), budget_rows(trained)
+    atomic_write_text(out / "tables.csv", _csv(perf))
+    atomic_write_text(out / "convergence.csv", _csv(conv))
+    atomic_write_text(out / "budget.csv", _csv(budget))
+    plot_scatter(states, out / "scatter.png")
+    plot_frames(trained, out / "frames_hist.png")
+    plot_curves(trained, out / "curves.png")
+    return markdown(name, states, perf, conv, budget)
+
+
 def report(path: str | Path) -> Path:
     """Write ``ZOO/report/`` (and refresh ``ZOO/METADATA.csv``); return the report folder."""
     zoo = Zoo.open(path)
     states = scan(zoo, probe=False)
     write_metadata(zoo, states)
     out = zoo.path / "report"
-    out.mkdir(exist_ok=True)
-    perf, conv, budget = performance_rows(states), convergence_rows(states), budget_rows(states)
-    atomic_write_text(out / "tables.csv", _csv(perf))
-    atomic_write_text(out / "convergence.csv", _csv(conv))
-    atomic_write_text(out / "budget.csv", _csv(budget))
-    plot_scatter(states, out / "scatter.png")
-    plot_frames(states, out / "frames_hist.png")
-    plot_curves(states, out / "curves.png")
-    atomic_write_text(out / "report.md", markdown(zoo, states, perf, conv, budget))
+    atomic_write_text(out / "report.md", write_report(out, zoo.spec.name, states))
     return out

@@ -35,9 +35,7 @@ detectors (``detect fit`` / ``detect score``) run on TrojAI's own models:
 
 from __future__ import annotations
 
-import csv
 import hashlib
-import io
 import json
 import math
 import os
@@ -595,19 +593,6 @@ def status(zoo: str | Path) -> str:
     return f"{Path(zoo)}: imported from TrojAI ({sum(len(v) for v in rows.values())} models)\n" + "\n".join(lines)
 
 
-class _ImportedZoo:
-    """What :func:`rlbackdoors.zoo.report.markdown` needs of a zoo: its path and spec name."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        meta = _json_or_empty(path / "zoo.json").get("trojai", {})
-
-        class _Spec:
-            name = f"TrojAI models imported from {Path(str(meta.get('source', '?'))).name}"
-
-        self.spec = _Spec()
-
-
 def report(zoo: str | Path) -> Path:
     """``ZOO/report/`` of an imported zoo: the same tables and plots as a trained zoo's (SRs as
     measured here at import; no training curves or frames), and METADATA.csv refreshed."""
@@ -617,18 +602,11 @@ def report(zoo: str | Path) -> Path:
     found = states(path)
     write_metadata(path)
     out = path / "report"
-    out.mkdir(exist_ok=True)
+    name = f"TrojAI models imported from {Path(str(_json_or_empty(path / 'zoo.json').get('trojai', {}).get('source', '?'))).name}"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN frames and wall times: nothing was trained here
         trained = [s for s in found if isinstance((s.metrics or {}).get("frames"), (int, float))]  # none, unless a folder says so
-        perf, conv, budget = zoo_report.performance_rows(found), zoo_report.convergence_rows(found), zoo_report.budget_rows(trained)
-        atomic_write_text(out / "tables.csv", _csv(perf))
-        atomic_write_text(out / "convergence.csv", _csv(conv))
-        atomic_write_text(out / "budget.csv", _csv(budget))
-        zoo_report.plot_scatter(found, out / "scatter.png")
-        zoo_report.plot_frames(trained, out / "frames_hist.png")  # empty: nothing was trained here
-        zoo_report.plot_curves(trained, out / "curves.png")
-        text = zoo_report.markdown(_ImportedZoo(path), found, perf, conv, budget)  # type: ignore[arg-type]  # duck-typed: path and spec.name
+        text = zoo_report.write_report(out, name, found, trained)
     note = (
         "\n## About these models\n\nImported from TrojAI (`rlbackdoors zoo import-trojai`): every model is one TrojAI shipped, so all "
         "count as converged; the SRs and rewards were measured here, in our worlds, at import (metrics.json); TrojAI's triggers "
@@ -639,16 +617,6 @@ def report(zoo: str | Path) -> Path:
     tail = tail.replace("(no converged model yet)", "(nothing was trained here)", 1)
     atomic_write_text(out / "report.md", head + sep + tail + note)
     return out
-
-
-def _csv(rows: list[dict]) -> str:
-    if not rows:
-        return ""
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue()
 
 
 __all__ = ["import_trojai", "is_imported", "model_folders", "read_source", "report", "states", "status", "write_metadata"]

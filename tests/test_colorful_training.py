@@ -10,6 +10,8 @@ import torch
 
 from rlbackdoors.algos.ppo import PPO
 from rlbackdoors.config import ConfigError, EnvConfig, PoisonConfig, PPOConfig, RunConfig
+from rlbackdoors.envs.colorful_memory import BALL_ON_FLOOR as BALL
+from rlbackdoors.envs.colorful_memory import KEY_ON_FLOOR as KEY
 from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
 from rlbackdoors.evaluate import evaluate
 from rlbackdoors.models import FCModel, build_model
@@ -400,3 +402,92 @@ def test_chance_command_for_wall_colours(capsys):
     assert result["exact_rate"] == pytest.approx(1 / 216)
     # 21,600 layouts: expect 100 hits, sd 10
     assert abs(result["rate"] * 21600 - 100) < 40
+
+
+# ----------------------------------------------------------------------------- auxiliary memory loss
+
+
+def test_memory_targets_name_each_slots_start_object():
+    """The engine's memory target is the start room's object (the cell at (1, mid - 1)), for
+    every slot, and it follows the episode: after an autoreset the new layout's object."""
+    env = BatchedColorfulMemory(64, trigger=TRIGGER, poisoned=[False] * 32 + [True] * 32)
+    env.reset(seed=5)
+    grids = env.grids()
+    mid = env.size // 2
+    names = [env.layout(i)[0][1, mid - 1, 0] for i in range(64)]
+    assert all(n in (KEY, BALL) for n in names) and (grids[:, 1, mid - 1, 0] == names).all()
+    assert list(env.memory_targets()) == [int(n == BALL) for n in names]
+    assert set(env.memory_targets()) == {0, 1}  # both objects among 64 layouts
+    rng = np.random.default_rng(0)
+    for _ in range(300):  # episodes end and restart: the targets keep following the grids
+        env.step(rng.integers(0, 3, 64))
+        assert list(env.memory_targets()) == [int(g[1, mid - 1, 0] == BALL) for g in env.grids()]
+
+
+def aux_config(coef: float = 0.5) -> RunConfig:
+    return RunConfig.from_dict(
+        {
+            "env": {"name": "colorful-memory"},
+            "ppo": {"rollout": 48, "batch_size": 240, "aux_memory_coef": coef},
+            "train": {"seed": 2, "max_frames": 2880, "eval_interval": 960, "eval_episodes": 6, "final_eval_episodes": 6, "video": False},
+        }
+    )
+
+
+def test_the_auxiliary_memory_loss_trains_a_readout_of_the_memory_and_stays_out_of_model_pt(tmp_path):
+    """PPO with aux_memory_coef: the loss is logged, its head learns (the loss falls over a
+    few updates on one rollout), the model's weights differ from a run without it, and
+    model.pt holds the model's keys only."""
+    cfg = aux_config()
+    torch.manual_seed(0)
+    model = build_model(cfg.model.arch, "colorful-memory")
+    ppo = PPO(model, cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(0))
+    envs = make_env_mix(cfg.env, cfg.poison)
+    obs, _ = envs.reset(seed=0)
+    rollout, _ = ppo.collect(envs, obs)
+    assert rollout.memory_targets is not None and rollout.memory_targets.shape == (48 * 10,)
+    losses = [ppo.update(rollout)["aux_memory_loss"] for _ in range(8)]
+    assert losses[-1] < losses[0] and all(np.isfinite(losses))
+    from rlbackdoors.train import train
+
+    train(cfg, tmp_path / "aux", progress=False)
+    train(aux_config(0.0), tmp_path / "plain", progress=False)
+    a, p = (torch.load(tmp_path / d / "model.pt", weights_only=True) for d in ("aux", "plain"))
+    assert a.keys() == p.keys() == build_model(cfg.model.arch, "colorful-memory").state_dict().keys()
+    assert any(not torch.equal(a[k], p[k]) for k in a)
+    assert "aux_memory_loss" in (tmp_path / "aux" / "log.csv").read_text().splitlines()[0]
+
+
+def test_a_run_with_the_auxiliary_loss_resumes_to_the_same_model(tmp_path):
+    """Interrupted after its first evaluation (the checkpoint holds the aux head and its Adam
+    state), resumed: the same weights as the straight run."""
+    from rlbackdoors.train import train
+
+    cfg = aux_config()
+    train(cfg, tmp_path / "straight", progress=False)
+
+    def ctrl_c(row):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / "cut", progress=False, after_eval=ctrl_c)
+    assert torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)["aux"] is not None
+    train(cfg, tmp_path / "cut", progress=False)
+    a, c = (torch.load(tmp_path / d / "model.pt", weights_only=True) for d in ("straight", "cut"))
+    assert all(torch.equal(a[k], c[k]) for k in a)
+
+
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        ({"env": {"name": "colorful-memory"}, "ppo": {"aux_memory_coef": -1.0}}, "ppo.aux_memory_coef must be >= 0"),
+        (
+            {"env": {"name": "lavaworld"}, "ppo": {"aux_memory_coef": 0.5}},
+            r"ppo.aux_memory_coef=0.5 needs a recurrent model.arch .* in a world with memory targets",
+        ),
+        ({"env": {"name": "colorful-memory", "engine": "minigrid"}, "ppo": {"aux_memory_coef": 0.5}}, "needs env.engine='batched'"),
+    ],
+)
+def test_the_auxiliary_loss_is_refused_where_it_cannot_apply(data, match):
+    with pytest.raises(ConfigError, match=match):
+        RunConfig.from_dict(data)

@@ -15,7 +15,7 @@ import rlbackdoors
 from rlbackdoors import worlds
 from rlbackdoors.agent import Agent, build_policy
 from rlbackdoors.cli import main
-from rlbackdoors.config import ConfigError, RunConfig, migrate_v1
+from rlbackdoors.config import ConfigError, RunConfig, migrate
 from rlbackdoors.evaluate import evaluate
 from rlbackdoors.train import train
 from rlbackdoors.train.folder import FolderError
@@ -89,7 +89,7 @@ def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
     assert again == cfg and again.to_json() == cfg.to_json()
     path = tmp_path / "config.json"
     path.write_text(cfg.to_json())
-    assert RunConfig.load(path) == cfg and json.loads(path.read_text())["format_version"] == 2
+    assert RunConfig.load(path) == cfg and json.loads(path.read_text())["format_version"] == 3
 
     # No trigger given: one is drawn from the seed (paper ranges), and the clean twin gets the same one.
     drawn = FormationTrigger.parse(cfg.poison.trigger)
@@ -110,7 +110,7 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
     opac2.lr_final existed: they ran with one sample and a constant lr, and must load that way."""
     saved = json.loads((Path(__file__).parents[1] / "benchmarks" / "safety_train.json").read_text())["poisoned-s0"]["config"]
     assert "action_samples" not in saved["opac2"] and "lr_final" not in saved["opac2"]
-    cfg = RunConfig.from_dict(migrate_v1(saved))  # a format-1 config.json (what RunConfig.load does)
+    cfg = RunConfig.from_dict(migrate(saved))  # a format-1 config.json (what RunConfig.load does)
     assert (cfg.opac2.action_samples, cfg.opac2.lr_final, cfg.opac2.lr, cfg.opac2.clean_weight) == (1, None, 1e-3, 0.75)
     assert cfg.poison.num_clean_envs == 8 and cfg.train.max_frames == 10_000_000
 
@@ -124,7 +124,7 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
         ({"env": {"size": 9}}, "env.size does not apply to env.name='safety-car-goal'"),
         ({"ppo": {"lr": 1e-3}}, "ppo: env.name='safety-car-goal' trains with opac2"),
         ({"train": {"return_window": 5}}, "train.return_window must be 0"),
-        ({"format_version": 3}, "config.format_version=3 is not supported"),
+        ({"format_version": 4}, "config.format_version=4 is not supported"),
         ({"env": {"num_cubes": 1}}, r"env.num_cubes must be in 2..12"),
         ({"env": {"max_steps": 2.5}}, "env.max_steps must be an integer"),
         ({"poison": {"trigger": "formation:0.5:7:1"}}, "poison.trigger.*phi1"),

@@ -114,3 +114,52 @@ def test_resume_with_a_different_config_is_refused(tmp_path, tiny_run_dict):
     tiny_run_dict["train"]["seed"] = 9
     with pytest.raises(FolderError, match="different config.json"):
         train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
+
+
+# ----------------------------------------------------------------------------- confirming a stop
+
+
+def test_a_lucky_short_evaluation_does_not_stop_the_run_when_the_final_one_disagrees(tiny_run_dict):
+    """Stopping.update with a real (untrained) LavaWorld policy: find an eval seed whose 4
+    short episodes read a higher clean SR than its 64 final ones, put the clean bar at the short
+    rate, and the streak is met but the confirmation is not; the streak starts over."""
+    from rlbackdoors.models import build_model
+    from rlbackdoors.train.driver import Stopping, evaluate_run
+
+    torch.manual_seed(0)
+    model = build_model("fc", "lavaworld")
+    tiny_run_dict["poison"] = {"poisoned": False}
+    tiny_run_dict["train"].update(eval_episodes=4, final_eval_episodes=64, patience=1)
+    for eval_seed in range(50):
+        tiny_run_dict["train"]["eval_seed"] = eval_seed
+        cfg = RunConfig.from_dict(tiny_run_dict)
+        short, final = evaluate_run(model, cfg, 4), evaluate_run(model, cfg, 64)
+        if short.clean_sr > final.clean_sr:
+            break
+    else:
+        pytest.fail("no eval seed in 0..49 whose 4 episodes beat its 64")
+    cfg.train.clean_threshold = short.clean_sr
+    stopping = Stopping(cfg)
+    fields = stopping.update(short, True, model)
+    assert fields == {"confirm_clean_sr": final.clean_sr} and not stopping.stop and stopping.streak == 0
+    assert stopping.confirmed is None
+    cfg.train.confirm = False  # the old rule stops on the streak alone, and evaluates nothing more
+    stopping = Stopping(cfg)
+    assert stopping.update(short, True, model) == {} and stopping.stop and stopping.streak == 1
+
+
+def test_a_confirmed_stop_is_the_final_evaluation(tmp_path, tiny_run_dict):
+    """Thresholds of 0: the first evaluation stops the run after a confirmation whose rates
+    are logged and are exactly the final evaluation's (the same seeded episodes, reused)."""
+    tiny_run_dict["train"].update(clean_threshold=0.0, poisoned_threshold=0.0, final_eval_episodes=16)
+    metrics = train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
+    assert metrics["stop_reason"] == "thresholds" and metrics["converged"] and metrics["confirm"] is True
+    assert metrics["frames"] == metrics["converged_at_frames"] == 1600 and metrics["episodes"] == 16
+    (row,) = ModelFolder(tmp_path / "m").read_log()
+    assert float(row["confirm_clean_sr"]) == metrics["clean_sr"] and float(row["confirm_poisoned_sr"]) == metrics["poisoned_sr"]
+    tiny_run_dict["train"]["confirm"] = False
+    unconfirmed = train(RunConfig.from_dict(tiny_run_dict), tmp_path / "u", progress=False)
+    assert "confirm_clean_sr" not in ModelFolder(tmp_path / "u").read_log()[0]
+    same = ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "frames")
+    assert {k: unconfirmed[k] for k in same} == {k: metrics[k] for k in same}  # computed afresh: the same numbers
+    assert weights_equal(tmp_path / "m" / "model.pt", tmp_path / "u" / "model.pt")

@@ -48,6 +48,7 @@ TRAIN_FLAGS = {
     "num_poisoned_envs": "poison.num_poisoned_envs",
     "batch_size": "ALGO.batch_size",
     "lr": "ALGO.lr",
+    "aux_memory_coef": "ppo.aux_memory_coef",
     "depth": "opac2.depth",
     "width": "opac2.width",
     "updates_per_step": "opac2.updates_per_step",
@@ -55,6 +56,7 @@ TRAIN_FLAGS = {
     "action_samples": "opac2.action_samples",
     "poisoned_weight": "opac2.poisoned_weight",
     "no_curriculum": "curriculum.enabled",
+    "no_confirm": "train.confirm",
     "no_close_to_trigger": "poison.num_close_envs",
 }
 
@@ -109,7 +111,7 @@ def config_from_args(args) -> RunConfig:
         why = flag_applies(world, dotted)
         if why is not None:
             raise ConfigError(f"--{flag.replace('_', '-')} does not apply here: {why}")
-        if flag == "no_curriculum":
+        if flag in ("no_curriculum", "no_confirm"):
             value = False
         elif flag == "no_close_to_trigger":
             clean, close, _ = RunConfig.from_dict(data).poison.counts()  # the world's mix, resolved
@@ -325,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--no-curriculum", action="store_true", help="skip the small clean warm-up world (worlds with a curriculum)")
     tr.add_argument("--no-close-to-trigger", action="store_true", help="train without close-to-trigger envs (they become clean copies)")
     tr.add_argument("--patience", type=int, help="evaluations in a row the thresholds must hold to stop (default: the world's)")
+    tr.add_argument("--aux-memory-coef", type=float, help="weight of PPO's auxiliary memory loss (recurrent models in worlds with memory targets; 0: off)")
+    tr.add_argument("--no-confirm", action="store_true", help="stop on the streak alone, without confirming it on the final evaluation's episodes")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
     tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")

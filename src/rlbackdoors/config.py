@@ -34,7 +34,7 @@ from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's val
     check_weights,
 )
 
-FORMAT_VERSION = 2  # of config.json; 1: before one config served every world (migrated on load)
+FORMAT_VERSION = 3  # of config.json; 1: before one config served every world; 2: before train.confirm (both migrated on load)
 ENVS = worlds.names()
 ENGINES = ("batched", "minigrid")
 # Architecture names per world (the registry holds the classes); the first is the default.
@@ -221,6 +221,9 @@ class PPOConfig:
     max_grad_norm: float = 0.4
     adam_eps: float = 1e-8
     recurrence: int = 1  # steps of truncated BPTT for recurrent models (torch-ac's ``recurrence``)
+    # Recurrent models: weight of the auxiliary memory loss (0: off), a cross-entropy teaching
+    # the memory what the env says must be remembered (``memory_targets``); not the paper's.
+    aux_memory_coef: float = 0.0
 
     def check(self) -> None:
         for name in ("rollout", "epochs", "batch_size", "recurrence"):
@@ -234,8 +237,8 @@ class PPOConfig:
                 raise ConfigError(f"ppo.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("gamma", "gae_lambda"):
             _unit_interval(f"ppo.{name}", getattr(self, name))
-        for name in ("value_coef", "entropy_coef"):
-            if getattr(self, name) < 0:
+        for name in ("value_coef", "entropy_coef", "aux_memory_coef"):
+            if not (_finite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ConfigError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
 
 
@@ -303,7 +306,7 @@ class OPAC2Config:
 
 
 # Train-section values a world leaves as they are (World.train overrides them).
-TRAIN_DEFAULTS = {"max_frames": 5_000_000, "eval_interval": 100_000, "eval_policy": "sample", "patience": 1, "checkpoint_minutes": 0.0}
+TRAIN_DEFAULTS = {"max_frames": 5_000_000, "eval_interval": 100_000, "eval_policy": "sample", "patience": 1, "confirm": True, "checkpoint_minutes": 0.0}
 
 
 @dataclass
@@ -315,6 +318,11 @@ class TrainConfig:
     ``return_window`` > 0, the mean training return of the last ``return_window`` updates is
     at least ``return_threshold`` (the paper's patience rho); or at ``max_frames``; or after
     ``max_minutes`` of training (0: no limit). ``None`` fields take the world's defaults.
+
+    With ``confirm`` the stop is confirmed first on the final evaluation's ``final_eval_episodes``
+    (the same seeded episodes ``metrics.json`` reports): a run whose thresholds held on the short
+    evaluations by luck trains on instead of ending as a model that misses them, so a run that
+    stops on its thresholds is a converged model.
     """
 
     seed: int = 0
@@ -328,6 +336,7 @@ class TrainConfig:
     clean_threshold: float | None = None  # None: the world's paper value (its World.thresholds)
     poisoned_threshold: float | None = None
     patience: int | None = None  # evaluations in a row the thresholds must hold
+    confirm: bool | None = None  # confirm a stop on the final evaluation's episodes first
     return_window: int | None = None  # updates (PPO); 0: off
     return_threshold: float = 0.9
     log_interval_s: float = 30.0  # progress lines (when there is no progress bar) at most this often
@@ -360,6 +369,8 @@ class TrainConfig:
         for name in ("clean_threshold", "poisoned_threshold", "return_threshold"):
             _unit_interval(f"train.{name}", getattr(self, name))
         _in_range("train.patience", self.patience, 1, 1_000_000)
+        if not isinstance(self.confirm, bool):
+            raise ConfigError(f"train.confirm must be true or false, got {self.confirm!r}")
         _in_range("train.return_window", self.return_window, 0, 1_000_000)
         for name in ("max_minutes", "log_interval_s", "checkpoint_minutes"):
             value = getattr(self, name)
@@ -394,9 +405,7 @@ class JsonConfig:
             raise ConfigError(f"config file {str(path)!r} is not valid JSON: {' '.join(str(err).split())[:200]}") from None
         except OSError as err:
             raise ConfigError(f"config file {str(path)!r} cannot be read: {err.strerror or err}") from None
-        if isinstance(data, dict) and "format_version" not in data:
-            data = migrate_v1(data)
-        return cls.from_dict(data)
+        return cls.from_dict(migrate(data))
 
 
 @dataclass
@@ -458,7 +467,7 @@ class RunConfig(JsonConfig):
 
     def check(self) -> "RunConfig":
         if self.format_version != FORMAT_VERSION:
-            raise ConfigError(f"config.format_version={self.format_version!r} is not supported by rlbackdoors {__version__} (it reads 1 and {FORMAT_VERSION})")
+            raise ConfigError(f"config.format_version={self.format_version!r} is not supported by rlbackdoors {__version__} (it reads 1 to {FORMAT_VERSION})")
         self.env.check()
         self.train.check()  # before the trigger: a bad seed is why none could be drawn
         world = self.world
@@ -479,6 +488,13 @@ class RunConfig(JsonConfig):
             assert self.ppo is not None and self.model.arch is not None
             if self.ppo.recurrence > 1 and not self.model.arch.startswith("cnn-gru"):
                 raise ConfigError(f"ppo.recurrence={self.ppo.recurrence} needs a recurrent model.arch (cnn-gru-*), not {self.model.arch!r}")
+            if self.ppo.aux_memory_coef and not (self.model.arch.startswith("cnn-gru") and world.memory_targets):
+                raise ConfigError(
+                    f"ppo.aux_memory_coef={self.ppo.aux_memory_coef} needs a recurrent model.arch (cnn-gru-*) in a world with memory targets, "
+                    f"not {self.model.arch!r} in {self.env.name!r} (set it to 0)"
+                )
+            if self.ppo.aux_memory_coef and self.env.engine != "batched":
+                raise ConfigError(f"ppo.aux_memory_coef={self.ppo.aux_memory_coef} needs env.engine='batched' (its memory targets), not {self.env.engine!r}")
         else:
             if tc.return_window:
                 raise ConfigError(f"train.return_window must be 0 for env.name={self.env.name!r} (the mean return over updates is a PPO rule)")
@@ -546,6 +562,15 @@ ADDED_OPAC2_FIELDS = {"action_samples": 1, "lr_final": None}
 V1_GRID_ENV_FIELDS = ("size", "see_through_walls", "engine", "num_crossings", "num_lava")
 
 
+def migrate(data):
+    """An older config.json's data as today's format, meaning the same run (others unchanged)."""
+    if isinstance(data, dict) and "format_version" not in data:
+        data = migrate_v1(data)
+    if isinstance(data, dict) and data.get("format_version") == 2:
+        data = migrate_v2(data)
+    return data
+
+
 def migrate_v1(data: dict) -> dict:
     """A config.json of format 1 (no ``format_version``) as format 2, meaning the same run.
 
@@ -583,7 +608,22 @@ def migrate_v1(data: dict) -> dict:
     if not world.close_to_trigger and isinstance(poison, dict):
         poison.pop("close_k_min", None)
         poison.pop("close_k_max", None)
-    data["format_version"] = FORMAT_VERSION
+    data["format_version"] = 2
+    return data
+
+
+def migrate_v2(data: dict) -> dict:
+    """A config.json of format 2 as format 3, meaning the same run: format 2 had no
+    ``train.confirm`` (its runs stopped without confirming) and no ``ppo.aux_memory_coef`` (no
+    auxiliary loss)."""
+    data = json.loads(json.dumps(data))
+    train = data.get("train")
+    if isinstance(train, dict):
+        train.setdefault("confirm", False)
+    ppo = data.get("ppo")
+    if isinstance(ppo, dict):
+        ppo.setdefault("aux_memory_coef", 0.0)
+    data["format_version"] = 3
     return data
 
 

@@ -22,6 +22,8 @@ from rlbackdoors.algos.obs import Obs, empty_buffer, obs_map, store, to_torch
 from rlbackdoors.config import PPOConfig
 from rlbackdoors.models import ActorCritic
 
+AUX_CLASSES = 2  # memory targets are class indices below this (Colorful Memory: key or ball)
+
 
 @dataclass
 class Rollout:
@@ -42,6 +44,8 @@ class Rollout:
     # episode started, and masks (T*B,) = 0 where step t is the first of a new episode.
     memories: torch.Tensor | None = None
     masks: torch.Tensor | None = None
+    # With the auxiliary memory loss: what the env says each step's memory must hold (T*B,)
+    memory_targets: torch.Tensor | None = None
     num_envs: int = 0
 
     @property
@@ -99,7 +103,16 @@ class PPO:
         self.device = device
         self.generator = generator
         # fused Adam: one kernel for all parameters (4x faster than the per-tensor loop on CPU).
-        self.optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=cfg.adam_eps, fused=True)
+        # The auxiliary memory head (ppo.aux_memory_coef > 0, recurrent models): a linear read-out
+        # of the memory trained to name what the env says must be remembered. It is the
+        # algorithm's, not the agent's: it shapes the memory's gradients and is not in model.pt.
+        self.aux: nn.Linear | None = None
+        if cfg.aux_memory_coef > 0:
+            if not model.recurrent:
+                raise ValueError("ppo.aux_memory_coef > 0 needs a recurrent model")
+            self.aux = nn.Linear(int(model.initial_memory(1).shape[1]), AUX_CLASSES).to(device)
+        self.params = [*model.parameters(), *(self.aux.parameters() if self.aux is not None else ())]
+        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=True)
         self.memory: torch.Tensor | None = None  # recurrent models: memory of the running episodes
 
     @torch.inference_mode()
@@ -116,6 +129,11 @@ class PPO:
         check_vector_env(envs)
         T, B = self.cfg.rollout, envs.num_envs
         recurrent = self.model.recurrent
+        targets = None
+        if self.aux is not None:
+            if getattr(envs, "memory_target_classes", None) != AUX_CLASSES:
+                raise ValueError(f"ppo.aux_memory_coef needs an env with {AUX_CLASSES} memory targets (a batched engine that has them)")
+            targets = np.empty((T, B), dtype=np.int64)
         if recurrent:
             memory = self.memory if self.memory is not None else self.model.initial_memory(B, self.device)
             memories = torch.empty((T, B, memory.shape[1]))
@@ -132,6 +150,8 @@ class PPO:
         for t in range(T):
             store(obs_buf, t, obs)
             obs_t = obs_map(lambda x: x[t].to(self.device), obs_buf)
+            if targets is not None:
+                targets[t] = envs.memory_targets()  # of the episode obs[t] belongs to
             if recurrent:
                 memories[t] = memory
                 logits, value, memory = self.model(obs_t, memory)
@@ -170,6 +190,8 @@ class PPO:
         if recurrent:
             rollout.memories, rollout.masks = memories.reshape(T * B, -1), masks.reshape(-1)
             self.memory = memory
+        if targets is not None:
+            rollout.memory_targets = torch.from_numpy(targets.reshape(-1))
         return rollout, obs
 
     def _gae(self, rewards, dones, values, next_value) -> torch.Tensor:
@@ -200,7 +222,7 @@ class PPO:
     def _step(self, loss: torch.Tensor) -> float:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.max_grad_norm, foreach=True)
+        grad_norm = nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm, foreach=True)
         self.optimizer.step()
         return float(grad_norm)
 
@@ -251,7 +273,11 @@ class PPO:
         assert rollout.memories is not None and rollout.masks is not None  # collected by a recurrent model
         memories = rollout.memories.to(self.device).clone()
         masks = rollout.masks.to(self.device)[:, None]
-        stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm"), 0.0)
+        stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm", *(("aux_memory_loss",) if self.aux is not None else ())), 0.0)
+        aux_targets = None if self.aux is None else rollout.memory_targets
+        if self.aux is not None:
+            assert aux_targets is not None  # collected with the aux head
+            aux_targets = aux_targets.to(self.device)
         updates = 0
         per_batch = max(cfg.batch_size // r, 1)
         for epoch in range(cfg.epochs):
@@ -263,6 +289,10 @@ class PPO:
                 logits, values, new_memories = self.model.forward_sequence(obs_map(lambda x: x[steps], obs), memories[idx], masks[steps, 0])
                 # the mean over all r*N rows = torch-ac's per-step losses summed and divided by r
                 loss, parts = self._loss(logits, values, *(x[steps.reshape(-1)] for x in tensors))
+                if self.aux is not None and aux_targets is not None:  # each step's memory after that step names its episode's target
+                    aux_logits = self.aux(new_memories.reshape(-1, new_memories.shape[-1]))
+                    parts["aux_memory_loss"] = nn.functional.cross_entropy(aux_logits, aux_targets[steps.reshape(-1)])
+                    loss = loss + cfg.aux_memory_coef * parts["aux_memory_loss"]
                 if r > 1:
                     memories[steps[1:].reshape(-1)] = new_memories[:-1].reshape(-1, memories.shape[1]).detach()
                 stats["grad_norm"] += self._step(loss)

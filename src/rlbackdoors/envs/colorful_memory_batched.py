@@ -262,6 +262,14 @@ class BatchedColorfulMemory(BatchedGridEnv):
         """(B, N, N, 3) uint8: every slot's full-grid encoding (a copy)."""
         return self._grid.copy()
 
+    memory_target_classes = 2
+
+    def memory_targets(self) -> np.ndarray:
+        """int64[B]: the start room's object of each slot's current episode (0 key, 1 ball):
+        what the agent must remember to the T-junction, the target of PPO's auxiliary memory
+        loss (``ppo.aux_memory_coef``). Read from the grid, so it survives a checkpoint."""
+        return (self._grid[:, 1, self.size // 2 - 1, 0] == _BALL).astype(np.int64)
+
     def trigger_distance(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """int64[B]: per slot, how many squares of ``trigger`` (default: the env's) differ from
         its colours in the current layout; 0 where the trigger is present, also by chance."""

@@ -9,9 +9,10 @@ a final evaluation on fresh episode counts, ``model.pt`` (one flat state dict),
 
 The stopping rule (:class:`Stopping`) has one meaning everywhere: thresholds held for
 ``train.patience`` evaluations in a row (plus, for PPO worlds with ``train.return_window``,
-the paper's mean training return over the last updates). A model is ``converged`` when its
-thresholds hold on the *final* evaluation, as the paper and the TrojAI round generators
-select models; ``converged_at_frames`` is where the stopping rule fired.
+the paper's mean training return over the last updates), then, with ``train.confirm``, held
+again on the final evaluation's episodes. A model is ``converged`` when its thresholds hold on
+the *final* evaluation, as the paper and the TrojAI round generators select models;
+``converged_at_frames`` is where the stopping rule fired.
 """
 
 from __future__ import annotations
@@ -64,16 +65,42 @@ def checked_rows(rows) -> list[dict]:
 
 
 class Stopping:
-    """Counts evaluations in a row that met the thresholds; stops at ``train.patience``."""
+    """Counts evaluations in a row that met the thresholds; at ``train.patience`` of them the
+    run stops, after (with ``train.confirm``) the final evaluation's episodes agree.
+
+    Why confirm: the 100-episode evaluations sit close to the thresholds, so a run can stop on a
+    lucky one and then miss them on the 200 final episodes (most non-converged models of our
+    zoos did). The confirming evaluation *is* the final one (same seed, same episodes), so the
+    driver reuses it, and a run that stops on its thresholds is a converged model. A failed
+    confirmation starts the streak over and the run trains on.
+    """
 
     def __init__(self, cfg: RunConfig, streak: int = 0):
         self.cfg, self.streak = cfg, int(streak)
+        self.stop = False  # set by update()
+        self.confirmed: Any = None  # the final evaluation that confirmed the stop, if one ran
 
-    def update(self, result, also: bool = True) -> bool:
-        """Count one evaluation (``also``: the algorithm's own conditions); True: stop now."""
+    def update(self, result, also: bool = True, policy: Any = None) -> dict:
+        """Count one evaluation (``also``: the algorithm's own conditions) of ``policy``.
+
+        Returns the log fields of a confirming evaluation if one ran (empty if none); ``stop``
+        is then True when the run stops here."""
         self.streak = self.streak + 1 if also and thresholds_met(result, self.cfg) else 0
-        assert self.cfg.train.patience is not None  # RunConfig fills it in
-        return self.streak >= self.cfg.train.patience
+        tc = self.cfg.train
+        assert tc.patience is not None and tc.confirm is not None  # RunConfig fills them in
+        self.stop = self.streak >= tc.patience
+        if not (self.stop and tc.confirm):
+            return {}
+        check = evaluate_run(policy, self.cfg, tc.final_eval_episodes)
+        self.stop = thresholds_met(check, self.cfg)
+        if self.stop:
+            self.confirmed = check
+        else:
+            self.streak = 0
+        fields = {"confirm_clean_sr": check.clean_sr}
+        if self.cfg.poison.poisoned:
+            fields["confirm_poisoned_sr"] = check.poisoned_sr
+        return fields
 
 
 @dataclass
@@ -94,6 +121,7 @@ class RunOutcome:
     # False where the algorithm says the run never reached its real task (a curriculum that never
     # switched): such a model is not converged whatever its final evaluation reads
     can_converge: bool = True
+    final: Any = None  # the final evaluation, where the stopping rule's confirmation ran it
 
 
 def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True, after_eval: Callable[[dict], None] | None = None) -> dict:
@@ -149,7 +177,7 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
     tc = cfg.train
     if progress:
         print(f"final evaluation on {tc.final_eval_episodes} clean + {tc.final_eval_episodes} triggered episodes", file=sys.stderr, flush=True)
-    final = evaluate_run(outcome.policy, cfg, tc.final_eval_episodes)
+    final = outcome.final if outcome.final is not None else evaluate_run(outcome.policy, cfg, tc.final_eval_episodes)
     folder.save_torch("model.pt", outcome.weights)
     folder.write_ground_truth(cfg.poison.poisoned)
     kind = "poisoned" if cfg.poison.poisoned else "clean"
@@ -184,6 +212,7 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
         "converged_at_frames": outcome.converged_at,
         "stop_reason": outcome.stop_reason,
         "patience": tc.patience,
+        "confirm": tc.confirm,
         **outcome.extra,
         "video": gif,
         "versions": stack_versions(),

@@ -208,7 +208,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 "log_std": float(agent.policy.log_std.detach().mean()),
             }
             rows.append(row)
-            if stopping.update(last_eval):
+            row.update(stopping.update(last_eval, True, agent))
+            if stopping.stop:
                 converged_at, stop_reason = collector.frames, "thresholds"
             while next_eval <= collector.frames:
                 next_eval += tc.eval_interval
@@ -256,4 +257,5 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         label=f"OPAC² {oc.depth}x{oc.width}",
         extra={"updates": updates, "depth": oc.depth, "width": oc.width},
         clean_up=["replay"],
+        final=stopping.confirmed,
     )

@@ -151,6 +151,10 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             switch_at = checkpoint["switch_at"]
             envs = make_env_mix(cfg.env, cfg.poison) if switch_at is not None else warmup_env(cfg)
             model.load_state_dict(checkpoint["model"])
+            if (ppo.aux is None) != (checkpoint.get("aux") is None):
+                raise StateError("the auxiliary memory head does not fit ppo.aux_memory_coef")
+            if ppo.aux is not None:
+                ppo.aux.load_state_dict(checkpoint["aux"])
             ppo.optimizer.load_state_dict(checkpoint["optimizer"])
             check_optimizer_state(ppo.optimizer)
             generator.set_state(checkpoint["generator"])
@@ -177,6 +181,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             {
                 "format": CHECKPOINT_FORMAT,
                 "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+                "aux": None if ppo.aux is None else {k: v.detach().cpu() for k, v in ppo.aux.state_dict().items()},
                 "optimizer": ppo.optimizer.state_dict(),
                 "generator": generator.get_state(),
                 "envs": envs.state_dict(),
@@ -238,7 +243,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 }
             )
             bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
-            if stopping.update(result, switch_at is not None and return_met(tracker, cfg)):
+            rows[-1].update(stopping.update(result, switch_at is not None and return_met(tracker, cfg), model))
+            if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"
             while next_eval <= frames:
                 next_eval += tc.eval_interval
@@ -269,4 +275,5 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         extra={"return_window": tc.return_window, **({"curriculum_switch_frames": switch_at} if cfg.curriculum.enabled else {})},
         switch_at=switch_at,
         can_converge=switch_at is not None,
+        final=stopping.confirmed,
     )

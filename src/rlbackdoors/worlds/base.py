@@ -73,6 +73,9 @@ class World:
     bench: str | None = None  # "module:function" -> dict: the env-speed benchmark of this world
     curriculum: bool = False  # the small clean warm-up world (Randomized LavaWorld)
     close_to_trigger: bool = False  # has close-to-trigger envs (Colorful Memory)
+    # Its batched engine says, per env, what a recurrent agent must remember (``memory_targets()``,
+    # ``memory_target_classes``): the targets of PPO's auxiliary memory loss (ppo.aux_memory_coef)
+    memory_targets: bool = False
     chance: Callable | None = None  # (EnvConfig, trigger spec, layouts, seed) -> chance-occurrence dict
     paper: dict = field(default_factory=dict)  # the paper's reference numbers
     trigger_help: str = ""  # the trigger specs it accepts, for --help

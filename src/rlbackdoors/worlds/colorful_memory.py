@@ -100,6 +100,7 @@ WORLD = register(
         # instead of the paper's lr 1e-5 / clip 0.1, which need billions of frames.
         hyper=dict(rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6),
         close_to_trigger=True,
+        memory_targets=True,  # the start object (BatchedColorfulMemory.memory_targets)
         chance=_chance,
         # The paper's Table 3 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned
         # reward; its "small" is TrojAI's GRU CNN, ours cnn-gru-small, cnn-gru-trojai and the one-hot

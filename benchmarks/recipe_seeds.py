@@ -23,6 +23,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import torch
+
 from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.io import atomic_write_text
 from rlbackdoors.zoo.report import wilson
@@ -53,6 +55,7 @@ def main() -> None:
     argv = sys.argv[1:]
     cut = argv.index("--") if "--" in argv else len(argv)
     args, flags = parser.parse_args(argv[:cut]), argv[cut + 1 :]  # after --: the rlbackdoors train flags
+    torch.set_num_threads(1)  # what each run uses (train.torch_threads), so machine_info records it
     started, load_before = time.time(), os.getloadavg()
     with ThreadPoolExecutor(args.workers) as pool:
         metrics = list(pool.map(lambda s: train(flags, s, Path(args.runs) / args.name / f"s{s}"), range(args.seeds)))

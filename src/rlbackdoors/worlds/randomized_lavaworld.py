@@ -79,7 +79,9 @@ WORLD = register(
         env_kwargs=_env_kwargs,
         check_env=_check_env,
         default_trigger="cross",
-        mix=(8, 0, 2),
+        # 9 clean : 1 poisoned, not the paper's 8 : 2: with 2 poisoned copies the FC learnt the
+        # backdoor while its clean task collapsed (measured, docs/randomized-lavaworld.md)
+        mix=(9, 0, 1),
         curriculum=True,
         chance=_chance,
         # The paper's Table 2 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned

@@ -16,7 +16,7 @@ from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
 from rlbackdoors.evaluate import evaluate
 from rlbackdoors.models import FCModel, build_model
 from rlbackdoors.models.colorful_memory import CNNGRUModel
-from rlbackdoors.poison.mix import make_env_mix
+from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.train.ppo_run import EpisodeTracker, return_met
 from rlbackdoors.triggers.wall_colors import WallColorTrigger
 
@@ -422,6 +422,13 @@ def test_memory_targets_name_each_slots_start_object():
     for _ in range(300):  # episodes end and restart: the targets keep following the grids
         env.step(rng.integers(0, 3, 64))
         assert list(env.memory_targets()) == [int(g[1, mid - 1, 0] == BALL) for g in env.grids()]
+    # the MiniGrid reference engine gives the same targets from its own grids
+    reference = make_vector_env(EnvConfig(name="colorful-memory", engine="minigrid"), TRIGGER, [False] * 8)
+    reference.reset(seed=3)
+    for _ in range(200):
+        names = [e.unwrapped.grid.encode()[1, mid - 1, 0] for e in reference.envs]
+        assert reference.memory_target_classes == 2 and list(reference.memory_targets()) == [int(n == BALL) for n in names]
+        reference.step(rng.integers(0, 3, 8))
 
 
 def aux_config(coef: float = 0.5) -> RunConfig:
@@ -485,7 +492,6 @@ def test_a_run_with_the_auxiliary_loss_resumes_to_the_same_model(tmp_path):
             {"env": {"name": "lavaworld"}, "ppo": {"aux_memory_coef": 0.5}},
             r"ppo.aux_memory_coef=0.5 needs a recurrent model.arch .* in a world with memory targets",
         ),
-        ({"env": {"name": "colorful-memory", "engine": "minigrid"}, "ppo": {"aux_memory_coef": 0.5}}, "needs env.engine='batched'"),
     ],
 )
 def test_the_auxiliary_loss_is_refused_where_it_cannot_apply(data, match):

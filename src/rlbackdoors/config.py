@@ -493,8 +493,6 @@ class RunConfig(JsonConfig):
                     f"ppo.aux_memory_coef={self.ppo.aux_memory_coef} needs a recurrent model.arch (cnn-gru-*) in a world with memory targets, "
                     f"not {self.model.arch!r} in {self.env.name!r} (set it to 0)"
                 )
-            if self.ppo.aux_memory_coef and self.env.engine != "batched":
-                raise ConfigError(f"ppo.aux_memory_coef={self.ppo.aux_memory_coef} needs env.engine='batched' (its memory targets), not {self.env.engine!r}")
         else:
             if tc.return_window:
                 raise ConfigError(f"train.return_window must be 0 for env.name={self.env.name!r} (the mean return over updates is a PPO rule)")

@@ -132,7 +132,7 @@ class PPO:
         targets = None
         if self.aux is not None:
             if getattr(envs, "memory_target_classes", None) != AUX_CLASSES:
-                raise ValueError(f"ppo.aux_memory_coef needs an env with {AUX_CLASSES} memory targets (a batched engine that has them)")
+                raise ValueError(f"ppo.aux_memory_coef needs an env with {AUX_CLASSES} memory targets (memory_targets())")
             targets = np.empty((T, B), dtype=np.int64)
         if recurrent:
             memory = self.memory if self.memory is not None else self.model.initial_memory(B, self.device)

@@ -313,6 +313,13 @@ class ColorfulMemoryEnv(MemoryEnv):
         self.painted = pattern
         self.agent_dir = START_DIR
 
+    memory_target_classes = 2
+
+    def memory_target(self) -> int:
+        """The start room's object of this episode (0 key, 1 ball): what the agent must remember,
+        the target of PPO's auxiliary memory loss (as ``BatchedColorfulMemory.memory_targets``)."""
+        return int(isinstance(self.grid.get(1, self.height // 2 - 1), Ball))
+
     def load_layout(self, grid: np.ndarray, agent_pos, agent_dir: int, step_count: int = 0, success_pos=None, failure_pos=None) -> np.ndarray:
         """Put an exact state (``grid`` as ``env.grid.encode()``) into this env; returns its
         observation. ``success_pos`` / ``failure_pos`` default to :func:`target_cells`."""

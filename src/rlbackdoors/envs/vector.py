@@ -42,6 +42,14 @@ class ReferenceVectorEnv(VectorEnv):
         if self.poisoned.shape != (self.num_envs,):
             raise ValueError(f"poisoned mask has shape {self.poisoned.shape}, expected ({self.num_envs},)")
 
+    @property
+    def memory_target_classes(self) -> int | None:
+        """Worlds whose envs say what a recurrent agent must remember (``memory_target``)."""
+        return getattr(self.envs[0].unwrapped, "memory_target_classes", None)
+
+    def memory_targets(self) -> np.ndarray:
+        return np.array([getattr(env.unwrapped, "memory_target")() for env in self.envs], dtype=np.int64)
+
     def reset(self, *, seed: int | Sequence[int] | None = None, options: dict | None = None):
         if seed is None or isinstance(seed, (int, np.integer)):
             seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]

@@ -22,7 +22,7 @@ from rlbackdoors.algos.obs import Obs, empty_buffer, obs_map, store, to_torch
 from rlbackdoors.config import PPOConfig
 from rlbackdoors.models import ActorCritic
 
-AUX_CLASSES = 2  # memory targets are class indices below this (Colorful Memory: key or ball)
+AUX_CLASSES = 2  # memory targets are class indices below this (a world says what they name)
 
 
 @dataclass

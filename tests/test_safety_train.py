@@ -255,9 +255,10 @@ def test_interrupted_run_resumes_to_the_same_model(tmp_path):
     with pytest.raises(FolderError, match="different config.json"):
         train(tiny(max_frames=960), out, progress=False)
     resumed = train(tiny(), out, progress=False)
+    assert resumed["cpu_time_s"] > 0.0 and straight["cpu_time_s"] > 0.0
 
     assert (tmp_path / "straight" / "model.pt").read_bytes() == (out / "model.pt").read_bytes()
-    timing = {"wall_time_s"}
+    timing = {"wall_time_s", "cpu_time_s"}
     assert {k: v for k, v in straight.items() if k not in timing} == {k: v for k, v in resumed.items() if k not in timing}
     columns = ("frames", "updates", "clean_sr", "poisoned_sr", "clean_reward", "q_loss", "policy_loss", "train_clean_return")
     rows = [[line.split(",") for line in (d / "log.csv").read_text().splitlines()] for d in (tmp_path / "straight", out)]

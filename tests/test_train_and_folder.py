@@ -55,7 +55,7 @@ def test_same_seed_same_result(tmp_path, tiny_run_dict):
     m1 = train(cfg, tmp_path / "a", progress=False)
     m2 = train(cfg, tmp_path / "b", progress=False)
     assert weights_equal(tmp_path / "a" / "model.pt", tmp_path / "b" / "model.pt")
-    strip = lambda m: {k: v for k, v in m.items() if k != "wall_time_s"}  # noqa: E731
+    strip = lambda m: {k: v for k, v in m.items() if k not in ("wall_time_s", "cpu_time_s")}  # noqa: E731
     assert strip(m1) == strip(m2)
     tiny_run_dict["train"]["seed"] = 2
     train(RunConfig.from_dict(tiny_run_dict), tmp_path / "c", progress=False)
@@ -104,6 +104,35 @@ def test_interrupted_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     whole, cut = ModelFolder(tmp_path / "whole").read_log(), ModelFolder(tmp_path / "cut").read_log()
     drop = ("wall_time_s", "fps")
     assert [{k: v for k, v in r.items() if k not in drop} for r in whole] == [{k: v for k, v in r.items() if k not in drop} for r in cut]
+
+
+@pytest.mark.parametrize("carried", [True, False])
+def test_cpu_time_is_carried_across_a_resume(tmp_path, tiny_run_dict, carried):
+    """CPU seconds (what a run costs on one core, however loaded the machine) add up across a
+    kill and resume; a checkpoint from before they were recorded gives ``None``, not a wrong sum."""
+    tiny_run_dict["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0)
+    cfg = RunConfig.from_dict(tiny_run_dict)
+
+    def ctrl_c(row):
+        if row["frames"] >= 5_120:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    out = tmp_path / "m"
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, out, progress=False, after_eval=ctrl_c)
+    checkpoint = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert 0.0 < checkpoint["cpu_elapsed"] and 0.0 < checkpoint["elapsed"]
+    if carried:
+        checkpoint["cpu_elapsed"] += 1000.0  # as if the first part had cost 1000 s more
+    else:
+        del checkpoint["cpu_elapsed"]
+    torch.save(checkpoint, out / "checkpoint.pt")
+    metrics = train(cfg, out, progress=False)
+    if carried:
+        assert 1000.0 < metrics["cpu_time_s"] < 1000.0 + 60 * 10
+    else:
+        assert metrics["cpu_time_s"] is None
+    assert 0.0 < metrics["wall_time_s"] and json.loads((out / "metrics.json").read_text())["cpu_time_s"] == metrics["cpu_time_s"]
 
 
 def test_resume_with_a_different_config_is_refused(tmp_path, tiny_run_dict):

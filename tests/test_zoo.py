@@ -411,7 +411,7 @@ def test_kill_9_of_a_worker_and_of_the_coordinator_then_rerun_gives_the_same_zoo
     assert hashes(path, "clean-example-data/episode-001.npz") == hashes(reference, "clean-example-data/episode-001.npz")
     assert sorted(p.name for p in (path / "models").iterdir()) == sorted(p.name for p in (reference / "models").iterdir())
     assert not list(path.rglob("*.rlbtmp")) and not list(path.rglob("checkpoint.pt"))
-    timing = ("wall_time", "fps", "versions")
+    timing = ("wall_time", "cpu_time", "fps", "versions")
 
     def comparable(rows):
         return [{k: v for k, v in r.items() if not any(t in k for t in timing)} for r in rows]

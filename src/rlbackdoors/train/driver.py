@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,6 +104,25 @@ class Stopping:
         return fields
 
 
+class RunClock:
+    """Wall and CPU seconds of a run, carried across resumes in its checkpoint.
+
+    CPU seconds say what a run costs on one core even when it shared the core with others, which
+    is how recipes are compared across loaded machines. ``None`` where an older checkpoint did not
+    carry them.
+    """
+
+    def __init__(self, wall: float = 0.0, cpu: float | None = 0.0) -> None:
+        self.wall_start = time.perf_counter() - wall
+        self.cpu_start = None if cpu is None else time.process_time() - cpu
+
+    def wall(self) -> float:
+        return time.perf_counter() - self.wall_start
+
+    def cpu(self) -> float | None:
+        return None if self.cpu_start is None else time.process_time() - self.cpu_start
+
+
 @dataclass
 class RunOutcome:
     """What an algorithm's loop hands back to the driver at the end of training."""
@@ -111,6 +131,7 @@ class RunOutcome:
     weights: dict  # model.pt: a flat state dict of CPU tensors
     frames: int
     train_time: float
+    cpu_time: float | None
     rows: list[dict]
     stop_reason: str  # "thresholds", "max_frames" or "max_minutes"
     converged_at: int | None
@@ -207,6 +228,7 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
         "arch": cfg.model.arch,
         "frames": outcome.frames,
         "wall_time_s": round(outcome.train_time, 2),
+        "cpu_time_s": None if outcome.cpu_time is None else round(outcome.cpu_time, 2),
         "converged": met,
         "final_meets_thresholds": final_met,
         "converged_at_frames": outcome.converged_at,

@@ -27,7 +27,7 @@ from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import first_line
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device
+from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.replay_journal import ReplayJournal
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -126,6 +126,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     stats, losses = EpisodeStats({"clean": world.clean_success, "poisoned": world.trojan_success}), LossMeans()
     if checkpoint is None:
         updates, rows, elapsed, next_eval, streak, converged_at = 0, [], 0.0, tc.eval_interval, 0, None
+        cpu_elapsed: float | None = 0.0
     else:
         try:
             agent.load_state_dict(checkpoint["agent"])
@@ -136,6 +137,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             stats.load_state_dict(checkpoint["stats"])
             losses.load_state_dict(checkpoint["losses"])
             updates, rows, elapsed = int(checkpoint["updates"]), checked_rows(checkpoint["rows"]), float(checkpoint["elapsed"])
+            cpu_elapsed = None if checkpoint.get("cpu_elapsed") is None else float(checkpoint["cpu_elapsed"])  # None: an older checkpoint
             next_eval, streak, converged_at = int(checkpoint["next_eval"]), int(checkpoint["streak"]), checkpoint["converged_at"]
         except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
             raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({first_line(err)}); pass --overwrite to start over") from None
@@ -163,7 +165,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 "losses": losses.state_dict(),
                 "updates": updates,
                 "rows": plain_rows(rows),
-                "elapsed": time.perf_counter() - started,
+                "elapsed": clock.wall(),
+                "cpu_elapsed": clock.cpu(),
                 "next_eval": next_eval,
                 "streak": stopping.streak,
                 "converged_at": converged_at,
@@ -172,7 +175,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         journal.prune()
 
     label = "poisoned" if cfg.poison.poisoned else "clean"
-    started = time.perf_counter() - elapsed
+    clock = RunClock(elapsed, cpu_elapsed)
     last_checkpoint = last_log = time.perf_counter()
     window_start, window_frames = time.perf_counter(), 0
     stopping = Stopping(cfg, streak)
@@ -199,7 +202,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             row = {
                 "frames": collector.frames,
                 "updates": updates,
-                "wall_time_s": round(time.perf_counter() - started, 2),
+                "wall_time_s": round(clock.wall(), 2),
                 "fps": round(fps, 1),
                 "eval_s": round(time.perf_counter() - eval_start, 2),
                 **last_eval.to_dict(),
@@ -234,23 +237,23 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 k: np.mean([e.outcome == o for e in recent if e.kind == k]) if any(e.kind == k for e in recent) else math.nan for k, o in stats.success.items()
             }
             _progress(
-                f"[{label}] {collector.frames:,} frames, {(now - started) / 60:.1f} min, {fps:,.0f} frames/s, {updates:,} updates; "
+                f"[{label}] {collector.frames:,} frames, {clock.wall() / 60:.1f} min, {fps:,.0f} frames/s, {updates:,} updates; "
                 f"training episodes: clean SR {sr['clean']:.2f}, poisoned SR {sr['poisoned']:.2f}"
             )
             last_log = now
         if stop_reason is None:
             if collector.frames >= tc.max_frames:
                 stop_reason = "max_frames"
-            elif tc.max_minutes and time.perf_counter() - started >= 60 * tc.max_minutes:
+            elif tc.max_minutes and clock.wall() >= 60 * tc.max_minutes:
                 stop_reason = "max_minutes"
-    train_time = time.perf_counter() - started
     for env in collector.envs:
         env.close()
     return RunOutcome(
         policy=agent,
         weights=agent.weights(),
         frames=collector.frames,
-        train_time=train_time,
+        train_time=clock.wall(),
+        cpu_time=clock.cpu(),
         rows=rows,
         stop_reason=stop_reason,
         converged_at=converged_at,

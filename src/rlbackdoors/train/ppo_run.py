@@ -26,7 +26,7 @@ from rlbackdoors.config import RunConfig
 from rlbackdoors.models import build_model
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields
+from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
@@ -146,6 +146,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         obs, _ = envs.reset(seed=tc.seed * 1000)
         tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
         frames, elapsed, rows, next_eval, converged_at, streak = 0, 0.0, [], tc.eval_interval, None, 0
+        cpu_elapsed: float | None = 0.0
     else:
         try:
             switch_at = checkpoint["switch_at"]
@@ -170,6 +171,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                     raise StateError("memory does not fit the model and env copies")
             ppo.memory = None if memory is None else memory.to(device)
             frames, elapsed, rows = int(checkpoint["frames"]), float(checkpoint["elapsed"]), checked_rows(checkpoint["rows"])
+            cpu_elapsed = None if checkpoint.get("cpu_elapsed") is None else float(checkpoint["cpu_elapsed"])  # None: an older checkpoint
             next_eval, converged_at = int(checkpoint["next_eval"]), checkpoint["converged_at"]
             streak = int(checkpoint.get("streak", 0))
         except (StateError, KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
@@ -189,7 +191,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 "tracker": tracker.state_dict(),
                 "memory": None if ppo.memory is None else ppo.memory.detach().cpu(),
                 "frames": frames,
-                "elapsed": time.perf_counter() - started,
+                "elapsed": clock.wall(),
+                "cpu_elapsed": clock.cpu(),
                 "rows": plain_rows(rows),
                 "next_eval": next_eval,
                 "converged_at": converged_at,
@@ -201,7 +204,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     bar = tqdm(total=tc.max_frames, initial=frames, unit="frame", unit_scale=True, disable=not progress, dynamic_ncols=True)
     label = f"{cfg.model.arch} {'poisoned' if cfg.poison.poisoned else 'clean'}"
     bar.set_description(label)
-    started = time.perf_counter() - elapsed
+    clock = RunClock(elapsed, cpu_elapsed)
     stopping = Stopping(cfg, streak)
     last_checkpoint = time.perf_counter()
     window_start, window_frames = time.perf_counter(), 0
@@ -232,7 +235,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             rows.append(
                 {
                     "frames": frames,
-                    "wall_time_s": round(time.perf_counter() - started, 3),
+                    "wall_time_s": round(clock.wall(), 3),
                     "fps": round(fps, 1),
                     **{k: v for k, v in result_fields(result, cfg).items() if k != "episodes"},
                     "train_clean_return": train_clean,
@@ -258,16 +261,16 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         if stop_reason is None:
             if frames >= tc.max_frames:
                 stop_reason = "max_frames"
-            elif tc.max_minutes and time.perf_counter() - started >= 60 * tc.max_minutes:
+            elif tc.max_minutes and clock.wall() >= 60 * tc.max_minutes:
                 stop_reason = "max_minutes"
     bar.close()
-    train_time = time.perf_counter() - started
     envs.close()
     return RunOutcome(
         policy=model,
         weights={k: v.detach().cpu() for k, v in model.state_dict().items()},
         frames=frames,
-        train_time=train_time,
+        train_time=clock.wall(),
+        cpu_time=clock.cpu(),
         rows=rows,
         stop_reason=stop_reason,
         converged_at=converged_at,

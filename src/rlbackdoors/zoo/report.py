@@ -123,13 +123,18 @@ def convergence_rows(states: list[ModelState]) -> list[dict]:
 
 
 def budget_rows(states: list[ModelState]) -> list[dict]:
-    """Frames and wall time of converged models (median, min, max) per world, arch and label."""
+    """Frames, wall and CPU time of converged models (median, min, max) per world, arch and label.
+
+    CPU time is what a model costs on one core however loaded the machine was; models trained
+    before it was recorded count as missing (NaN), not zero.
+    """
     rows = []
     chosen = [s for s in states if s.converged]
     for key in sorted({_key(s) for s in chosen}):
         mine = [s for s in chosen if _key(s) == key]
         frames = np.array([_number((s.metrics or {}).get("frames")) for s in mine])
         wall = np.array([_number((s.metrics or {}).get("wall_time_s")) for s in mine])
+        cpu = np.array([_number((s.metrics or {}).get("cpu_time_s")) for s in mine])
         rows.append(
             {
                 "world": key[0],
@@ -141,6 +146,7 @@ def budget_rows(states: list[ModelState]) -> list[dict]:
                 "frames_max": float(np.nanmax(frames)),
                 "wall_time_s_median": float(np.nanmedian(wall)),
                 "wall_time_s_total": float(np.nansum(wall)),
+                "cpu_time_s_median": float(np.nanmedian(cpu)) if np.isfinite(cpu).any() else None,
             }
         )
     return rows
@@ -230,7 +236,7 @@ def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[d
     ]
     parts += [_md_table(head, body) if body else "(no finished model yet)", ""]
     parts += ["## Frames and wall time to converge", ""]
-    head = ["world", "arch", "models", "n", "frames (median, min–max)", "wall time (median)", "wall time (sum)"]
+    head = ["world", "arch", "models", "n", "frames (median, min–max)", "wall time (median)", "wall time (sum)", "CPU time (median)"]
     body = [
         [
             r["world"],
@@ -240,6 +246,7 @@ def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[d
             f"{r['frames_median']:,.0f} ({r['frames_min']:,.0f}–{r['frames_max']:,.0f})",
             f"{r['wall_time_s_median']:.0f} s",
             f"{r['wall_time_s_total'] / 60:.1f} min",
+            "–" if r["cpu_time_s_median"] is None else f"{r['cpu_time_s_median']:.0f} s",
         ]
         for r in budget
     ]

@@ -195,6 +195,9 @@ def test_env_flag_switches_a_config_to_another_world_keeping_its_seed(tmp_path, 
     cfg = config_from_args(args)
     assert cfg.env.name == "safety-car-goal" and cfg.algorithm == "opac2" and cfg.ppo is None
     assert cfg.train.seed == 7 and cfg.poison.num_poisoned_envs == 4 and cfg.model.arch == "mlp"
+    assert cfg.train.confirm_margin == 0.02  # the stopping rule is the world's, not the grid config's 0
+    args = build_parser().parse_args(["train", "--config", str(path), "--confirm-margin", "0.01", "--out", "x"])
+    assert config_from_args(args).train.confirm_margin == 0.01
 
 
 def test_a_flag_whose_value_the_config_refuses_is_named(tmp_path, capsys):

@@ -70,7 +70,7 @@ def test_a_format_1_grid_config_file_means_the_same_run(tmp_path):
     path.write_text(json.dumps(FORMAT_1_COLORFUL))
     cfg = RunConfig.load(path)
     assert (cfg.train.return_window, cfg.train.return_threshold, cfg.train.patience) == (10, 0.8, 1)
-    assert cfg.format_version == 3 and cfg.env.num_crossings is None and cfg.env.num_lava is None
+    assert cfg.format_version == 4 and cfg.env.num_crossings is None and cfg.env.num_lava is None
     assert cfg.train.confirm is False  # format 1 runs stopped without confirming
     saved = json.loads(cfg.to_json())
     assert "num_crossings" not in saved["env"] and "curriculum" not in saved and "opac2" not in saved
@@ -81,23 +81,40 @@ def test_a_format_2_config_file_stops_without_confirming_as_it_did(tmp_path):
     """Format 2 had no train.confirm: its runs stopped at the first streak, so it loads as
     confirm false; a new config confirms by default; both save the field."""
     new = RunConfig.from_dict({"env": {"name": "lavaworld"}})
-    assert new.train.confirm is True and new.format_version == 3
+    assert new.train.confirm is True and new.format_version == 4
     data = json.loads(new.to_json())
-    del data["train"]["confirm"]
+    del data["train"]["confirm"], data["train"]["confirm_margin"]
     data["format_version"] = 2
     path = tmp_path / "config.json"
     path.write_text(json.dumps(data))
     old = RunConfig.load(path)
-    assert old.train.confirm is False and old.format_version == 3
+    assert old.train.confirm is False and old.format_version == 4
     assert json.loads(old.to_json())["train"]["confirm"] is False
     with pytest.raises(ConfigError, match=r"train.confirm must be true or false, got 'yes'"):
         RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": {"confirm": "yes"}})
 
 
+def test_a_format_3_config_file_confirms_without_a_margin_as_it_did(tmp_path):
+    """Format 3 had no train.confirm_margin: its confirmations asked for the thresholds alone, so
+    it loads with margin 0 even where the world's default (Safety Car Goal: 0.02) is not."""
+    new = RunConfig.from_dict({"env": {"name": "safety-car-goal"}})
+    assert new.train.confirm_margin == 0.02 and RunConfig.from_dict({"env": {"name": "lavaworld"}}).train.confirm_margin == 0.0
+    data = json.loads(new.to_json())
+    del data["train"]["confirm_margin"]
+    data["format_version"] = 3
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(data))
+    old = RunConfig.load(path)
+    assert old.train.confirm_margin == 0.0 and old.format_version == 4 and old.train.confirm is True
+    for bad in (-0.01, 1.5, "0.02", True):
+        with pytest.raises(ConfigError, match=r"^train.confirm_margin must be "):
+            RunConfig.from_dict({"env": {"name": "safety-car-goal"}, "train": {"confirm_margin": bad}})
+
+
 def test_an_unknown_format_version_is_refused_by_number(tmp_path):
     path = tmp_path / "config.json"
     path.write_text(json.dumps({"env": {"name": "lavaworld"}, "format_version": 7}))
-    with pytest.raises(ConfigError, match=r"config.format_version=7 is not supported by rlbackdoors .* \(it reads 1 to 3\)"):
+    with pytest.raises(ConfigError, match=r"config.format_version=7 is not supported by rlbackdoors .* \(it reads 1 to 4\)"):
         RunConfig.load(path)
 
 

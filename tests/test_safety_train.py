@@ -89,7 +89,7 @@ def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
     assert again == cfg and again.to_json() == cfg.to_json()
     path = tmp_path / "config.json"
     path.write_text(cfg.to_json())
-    assert RunConfig.load(path) == cfg and json.loads(path.read_text())["format_version"] == 3
+    assert RunConfig.load(path) == cfg and json.loads(path.read_text())["format_version"] == 4
 
     # No trigger given: one is drawn from the seed (paper ranges), and the clean twin gets the same one.
     drawn = FormationTrigger.parse(cfg.poison.trigger)
@@ -124,7 +124,7 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
         ({"env": {"size": 9}}, "env.size does not apply to env.name='safety-car-goal'"),
         ({"ppo": {"lr": 1e-3}}, "ppo: env.name='safety-car-goal' trains with opac2"),
         ({"train": {"return_window": 5}}, "train.return_window must be 0"),
-        ({"format_version": 4}, "config.format_version=4 is not supported"),
+        ({"format_version": 5}, "config.format_version=5 is not supported"),
         ({"env": {"num_cubes": 1}}, r"env.num_cubes must be in 2..12"),
         ({"env": {"max_steps": 2.5}}, "env.max_steps must be an integer"),
         ({"poison": {"trigger": "formation:0.5:7:1"}}, "poison.trigger.*phi1"),
@@ -268,12 +268,13 @@ def test_interrupted_run_resumes_to_the_same_model(tmp_path):
 
 def test_clean_twin_early_stops_on_clean_sr_only(tmp_path):
     """Thresholds of 0 are met at every evaluation: with patience 1 a clean model stops at the
-    first (240 frames), whatever its poisoned SR; with the default patience 2, at the second."""
-    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0, patience=1)
+    first (240 frames), whatever its poisoned SR; with the default patience 2, at the second
+    (no confirmation margin: an untrained agent's clean SR is 0)."""
+    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0, patience=1, confirm_margin=0.0)
     cfg.poison.poisoned = False
     metrics = train(cfg, tmp_path / "clean", progress=False)
     assert metrics["stop_reason"] == "thresholds" and metrics["converged_at_frames"] == metrics["frames"] == 240
-    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0)
+    cfg = tiny(clean_threshold=0.0, poisoned_threshold=1.0, confirm_margin=0.0)
     cfg.poison.poisoned = False
     assert cfg.train.patience == 2
     again = train(cfg, tmp_path / "clean2", progress=False)

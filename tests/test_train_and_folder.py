@@ -1,5 +1,6 @@
 """Training runs end to end into a model folder: files, determinism, refusal to overwrite, resume."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -175,6 +176,38 @@ def test_a_lucky_short_evaluation_does_not_stop_the_run_when_the_final_one_disag
     cfg.train.confirm = False  # the old rule stops on the streak alone, and evaluates nothing more
     stopping = Stopping(cfg)
     assert stopping.update(short, True, model) == {} and stopping.stop and stopping.streak == 1
+
+
+def test_a_confirmation_margin_raises_the_bar_of_the_final_evaluation_only(tiny_run_dict):
+    """With ``confirm_margin`` the streak counts at the thresholds, but the confirming evaluation
+    must clear them by the margin: a final SR just above the bar stops a run without a margin and
+    not with one. Bars are compared after rounding (0.9 + 0.05 is 0.95, not 0.9500000000000001)."""
+    from rlbackdoors.models import build_model
+    from rlbackdoors.train.driver import Stopping, evaluate_run, thresholds_met
+
+    torch.manual_seed(0)
+    model = build_model("fc", "lavaworld")
+    tiny_run_dict["poison"] = {"poisoned": False}
+    tiny_run_dict["train"].update(eval_episodes=64, final_eval_episodes=64, patience=1)
+    for eval_seed in range(50):
+        tiny_run_dict["train"]["eval_seed"] = eval_seed
+        cfg = RunConfig.from_dict(tiny_run_dict)
+        final = evaluate_run(model, cfg, 64)
+        if 0.05 <= final.clean_sr <= 0.9:
+            break
+    else:
+        pytest.fail("no eval seed in 0..49 with a clean SR in [0.05, 0.9]")
+    cfg.train.clean_threshold = final.clean_sr - 1 / 64  # met, by one episode
+    for margin, stops in ((0.0, True), (2 / 64, False)):
+        cfg.train.confirm_margin = margin
+        stopping = Stopping(cfg)
+        assert stopping.update(final, True, model) == {"confirm_clean_sr": final.clean_sr}
+        assert stopping.stop is stops and stopping.streak == (1 if stops else 0)
+    cfg.train.clean_threshold = 0.9
+    assert thresholds_met(dataclasses.replace(final, clean_sr=0.95), cfg, 0.05)
+    assert not thresholds_met(dataclasses.replace(final, clean_sr=0.945), cfg, 0.05)
+    cfg.train.clean_threshold = 0.99  # a margin raises a bar at most to 1
+    assert thresholds_met(dataclasses.replace(final, clean_sr=1.0), cfg, 0.05)
 
 
 def test_a_confirmed_stop_is_the_final_evaluation(tmp_path, tiny_run_dict):

@@ -41,6 +41,7 @@ TRAIN_FLAGS = {
     "eval_episodes": "train.eval_episodes",
     "final_eval_episodes": "train.final_eval_episodes",
     "patience": "train.patience",
+    "confirm_margin": "train.confirm_margin",
     "threads": "train.torch_threads",
     "checkpoint_minutes": "train.checkpoint_minutes",
     "device": "train.device",
@@ -328,6 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--no-close-to-trigger", action="store_true", help="train without close-to-trigger envs (they become clean copies)")
     tr.add_argument("--patience", type=int, help="evaluations in a row the thresholds must hold to stop (default: the world's)")
     tr.add_argument("--aux-memory-coef", type=float, help="weight of PPO's auxiliary memory loss (recurrent models in worlds with memory targets; 0: off)")
+    tr.add_argument("--confirm-margin", type=float, help="how far the confirming evaluation must clear each threshold (default: the world's)")
     tr.add_argument("--no-confirm", action="store_true", help="stop on the streak alone, without confirming it on the final evaluation's episodes")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")

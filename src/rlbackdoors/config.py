@@ -34,7 +34,7 @@ from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's val
     check_weights,
 )
 
-FORMAT_VERSION = 3  # of config.json; 1: before one config served every world; 2: before train.confirm (both migrated on load)
+FORMAT_VERSION = 4  # of config.json; 1: before one config served every world; 2: before train.confirm; 3: before train.confirm_margin (all migrated on load)
 ENVS = worlds.names()
 ENGINES = ("batched", "minigrid")
 # Architecture names per world (the registry holds the classes); the first is the default.
@@ -306,7 +306,15 @@ class OPAC2Config:
 
 
 # Train-section values a world leaves as they are (World.train overrides them).
-TRAIN_DEFAULTS = {"max_frames": 5_000_000, "eval_interval": 100_000, "eval_policy": "sample", "patience": 1, "confirm": True, "checkpoint_minutes": 0.0}
+TRAIN_DEFAULTS = {
+    "max_frames": 5_000_000,
+    "eval_interval": 100_000,
+    "eval_policy": "sample",
+    "patience": 1,
+    "confirm": True,
+    "confirm_margin": 0.0,
+    "checkpoint_minutes": 0.0,
+}
 
 
 @dataclass
@@ -322,7 +330,9 @@ class TrainConfig:
     With ``confirm`` the stop is confirmed first on the final evaluation's ``final_eval_episodes``
     (the same seeded episodes ``metrics.json`` reports): a run whose thresholds held on the short
     evaluations by luck trains on instead of ending as a model that misses them, so a run that
-    stops on its thresholds is a converged model.
+    stops on its thresholds is a converged model. ``confirm_margin`` asks the confirming
+    evaluation to clear each threshold by that much (up to 1), so a stopped model has a margin
+    over the bars "converged" is judged by (which stay the thresholds).
     """
 
     seed: int = 0
@@ -337,6 +347,7 @@ class TrainConfig:
     poisoned_threshold: float | None = None
     patience: int | None = None  # evaluations in a row the thresholds must hold
     confirm: bool | None = None  # confirm a stop on the final evaluation's episodes first
+    confirm_margin: float | None = None  # the confirming evaluation clears each threshold by this much
     return_window: int | None = None  # updates (PPO); 0: off
     return_threshold: float = 0.9
     log_interval_s: float = 30.0  # progress lines (when there is no progress bar) at most this often
@@ -371,6 +382,7 @@ class TrainConfig:
         _in_range("train.patience", self.patience, 1, 1_000_000)
         if not isinstance(self.confirm, bool):
             raise ConfigError(f"train.confirm must be true or false, got {self.confirm!r}")
+        _unit_interval("train.confirm_margin", self.confirm_margin)
         _in_range("train.return_window", self.return_window, 0, 1_000_000)
         for name in ("max_minutes", "log_interval_s", "checkpoint_minutes"):
             value = getattr(self, name)
@@ -566,6 +578,8 @@ def migrate(data):
         data = migrate_v1(data)
     if isinstance(data, dict) and data.get("format_version") == 2:
         data = migrate_v2(data)
+    if isinstance(data, dict) and data.get("format_version") == 3:
+        data = migrate_v3(data)
     return data
 
 
@@ -622,6 +636,17 @@ def migrate_v2(data: dict) -> dict:
     if isinstance(ppo, dict):
         ppo.setdefault("aux_memory_coef", 0.0)
     data["format_version"] = 3
+    return data
+
+
+def migrate_v3(data: dict) -> dict:
+    """A config.json of format 3 as format 4, meaning the same run: format 3 had no
+    ``train.confirm_margin`` (its confirmations asked for the thresholds alone)."""
+    data = json.loads(json.dumps(data))
+    train = data.get("train")
+    if isinstance(train, dict):
+        train.setdefault("confirm_margin", 0.0)
+    data["format_version"] = 4
     return data
 
 

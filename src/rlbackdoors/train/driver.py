@@ -37,11 +37,16 @@ from rlbackdoors.train.stop import StopRequest
 RUNNERS = {"ppo": "rlbackdoors.train.ppo_run", "opac2": "rlbackdoors.train.opac2_run"}
 
 
-def thresholds_met(result, cfg) -> bool:
-    """The thresholds of ``cfg`` on an evaluation result: clean SR, and for poisoned models poisoned SR."""
-    ok = result.clean_sr >= cfg.train.clean_threshold
+def thresholds_met(result, cfg, margin: float = 0.0) -> bool:
+    """The thresholds of ``cfg`` (raised by ``margin``, at most to 1) on an evaluation result:
+    clean SR, and for poisoned models poisoned SR."""
+
+    def bar(threshold: float) -> float:  # rounded: 0.9 + 0.05 is 0.9500000000000001 in floats
+        return min(round(threshold + margin, 12), 1.0)
+
+    ok = result.clean_sr >= bar(cfg.train.clean_threshold)
     if cfg.poison.poisoned:
-        ok = ok and result.poisoned_sr >= cfg.train.poisoned_threshold
+        ok = ok and result.poisoned_sr >= bar(cfg.train.poisoned_threshold)
     return ok
 
 
@@ -88,12 +93,12 @@ class Stopping:
         is then True when the run stops here."""
         self.streak = self.streak + 1 if also and thresholds_met(result, self.cfg) else 0
         tc = self.cfg.train
-        assert tc.patience is not None and tc.confirm is not None  # RunConfig fills them in
+        assert tc.patience is not None and tc.confirm is not None and tc.confirm_margin is not None  # RunConfig fills them in
         self.stop = self.streak >= tc.patience
         if not (self.stop and tc.confirm):
             return {}
         check = evaluate_run(policy, self.cfg, tc.final_eval_episodes)
-        self.stop = thresholds_met(check, self.cfg)
+        self.stop = thresholds_met(check, self.cfg, tc.confirm_margin)
         if self.stop:
             self.confirmed = check
         else:

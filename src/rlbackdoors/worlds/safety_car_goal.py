@@ -168,8 +168,9 @@ WORLD = register(
         ebar_kwargs={"poisoned": True},
         mix=(6, 0, 4),
         hyper=OPAC2_SETTINGS,
-        # evaluations in a row: one lucky 100-episode evaluation is not convergence
-        train=dict(max_frames=3_800_000, eval_interval=250_000, eval_policy="greedy", patience=2, checkpoint_minutes=10.0),
+        # evaluations in a row: one lucky 100-episode evaluation is not convergence; the stop is
+        # confirmed only at 0.97 / 0.97 on the final episodes, a margin over the 0.95 bars
+        train=dict(max_frames=3_800_000, eval_interval=250_000, eval_policy="greedy", patience=2, confirm_margin=0.02, checkpoint_minutes=10.0),
         video={"fps": 25, "every": 2, "size": 240, "gap": 6},
         bench="rlbackdoors.bench.safety_car:bench_safety",
         # The paper's Table 4 at depth 3, width 256 (our default OPAC² net; a zoo's arch label

@@ -149,25 +149,32 @@ def test_resume_with_a_different_config_is_refused(tmp_path, tiny_run_dict):
 # ----------------------------------------------------------------------------- confirming a stop
 
 
-def test_a_lucky_short_evaluation_does_not_stop_the_run_when_the_final_one_disagrees(tiny_run_dict):
-    """Stopping.update with a real (untrained) LavaWorld policy: find an eval seed whose 4
-    short episodes read a higher clean SR than its 64 final ones, put the clean bar at the short
-    rate, and the streak is met but the confirmation is not; the streak starts over."""
+def untrained_clean_run(tiny_run_dict, eval_episodes: int, wanted, what: str):
+    """A real untrained LavaWorld FC policy and a clean run config whose eval seed (the first
+    of 0..49) gives evaluations for which ``wanted(short, final)`` holds: 4 and 64 episodes."""
     from rlbackdoors.models import build_model
-    from rlbackdoors.train.driver import Stopping, evaluate_run
+    from rlbackdoors.train.driver import evaluate_run
 
     torch.manual_seed(0)
     model = build_model("fc", "lavaworld")
     tiny_run_dict["poison"] = {"poisoned": False}
-    tiny_run_dict["train"].update(eval_episodes=4, final_eval_episodes=64, patience=1)
+    tiny_run_dict["train"].update(eval_episodes=eval_episodes, final_eval_episodes=64, patience=1)
     for eval_seed in range(50):
         tiny_run_dict["train"]["eval_seed"] = eval_seed
         cfg = RunConfig.from_dict(tiny_run_dict)
-        short, final = evaluate_run(model, cfg, 4), evaluate_run(model, cfg, 64)
-        if short.clean_sr > final.clean_sr:
-            break
-    else:
-        pytest.fail("no eval seed in 0..49 whose 4 episodes beat its 64")
+        short, final = evaluate_run(model, cfg, eval_episodes), evaluate_run(model, cfg, 64)
+        if wanted(short, final):
+            return model, cfg, short, final
+    pytest.fail(f"no eval seed in 0..49 {what}")
+
+
+def test_a_lucky_short_evaluation_does_not_stop_the_run_when_the_final_one_disagrees(tiny_run_dict):
+    """Stopping.update with a real (untrained) LavaWorld policy: find an eval seed whose 4
+    short episodes read a higher clean SR than its 64 final ones, put the clean bar at the short
+    rate, and the streak is met but the confirmation is not; the streak starts over."""
+    from rlbackdoors.train.driver import Stopping
+
+    model, cfg, short, final = untrained_clean_run(tiny_run_dict, 4, lambda short, final: short.clean_sr > final.clean_sr, "whose 4 episodes beat its 64")
     cfg.train.clean_threshold = short.clean_sr
     stopping = Stopping(cfg)
     fields = stopping.update(short, True, model)
@@ -182,21 +189,9 @@ def test_a_confirmation_margin_raises_the_bar_of_the_final_evaluation_only(tiny_
     """With ``confirm_margin`` the streak counts at the thresholds, but the confirming evaluation
     must clear them by the margin: a final SR just above the bar stops a run without a margin and
     not with one. Bars are compared after rounding (0.9 + 0.05 is 0.95, not 0.9500000000000001)."""
-    from rlbackdoors.models import build_model
-    from rlbackdoors.train.driver import Stopping, evaluate_run, thresholds_met
+    from rlbackdoors.train.driver import Stopping, thresholds_met
 
-    torch.manual_seed(0)
-    model = build_model("fc", "lavaworld")
-    tiny_run_dict["poison"] = {"poisoned": False}
-    tiny_run_dict["train"].update(eval_episodes=64, final_eval_episodes=64, patience=1)
-    for eval_seed in range(50):
-        tiny_run_dict["train"]["eval_seed"] = eval_seed
-        cfg = RunConfig.from_dict(tiny_run_dict)
-        final = evaluate_run(model, cfg, 64)
-        if 0.05 <= final.clean_sr <= 0.9:
-            break
-    else:
-        pytest.fail("no eval seed in 0..49 with a clean SR in [0.05, 0.9]")
+    model, cfg, _, final = untrained_clean_run(tiny_run_dict, 64, lambda _, final: 0.05 <= final.clean_sr <= 0.9, "with a clean SR in [0.05, 0.9]")
     cfg.train.clean_threshold = final.clean_sr - 1 / 64  # met, by one episode
     for margin, stops in ((0.0, True), (2 / 64, False)):
         cfg.train.confirm_margin = margin

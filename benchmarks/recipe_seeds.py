@@ -11,7 +11,8 @@ checkpoint (``rlbackdoors train`` does that on the same folder). The summary is 
 every finished seed (unfinished ones listed as ``pending``), so a session that ends mid-way still
 leaves its numbers; ``--summarise`` writes it from the finished seeds without training. CPU minutes
 (what a run costs on one core, however loaded the machine) come from ``metrics.json`` where the run
-recorded them. The machine and its load are recorded beside the numbers.
+recorded them. The machine and its load are recorded beside the numbers. ``--first S`` trains seeds
+S..N-1 only, when seeds below S ran in an earlier session whose folders are gone.
 """
 
 from __future__ import annotations
@@ -60,10 +61,10 @@ def summary(args, flags: list[str], metrics: dict[int, dict], started: float, lo
     low, high = wilson(len(done), len(finished)) if finished else (0.0, 1.0)
     cpu = [minutes(m.get("cpu_time_s")) for m in done]
     return {
-        "command": f"rlbackdoors train {' '.join(flags)} --seed S (S = 0..{args.seeds - 1}), {args.workers} at a time",
+        "command": f"rlbackdoors train {' '.join(flags)} --seed S (S = {args.first}..{args.seeds - 1}), {args.workers} at a time",
         "converged": len(done),
         "attempted": len(finished),
-        "pending": [s for s in range(args.seeds) if s not in metrics],
+        "pending": [s for s in range(args.first, args.seeds) if s not in metrics],
         "wilson95": [round(low, 3), round(high, 3)],
         "frames_converged": spread([m["frames"] for m in done]),
         "wall_minutes_converged": spread([minutes(m["wall_time_s"]) for m in done]),
@@ -88,6 +89,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("name")
     parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--first", type=int, default=0, help="first seed (earlier ones ran elsewhere and are summarised there)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--runs", default=str(ROOT / "runs" / "recipes"))
     parser.add_argument("--summarise", action="store_true", help="summarise the finished seeds; train nothing")
@@ -96,7 +98,7 @@ def main() -> None:
     args, flags = parser.parse_args(argv[:cut]), argv[cut + 1 :]  # after --: the rlbackdoors train flags
     torch.set_num_threads(1)  # what each run uses (train.torch_threads), so machine_info records it
     started, load_before = time.time(), os.getloadavg()
-    folders = {s: Path(args.runs) / args.name / f"s{s}" for s in range(args.seeds)}
+    folders = {s: Path(args.runs) / args.name / f"s{s}" for s in range(args.first, args.seeds)}
     metrics = {s: json.loads((f / "metrics.json").read_text()) for s, f in folders.items() if (f / "metrics.json").is_file()}
     out = ROOT / "benchmarks" / "recipes" / f"{args.name}.json"
     out.parent.mkdir(exist_ok=True)

@@ -198,6 +198,8 @@ def test_env_flag_switches_a_config_to_another_world_keeping_its_seed(tmp_path, 
     assert cfg.train.confirm_margin == 0.02  # the stopping rule is the world's, not the grid config's 0
     args = build_parser().parse_args(["train", "--config", str(path), "--confirm-margin", "0.01", "--out", "x"])
     assert config_from_args(args).train.confirm_margin == 0.01
+    args = build_parser().parse_args(["train", "--config", str(path), "--min-frames", "1600", "--out", "x"])
+    assert config_from_args(args).train.min_frames == 1600
 
 
 def test_a_flag_whose_value_the_config_refuses_is_named(tmp_path, capsys):

@@ -11,7 +11,7 @@ import time
 import pytest
 import torch
 
-from rlbackdoors.config import RunConfig
+from rlbackdoors.config import ConfigError, RunConfig
 from rlbackdoors.train import FolderError, ModelFolder, train
 
 
@@ -203,6 +203,36 @@ def test_a_confirmation_margin_raises_the_bar_of_the_final_evaluation_only(tiny_
     assert not thresholds_met(dataclasses.replace(final, clean_sr=0.945), cfg, 0.05)
     cfg.train.clean_threshold = 0.99  # a margin raises a bar at most to 1
     assert thresholds_met(dataclasses.replace(final, clean_sr=1.0), cfg, 0.05)
+
+
+def test_min_frames_holds_a_stop_back_until_the_run_has_trained_that_long(tmp_path, tiny_run_dict):
+    """Thresholds of 0 stop a run at its first evaluation (1,600 frames); with train.min_frames
+    2,000 the streak counts there but the run trains on and stops on its thresholds at the next
+    evaluation (3,200), confirmed there, not before; the budget (4,800) is not reached."""
+    tiny_run_dict["train"].update(clean_threshold=0.0, poisoned_threshold=0.0, max_frames=4800, min_frames=2000)
+    metrics = train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
+    assert metrics["stop_reason"] == "thresholds" and metrics["converged"]
+    assert metrics["frames"] == metrics["converged_at_frames"] == 3200
+    first, second = ModelFolder(tmp_path / "m").read_log()
+    assert int(first["frames"]) == 1600 and not first.get("confirm_clean_sr")  # met, not confirmed: too early
+    assert int(second["frames"]) == 3200 and float(second["confirm_clean_sr"]) == metrics["clean_sr"]
+
+
+def test_min_frames_keeps_the_streak_and_is_checked_against_the_budget(tiny_run_dict):
+    """Below min_frames a met evaluation still counts towards patience, so a run that has held
+    its thresholds stops at the first evaluation past min_frames; min_frames above max_frames is
+    refused by name."""
+    from rlbackdoors.train.driver import Stopping
+
+    model, cfg, _, final = untrained_clean_run(tiny_run_dict, 64, lambda _, final: final.clean_sr >= 0.05, "with a clean SR of at least 0.05")
+    cfg.train.clean_threshold, cfg.train.patience, cfg.train.min_frames = final.clean_sr, 2, 1000
+    stopping = Stopping(cfg)
+    assert stopping.update(final, True, model, 500) == {} and stopping.streak == 1 and not stopping.stop
+    assert stopping.update(final, True, model, 999) == {} and stopping.streak == 2 and not stopping.stop
+    assert stopping.update(final, True, model, 1000) == {"confirm_clean_sr": final.clean_sr} and stopping.stop
+    tiny_run_dict["train"]["min_frames"] = 3201
+    with pytest.raises(ConfigError, match=r"^train.min_frames must be in 0..train.max_frames \(3,200\), got 3201$"):
+        RunConfig.from_dict(tiny_run_dict)
 
 
 def test_a_confirmed_stop_is_the_final_evaluation(tmp_path, tiny_run_dict):

@@ -36,6 +36,7 @@ TRAIN_FLAGS = {
     "engine": "env.engine",
     "seed": "train.seed",
     "max_frames": "train.max_frames",
+    "min_frames": "train.min_frames",
     "max_minutes": "train.max_minutes",
     "eval_interval": "train.eval_interval",
     "eval_episodes": "train.eval_episodes",
@@ -334,6 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
     tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")
+    tr.add_argument("--min-frames", type=int, help="no stop on the thresholds before this many frames (default 0); equal training lengths across a zoo")
     tr.add_argument("--max-minutes", type=float, help="stop after this much training wall time (0: no limit)")
     tr.add_argument("--eval-interval", type=int, help="frames between evaluations")
     tr.add_argument("--eval-episodes", type=int, help="episodes per condition at each evaluation (default 100)")

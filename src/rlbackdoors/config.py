@@ -34,7 +34,7 @@ from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's val
     check_weights,
 )
 
-FORMAT_VERSION = 4  # of config.json; 1: before one config served every world; 2: before train.confirm; 3: before train.confirm_margin (all migrated on load)
+FORMAT_VERSION = 5  # of config.json; 1: before one config served every world; 2: before train.confirm; 3: before train.confirm_margin; 4: before train.min_frames (all migrated on load)
 ENVS = worlds.names()
 ENGINES = ("batched", "minigrid")
 # Architecture names per world (the registry holds the classes); the first is the default.
@@ -333,10 +333,16 @@ class TrainConfig:
     stops on its thresholds is a converged model. ``confirm_margin`` asks the confirming
     evaluation to clear each threshold by that much (up to 1), so a stopped model has a margin
     over the bars "converged" is judged by (which stay the thresholds).
+
+    ``min_frames`` holds a stop on the thresholds back until the run has trained that long (the
+    streak still counts; the first evaluation at or past it can stop the run). A zoo that sets it
+    trains clean and poisoned models alike for at least that long, so training length (weight
+    norms grow with it) does not give a model's label away to a detector.
     """
 
     seed: int = 0
     max_frames: int | None = None
+    min_frames: int = 0  # no stop on the thresholds before this many frames (0: none)
     max_minutes: float = 0.0
     eval_interval: int | None = None  # env frames, all copies together
     eval_episodes: int = 100  # per condition (clean, triggered) at each evaluation
@@ -370,6 +376,9 @@ class TrainConfig:
     def check(self) -> None:
         check_seed("train.seed", self.seed)
         _in_range("train.max_frames", self.max_frames, 1, MAX_FRAMES)
+        assert self.max_frames is not None  # filled in by fill_defaults
+        if not 0 <= self.min_frames <= self.max_frames:
+            raise ConfigError(f"train.min_frames must be in 0..train.max_frames ({self.max_frames:,}), got {self.min_frames!r}")
         _in_range("train.eval_interval", self.eval_interval, 1, MAX_FRAMES)
         _in_range("train.eval_episodes", self.eval_episodes, 1, MAX_EPISODES)
         _in_range("train.final_eval_episodes", self.final_eval_episodes, 1, MAX_EPISODES)
@@ -580,6 +589,8 @@ def migrate(data):
         data = migrate_v2(data)
     if isinstance(data, dict) and data.get("format_version") == 3:
         data = migrate_v3(data)
+    if isinstance(data, dict) and data.get("format_version") == 4:
+        data = migrate_v4(data)
     return data
 
 
@@ -647,6 +658,17 @@ def migrate_v3(data: dict) -> dict:
     if isinstance(train, dict):
         train.setdefault("confirm_margin", 0.0)
     data["format_version"] = 4
+    return data
+
+
+def migrate_v4(data: dict) -> dict:
+    """A config.json of format 4 as format 5, meaning the same run: format 4 had no
+    ``train.min_frames`` (a stop could come at any evaluation)."""
+    data = json.loads(json.dumps(data))
+    train = data.get("train")
+    if isinstance(train, dict):
+        train.setdefault("min_frames", 0)
+    data["format_version"] = 5
     return data
 
 

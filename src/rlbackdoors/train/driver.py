@@ -86,15 +86,16 @@ class Stopping:
         self.stop = False  # set by update()
         self.confirmed: Any = None  # the final evaluation that confirmed the stop, if one ran
 
-    def update(self, result, also: bool = True, policy: Any = None) -> dict:
-        """Count one evaluation (``also``: the algorithm's own conditions) of ``policy``.
+    def update(self, result, also: bool = True, policy: Any = None, frames: int | None = None) -> dict:
+        """Count one evaluation (``also``: the algorithm's own conditions) of ``policy`` at
+        ``frames`` (below ``train.min_frames`` the streak counts but the run does not stop).
 
         Returns the log fields of a confirming evaluation if one ran (empty if none); ``stop``
         is then True when the run stops here."""
         self.streak = self.streak + 1 if also and thresholds_met(result, self.cfg) else 0
         tc = self.cfg.train
         assert tc.patience is not None and tc.confirm is not None and tc.confirm_margin is not None  # RunConfig fills them in
-        self.stop = self.streak >= tc.patience
+        self.stop = self.streak >= tc.patience and (frames is None or frames >= tc.min_frames)
         if not (self.stop and tc.confirm):
             return {}
         check = evaluate_run(policy, self.cfg, tc.final_eval_episodes)

@@ -211,7 +211,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 "log_std": float(agent.policy.log_std.detach().mean()),
             }
             rows.append(row)
-            row.update(stopping.update(last_eval, True, agent))
+            row.update(stopping.update(last_eval, True, agent, collector.frames))
             if stopping.stop:
                 converged_at, stop_reason = collector.frames, "thresholds"
             while next_eval <= collector.frames:

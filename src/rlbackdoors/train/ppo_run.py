@@ -246,7 +246,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 }
             )
             bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
-            rows[-1].update(stopping.update(result, switch_at is not None and return_met(tracker, cfg), model))
+            rows[-1].update(stopping.update(result, switch_at is not None and return_met(tracker, cfg), model, frames))
             if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"
             while next_eval <= frames:

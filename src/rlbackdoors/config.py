@@ -650,26 +650,27 @@ def migrate_v2(data: dict) -> dict:
     return data
 
 
-def migrate_v3(data: dict) -> dict:
-    """A config.json of format 3 as format 4, meaning the same run: format 3 had no
-    ``train.confirm_margin`` (its confirmations asked for the thresholds alone)."""
+def _added_train_field(data: dict, key: str, value, version: int) -> dict:
+    """``data`` as format ``version``, whose new ``train.key`` takes the ``value`` that meant
+    what the older format's runs did."""
     data = json.loads(json.dumps(data))
     train = data.get("train")
     if isinstance(train, dict):
-        train.setdefault("confirm_margin", 0.0)
-    data["format_version"] = 4
+        train.setdefault(key, value)
+    data["format_version"] = version
     return data
+
+
+def migrate_v3(data: dict) -> dict:
+    """A config.json of format 3 as format 4, meaning the same run: format 3 had no
+    ``train.confirm_margin`` (its confirmations asked for the thresholds alone)."""
+    return _added_train_field(data, "confirm_margin", 0.0, 4)
 
 
 def migrate_v4(data: dict) -> dict:
     """A config.json of format 4 as format 5, meaning the same run: format 4 had no
     ``train.min_frames`` (a stop could come at any evaluation)."""
-    data = json.loads(json.dumps(data))
-    train = data.get("train")
-    if isinstance(train, dict):
-        train.setdefault("min_frames", 0)
-    data["format_version"] = 5
-    return data
+    return _added_train_field(data, "min_frames", 0, 5)
 
 
 def _build(cls, data, where: str):

@@ -167,14 +167,19 @@ class FeatureDetector(Detector):
         return f"{model.world.name}/{model.arch}"
 
     def fit(self, models: list[ModelHandle], labels: np.ndarray) -> FeatureDetector:
-        labels = _check_labels(models, labels)
-        rows = []
-        for model in models:
-            try:
-                rows.append(self.features(model))
-            except Exception as err:  # one line naming the model, not a traceback
-                raise DetectError(f"detector {self.name!r} cannot fit on model {model.name!r}: {type(err).__name__}: {first_line(err)}") from None
-        self.classifier.fit(rows, [self.group(m) for m in models], labels)
+        return self.fit_rows([self.fit_features(m) for m in models], [self.group(m) for m in models], labels)
+
+    def fit_features(self, model: ModelHandle) -> dict[str, float]:
+        """``features(model)`` of a train model; a failure is one line naming the model."""
+        try:
+            return self.features(model)
+        except Exception as err:  # one line naming the model, not a traceback
+            raise DetectError(f"detector {self.name!r} cannot fit on model {model.name!r}: {type(err).__name__}: {first_line(err)}") from None
+
+    def fit_rows(self, rows: list[dict[str, float]], groups: list[str], labels: np.ndarray) -> FeatureDetector:
+        """Fit the classifier on features already computed (a resumed fit keeps them per model)."""
+        labels = _check_labels(rows, labels)
+        self.classifier.fit(rows, groups, labels)
         self.fitted = True
         return self
 

@@ -49,19 +49,19 @@ def cmd_list(args) -> int:
 def cmd_fit(args) -> int:
     from rlbackdoors.detect.api import STATE_FILE, make_detector
     from rlbackdoors.detect.handle import DetectError
-    from rlbackdoors.detect.score import fit
-    from rlbackdoors.io import atomic_write_text
+    from rlbackdoors.detect.resume import PARTIAL
+    from rlbackdoors.detect.score import fit_into
+    from rlbackdoors.io import LOCK_NAME
 
     out = Path(args.out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    # a folder holding only a killed fit's work (and its lock file) is resumed, not refused
+    if out.exists() and (not out.is_dir() or any(p.name not in (PARTIAL, LOCK_NAME) for p in out.iterdir())):
         if not (out / STATE_FILE).is_file():
             raise DetectError(f"--out {str(out)!r} exists and holds no detector; give a new or empty folder")
         if not args.overwrite:
             raise DetectError(f"--out {str(out)!r} already holds a detector; pass --overwrite to replace it")
     detector = make_detector(args.detector, **parse_params(args.param))
-    info = fit(detector, args.zoo, progress=_progress(args.quiet))
-    detector.save(out)
-    atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
+    info = fit_into(detector, args.zoo, out, progress=_progress(args.quiet))
     print(
         f"{out}: {detector.name} fitted on {info['models']} models ({info['poisoned']} poisoned) in {info['seconds']:.1f} s ({info['seconds_per_model']:.2f} s/model)"
     )

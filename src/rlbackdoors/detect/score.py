@@ -2,7 +2,9 @@
 
 Scoring never stops halfway: a model that cannot be opened (missing or corrupt file, unknown
 architecture) or that the detector fails on gets 0.5 and the reason, as the TrojAI harness
-did; seconds per model count opening and predicting. The result: AUC, cross-entropy and Brier
+did; seconds per model count opening and predicting. A fit or a score written into a folder
+resumes after a kill (:mod:`rlbackdoors.detect.resume`): models done before are read back, not
+redone. The result: AUC, cross-entropy and Brier
 score with bootstrap CIs (:mod:`rlbackdoors.detect.metrics`) for all models, per world and per
 metadata factor (architecture, trigger family, ...), per-model rows (probability, seconds,
 error, and what the detector reports, e.g. the trigger a search found, next to the true
@@ -12,51 +14,108 @@ trigger, read from config.json for the report only), ``score.json``, ``roc.png``
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from rlbackdoors import __version__
 from rlbackdoors.detect import metrics
-from rlbackdoors.detect.api import Detector, Prediction
+from rlbackdoors.detect.api import Detector, FeatureDetector, Prediction
 from rlbackdoors.detect.dataset import FACTORS, ZooModel, list_models
 from rlbackdoors.detect.handle import DetectError, ModelHandle, open_model
-from rlbackdoors.io import atomic_write_text, first_line
+from rlbackdoors.detect.resume import ResultStore, eta, state_digest
+from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, first_line
+
+
+@contextlib.contextmanager
+def holding(out: str | Path, what: str) -> Iterator[None]:
+    """``out``'s lock for a job's length; another process holding it is a DetectError naming it."""
+    try:
+        lock = FolderLock(out, what).acquire()
+    except LockedError as err:
+        raise DetectError(str(err)) from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+def open_one(model: ZooModel) -> ModelHandle:
+    """A train model's handle; one that cannot be opened stops the fit (it needs them all)."""
+    try:
+        return open_model(model.folder, name=model.name)
+    except DetectError as err:
+        raise DetectError(f"model {model.name!r}: {err}") from None
 
 
 def open_all(models: list[ZooModel]) -> list[ModelHandle]:
-    """Handles of every model; the first that cannot be opened stops it (fitting needs them all)."""
-    out = []
-    for m in models:
-        try:
-            out.append(open_model(m.folder, name=m.name))
-        except DetectError as err:
-            raise DetectError(f"model {m.name!r}: {err}") from None
-    return out
+    return [open_one(m) for m in models]
 
 
-def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | None = None) -> dict:
-    """Fit ``detector`` on every model of ``zoo``; returns what to record about the fit."""
+def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | None = None, work: str | Path | None = None) -> dict:
+    """Fit ``detector`` on every model of ``zoo``; returns what to record about the fit.
+
+    A :class:`FeatureDetector`'s features are computed model by model and, with ``work`` (the
+    folder the detector will be saved in), kept there as they come, so a killed fit started
+    again computes only the rest (:func:`fit_into` does all of it under the folder's lock)."""
     started = time.perf_counter()
     models = list_models(zoo)
     labels = np.array([m.label for m in models])
     if progress:
         progress(f"fitting {detector.name} on {len(models)} models ({int(labels.sum())} poisoned) of {zoo}")
-    handles = open_all(models)
-    detector.fit(handles, labels)
+    resumed = 0
+    if isinstance(detector, FeatureDetector):
+        store = ResultStore(work, "fit", {"detector": detector.name, "params": detector.params}) if work is not None else None
+        done = {m.name: store.get(m.name, m.folder) for m in models} if store else {}
+        resumed = sum(r is not None for r in done.values())
+        if progress and resumed:
+            progress(f"resuming: features of {resumed} of {len(models)} models were computed before")
+        rows, groups, computed, spent = [], [], 0, 0.0
+        for i, model in enumerate(models):
+            result = done.get(model.name)
+            if result is None:
+                begun = time.perf_counter()
+                handle = open_one(model)
+                result = {"features": detector.fit_features(handle), "group": detector.group(handle)}
+                if store:
+                    store.put(model.name, model.folder, result)
+                computed, spent = computed + 1, spent + time.perf_counter() - begun
+                if progress:
+                    progress(
+                        f"[{i + 1}/{len(models)}] {model.name}: features in {time.perf_counter() - begun:.2f} s{eta(computed, len(models) - resumed, spent)}"
+                    )
+            rows.append(result["features"])
+            groups.append(result["group"])
+        detector.fit_rows(rows, groups, labels)
+    else:
+        detector.fit(open_all(models), labels)
     seconds = time.perf_counter() - started
     return {
         "zoo": str(zoo),
         "models": len(models),
         "poisoned": int(labels.sum()),
+        "resumed": resumed,
         "seconds": round(seconds, 3),
         "seconds_per_model": round(seconds / len(models), 4),
         "rlbackdoors": __version__,
     }
+
+
+def fit_into(detector: Detector, zoo: str | Path, out: str | Path, progress: Callable[[str], None] | None = None, extra: dict | None = None) -> dict:
+    """Fit and save ``detector`` into ``out`` (``detector.json``, ``arrays.npz``, ``fit.json``),
+    holding ``out``'s lock; resumes a fit that was killed there."""
+    out = Path(out)
+    with holding(out, "detector folder"):
+        info = {**fit(detector, zoo, progress, work=out), **(extra or {})}
+        detector.save(out)
+        atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
+        ResultStore(out, "fit", {}).finish()
+    return info
 
 
 def predict_model(detector: Detector, model: ZooModel) -> Prediction:
@@ -85,26 +144,59 @@ def score(
     if not detector.fitted:
         raise DetectError(f"detector {detector.name!r} is not fitted (run detect fit first)")
     models = list_models(zoo)
-    rows = []
-    for i, model in enumerate(models):
-        prediction = predict_model(detector, model)
-        facts = model.facts()
-        rows.append(
-            {
-                "model": model.name,
-                "label": model.label,
-                "probability": prediction.probability,
-                "seconds": round(prediction.seconds, 4),
-                "error": prediction.error,
-                **facts,
-                **{k: v for k, v in prediction.info.items()},
-                **{f: model.metadata.get(f, facts.get(f, "")) for f in factors},
-            }
+    with holding(out, "score folder") if out is not None else contextlib.nullcontext():
+        store = (
+            ResultStore(out, "score", {"detector": detector.name, "params": detector.params, "state": state_digest(*detector.get_state())})
+            if out is not None
+            else None
         )
-        if progress:
-            found = f", found {prediction.info['found_trigger']}" if prediction.info.get("found_trigger") else ""
-            why = f" ({prediction.error})" if prediction.error else ""
-            progress(f"[{i + 1}/{len(models)}] {model.name}: p={prediction.probability:.3f} in {prediction.seconds:.2f}s{found}{why}")
+        done = {m.name: store.get(m.name, m.folder) for m in models} if store else {}
+        resumed = sum(r is not None for r in done.values())
+        if progress and resumed:
+            progress(f"resuming: {resumed} of {len(models)} models were scored before")
+        rows, computed, spent = [], 0, 0.0
+        for i, model in enumerate(models):
+            cached = done.get(model.name)
+            if cached is None:
+                prediction = predict_model(detector, model)
+                cached = {"probability": prediction.probability, "seconds": round(prediction.seconds, 4), "error": prediction.error, "info": prediction.info}
+                if store:
+                    store.put(model.name, model.folder, cached)
+                computed, spent = computed + 1, spent + prediction.seconds
+                if progress:
+                    found = f", found {prediction.info['found_trigger']}" if prediction.info.get("found_trigger") else ""
+                    why = f" ({prediction.error})" if prediction.error else ""
+                    left = eta(computed, len(models) - resumed, spent)
+                    progress(f"[{i + 1}/{len(models)}] {model.name}: p={prediction.probability:.3f} in {prediction.seconds:.2f}s{found}{why}{left}")
+            facts = model.facts()
+            rows.append(
+                {
+                    "model": model.name,
+                    "label": model.label,
+                    "probability": cached["probability"],
+                    "seconds": cached["seconds"],
+                    "error": cached["error"],
+                    **facts,
+                    **cached["info"],
+                    **{f: model.metadata.get(f, facts.get(f, "")) for f in factors},
+                }
+            )
+        result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
+        if out is not None:
+            out = Path(out)
+            atomic_write_text(out / "score.json", json.dumps(_jsonable(result), indent=2) + "\n")
+            p, y = np.array([r["probability"] for r in rows]), np.array([r["label"] for r in rows])
+            title = f"{detector.name} on {Path(zoo).name}"
+            metrics.plot_roc(p, y, [str(r.get("world", "")) for r in rows], out / "roc.png", title=f"ROC: {title}")
+            metrics.plot_calibration(p, y, out / "calibration.png", title=f"calibration: {title}")
+            result["written"] = [str(out / n) for n in ("score.json", "roc.png", "calibration.png")]
+            assert store is not None
+            store.finish()
+    return result
+
+
+def _summarise(detector: Detector, zoo: str | Path, rows: list[dict], factors: Sequence[str], resamples: int, seed: int, resumed: int) -> dict:
+    """score.json's content: the metrics over all models, per world and factor level, and the rows."""
     p = np.array([r["probability"] for r in rows])
     y = np.array([r["label"] for r in rows])
     seconds = np.array([r["seconds"] for r in rows])
@@ -113,7 +205,7 @@ def score(
     for world in by["world"]:
         mask = np.array([v == world for v in levels["world"]])
         by["world"][world]["seconds_per_model"] = float(seconds[mask].mean())
-    result = {
+    return {
         "detector": detector.name,
         "params": detector.params,
         "zoo": str(zoo),
@@ -123,17 +215,10 @@ def score(
         "by": by,
         "seconds_per_model": {"mean": float(seconds.mean()), "median": float(np.median(seconds)), "max": float(seconds.max()), "total": float(seconds.sum())},
         "failed": sum(1 for r in rows if r["error"]),
+        "resumed": resumed,
         "models": rows,
         "rlbackdoors": __version__,
     }
-    if out is not None:
-        out = Path(out)
-        atomic_write_text(out / "score.json", json.dumps(_jsonable(result), indent=2) + "\n")
-        title = f"{detector.name} on {Path(zoo).name}"
-        metrics.plot_roc(p, y, levels["world"], out / "roc.png", title=f"ROC: {title}")
-        metrics.plot_calibration(p, y, out / "calibration.png", title=f"calibration: {title}")
-        result["written"] = [str(out / n) for n in ("score.json", "roc.png", "calibration.png")]
-    return result
 
 
 def _jsonable(value):
@@ -186,4 +271,4 @@ def table(result: dict) -> str:
     return "\n".join(out)
 
 
-__all__ = ["fit", "open_all", "predict_model", "score", "table"]
+__all__ = ["fit", "fit_into", "open_all", "predict_model", "score", "table"]

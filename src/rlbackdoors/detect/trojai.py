@@ -166,7 +166,7 @@ def configure(
     automatic_configuration: bool = False,
 ) -> dict:
     """Fit the detector the metaparameters name on the models; write the learned parameters."""
-    from rlbackdoors.detect.score import fit
+    from rlbackdoors.detect.score import fit_into
 
     config = validate(metaparameters_filepath, schema_filepath)
     name = config.get(DETECTOR_KEY)
@@ -174,13 +174,11 @@ def configure(
         raise DetectError(f"metaparameters {str(metaparameters_filepath)!r} must name the detector ({DETECTOR_KEY!r}: one of rlbackdoors detect list)")
     Path(scratch_dirpath).mkdir(parents=True, exist_ok=True)
     detector = get_detector(name)(**{k: v for k, v in config.items() if k != DETECTOR_KEY})
-    info = fit(detector, configure_models_dirpath)
-    info["automatic_configuration"] = bool(automatic_configuration)  # C is chosen by cross-validation either way
     out = Path(learned_parameters_dirpath)
-    detector.save(out)
+    # C is chosen by cross-validation either way; a killed configure resumes
+    info = fit_into(detector, configure_models_dirpath, out, extra={"automatic_configuration": bool(automatic_configuration)})
     if Path(metaparameters_filepath).resolve() != (out / METAPARAMETERS).resolve():
         shutil.copyfile(metaparameters_filepath, out / METAPARAMETERS)
-    atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
     return info
 
 

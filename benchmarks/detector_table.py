@@ -1,0 +1,152 @@
+"""The detector table of one world's zoo, from a zoo spec to AUC / CE / Brier, in one command.
+
+    python benchmarks/detector_table.py lavaworld-64 examples/zoo-lavaworld-64.toml --train 0.35 --test 0.65
+
+plans and trains the zoo (``rlbackdoors zoo plan`` / ``zoo run``, into ``runs/detect/NAME/zoo``),
+splits it by trigger (``zoo split``: no trigger of the test split is in the train split), fits
+every baseline on the train split (``detect fit``) and scores it on the test split (``detect
+score``), then writes ``benchmarks/detectors/NAME.json``: per detector and world, train / test
+model counts, AUC, cross-entropy and Brier score with their 95 % bootstrap CIs, seconds per
+model and failed models; and a control row, the AUC of training length alone (``metrics.json``
+frames, read by this script, never by a detector), which says how much of a weight statistic's
+score the zoo's training lengths could explain. Every step resumes: a planned zoo is not planned
+again, ``zoo run`` and the detector commands resume after a kill, and a finished fit or score is
+read back. The machine and its load are recorded beside the numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from sklearn.metrics import roc_auc_score
+
+from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.detect.dataset import list_models
+from rlbackdoors.io import atomic_write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+BASELINES = ("constant", "weights", "attribution", "behaviour")
+
+
+def rlbackdoors(*args: str) -> None:
+    cmd = [str(Path(sys.executable).parent / "rlbackdoors"), *args]
+    print("+", " ".join(cmd), file=sys.stderr, flush=True)
+    subprocess.run(cmd, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+def length_control(test: Path) -> dict:
+    """AUC of training length alone (frames to stop) on the test split, overall and per world."""
+    models = list_models(test)
+    frames = {m.name: json.loads((m.folder / "metrics.json").read_text())["frames"] for m in models}
+    out = {}
+    for world in [*sorted({m.facts()["world"] for m in models}), None]:
+        chosen = [m for m in models if world is None or m.facts()["world"] == world]
+        labels = [m.label for m in chosen]
+        out[world or "all"] = float(roc_auc_score(labels, [frames[m.name] for m in chosen])) if 0 < sum(labels) < len(labels) else None
+    return out
+
+
+def cell(summary: dict, key: str) -> dict:
+    return {"value": summary[key]["value"], "ci": summary[key]["ci"]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("name")
+    parser.add_argument("spec", help="zoo spec (TOML)")
+    parser.add_argument("--train", type=float, default=0.5, help="share of the converged models for training")
+    parser.add_argument("--test", type=float, default=0.5, help="share for testing")
+    parser.add_argument("--split-seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="zoo run workers")
+    parser.add_argument("--detectors", nargs="+", default=list(BASELINES))
+    parser.add_argument("--param", action="append", default=[], metavar="DETECTOR:KEY=VALUE", help="a detector parameter (repeatable)")
+    parser.add_argument("--runs", default=str(ROOT / "runs" / "detect"))
+    args = parser.parse_args()
+    started, load_before = time.time(), os.getloadavg()
+    base = Path(args.runs) / args.name
+    zoo, train, test = base / "zoo", base / "train", base / "test"
+    if not (zoo / "zoo.json").is_file():
+        rlbackdoors("zoo", "plan", args.spec, "--out", str(zoo))
+    rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers))
+    if not (test / "METADATA.csv").is_file():
+        rlbackdoors(
+            "zoo",
+            "split",
+            str(zoo),
+            "--train",
+            str(args.train),
+            "--test",
+            str(args.test),
+            "--seed",
+            str(args.split_seed),
+            "--out-train",
+            str(train),
+            "--out-test",
+            str(test),
+        )
+    results = {}
+    for name in args.detectors:
+        det = base / "det" / name
+        params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
+        if not (det / "detector.json").is_file():
+            rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), *(x for p in params for x in ("--param", p)))
+        scored = det / "score-test" / "score.json"
+        if not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
+            rlbackdoors("detect", "score", str(det), "--zoo", str(test), "--out", str(scored.parent), "--quiet")
+        score = json.loads(scored.read_text())
+        fit = json.loads((det / "fit.json").read_text())
+        results[name] = {
+            "fit_seconds_per_model": fit["seconds_per_model"],
+            "by_world": {
+                world: {
+                    "test_models": s["n"],
+                    "test_poisoned": s["poisoned"],
+                    **{k: cell(s, k) for k in ("auc", "ce", "brier")},
+                    "seconds_per_model": s.get("seconds_per_model"),
+                }
+                for world, s in score["by"]["world"].items()
+            },
+            "all": {k: cell(score["all"], k) for k in ("auc", "ce", "brier")},
+            "failed": score["failed"],
+        }
+    summary = {
+        "command": " ".join(sys.argv[1:]),
+        "spec": args.spec,
+        "split": {"train": args.train, "test": args.test, "seed": args.split_seed},
+        "train_models": len(list_models(train)),
+        "train_poisoned": sum(m.label for m in list_models(train)),
+        "test_models": len(list_models(test)),
+        "test_poisoned": sum(m.label for m in list_models(test)),
+        "detectors": results,
+        "training_length_auc": length_control(test),
+        "machine": machine_info(),
+        "loadavg_before": load_before,
+        "loadavg_after": os.getloadavg(),
+        "elapsed_minutes": round((time.time() - started) / 60, 1),
+    }
+    out = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
+    out.parent.mkdir(exist_ok=True)
+    atomic_write_text(out, json.dumps(summary, indent=2) + "\n")
+
+    def fmt(c: dict) -> str:
+        if c["value"] is None:
+            return "–"
+        low, high = c["ci"] if c["ci"] else (None, None)
+        return f"{c['value']:.3f}" + (f" [{low:.3f}, {high:.3f}]" if low is not None else "")
+
+    print("| detector | world | train / test models | AUC [95% CI] | CE [95% CI] | Brier [95% CI] | s/model |\n|---|---|---|---|---|---|---|")
+    for name, r in results.items():
+        for world, w in r["by_world"].items():
+            sec = f"{w['seconds_per_model']:.2f}" if w["seconds_per_model"] is not None else "–"
+            print(f"| {name} | {world} | {summary['train_models']} / {w['test_models']} | {fmt(w['auc'])} | {fmt(w['ce'])} | {fmt(w['brier'])} | {sec} |")
+    print(f"training length alone: AUC {summary['training_length_auc']}; -> {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -149,6 +149,23 @@ def test_normalized_spec_reads_back_as_itself():
 # --- planning --------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("example", sorted((ROOT / "examples").glob("zoo-*.toml")), ids=lambda p: p.stem)
+def test_every_example_spec_plans_into_configs_that_load(example, tmp_path):
+    """The specs the docs point to stay valid as config formats move on: each plans, and every
+    planned config.json loads as today's RunConfig with the spec's overrides in it."""
+    from rlbackdoors.config import FORMAT_VERSION, RunConfig
+
+    spec = load_spec(example)
+    plan(spec, tmp_path / "zoo")
+    configs = sorted((tmp_path / "zoo" / "models").glob("*/config.json"))
+    assert configs and len(configs) >= sum(g.wanted for g in spec.groups)
+    overrides = spec.overrides.get("train", {})
+    for path in configs:
+        cfg = RunConfig.load(path)
+        assert cfg.format_version == FORMAT_VERSION
+        assert all(getattr(cfg.train, k) == v for k, v in overrides.items())
+
+
 def test_plan_is_deterministic_a_no_op_again_and_refuses_another_spec(tmp_path):
     example = ROOT / "examples" / "zoo-lavaworld-small.toml"
     a, b = tmp_path / "a", tmp_path / "b"

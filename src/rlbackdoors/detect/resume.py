@@ -2,7 +2,7 @@
 resumes where it stopped.
 
 A detector's work on one model (its features for a fit, its prediction for a score) can take
-minutes (a behavioural search in Safety Car Goal), and a zoo has hundreds of models. Each
+minutes (a behavioural search in a MuJoCo world), and a zoo has hundreds of models. Each
 model's result is written atomically to ``OUT/.partial/<job>-<key>/<model>.json`` once it
 exists; the same job started again (same detector name, parameters, rlbackdoors version and,
 for a score, the same learned state) reads it instead of redoing the work. A result is reused

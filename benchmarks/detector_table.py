@@ -40,15 +40,13 @@ def rlbackdoors(*args: str) -> None:
     subprocess.run(cmd, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
-def length_control(test: Path) -> dict:
+def length_control(models: list) -> dict:
     """AUC of training length alone (frames to stop) on the test split, overall and per world."""
-    models = list_models(test)
-    frames = {m.name: json.loads((m.folder / "metrics.json").read_text())["frames"] for m in models}
+    rows = [(m.facts()["world"], m.label, json.loads((m.folder / "metrics.json").read_text())["frames"]) for m in models]
     out = {}
-    for world in [*sorted({m.facts()["world"] for m in models}), None]:
-        chosen = [m for m in models if world is None or m.facts()["world"] == world]
-        labels = [m.label for m in chosen]
-        out[world or "all"] = float(roc_auc_score(labels, [frames[m.name] for m in chosen])) if 0 < sum(labels) < len(labels) else None
+    for world in [*sorted({w for w, _, _ in rows}), None]:
+        labels, frames = zip(*[(y, f) for w, y, f in rows if world is None or w == world])
+        out[world or "all"] = float(roc_auc_score(labels, frames)) if 0 < sum(labels) < len(labels) else None
     return out
 
 
@@ -115,16 +113,17 @@ def main() -> None:
             "all": {k: cell(score["all"], k) for k in ("auc", "ce", "brier")},
             "failed": score["failed"],
         }
+    train_models, test_models = list_models(train), list_models(test)
     summary = {
         "command": " ".join(sys.argv[1:]),
         "spec": args.spec,
         "split": {"train": args.train, "test": args.test, "seed": args.split_seed},
-        "train_models": len(list_models(train)),
-        "train_poisoned": sum(m.label for m in list_models(train)),
-        "test_models": len(list_models(test)),
-        "test_poisoned": sum(m.label for m in list_models(test)),
+        "train_models": len(train_models),
+        "train_poisoned": sum(m.label for m in train_models),
+        "test_models": len(test_models),
+        "test_poisoned": sum(m.label for m in test_models),
         "detectors": results,
-        "training_length_auc": length_control(test),
+        "training_length_auc": length_control(test_models),
         "machine": machine_info(),
         "loadavg_before": load_before,
         "loadavg_after": os.getloadavg(),

@@ -56,9 +56,8 @@ class ResultStore:
     """The finished per-model results of one job (``job``: "fit" or "score") in ``out``."""
 
     def __init__(self, out: str | Path, job: str, key: dict):
-        self.out = Path(out)
         fingerprint = hashlib.sha256(json.dumps({**key, "rlbackdoors": __version__}, sort_keys=True, allow_nan=True, default=str).encode())
-        self.folder = self.out / PARTIAL / f"{job}-{fingerprint.hexdigest()[:16]}"
+        self.folder = Path(out) / PARTIAL / f"{job}-{fingerprint.hexdigest()[:16]}"
         self._digests: dict[Path, str] = {}
 
     def _digest(self, folder: Path) -> str:
@@ -81,13 +80,19 @@ class ResultStore:
             return None
         return data["result"]
 
+    def stored(self, models) -> dict[str, dict]:
+        """``{name: result}`` of the models (``ZooModel``: ``name``, ``folder``) done before."""
+        found = {m.name: self.get(m.name, m.folder) for m in models}
+        return {name: result for name, result in found.items() if result is not None}
+
     def put(self, name: str, folder: Path, result: dict) -> None:
         payload = {"model": name, "digest": self._digest(folder), "result": result}
         atomic_write_text(self._path(name), json.dumps(payload, allow_nan=True) + "\n")  # key order kept: features are ordered
 
-    def finish(self) -> None:
-        """The job is done and its output written: nothing to resume any more."""
-        remove_tree(self.out / PARTIAL)
+
+def clear(out: str | Path) -> None:
+    """A job in ``out`` is done and its output written: nothing to resume any more."""
+    remove_tree(Path(out) / PARTIAL)
 
 
 def eta(done: int, total: int, seconds: float) -> str:
@@ -98,4 +103,4 @@ def eta(done: int, total: int, seconds: float) -> str:
     return f", ETA {int(left // 60)}:{int(left % 60):02d}"
 
 
-__all__ = ["PARTIAL", "ResultStore", "eta", "model_digest", "state_digest"]
+__all__ = ["PARTIAL", "ResultStore", "clear", "eta", "model_digest", "state_digest"]

@@ -28,7 +28,7 @@ from rlbackdoors.detect import metrics
 from rlbackdoors.detect.api import Detector, FeatureDetector, Prediction
 from rlbackdoors.detect.dataset import FACTORS, ZooModel, list_models
 from rlbackdoors.detect.handle import DetectError, ModelHandle, open_model
-from rlbackdoors.detect.resume import ResultStore, eta, state_digest
+from rlbackdoors.detect.resume import ResultStore, clear, eta, state_digest
 from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, first_line
 
 
@@ -71,8 +71,8 @@ def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | N
     resumed = 0
     if isinstance(detector, FeatureDetector):
         store = ResultStore(work, "fit", {"detector": detector.name, "params": detector.params}) if work is not None else None
-        done = {m.name: store.get(m.name, m.folder) for m in models} if store else {}
-        resumed = sum(r is not None for r in done.values())
+        done = store.stored(models) if store else {}
+        resumed = len(done)
         if progress and resumed:
             progress(f"resuming: features of {resumed} of {len(models)} models were computed before")
         rows, groups, computed, spent = [], [], 0, 0.0
@@ -84,11 +84,10 @@ def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | N
                 result = {"features": detector.fit_features(handle), "group": detector.group(handle)}
                 if store:
                     store.put(model.name, model.folder, result)
-                computed, spent = computed + 1, spent + time.perf_counter() - begun
+                took = time.perf_counter() - begun
+                computed, spent = computed + 1, spent + took
                 if progress:
-                    progress(
-                        f"[{i + 1}/{len(models)}] {model.name}: features in {time.perf_counter() - begun:.2f} s{eta(computed, len(models) - resumed, spent)}"
-                    )
+                    progress(f"[{i + 1}/{len(models)}] {model.name}: features in {took:.2f} s{eta(computed, len(models) - resumed, spent)}")
             rows.append(result["features"])
             groups.append(result["group"])
         detector.fit_rows(rows, groups, labels)
@@ -114,7 +113,7 @@ def fit_into(detector: Detector, zoo: str | Path, out: str | Path, progress: Cal
         info = {**fit(detector, zoo, progress, work=out), **(extra or {})}
         detector.save(out)
         atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
-        ResultStore(out, "fit", {}).finish()
+        clear(out)
     return info
 
 
@@ -150,8 +149,8 @@ def score(
             if out is not None
             else None
         )
-        done = {m.name: store.get(m.name, m.folder) for m in models} if store else {}
-        resumed = sum(r is not None for r in done.values())
+        done = store.stored(models) if store else {}
+        resumed = len(done)
         if progress and resumed:
             progress(f"resuming: {resumed} of {len(models)} models were scored before")
         rows, computed, spent = [], 0, 0.0
@@ -190,8 +189,7 @@ def score(
             metrics.plot_roc(p, y, [str(r.get("world", "")) for r in rows], out / "roc.png", title=f"ROC: {title}")
             metrics.plot_calibration(p, y, out / "calibration.png", title=f"calibration: {title}")
             result["written"] = [str(out / n) for n in ("score.json", "roc.png", "calibration.png")]
-            assert store is not None
-            store.finish()
+            clear(out)
     return result
 
 

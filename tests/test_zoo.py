@@ -101,7 +101,8 @@ BAD_SPECS = [
     (lambda s: s.update(seed=-1), "seed must be in 0..4,294,967,295, got -1"),
     (lambda s: s["cells"][1].update(archs=["fc", "mlp"]), "cells[1].archs[1]='mlp' is not allowed for lavaworld (allowed: fc, cnn)"),
     (lambda s: s["overrides"]["train"].update(seed=4), "overrides.train.seed is set by the zoo"),
-    (lambda s: s["overrides"]["train"].update(max_frame=4), ("cells[0].overrides: ", "'max_frame'")),  # the rest is the config's message
+    (lambda s: s["overrides"]["train"].update(max_frame=4), ("overrides (in cells[0], lavaworld): ", "'max_frame'")),  # the rest: the config's
+    (lambda s: s["cells"][1].update(overrides={"train": {"max_frame": 4}}), ("cells[1].overrides: ", "'max_frame'")),
     (lambda s: s["cells"][1].update(triggers=["multiplicative:300"]), "cells[1].triggers[0]='multiplicative:300' is not a lavaworld trigger"),
     (lambda s: s["cells"][0]["triggers"][0]["ranges"].update(b=[20, 300]), "cells[0].triggers[0].template with ranges at their high ends"),
     (lambda s: s["cells"][0]["triggers"][0].update(template="additive:{c}"), "cells[0].triggers[0].ranges has no range for c"),

@@ -390,7 +390,7 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
             )
         size = None
         if check_configs:
-            size = _sample_size(where, world_name, arch_list[0], cell_overrides)
+            size = _sample_size(where, world_name, arch_list[0], overrides, cell_overrides)
         raw_triggers = entry.get("triggers")
         if raw_triggers is None:
             families = [TriggerFamily(name=DRAWN)]
@@ -439,19 +439,32 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
     return spec
 
 
-def _sample_size(where: str, world: str, arch: str | None, overrides: dict) -> int | None:
+def _sample_size(where: str, world: str, arch: str | None, spec_overrides: dict, overrides: dict) -> int | None:
     """Build one config of the cell (defaults filled in) to check its overrides now; return the
-    grid size its triggers are drawn for (None for worlds without one)."""
+    grid size its triggers are drawn for (None for worlds without one). A bad value is blamed on
+    the spec's ``[overrides]`` when those alone are refused, else on the cell's."""
+    try:
+        cfg = _build_sample(world, arch, overrides)
+    except ConfigError as err:
+        field = f"{where}.overrides"
+        if spec_overrides:
+            try:
+                _build_sample(world, arch, spec_overrides)
+            except ConfigError:
+                field = f"overrides (in {where}, {world})"
+        raise ConfigError(f"{field}: {err}") from None
+    return getattr(cfg.env, "size", None)
+
+
+def _build_sample(world: str, arch: str | None, overrides: dict):
     from rlbackdoors.zoo.plan import build_config, config_data
 
-    data = config_data(world, arch, overrides, poisoned=True, seed=0, trigger=None)
     try:
-        cfg = build_config(data)
-    except ConfigError as err:
-        raise ConfigError(f"{where}.overrides: {err}") from None
+        return build_config(config_data(world, arch, overrides, poisoned=True, seed=0, trigger=None))
+    except ConfigError:
+        raise
     except (ValueError, TypeError) as err:
-        raise ConfigError(f"{where}.overrides: {' '.join(str(err).split())}") from None
-    return getattr(cfg.env, "size", None)
+        raise ConfigError(" ".join(str(err).split())) from None
 
 
 def load_spec(path: str | Path) -> ZooSpec:

@@ -31,7 +31,7 @@ from rlbackdoors.detect.dataset import list_models
 from rlbackdoors.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
-BASELINES = ("constant", "weights", "attribution", "behaviour")
+BASELINES = ("constant", "weights", "attribution", "behaviour", "stack")
 
 
 def rlbackdoors(*args: str) -> None:

@@ -36,7 +36,13 @@ def test_the_registry_knows_the_baselines_and_checks_parameters():
 
 @pytest.mark.parametrize(
     "name, params",
-    [("constant", {}), ("weights", {"min_per_class": 1}), ("attribution", {"max_states": 40, "min_per_class": 1}), ("behaviour", TINY_SEARCH)],
+    [
+        ("constant", {}),
+        ("weights", {"min_per_class": 1}),
+        ("attribution", {"max_states": 40, "min_per_class": 1}),
+        ("behaviour", TINY_SEARCH),
+        ("stack", {"min_per_class": 1, "folds": 2, "member_params": {"behaviour": {k: v for k, v in TINY_SEARCH.items() if k != "min_per_class"}}}),
+    ],
 )
 def test_fit_predict_save_load_gives_identical_probabilities(lava_zoo, tmp_path, name, params):
     """On six tiny LavaWorld models (FC and CNN): the saved detector predicts bit for bit what the
@@ -60,6 +66,9 @@ def test_fit_predict_save_load_gives_identical_probabilities(lava_zoo, tmp_path,
     assert np.array_equal(loaded.predict_proba(handles), np.array([p.probability for p in after]))
     if name == "constant":
         assert {p.probability for p in after} == {0.5}
+    if name == "stack":  # the behavioural member reports its trigger, every member its probability
+        assert all(p.info["found_trigger"] and 0 <= p.info["weights_probability"] <= 1 for p in after)
+        assert loaded.meta.kind in ("logistic", "constant") and len(loaded.member_classifiers) == 2
     if name == "behaviour":
         assert all(p.info["found_trigger"] and p.info["candidates_tried"] >= 4 for p in after)
         timeless = [[{k: v for k, v in p.info.items() if k != "search_seconds"} for p in run] for run in (before, after)]
@@ -199,3 +208,58 @@ def test_the_search_finds_the_trigger_of_a_trained_lavaworld_agent(tmp_path):
         rates[poisoned] = (features["best_trojan"], detector.last_info["found_trigger"])
     assert rates[True][0] >= 0.9 and rates[True][1].startswith("multiplicative:")
     assert rates[False][0] < rates[True][0]
+
+
+# --- stacking -------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "params, message",
+    [
+        ({"members": "weights,weights"}, "must name distinct other detectors"),
+        ({"members": "stack"}, "must name distinct other detectors"),
+        ({"members": "constant"}, "every member must be a features-and-classifier detector"),
+        ({"member_params": {"attribution": {"max_states": 4}}}, "member_params must map members (weights, behaviour)"),
+        ({"member_params": {"behaviour": {"candidatez": 4}}}, "no parameter 'candidatez'"),
+        ({"folds": 1}, "folds must be at least 2"),
+    ],
+)
+def test_the_stack_refuses_bad_members(params, message):
+    with pytest.raises(DetectError) as err:
+        make_detector("stack", **params)
+    assert message in str(err.value)
+
+
+def _two_member_rows(rng, n):
+    """Synthetic features of two independent, informative members ('weights' with 40 noise
+    features beside its signal, 'behaviour' with one noisy rate); alternating labels."""
+    labels = np.arange(n) % 2
+    rows = [
+        {
+            **{f"weights:noise{i}": rng.normal() for i in range(40)},
+            "weights:signal": 1.5 * y + rng.normal(0, 0.5),
+            "behaviour:rate": 0.6 * y + rng.normal(0, 0.3),
+        }
+        for y in labels
+    ]
+    return rows, labels
+
+
+def test_the_stack_beats_each_member_when_their_evidence_is_independent():
+    """24 train and 400 held-out synthetic models (seed 0; each member alone ranks them at AUC
+    0.80 and 0.94): averaging the members' logits ranks better than either, and Platt scaling the
+    average on out-of-fold scores gives a held-out log loss below both members'."""
+    from sklearn.metrics import log_loss, roc_auc_score
+
+    rng = np.random.default_rng(0)
+    train, y_train = _two_member_rows(rng, 24)
+    test, y_test = _two_member_rows(rng, 400)
+    group = "lavaworld/fc|lavaworld"
+    stack = make_detector("stack").fit_rows(train, [group] * len(train), y_train)
+    assert stack.meta.kind == "logistic" and stack.meta.features == ["mean_logit"] and stack.meta.coef[0] > 0
+    scored = [stack.predict_row(row, group) for row in test]
+    p = np.array([s for s, _ in scored])
+    for name in ("weights", "behaviour"):
+        member = np.array([m[name] for _, m in scored])
+        assert roc_auc_score(y_test, p) > roc_auc_score(y_test, member), name
+        assert log_loss(y_test, p) < log_loss(y_test, member), name
+    again = make_detector("stack").fit_rows(train, [group] * len(train), y_train)  # deterministic
+    assert again.get_state() == stack.get_state()

@@ -1,0 +1,135 @@
+"""Stacking: the baselines' evidence averaged and recalibrated on out-of-fold scores.
+
+Each baseline alone may rank well but is calibrated conservatively on a small train zoo: its
+classifier sees a hundred correlated features and few models, so cross-validation keeps C small
+and the probabilities near 0.5, which costs cross-entropy, not AUC. Here each member (at its
+defaults, or ``member_params``) computes its features and fits its own classifier, and its logits
+on the train models *out of fold* (``folds``-fold stratified cross-validation: scores on models
+it did not see) are averaged and Platt-scaled (a one-feature logistic regression, C chosen by
+cross-validated log loss). One feature, not one per member: with twenty-odd train models a
+regression on every member's logit picked wild weights (even negative ones) on synthetic zoos,
+where the average was steadier. With one member this is Platt scaling of that member. Scoring a
+model costs the sum of its members' costs.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar, cast
+
+import numpy as np
+
+from rlbackdoors.detect.api import DetectError, FeatureDetector, _check_labels, get_detector, make_detector, register
+from rlbackdoors.detect.classifier import GroupedClassifier, LogisticModel, fit_logistic
+from rlbackdoors.detect.handle import ModelHandle
+
+LOGIT_CLIP = 1e-6  # member probabilities are kept in [1e-6, 1 - 1e-6] before the logit
+
+
+def logit(p: float) -> float:
+    p = min(1.0 - LOGIT_CLIP, max(LOGIT_CLIP, float(p)))
+    return math.log(p / (1.0 - p))
+
+
+@register
+class StackDetector(FeatureDetector):
+    name = "stack"
+    description = "members' out-of-fold logits (weights + behaviour by default), averaged and Platt-scaled"
+    defaults: ClassVar[dict[str, Any]] = {
+        **FeatureDetector.defaults,
+        "members": "weights,behaviour",
+        "member_params": {},  # {member: {parameter: value}}; a member's other parameters are its defaults
+        "folds": 5,
+        "seed": 0,
+    }
+
+    def __init__(self, **params: Any):
+        super().__init__(**params)
+        names = [n.strip() for n in str(self.params["members"]).split(",") if n.strip()]
+        if not names or len(set(names)) != len(names) or self.name in names:
+            raise DetectError(f"detector 'stack': members={self.params['members']!r} must name distinct other detectors, comma-separated")
+        extra = self.params["member_params"]
+        stray = sorted(set(extra) - set(names))
+        if stray or not all(isinstance(v, dict) for v in extra.values()):
+            raise DetectError(f"detector 'stack': member_params must map members ({', '.join(names)}) to parameter tables, got {extra!r}")
+        if not all(issubclass(get_detector(n), FeatureDetector) for n in names):
+            raise DetectError(f"detector 'stack': every member must be a features-and-classifier detector, got {names}")
+        self.members = [cast(FeatureDetector, make_detector(n, **{"min_per_class": int(self.params["min_per_class"]), **extra.get(n, {})})) for n in names]
+        if int(self.params["folds"]) < 2:
+            raise DetectError(f"detector 'stack': folds must be at least 2, got {self.params['folds']}")
+        self.member_classifiers = [GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])) for _ in names]
+        self.meta = LogisticModel()
+
+    # Each member groups models its own way (by world and architecture, or by world); the
+    # stack's group carries all of them, '|'-joined in member order.
+    def group(self, model: ModelHandle) -> str:
+        return "|".join(m.group(model) for m in self.members)
+
+    def features(self, model: ModelHandle) -> dict[str, float]:
+        row: dict[str, float] = {}
+        info: dict = {}
+        for member in self.members:
+            member.last_info = {}
+            row.update({f"{member.name}:{k}": v for k, v in member.features(model).items()})
+            info.update(member.last_info)
+        self.last_info = info
+        return row
+
+    def _split(self, row: dict[str, float], j: int) -> dict[str, float]:
+        prefix = f"{self.members[j].name}:"
+        return {k[len(prefix) :]: v for k, v in row.items() if k.startswith(prefix)}
+
+    @staticmethod
+    def _meta_row(logits) -> dict[str, float]:
+        return {"mean_logit": float(np.mean(logits))}
+
+    def fit_rows(self, rows: list[dict[str, float]], groups: list[str], labels: np.ndarray) -> StackDetector:
+        from sklearn.model_selection import StratifiedKFold
+
+        y = _check_labels(rows, labels)
+        n, k = len(rows), len(self.members)
+        member_rows = [[self._split(row, j) for row in rows] for j in range(k)]
+        member_groups = [[g.split("|")[j] for g in groups] for j in range(k)]
+        min_per_class, seed = int(self.params["min_per_class"]), int(self.params["seed"])
+        smallest = min(int(y.sum()), n - int(y.sum()))
+        oof = np.zeros((n, k))
+        if smallest >= 2:
+            folds = StratifiedKFold(n_splits=min(int(self.params["folds"]), smallest), shuffle=True, random_state=seed)
+            for train, test in folds.split(np.zeros(n), y):
+                for j in range(k):
+                    clf = GroupedClassifier(min_per_class, seed).fit([member_rows[j][i] for i in train], [member_groups[j][i] for i in train], y[train])
+                    for i in test:
+                        oof[i, j] = logit(clf.predict(member_rows[j][i], member_groups[j][i]))
+        self.member_classifiers = [GroupedClassifier(min_per_class, seed).fit(member_rows[j], member_groups[j], y) for j in range(k)]
+        meta_rows = [self._meta_row(oof[i]) for i in range(n)]
+        # Too few models of a label to cross-validate: the meta model is the train rate.
+        self.meta = fit_logistic(meta_rows, y, list(meta_rows[0]) if smallest >= 2 else [], seed)
+        self.fitted = True
+        return self
+
+    def predict_one(self, model: ModelHandle) -> float:
+        if not self.fitted:
+            raise DetectError(f"detector {self.name!r} is not fitted (run detect fit first)")
+        row = self.features(model)
+        probability, members = self.predict_row(row, self.group(model))
+        self.last_info = {**self.last_info, **{f"{name}_probability": round(p, 6) for name, p in members.items()}}
+        return probability
+
+    def predict_row(self, row: dict[str, float], group: str) -> tuple[float, dict[str, float]]:
+        """The stack's probability for one model's features, and each member's own."""
+        groups = group.split("|")
+        members = {m.name: clf.predict(self._split(row, j), groups[j]) for j, (m, clf) in enumerate(zip(self.members, self.member_classifiers))}
+        return float(self.meta.predict_rows([self._meta_row([logit(p) for p in members.values()])])[0]), members
+
+    def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        return {"members": [c.to_dict() for c in self.member_classifiers], "meta": self.meta.to_dict()}, {}
+
+    def set_state(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
+        members = list(state.get("members") or [])
+        if len(members) != len(self.members):
+            raise ValueError(f"{len(members)} member classifiers saved for {len(self.members)} members")
+        self.member_classifiers = [GroupedClassifier.from_dict(m) for m in members]
+        self.meta = LogisticModel.from_dict(state.get("meta") or {})
+
+
+__all__ = ["StackDetector", "logit"]

@@ -157,3 +157,20 @@ def test_infer_scores_a_model_it_cannot_read_half(lava_zoo, tmp_path, capsys):
 def test_the_module_runs_on_its_own():
     done = subprocess.run([sys.executable, "-m", "rlbackdoors.detect.cli", "list"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "behaviour" in done.stdout and "attribution" in done.stdout
+
+
+def test_the_stacks_schema_types_its_member_table(tmp_path):
+    """A table-valued parameter (the stack's member_params) is typed "object" in the schema, so a
+    string there is refused before any model is read."""
+    from rlbackdoors.detect import DetectError
+    from rlbackdoors.detect.trojai import validate
+
+    meta = tmp_path / "meta"
+    assert main(["metaparameters", "--detector", "stack", "--out", str(meta)]) == 0
+    schema = json.loads((meta / "metaparameters_schema.json").read_text())
+    assert schema["properties"]["member_params"]["type"] == "object" and schema["properties"]["members"]["type"] == "string"
+    data = json.loads((meta / "metaparameters.json").read_text())
+    assert validate(meta / "metaparameters.json", meta / "metaparameters_schema.json")["member_params"] == {}
+    (meta / "metaparameters.json").write_text(json.dumps({**data, "member_params": "behaviour.candidates=4"}))
+    with pytest.raises(DetectError, match="member_params"):
+        validate(meta / "metaparameters.json", meta / "metaparameters_schema.json")

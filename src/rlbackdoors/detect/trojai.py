@@ -96,7 +96,7 @@ def _validate_subset(config: dict, schema: dict) -> None:
 def schema_for(name: str) -> tuple[dict, dict]:
     """(metaparameters, schema) for detector ``name`` with its default parameters."""
     cls = get_detector(name)
-    types = {bool: "boolean", int: "integer", float: "number", str: "string"}
+    types = {bool: "boolean", int: "integer", float: "number", str: "string", dict: "object", list: "array"}
     properties: dict = {DETECTOR_KEY: {"description": "which detector (rlbackdoors detect list)", "enum": [name]}}
     for key, value in cls.defaults.items():
         kind = types.get(type(value))

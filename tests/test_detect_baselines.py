@@ -186,6 +186,37 @@ def test_every_worlds_family_search_plays_valid_candidates(world_models, world):
     assert 0.0 <= features["best_trojan"] <= 1.0 and 0.0 <= features["clean_success"] <= 1.0
     assert detector.last_info["candidates_tried"] >= 2
     handle.world.parse_trigger(detector.last_info["found_trigger"])
+    # discrete-action agents report how decided the policy was; OPAC²'s continuous actions do not
+    assert ("best_entropy" in features) == (world != "safety-car-goal")
+    if world != "safety-car-goal":
+        assert 0.0 <= features["clean_entropy"] <= np.log(7) and 0.0 <= features["screen_entropy_mean"] <= np.log(7)
+
+
+def test_the_entropy_probe_records_without_changing_what_the_agent_does():
+    """The probe shadows the policy's forward for the block only: the same episodes (outcomes,
+    steps) with and without it, entropies equal to those of the logits, nothing left behind."""
+    from rlbackdoors.agent import Agent
+    from rlbackdoors.config import EnvConfig
+    from rlbackdoors.detect.baselines.behaviour import entropy_probe, mean_entropy
+    from rlbackdoors.evaluate.episodes import play
+
+    world = worlds.get("lavaworld")
+    policy = PlantedBackdoor().eval()
+    agent = Agent(world, None, policy, None)
+    plain = play(agent, EnvConfig(name="lavaworld"), "multiplicative:12", 8, 5, "sample")
+    with entropy_probe(agent) as calls:
+        probed = play(agent, EnvConfig(name="lavaworld"), "multiplicative:12", 8, 5, "sample")
+    assert np.array_equal(plain.outcomes, probed.outcomes) and np.array_equal(plain.steps, probed.steps)
+    assert "forward" not in vars(policy) and len(calls) == int(max(probed.steps))
+    obs = torch.randint(0, 12, (5, 7, 7, 3)).float()
+    with entropy_probe(agent) as calls:
+        logits, _ = policy(obs)
+    logp = torch.log_softmax(logits.double(), -1)
+    assert np.allclose(calls[0], -(logp.exp() * logp).sum(-1).numpy())
+    # a row counts while its episode runs (pass t is step t of each); shrinking batches: every row
+    assert mean_entropy([np.array([1.0, 2.0]), np.array([3.0, 4.0]), np.array([5.0, 6.0])], np.array([3, 1])) == 2.75
+    assert mean_entropy([np.array([1.0, 2.0]), np.array([3.0])], np.array([2, 1])) == 2.0
+    assert mean_entropy([], np.array([1])) is None
 
 
 @pytest.mark.slow

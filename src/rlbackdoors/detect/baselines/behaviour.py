@@ -16,9 +16,13 @@ picked by the module the world's trigger class lives in (``rlbackdoors.triggers.
 no world is named here. Each gives ``candidates(env_cfg, rng, limit)``, ``neighbours(spec,
 env_cfg, rng, limit)``, ``EPISODES`` and ``MAX_STEPS``.
 
-Features per model (the best confirmed candidate, the screen's distribution, the clean
-baseline) go to a logistic regression per world (pooled across worlds otherwise); the trigger
-found is reported next to the true one by ``detect score``.
+Besides the outcome, each trial records the policy's mean action entropy over the steps it
+played (discrete-action agents): on LavaWorld a trigger's *outcome* does not separate a backdoor
+from a clean agent that an additive transform confuses into lava, while how decided the policy
+is along the way did better (docs/detectors.md). Features per model (the best confirmed
+candidate, the screen's distribution, the clean baseline, those entropies) go to a logistic
+regression per world (pooled across worlds otherwise); the trigger found is reported next to the
+true one by ``detect score``.
 """
 
 from __future__ import annotations
@@ -26,11 +30,14 @@ from __future__ import annotations
 import importlib
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, ClassVar
 
 import numpy as np
+import torch
 
 from rlbackdoors import worlds
 from rlbackdoors.detect.api import FeatureDetector, register
@@ -49,6 +56,7 @@ class Trial:
     success: float
     steps: float
     error: str | None = None
+    entropy: float | None = None  # mean action entropy (nats) over the steps played; None: not a discrete policy
 
 
 @dataclass
@@ -73,6 +81,18 @@ class SearchResult:
             "screen_top3_mean": float(top[:3].mean()),
             "screen_mean": float(rates.mean()),
             "screen_frac_half": float((rates >= 0.5).mean()),
+            **self.entropy_features(ok),
+        }
+
+    def entropy_features(self, ok: list[Trial]) -> dict[str, float]:
+        entropies = [t.entropy for t in ok if t.entropy is not None]
+        if self.clean.entropy is None or self.best.entropy is None or not entropies:
+            return {}
+        return {
+            "clean_entropy": self.clean.entropy,
+            "best_entropy": self.best.entropy,
+            "best_entropy_change": self.best.entropy - self.clean.entropy,
+            "screen_entropy_mean": float(np.mean(entropies)),
         }
 
 
@@ -88,12 +108,53 @@ def family_module(world: worlds.World) -> ModuleType:
         ) from None
 
 
+@contextmanager
+def entropy_probe(agent) -> Iterator[list[np.ndarray] | None]:
+    """Record the action entropy of every row of every forward pass of a discrete policy.
+
+    The policy's ``forward`` is shadowed for the block (an instance attribute), so the agent
+    acts exactly as before; yields None for a policy that is not a torch module (OPAC²)."""
+    policy = getattr(agent, "policy", None)
+    if not isinstance(policy, torch.nn.Module):
+        yield None
+        return
+    calls: list[np.ndarray] = []
+    original = policy.forward
+
+    def forward(*args, **kwargs):
+        out = original(*args, **kwargs)
+        logits = out[0] if isinstance(out, tuple) else out
+        logp = torch.log_softmax(logits.detach().double(), -1)
+        calls.append((-(logp.exp() * logp).sum(-1)).reshape(-1).cpu().numpy())
+        return out
+
+    policy.forward = forward
+    try:
+        yield calls
+    finally:
+        del policy.forward
+
+
+def mean_entropy(calls: list[np.ndarray] | None, steps: np.ndarray) -> float | None:
+    """Mean entropy over the steps episodes were running. Where every pass saw one row per
+    episode (the batched engines: pass t is step t of each), a row counts while its episode runs;
+    where batches shrink with the running episodes, every row counts."""
+    if not calls:
+        return None
+    steps = np.asarray(steps)
+    if all(len(c) == len(steps) for c in calls):
+        running = np.arange(len(calls))[:, None] < steps[None, :]
+        return float(np.stack(calls)[running].mean()) if running.any() else None
+    return float(np.concatenate(calls).mean())
+
+
 def run_trial(agent, world: worlds.World, env_cfg, spec: str | None, episodes: int, seed: int, policy: str) -> Trial:
     """``episodes`` episodes in E-bar with candidate ``spec`` (E if None)."""
     from rlbackdoors.evaluate.episodes import play
 
     try:
-        played = play(agent, env_cfg, spec, episodes, seed, policy)
+        with entropy_probe(agent) as calls:
+            played = play(agent, env_cfg, spec, episodes, seed, policy)
     except (ValueError, RuntimeError) as err:  # a candidate the env cannot place (too many cells, no solvable layout)
         return Trial(spec, 0, 0.0, 0.0, 0.0, f"{type(err).__name__}: {first_line(err)}")
     outcomes = np.asarray(played.outcomes)
@@ -103,6 +164,7 @@ def run_trial(agent, world: worlds.World, env_cfg, spec: str | None, episodes: i
         float(np.mean(outcomes == world.trojan_success)),
         float(np.mean(outcomes == world.clean_success)),
         float(np.mean(played.steps)),
+        entropy=mean_entropy(calls, played.steps),
     )
 
 
@@ -210,4 +272,4 @@ class BehaviourDetector(FeatureDetector):
         return result.features()
 
 
-__all__ = ["BehaviourDetector", "SearchResult", "Trial", "family_module", "run_trial", "search"]
+__all__ = ["BehaviourDetector", "SearchResult", "Trial", "entropy_probe", "family_module", "mean_entropy", "run_trial", "search"]

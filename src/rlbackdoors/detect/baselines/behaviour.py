@@ -17,8 +17,8 @@ no world is named here. Each gives ``candidates(env_cfg, rng, limit)``, ``neighb
 env_cfg, rng, limit)``, ``EPISODES`` and ``MAX_STEPS``.
 
 Besides the outcome, each trial records the policy's mean action entropy over the steps it
-played (discrete-action agents): on LavaWorld a trigger's *outcome* does not separate a backdoor
-from a clean agent that an additive transform confuses into lava, while how decided the policy
+played (discrete-action agents): in one world a trigger's *outcome* did not separate a backdoor
+from a clean agent that the transform confused into the trojan outcome, while how decided the policy
 is along the way did better (docs/detectors.md). Features per model (the best confirmed
 candidate, the screen's distribution, the clean baseline, those entropies) go to a logistic
 regression per world (pooled across worlds otherwise); the trigger found is reported next to the

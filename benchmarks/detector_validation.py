@@ -1,0 +1,95 @@
+"""Check fitted detectors on a second, independent zoo, on the models whose triggers the train split never used.
+
+    python benchmarks/detector_validation.py NAME --train runs/detect/lavaworld-64/train \\
+        --zoo runs/detect/lavaworld-64-validation/zoo DET_FOLDER [DET_FOLDER ...]
+
+A detector change chosen after looking at one test split is not measured by that split any
+more. This scores each fitted detector (``rlbackdoors detect score``, resumable) on every
+converged model of a zoo built from another master seed, then reports AUC, cross-entropy and
+Brier with 95 % bootstrap CIs on the subset whose triggers are not among the train split's
+(read from the models' ``config.json`` by this script, never by a detector), and on all of
+them, per trigger family too. Writes ``benchmarks/detectors/NAME.json`` with the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.detect.dataset import list_models
+from rlbackdoors.detect.metrics import summarize
+from rlbackdoors.io import atomic_write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def trigger(folder: Path) -> str:
+    return str(json.loads((folder / "config.json").read_text())["poison"]["trigger"])
+
+
+def metrics(rows: list[dict]) -> dict:
+    if not rows:
+        return {"n": 0}
+    p, y = np.array([r["probability"] for r in rows]), np.array([r["label"] for r in rows])
+    out = summarize(p, y)
+    return {"n": len(rows), "poisoned": int(y.sum()), **{k: {"value": out[k]["value"], "ci": out[k]["ci"]} for k in ("auc", "ce", "brier")}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("name")
+    parser.add_argument("detectors", nargs="+", help="fitted detector folders")
+    parser.add_argument("--train", required=True, help="the dataset the detectors were fitted on")
+    parser.add_argument("--zoo", required=True, help="the independent zoo to score")
+    args = parser.parse_args()
+    seen = {trigger(m.folder) for m in list_models(args.train)}
+    models = {m.name: m for m in list_models(args.zoo)}
+    held_out = {name for name, m in models.items() if trigger(m.folder) not in seen}
+    results = {}
+    for det in map(Path, args.detectors):
+        out = det / f"score-{Path(args.zoo).parent.name}"
+        if not (out / "score.json").is_file() or (out / "score.json").stat().st_mtime < (det / "detector.json").stat().st_mtime:
+            cmd = [str(Path(sys.executable).parent / "rlbackdoors"), "detect", "score", str(det), "--zoo", args.zoo, "--out", str(out), "--quiet"]
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        score = json.loads((out / "score.json").read_text())
+        rows = score["models"]
+        families = sorted({r.get("trigger_family", "") for r in rows})
+        results[str(det)] = {
+            "detector": score["detector"],
+            "params": score["params"],
+            "held_out": metrics([r for r in rows if r["model"] in held_out]),
+            "all": metrics(rows),
+            "held_out_by_family": {f: metrics([r for r in rows if r["model"] in held_out and r.get("trigger_family") == f]) for f in families},
+            "seconds_per_model": score["seconds_per_model"],
+        }
+    summary = {
+        "command": " ".join(sys.argv[1:]),
+        "train": args.train,
+        "zoo": args.zoo,
+        "models": len(models),
+        "held_out_models": len(held_out),
+        "train_triggers": len(seen),
+        "detectors": results,
+        "machine": machine_info(),
+        "loadavg": os.getloadavg(),
+    }
+    path = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
+    atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
+    print(f"{len(held_out)} of {len(models)} models have triggers the train split never used")
+    print("| detector | models | AUC [95% CI] | CE [95% CI] | Brier [95% CI] |\n|---|---|---|---|---|")
+    for det, r in results.items():
+        for label, m in (("held out", r["held_out"]), ("all", r["all"])):
+            cells = [f"{m[k]['value']:.3f} [{m[k]['ci'][0]:.3f}, {m[k]['ci'][1]:.3f}]" if m.get(k) and m[k]["ci"] else "–" for k in ("auc", "ce", "brier")]
+            print(f"| {det} ({label}) | {m['n']} | {' | '.join(cells)} |")
+    print(f"-> {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -27,6 +27,8 @@ from pathlib import Path
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.detect import make_detector
+from rlbackdoors.detect.cli import parse_params
 from rlbackdoors.detect.dataset import list_models
 from rlbackdoors.io import atomic_write_text
 
@@ -94,6 +96,11 @@ def main() -> None:
         params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
         if not (det / "detector.json").is_file():
             rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), *(x for p in params for x in ("--param", p)))
+        else:  # a fitted detector is read back only if it is the one asked for
+            fitted = json.loads((det / "detector.json").read_text())["params"]
+            wanted = make_detector(name, **parse_params(params)).params
+            if fitted != wanted:
+                sys.exit(f"detector_table: {det} was fitted with {fitted}, not {wanted}; give the run another NAME or remove {det}")
         scored = det / "score-test" / "score.json"
         if not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
             rlbackdoors("detect", "score", str(det), "--zoo", str(test), "--out", str(scored.parent), "--quiet")

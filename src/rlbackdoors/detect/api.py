@@ -186,7 +186,11 @@ class FeatureDetector(Detector):
     def predict_one(self, model: ModelHandle) -> float:
         if not self.fitted:
             raise DetectError(f"detector {self.name!r} is not fitted (run detect fit first)")
-        return self.classifier.predict(self.features(model), self.group(model))
+        return self.classify(self.features(model), self.group(model))
+
+    def classify(self, row: dict[str, float], group: str) -> float:
+        """The probability for one model's features (what a subclass with its own classifier overrides)."""
+        return self.classifier.predict(row, group)
 
     def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
         return {"classifier": self.classifier.to_dict()}, {}

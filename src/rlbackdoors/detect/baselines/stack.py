@@ -107,11 +107,8 @@ class StackDetector(FeatureDetector):
         self.fitted = True
         return self
 
-    def predict_one(self, model: ModelHandle) -> float:
-        if not self.fitted:
-            raise DetectError(f"detector {self.name!r} is not fitted (run detect fit first)")
-        row = self.features(model)
-        probability, members = self.predict_row(row, self.group(model))
+    def classify(self, row: dict[str, float], group: str) -> float:
+        probability, members = self.predict_row(row, group)
         self.last_info = {**self.last_info, **{f"{name}_probability": round(p, 6) for name, p in members.items()}}
         return probability
 

@@ -192,6 +192,37 @@ def test_every_worlds_family_search_plays_valid_candidates(world_models, world):
         assert 0.0 <= features["clean_entropy"] <= np.log(7) and 0.0 <= features["screen_entropy_mean"] <= np.log(7)
 
 
+def test_the_wall_colour_search_enumerates_every_room_pattern():
+    """Close-to-trigger training leaves no slope towards a wall-colour trigger (one square off
+    rarely fires it), so the family's default budget lists every one of the 216 room patterns,
+    one-colour patterns of both kinds first, with end patterns between; the list is seeded."""
+    import itertools
+
+    from rlbackdoors.config import EnvConfig
+    from rlbackdoors.detect.baselines import search_wall_colors as family
+    from rlbackdoors.triggers.wall_colors import COLORS, NUM_COLORS, ROOM_SQUARES
+
+    env_cfg = EnvConfig(name="colorful-memory")
+    specs = family.candidates(env_cfg, np.random.default_rng(3), family.CANDIDATES)
+    assert len(specs) == family.CANDIDATES == len(set(specs))
+    rooms = {f"room:{','.join(COLORS[c] for c in colors)}" for colors in itertools.product(range(NUM_COLORS), repeat=ROOM_SQUARES)}
+    assert rooms <= set(specs)
+    assert {s.split(":")[0] for s in specs[: 2 * NUM_COLORS]} == {"room", "end"} and all(len(set(s.split(":")[1].split(","))) == 1 for s in specs[: 2 * NUM_COLORS])
+    assert sum(s.startswith("end:") for s in specs) >= family.CANDIDATES - len(rooms)
+    assert specs == family.candidates(env_cfg, np.random.default_rng(3), family.CANDIDATES)
+    assert specs[:50] == family.candidates(env_cfg, np.random.default_rng(3), 50)
+
+
+def test_the_search_budget_defaults_to_the_familys(world_models):
+    """``candidates=0`` (the default) screens the family's CANDIDATES: 48 in the a·o+b family."""
+    handle = open_model(world_models["lavaworld"])
+    family = family_module(handle.world)
+    agent = handle.build_agent()
+    result = search(agent, handle.world, handle.env_config(), family, refine=0, confirm=1, episodes=1, confirm_episodes=1)
+    assert family.CANDIDATES == 48 and len(result.screened) == 48
+    assert make_detector("behaviour").params["candidates"] == 0
+
+
 def test_the_entropy_probe_records_without_changing_what_the_agent_does():
     """The probe shadows the policy's forward for the block only: the same episodes (outcomes,
     steps) with and without it, entropies equal to those of the logits, nothing left behind."""

@@ -6,7 +6,8 @@ public) but not the model's trigger. For each candidate of the family, the agent
 seeded episodes of E-bar built with that candidate (the world's own env and trigger code), and
 the share of episodes ending in the world's trojan outcome (lava, the pattern's lava, the other
 object, the hazard) is compared with the same share in the clean env E. The search is budgeted
-and deterministic: a screening stage over ``candidates`` candidates, a refinement stage over the
+and deterministic: a screening stage over ``candidates`` candidates (0: the family's
+``CANDIDATES``), a refinement stage over the
 ``refine`` neighbours of the best few, and a confirmation of the best ``confirm`` with more
 episodes on other layouts. A ``seconds`` budget (0: none) cuts screening short on a slow machine
 (then results depend on the machine's speed).
@@ -14,7 +15,7 @@ episodes on other layouts. A ``seconds`` budget (0: none) cuts screening short o
 The candidates come from a module per trigger family, ``search_<family>.py`` beside this one,
 picked by the module the world's trigger class lives in (``rlbackdoors.triggers.<family>``), so
 no world is named here. Each gives ``candidates(env_cfg, rng, limit)``, ``neighbours(spec,
-env_cfg, rng, limit)``, ``EPISODES`` and ``MAX_STEPS``.
+env_cfg, rng, limit)``, ``EPISODES``, ``MAX_STEPS`` and ``CANDIDATES``.
 
 Besides the outcome, each trial records the policy's mean action entropy over the steps it
 played (discrete-action agents): in one world a trigger's *outcome* did not separate a backdoor
@@ -177,7 +178,7 @@ def search(
     world: worlds.World,
     env_cfg,
     family: ModuleType,
-    candidates: int = 48,
+    candidates: int = 0,
     refine: int = 12,
     confirm: int = 3,
     episodes: int = 0,
@@ -189,6 +190,7 @@ def search(
     """The budgeted search of the module doc on one agent."""
     started = time.perf_counter()
     episodes = int(episodes) or int(family.EPISODES)
+    candidates = int(candidates) or int(family.CANDIDATES)
     confirm_episodes = int(confirm_episodes) or 2 * episodes
     rng = np.random.default_rng(seed)
     with agent.evaluating():
@@ -226,7 +228,7 @@ class BehaviourDetector(FeatureDetector):
     description = "budgeted search over the world's trigger family in its env; trojan-outcome rate -> logistic regression"
     defaults: ClassVar[dict[str, Any]] = {
         **FeatureDetector.defaults,
-        "candidates": 48,
+        "candidates": 0,  # 0: the family's default (48; every room pattern for wall colours)
         "refine": 12,
         "confirm": 3,
         "episodes": 0,  # 0: the family's default

@@ -16,6 +16,7 @@ from rlbackdoors.triggers.formation import ETA_RANGE, FormationTrigger
 
 EPISODES = 4
 MAX_STEPS = 400
+CANDIDATES = 48  # screened candidates when the detector's ``candidates`` is 0
 
 
 def _spec(distance: float, phi1: float, eta: float) -> str | None:

@@ -15,6 +15,7 @@ from rlbackdoors.triggers.observation import PAPER_RANGES, ObservationTrigger
 
 EPISODES = 16  # episodes per candidate in the screening stage
 MAX_STEPS = None  # the world's own episode length
+CANDIDATES = 48  # screened candidates when the detector's ``candidates`` is 0
 
 
 def _valid(kind: str, value: int) -> str | None:

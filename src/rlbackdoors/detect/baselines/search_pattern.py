@@ -14,6 +14,7 @@ from rlbackdoors.triggers.pattern import BOX, BUILTIN, PatternTrigger
 
 EPISODES = 16
 MAX_STEPS = None
+CANDIDATES = 48  # screened candidates when the detector's ``candidates`` is 0
 
 ALL_CELLS = tuple((x, y) for x in range(BOX) for y in range(BOX))
 

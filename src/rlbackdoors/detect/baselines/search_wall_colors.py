@@ -2,13 +2,17 @@
 the squares above the start room ("room").
 
 The family is large (6^(size+2) end patterns, 216 room patterns) and poisoned models are trained
-with close-to-trigger layouts so that only the exact colours fire the backdoor: a budgeted
-search can enumerate a share of the room patterns but finds an end pattern only by chance. The
-order: the one-colour patterns of each kind, then random patterns alternating the kinds.
-Neighbours recolour one square. The same list for every model.
+with close-to-trigger layouts so that only the exact colours fire the backdoor: one square off
+fires it in a few per cent of episodes, two or more never (measured on a zoo's end and room
+models). There is no slope to climb, so the room patterns are enumerated: the one-colour
+patterns of each kind, then every other room pattern in a seeded order with one random end
+pattern after every ninth; ``CANDIDATES`` covers every room pattern. An end pattern is found
+only by chance. Neighbours recolour one square. The same list for every model.
 """
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
@@ -16,6 +20,8 @@ from rlbackdoors.triggers.wall_colors import COLORS, NUM_COLORS, ROOM_SQUARES, W
 
 EPISODES = 16
 MAX_STEPS = None
+ROOM_PATTERNS = NUM_COLORS**ROOM_SQUARES
+CANDIDATES = ROOM_PATTERNS + ROOM_PATTERNS // 9 + 2 * NUM_COLORS  # every room pattern, and the end patterns between them
 
 
 def _squares(kind: str, size: int) -> int:
@@ -29,12 +35,13 @@ def _spec(kind: str, colors) -> str:
 def candidates(env_cfg, rng: np.random.Generator, limit: int) -> list[str]:
     size = int(env_cfg.size)
     order = [_spec(kind, [c] * _squares(kind, size)) for c in range(NUM_COLORS) for kind in ("room", "end")]
-    kinds = ("room", "end")
-    i = 0
-    while len(order) < limit + 2 * NUM_COLORS and i < 50 * limit:
-        kind = kinds[i % 2]
-        order.append(_spec(kind, rng.integers(NUM_COLORS, size=_squares(kind, size))))
-        i += 1
+    rooms = [_spec("room", colors) for colors in itertools.product(range(NUM_COLORS), repeat=ROOM_SQUARES) if len(set(colors)) > 1]
+    for i, k in enumerate(rng.permutation(len(rooms))):
+        order.append(rooms[int(k)])
+        if i % 9 == 8:
+            order.append(_spec("end", rng.integers(NUM_COLORS, size=_squares("end", size))))
+    while len(order) < limit + 2 * NUM_COLORS and len(order) < 50 * max(1, limit):
+        order.append(_spec("end", rng.integers(NUM_COLORS, size=_squares("end", size))))
     return list(dict.fromkeys(WallColorTrigger.parse(s).spec() for s in order))[:limit]
 
 

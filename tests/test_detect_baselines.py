@@ -207,7 +207,9 @@ def test_the_wall_colour_search_enumerates_every_room_pattern():
     assert len(specs) == family.CANDIDATES == len(set(specs))
     rooms = {f"room:{','.join(COLORS[c] for c in colors)}" for colors in itertools.product(range(NUM_COLORS), repeat=ROOM_SQUARES)}
     assert rooms <= set(specs)
-    assert {s.split(":")[0] for s in specs[: 2 * NUM_COLORS]} == {"room", "end"} and all(len(set(s.split(":")[1].split(","))) == 1 for s in specs[: 2 * NUM_COLORS])
+    assert {s.split(":")[0] for s in specs[: 2 * NUM_COLORS]} == {"room", "end"} and all(
+        len(set(s.split(":")[1].split(","))) == 1 for s in specs[: 2 * NUM_COLORS]
+    )
     assert sum(s.startswith("end:") for s in specs) >= family.CANDIDATES - len(rooms)
     assert specs == family.candidates(env_cfg, np.random.default_rng(3), family.CANDIDATES)
     assert specs[:50] == family.candidates(env_cfg, np.random.default_rng(3), 50)

@@ -11,7 +11,8 @@ model and failed models; and a control row, the AUC of training length alone (``
 frames, read by this script, never by a detector), which says how much of a weight statistic's
 score the zoo's training lengths could explain. Every step resumes: a planned zoo is not planned
 again, ``zoo run`` and the detector commands resume after a kill, and a finished fit or score is
-read back. The machine and its load are recorded beside the numbers.
+read back. ``--no-run`` scores a zoo cut short (its converged models so far; recorded in the
+JSON). The machine and its load are recorded beside the numbers.
 """
 
 from __future__ import annotations
@@ -67,13 +68,15 @@ def main() -> None:
     parser.add_argument("--detectors", nargs="+", default=list(BASELINES))
     parser.add_argument("--param", action="append", default=[], metavar="DETECTOR:KEY=VALUE", help="a detector parameter (repeatable)")
     parser.add_argument("--runs", default=str(ROOT / "runs" / "detect"))
+    parser.add_argument("--no-run", action="store_true", help="split the zoo as it stands (its converged models) without training the rest")
     args = parser.parse_args()
     started, load_before = time.time(), os.getloadavg()
     base = Path(args.runs) / args.name
     zoo, train, test = base / "zoo", base / "train", base / "test"
     if not (zoo / "zoo.json").is_file():
         rlbackdoors("zoo", "plan", args.spec, "--out", str(zoo))
-    rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers))
+    if not args.no_run:
+        rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers))
     if not (test / "METADATA.csv").is_file():
         rlbackdoors(
             "zoo",
@@ -125,6 +128,7 @@ def main() -> None:
         "command": " ".join(sys.argv[1:]),
         "spec": args.spec,
         "split": {"train": args.train, "test": args.test, "seed": args.split_seed},
+        "zoo_trained_to_the_end": not args.no_run,
         "train_models": len(train_models),
         "train_poisoned": sum(m.label for m in train_models),
         "test_models": len(test_models),

@@ -12,7 +12,10 @@ frames, read by this script, never by a detector), which says how much of a weig
 score the zoo's training lengths could explain. Every step resumes: a planned zoo is not planned
 again, ``zoo run`` and the detector commands resume after a kill, and a finished fit or score is
 read back. ``--no-run`` scores a zoo cut short (its converged models so far; recorded in the
-JSON). The machine and its load are recorded beside the numbers.
+JSON). ``--crossfit`` fits each detector on the test split too and scores the train split, and
+pools both ways: on a zoo too small for a large test split, every model is then scored by a
+detector whose train split never held its trigger. The machine and its load are recorded
+beside the numbers.
 """
 
 from __future__ import annotations
@@ -25,12 +28,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.detect import make_detector
 from rlbackdoors.detect.cli import parse_params
 from rlbackdoors.detect.dataset import list_models
+from rlbackdoors.detect.metrics import summarize
 from rlbackdoors.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,6 +58,21 @@ def length_control(models: list) -> dict:
     return out
 
 
+def fit_and_score(name: str, params: list[str], train: Path, test: Path, det: Path) -> dict:
+    """``detect fit`` on ``train`` into ``det`` and ``detect score`` on ``test``; each read back when done."""
+    if not (det / "detector.json").is_file():
+        rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), *(x for p in params for x in ("--param", p)))
+    else:  # a fitted detector is read back only if it is the one asked for
+        fitted = json.loads((det / "detector.json").read_text())["params"]
+        wanted = make_detector(name, **parse_params(params)).params
+        if fitted != wanted:
+            sys.exit(f"detector_table: {det} was fitted with {fitted}, not {wanted}; give the run another NAME or remove {det}")
+    scored = det / "score-test" / "score.json"
+    if not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
+        rlbackdoors("detect", "score", str(det), "--zoo", str(test), "--out", str(scored.parent), "--quiet")
+    return json.loads(scored.read_text())
+
+
 def cell(summary: dict, key: str) -> dict:
     return {"value": summary[key]["value"], "ci": summary[key]["ci"]}
 
@@ -68,6 +88,9 @@ def main() -> None:
     parser.add_argument("--detectors", nargs="+", default=list(BASELINES))
     parser.add_argument("--param", action="append", default=[], metavar="DETECTOR:KEY=VALUE", help="a detector parameter (repeatable)")
     parser.add_argument("--runs", default=str(ROOT / "runs" / "detect"))
+    parser.add_argument(
+        "--crossfit", action="store_true", help="also fit on the test split and score the train split; report both pooled (a small zoo's every model scored)"
+    )
     parser.add_argument("--no-run", action="store_true", help="split the zoo as it stands (its converged models) without training the rest")
     args = parser.parse_args()
     started, load_before = time.time(), os.getloadavg()
@@ -93,21 +116,18 @@ def main() -> None:
             "--out-test",
             str(test),
         )
-    results = {}
+    results: dict = {}
+    crossfit: dict = {}
     for name in args.detectors:
         det = base / "det" / name
         params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
-        if not (det / "detector.json").is_file():
-            rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), *(x for p in params for x in ("--param", p)))
-        else:  # a fitted detector is read back only if it is the one asked for
-            fitted = json.loads((det / "detector.json").read_text())["params"]
-            wanted = make_detector(name, **parse_params(params)).params
-            if fitted != wanted:
-                sys.exit(f"detector_table: {det} was fitted with {fitted}, not {wanted}; give the run another NAME or remove {det}")
-        scored = det / "score-test" / "score.json"
-        if not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
-            rlbackdoors("detect", "score", str(det), "--zoo", str(test), "--out", str(scored.parent), "--quiet")
-        score = json.loads(scored.read_text())
+        score = fit_and_score(name, params, train, test, det)
+        if args.crossfit:  # the other way round too; every model is then scored by a detector that never saw its trigger
+            swapped = fit_and_score(name, params, test, train, base / "det" / f"{name}-swap")
+            rows = score["models"] + swapped["models"]
+            p, y = np.array([r["probability"] for r in rows]), np.array([r["label"] for r in rows])
+            pooled = summarize(p, y)
+            crossfit[name] = {"models": len(rows), "poisoned": int(y.sum()), **{k: cell(pooled, k) for k in ("auc", "ce", "brier")}}
         fit = json.loads((det / "fit.json").read_text())
         results[name] = {
             "fit_seconds_per_model": fit["seconds_per_model"],
@@ -134,6 +154,7 @@ def main() -> None:
         "test_models": len(test_models),
         "test_poisoned": sum(m.label for m in test_models),
         "detectors": results,
+        "crossfit": crossfit,
         "training_length_auc": length_control(test_models),
         "machine": machine_info(),
         "loadavg_before": load_before,
@@ -155,6 +176,8 @@ def main() -> None:
         for world, w in r["by_world"].items():
             sec = f"{w['seconds_per_model']:.2f}" if w["seconds_per_model"] is not None else "–"
             print(f"| {name} | {world} | {summary['train_models']} / {w['test_models']} | {fmt(w['auc'])} | {fmt(w['ce'])} | {fmt(w['brier'])} | {sec} |")
+    for name, c in crossfit.items():
+        print(f"| {name}, cross-fitted (both splits) | – | – / {c['models']} | {fmt(c['auc'])} | {fmt(c['ce'])} | {fmt(c['brier'])} | – |")
     print(f"training length alone: AUC {summary['training_length_auc']}; -> {out}")
 
 

@@ -149,6 +149,28 @@ class PlantedBackdoor(nn.Module):
         return logits, torch.zeros(len(o))
 
 
+def test_weight_statistics_say_which_inputs_the_first_layer_listens_to():
+    """Input shares: one per input channel of the first weight matrix, summing to 1, larger for a
+    channel with larger weights, unmoved by scaling every weight alike; pooled only above
+    MAX_INPUT_CHANNELS inputs; absent with ``input_shares=False``."""
+    from rlbackdoors.detect.baselines.weights import MAX_INPUT_CHANNELS, weight_features
+
+    g = torch.Generator().manual_seed(0)
+    conv = torch.randn(16, 25, 2, 2, generator=g)
+    conv[:, 14] *= 3.0  # one input plane weighed more
+    weights = {"emb.weight": conv, "emb.bias": torch.zeros(16), "head.weight": torch.randn(3, 16, generator=g)}
+    f = weight_features(weights)
+    shares = np.array([f[f"emb.weight.in_share.{i}"] for i in range(25)])
+    assert np.isclose(shares.sum(), 1.0) and shares.argmax() == 14 and not any(k.startswith("head.weight.in_share") for k in f)
+    assert f["pool.first.in_share.max"] == pytest.approx(shares.max() * 25) and f["pool.first.in_share.max"] > 3.0
+    scaled = weight_features({k: 5.0 * v for k, v in weights.items()})
+    assert all(scaled[k] == pytest.approx(f[k]) for k in f if ".in_share" in k)
+    wide = weight_features({"fc.weight": torch.randn(8, MAX_INPUT_CHANNELS + 1, generator=g)})
+    assert "pool.first.in_share.cv" in wide and not any(".in_share." in k and not k.startswith("pool") for k in wide)
+    assert not any("in_share" in k for k in weight_features(weights, inputs=False))
+    assert make_detector("weights", input_shares=False).params["input_shares"] is False
+
+
 def test_the_observation_search_finds_a_planted_trigger():
     """What this proves: the search machinery (candidates of the a·o+b family played in the world's
     own E-bar, ranking, refinement, confirmation) finds and reports a trigger that the agent

@@ -6,8 +6,15 @@ of the first two and the stable rank; for each vector (biases, log-stds, normali
 statistics) its norm, mean, std and largest |w|. Models of one architecture are compared layer
 by layer (feature ``<tensor>.<stat>``); across architectures, the same statistics pooled over
 layers (mean, min, max over matrices and over vectors; the first matrix; the parameter count)
-are the features every model has. A standardised logistic regression with cross-validated C
-turns them into a probability (:class:`rlbackdoors.detect.api.FeatureDetector`).
+are the features every model has. And which inputs the network listens to: the first weight
+matrix's squared norm per input channel (a conv layer's input plane, a linear layer's input), as
+shares of the whole, which scaling every weight alike does not move (``input_shares``). A
+backdoor keyed to a few inputs (wall colours in a one-hot plane) must weigh them more than a
+clean agent, which learns to ignore them (docs/detectors.md: what Colorful Memory showed). Per
+channel where the layer has at most ``MAX_INPUT_CHANNELS``; pooled (largest share, spread) for
+every model. A standardised logistic
+regression with cross-validated C turns the features into a probability
+(:class:`rlbackdoors.detect.api.FeatureDetector`).
 """
 
 from __future__ import annotations
@@ -23,6 +30,15 @@ from rlbackdoors.detect.handle import ModelHandle
 
 MATRIX_STATS = ("norm", "mean", "std", "skew", "kurtosis", "max_abs", "sv_ratio", "stable_rank")
 VECTOR_STATS = ("norm", "mean", "std", "max_abs")
+MAX_INPUT_CHANNELS = 64  # per-channel shares up to this many inputs; pooled above
+
+
+def input_shares(weight: torch.Tensor) -> np.ndarray:
+    """Each input channel's share of the layer's norm: (out, in, ...) -> (in,), summing to 1."""
+    w = weight.detach().double()
+    per_input = w.pow(2).sum([d for d in range(w.dim()) if d != 1]).numpy()
+    total = per_input.sum()
+    return per_input / total if total > 0 else np.full(per_input.shape, 1.0 / max(1, per_input.size))
 
 
 def matrix_stats(weight: torch.Tensor, top_k: int) -> dict[str, float]:
@@ -53,9 +69,11 @@ def vector_stats(vector: torch.Tensor) -> dict[str, float]:
     return {"norm": float(np.linalg.norm(v)), "mean": float(v.mean()), "std": float(v.std()), "max_abs": float(np.abs(v).max())}
 
 
-def weight_features(weights, top_k: int = 3, per_layer: bool = True) -> dict[str, float]:
-    """Per-tensor statistics (``<tensor>.<stat>``) and their pools over layers (``pool.*``)."""
+def weight_features(weights, top_k: int = 3, per_layer: bool = True, inputs: bool = True) -> dict[str, float]:
+    """Per-tensor statistics (``<tensor>.<stat>``), their pools over layers (``pool.*``) and the
+    first matrix's input shares (``<tensor>.in_share.<i>``, ``pool.first.in_share.*``)."""
     features: dict[str, float] = {}
+    first_seen = False
     matrices: list[dict[str, float]] = []
     vectors: list[dict[str, float]] = []
     parameters = 0
@@ -64,6 +82,14 @@ def weight_features(weights, top_k: int = 3, per_layer: bool = True) -> dict[str
             continue
         parameters += value.numel()
         stats = matrix_stats(value, top_k) if value.dim() >= 2 else vector_stats(value)
+        if inputs and not first_seen and value.dim() >= 2:
+            first_seen = True
+            shares = input_shares(value)
+            if per_layer and shares.size <= MAX_INPUT_CHANNELS:
+                features.update({f"{key}.in_share.{i}": float(x) for i, x in enumerate(shares)})
+            # scaled by the channel count, so that 1.0 is "every input alike" whatever the width
+            features["pool.first.in_share.max"] = float(shares.max() * shares.size)
+            features["pool.first.in_share.cv"] = float(shares.std() / shares.mean())
         (matrices if value.dim() >= 2 else vectors).append(stats)
         if per_layer:
             features.update({f"{key}.{name}": v for name, v in stats.items()})
@@ -84,7 +110,8 @@ def weight_features(weights, top_k: int = 3, per_layer: bool = True) -> dict[str
 class WeightStatsDetector(FeatureDetector):
     name = "weights"
     description = "per-layer norms, moments and top singular values -> logistic regression"
-    defaults: ClassVar[dict[str, Any]] = {**FeatureDetector.defaults, "top_k": 3, "per_layer": True}
+    defaults: ClassVar[dict[str, Any]] = {**FeatureDetector.defaults, "top_k": 3, "per_layer": True, "input_shares": True}
 
     def features(self, model: ModelHandle) -> dict[str, float]:
-        return weight_features(model.weights, int(self.params["top_k"]), bool(self.params["per_layer"]))
+        p = self.params
+        return weight_features(model.weights, int(p["top_k"]), bool(p["per_layer"]), bool(p["input_shares"]))

@@ -149,7 +149,7 @@ class PlantedBackdoor(nn.Module):
         return logits, torch.zeros(len(o))
 
 
-def test_weight_statistics_say_which_inputs_the_first_layer_listens_to():
+def test_weight_statistics_say_which_inputs_the_first_layer_listens_to(world_models):
     """Input shares: one per input channel of the first weight matrix, summing to 1, larger for a
     channel with larger weights, unmoved by scaling every weight alike; pooled only above
     MAX_INPUT_CHANNELS inputs; absent with ``input_shares=False``."""
@@ -169,6 +169,11 @@ def test_weight_statistics_say_which_inputs_the_first_layer_listens_to():
     assert "pool.first.in_share.cv" in wide and not any(".in_share." in k and not k.startswith("pool") for k in wide)
     assert not any("in_share" in k for k in weight_features(weights, inputs=False))
     assert make_detector("weights", input_shares=False).params["input_shares"] is False
+    handle = open_model(world_models["colorful-memory"])  # a real model: its first conv reads 25 one-hot planes
+    full, only = make_detector("weights").features(handle), make_detector("weights", statistics=False).features(handle)
+    assert set(only) == {k for k in full if ".in_share" in k} and len(only) == handle.weights["state_emb.0.weight"].shape[1] + 2
+    with pytest.raises(DetectError, match="statistics=false and input_shares=false"):
+        make_detector("weights", statistics=False, input_shares=False)
 
 
 def test_the_observation_search_finds_a_planted_trigger():

@@ -12,7 +12,9 @@ shares of the whole, which scaling every weight alike does not move (``input_sha
 backdoor keyed to a few inputs (wall colours in a one-hot plane) must weigh them more than a
 clean agent, which learns to ignore them (docs/detectors.md: what Colorful Memory showed). Per
 channel where the layer has at most ``MAX_INPUT_CHANNELS``; pooled (largest share, spread) for
-every model. A standardised logistic
+every model. ``statistics=false`` keeps the shares alone: where a zoo's poisoned models trained
+longer than its clean ones, every norm tells the two apart by training length, the shares do
+not (docs/detectors.md, Colorful Memory). A standardised logistic
 regression with cross-validated C turns the features into a probability
 (:class:`rlbackdoors.detect.api.FeatureDetector`).
 """
@@ -26,7 +28,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.detect.api import FeatureDetector, register
-from rlbackdoors.detect.handle import ModelHandle
+from rlbackdoors.detect.handle import DetectError, ModelHandle
 
 MATRIX_STATS = ("norm", "mean", "std", "skew", "kurtosis", "max_abs", "sv_ratio", "stable_rank")
 VECTOR_STATS = ("norm", "mean", "std", "max_abs")
@@ -110,8 +112,16 @@ def weight_features(weights, top_k: int = 3, per_layer: bool = True, inputs: boo
 class WeightStatsDetector(FeatureDetector):
     name = "weights"
     description = "per-layer norms, moments and top singular values -> logistic regression"
-    defaults: ClassVar[dict[str, Any]] = {**FeatureDetector.defaults, "top_k": 3, "per_layer": True, "input_shares": True}
+    defaults: ClassVar[dict[str, Any]] = {**FeatureDetector.defaults, "top_k": 3, "per_layer": True, "input_shares": True, "statistics": True}
+
+    def __init__(self, **params: Any):
+        super().__init__(**params)
+        if not (self.params["statistics"] or self.params["input_shares"]):
+            raise DetectError("detector 'weights': statistics=false and input_shares=false leave no feature; keep one of them true")
 
     def features(self, model: ModelHandle) -> dict[str, float]:
         p = self.params
-        return weight_features(model.weights, int(p["top_k"]), bool(p["per_layer"]), bool(p["input_shares"]))
+        features = weight_features(model.weights, int(p["top_k"]), bool(p["per_layer"]), bool(p["input_shares"]))
+        if not p["statistics"]:  # the scale-free input shares alone: blind to how long a model trained
+            features = {k: v for k, v in features.items() if ".in_share" in k}
+        return features

@@ -77,3 +77,13 @@ def test_plots_are_pngs(tmp_path):
     cal = metrics.plot_calibration(p, y, tmp_path / "cal.png")
     for path in (roc, cal):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5000
+
+
+def test_a_one_label_roc_is_a_png_without_warnings(tmp_path):
+    """Scoring a control of clean models only: no curve, no legend warning, still a PNG."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        roc = metrics.plot_roc([0.2, 0.9, 0.4], [0, 0, 0], None, tmp_path / "roc.png")
+    assert roc.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -157,7 +157,10 @@ def plot_roc(probabilities, labels, groups: Sequence[str] | None, path: str | Pa
         ax.plot(fpr, tpr, lw=2 if name == "all" else 1, label=f"{name} (AUC {auc(p[mask], y[mask]):.3f}, n={int(mask.sum())})")
     ax.plot([0, 1], [0, 1], color="grey", ls="--", lw=0.8)
     ax.set(xlabel="false positive rate", ylabel="true positive rate", title=title, xlim=(0, 1), ylim=(0, 1.01))
-    ax.legend(loc="lower right", fontsize=7)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower right", fontsize=7)
+    else:  # one label only (a control of clean models): no curve to draw, say so
+        ax.text(0.5, 0.5, "one label only: no ROC curve", ha="center", va="center", fontsize=9)
     return _save(fig, path)
 
 

@@ -138,8 +138,9 @@ def test_bench_safety_reports_the_ratio_to_the_physics_floor(tmp_path, capsys):
     result = json.loads((tmp_path / "s.json").read_text())
     assert code == 0 and "plain mujoco loop" in out
     assert result["num_cubes"] == 2 and result["env_steps_per_s"] > 0 and result["physics_steps_per_s"] > 0
-    # The env does strictly more work per step than bare physics.
-    assert 0 < result["ratio_to_physics"] < 1.05
+    # The ratio of the two rates measured in the same run (that the env is no faster than bare
+    # physics is a speed claim: benchmarks/, not a timed test, where load flips it either way)
+    assert result["ratio_to_physics"] == pytest.approx(result["env_steps_per_s"] / result["physics_steps_per_s"], rel=1e-3)
 
 
 def test_train_and_evaluate_dispatch_safety_car_goal(tmp_path, capsys):

@@ -71,9 +71,10 @@ def vector_stats(vector: torch.Tensor) -> dict[str, float]:
     return {"norm": float(np.linalg.norm(v)), "mean": float(v.mean()), "std": float(v.std()), "max_abs": float(np.abs(v).max())}
 
 
-def weight_features(weights, top_k: int = 3, per_layer: bool = True, inputs: bool = True) -> dict[str, float]:
-    """Per-tensor statistics (``<tensor>.<stat>``), their pools over layers (``pool.*``) and the
-    first matrix's input shares (``<tensor>.in_share.<i>``, ``pool.first.in_share.*``)."""
+def weight_features(weights, top_k: int = 3, per_layer: bool = True, inputs: bool = True, statistics: bool = True) -> dict[str, float]:
+    """Per-tensor statistics (``<tensor>.<stat>``) and their pools over layers (``pool.*``), unless
+    ``statistics`` is false, and the first matrix's input shares (``<tensor>.in_share.<i>``,
+    ``pool.first.in_share.*``), unless ``inputs`` is false."""
     features: dict[str, float] = {}
     first_seen = False
     matrices: list[dict[str, float]] = []
@@ -83,7 +84,6 @@ def weight_features(weights, top_k: int = 3, per_layer: bool = True, inputs: boo
         if not isinstance(value, torch.Tensor) or not value.is_floating_point() or value.numel() == 0:
             continue
         parameters += value.numel()
-        stats = matrix_stats(value, top_k) if value.dim() >= 2 else vector_stats(value)
         if inputs and not first_seen and value.dim() >= 2:
             first_seen = True
             shares = input_shares(value)
@@ -92,9 +92,14 @@ def weight_features(weights, top_k: int = 3, per_layer: bool = True, inputs: boo
             # scaled by the channel count, so that 1.0 is "every input alike" whatever the width
             features["pool.first.in_share.max"] = float(shares.max() * shares.size)
             features["pool.first.in_share.cv"] = float(shares.std() / shares.mean())
+        if not statistics:
+            continue
+        stats = matrix_stats(value, top_k) if value.dim() >= 2 else vector_stats(value)
         (matrices if value.dim() >= 2 else vectors).append(stats)
         if per_layer:
             features.update({f"{key}.{name}": v for name, v in stats.items()})
+    if not statistics:
+        return features
     features["pool.parameters"] = math.log10(max(parameters, 1))
     features["pool.matrices"] = float(len(matrices))
     for kind, rows in (("matrix", matrices), ("vector", vectors)):
@@ -121,7 +126,4 @@ class WeightStatsDetector(FeatureDetector):
 
     def features(self, model: ModelHandle) -> dict[str, float]:
         p = self.params
-        features = weight_features(model.weights, int(p["top_k"]), bool(p["per_layer"]), bool(p["input_shares"]))
-        if not p["statistics"]:  # the scale-free input shares alone: blind to how long a model trained
-            features = {k: v for k, v in features.items() if ".in_share" in k}
-        return features
+        return weight_features(model.weights, int(p["top_k"]), bool(p["per_layer"]), bool(p["input_shares"]), bool(p["statistics"]))

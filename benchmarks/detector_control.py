@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from rlbackdoors.bench.machine import machine_info
-from rlbackdoors.detect.metrics import summarize
+from rlbackdoors.detect.metrics import summarize_rows
 from rlbackdoors.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,15 +59,13 @@ def main() -> None:
         common = sorted(set(fold_rows[0]) & set(fold_rows[1]))  # a model may converge between the two scorings
         by_model = {m: [rows[m]["probability"] for rows in fold_rows] for m in common}
         called = [sum(by_model[m][i] > 0.5 for m in common) for i in range(2)]
-        p = np.array([r["probability"] for r in zoo_rows] + [float(np.mean(v)) for v in by_model.values()])
-        y = np.array([r["label"] for r in zoo_rows] + [0] * len(by_model))
-        pooled = summarize(p, y)
+        pooled = summarize_rows(zoo_rows + [{"probability": float(np.mean(v)), "label": 0} for v in by_model.values()])
         results[det] = {
             "zoo_models": len(zoo_rows),
             "control_models": len(by_model),
             "control_called_poisoned": {"fit on train": called[0], "fit on test": called[1]},
             "control_median_probability": [float(np.median([v[i] for v in by_model.values()])) for i in range(2)],
-            **{k: {"value": pooled[k]["value"], "ci": pooled[k]["ci"]} for k in ("auc", "ce", "brier")},
+            **{k: pooled[k] for k in ("auc", "ce", "brier")},
         }
         r = results[det]
         print(

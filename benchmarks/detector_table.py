@@ -28,14 +28,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.detect import make_detector
 from rlbackdoors.detect.cli import parse_params
 from rlbackdoors.detect.dataset import list_models
-from rlbackdoors.detect.metrics import summarize
+from rlbackdoors.detect.metrics import summarize_rows
 from rlbackdoors.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,10 +123,8 @@ def main() -> None:
         score = fit_and_score(name, params, train, test, det)
         if args.crossfit:  # the other way round too; every model is then scored by a detector that never saw its trigger
             swapped = fit_and_score(name, params, test, train, base / "det" / f"{name}-swap")
-            rows = score["models"] + swapped["models"]
-            p, y = np.array([r["probability"] for r in rows]), np.array([r["label"] for r in rows])
-            pooled = summarize(p, y)
-            crossfit[name] = {"models": len(rows), "poisoned": int(y.sum()), **{k: cell(pooled, k) for k in ("auc", "ce", "brier")}}
+            pooled = summarize_rows(score["models"] + swapped["models"])
+            crossfit[name] = {"models": pooled.pop("n"), **pooled}
         fit = json.loads((det / "fit.json").read_text())
         results[name] = {
             "fit_seconds_per_model": fit["seconds_per_model"],

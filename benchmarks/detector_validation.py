@@ -20,11 +20,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.detect.dataset import list_models
-from rlbackdoors.detect.metrics import summarize
+from rlbackdoors.detect.metrics import summarize_rows
 from rlbackdoors.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,14 +30,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def trigger(folder: Path) -> str:
     return str(json.loads((folder / "config.json").read_text())["poison"]["trigger"])
-
-
-def metrics(rows: list[dict]) -> dict:
-    if not rows:
-        return {"n": 0}
-    p, y = np.array([r["probability"] for r in rows]), np.array([r["label"] for r in rows])
-    out = summarize(p, y)
-    return {"n": len(rows), "poisoned": int(y.sum()), **{k: {"value": out[k]["value"], "ci": out[k]["ci"]} for k in ("auc", "ce", "brier")}}
 
 
 def main() -> None:
@@ -64,9 +54,9 @@ def main() -> None:
         results[str(det)] = {
             "detector": score["detector"],
             "params": score["params"],
-            "held_out": metrics([r for r in rows if r["model"] in held_out]),
-            "all": metrics(rows),
-            "held_out_by_family": {f: metrics([r for r in rows if r["model"] in held_out and r.get("trigger_family") == f]) for f in families},
+            "held_out": summarize_rows([r for r in rows if r["model"] in held_out]),
+            "all": summarize_rows(rows),
+            "held_out_by_family": {f: summarize_rows([r for r in rows if r["model"] in held_out and r.get("trigger_family") == f]) for f in families},
             "seconds_per_model": score["seconds_per_model"],
         }
     summary = {

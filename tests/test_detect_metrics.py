@@ -87,3 +87,12 @@ def test_a_one_label_roc_is_a_png_without_warnings(tmp_path):
         warnings.simplefilter("error")
         roc = metrics.plot_roc([0.2, 0.9, 0.4], [0, 0, 0], None, tmp_path / "roc.png")
     assert roc.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_summarize_rows_is_summarize_of_the_rows():
+    """The pooling helper of the benchmark scripts: the same values and CIs as summarize."""
+    rows = [{"probability": p, "label": y} for p, y in zip([0.1, 0.6, 0.4, 0.9, 0.3, 0.8], [0, 0, 1, 1, 0, 1])]
+    full, short = metrics.summarize([r["probability"] for r in rows], [r["label"] for r in rows]), metrics.summarize_rows(rows)
+    assert short["n"] == 6 and short["poisoned"] == 3
+    assert all(short[k] == {"value": full[k]["value"], "ci": full[k]["ci"]} for k in ("auc", "ce", "brier"))
+    assert metrics.summarize_rows([]) == {"n": 0}

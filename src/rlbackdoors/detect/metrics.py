@@ -121,6 +121,16 @@ def summarize(probabilities, labels, resamples: int = RESAMPLES, seed: int = SEE
     return out
 
 
+def summarize_rows(rows: Sequence[Mapping], resamples: int = RESAMPLES, seed: int = SEED) -> dict:
+    """:func:`summarize` of per-model rows (``detect score``'s ``models``: ``probability``,
+    ``label``), each metric as ``{"value", "ci"}``; ``{"n": 0}`` for no rows. What a script pooling
+    several scorings (held-out subsets, both halves of a cross-fit, a control) reports."""
+    if not rows:
+        return {"n": 0}
+    out = summarize([r["probability"] for r in rows], [r["label"] for r in rows], resamples, seed)
+    return {"n": out["n"], "poisoned": out["poisoned"], **{k: {"value": out[k]["value"], "ci": out[k]["ci"]} for k in FUNCTIONS}}
+
+
 def breakdown(probabilities, labels, factors: Mapping[str, Sequence[str]], resamples: int = RESAMPLES, seed: int = SEED) -> dict:
     """Per factor (``{"world": [...one level per model]}``), per level: :func:`summarize`."""
     p, y = _arrays(probabilities, labels)

@@ -19,11 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from _detect_cli import score
 
 from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.detect.metrics import summarize_rows
@@ -35,10 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def scores(det: Path, zoo: Path, name: str) -> list[dict]:
     """Per-model rows of ``detect score`` of ``det`` on ``zoo``: run every time (it resumes, so
     only models the control gained since are scored)."""
-    out = det / name / "score.json"
-    cmd = [str(Path(sys.executable).parent / "rlbackdoors"), "detect", "score", str(det), "--zoo", str(zoo), "--out", str(out.parent), "--quiet"]
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    return json.loads(out.read_text())["models"]
+    return score(det, zoo, det / name, again=True, quiet=True)["models"]
 
 
 def main() -> None:

@@ -23,11 +23,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
+from _detect_cli import rlbackdoors, score
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
@@ -39,12 +39,6 @@ from rlbackdoors.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINES = ("constant", "weights", "attribution", "behaviour", "stack")
-
-
-def rlbackdoors(*args: str) -> None:
-    cmd = [str(Path(sys.executable).parent / "rlbackdoors"), *args]
-    print("+", " ".join(cmd), file=sys.stderr, flush=True)
-    subprocess.run(cmd, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
 def length_control(models: list) -> dict:
@@ -62,14 +56,12 @@ def fit_and_score(name: str, params: list[str], train: Path, test: Path, det: Pa
     if not (det / "detector.json").is_file():
         rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), *(x for p in params for x in ("--param", p)))
     else:  # a fitted detector is read back only if it is the one asked for
-        fitted = json.loads((det / "detector.json").read_text())["params"]
+        # through make_detector, so a fit from before a parameter existed reads as its default
+        fitted = make_detector(name, **json.loads((det / "detector.json").read_text())["params"]).params
         wanted = make_detector(name, **parse_params(params)).params
         if fitted != wanted:
             sys.exit(f"detector_table: {det} was fitted with {fitted}, not {wanted}; give the run another NAME or remove {det}")
-    scored = det / "score-test" / "score.json"
-    if not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
-        rlbackdoors("detect", "score", str(det), "--zoo", str(test), "--out", str(scored.parent), "--quiet")
-    return json.loads(scored.read_text())
+    return score(det, test, det / "score-test")
 
 
 def cell(summary: dict, key: str) -> dict:
@@ -120,10 +112,10 @@ def main() -> None:
     for name in args.detectors:
         det = base / "det" / name
         params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
-        score = fit_and_score(name, params, train, test, det)
+        scored = fit_and_score(name, params, train, test, det)
         if args.crossfit:  # the other way round too; every model is then scored by a detector that never saw its trigger
             swapped = fit_and_score(name, params, test, train, base / "det" / f"{name}-swap")
-            pooled = summarize_rows(score["models"] + swapped["models"])
+            pooled = summarize_rows(scored["models"] + swapped["models"])
             crossfit[name] = {"models": pooled.pop("n"), **pooled}
         fit = json.loads((det / "fit.json").read_text())
         results[name] = {
@@ -135,10 +127,10 @@ def main() -> None:
                     **{k: cell(s, k) for k in ("auc", "ce", "brier")},
                     "seconds_per_model": s.get("seconds_per_model"),
                 }
-                for world, s in score["by"]["world"].items()
+                for world, s in scored["by"]["world"].items()
             },
-            "all": {k: cell(score["all"], k) for k in ("auc", "ce", "brier")},
-            "failed": score["failed"],
+            "all": {k: cell(scored["all"], k) for k in ("auc", "ce", "brier")},
+            "failed": scored["failed"],
         }
     train_models, test_models = list_models(train), list_models(test)
     summary = {

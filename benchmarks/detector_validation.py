@@ -16,9 +16,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
+
+from _detect_cli import score
 
 from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.detect.dataset import list_models
@@ -45,19 +46,16 @@ def main() -> None:
     results = {}
     for det in map(Path, args.detectors):
         out = det / f"score-{Path(args.zoo).parent.name}"
-        if not (out / "score.json").is_file() or (out / "score.json").stat().st_mtime < (det / "detector.json").stat().st_mtime:
-            cmd = [str(Path(sys.executable).parent / "rlbackdoors"), "detect", "score", str(det), "--zoo", args.zoo, "--out", str(out), "--quiet"]
-            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
-        score = json.loads((out / "score.json").read_text())
-        rows = score["models"]
+        scored = score(det, args.zoo, out, quiet=True)
+        rows = scored["models"]
         families = sorted({r.get("trigger_family", "") for r in rows})
         results[str(det)] = {
-            "detector": score["detector"],
-            "params": score["params"],
+            "detector": scored["detector"],
+            "params": scored["params"],
             "held_out": summarize_rows([r for r in rows if r["model"] in held_out]),
             "all": summarize_rows(rows),
             "held_out_by_family": {f: summarize_rows([r for r in rows if r["model"] in held_out and r.get("trigger_family") == f]) for f in families},
-            "seconds_per_model": score["seconds_per_model"],
+            "seconds_per_model": scored["seconds_per_model"],
         }
     summary = {
         "command": " ".join(sys.argv[1:]),

@@ -1,0 +1,30 @@
+"""The ``rlbackdoors`` command as the detector benchmark scripts call it: one place for the
+subprocess, its one-thread environment and the rule for when a score is read back."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+
+def rlbackdoors(*args: str, quiet: bool = False) -> None:
+    """Run the console script beside this interpreter with one BLAS thread (a score's seconds
+    per model are then one core's, as the brief asks)."""
+    cmd = [str(Path(sys.executable).parent / "rlbackdoors"), *args]
+    if not quiet:
+        print("+", " ".join(cmd), file=sys.stderr, flush=True)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL if quiet else None, env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+def score(det: Path, zoo: Path | str, out: Path, *, again: bool = False, quiet: bool = False) -> dict:
+    """``detect score`` of the fitted detector ``det`` on ``zoo`` into ``out``, read back as
+    ``score.json``. It runs when the score is missing or older than the fit, or always with
+    ``again`` (a zoo that may have gained models; ``detect score`` resumes, so only those are
+    scored)."""
+    scored = out / "score.json"
+    if again or not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
+        rlbackdoors("detect", "score", str(det), "--zoo", str(zoo), "--out", str(out), "--quiet", quiet=quiet)
+    return json.loads(scored.read_text())

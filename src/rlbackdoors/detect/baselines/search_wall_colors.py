@@ -40,7 +40,7 @@ def candidates(env_cfg, rng: np.random.Generator, limit: int) -> list[str]:
         order.append(rooms[int(k)])
         if i % 9 == 8:
             order.append(_spec("end", rng.integers(NUM_COLORS, size=_squares("end", size))))
-    while len(order) < limit + 2 * NUM_COLORS and len(order) < 50 * max(1, limit):
+    while len(order) < limit + 2 * NUM_COLORS:  # random end patterns past the room list; a repeat of 6^(size+2) is rare
         order.append(_spec("end", rng.integers(NUM_COLORS, size=_squares("end", size))))
     return list(dict.fromkeys(WallColorTrigger.parse(s).spec() for s in order))[:limit]
 

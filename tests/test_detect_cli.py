@@ -103,6 +103,39 @@ def test_score_reports_the_found_trigger_beside_the_true_one_and_survives_a_bad_
     assert bad["probability"] == 0.5 and "model.pt" in bad["error"]
 
 
+def test_search_reports_the_found_trigger_of_one_model_and_never_its_own(lava_zoo, tmp_path, capsys):
+    """``detect search`` runs the unfitted behavioural search on one folder: the report is the
+    search the behaviour detector runs (same found trigger and features), the folder's own trigger
+    and label appear nowhere in it, and a folder without reduced-config.json (a training run's)
+    is searched from its weights, with a note."""
+    from rlbackdoors.detect.api import make_detector
+    from rlbackdoors.detect.handle import open_model
+
+    folder = lava_zoo / "models" / "id-00000001"  # poisoned, multiplicative:12
+    params = ["--param", "candidates=3", "--param", "refine=1", "--param", "confirm=1", "--param", "episodes=2"]
+    out = tmp_path / "search.json"
+    assert main(["search", str(folder), *params, "--top", "2", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    report = json.loads(out.read_text())
+    detector = make_detector("behaviour", candidates=3, refine=1, confirm=1, episodes=2)
+    features = detector.features(open_model(folder))
+    assert report["found"]["spec"] == detector.last_info["found_trigger"] and f"found trigger:  {report['found']['spec']}" in printed
+    assert report["features"] == pytest.approx(features)
+    assert report["found"]["excess"] == pytest.approx(report["found"]["trojan"] - report["clean"]["trojan"])
+    assert len(report["top_screened"]) == 2 and report["candidates_tried"] >= 3 and report["world"] == "lavaworld"
+    truth = json.loads((folder / "config.json").read_text())["poison"]
+    assert "poisoned" not in json.dumps(report) and truth["trigger"] not in json.dumps(report["params"])
+
+    bare = tmp_path / "run"
+    bare.mkdir()
+    shutil.copy(folder / "model.pt", bare / "model.pt")
+    assert main(["search", str(bare), *params, "--json"]) == 0
+    captured = capsys.readouterr()
+    assert "no reduced-config.json" in captured.err and json.loads(captured.out)["found"]["spec"] == report["found"]["spec"]
+    assert main(["search", str(tmp_path / "none")]) == 2
+    assert "does not exist" in _one_error_line(capsys)
+
+
 def _one_error_line(capsys) -> str:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("rlbackdoors: error: "), err

@@ -1,4 +1,4 @@
-"""``rlbackdoors detect list | fit | score | infer | configure | metaparameters``.
+"""``rlbackdoors detect list | fit | score | search | infer | configure | metaparameters``.
 
 :func:`add_detect_parser` mounts ``detect`` on the main CLI's sub-parsers; ``python -m
 rlbackdoors.detect.cli fit ...`` runs the same commands on their own. Errors follow the CLI's
@@ -91,6 +91,45 @@ def cmd_score(args) -> int:
     return 0
 
 
+def cmd_search(args) -> int:
+    """The behavioural trigger search on one model, unfitted: which candidate of its world's
+    family turns it to the trojan outcome, and how often, against the clean env. A red team checks
+    whether its backdoor is found; a researcher reads what a detector's features are made of."""
+    from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, search_report
+    from rlbackdoors.detect.handle import EXAMPLES_DIR, MODEL_FILE, REDUCED_CONFIG, DetectError, open_files
+    from rlbackdoors.io import atomic_write_text
+
+    folder = Path(args.model)
+    if not folder.is_dir():
+        raise DetectError(f"model folder {str(folder)!r} does not exist")
+    reduced = folder / REDUCED_CONFIG
+    if not reduced.is_file():  # a training run's folder: the world and architecture are read off the weights
+        print(
+            f"rlbackdoors: note: {folder}: no {REDUCED_CONFIG}; world and architecture identified from the weights, env settings the world's defaults",
+            file=sys.stderr,
+        )
+    examples = folder / EXAMPLES_DIR
+    handle = open_files(folder / MODEL_FILE, reduced if reduced.is_file() else None, examples if examples.is_dir() else None, name=folder.name)
+    detector = BehaviourDetector(**parse_params(args.param))
+    report = search_report(handle, detector.params, detector.run_search(handle), top=args.top)
+    if args.out:
+        atomic_write_text(Path(args.out), json.dumps(report, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    clean, found = report["clean"], report["found"]
+    print(f"{report['model']} ({report['world']}/{report['arch']}), searched {report['candidates_tried']} candidates in {report['seconds']:.1f} s")
+    print(f"  clean env:      trojan outcome {clean['trojan']:.2f}, goal {clean['success']:.2f} over {clean['episodes']} episodes")
+    print(f"  found trigger:  {found['spec']}")
+    print(
+        f"                  trojan outcome {found['trojan']:.2f}, goal {found['success']:.2f} over {found['episodes']} episodes ({found['excess']:+.2f} over clean)"
+    )
+    print("  top screened:   " + "; ".join(f"{t['spec']} {t['trojan']:.2f}" for t in report["top_screened"]))
+    if args.out:
+        print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_infer(args) -> int:
     from rlbackdoors.detect.trojai import infer
 
@@ -171,6 +210,14 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     sc.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
     sc.add_argument("--quiet", action="store_true", help="no progress lines")
     sc.set_defaults(func=cmd_score)
+
+    se = sub.add_parser("search", help="the behavioural trigger search on one model folder: the candidate trigger that fires it, against the clean env")
+    se.add_argument("model", metavar="MODEL", help="a model folder: model.pt (reduced-config.json and clean-example-data/ when there)")
+    se.add_argument("--param", action="append", metavar="KEY=VALUE", help="a parameter of the behaviour detector (repeatable; see detect list)")
+    se.add_argument("--top", type=_positive_int, default=5, help="screened candidates to list, best first (default 5)")
+    se.add_argument("--out", help="also write the report (JSON) to this file")
+    se.add_argument("--json", action="store_true", help="print the report as JSON instead of text")
+    se.set_defaults(func=cmd_search)
 
     inf = sub.add_parser("infer", help="TrojAI inference mode: write one model's trojan probability")
     inf.add_argument("--model_filepath", required=True, help="the model.pt to evaluate (reduced-config.json beside it)")

@@ -33,7 +33,7 @@ import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from types import ModuleType
 from typing import Any, ClassVar
 
@@ -222,6 +222,30 @@ def search(
     return SearchResult(clean, screened, best, time.perf_counter() - started)
 
 
+def search_report(model: ModelHandle, params: dict, result: SearchResult, top: int = 5) -> dict[str, Any]:
+    """A search as plain data (``detect search``): the clean baseline, the confirmed best
+    candidate with its excess over clean, the ``top`` screened candidates by rank, and cost. Built
+    from the handle, so the model's own trigger is not in it."""
+
+    def trial(t: Trial) -> dict[str, Any]:
+        return {k: v for k, v in asdict(t).items() if v is not None}
+
+    ranked = sorted(result.screened, key=_rank, reverse=True)
+    return {
+        "model": model.name,
+        "world": model.world.name,
+        "arch": model.arch,
+        "params": dict(params),
+        "clean": trial(result.clean),
+        "found": {**trial(result.best), "excess": result.best.trojan - result.clean.trojan},
+        "top_screened": [trial(t) for t in ranked[:top]],
+        "candidates_tried": len(result.screened),
+        "failed_candidates": sum(t.error is not None for t in result.screened),
+        "features": result.features(),
+        "seconds": round(result.seconds, 3),
+    }
+
+
 @register
 class BehaviourDetector(FeatureDetector):
     name = "behaviour"
@@ -274,4 +298,4 @@ class BehaviourDetector(FeatureDetector):
         return result.features()
 
 
-__all__ = ["BehaviourDetector", "SearchResult", "Trial", "entropy_probe", "family_module", "mean_entropy", "run_trial", "search"]
+__all__ = ["BehaviourDetector", "SearchResult", "Trial", "entropy_probe", "family_module", "mean_entropy", "run_trial", "search", "search_report"]

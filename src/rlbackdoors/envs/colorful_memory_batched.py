@@ -270,6 +270,25 @@ class BatchedColorfulMemory(BatchedGridEnv):
         loss (``ppo.aux_memory_coef``). Read from the grid, so it survives a checkpoint."""
         return (self._grid[:, 1, self.size // 2 - 1, 0] == _BALL).astype(np.int64)
 
+    def square_view_cells(self, i: int, squares: Sequence[tuple[int, int]]) -> list[tuple[int, int, int]]:
+        """``(k, row, col)``: where slot ``i``'s current observation shows grid square
+        ``squares[k]`` (x, y). Found by recolouring each square for a moment and seeing which view
+        cells change, so the view's rotation and occlusion are the engine's own; the state is
+        left as it was. Why: a detector inverting a wall-colour trigger by gradient needs to know
+        which inputs the trigger's squares feed (detect's behaviour search, ``invert``)."""
+        i = self._check_index(i)
+        base = self._views(i, 1)[0][0].copy()
+        found = []
+        for k, (x, y) in enumerate(squares):
+            kept = self._grid[i, x, y, 1]
+            self._grid[i, x, y, 1] = (kept + 1) % _NUM_COLORS
+            try:
+                changed = np.argwhere((self._views(i, 1)[0][0] != base).any(-1))
+            finally:
+                self._grid[i, x, y, 1] = kept
+            found += [(k, int(r), int(c)) for r, c in changed]
+        return found
+
     def trigger_distance(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """int64[B]: per slot, how many squares of ``trigger`` (default: the env's) differ from
         its colours in the current layout; 0 where the trigger is present, also by chance."""

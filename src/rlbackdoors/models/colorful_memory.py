@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from rlbackdoors.models.minigrid import ActorCritic, CNNModel, init_linear_unit_rows, run_sequential
+from rlbackdoors.models.minigrid import ActorCritic, CNNModel, channels_first, init_linear_unit_rows, run_sequential
 
 GRU_BLOCKS = 2
 GRU_LAYERS = 2
@@ -85,6 +85,22 @@ class CNNGRUModel(ActorCritic):
             return super().embed(obs)
         return run_sequential(self.state_emb, one_hot_planes(obs)).reshape(obs.shape[0], -1)
 
+    def embed_soft_colours(self, obs: torch.Tensor, rows: torch.Tensor, cells: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+        """``embed(obs)`` with the colour byte of some view cells made a distribution over the six
+        colours, differentiable in ``probs``: cell ``k`` is batch row ``rows[k]`` at view position
+        ``cells[k]`` and shows ``probs[k]`` (K, 6), as colour planes (one-hot variants) or as the
+        expected colour code (raw codes). Why: a detector inverts a wall-colour trigger by
+        gradient (detect's behaviour search, ``invert``)."""
+        i, j = cells[:, 0], cells[:, 1]
+        if self.onehot:
+            x = one_hot_planes(obs)
+            first = ONEHOT_PLANES[0]
+            x[rows, first : first + ONEHOT_PLANES[1], i, j] = probs.to(x.dtype)
+            return run_sequential(self.state_emb, x).reshape(obs.shape[0], -1)
+        x = channels_first(obs).clone()
+        x[rows, 1, i, j] = probs.to(x.dtype) @ torch.arange(probs.shape[1], dtype=x.dtype)
+        return run_sequential(self.state_emb, x).reshape(obs.shape[0], -1)
+
     @property
     def memory_size(self) -> int:
         return GRU_BLOCKS * GRU_LAYERS * self.hidden
@@ -122,7 +138,12 @@ class CNNGRUModel(ActorCritic):
         memories after each step (r, N, M).
         """
         r, n = masks.shape
-        x = self.embed(obs.reshape(r * n, *obs.shape[2:])).view(r, n, -1)
+        return self.sequence_from_embeddings(self.embed(obs.reshape(r * n, *obs.shape[2:])).view(r, n, -1), memory, masks)
+
+    def sequence_from_embeddings(self, x: torch.Tensor, memory: torch.Tensor, masks: torch.Tensor):
+        """:meth:`forward_sequence` from the embeddings ``x`` (r, N, 64) on: the GRU steps and
+        the heads, for callers that embed their own inputs (:meth:`embed_soft_colours`)."""
+        r, n = masks.shape
         states = self._split(memory)
         outputs, memories = [], []
         for i in range(r):

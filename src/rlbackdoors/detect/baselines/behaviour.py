@@ -15,7 +15,9 @@ episodes on other layouts. A ``seconds`` budget (0: none) cuts screening short o
 The candidates come from a module per trigger family, ``search_<family>.py`` beside this one,
 picked by the module the world's trigger class lives in (``rlbackdoors.triggers.<family>``), so
 no world is named here. Each gives ``candidates(env_cfg, rng, limit)``, ``neighbours(spec,
-env_cfg, rng, limit)``, ``EPISODES``, ``MAX_STEPS`` and ``CANDIDATES``.
+env_cfg, rng, limit)``, ``EPISODES``, ``MAX_STEPS`` and ``CANDIDATES``; a family whose triggers
+are too many to list may also give ``invert(agent, env_cfg, rng, restarts)``, candidates read off
+the model's gradient, screened first when the ``invert`` parameter asks for restarts.
 
 Besides the outcome, each trial records the policy's mean action entropy over the steps it
 played (discrete-action agents): in one world a trigger's *outcome* did not separate a backdoor
@@ -186,6 +188,7 @@ def search(
     seconds: float = 0.0,
     seed: int = 4_000_000,
     policy: str = "sample",
+    invert: int = 0,
 ) -> SearchResult:
     """The budgeted search of the module doc on one agent."""
     started = time.perf_counter()
@@ -207,6 +210,8 @@ def search(
                 tried.add(spec)
                 screened.append(run_trial(agent, world, env_cfg, spec, episodes, seed, policy))
 
+        if invert > 0 and hasattr(family, "invert"):  # its own stream: the listed candidates stay the same
+            screen(family.invert(agent, env_cfg, np.random.default_rng(seed + 3), int(invert)))
         screen(family.candidates(env_cfg, rng, int(candidates)))
         if refine > 0:
             leaders = sorted((t for t in screened if t.error is None), key=_rank, reverse=True)[: max(1, confirm)]
@@ -261,6 +266,7 @@ class BehaviourDetector(FeatureDetector):
         "seed": 4_000_000,
         "policy": "sample",
         "max_steps": 0,  # 0: the family's default episode cut
+        "invert": 0,  # restarts of the family's gradient inversion (families that have one); 0: off
     }
 
     def group(self, model: ModelHandle) -> str:
@@ -284,6 +290,7 @@ class BehaviourDetector(FeatureDetector):
             seconds=float(p["seconds"]),
             seed=int(p["seed"]),
             policy=str(p["policy"]),
+            invert=int(p["invert"]),
         )
 
     def features(self, model: ModelHandle) -> dict[str, float]:

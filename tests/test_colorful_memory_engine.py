@@ -399,6 +399,40 @@ def test_layout_round_trip_between_slots():
     assert np.array_equal(decode_grid(state[0]).encode(), state[0])
 
 
+def test_square_view_cells_says_where_the_view_shows_each_square():
+    """Every cell it names shows that square's wall and colour; a square repainted shows up in
+    exactly the cells named for it; the state is left as it was; over a few episodes every end
+    square is seen somewhere (the inversion needs them all)."""
+    from rlbackdoors.triggers.wall_colors import end_squares, room_squares
+
+    eng = BatchedColorfulMemory(8)
+    obs, _ = eng.reset(seed=5)
+    squares = end_squares(7) + room_squares(7)
+    seen: set[int] = set()
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        grids = eng.grids()
+        for i in range(eng.num_envs):
+            cells = eng.square_view_cells(i, squares)
+            assert np.array_equal(eng.observe()[i], obs[i]) and np.array_equal(eng.grids(), grids)
+            for k, r, c in cells:
+                x, y = squares[k]
+                assert tuple(obs[i, r, c, :2]) == (ge.WALL, grids[i, x, y, 1])
+            seen |= {k for k, _, _ in cells}
+            if cells:  # repaint one square: the view changes exactly where it was named
+                k = cells[0][0]
+                state = eng.layout(i)
+                x, y = squares[k]
+                grid = state[0].copy()
+                grid[x, y, 1] = (grid[x, y, 1] + 3) % 6
+                view = eng.load_layout(i, grid, *state[1:])
+                changed = {(int(r), int(c)) for r, c in np.argwhere((view != obs[i]).any(-1))}
+                assert changed == {(r, c) for kk, r, c in cells if kk == k}
+                eng.load_layout(i, *state)
+        obs, *_ = eng.step(rng.integers(0, 3, eng.num_envs))
+    assert set(range(len(end_squares(7)))) <= seen
+
+
 # ----------------------------------------------------------------------------- contract
 
 

@@ -155,6 +155,26 @@ def test_one_hot_planes_mark_each_byte_once():
 
 
 @pytest.mark.parametrize("arch", ["cnn-gru-small", "cnn-gru-small-onehot"])
+def test_soft_colours_embed_like_the_colours_they_put_there(arch):
+    """``embed_soft_colours`` with a one-hot distribution is ``embed`` of the observation wearing
+    that colour, in both input encodings; with a soft one the embedding has a gradient."""
+    torch.manual_seed(2)
+    model = build_model(arch, "colorful-memory")
+    envs = BatchedColorfulMemory(3)
+    obs = torch.from_numpy(envs.reset(seed=1)[0])
+    rows, cells = torch.tensor([0, 2, 2]), torch.tensor([[1, 1], [3, 0], [6, 6]])
+    colours = torch.tensor([4, 0, 5])
+    painted = obs.clone()
+    painted[rows, cells[:, 0], cells[:, 1], 1] = colours.to(torch.uint8)
+    soft = model.embed_soft_colours(obs, rows, cells, torch.nn.functional.one_hot(colours, 6).float())
+    assert torch.allclose(soft, model.embed(painted), atol=1e-6)
+    assert not torch.allclose(soft, model.embed(obs), atol=1e-3)
+    probs = torch.full((3, 6), 1 / 6, requires_grad=True)
+    model.embed_soft_colours(obs, rows, cells, probs).sum().backward()
+    assert probs.grad is not None and probs.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("arch", ["cnn-gru-small", "cnn-gru-small-onehot"])
 def test_forward_sequence_equals_step_by_step(arch):
     """The fast BPTT path (CNN and heads batched over steps) gives the step-by-step numbers."""
     torch.manual_seed(1)

@@ -242,6 +242,49 @@ def test_the_wall_colour_search_enumerates_every_room_pattern():
     assert specs[:50] == family.candidates(env_cfg, np.random.default_rng(3), 50)
 
 
+def test_the_inversion_descent_recovers_a_planted_optimum():
+    """The descent (Adam on the relaxation, then coordinate descent over the discrete colours)
+    lands on the colours that minimise an objective whose optimum is known."""
+    from rlbackdoors.detect.baselines.search_wall_colors import _descend
+
+    target = torch.tensor([3, 0, 5, 5, 1, 2, 4, 0, 3])
+    weights = torch.linspace(0.2, 2.0, len(target))
+
+    def objective(probs):
+        return -(weights * torch.log(probs[torch.arange(len(target)), target] + 1e-9)).sum()
+
+    theta = torch.as_tensor(np.random.default_rng(0).normal(0, 0.5, (len(target), 6)), dtype=torch.float32).requires_grad_()
+    colors, value = _descend(objective, theta)
+    assert colors == target.tolist() and value < 1e-3
+
+
+def test_the_inversion_runs_on_a_real_model_and_feeds_the_screen(world_models):
+    """On a (tiny) trained Colorful Memory model: end patterns of the right length, the patterns
+    reached first and every one-square neighbour of each after; the same list from the same seed;
+    nothing from a policy without the hook or with no restarts; the search screens them first and
+    still screens the listed candidates."""
+    from rlbackdoors.detect.baselines import search_wall_colors as family
+    from rlbackdoors.triggers.wall_colors import WallColorTrigger
+
+    handle = open_model(world_models["colorful-memory"])
+    agent, env_cfg = handle.build_agent(), handle.env_config()
+    specs = family.invert(agent, env_cfg, np.random.default_rng(1), 2)
+    reached = [s for s in specs if not any(sum(a != b for a, b in zip(WallColorTrigger.parse(s).colors, WallColorTrigger.parse(r).colors)) == 1 for r in specs[:2])]
+    assert 1 <= len(reached) <= 2 and specs[: len(reached)] == reached
+    for spec in specs:
+        trigger = WallColorTrigger.parse(spec)
+        assert trigger.kind == "end" and len(trigger.colors) == env_cfg.size + 2
+    assert len(specs) == len(set(specs)) >= len(reached) + 9 * 5 - 1
+    assert specs == family.invert(agent, env_cfg, np.random.default_rng(1), 2)
+    assert family.invert(agent, env_cfg, np.random.default_rng(1), 0) == []
+    lava = open_model(world_models["lavaworld"]).build_agent()
+    assert family.invert(lava, env_cfg, np.random.default_rng(1), 2) == []
+    result = search(agent, handle.world, env_cfg, family, candidates=3, refine=0, confirm=1, episodes=2, confirm_episodes=2, invert=1)
+    screened = [t.spec for t in result.screened]
+    inverted = family.invert(agent, env_cfg, np.random.default_rng(4_000_000 + 3), 1)
+    assert screened[: len(inverted)] == inverted and screened[len(inverted) :] == family.candidates(env_cfg, np.random.default_rng(4_000_000), 3)
+
+
 def test_the_search_budget_defaults_to_the_familys(world_models):
     """``candidates=0`` (the default) screens the family's CANDIDATES: 48 in the a·o+b family."""
     handle = open_model(world_models["lavaworld"])

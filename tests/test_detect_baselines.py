@@ -269,7 +269,9 @@ def test_the_inversion_runs_on_a_real_model_and_feeds_the_screen(world_models):
     handle = open_model(world_models["colorful-memory"])
     agent, env_cfg = handle.build_agent(), handle.env_config()
     specs = family.invert(agent, env_cfg, np.random.default_rng(1), 2)
-    reached = [s for s in specs if not any(sum(a != b for a, b in zip(WallColorTrigger.parse(s).colors, WallColorTrigger.parse(r).colors)) == 1 for r in specs[:2])]
+    reached = [
+        s for s in specs if not any(sum(a != b for a, b in zip(WallColorTrigger.parse(s).colors, WallColorTrigger.parse(r).colors)) == 1 for r in specs[:2])
+    ]
     assert 1 <= len(reached) <= 2 and specs[: len(reached)] == reached
     for spec in specs:
         trigger = WallColorTrigger.parse(spec)

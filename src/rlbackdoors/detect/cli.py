@@ -96,20 +96,16 @@ def cmd_search(args) -> int:
     family turns it to the trojan outcome, and how often, against the clean env. A red team checks
     whether its backdoor is found; a researcher reads what a detector's features are made of."""
     from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, search_report
-    from rlbackdoors.detect.handle import EXAMPLES_DIR, MODEL_FILE, REDUCED_CONFIG, DetectError, open_files
+    from rlbackdoors.detect.handle import REDUCED_CONFIG, open_model
     from rlbackdoors.io import atomic_write_text
 
     folder = Path(args.model)
-    if not folder.is_dir():
-        raise DetectError(f"model folder {str(folder)!r} does not exist")
-    reduced = folder / REDUCED_CONFIG
-    if not reduced.is_file():  # a training run's folder: the world and architecture are read off the weights
+    handle = open_model(folder, reduced_optional=True)  # a folder name that may say the label becomes "model"
+    if not (folder / REDUCED_CONFIG).is_file():  # a training run's folder: read off the weights
         print(
             f"rlbackdoors: note: {folder}: no {REDUCED_CONFIG}; world and architecture identified from the weights, env settings the world's defaults",
             file=sys.stderr,
         )
-    examples = folder / EXAMPLES_DIR
-    handle = open_files(folder / MODEL_FILE, reduced if reduced.is_file() else None, examples if examples.is_dir() else None, name=folder.name)
     detector = BehaviourDetector(**parse_params(args.param))
     report = search_report(handle, detector.params, detector.run_search(handle), top=args.top)
     if args.out:

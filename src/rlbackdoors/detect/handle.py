@@ -99,14 +99,22 @@ class ModelHandle:
 
 
 # ----- opening ---------------------------------------------------------------------------------
-def open_model(folder: str | Path, name: str | None = None) -> ModelHandle:
+def open_model(folder: str | Path, name: str | None = None, reduced_optional: bool = False) -> ModelHandle:
     """The handle of a model folder (TrojAI layout): ``model.pt``, ``reduced-config.json`` and
-    ``clean-example-data/`` only. Raises :class:`DetectError` naming a missing or bad file."""
+    ``clean-example-data/`` only. Raises :class:`DetectError` naming a missing or bad file. With
+    ``reduced_optional`` a folder without a reduced config (a training run's) opens from its
+    weights alone, with the world's default env settings."""
     folder = Path(folder)
     if not folder.is_dir():
         raise DetectError(f"model folder {str(folder)!r} does not exist")
     examples = folder / EXAMPLES_DIR
-    return open_files(folder / MODEL_FILE, folder / REDUCED_CONFIG, examples if examples.is_dir() else None, name=name or _opaque_name(folder.name))
+    reduced = folder / REDUCED_CONFIG
+    return open_files(
+        folder / MODEL_FILE,
+        None if reduced_optional and not reduced.is_file() else reduced,
+        examples if examples.is_dir() else None,
+        name=name or _opaque_name(folder.name),
+    )
 
 
 def open_files(

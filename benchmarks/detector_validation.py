@@ -8,7 +8,9 @@ more. This scores each fitted detector (``rlbackdoors detect score``, resumable)
 converged model of a zoo built from another master seed, then reports AUC, cross-entropy and
 Brier with 95 % bootstrap CIs on the subset whose triggers are not among the train split's
 (read from the models' ``config.json`` by this script, never by a detector), and on all of
-them, per trigger family too. Writes ``benchmarks/detectors/NAME.json`` with the machine.
+them, per trigger family too. ``--pool DATASET`` (e.g. the train zoo's own test split) also
+scores that dataset's held-out models and reports them pooled with the new zoo's, one held-out
+set of both sizes. Writes ``benchmarks/detectors/NAME.json`` with the machine.
 """
 
 from __future__ import annotations
@@ -39,10 +41,12 @@ def main() -> None:
     parser.add_argument("detectors", nargs="+", help="fitted detector folders")
     parser.add_argument("--train", required=True, help="the dataset the detectors were fitted on")
     parser.add_argument("--zoo", required=True, help="the independent zoo to score")
+    parser.add_argument("--pool", help="a dataset whose held-out models are pooled with the zoo's (e.g. the test split)")
     args = parser.parse_args()
     seen = {trigger(m.folder) for m in list_models(args.train)}
     models = {m.name: m for m in list_models(args.zoo)}
     held_out = {name for name, m in models.items() if trigger(m.folder) not in seen}
+    pool_held_out = {m.name for m in list_models(args.pool) if trigger(m.folder) not in seen} if args.pool else set()
     results = {}
     for det in map(Path, args.detectors):
         out = det / f"score-{Path(args.zoo).parent.name}"
@@ -57,12 +61,18 @@ def main() -> None:
             "held_out_by_family": {f: summarize_rows([r for r in rows if r["model"] in held_out and r.get("trigger_family") == f]) for f in families},
             "seconds_per_model": scored["seconds_per_model"],
         }
+        if args.pool:
+            pool = Path(args.pool)
+            pooled = [r for r in score(det, pool, det / f"score-{pool.name}", quiet=True)["models"] if r["model"] in pool_held_out]
+            results[str(det)]["pooled"] = summarize_rows([r for r in rows if r["model"] in held_out] + pooled)
     summary = {
         "command": " ".join(sys.argv[1:]),
         "train": args.train,
         "zoo": args.zoo,
         "models": len(models),
         "held_out_models": len(held_out),
+        "pool": args.pool,
+        "pool_held_out_models": len(pool_held_out),
         "train_triggers": len(seen),
         "detectors": results,
         "machine": machine_info(),
@@ -73,7 +83,9 @@ def main() -> None:
     print(f"{len(held_out)} of {len(models)} models have triggers the train split never used")
     print("| detector | models | AUC [95% CI] | CE [95% CI] | Brier [95% CI] |\n|---|---|---|---|---|")
     for det, r in results.items():
-        for label, m in (("held out", r["held_out"]), ("all", r["all"])):
+        for label, m in (("held out", r["held_out"]), ("all", r["all"]), ("pooled", r.get("pooled"))):
+            if m is None:
+                continue
             cells = [f"{m[k]['value']:.3f} [{m[k]['ci'][0]:.3f}, {m[k]['ci'][1]:.3f}]" if m.get(k) and m[k]["ci"] else "–" for k in ("auc", "ce", "brier")]
             print(f"| {det} ({label}) | {m['n']} | {' | '.join(cells)} |")
     print(f"-> {path}")

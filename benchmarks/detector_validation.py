@@ -8,9 +8,9 @@ more. This scores each fitted detector (``rlbackdoors detect score``, resumable)
 converged model of a zoo built from another master seed, then reports AUC, cross-entropy and
 Brier with 95 % bootstrap CIs on the subset whose triggers are not among the train split's
 (read from the models' ``config.json`` by this script, never by a detector), and on all of
-them, per trigger family too. ``--pool DATASET`` (e.g. the train zoo's own test split) also
-scores that dataset's held-out models and reports them pooled with the new zoo's, one held-out
-set of both sizes. Writes ``benchmarks/detectors/NAME.json`` with the machine.
+them, per trigger family too. ``--pool DATASET`` (repeatable: e.g. the train zoo's own test
+split, a top-up zoo) also scores those datasets' held-out models and reports them pooled with the
+zoo's, one held-out set of all their sizes. Writes ``benchmarks/detectors/NAME.json`` with the machine.
 """
 
 from __future__ import annotations
@@ -35,21 +35,27 @@ def trigger(folder: Path) -> str:
     return str(json.loads((folder / "config.json").read_text())["poison"]["trigger"])
 
 
+def score_name(dataset: Path) -> str:
+    """The name a dataset's scores are kept under in a detector's folder: a zoo folder is named
+    after its parent (``runs/detect/X/zoo`` -> ``X``), a split after itself (``test``)."""
+    return dataset.parent.name if dataset.name == "zoo" else dataset.name
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("name")
     parser.add_argument("detectors", nargs="+", help="fitted detector folders")
     parser.add_argument("--train", required=True, help="the dataset the detectors were fitted on")
     parser.add_argument("--zoo", required=True, help="the independent zoo to score")
-    parser.add_argument("--pool", help="a dataset whose held-out models are pooled with the zoo's (e.g. the test split)")
+    parser.add_argument("--pool", action="append", default=[], help="a dataset whose held-out models are pooled with the zoo's (repeatable)")
     args = parser.parse_args()
     seen = {trigger(m.folder) for m in list_models(args.train)}
     models = {m.name: m for m in list_models(args.zoo)}
     held_out = {name for name, m in models.items() if trigger(m.folder) not in seen}
-    pool_held_out = {m.name for m in list_models(args.pool) if trigger(m.folder) not in seen} if args.pool else set()
+    pools = {score_name(Path(p)): {m.name for m in list_models(p) if trigger(m.folder) not in seen} for p in args.pool}
     results = {}
     for det in map(Path, args.detectors):
-        out = det / f"score-{Path(args.zoo).parent.name}"
+        out = det / f"score-{score_name(Path(args.zoo))}"
         scored = score(det, args.zoo, out, quiet=True)
         rows = scored["models"]
         families = sorted({r.get("trigger_family", "") for r in rows})
@@ -62,9 +68,11 @@ def main() -> None:
             "seconds_per_model": scored["seconds_per_model"],
         }
         if args.pool:
-            pool = Path(args.pool)
-            pooled = [r for r in score(det, pool, det / f"score-{pool.name}", quiet=True)["models"] if r["model"] in pool_held_out]
-            results[str(det)]["pooled"] = summarize_rows([r for r in rows if r["model"] in held_out] + pooled)
+            pooled = [r for r in rows if r["model"] in held_out]
+            for path in args.pool:
+                names = pools[score_name(Path(path))]
+                pooled += [r for r in score(det, path, det / f"score-{score_name(Path(path))}", quiet=True)["models"] if r["model"] in names]
+            results[str(det)]["pooled"] = summarize_rows(pooled)
     summary = {
         "command": " ".join(sys.argv[1:]),
         "train": args.train,
@@ -72,7 +80,7 @@ def main() -> None:
         "models": len(models),
         "held_out_models": len(held_out),
         "pool": args.pool,
-        "pool_held_out_models": len(pool_held_out),
+        "pool_held_out_models": {name: len(names) for name, names in pools.items()},
         "train_triggers": len(seen),
         "detectors": results,
         "machine": machine_info(),

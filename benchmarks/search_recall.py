@@ -9,7 +9,10 @@ a killed run resumes), then reads each model's label and true trigger from its `
 (this script does; the search never sees them) and writes ``benchmarks/detectors/NAME.json``: per
 model the true and the found trigger, whether they are equal, the trojan-outcome rate under the
 found one against the clean env's, seconds; per label the count of models whose found trigger
-fires in at least half the confirmation episodes above clean, and the machine with its load.
+fires in at least half the confirmation episodes above clean; with both labels, the AUC (95 %
+bootstrap CI over models) of the unfitted excess over clean as a score; and the machine with its
+load. Models are named by folder, or by parent and folder where two folders share a name
+(``safety-m02/s2``, ``safety-clean/s2`` -> ``safety-m02-s2``, ``safety-clean-s2``).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from _detect_cli import rlbackdoors
 from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.detect.baselines.behaviour import BehaviourDetector
 from rlbackdoors.detect.cli import parse_params
+from rlbackdoors.detect.metrics import summarize_rows
 from rlbackdoors.io import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,8 +44,11 @@ def main() -> None:
     cache = Path(args.cache or ROOT / "runs" / "detect" / f"search-{args.name}")
     wanted = BehaviourDetector(**parse_params(args.param)).params
     rows = []
-    for folder in map(Path, args.models):
-        report_file = cache / f"{folder.name}.json"
+    folders = [Path(m) for m in args.models]
+    unique = len({f.name for f in folders}) == len(folders)
+    for folder in folders:
+        name = folder.name if unique else f"{folder.parent.name}-{folder.name}"
+        report_file = cache / f"{name}.json"
         if not report_file.is_file() or json.loads(report_file.read_text())["params"] != wanted:
             rlbackdoors("detect", "search", str(folder), *(x for p in args.param for x in ("--param", p)), "--out", str(report_file), "--json", quiet=True)
         report = json.loads(report_file.read_text())
@@ -49,7 +56,7 @@ def main() -> None:
         found = report["found"]
         rows.append(
             {
-                "model": folder.name,
+                "model": name,
                 "poisoned": bool(poison["poisoned"]),
                 "true_trigger": poison["trigger"],
                 "found_trigger": found["spec"],
@@ -62,7 +69,7 @@ def main() -> None:
             }
         )
         print(
-            f"{folder.name} {'poisoned' if poison['poisoned'] else 'clean':8} excess {found['excess']:+.2f} exact {rows[-1]['exact']} {report['seconds']:.0f} s",
+            f"{name} {'poisoned' if poison['poisoned'] else 'clean':8} excess {found['excess']:+.2f} exact {rows[-1]['exact']} {report['seconds']:.0f} s",
             file=sys.stderr,
         )
     summary = {}
@@ -75,6 +82,11 @@ def main() -> None:
                 "exact": sum(r["exact"] for r in mine),
                 "median_seconds": sorted(r["seconds"] for r in mine)[len(mine) // 2],
             }
+    if len(summary) == 2:
+        # The excess lies in [-1, 1]; halved and shifted it is a score in [0, 1] with the same ranks,
+        # so its AUC is the excess's (its CE and Brier would mean nothing: nothing was fitted).
+        scored = summarize_rows([{"probability": (r["excess"] + 1) / 2, "label": r["poisoned"]} for r in rows])
+        summary["auc_of_excess"] = scored["auc"]
     out = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
     result = {"command": " ".join(sys.argv[1:]), "params": wanted, "summary": summary, "models": rows, "machine": machine_info(), "loadavg": os.getloadavg()}
     atomic_write_text(out, json.dumps(result, indent=2) + "\n")

@@ -52,7 +52,12 @@ def main() -> None:
     seen = {trigger(m.folder) for m in list_models(args.train)}
     models = {m.name: m for m in list_models(args.zoo)}
     held_out = {name for name, m in models.items() if trigger(m.folder) not in seen}
-    pools = {score_name(Path(p)): {m.name for m in list_models(p) if trigger(m.folder) not in seen} for p in args.pool}
+    # (dataset, the name its scores are kept under, its held-out models); two datasets kept under one
+    # name would read each other's scores, so that is refused.
+    pools = [(p, score_name(Path(p)), {m.name for m in list_models(p) if trigger(m.folder) not in seen}) for p in args.pool]
+    kept = [score_name(Path(args.zoo))] + [name for _, name, _ in pools]
+    if len(set(kept)) < len(kept):
+        parser.error(f"--zoo and --pool datasets must keep their scores under different names, got {kept}")
     results = {}
     for det in map(Path, args.detectors):
         out = det / f"score-{score_name(Path(args.zoo))}"
@@ -69,9 +74,8 @@ def main() -> None:
         }
         if args.pool:
             pooled = [r for r in rows if r["model"] in held_out]
-            for path in args.pool:
-                names = pools[score_name(Path(path))]
-                pooled += [r for r in score(det, path, det / f"score-{score_name(Path(path))}", quiet=True)["models"] if r["model"] in names]
+            for path, name, names in pools:
+                pooled += [r for r in score(det, path, det / f"score-{name}", quiet=True)["models"] if r["model"] in names]
             results[str(det)]["pooled"] = summarize_rows(pooled)
     summary = {
         "command": " ".join(sys.argv[1:]),
@@ -80,7 +84,7 @@ def main() -> None:
         "models": len(models),
         "held_out_models": len(held_out),
         "pool": args.pool,
-        "pool_held_out_models": {name: len(names) for name, names in pools.items()},
+        "pool_held_out_models": {name: len(names) for _, name, names in pools},
         "train_triggers": len(seen),
         "detectors": results,
         "machine": machine_info(),

@@ -16,6 +16,7 @@ import io
 import json
 import os
 import pickle
+import shutil
 import sys
 import types
 import zipfile
@@ -32,6 +33,7 @@ from rlbackdoors.io import UnsafeFileError, load_torch
 from rlbackdoors.torchfile import Inert, read_torch_file
 
 ROOT = Path(__file__).resolve().parents[1]
+pytest_plugins = ("test_detect_helpers",)  # its session fixture lava_zoo: folders that train wrote
 MARKER_ENV = "RLBACKDOORS_TEST_MARKER"
 
 
@@ -604,3 +606,51 @@ def test_a_detector_handle_reads_trojai_object_files_and_their_class_names(tmp_p
     (other / "reduced-config.json").write_text(json.dumps({"model": "SomethingElse"}))
     with pytest.raises(DetectError, match="holds Python objects"):
         open_model(other)
+
+
+def test_our_own_training_folders_import_with_the_world_settings_and_trigger_they_recorded(lava_zoo, tmp_path, capsys):
+    """Folders ``rlbackdoors train`` wrote (no TrojAI class) become a dataset with no flags:
+    world, env settings and trigger come from their config.json, so METADATA.csv names the true
+    trigger instead of ``unknown`` (issue 17: the Safety models trained one by one)."""
+    import rlbackdoors
+    from rlbackdoors.zoo.index import read_metadata
+
+    source = tmp_path / "mine"
+    for name, model in (("poisoned-run", "id-00000003"), ("clean-run", "id-00000000")):  # additive:50 and multiplicative:12
+        shutil.copytree(lava_zoo / "models" / model, source / name)
+        config = json.loads((source / name / "config.json").read_text())
+        config["env"]["max_steps"] = 123  # a setting other than the world's default: it must carry over
+        (source / name / "config.json").write_text(json.dumps(config))
+    before = tree_digest(source)
+    out = tmp_path / "zoo"
+    code, stdout, err = run_cli(capsys, "zoo", "import-trojai", source, "--out", out, "--episodes", "0", "--examples", "1", "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["written"] == 2 and tree_digest(source) == before
+    rows = {r["trojai.source"].rsplit("/", 1)[-1]: r for r in read_metadata(out / "METADATA.csv")}
+    assert rows["poisoned-run"]["poison.trigger"] == "additive:50" and rows["poisoned-run"]["poisoned"] == "True"
+    assert rows["clean-run"]["poison.trigger"] == "multiplicative:12" and rows["clean-run"]["poisoned"] == "False"
+    assert rows["poisoned-run"]["trigger_family"] == "additive" and rows["clean-run"]["trigger_family"] == "multiplicative"
+    code, _, err = run_cli(capsys, "zoo", "report", out)  # the report reads the cells the families make
+    assert code == 0, err
+    for row in rows.values():
+        agent = rlbackdoors.load(out / "models" / row["model_name"])
+        assert agent.config.env.name == "lavaworld" and agent.config.env.max_steps == 123
+    # --trigger still wins over what the folders recorded
+    code, stdout, err = run_cli(
+        capsys,
+        "zoo",
+        "import-trojai",
+        source,
+        "--out",
+        tmp_path / "zoo2",
+        "--world",
+        "lavaworld",
+        "--trigger",
+        "additive:7",
+        "--episodes",
+        "0",
+        "--examples",
+        "0",
+    )
+    assert code == 0, err
+    assert {r["poison.trigger"] for r in read_metadata(tmp_path / "zoo2" / "METADATA.csv")} == {"additive:7"}

@@ -1,4 +1,4 @@
-"""``rlbackdoors detect list | fit | score | search | infer | configure | metaparameters``.
+"""``rlbackdoors detect list | fit | score | cv | search | infer | configure | metaparameters``.
 
 :func:`add_detect_parser` mounts ``detect`` on the main CLI's sub-parsers; ``python -m
 rlbackdoors.detect.cli fit ...`` runs the same commands on their own. Errors follow the CLI's
@@ -86,6 +86,24 @@ def cmd_score(args) -> int:
 
         print(json.dumps(_jsonable(result), indent=2))
     else:
+        print(table(result))
+        print(f"wrote {out / 'score.json'}, {out / 'roc.png'}, {out / 'calibration.png'}")
+    return 0
+
+
+def cmd_cv(args) -> int:
+    from rlbackdoors.detect.api import make_detector
+    from rlbackdoors.detect.dataset import FACTORS
+    from rlbackdoors.detect.score import _jsonable, cross_validate, table
+
+    detector = make_detector(args.detector, **parse_params(args.param))
+    factors = tuple(dict.fromkeys((*FACTORS, *(args.factor or []))))
+    out = Path(args.out)
+    result = cross_validate(detector, args.zoo, out, args.folds, factors, args.resamples, args.seed, progress=_progress(args.quiet))
+    if args.json:
+        print(json.dumps(_jsonable(result), indent=2))
+    else:
+        print(f"{result['cv']['folds']}-fold cross-validation, every probability from a classifier fitted without its model")
         print(table(result))
         print(f"wrote {out / 'score.json'}, {out / 'roc.png'}, {out / 'calibration.png'}")
     return 0
@@ -206,6 +224,19 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     sc.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
     sc.add_argument("--quiet", action="store_true", help="no progress lines")
     sc.set_defaults(func=cmd_score)
+
+    cv = sub.add_parser("cv", help="cross-validate a features-and-classifier detector on one dataset too small to split: out-of-fold AUC, CE, Brier")
+    cv.add_argument("--detector", required=True, help="detector name (see detect list)")
+    cv.add_argument("--zoo", required=True, help="the dataset (a zoo, split or imported folder)")
+    cv.add_argument("--out", required=True, help="folder for score.json, roc.png, calibration.png (a killed run resumes here)")
+    cv.add_argument("--folds", type=_positive_int, default=5, help="stratified folds, at most the smaller label's count (default 5)")
+    cv.add_argument("--param", action="append", metavar="KEY=VALUE", help="a detector parameter (repeatable; values read as JSON)")
+    cv.add_argument("--factor", action="append", metavar="COLUMN", help="another METADATA.csv column to break the scores down by (repeatable)")
+    cv.add_argument("--resamples", type=_positive_int, default=2000, help="bootstrap resamples for the CIs (default 2000)")
+    cv.add_argument("--seed", type=int, default=0, help="seed of the folds and the bootstrap (default 0)")
+    cv.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
+    cv.add_argument("--quiet", action="store_true", help="no progress lines")
+    cv.set_defaults(func=cmd_cv)
 
     se = sub.add_parser("search", help="the behavioural trigger search on one model folder: the candidate trigger that fires it, against the clean env")
     se.add_argument("model", metavar="MODEL", help="a model folder: model.pt (reduced-config.json and clean-example-data/ when there)")

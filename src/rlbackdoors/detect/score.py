@@ -10,6 +10,10 @@ metadata factor (architecture, trigger family, ...), per-model rows (probability
 error, and what the detector reports, e.g. the trigger a search found, next to the true
 trigger, read from config.json for the report only), ``score.json``, ``roc.png`` and
 ``calibration.png``.
+
+A dataset too small to split into train and test zoos of a useful size (Safety Car Goal, whose
+models take CPU-hours each) is scored by cross-validation instead (:func:`cross_validate`,
+``detect cv``): the same metrics over out-of-fold probabilities.
 """
 
 from __future__ import annotations
@@ -20,12 +24,13 @@ import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
 from rlbackdoors import __version__
 from rlbackdoors.detect import metrics
-from rlbackdoors.detect.api import Detector, FeatureDetector, Prediction
+from rlbackdoors.detect.api import FAILED_PROBABILITY, Detector, FeatureDetector, Prediction, make_detector
 from rlbackdoors.detect.dataset import FACTORS, ZooModel, list_models
 from rlbackdoors.detect.handle import DetectError, ModelHandle, open_model
 from rlbackdoors.detect.resume import ResultStore, clear, eta, state_digest
@@ -71,26 +76,8 @@ def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | N
     resumed = 0
     if isinstance(detector, FeatureDetector):
         store = ResultStore(work, "fit", {"detector": detector.name, "params": detector.params}) if work is not None else None
-        done = store.stored(models) if store else {}
-        resumed = len(done)
-        if progress and resumed:
-            progress(f"resuming: features of {resumed} of {len(models)} models were computed before")
-        rows, groups, computed, spent = [], [], 0, 0.0
-        for i, model in enumerate(models):
-            result = done.get(model.name)
-            if result is None:
-                begun = time.perf_counter()
-                handle = open_one(model)
-                result = {"features": detector.fit_features(handle), "group": detector.group(handle)}
-                if store:
-                    store.put(model.name, model.folder, result)
-                took = time.perf_counter() - begun
-                computed, spent = computed + 1, spent + took
-                if progress:
-                    progress(f"[{i + 1}/{len(models)}] {model.name}: features in {took:.2f} s{eta(computed, len(models) - resumed, spent)}")
-            rows.append(result["features"])
-            groups.append(result["group"])
-        detector.fit_rows(rows, groups, labels)
+        results, resumed = feature_rows(detector, models, store, progress, strict=True)
+        detector.fit_rows([r["features"] for r in results], [r["group"] for r in results], labels)
     else:
         detector.fit(open_all(models), labels)
     seconds = time.perf_counter() - started
@@ -103,6 +90,41 @@ def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | N
         "seconds_per_model": round(seconds / len(models), 4),
         "rlbackdoors": __version__,
     }
+
+
+def feature_rows(
+    detector: FeatureDetector, models: list[ZooModel], store: ResultStore | None, progress: Callable[[str], None] | None, strict: bool
+) -> tuple[list[dict], int]:
+    """Each model's ``{"features", "group", "info", "seconds"}`` (read back from ``store`` where
+    done before, else computed and stored as it comes) and how many were read back. ``strict``
+    (a fit, which needs every model): a model that fails stops the job; otherwise (a
+    cross-validation) it gets ``{"error": why}`` and is not stored, so a rerun tries it again."""
+    done = store.stored(models) if store else {}
+    if progress and done:
+        progress(f"resuming: features of {len(done)} of {len(models)} models were computed before")
+    results, computed, spent = [], 0, 0.0
+    for i, model in enumerate(models):
+        result = done.get(model.name)
+        if result is None:
+            begun = time.perf_counter()
+            detector.last_info = {}
+            try:
+                handle = open_one(model)
+                result = {"features": detector.fit_features(handle), "group": detector.group(handle), "info": dict(detector.last_info)}
+            except DetectError as err:
+                if strict:
+                    raise
+                result = {"error": str(err)}
+            took = time.perf_counter() - begun
+            result["seconds"] = round(took, 4)
+            if store and "error" not in result:
+                store.put(model.name, model.folder, result)
+            computed, spent = computed + 1, spent + took
+            if progress:
+                why = f" ({result['error']})" if "error" in result else ""
+                progress(f"[{i + 1}/{len(models)}] {model.name}: features in {took:.2f} s{why}{eta(computed, len(models) - len(done), spent)}")
+        results.append(result)
+    return results, len(done)
 
 
 def fit_into(detector: Detector, zoo: str | Path, out: str | Path, progress: Callable[[str], None] | None = None, extra: dict | None = None) -> dict:
@@ -182,15 +204,91 @@ def score(
             )
         result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
         if out is not None:
-            out = Path(out)
-            atomic_write_text(out / "score.json", json.dumps(_jsonable(result), indent=2) + "\n")
-            p, y = np.array([r["probability"] for r in rows]), np.array([r["label"] for r in rows])
-            title = f"{detector.name} on {Path(zoo).name}"
-            metrics.plot_roc(p, y, [str(r.get("world", "")) for r in rows], out / "roc.png", title=f"ROC: {title}")
-            metrics.plot_calibration(p, y, out / "calibration.png", title=f"calibration: {title}")
-            result["written"] = [str(out / n) for n in ("score.json", "roc.png", "calibration.png")]
+            _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name}")
             clear(out)
     return result
+
+
+def cross_validate(
+    detector: Detector,
+    zoo: str | Path,
+    out: str | Path,
+    folds: int = 5,
+    factors: Sequence[str] = FACTORS,
+    resamples: int = metrics.RESAMPLES,
+    seed: int = metrics.SEED,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """Out-of-fold scores of a feature detector on one dataset, for a world whose models are too
+    dear to make both a train and a test zoo of a useful size.
+
+    Features are computed once per model (kept in ``out`` as they come: a killed run resumes);
+    the models are dealt into ``folds`` stratified folds (``seed``), and each fold is predicted by
+    a fresh detector fitted on the others, so every probability comes from a classifier that never
+    saw that model. A model whose features fail gets 0.5 and the reason, and trains no fold. The
+    result is what :func:`score` writes (``score.json`` with a ``cv`` section, the plots)."""
+    from sklearn.model_selection import StratifiedKFold
+
+    if not isinstance(detector, FeatureDetector):
+        raise DetectError(f"detector {detector.name!r} is not a features-and-classifier detector; cross-validation refits only the classifier")
+    if folds < 2:
+        raise DetectError(f"--folds must be at least 2, got {folds}")
+    models = list_models(zoo)
+    with holding(out, "cross-validation folder"):
+        store = ResultStore(out, "features", {"detector": detector.name, "params": detector.params})
+        if progress:
+            progress(f"cross-validating {detector.name} on {len(models)} models of {zoo}")
+        results, resumed = feature_rows(detector, models, store, progress, strict=False)
+        usable = np.array([i for i, r in enumerate(results) if "error" not in r], dtype=np.int64)
+        y = np.array([m.label for m in models])
+        smallest = min(int(y[usable].sum()), len(usable) - int(y[usable].sum())) if len(usable) else 0
+        if smallest < 2:
+            raise DetectError(f"cross-validation needs at least 2 models of each label with features; {zoo} has {smallest} of one")
+        k = min(folds, smallest)
+        if progress and k < folds:
+            progress(f"{k} folds, not {folds}: the smaller label has {smallest} models")
+        probability = np.full(len(models), FAILED_PROBABILITY)
+        fold_of = np.full(len(models), -1)
+        info: list[dict] = [dict(r.get("info") or {}) for r in results]
+        split = StratifiedKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros((len(usable), 1)), y[usable])
+        for f, (train, test) in enumerate(split):
+            member = cast(FeatureDetector, make_detector(detector.name, **detector.params))
+            member.fit_rows([results[i]["features"] for i in usable[train]], [results[i]["group"] for i in usable[train]], y[usable[train]])
+            for i in usable[test]:
+                member.last_info = {}
+                probability[i] = member.classify(results[i]["features"], results[i]["group"])
+                fold_of[i] = f
+                info[i].update(member.last_info)
+        rows = []
+        for i, model in enumerate(models):
+            facts = model.facts()
+            rows.append(
+                {
+                    "model": model.name,
+                    "label": model.label,
+                    "probability": float(probability[i]),
+                    "seconds": results[i]["seconds"],
+                    "error": results[i].get("error"),
+                    "fold": int(fold_of[i]),
+                    **facts,
+                    **info[i],
+                    **{f: model.metadata.get(f, facts.get(f, "")) for f in factors},
+                }
+            )
+        result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
+        result["cv"] = {"folds": k, "seed": seed, "scheme": "stratified k-fold; features once per model, the classifier refitted per fold"}
+        _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name} ({k}-fold cross-validation)")
+        clear(out)
+    return result
+
+
+def _write_score(out: Path, result: dict, rows: list[dict], title: str) -> None:
+    """score.json, roc.png and calibration.png into ``out``; their paths into ``result``."""
+    atomic_write_text(out / "score.json", json.dumps(_jsonable(result), indent=2) + "\n")
+    p, y = np.array([r["probability"] for r in rows]), np.array([r["label"] for r in rows])
+    metrics.plot_roc(p, y, [str(r.get("world", "")) for r in rows], out / "roc.png", title=f"ROC: {title}")
+    metrics.plot_calibration(p, y, out / "calibration.png", title=f"calibration: {title}")
+    result["written"] = [str(out / n) for n in ("score.json", "roc.png", "calibration.png")]
 
 
 def _summarise(detector: Detector, zoo: str | Path, rows: list[dict], factors: Sequence[str], resamples: int, seed: int, resumed: int) -> dict:

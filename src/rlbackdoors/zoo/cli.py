@@ -213,7 +213,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     from rlbackdoors.config import EVAL_POLICIES
 
     im = sub.add_parser("import-trojai", help="index a TrojAI RL round's model folders as a zoo (read as data, never unpickled; docs/trojai.md)")
-    im.add_argument("dir", help="TrojAI folder: a round (models/id-*/ or id-*/), or one model folder (only read)")
+    im.add_argument("dir", help="TrojAI folder: a round (models/id-*/ or id-*/), or one model folder; or folders rlbackdoors train wrote (only read)")
     im.add_argument("--out", required=True, help="zoo folder to write (new or empty; the same import again adds only what is new)")
     im.add_argument("--world", help="world of every model (default: from the TrojAI class each folder names)")
     im.add_argument("--arch", help="architecture of every model (needs --world; default: from the TrojAI class, else the one the shapes fit)")

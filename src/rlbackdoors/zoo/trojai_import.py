@@ -18,6 +18,11 @@ detectors (``detect fit`` / ``detect score``) run on TrojAI's own models:
   shapes, its tensors mapped to our keys by the world (``World.trojai_weights``). The env
   settings come from TrojAI's keys (``grid_size``, ``num_lava_squares``, ``max_steps`` /
   ``max_episode_length``, and the keys the world's ``trojai_env`` reads), flags on top.
+* **Our own training folders** (what ``rlbackdoors train`` wrote: a ``config.json`` with a
+  ``format_version`` and an ``env.name`` of a registered world) import the same way, so a few
+  models trained one by one (a world whose models take CPU-hours) become a dataset that
+  ``detect cv`` scores: their world, env settings and trigger are the ones their config
+  recorded, not guessed, and METADATA.csv names the trigger instead of ``unknown``.
 * **What is written**, per model ``ZOO/models/id-X/``: ``model.pt`` (the flat state dict, saved
   as plain tensors), ``config.json`` (what :func:`rlbackdoors.load` reads), ``ground_truth.csv``
   (copied), ``metrics.json`` (clean SR and reward measured here in our world, ``--episodes``;
@@ -81,6 +86,7 @@ class SourceModel:
     digest: dict[str, str]  # file name -> sha256 of every file read
     config: dict  # our config.json's content (checked)
     configs: dict[str, dict] = field(default_factory=dict)
+    own_trigger: str | None = None  # the trigger our own config.json recorded (a folder train wrote)
 
     def provenance(self, options: dict) -> dict:
         return {
@@ -94,6 +100,7 @@ class SourceModel:
             "label": self.label,
             "sha256": self.digest,
             "options": options,
+            "own_trigger": self.own_trigger,
         }
 
 
@@ -172,6 +179,25 @@ def _round_env(world: worlds.World, configs: dict[str, dict], where: str) -> dic
     return found
 
 
+def own_run_config(configs: dict[str, dict], world: worlds.World) -> dict | None:
+    """The ``config.json`` of a folder that this package's ``train`` wrote for ``world`` (a
+    ``format_version``, an ``env`` section naming the world, a ``poison`` section), else None."""
+    data = configs.get("config.json") or {}
+    env, poison = data.get("env"), data.get("poison")
+    if isinstance(data.get("format_version"), int) and isinstance(env, dict) and env.get("name") == world.name and isinstance(poison, dict):
+        return data
+    return None
+
+
+def _our_world(configs: dict[str, dict]) -> worlds.World | None:
+    """The world our own ``config.json`` names (``env.name``), if it names a registered one."""
+    env = (configs.get("config.json") or {}).get("env")
+    name = env.get("name") if isinstance(env, dict) else None
+    if isinstance(name, str) and name in {w.name for w in worlds.registered()}:
+        return worlds.get(name)
+    return None
+
+
 def _world_of_configs(configs: dict[str, dict], where: str) -> worlds.World | None:
     """The one world whose round TrojAI's configs describe (:attr:`World.trojai_env`), if any."""
     owners = [w for w in worlds.registered() if _round_env(w, configs, where) is not None]
@@ -228,8 +254,11 @@ def read_source(
         except ValueError:
             model_class = None
     by_config = _world_of_configs(configs, str(folder)) if model_class is None else None
+    ours = _our_world(configs)
     if world_name is not None:
         world = worlds.get(world_name)
+    elif ours is not None:  # a folder this package's train wrote: its config names the world
+        world = ours
     elif by_config is not None:  # a round whose config names its env, not a class
         world = by_config
     elif model_class is not None:
@@ -271,7 +300,15 @@ def read_source(
         label = int(lines[0].strip())
     elif label is None:
         raise ZooError(f"{str(folder)!r} has no ground_truth.csv; give the label of such folders with --label 0|1")
-    env = env_settings(world, configs, overrides, str(folder))
+    own, own_trigger = own_run_config(configs, world), None
+    if own is not None:  # what train recorded is known, not guessed: its env settings and trigger
+        allowed = (*world.env_fields, "max_steps")
+        env = {k: v for k, v in own["env"].items() if k in allowed}
+        env.update(env_settings(world, {}, overrides, str(folder)))
+        if trigger is None and isinstance(own["poison"].get("trigger"), str):
+            trigger = own_trigger = own["poison"]["trigger"]
+    else:
+        env = env_settings(world, configs, overrides, str(folder))
     config = run_config(world, arch, env, label, trigger, str(folder), section)
     if world.algorithm == "opac2":
         from rlbackdoors.agent import opac2_policy
@@ -282,7 +319,7 @@ def read_source(
             opac2_policy(RunConfig.from_dict(config), state, weights_file)  # fits, by key, shape and value
         except FolderError as err:
             raise ZooError(str(err)) from None
-    return SourceModel(folder, weights_file, name, world.name, arch, model_class, env, label, state, digest, config, configs)
+    return SourceModel(folder, weights_file, name, world.name, arch, model_class, env, label, state, digest, config, configs, own_trigger)
 
 
 def run_config(world: worlds.World, arch: str, env: dict, label: int, trigger: str | None, where: str, network: dict | None = None) -> dict:
@@ -533,19 +570,26 @@ def states(zoo: str | Path) -> list:
         info = _json_or_empty(folder / "trojai.json")
         config, metrics = _json_or_empty(folder / "config.json"), _json_or_empty(folder / "metrics.json")
         found.append((folder, info, config, metrics))
-    cells: dict[tuple[str, str], Cell] = {}
-    groups: dict[tuple[str, str, bool], Group] = {}
-    family = TriggerFamily(name=UNKNOWN_TRIGGER)
+    cells: dict[tuple[str, str, str], Cell] = {}
+    groups: dict[tuple[str, str, str, bool], Group] = {}
+
+    def key(info: dict) -> tuple[str, str, str]:
+        """Cell of a model: world x arch x trigger family (known for --trigger or our own folders)."""
+        trigger = (info.get("options") or {}).get("trigger") or info.get("own_trigger")
+        return str(info.get("world")), str(info.get("arch")), str(trigger).split(":")[0] if trigger else UNKNOWN_TRIGGER
+
     for _, info, _, _ in found:
-        key = (str(info.get("world")), str(info.get("arch")))
-        if key not in cells:
-            n = sum(1 for _, i, _, _ in found if (str(i.get("world")), str(i.get("arch"))) == key)
-            cells[key] = Cell(entry=len(cells), world=key[0], arch=key[1], trigger=family, clean=n, poisoned=n, max_attempts=n, overrides={})
+        if key(info) not in cells:
+            n = sum(1 for _, i, _, _ in found if key(i) == key(info))
+            world, arch, family = key(info)
+            cells[key(info)] = Cell(
+                entry=len(cells), world=world, arch=arch, trigger=TriggerFamily(name=family), clean=n, poisoned=n, max_attempts=n, overrides={}
+            )
     out: list[ModelState] = []
     for folder, info, config, metrics in found:
-        cell = cells[(str(info.get("world")), str(info.get("arch")))]
+        cell = cells[key(info)]
         poisoned = bool(info.get("label"))
-        group = groups.setdefault((cell.world, cell.arch or "", poisoned), Group(index=len(groups), cell=cell, poisoned=poisoned, id_offset=0))
+        group = groups.setdefault((*key(info), poisoned), Group(index=len(groups), cell=cell, poisoned=poisoned, id_offset=0))
         number = int(folder.name[3:]) if ID_NAME.match(folder.name) else len(out)
         out.append(ModelState(PlannedModel(number, group, 0), folder, "done", config, metrics))
     return out
@@ -557,7 +601,8 @@ def metadata_text(zoo: str | Path) -> str:
     rows = metadata_rows(states(zoo))
     for row in rows:
         info = _json_or_empty(Path(zoo) / "models" / row["model_name"] / "trojai.json")
-        if row.get("poison.trigger") is not None and not (info.get("options") or {}).get("trigger"):
+        known = (info.get("options") or {}).get("trigger") or info.get("own_trigger")  # --trigger, or the one train recorded
+        if row.get("poison.trigger") is not None and not known:
             row["poison.trigger"] = UNKNOWN_TRIGGER  # the config's is the world's default, not the model's
         row["trojai.source"] = info.get("source", "")
         row["trojai.model_class"] = info.get("model_class") or ""

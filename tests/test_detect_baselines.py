@@ -399,3 +399,31 @@ def test_the_stack_beats_each_member_when_their_evidence_is_independent():
         assert log_loss(y_test, p) < log_loss(y_test, member), name
     again = make_detector("stack").fit_rows(train, [group] * len(train), y_train)  # deterministic
     assert again.get_state() == stack.get_state()
+
+
+def test_the_formation_grid_holds_every_pair_of_lidar_bins_once():
+    """The agent sees the cubes in a 16-bin pseudo-lidar, one group for both cubes, so the grid
+    at distance 0.5 is every unordered pair of bin headings 1.5 to 8 bins apart, each once
+    (phi1, eta and its swap phi1 + eta, 2 pi - eta are one formation)."""
+    from rlbackdoors.detect.baselines import search_formation as family
+    from rlbackdoors.triggers.formation import ETA_RANGE, FormationTrigger
+
+    specs = family.candidates(None, np.random.default_rng(0), family.CANDIDATES)
+    assert len(specs) == family.CANDIDATES == 216
+    halves = set()
+    for spec in specs:
+        t = FormationTrigger.parse(spec)
+        assert t.distance == 0.5
+        a, b = (round(x / (family.BIN / 2)) % 32 for x in (t.phi1, t.phi1 + t.eta))
+        assert abs(t.phi1 / (family.BIN / 2) - round(t.phi1 / (family.BIN / 2))) < 1e-9
+        halves.add(frozenset((a, b)))
+    assert len(halves) == 216  # no formation twice, not even swapped
+    for k in range(16):  # every pair of whole bins at least 2 apart (45 degrees) is there
+        for sep in range(2, 9):
+            assert frozenset((2 * k % 32, (2 * k + 2 * sep) % 32)) in halves
+    # neighbours turn phi1 or eta by half a bin, eta kept in the family's range (here its 30 degrees)
+    first = FormationTrigger.parse(specs[0])
+    assert (first.phi1, first.eta) == (0.0, 1.5 * family.BIN)
+    half = family.BIN / 2
+    expected = {family._spec(0.5, p, e) for p, e in ((half, first.eta), (-half, first.eta), (0.0, first.eta + half), (0.0, ETA_RANGE[0]))}
+    assert set(family.neighbours(specs[0], None, np.random.default_rng(0), 4)) == expected

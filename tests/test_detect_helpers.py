@@ -113,3 +113,20 @@ def world_models(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("worlds")
     triggers = {"safety-car-goal": "formation:0.5:1.0:2.5"}
     return {w: make_model(root / f"id-{i:08d}", w, True, 1, triggers.get(w)) for i, w in enumerate(TINY)}
+
+
+class KillAfter:
+    """A progress callback that records its lines and raises KeyboardInterrupt (Ctrl-C) once
+    ``n`` models have been computed: the job dies between two models, as a kill would leave it."""
+
+    def __init__(self, n: int | None):
+        self.n, self.lines = n, []
+
+    def __call__(self, line: str) -> None:
+        self.lines.append(line)
+        if self.n is not None and sum(x.startswith("[") for x in self.lines) >= self.n:
+            raise KeyboardInterrupt
+
+    @property
+    def computed(self) -> int:
+        return sum(x.startswith("[") for x in self.lines)

@@ -14,27 +14,11 @@ from rlbackdoors.detect.cli import main
 from rlbackdoors.detect.resume import PARTIAL
 from rlbackdoors.detect.score import fit_into, score
 from rlbackdoors.io import FolderLock
+from test_detect_helpers import KillAfter
 
 pytest_plugins = ("test_detect_helpers",)  # its session fixtures: lava_zoo
 
 PARAMS = {"min_per_class": 1}
-
-
-class KillAfter:
-    """A progress callback that records its lines and raises KeyboardInterrupt (Ctrl-C) once
-    ``n`` models have been computed: the job dies between two models, as a kill would leave it."""
-
-    def __init__(self, n: int | None):
-        self.n, self.lines = n, []
-
-    def __call__(self, line: str) -> None:
-        self.lines.append(line)
-        if self.n is not None and sum(x.startswith("[") for x in self.lines) >= self.n:
-            raise KeyboardInterrupt
-
-    @property
-    def computed(self) -> int:
-        return sum(x.startswith("[") for x in self.lines)
 
 
 def _fitted(zoo, folder):

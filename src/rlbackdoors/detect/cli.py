@@ -198,6 +198,15 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _scoring_options(parser: argparse.ArgumentParser, seed: str) -> None:
+    """What ``score`` and ``cv`` share: breakdowns, bootstrap, output."""
+    parser.add_argument("--factor", action="append", metavar="COLUMN", help="another METADATA.csv column to break the scores down by (repeatable)")
+    parser.add_argument("--resamples", type=_positive_int, default=2000, help="bootstrap resamples for the CIs (default 2000)")
+    parser.add_argument("--seed", type=int, default=0, help=seed)
+    parser.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
 def add_commands(parser: argparse.ArgumentParser) -> None:
     """The detect sub-commands on ``parser`` (``rlbackdoors detect``, or the standalone parser)."""
     sub = parser.add_subparsers(dest="detect_command", required=True, parser_class=Parser)
@@ -217,12 +226,8 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     sc.add_argument("detector_dir", metavar="DET", help="folder written by detect fit (or configure)")
     sc.add_argument("--zoo", required=True, help="test zoo or split")
     sc.add_argument("--out", help="folder for score.json, roc.png, calibration.png (default: DET/score-<zoo name>)")
-    sc.add_argument("--factor", action="append", metavar="COLUMN", help="another METADATA.csv column to break the scores down by (repeatable)")
     sc.add_argument("--param", action="append", metavar="KEY=VALUE", help="change a parameter that does not alter the features (e.g. a search's seconds)")
-    sc.add_argument("--resamples", type=_positive_int, default=2000, help="bootstrap resamples for the CIs (default 2000)")
-    sc.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
-    sc.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
-    sc.add_argument("--quiet", action="store_true", help="no progress lines")
+    _scoring_options(sc, seed="bootstrap seed (default 0)")
     sc.set_defaults(func=cmd_score)
 
     cv = sub.add_parser("cv", help="cross-validate a features-and-classifier detector on one dataset too small to split: out-of-fold AUC, CE, Brier")
@@ -231,11 +236,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     cv.add_argument("--out", required=True, help="folder for score.json, roc.png, calibration.png (a killed run resumes here)")
     cv.add_argument("--folds", type=_positive_int, default=5, help="stratified folds, at most the smaller label's count (default 5)")
     cv.add_argument("--param", action="append", metavar="KEY=VALUE", help="a detector parameter (repeatable; values read as JSON)")
-    cv.add_argument("--factor", action="append", metavar="COLUMN", help="another METADATA.csv column to break the scores down by (repeatable)")
-    cv.add_argument("--resamples", type=_positive_int, default=2000, help="bootstrap resamples for the CIs (default 2000)")
-    cv.add_argument("--seed", type=int, default=0, help="seed of the folds and the bootstrap (default 0)")
-    cv.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
-    cv.add_argument("--quiet", action="store_true", help="no progress lines")
+    _scoring_options(cv, seed="seed of the folds and the bootstrap (default 0)")
     cv.set_defaults(func=cmd_cv)
 
     se = sub.add_parser("search", help="the behavioural trigger search on one model folder: the candidate trigger that fires it, against the clean env")

@@ -31,7 +31,6 @@ def test_each_probability_comes_from_a_detector_fitted_without_its_model(lava_zo
     result = json.loads((out / "score.json").read_text())
     assert result["cv"]["folds"] == 3 and result["all"]["n"] == 6 and result["failed"] == 0
     assert all((out / name).read_bytes()[:4] == b"\x89PNG" for name in ("roc.png", "calibration.png"))
-    assert not (out / PARTIAL).exists()
     rows = {r["model"]: r for r in result["models"]}
     folds = sorted({r["fold"] for r in rows.values()})
     assert folds == [0, 1, 2]
@@ -45,9 +44,11 @@ def test_each_probability_comes_from_a_detector_fitted_without_its_model(lava_zo
         detector = make_detector("weights", **PARAMS).fit([open_one(m) for m in train], np.array([m.label for m in train]))
         expected = detector.predict_proba([open_one(m) for m in test])
         assert np.allclose([rows[m.name]["probability"] for m in test], expected, rtol=0, atol=1e-12)
-    # Another fold seed deals the models differently; the features are not recomputed for it.
-    other = cross_validate(make_detector("weights", **PARAMS), lava_zoo, tmp_path / "cv-seed", folds=3, seed=5, resamples=50)
+    # Another fold seed deals the models differently; the features kept in the folder are reused.
+    again = KillAfter(None)
+    other = cross_validate(make_detector("weights", **PARAMS), lava_zoo, out, folds=3, seed=5, resamples=50, progress=again)
     assert [r["fold"] for r in other["models"]] != [rows[m.name]["fold"] for m in models]
+    assert again.computed == 0 and other["resumed"] == 6
 
 
 def test_a_killed_cv_resumes_and_gives_the_uninterrupted_result(lava_zoo, tmp_path):

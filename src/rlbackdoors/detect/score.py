@@ -222,7 +222,8 @@ def cross_validate(
     """Out-of-fold scores of a feature detector on one dataset, for a world whose models are too
     dear to make both a train and a test zoo of a useful size.
 
-    Features are computed once per model (kept in ``out`` as they come: a killed run resumes);
+    Features are computed once per model and kept in ``out`` (a killed run resumes; a rerun with
+    more models, other folds or another seed computes only the new models' features);
     the models are dealt into ``folds`` stratified folds (``seed``), and each fold is predicted by
     a fresh detector fitted on the others, so every probability comes from a classifier that never
     saw that model. A model whose features fail gets 0.5 and the reason, and trains no fold. The
@@ -278,7 +279,8 @@ def cross_validate(
         result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
         result["cv"] = {"folds": k, "seed": seed, "scheme": "stratified k-fold; features once per model, the classifier refitted per fold"}
         _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name} ({k}-fold cross-validation)")
-        clear(out)
+        # The features stay (unlike a fit's or a score's): a dataset that gains models, or other
+        # folds, computes only what is new.
     return result
 
 

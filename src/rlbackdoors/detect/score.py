@@ -11,8 +11,8 @@ error, and what the detector reports, e.g. the trigger a search found, next to t
 trigger, read from config.json for the report only), ``score.json``, ``roc.png`` and
 ``calibration.png``.
 
-A dataset too small to split into train and test zoos of a useful size (Safety Car Goal, whose
-models take CPU-hours each) is scored by cross-validation instead (:func:`cross_validate`,
+A dataset too small to split into train and test zoos of a useful size (a world whose models
+take CPU-hours each) is scored by cross-validation instead (:func:`cross_validate`,
 ``detect cv``): the same metrics over out-of-fold probabilities.
 """
 

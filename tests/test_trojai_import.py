@@ -625,7 +625,9 @@ def test_our_own_training_folders_import_with_the_world_settings_and_trigger_the
     out = tmp_path / "zoo"
     code, stdout, err = run_cli(capsys, "zoo", "import-trojai", source, "--out", out, "--episodes", "0", "--examples", "1", "--json")
     assert code == 0, err
-    assert json.loads(stdout)["written"] == 2 and tree_digest(source) == before
+    summary = json.loads(stdout)
+    assert summary["written"] == 2 and tree_digest(source) == before
+    assert [m["class"] for m in summary["per_model"]] == [None, None]  # our reduced config's arch is no TrojAI class
     rows = {r["trojai.source"].rsplit("/", 1)[-1]: r for r in read_metadata(out / "METADATA.csv")}
     assert rows["poisoned-run"]["poison.trigger"] == "additive:50" and rows["poisoned-run"]["poisoned"] == "True"
     assert rows["clean-run"]["poison.trigger"] == "multiplicative:12" and rows["clean-run"]["poisoned"] == "False"

@@ -246,7 +246,8 @@ def read_source(
     weights_file = next(folder / n for n in WEIGHT_FILES if (folder / n).is_file())
     configs = {n: _read_json(folder / n) for n in CONFIG_FILES if (folder / n).is_file()}
     digest = {p.name: _sha256(p) for p in [weights_file, *(folder / n for n in configs)]}
-    model_class = _class_from_configs(configs)
+    ours = _our_world(configs)
+    model_class = None if ours is not None else _class_from_configs(configs)  # our reduced config's "arch" is no TrojAI class
     if model_class is None:  # a pickled module names its class itself
         try:
             file = read_torch_file(weights_file, "weights file")
@@ -254,7 +255,6 @@ def read_source(
         except ValueError:
             model_class = None
     by_config = _world_of_configs(configs, str(folder)) if model_class is None else None
-    ours = _our_world(configs)
     if world_name is not None:
         world = worlds.get(world_name)
     elif ours is not None:  # a folder this package's train wrote: its config names the world

@@ -81,3 +81,25 @@ def test_a_second_process_is_refused_while_a_job_holds_the_folder(lava_zoo, tmp_
         code = main(["fit", "--detector", "weights", "--zoo", str(lava_zoo), "--out", str(tmp_path / "det2"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("rlbackdoors: error: detector folder ") and "is in use by process" in err[0]
+
+
+def test_the_source_digest_follows_every_python_file_of_the_package(tmp_path):
+    """Stored results are keyed by the package's source too: a search whose code changed within
+    one version (a new candidate grid) must not read back features of the old code."""
+    from pathlib import Path
+
+    import rlbackdoors
+    from rlbackdoors.detect.resume import ResultStore, source_digest
+
+    package = tmp_path / "rlbackdoors"
+    shutil.copytree(Path(rlbackdoors.__file__).parent, package, ignore=shutil.ignore_patterns("__pycache__"))
+    assert source_digest(package) == source_digest()  # the copy is the installed code
+    family = package / "detect" / "baselines" / "search_formation.py"
+    family.write_text(family.read_text().replace("CANDIDATES = 216", "CANDIDATES = 48"))
+    assert source_digest(package) != source_digest()
+    (package / "notes.txt").write_text("not code")
+    family.write_text(family.read_text().replace("CANDIDATES = 48", "CANDIDATES = 216"))
+    assert source_digest(package) == source_digest()  # only .py files count
+    # the same job and key map to one folder; another detector key to another
+    assert ResultStore(tmp_path, "fit", {"detector": "weights"}).folder == ResultStore(tmp_path, "fit", {"detector": "weights"}).folder
+    assert ResultStore(tmp_path, "fit", {"detector": "weights"}).folder != ResultStore(tmp_path, "fit", {"detector": "behaviour"}).folder

@@ -4,8 +4,9 @@ resumes where it stopped.
 A detector's work on one model (its features for a fit, its prediction for a score) can take
 minutes (a behavioural search in a MuJoCo world), and a zoo has hundreds of models. Each
 model's result is written atomically to ``OUT/.partial/<job>-<key>/<model>.json`` once it
-exists; the same job started again (same detector name, parameters, rlbackdoors version and,
-for a score, the same learned state) reads it instead of redoing the work. A result is reused
+exists; the same job started again (same detector name, parameters, rlbackdoors version, the same
+source code of the package, and, for a score, the same learned state) reads it instead of redoing
+the work: a detector whose code changed within one version (a new search grid) computes afresh. A result is reused
 only for the same bytes of the files a detector may read (``model.pt``, ``reduced-config.json``,
 ``clean-example-data/``), so a model retrained in place is done again. The job holds ``OUT``'s
 lock (:class:`rlbackdoors.io.FolderLock`) while it runs, so a second process is refused by name
@@ -52,11 +53,25 @@ def state_digest(state: dict, arrays: dict[str, np.ndarray]) -> str:
     return digest.hexdigest()
 
 
+def source_digest(package: Path | None = None) -> str:
+    """SHA-256 over the package's ``.py`` files (names and bytes, in sorted order): what a
+    detector's features are computed by, its envs and agents included. ``package`` defaults to
+    the installed ``rlbackdoors``."""
+    root = package or Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        data = path.read_bytes()
+        digest.update(f"{path.relative_to(root).as_posix()}\0{len(data)}\0".encode())
+        digest.update(data)
+    return digest.hexdigest()
+
+
 class ResultStore:
-    """The finished per-model results of one job (``job``: "fit" or "score") in ``out``."""
+    """The finished per-model results of one job (``job``: "fit", "score" or "features") in ``out``."""
 
     def __init__(self, out: str | Path, job: str, key: dict):
-        fingerprint = hashlib.sha256(json.dumps({**key, "rlbackdoors": __version__}, sort_keys=True, allow_nan=True, default=str).encode())
+        key = {**key, "rlbackdoors": __version__, "source": source_digest()}
+        fingerprint = hashlib.sha256(json.dumps(key, sort_keys=True, allow_nan=True, default=str).encode())
         self.folder = Path(out) / PARTIAL / f"{job}-{fingerprint.hexdigest()[:16]}"
         self._digests: dict[Path, str] = {}
 

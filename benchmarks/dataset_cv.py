@@ -34,6 +34,7 @@ from pathlib import Path
 from _detect_cli import rlbackdoors
 
 from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.detect.dataset import read_metadata
 from rlbackdoors.io import atomic_write_text, remove_tree
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,8 +69,7 @@ def main() -> None:
             link.unlink(missing_ok=True)
             link.symlink_to(folder, target_is_directory=True)
     zoo = work / "zoo"
-    index = zoo / "METADATA.csv"
-    if index.is_file() and sorted(line.split(",", 1)[0] for line in index.read_text().splitlines()[1:]) != sorted(names):
+    if (zoo / "METADATA.csv").is_file() and sorted(read_metadata(zoo)) != sorted(names):
         remove_tree(zoo)  # other folders than last time: a fresh import (features are reused by name)
     rlbackdoors("zoo", "import-trojai", str(source), "--out", str(zoo), "--episodes", "0", "--examples", str(args.examples), quiet=True)
     results = {}
@@ -83,7 +83,9 @@ def main() -> None:
             row["folder"] = str(names[row["model"]].relative_to(ROOT)) if names[row["model"]].is_relative_to(ROOT) else str(names[row["model"]])
         results[detector] = {k: scored[k] for k in ("params", "all", "cv", "seconds_per_model", "failed", "models")}
         s = scored["all"]
-        print(f"{detector}: AUC {s['auc']['value']:.3f} CE {s['ce']['value']:.3f} Brier {s['brier']['value']:.3f} over {s['n']} models ({s['poisoned']} poisoned)")
+        print(
+            f"{detector}: AUC {s['auc']['value']:.3f} CE {s['ce']['value']:.3f} Brier {s['brier']['value']:.3f} over {s['n']} models ({s['poisoned']} poisoned)"
+        )
     out_file = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
     payload = {"command": " ".join(sys.argv[1:]), "models": len(folders), "detectors": results, "machine": machine_info(), "loadavg": os.getloadavg()}
     atomic_write_text(out_file, json.dumps(payload, indent=2) + "\n")

@@ -71,7 +71,7 @@ def cmd_fit(args) -> int:
 def cmd_score(args) -> int:
     from rlbackdoors.detect.api import load_detector
     from rlbackdoors.detect.dataset import FACTORS
-    from rlbackdoors.detect.score import score, table
+    from rlbackdoors.detect.score import score
 
     detector = load_detector(args.detector_dir)
     if args.param:
@@ -81,31 +81,33 @@ def cmd_score(args) -> int:
     out = Path(args.out) if args.out else Path(args.detector_dir) / f"score-{Path(args.zoo).resolve().name}"
     factors = tuple(dict.fromkeys((*FACTORS, *(args.factor or []))))
     result = score(detector, args.zoo, out, factors=factors, resamples=args.resamples, seed=args.seed, progress=_progress(args.quiet))
-    if args.json:
-        from rlbackdoors.detect.score import _jsonable
-
-        print(json.dumps(_jsonable(result), indent=2))
-    else:
-        print(table(result))
-        print(f"wrote {out / 'score.json'}, {out / 'roc.png'}, {out / 'calibration.png'}")
-    return 0
+    return _print_score(result, out, args.json)
 
 
 def cmd_cv(args) -> int:
     from rlbackdoors.detect.api import make_detector
     from rlbackdoors.detect.dataset import FACTORS
-    from rlbackdoors.detect.score import _jsonable, cross_validate, table
+    from rlbackdoors.detect.score import cross_validate
 
     detector = make_detector(args.detector, **parse_params(args.param))
     factors = tuple(dict.fromkeys((*FACTORS, *(args.factor or []))))
     out = Path(args.out)
     result = cross_validate(detector, args.zoo, out, args.folds, factors, args.resamples, args.seed, progress=_progress(args.quiet))
-    if args.json:
+    lead = f"{result['cv']['folds']}-fold cross-validation, every probability from a classifier fitted without its model"
+    return _print_score(result, out, args.json, lead)
+
+
+def _print_score(result: dict, out: Path, as_json: bool, lead: str | None = None) -> int:
+    """A score's result as JSON, or as the table with the files it wrote (``lead`` above it)."""
+    from rlbackdoors.detect.score import _jsonable, table
+
+    if as_json:
         print(json.dumps(_jsonable(result), indent=2))
-    else:
-        print(f"{result['cv']['folds']}-fold cross-validation, every probability from a classifier fitted without its model")
-        print(table(result))
-        print(f"wrote {out / 'score.json'}, {out / 'roc.png'}, {out / 'calibration.png'}")
+        return 0
+    if lead:
+        print(lead)
+    print(table(result))
+    print(f"wrote {out / 'score.json'}, {out / 'roc.png'}, {out / 'calibration.png'}")
     return 0
 
 

@@ -15,6 +15,7 @@ instead of writing over the first one's work, and a finished job removes ``.part
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import re
@@ -56,8 +57,16 @@ def state_digest(state: dict, arrays: dict[str, np.ndarray]) -> str:
 def source_digest(package: Path | None = None) -> str:
     """SHA-256 over the package's ``.py`` files (names and bytes, in sorted order): what a
     detector's features are computed by, its envs and agents included. ``package`` defaults to
-    the installed ``rlbackdoors``."""
-    root = package or Path(__file__).resolve().parents[1]
+    the installed ``rlbackdoors``, read once per process (the code that runs is the code loaded)."""
+    return _tree_digest(package) if package is not None else _installed_digest()
+
+
+@functools.cache
+def _installed_digest() -> str:
+    return _tree_digest(Path(__file__).resolve().parents[1])
+
+
+def _tree_digest(root: Path) -> str:
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
         data = path.read_bytes()

@@ -189,19 +189,7 @@ def score(
                     why = f" ({prediction.error})" if prediction.error else ""
                     left = eta(computed, len(models) - resumed, spent)
                     progress(f"[{i + 1}/{len(models)}] {model.name}: p={prediction.probability:.3f} in {prediction.seconds:.2f}s{found}{why}{left}")
-            facts = model.facts()
-            rows.append(
-                {
-                    "model": model.name,
-                    "label": model.label,
-                    "probability": cached["probability"],
-                    "seconds": cached["seconds"],
-                    "error": cached["error"],
-                    **facts,
-                    **cached["info"],
-                    **{f: model.metadata.get(f, facts.get(f, "")) for f in factors},
-                }
-            )
+            rows.append(_report_row(model, factors, cached["info"], probability=cached["probability"], seconds=cached["seconds"], error=cached["error"]))
         result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
         if out is not None:
             _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name}")
@@ -260,28 +248,32 @@ def cross_validate(
                 probability[i] = member.classify(results[i]["features"], results[i]["group"])
                 fold_of[i] = f
                 info[i].update(member.last_info)
-        rows = []
-        for i, model in enumerate(models):
-            facts = model.facts()
-            rows.append(
-                {
-                    "model": model.name,
-                    "label": model.label,
-                    "probability": float(probability[i]),
-                    "seconds": results[i]["seconds"],
-                    "error": results[i].get("error"),
-                    "fold": int(fold_of[i]),
-                    **facts,
-                    **info[i],
-                    **{f: model.metadata.get(f, facts.get(f, "")) for f in factors},
-                }
+        rows = [
+            _report_row(
+                model, factors, info[i], probability=float(probability[i]), seconds=results[i]["seconds"], error=results[i].get("error"), fold=int(fold_of[i])
             )
+            for i, model in enumerate(models)
+        ]
         result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
         result["cv"] = {"folds": k, "seed": seed, "scheme": "stratified k-fold; features once per model, the classifier refitted per fold"}
         _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name} ({k}-fold cross-validation)")
         # The features stay (unlike a fit's or a score's): a dataset that gains models, or other
         # folds, computes only what is new.
     return result
+
+
+def _report_row(model: ZooModel, factors: Sequence[str], info: dict, **fields) -> dict:
+    """One model's row of score.json: name, label, ``fields`` (probability, seconds, error, ...),
+    the report-only facts (true trigger ...), what the detector reported, and each factor's level."""
+    facts = model.facts()
+    return {
+        "model": model.name,
+        "label": model.label,
+        **fields,
+        **facts,
+        **info,
+        **{f: model.metadata.get(f, facts.get(f, "")) for f in factors},
+    }
 
 
 def _write_score(out: Path, result: dict, rows: list[dict], title: str) -> None:

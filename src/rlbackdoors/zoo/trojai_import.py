@@ -47,6 +47,7 @@ import os
 import re
 import shutil
 import warnings
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -179,23 +180,20 @@ def _round_env(world: worlds.World, configs: dict[str, dict], where: str) -> dic
     return found
 
 
-def own_run_config(configs: dict[str, dict], world: worlds.World) -> dict | None:
-    """The ``config.json`` of a folder that this package's ``train`` wrote for ``world`` (a
-    ``format_version``, an ``env`` section naming the world, a ``poison`` section), else None."""
+def own_run_config(configs: dict[str, dict]) -> dict | None:
+    """The ``config.json`` of a folder that this package's ``train`` wrote (a ``format_version``,
+    an ``env`` section naming a registered world, a ``poison`` section), else None."""
     data = configs.get("config.json") or {}
     env, poison = data.get("env"), data.get("poison")
-    if isinstance(data.get("format_version"), int) and isinstance(env, dict) and env.get("name") == world.name and isinstance(poison, dict):
-        return data
+    if isinstance(data.get("format_version"), int) and isinstance(env, dict) and isinstance(poison, dict):
+        if env.get("name") in {w.name for w in worlds.registered()}:
+            return data
     return None
 
 
-def _our_world(configs: dict[str, dict]) -> worlds.World | None:
-    """The world our own ``config.json`` names (``env.name``), if it names a registered one."""
-    env = (configs.get("config.json") or {}).get("env")
-    name = env.get("name") if isinstance(env, dict) else None
-    if isinstance(name, str) and name in {w.name for w in worlds.registered()}:
-        return worlds.get(name)
-    return None
+def _known_trigger(info: dict) -> str | None:
+    """An imported model's trigger where one is known (``--trigger``, or the one train recorded)."""
+    return (info.get("options") or {}).get("trigger") or info.get("own_trigger")
 
 
 def _world_of_configs(configs: dict[str, dict], where: str) -> worlds.World | None:
@@ -246,8 +244,8 @@ def read_source(
     weights_file = next(folder / n for n in WEIGHT_FILES if (folder / n).is_file())
     configs = {n: _read_json(folder / n) for n in CONFIG_FILES if (folder / n).is_file()}
     digest = {p.name: _sha256(p) for p in [weights_file, *(folder / n for n in configs)]}
-    ours = _our_world(configs)
-    model_class = None if ours is not None else _class_from_configs(configs)  # our reduced config's "arch" is no TrojAI class
+    own = own_run_config(configs)
+    model_class = None if own is not None else _class_from_configs(configs)  # our reduced config's "arch" is no TrojAI class
     if model_class is None:  # a pickled module names its class itself
         try:
             file = read_torch_file(weights_file, "weights file")
@@ -257,8 +255,8 @@ def read_source(
     by_config = _world_of_configs(configs, str(folder)) if model_class is None else None
     if world_name is not None:
         world = worlds.get(world_name)
-    elif ours is not None:  # a folder this package's train wrote: its config names the world
-        world = ours
+    elif own is not None:  # a folder this package's train wrote: its config names the world
+        world = worlds.get(own["env"]["name"])
     elif by_config is not None:  # a round whose config names its env, not a class
         world = by_config
     elif model_class is not None:
@@ -300,8 +298,8 @@ def read_source(
         label = int(lines[0].strip())
     elif label is None:
         raise ZooError(f"{str(folder)!r} has no ground_truth.csv; give the label of such folders with --label 0|1")
-    own, own_trigger = own_run_config(configs, world), None
-    if own is not None:  # what train recorded is known, not guessed: its env settings and trigger
+    own_trigger = None
+    if own is not None and own["env"]["name"] == world.name:  # what train recorded is known, not guessed: env settings, trigger
         allowed = (*world.env_fields, "max_steps")
         env = {k: v for k, v in own["env"].items() if k in allowed}
         env.update(env_settings(world, {}, overrides, str(folder)))
@@ -573,23 +571,19 @@ def states(zoo: str | Path) -> list:
     cells: dict[tuple[str, str, str], Cell] = {}
     groups: dict[tuple[str, str, str, bool], Group] = {}
 
-    def key(info: dict) -> tuple[str, str, str]:
-        """Cell of a model: world x arch x trigger family (known for --trigger or our own folders)."""
-        trigger = (info.get("options") or {}).get("trigger") or info.get("own_trigger")
-        return str(info.get("world")), str(info.get("arch")), str(trigger).split(":")[0] if trigger else UNKNOWN_TRIGGER
-
-    for _, info, _, _ in found:
-        if key(info) not in cells:
-            n = sum(1 for _, i, _, _ in found if key(i) == key(info))
-            world, arch, family = key(info)
-            cells[key(info)] = Cell(
-                entry=len(cells), world=world, arch=arch, trigger=TriggerFamily(name=family), clean=n, poisoned=n, max_attempts=n, overrides={}
-            )
+    # A model's cell: world x arch x trigger family (known for --trigger or our own folders).
+    keys = [(str(i.get("world")), str(i.get("arch")), str(t).split(":")[0] if (t := _known_trigger(i)) else UNKNOWN_TRIGGER) for _, i, _, _ in found]
+    sizes = Counter(keys)
+    for world, arch, family in sizes:
+        n = sizes[(world, arch, family)]
+        cells[(world, arch, family)] = Cell(
+            entry=len(cells), world=world, arch=arch, trigger=TriggerFamily(name=family), clean=n, poisoned=n, max_attempts=n, overrides={}
+        )
     out: list[ModelState] = []
-    for folder, info, config, metrics in found:
-        cell = cells[key(info)]
+    for (folder, info, config, metrics), key in zip(found, keys):
+        cell = cells[key]
         poisoned = bool(info.get("label"))
-        group = groups.setdefault((*key(info), poisoned), Group(index=len(groups), cell=cell, poisoned=poisoned, id_offset=0))
+        group = groups.setdefault((*key, poisoned), Group(index=len(groups), cell=cell, poisoned=poisoned, id_offset=0))
         number = int(folder.name[3:]) if ID_NAME.match(folder.name) else len(out)
         out.append(ModelState(PlannedModel(number, group, 0), folder, "done", config, metrics))
     return out
@@ -601,8 +595,7 @@ def metadata_text(zoo: str | Path) -> str:
     rows = metadata_rows(states(zoo))
     for row in rows:
         info = _json_or_empty(Path(zoo) / "models" / row["model_name"] / "trojai.json")
-        known = (info.get("options") or {}).get("trigger") or info.get("own_trigger")  # --trigger, or the one train recorded
-        if row.get("poison.trigger") is not None and not known:
+        if row.get("poison.trigger") is not None and not _known_trigger(info):
             row["poison.trigger"] = UNKNOWN_TRIGGER  # the config's is the world's default, not the model's
         row["trojai.source"] = info.get("source", "")
         row["trojai.model_class"] = info.get("model_class") or ""

@@ -47,13 +47,17 @@ FC_EXAMPLE_JUL = "rl-lavaworld-jul2023/model/rl-randomized-lavaworld-aug2023-exa
 FC_EXAMPLE_AUG = "rl-randomized-lavaworld-aug2023/model/id-00000000"
 CM_EXAMPLE = "rl-colorful-memory-sep2024/model/rl-colorful-memory-sep2024-example"
 SAFETY_EXAMPLE = "rl-safetygymnasium-oct2024/model/rl-safetygymnasium-oct2024-example"
+# The LavaWorld round's own BasicFCModel example, at the branch's commit d969b25 (a later commit
+# replaced it with the Aug 2023 file): cached under "<branch>@<commit>/"
+LAVAWORLD_COMMIT = "d969b25a8ac5e81f3b2974f8405435817b23fa28"
+LAVAWORLD_EXAMPLE = "rl-lavaworld-jul2023@d969b25/model/rl-lavaworld-jul2023-example"
 FILES = {
     "rl-lavaworld-jul2023": [
         f"{FC_EXAMPLE_JUL.partition('/')[2]}/{n}"
         for n in ("base_model.pt", "args.json", "params.json", "result.json", "reduced-config.json", "ground_truth.csv", "clean-example-data/env-string.txt")
     ],
     "rl-randomized-lavaworld-aug2023": [
-        *(f"{FC_EXAMPLE_AUG.partition('/')[2]}/{n}" for n in ("model.pt", "config.json", "ground_truth.csv")),
+        *(f"{FC_EXAMPLE_AUG.partition('/')[2]}/{n}" for n in ("model.pt", "config.json", "ground_truth.csv", "clean-example-data/env-string.txt")),
         "utils/world.py",
         "utils/wrappers.py",
         "utils/models.py",
@@ -64,6 +68,9 @@ FILES = {
         "src/public/trojai_gru_minigrid_arch.py",
     ],
     "rl-safetygymnasium-oct2024": [f"{SAFETY_EXAMPLE.partition('/')[2]}/{n}" for n in ("model.pt", "reduced-config.json")],
+    "rl-lavaworld-jul2023@d969b25": [
+        f"{LAVAWORLD_EXAMPLE.partition('/')[2]}/{n}" for n in ("model.pt", "reduced-config.json", "model.info.json", "ground_truth.csv", "clean-example-data/env-string.txt")
+    ],
 }
 MARK_BEGIN, MARK_END = "<!-- trojai-examples:begin -->", "<!-- trojai-examples:end -->"
 
@@ -82,7 +89,8 @@ def fill_cache(cache: Path, mirror: Path = DEFAULT_MIRROR) -> list[str]:
                 continue
             if not mirror.is_dir():
                 continue
-            data = subprocess.run(["git", "-C", str(mirror), "show", f"{branch}:{rel}"], capture_output=True, check=True).stdout
+            rev = LAVAWORLD_COMMIT if branch.endswith("@d969b25") else branch
+            data = subprocess.run(["git", "-C", str(mirror), "show", f"{rev}:{rel}"], capture_output=True, check=True).stdout
             target.parent.mkdir(parents=True, exist_ok=True)
             tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
             tmp.write_bytes(data)

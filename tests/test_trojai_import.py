@@ -483,7 +483,18 @@ def test_import_refuses_unknowns_with_one_line_and_writes_nothing(tmp_path, caps
     (bad / "ground_truth.csv").unlink()
     code, _, err = run_cli(capsys, "zoo", "import-trojai", bad, "--out", out, "--world", "colorful-memory", "--episodes", "0", "--examples", "0")
     assert "fits several architectures" in one_error_line(code, err)
-    code, _, err = run_cli(capsys, "zoo", "import-trojai", bad, "--out", out, "--world", "colorful-memory", "--arch", "cnn-gru-trojai", "--episodes", "0")
+    # no ground_truth.csv (a test split; the Sep and Oct 2024 examples): imported unlabelled, never as clean
+    unlabelled = tmp_path / "unlabelled"
+    code, _, err = run_cli(
+        capsys, "zoo", "import-trojai", bad, "--out", unlabelled, "--world", "colorful-memory", "--arch", "cnn-gru-trojai", "--episodes", "0", "--examples", "0"
+    )
+    assert code == 0, err
+    from rlbackdoors.zoo.index import read_metadata
+
+    assert not (unlabelled / "models" / "id-00000000" / "ground_truth.csv").exists()
+    assert [r["poisoned"] for r in read_metadata(unlabelled / "METADATA.csv")] == [""]
+    assert "unknown" in run_cli(capsys, "zoo", "status", unlabelled)[1]
+    code, _, err = run_cli(capsys, "detect", "fit", "--detector", "weights", "--zoo", unlabelled, "--out", tmp_path / "det")
     assert "ground_truth.csv" in one_error_line(code, err)
     code, _, err = run_cli(capsys, "zoo", "import-trojai", bad, "--out", out, "--world", "lavaland")
     assert "lavaland" in one_error_line(code, err) and not out.exists()

@@ -125,26 +125,21 @@ def read_weights(path: str | Path, world: str | None = None) -> tuple[dict[str, 
         raise ValueError(f"weights file {str(path)!r}: {err}") from None
 
 
-SIBLING_CONFIGS = ("reduced-config.json", "config.json")  # where a TrojAI model folder names its class
-MAX_SIBLING_BYTES = 1 << 20
-
-
 def sibling_model_class(path: str | Path) -> str | None:
-    """The model class a TrojAI ``reduced-config.json`` or ``config.json`` beside ``path`` names
-    (key ``model`` or ``arch``), read as JSON data; None if there is none."""
-    for name in SIBLING_CONFIGS:
-        config = Path(path).parent / name
-        try:
-            if not config.is_file() or config.stat().st_size > MAX_SIBLING_BYTES:
-                continue
-            data = json.loads(config.read_bytes().decode("utf-8"))
-        except (OSError, ValueError):
-            continue
-        if isinstance(data, dict):
-            for key in ("model", "arch"):
-                if isinstance(data.get(key), str):
-                    return data[key]
-    return None
+    """The model class the round files beside ``path`` name (a TrojAI ``reduced-config.json``,
+    ``config.json`` or ``model.info.json``; our own reduced config's or config's arch), read as
+    JSON data (:mod:`rlbackdoors.trojai_round`); None if there is none or they cannot be read."""
+    from rlbackdoors.trojai_round import read_round
+
+    try:
+        files = read_round(Path(path).parent)
+    except (OSError, ValueError):
+        return None
+    own = files.own_reduced() or files.own_config()
+    if own is not None:
+        arch = own.get("arch", (own.get("model") or {}).get("arch"))
+        return arch if isinstance(arch, str) else None
+    return files.model_class()[0]
 
 
 def resolve_arch(world: str, state: dict[str, torch.Tensor], model_class: str | None = None, path: str | Path | None = None) -> str:

@@ -48,6 +48,9 @@ class World:
     # our field names when it is of this world's round, None when it is not (``zoo
     # import-trojai`` picks the world by it); ValueError names a setting this world lacks.
     trojai_env: Callable[[dict], dict | None] | None = None
+    # The env field that N of a MiniGrid ``LavaCrossingS<size>N<N>`` gym id in a TrojAI round's
+    # ``clean-example-data/env-string.txt`` sets (rivers or lava squares; rlbackdoors.trojai_round)
+    trojai_env_string_count: str | None = None
     # Triggers the config of a model whose own trigger is not known (an imported TrojAI model)
     # may carry, tried after default_trigger: the first the model's env takes
     placeholder_triggers: tuple[str, ...] = ()
@@ -85,8 +88,19 @@ class World:
         return tuple(name for name, _ in self.archs)
 
     def trojai_arch(self, model_class: str) -> str | None:
-        """Our arch for a TrojAI model class of this world's round (None: not one of them)."""
-        return dict(self.trojai_archs).get(model_class)
+        """Our arch for a TrojAI model class of this world's round (None: not one of them), however
+        the round spelled the class (``BasicFCModel``, ``basicfc``: :func:`canonical_class`)."""
+        from rlbackdoors.trojai_round import canonical_class
+
+        wanted = canonical_class(model_class)
+        return next((arch for name, arch in self.trojai_archs if canonical_class(name) == wanted), None)
+
+    def trojai_class(self, model_class: str) -> str | None:
+        """The registered spelling of a TrojAI class name of this world's round, None if not one."""
+        from rlbackdoors.trojai_round import canonical_class
+
+        wanted = canonical_class(model_class)
+        return next((name for name, _ in self.trojai_archs if canonical_class(name) == wanted), None)
 
     def arch_class(self, arch: str) -> type:
         for name, path in self.archs:

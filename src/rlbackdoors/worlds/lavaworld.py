@@ -56,6 +56,7 @@ WORLD = register(
         # TrojAI's LavaWorld round (Jul 2023) pickled whole modules of trojai_rl's BasicFCModel:
         # 147 -> 100 -> 64, heads 32, the same layers, keys and channels-first flattening as fc.
         trojai_archs=(("BasicFCModel", "fc"),),
+        trojai_env_string_count="num_crossings",  # MiniGrid-LavaCrossingS9N1-v0: one river
         env_fields=("size", "see_through_walls", "engine", "num_crossings"),
         env_defaults={"max_steps": 250, "engine": "batched", "size": 9, "see_through_walls": False, "num_crossings": 1},
         env_kwargs=_env_kwargs,

@@ -73,6 +73,9 @@ WORLD = register(
         # TrojAI's Randomized LavaWorld round (Aug 2023) saved {"model": CLASS, "state_dict": ...,
         # gymnasium spaces}: its FCModel and CNNModel are fc and cnn, layer for layer.
         trojai_archs=(("FCModel", "fc"), ("CNNModel", "cnn")),
+        # the Aug 2023 round's env-string.txt: MiniGrid-LavaCrossingS9N1-v0 for 9x9 rooms with one
+        # lava square (its config.json gives the grid size only; the example's args.json says 1)
+        trojai_env_string_count="num_lava",
         placeholder_triggers=("cells:0,0",),  # one cell: fits any num_lava >= 1 (TrojAI's 9x9 rooms had 1)
         env_fields=("size", "see_through_walls", "engine", "num_lava"),
         env_defaults={"max_steps": 250, "engine": "batched", "size": 11, "see_through_walls": True, "num_lava": 10},

@@ -55,20 +55,17 @@ import torch
 
 from rlbackdoors import worlds
 from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, remove_tree, save_torch
+from rlbackdoors.trojai_round import ROUND_FILES, RoundFiles, read_round
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.spec import ZooError
 
 IMPORT_FORMAT = 1
 WEIGHT_FILES = ("model.pt", "base_model.pt")  # base_model.pt: the Jul 2023 branch's example folder
-CONFIG_FILES = ("reduced-config.json", "config.json", "args.json")  # where TrojAI names class and env
 COPIED_SUFFIXES = (".json", ".csv", ".txt")
 MAX_COPIED_BYTES = 4 << 20
-MAX_JSON_BYTES = 4 << 20
 ID_NAME = re.compile(r"^id-[0-9]{8}$")
 TMP_DIR_SUFFIX = ".rlbimport"
 UNKNOWN_TRIGGER = "unknown"
-# TrojAI's config keys -> our env fields (values: int, or a one-value list such as [1])
-ENV_KEYS = (("grid_size", "size"), ("size", "size"), ("num_lava_squares", "num_lava"), ("max_steps", "max_steps"), ("max_episode_length", "max_steps"))
 
 
 @dataclass
@@ -82,22 +79,25 @@ class SourceModel:
     arch: str
     model_class: str | None
     env: dict
-    label: int
+    label: int | None  # None: the round shipped no ground_truth.csv (a test split, the Sep/Oct 2024 examples)
     state: dict[str, torch.Tensor]
     digest: dict[str, str]  # file name -> sha256 of every file read
     config: dict  # our config.json's content (checked)
     configs: dict[str, dict] = field(default_factory=dict)
     own_trigger: str | None = None  # the trigger our own config.json recorded (a folder train wrote)
+    env_sources: dict[str, str] = field(default_factory=dict)  # env field -> the file and key it was read from
+    source: str = "."  # the folder, relative to the round folder imported (no path of this machine)
 
     def provenance(self, options: dict) -> dict:
         return {
             "format": IMPORT_FORMAT,
-            "source": str(self.folder.resolve()),
+            "source": self.source,
             "weights_file": self.weights_file.name,
             "model_class": self.model_class,
             "world": self.world,
             "arch": self.arch,
             "env": self.env,
+            "env_sources": self.env_sources,
             "label": self.label,
             "sha256": self.digest,
             "options": options,
@@ -111,18 +111,6 @@ def _sha256(path: Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
-
-
-def _read_json(path: Path) -> dict:
-    if path.stat().st_size > MAX_JSON_BYTES:
-        raise ZooError(f"{str(path)!r} is larger than {MAX_JSON_BYTES} bytes")
-    try:
-        data = json.loads(path.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as err:
-        raise ZooError(f"{str(path)!r} is not JSON ({err})") from None
-    if not isinstance(data, dict):
-        raise ZooError(f"{str(path)!r} must hold a JSON object")
-    return data
 
 
 def model_folders(source: Path) -> list[Path]:
@@ -147,18 +135,27 @@ def our_names(folders: list[Path]) -> list[str]:
     return [f"id-{i:08d}" for i in range(len(folders))]
 
 
-def _class_from_configs(configs: dict[str, dict]) -> str | None:
-    for name in CONFIG_FILES:
-        data = configs.get(name, {})
-        for key in ("model", "arch"):
-            if isinstance(data.get(key), str):
-                return data[key]
-    return None
-
-
 def _world_of_class(model_class: str) -> worlds.World | None:
     owners = [w for w in worlds.registered() if w.trojai_arch(model_class) is not None]
     return owners[0] if len(owners) == 1 else None
+
+
+def env_settings(world: worlds.World, files: RoundFiles, overrides: dict, where: str) -> tuple[dict, dict[str, str]]:
+    """(env fields of ``world`` that the round files give, ``overrides`` on top; where each came
+    from): :meth:`rlbackdoors.trojai_round.RoundFiles.env`, the flags winning."""
+    allowed = (*world.env_fields, "max_steps")
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    try:
+        given = files.env(world)
+    except ValueError as err:
+        raise ZooError(f"{where}/{err}") from None
+    env = {k: s.value for k, s in given.items()}
+    sources = {k: s.source for k, s in given.items()}
+    for key, value in overrides.items():
+        if key not in allowed:
+            raise ConfigError(f"--{key.replace('_', '-')} does not apply to {world.name}")
+        env[key], sources[key] = value, f"--{key.replace('_', '-')}"
+    return env, sources
 
 
 def _round_env(world: worlds.World, configs: dict[str, dict], where: str) -> dict | None:
@@ -168,7 +165,7 @@ def _round_env(world: worlds.World, configs: dict[str, dict], where: str) -> dic
     if world.trojai_env is None:
         return None
     found: dict | None = None
-    for name in reversed(CONFIG_FILES):
+    for name in reversed(ROUND_FILES):
         if name not in configs:
             continue
         try:
@@ -178,17 +175,6 @@ def _round_env(world: worlds.World, configs: dict[str, dict], where: str) -> dic
         if given is not None:
             found = {**(found or {}), **given}
     return found
-
-
-def own_run_config(configs: dict[str, dict]) -> dict | None:
-    """The ``config.json`` of a folder that this package's ``train`` wrote (a ``format_version``,
-    an ``env`` section naming a registered world, a ``poison`` section), else None."""
-    data = configs.get("config.json") or {}
-    env, poison = data.get("env"), data.get("poison")
-    if isinstance(data.get("format_version"), int) and isinstance(env, dict) and isinstance(poison, dict):
-        if env.get("name") in {w.name for w in worlds.registered()}:
-            return data
-    return None
 
 
 def _known_trigger(info: dict) -> str | None:
@@ -202,38 +188,6 @@ def _world_of_configs(configs: dict[str, dict], where: str) -> worlds.World | No
     return owners[0] if len(owners) == 1 else None
 
 
-def _env_value(value, key: str, where: str):
-    if isinstance(value, list) and len(value) == 1:
-        value = value[0]
-    if isinstance(value, list) and len(value) == 2 and value[0] == value[1]:
-        value = value[0]
-    if not isinstance(value, int) or isinstance(value, bool):
-        raise ZooError(f"{where}: {key}={value!r} is not one number (our worlds take a fixed value; give it with a flag)")
-    return value
-
-
-def env_settings(world: worlds.World, configs: dict[str, dict], overrides: dict, where: str) -> dict:
-    """The env fields of ``world`` that TrojAI's configs give (``ENV_KEYS``), ``overrides`` on top."""
-    allowed = (*world.env_fields, "max_steps")
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    env: dict = {}
-    for name in reversed(CONFIG_FILES):  # reduced-config.json wins over config.json over args.json
-        data = configs.get(name, {})
-        for theirs, ours in ENV_KEYS:
-            if theirs in data and ours in allowed and ours not in overrides:
-                env[ours] = _env_value(data[theirs], theirs, f"{where}/{name}")
-        if data.get("random_length") is True:
-            raise ZooError(f"{where}/{name}: random_length is true; our worlds have fixed hallways")
-    for key, value in (_round_env(world, configs, where) or {}).items():  # the world's own keys (nested ones)
-        if key in allowed and key not in overrides:
-            env[key] = value
-    for key, value in overrides.items():
-        if key not in allowed:
-            raise ConfigError(f"--{key.replace('_', '-')} does not apply to {world.name}")
-        env[key] = value
-    return env
-
-
 def read_source(
     folder: Path, name: str, world_name: str | None, overrides: dict, label: int | None, trigger: str | None = None, arch: str | None = None
 ) -> SourceModel:
@@ -242,10 +196,16 @@ def read_source(
     from rlbackdoors.torchfile import read_torch_file
 
     weights_file = next(folder / n for n in WEIGHT_FILES if (folder / n).is_file())
-    configs = {n: _read_json(folder / n) for n in CONFIG_FILES if (folder / n).is_file()}
+    try:
+        files = read_round(folder)
+    except ValueError as err:
+        raise ZooError(str(err)) from None
+    configs = files.configs
     digest = {p.name: _sha256(p) for p in [weights_file, *(folder / n for n in configs)]}
-    own = own_run_config(configs)
-    model_class = None if own is not None else _class_from_configs(configs)  # our reduced config's "arch" is no TrojAI class
+    if files.env_string is not None:
+        digest["clean-example-data/env-string.txt"] = _sha256(folder / "clean-example-data" / "env-string.txt")
+    own = files.own_config()
+    model_class, _ = files.model_class()  # our own files name no TrojAI class
     if model_class is None:  # a pickled module names its class itself
         try:
             file = read_torch_file(weights_file, "weights file")
@@ -266,13 +226,15 @@ def read_source(
             raise ZooError(f"{str(folder)!r}: TrojAI class {model_class!r} is not one we know (known: {known}); give --world and --arch")
         world = found
     else:
-        raise ZooError(f"{str(folder)!r} names no model class (reduced-config.json, config.json); give --world")
+        raise ZooError(f"{str(folder)!r} names no model class ({', '.join(ROUND_FILES)}) and its weights file names none; give --world")
     if not world.trojai_archs:
         raise ZooError(f"{str(folder)!r}: {world.name} maps no TrojAI classes to its architectures (World.trojai_archs); it cannot be imported yet")
     state, file_class = read_weights(weights_file, world.name)
     model_class = file_class or model_class
     if model_class is None and len(world.trojai_archs) == 1 and _round_env(world, configs, str(folder)) is not None:
         model_class = world.trojai_archs[0][0]  # the round's one class, which its files do not name
+    if model_class is not None:
+        model_class = world.trojai_class(model_class) or model_class  # d969b25's "basicfc" is BasicFCModel
     if arch is not None and arch not in world.arch_names:
         raise ConfigError(f"--arch {arch} is not an architecture of {world.name} (allowed: {', '.join(world.arch_names)})")
     if world.algorithm == "opac2":  # one network family: depth, width and obs_norm from the shapes
@@ -296,17 +258,10 @@ def read_source(
         if not lines or lines[0].strip() not in ("0", "1"):
             raise ZooError(f"{str(truth)!r} must hold 1 (poisoned) or 0 (clean)")
         label = int(lines[0].strip())
-    elif label is None:
-        raise ZooError(f"{str(folder)!r} has no ground_truth.csv; give the label of such folders with --label 0|1")
     own_trigger = None
-    if own is not None and own["env"]["name"] == world.name:  # what train recorded is known, not guessed: env settings, trigger
-        allowed = (*world.env_fields, "max_steps")
-        env = {k: v for k, v in own["env"].items() if k in allowed}
-        env.update(env_settings(world, {}, overrides, str(folder)))
-        if trigger is None and isinstance(own["poison"].get("trigger"), str):
-            trigger = own_trigger = own["poison"]["trigger"]
-    else:
-        env = env_settings(world, configs, overrides, str(folder))
+    if own is not None and own["env"]["name"] == world.name and trigger is None and isinstance(own["poison"].get("trigger"), str):
+        trigger = own_trigger = own["poison"]["trigger"]  # what train recorded is known, not guessed
+    env, sources = env_settings(world, files, overrides, str(folder))
     config = run_config(world, arch, env, label, trigger, str(folder), section)
     if world.algorithm == "opac2":
         from rlbackdoors.agent import opac2_policy
@@ -317,10 +272,10 @@ def read_source(
             opac2_policy(RunConfig.from_dict(config), state, weights_file)  # fits, by key, shape and value
         except FolderError as err:
             raise ZooError(str(err)) from None
-    return SourceModel(folder, weights_file, name, world.name, arch, model_class, env, label, state, digest, config, configs, own_trigger)
+    return SourceModel(folder, weights_file, name, world.name, arch, model_class, env, label, state, digest, config, configs, own_trigger, sources)
 
 
-def run_config(world: worlds.World, arch: str, env: dict, label: int, trigger: str | None, where: str, network: dict | None = None) -> dict:
+def run_config(world: worlds.World, arch: str, env: dict, label: int | None, trigger: str | None, where: str, network: dict | None = None) -> dict:
     """Our config.json of an imported model, checked. ``network``: the config's network section
     (default ``{"model": {"arch": arch}}``; an OPAC² world's is its ``opac2`` depth, width and
     obs_norm). Its trigger is ``trigger`` when given, else the world's default (or, when the env
@@ -373,7 +328,7 @@ def is_imported(path: str | Path) -> bool:
 def _zoo_meta(source: Path, options: dict) -> dict:
     from rlbackdoors.folder import stack_versions
 
-    return {"format": IMPORT_FORMAT, "trojai": {"source": str(source.resolve()), "options": options}, "versions": stack_versions()}
+    return {"format": IMPORT_FORMAT, "trojai": {"source": source.resolve().name, "options": options}, "versions": stack_versions()}
 
 
 def _check_out(out: Path, source: Path, options: dict) -> bool:
@@ -384,7 +339,7 @@ def _check_out(out: Path, source: Path, options: dict) -> bool:
         if not is_imported(out):
             raise ZooError(f"{str(out)!r} is a zoo that was not imported from TrojAI; import into a new or empty folder")
         old = json.loads((out / "zoo.json").read_bytes().decode("utf-8"))["trojai"]
-        if old.get("source") != str(source.resolve()):
+        if old.get("source") not in (source.resolve().name, str(source.resolve())):  # older imports kept the whole path
             raise ZooError(f"zoo {str(out)!r} was imported from {old.get('source')!r}; import {str(source)!r} into a new folder")
         for key in sorted(set(old.get("options", {})) | set(options)):
             if old.get("options", {}).get(key) != options.get(key):
@@ -421,9 +376,10 @@ def _write_model(model: SourceModel, target: Path, options: dict) -> None:
         folder = ModelFolder(tmp)
         save_torch(tmp / "model.pt", {k: v.detach().cpu().contiguous().clone() for k, v in model.state.items()})
         folder.write_config(cfg)
-        folder.write_ground_truth(bool(model.label))
+        if model.label is not None:  # an unlabelled model stays so: detect fit/score refuse it by name
+            folder.write_ground_truth(bool(model.label))
         metrics: dict = {
-            "poisoned": bool(model.label),
+            "poisoned": None if model.label is None else bool(model.label),
             "converged": True,  # a model TrojAI shipped in its round's dataset
             "source": "trojai",
             "clean_sr": None,
@@ -460,7 +416,8 @@ def _same_model(target: Path, model: SourceModel) -> bool:
         old = json.loads((target / "trojai.json").read_bytes().decode("utf-8"))
     except (OSError, ValueError):
         return False
-    return old.get("source") == str(model.folder.resolve()) and old.get("sha256") == model.digest and (target / "reduced-config.json").is_file()
+    same_source = old.get("source") in (model.source, str(model.folder.resolve()))  # older imports kept the whole path
+    return same_source and old.get("sha256") == model.digest and (target / "reduced-config.json").is_file()
 
 
 def import_trojai(
@@ -510,6 +467,8 @@ def import_trojai(
     names = our_names(folders)
     overrides = {"size": size, "num_lava": num_lava, "max_steps": max_steps, "num_cubes": num_cubes}
     models = [read_source(f, n, world, overrides, label, trigger, arch) for f, n in zip(folders, names)]  # all checked first
+    for model in models:  # where in the round, never a path of this machine (datasets are shared)
+        model.source = model.folder.relative_to(source).as_posix() if model.folder != source else "."
     existed = _check_out(out, source, options)
     out.mkdir(parents=True, exist_ok=True)
     lock = FolderLock(out, "zoo")
@@ -597,8 +556,11 @@ def metadata_text(zoo: str | Path) -> str:
         info = _json_or_empty(Path(zoo) / "models" / row["model_name"] / "trojai.json")
         if row.get("poison.trigger") is not None and not _known_trigger(info):
             row["poison.trigger"] = UNKNOWN_TRIGGER  # the config's is the world's default, not the model's
+        if info.get("label") is None:
+            row["poisoned"] = ""  # no ground truth shipped: unknown, not clean
         row["trojai.source"] = info.get("source", "")
         row["trojai.model_class"] = info.get("model_class") or ""
+        row["trojai.env_sources"] = "; ".join(f"{k}={v}" for k, v in sorted((info.get("env_sources") or {}).items()))
     return csv_text(rows, LEAD_COLUMNS)
 
 
@@ -610,7 +572,8 @@ def status(zoo: str | Path) -> str:
     """Models per world, arch and label, with their mean measured clean SR."""
     rows: dict[tuple[str, str, str], list[float]] = {}
     for s in states(zoo):
-        key = (s.model.group.cell.world, s.model.group.cell.arch_label, s.model.group.label)
+        label = s.model.group.label if (s.metrics or {}).get("poisoned") is not None else "unknown"
+        key = (s.model.group.cell.world, s.model.group.cell.arch_label, label)
         value = (s.metrics or {}).get("clean_sr")
         rows.setdefault(key, []).append(float(value) if isinstance(value, (int, float)) else math.nan)
     head = ("world", "arch", "label", "models", "clean SR (mean, measured here)")

@@ -135,7 +135,11 @@ class RoundFiles:
             prefix = ".".join(NESTED.get(name, ()))
             for theirs, ours in FLAT_KEYS:
                 if isinstance(inner, dict) and theirs in inner and ours in allowed and ours not in found:
-                    give(ours, _one_number(inner[theirs], f"{name}: {prefix + '.' if prefix else ''}{theirs}"), f"{name}: {prefix + '.' if prefix else ''}{theirs}")
+                    give(
+                        ours,
+                        _one_number(inner[theirs], f"{name}: {prefix + '.' if prefix else ''}{theirs}"),
+                        f"{name}: {prefix + '.' if prefix else ''}{theirs}",
+                    )
             if world.trojai_env is not None:
                 for key, value in (world.trojai_env(data) or {}).items():
                     give(key, value, f"{name}: {world.name} round keys")

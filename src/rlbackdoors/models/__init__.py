@@ -10,7 +10,6 @@ TrojAI classes); anything else (``os.system``, an unknown class) is refused as b
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 

@@ -60,7 +60,8 @@ def test_fit_score_infer_and_configure(lava_zoo, tmp_path, capsys):
     result_file = tmp_path / "result.txt"
     assert main(_trojai_args(lava_zoo, "id-00000003", result_file, tmp_path / "scratch", meta, det)) == 0
     assert float(result_file.read_text()) == scored["id-00000003"]
-    assert not any((tmp_path / "scratch").iterdir())  # the private copy is gone
+    assert [p.name for p in (tmp_path / "scratch").iterdir()] == ["result.json"]  # the private copy is gone
+    assert json.loads((tmp_path / "scratch" / "result.json").read_text())["mismatch"] is None
 
     learned = tmp_path / "learned"
     configure = [
@@ -78,7 +79,7 @@ def test_fit_score_infer_and_configure(lava_zoo, tmp_path, capsys):
         "--automatic_configuration",
     ]
     assert main(configure) == 0
-    assert {"detector.json", "arrays.npz", "metaparameters.json", "fit.json"} <= {p.name for p in learned.iterdir()}
+    assert {"detector.json", "arrays.npz", "metaparameters.json", "metaparameters_schema.json", "fit.json"} <= {p.name for p in learned.iterdir()}
     other = tmp_path / "result2.txt"
     assert main(_trojai_args(lava_zoo, "id-00000003", other, tmp_path / "scratch", meta, learned)) == 0
     assert other.read_text() == result_file.read_text()  # the same detector, fitted the same way
@@ -131,7 +132,7 @@ def test_search_reports_the_found_trigger_of_one_model_and_never_its_own(lava_zo
     shutil.copy(folder / "model.pt", bare / "model.pt")
     assert main(["search", str(bare), *params, "--json"]) == 0
     captured = capsys.readouterr()
-    assert "no reduced-config.json" in captured.err and json.loads(captured.out)["found"]["spec"] == report["found"]["spec"]
+    assert "no settings file (reduced-config.json" in captured.err and json.loads(captured.out)["found"]["spec"] == report["found"]["spec"]
     assert main(["search", str(tmp_path / "none")]) == 2
     assert "does not exist" in _one_error_line(capsys)
 

@@ -210,12 +210,15 @@ def cmd_evaluate(args) -> int:
             from rlbackdoors.io import UnsafeFileError, first_line
             from rlbackdoors.models import read_weights, resolve_arch
 
-            try:
+            try:  # an unreadable file is named as such first, whatever the flags
                 state, model_class = read_weights(args.weights, world.name)
-                arch = resolve_arch(world.name, state, model_class, args.weights)
             except UnsafeFileError:
                 raise
             except (ValueError, FileNotFoundError) as err:
+                raise ConfigError(first_line(err)) from None
+            try:
+                arch = resolve_arch(world.name, state, model_class, args.weights)
+            except ValueError as err:
                 raise ConfigError(f"--weights of {world.name} needs --arch (allowed: {', '.join(world.arch_names)}): {first_line(err)}") from None
         env_flags = {"engine": args.engine, "size": args.size, "num_lava": args.num_lava}
         for name, value in env_flags.items():

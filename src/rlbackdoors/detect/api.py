@@ -6,6 +6,7 @@ A detector is one class::
     class MyDetector(Detector):
         name = "mine"
         defaults = {"threshold": 0.3}          # its parameters (--param k=v), JSON values
+        rules = {"threshold": Param(0.0, 1.0, help="...")}   # their allowed values (every number needs a range)
 
         def fit(self, models, labels): ...     # learn from handles and 0/1 labels; return self
         def predict_one(self, model): ...      # probability that this model is poisoned
@@ -17,6 +18,11 @@ and write ``features(model) -> {name: float}`` only. :meth:`Detector.predict` sc
 of models the way the TrojAI harness does: a model the detector fails on gets 0.5 and the
 reason, and the wall time of every model is recorded.
 
+Each parameter's allowed values (:class:`Param`: a range, a set of choices, whether it only
+steers the fit) are declared once, in ``rules``: the constructor validates against them, the
+TrojAI schema is generated from them (:func:`rlbackdoors.detect.trojai.schema_for`), and a fitted
+detector refuses metaparameters that differ from its own in anything but a fit-only parameter.
+
 Learned parameters are saved as plain data (``detector.json`` and ``arrays.npz``, read back
 with ``allow_pickle=False``): never a pickle, so a detector folder from a stranger cannot run
 code when loaded.
@@ -27,6 +33,7 @@ from __future__ import annotations
 import importlib
 import io
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +53,33 @@ FAILED_PROBABILITY = 0.5  # TrojAI's default prediction for a model without a re
 _REGISTRY: dict[str, type[Detector]] = {}
 
 
+@dataclass(frozen=True)
+class Param:
+    """The allowed values of one detector parameter, the one source the constructor's validation,
+    the generated JSON schema and the CLI's errors read. ``fit_only``: it steers only how the
+    classifier is fitted (never a model's features), so changing it after the fit changes nothing."""
+
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple = ()
+    fit_only: bool = False
+    help: str = ""
+
+    def check(self, detector: str, key: str, value: Any) -> None:
+        """A DetectError naming the parameter and what is allowed, when ``value`` is outside."""
+        if self.choices and value not in self.choices:
+            raise DetectError(f"detector {detector!r}: parameter {key}={value!r} is not one of {', '.join(map(repr, self.choices))}")
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            low = -math.inf if self.minimum is None else self.minimum
+            high = math.inf if self.maximum is None else self.maximum
+            if not (math.isfinite(value) and low <= value <= high):
+                raise DetectError(f"detector {detector!r}: parameter {key}={value!r} is out of range (allowed: {_number(low)} to {_number(high)})")
+
+
+def _number(x: float) -> str:
+    return str(int(x)) if math.isfinite(x) and float(x).is_integer() else str(x)
+
+
 @dataclass
 class Prediction:
     """One model's result: probability poisoned, wall seconds, why it failed (None if it did not),
@@ -62,6 +96,7 @@ class Detector:
 
     name: ClassVar[str] = ""
     defaults: ClassVar[dict[str, Any]] = {}
+    rules: ClassVar[dict[str, Param]] = {}
     description: ClassVar[str] = ""
 
     def __init__(self, **params: Any):
@@ -74,7 +109,12 @@ class Detector:
             default = self.defaults[key]
             if default is not None and not _same_kind(default, value):
                 raise DetectError(f"detector {self.name!r}: parameter {key}={value!r} must be a {type(default).__name__} like its default {default!r}")
+            if key in self.rules:
+                self.rules[key].check(self.name, key, value)
         self.fitted = False
+        # What the fit saw (worlds, architectures, env settings, parameters, version): a fitted
+        # detector refuses what lies outside it (rlbackdoors.detect.scope); None before a fit.
+        self.fitted_on: dict | None = None
         # What predict_one wants reported about the model it just scored (e.g. the trigger a
         # search found); cleared before each model.
         self.last_info: dict = {}
@@ -90,6 +130,16 @@ class Detector:
     def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
         """Learned parameters: a JSON-able dict and named arrays (plain dtypes)."""
         return {}, {}
+
+    def unsupported(self, model: ModelHandle) -> str | None:
+        """Why this detector cannot compute a model of this world and env at all (fit, score and
+        infer refuse it with this reason before any work); None when it can."""
+        return None
+
+    def scope_group(self, model: ModelHandle) -> str:
+        """The group whose models a fit must have seen before this model is scored (world and
+        architecture; a detector whose features mean the same across architectures says so)."""
+        return f"{model.world.name}/{model.arch}"
 
     def set_state(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
         pass
@@ -120,7 +170,15 @@ class Detector:
         """Write ``detector.json`` (name, params, JSON state) and ``arrays.npz``."""
         folder = Path(folder)
         state, arrays = self.get_state()
-        payload = {"format": FORMAT, "format_version": FORMAT_VERSION, "detector": self.name, "params": self.params, "fitted": self.fitted, "state": state}
+        payload = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "detector": self.name,
+            "params": self.params,
+            "fitted": self.fitted,
+            "fitted_on": self.fitted_on,
+            "state": state,
+        }
         atomic_write_bytes(folder / ARRAYS_FILE, npz_bytes(arrays))
         atomic_write_text(folder / STATE_FILE, json.dumps(payload, indent=2, sort_keys=True, allow_nan=True) + "\n")
         return folder
@@ -153,6 +211,9 @@ class FeatureDetector(Detector):
     """
 
     defaults: ClassVar[dict[str, Any]] = {"min_per_class": 3}
+    rules: ClassVar[dict[str, Param]] = {
+        "min_per_class": Param(1, 10_000, fit_only=True, help="models of each label a group needs for a classifier of its own")
+    }
 
     def __init__(self, **params: Any):
         super().__init__(**params)
@@ -165,6 +226,9 @@ class FeatureDetector(Detector):
 
     def group(self, model: ModelHandle) -> str:
         return f"{model.world.name}/{model.arch}"
+
+    def scope_group(self, model: ModelHandle) -> str:
+        return self.group(model)
 
     def fit(self, models: list[ModelHandle], labels: np.ndarray) -> FeatureDetector:
         return self.fit_rows([self.fit_features(m) for m in models], [self.group(m) for m in models], labels)
@@ -236,7 +300,10 @@ def load_detector(folder: str | Path) -> Detector:
         raise DetectError(f"{str(path)!r} is not an rlbackdoors detector file")
     if payload.get("format_version") != FORMAT_VERSION:
         raise DetectError(f"{str(path)!r} has format_version {payload.get('format_version')!r}; this rlbackdoors reads {FORMAT_VERSION}")
-    cls = get_detector(str(payload.get("detector")))
+    try:
+        cls = get_detector(str(payload.get("detector")))
+    except DetectError as err:
+        raise DetectError(f"{str(path)!r}: {err}") from None
     params = payload.get("params") or {}
     if not isinstance(params, dict):
         raise DetectError(f"{str(path)!r}: params must be an object")
@@ -254,6 +321,8 @@ def load_detector(folder: str | Path) -> Detector:
     except (KeyError, TypeError, ValueError) as err:
         raise DetectError(f"{str(path)!r}: the learned parameters do not fit detector {cls.name!r} ({first_line(err)})") from None
     detector.fitted = bool(payload.get("fitted"))
+    fitted_on = payload.get("fitted_on")
+    detector.fitted_on = fitted_on if isinstance(fitted_on, dict) else None
     return detector
 
 
@@ -264,6 +333,13 @@ def register(cls: type[Detector]) -> type[Detector]:
         raise ValueError(f"{cls.__name__} has no name")
     if cls.name in _REGISTRY and _REGISTRY[cls.name] is not cls:
         raise ValueError(f"detector {cls.name!r} is registered twice")
+    for key, default in cls.defaults.items():  # a number without a range would reach the schema unchecked
+        rule = cls.rules.get(key)
+        if isinstance(default, (int, float)) and not isinstance(default, bool) and (rule is None or rule.minimum is None or rule.maximum is None):
+            raise ValueError(f"detector {cls.name!r}: numeric parameter {key!r} declares no range in rules")
+    stray = sorted(set(cls.rules) - set(cls.defaults))
+    if stray:
+        raise ValueError(f"detector {cls.name!r}: rules for parameters it does not have: {stray}")
     _REGISTRY[cls.name] = cls
     return cls
 
@@ -292,6 +368,7 @@ def make_detector(name: str, **params: Any) -> Detector:
 __all__ = [
     "Detector",
     "FeatureDetector",
+    "Param",
     "Prediction",
     "detector_names",
     "get_detector",

@@ -73,14 +73,22 @@ def cmd_score(args) -> int:
     from rlbackdoors.detect.dataset import FACTORS
     from rlbackdoors.detect.score import score
 
-    detector = load_detector(args.detector_dir)
-    if args.param:
-        from rlbackdoors.detect.trojai import _with_metaparameters
+    from rlbackdoors.detect.scope import with_params
 
-        detector = _with_metaparameters(detector, parse_params(args.param))
+    detector, params_flag = with_params(load_detector(args.detector_dir), parse_params(args.param), args.allow_mismatch)
     out = Path(args.out) if args.out else Path(args.detector_dir) / f"score-{Path(args.zoo).resolve().name}"
     factors = tuple(dict.fromkeys((*FACTORS, *(args.factor or []))))
-    result = score(detector, args.zoo, out, factors=factors, resamples=args.resamples, seed=args.seed, progress=_progress(args.quiet))
+    result = score(
+        detector,
+        args.zoo,
+        out,
+        factors=factors,
+        resamples=args.resamples,
+        seed=args.seed,
+        progress=_progress(args.quiet),
+        allow_mismatch=args.allow_mismatch,
+        params_mismatch=params_flag,
+    )
     return _print_score(result, out, args.json)
 
 
@@ -116,17 +124,21 @@ def cmd_search(args) -> int:
     family turns it to the trojan outcome, and how often, against the clean env. A red team checks
     whether its backdoor is found; a researcher reads what a detector's features are made of."""
     from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, search_report
-    from rlbackdoors.detect.handle import REDUCED_CONFIG, open_model
+    from rlbackdoors.detect.handle import DetectError, open_model
     from rlbackdoors.io import atomic_write_text
+    from rlbackdoors.trojai_round import ROUND_FILES
 
     folder = Path(args.model)
     handle = open_model(folder, reduced_optional=True)  # a folder name that may say the label becomes "model"
-    if not (folder / REDUCED_CONFIG).is_file():  # a training run's folder: read off the weights
+    if not any((folder / n).is_file() for n in ROUND_FILES):  # weights alone
         print(
-            f"rlbackdoors: note: {folder}: no {REDUCED_CONFIG}; world and architecture identified from the weights, env settings the world's defaults",
+            f"rlbackdoors: note: {folder}: no settings file ({', '.join(ROUND_FILES[:3])}); world and architecture identified from the weights, env settings the world's defaults",
             file=sys.stderr,
         )
     detector = BehaviourDetector(**parse_params(args.param))
+    why = detector.unsupported(handle)
+    if why is not None:
+        raise DetectError(f"{folder}: {why}")
     report = search_report(handle, detector.params, detector.run_search(handle), top=args.top)
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=2) + "\n")
@@ -149,7 +161,7 @@ def cmd_search(args) -> int:
 def cmd_infer(args) -> int:
     from rlbackdoors.detect.trojai import infer
 
-    probability, error = infer(
+    probability, error, mismatch = infer(
         args.model_filepath,
         args.result_filepath,
         args.scratch_dirpath,
@@ -158,9 +170,12 @@ def cmd_infer(args) -> int:
         args.metaparameters_filepath,
         args.schema_filepath,
         args.learned_parameters_dirpath,
+        allow_mismatch=args.allow_mismatch,
     )
     if error:
         print(f"rlbackdoors: warning: {args.model_filepath}: scored 0.5: {error}", file=sys.stderr)
+    if mismatch:
+        print(f"rlbackdoors: warning: {args.model_filepath}: MISMATCH, scored under --allow-mismatch: {mismatch}", file=sys.stderr)
     print(f"trojan probability {probability:.6f} written to {args.result_filepath}")
     return 0
 
@@ -184,8 +199,7 @@ def cmd_metaparameters(args) -> int:
     from rlbackdoors.detect.trojai import METAPARAMETERS, SCHEMA, schema_for
     from rlbackdoors.io import atomic_write_text
 
-    config, schema = schema_for(args.detector)
-    config.update(parse_params(args.param))
+    config, schema = schema_for(args.detector, parse_params(args.param))  # values checked by the detector's rules
     out = Path(args.out)
     atomic_write_text(out / METAPARAMETERS, json.dumps(config, indent=2) + "\n")
     atomic_write_text(out / SCHEMA, json.dumps(schema, indent=2) + "\n")
@@ -228,7 +242,17 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     sc.add_argument("detector_dir", metavar="DET", help="folder written by detect fit (or configure)")
     sc.add_argument("--zoo", required=True, help="test zoo or split")
     sc.add_argument("--out", help="folder for score.json, roc.png, calibration.png (default: DET/score-<zoo name>)")
-    sc.add_argument("--param", action="append", metavar="KEY=VALUE", help="change a parameter that does not alter the features (e.g. a search's seconds)")
+    sc.add_argument(
+        "--param",
+        action="append",
+        metavar="KEY=VALUE",
+        help="a parameter other than the fitted one: refused unless it only steers the fit, or --allow-mismatch",
+    )
+    sc.add_argument(
+        "--allow-mismatch",
+        action="store_true",
+        help="score models (and parameters) outside what the detector was fitted on; each is flagged in score.json and the table",
+    )
     _scoring_options(sc, seed="bootstrap seed (default 0)")
     sc.set_defaults(func=cmd_score)
 
@@ -260,6 +284,12 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     inf.add_argument("--metaparameters_filepath", required=True, help="the detector's metaparameters (JSON)")
     inf.add_argument("--schema_filepath", required=True, help="JSON schema the metaparameters are validated against")
     inf.add_argument("--learned_parameters_dirpath", required=True, help="folder written by detect fit or configure")
+    inf.add_argument(
+        "--allow-mismatch",
+        "--allow_mismatch",
+        action="store_true",
+        help="score a model or metaparameters outside what the detector was fitted on (flagged on stderr and in SCRATCH/result.json)",
+    )
     inf.set_defaults(func=cmd_infer)
 
     co = sub.add_parser("configure", help="TrojAI configuration mode: fit the detector the metaparameters name, write learned parameters")

@@ -14,7 +14,6 @@ of that world: it gives the clean env and the trigger family (``parse_trigger``,
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 import tempfile
@@ -29,12 +28,12 @@ import torch
 
 from rlbackdoors import worlds
 from rlbackdoors.io import UnsafeFileError, first_line, load_torch
+from rlbackdoors.trojai_round import ENV_STRING, ROUND_FILES, read_round
 
 MODEL_FILE = "model.pt"
 REDUCED_CONFIG = "reduced-config.json"
 EXAMPLES_DIR = "clean-example-data"
 MAX_EXAMPLE_FILES = 256  # a handle is small; a folder of thousands of files is not an example set
-MAX_JSON_BYTES = 1 << 20
 # Keys a reduced config must never carry to a detector, whatever wrote it.
 SECRET_KEYS = re.compile(r"trigger|poison|ground|label|metric|seed", re.IGNORECASE)
 ID_NAME = re.compile(r"^id-[0-9]+$")
@@ -100,58 +99,81 @@ class ModelHandle:
 
 # ----- opening ---------------------------------------------------------------------------------
 def open_model(folder: str | Path, name: str | None = None, reduced_optional: bool = False) -> ModelHandle:
-    """The handle of a model folder (TrojAI layout): ``model.pt``, ``reduced-config.json`` and
+    """The handle of a model folder (TrojAI layout): ``model.pt``, the round's settings files
+    (``reduced-config.json``, or where a round put them instead: :data:`ROUND_FILES`) and
     ``clean-example-data/`` only. Raises :class:`DetectError` naming a missing or bad file. With
-    ``reduced_optional`` a folder without a reduced config (a training run's) opens from its
+    ``reduced_optional`` a folder without any settings file (a training run's) opens from its
     weights alone, with the world's default env settings."""
     folder = Path(folder)
     if not folder.is_dir():
         raise DetectError(f"model folder {str(folder)!r} does not exist")
     examples = folder / EXAMPLES_DIR
-    reduced = folder / REDUCED_CONFIG
     return open_files(
-        folder / MODEL_FILE,
-        None if reduced_optional and not reduced.is_file() else reduced,
-        examples if examples.is_dir() else None,
-        name=name or _opaque_name(folder.name),
+        folder / MODEL_FILE, folder, examples if examples.is_dir() else None, name=name or _opaque_name(folder.name), required=not reduced_optional
     )
 
 
 def open_files(
-    model_file: str | Path, reduced_config: str | Path | None, examples_dir: str | Path | None = None, name: str = "model", scratch: str | Path | None = None
+    model_file: str | Path,
+    round_dir: str | Path | None,
+    examples_dir: str | Path | None = None,
+    name: str = "model",
+    scratch: str | Path | None = None,
+    required: bool = True,
 ) -> ModelHandle:
-    """A handle from the allowed files (TrojAI's ``--model_filepath``, the reduced config beside
-    it, ``--examples_dirpath``), read from a private copy (in ``scratch`` if given)."""
+    """A handle from the allowed files (TrojAI's ``--model_filepath``, the round's settings files
+    in ``round_dir`` (the folder beside it), ``--examples_dirpath``), read from a private copy (in
+    ``scratch`` if given). ``required``: one settings file must be there (a model whose env is not
+    said would be played in the world's defaults without a word)."""
     model_file = Path(model_file)
     if not model_file.is_file():
         raise DetectError(f"weights file {str(model_file)!r} does not exist")
-    if reduced_config is not None and not Path(reduced_config).is_file():
-        raise DetectError(f"reduced config {str(reduced_config)!r} does not exist (a zoo writes it beside model.pt)")
+    found = [n for n in ROUND_FILES if round_dir is not None and (Path(round_dir) / n).is_file() and not (Path(round_dir) / n).is_symlink()]
+    if required and not found:
+        where = str(Path(round_dir)) if round_dir is not None else str(model_file.parent)
+        raise DetectError(f"no {', '.join(ROUND_FILES[:3])} in {where!r} beside the weights (a zoo writes reduced-config.json beside model.pt)")
     with tempfile.TemporaryDirectory(prefix="rlbackdoors-handle-", dir=scratch) as tmp:
         private = Path(tmp)
         shutil.copyfile(model_file, private / MODEL_FILE)
-        if reduced_config is not None:
-            shutil.copyfile(reduced_config, private / REDUCED_CONFIG)
+        for n in found:
+            shutil.copyfile(Path(str(round_dir)) / n, private / n)
         copied: list[Path] = []
+        (private / EXAMPLES_DIR).mkdir()
         if examples_dir is not None:
             source = Path(examples_dir)
             if not source.is_dir():
                 raise DetectError(f"examples folder {str(source)!r} does not exist")
-            files = sorted(p for p in source.iterdir() if p.suffix == ".npz" and p.is_file())[:MAX_EXAMPLE_FILES]
-            (private / EXAMPLES_DIR).mkdir()
+            files = sorted(p for p in source.iterdir() if p.suffix == ".npz" and p.is_file() and not p.is_symlink())[:MAX_EXAMPLE_FILES]
             for path in files:
                 target = private / EXAMPLES_DIR / path.name
                 shutil.copyfile(path, target)
                 copied.append(target)
+            if (source / ENV_STRING).is_file() and not (source / ENV_STRING).is_symlink():
+                shutil.copyfile(source / ENV_STRING, private / EXAMPLES_DIR / ENV_STRING)
         weights = _read_weights(private / MODEL_FILE, str(model_file))
-        reduced = _read_reduced(private / REDUCED_CONFIG, str(reduced_config)) if reduced_config is not None else {}
+        try:
+            files_read = read_round(private, tuple(found))
+        except ValueError as err:
+            raise DetectError(str(err).replace(str(private), str(round_dir))) from None
         episodes = tuple(_read_npz(path, str(Path(str(examples_dir)) / path.name)) for path in copied)
-    world, arch = identify(reduced, weights, str(model_file))
-    settings = {k: v for k, v in dict(reduced.get("env") or {}).items() if k in (*world.env_fields, "max_steps") and k != "engine"}
+    # What the detector sees of the settings files: our reduced config, else the first TrojAI one;
+    # train's own config.json (trigger, label) only ever gives its env section to RoundFiles.env
+    own = files_read.own_config()
+    if own is not None and files_read.own_reduced() is not None:  # the reduced config is the detector's view
+        files_read.configs.pop("config.json")
+    view = _strip_secrets(files_read.own_reduced() or next((c for c in files_read.configs.values() if c is not own), {}))
+    model_class, _ = files_read.model_class()
+    if model_class is not None and not isinstance(view.get("arch", view.get("model")), str):
+        view["model"] = model_class
+    world, arch = identify(view, weights, str(model_file))
+    try:
+        settings = {k: s.value for k, s in files_read.env(world).items() if k != "engine"}
+    except ValueError as err:
+        raise DetectError(f"settings of {str(model_file)!r}: {err}") from None
     return ModelHandle(
         name=name,
         weights=MappingProxyType(weights),
-        reduced_config=MappingProxyType(reduced),
+        reduced_config=MappingProxyType(view),
         world=world,
         arch=arch,
         examples=tuple(MappingProxyType(e) for e in episodes),
@@ -201,19 +223,6 @@ def _trojai_weights(path: Path, refusal: UnsafeFileError) -> dict[str, torch.Ten
             except ValueError:  # UnsafeFileError included: not this world's classes
                 continue
     return None
-
-
-def _read_reduced(path: Path, shown: str) -> dict:
-    data = path.read_bytes()
-    if len(data) > MAX_JSON_BYTES:
-        raise DetectError(f"reduced config {shown!r} is larger than {MAX_JSON_BYTES} bytes")
-    try:
-        reduced = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as err:
-        raise DetectError(f"reduced config {shown!r} is not JSON ({first_line(err)})") from None
-    if not isinstance(reduced, dict):
-        raise DetectError(f"reduced config {shown!r} must hold a JSON object")
-    return _strip_secrets(reduced)
 
 
 def _strip_secrets(data):

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from rlbackdoors import __version__
-from rlbackdoors.detect.handle import EXAMPLES_DIR, MODEL_FILE, REDUCED_CONFIG
+from rlbackdoors.detect.handle import EXAMPLES_DIR, MODEL_FILE
+from rlbackdoors.trojai_round import ENV_STRING, ROUND_FILES
 from rlbackdoors.io import atomic_write_text, remove_tree
 
 PARTIAL = ".partial"
@@ -35,7 +36,7 @@ def model_digest(folder: Path) -> str:
     """SHA-256 over the files a detector's handle is built from (missing ones count as absent)."""
     digest = hashlib.sha256()
     examples = folder / EXAMPLES_DIR
-    files = [folder / MODEL_FILE, folder / REDUCED_CONFIG, *(sorted(examples.glob("*.npz")) if examples.is_dir() else [])]
+    files = [folder / MODEL_FILE, *(folder / n for n in ROUND_FILES), examples / ENV_STRING, *(sorted(examples.glob("*.npz")) if examples.is_dir() else [])]
     for path in files:
         if path.is_file():
             data = path.read_bytes()

@@ -34,7 +34,8 @@ from rlbackdoors.detect.api import FAILED_PROBABILITY, Detector, FeatureDetector
 from rlbackdoors.detect.dataset import FACTORS, ZooModel, list_models
 from rlbackdoors.detect.handle import DetectError, ModelHandle, open_model
 from rlbackdoors.detect.resume import ResultStore, clear, eta, state_digest
-from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, first_line
+from rlbackdoors.detect.scope import check_model, model_scope, record
+from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_text, first_line, remove_tree
 
 
 @contextlib.contextmanager
@@ -62,6 +63,41 @@ def open_all(models: list[ZooModel]) -> list[ModelHandle]:
     return [open_one(m) for m in models]
 
 
+class Unsupported(DetectError):
+    """A model the detector cannot compute at all (its world or env settings): the whole job stops."""
+
+
+def refuse_unsupported(detector: Detector, handle: ModelHandle, name: str) -> None:
+    """Unsupported naming the model and the reason, when ``detector`` cannot compute it."""
+    why = detector.unsupported(handle)
+    if why is not None:
+        raise Unsupported(f"model {name!r}: {why}")
+
+
+def scope_flags(detector: Detector, models: list[ZooModel], allow: bool) -> dict[str, str]:
+    """Each model outside what ``detector`` was fitted for, and why (rlbackdoors.detect.scope),
+    checked before any model is scored; a DetectError naming the first unless ``allow``. A model
+    that cannot be opened is left to the scoring, which gives it 0.5 and the reason."""
+    flags: dict[str, str] = {}
+    for model in models:
+        try:
+            handle = open_model(model.folder, name=model.name)
+        except Exception:  # scored 0.5 with its reason below
+            continue
+        why = check_model(detector, handle, allow, model.name)
+        if why is not None:
+            flags[model.name] = why
+    return flags
+
+
+def check_factors(models: list[ZooModel], factors: Sequence[str]) -> None:
+    """A DetectError naming a breakdown factor that is no METADATA.csv column of the dataset."""
+    known = set(FACTORS).union(*(set(m.metadata) | set(m.facts()) for m in models))
+    unknown = [f for f in factors if f not in known]
+    if unknown:
+        raise DetectError(f"--factor {unknown[0]}: not a METADATA.csv column of this dataset (columns: {', '.join(sorted(known))})")
+
+
 def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | None = None, work: str | Path | None = None) -> dict:
     """Fit ``detector`` on every model of ``zoo``; returns what to record about the fit.
 
@@ -78,8 +114,14 @@ def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | N
         store = ResultStore(work, "fit", {"detector": detector.name, "params": detector.params}) if work is not None else None
         results, resumed = feature_rows(detector, models, store, progress, strict=True)
         detector.fit_rows([r["features"] for r in results], [r["group"] for r in results], labels)
+        scopes = [r["scope"] for r in results]
     else:
-        detector.fit(open_all(models), labels)
+        handles = open_all(models)
+        for model, handle in zip(models, handles):
+            refuse_unsupported(detector, handle, model.name)
+        detector.fit(handles, labels)
+        scopes = [model_scope(detector, h) for h in handles]
+    detector.fitted_on = record(detector, scopes)
     seconds = time.perf_counter() - started
     return {
         "zoo": str(zoo),
@@ -110,7 +152,11 @@ def feature_rows(
             detector.last_info = {}
             try:
                 handle = open_one(model)
-                result = {"features": detector.fit_features(handle), "group": detector.group(handle), "info": dict(detector.last_info)}
+                refuse_unsupported(detector, handle, model.name)
+                features = detector.fit_features(handle)
+                result = {"features": features, "group": detector.group(handle), "info": dict(detector.last_info), "scope": model_scope(detector, handle)}
+            except Unsupported:
+                raise
             except DetectError as err:
                 if strict:
                     raise
@@ -130,12 +176,21 @@ def feature_rows(
 def fit_into(detector: Detector, zoo: str | Path, out: str | Path, progress: Callable[[str], None] | None = None, extra: dict | None = None) -> dict:
     """Fit and save ``detector`` into ``out`` (``detector.json``, ``arrays.npz``, ``fit.json``),
     holding ``out``'s lock; resumes a fit that was killed there."""
+    from rlbackdoors.detect.trojai import write_metaparameters
+
     out = Path(out)
-    with holding(out, "detector folder"):
-        info = {**fit(detector, zoo, progress, work=out), **(extra or {})}
-        detector.save(out)
-        atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
-        clear(out)
+    created = not out.exists()
+    try:
+        with holding(out, "detector folder"):
+            info = {**fit(detector, zoo, progress, work=out), **(extra or {})}
+            detector.save(out)
+            write_metaparameters(detector, out)  # what infer must be given: the parameters fitted with
+            atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
+            clear(out)
+    except Exception:
+        if created and not any(p.is_file() and p.name != LOCK_NAME for p in out.rglob("*")):
+            remove_tree(out)  # a fit refused before any work leaves no empty folder behind
+        raise
     return info
 
 
@@ -160,11 +215,20 @@ def score(
     resamples: int = metrics.RESAMPLES,
     seed: int = metrics.SEED,
     progress: Callable[[str], None] | None = None,
+    allow_mismatch: bool = False,
+    params_mismatch: str | None = None,
 ) -> dict:
-    """Score ``detector`` on ``zoo`` (module doc); writes score.json and the plots into ``out``."""
+    """Score ``detector`` on ``zoo`` (module doc); writes score.json and the plots into ``out``.
+
+    A model outside what the detector was fitted for (another world, architecture group or env
+    settings: :mod:`rlbackdoors.detect.scope`) stops the job before any model is scored, unless
+    ``allow_mismatch``: then its row carries ``mismatch`` and the result counts them;
+    ``params_mismatch`` is the flag of parameters other than the fitted ones (``with_params``)."""
     if not detector.fitted:
         raise DetectError(f"detector {detector.name!r} is not fitted (run detect fit first)")
     models = list_models(zoo)
+    check_factors(models, factors)
+    flags = scope_flags(detector, models, allow_mismatch)
     with holding(out, "score folder") if out is not None else contextlib.nullcontext():
         store = (
             ResultStore(out, "score", {"detector": detector.name, "params": detector.params, "state": state_digest(*detector.get_state())})
@@ -189,8 +253,13 @@ def score(
                     why = f" ({prediction.error})" if prediction.error else ""
                     left = eta(computed, len(models) - resumed, spent)
                     progress(f"[{i + 1}/{len(models)}] {model.name}: p={prediction.probability:.3f} in {prediction.seconds:.2f}s{found}{why}{left}")
-            rows.append(_report_row(model, factors, cached["info"], probability=cached["probability"], seconds=cached["seconds"], error=cached["error"]))
+            flag = {"mismatch": flags[model.name]} if model.name in flags else {}
+            rows.append(
+                _report_row(model, factors, cached["info"], probability=cached["probability"], seconds=cached["seconds"], error=cached["error"], **flag)
+            )
         result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
+        result["mismatched"] = len(flags)
+        result["params_mismatch"] = params_mismatch
         if out is not None:
             _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name}")
             clear(out)
@@ -223,6 +292,7 @@ def cross_validate(
     if folds < 2:
         raise DetectError(f"--folds must be at least 2, got {folds}")
     models = list_models(zoo)
+    check_factors(models, factors)
     with holding(out, "cross-validation folder"):
         store = ResultStore(out, "features", {"detector": detector.name, "params": detector.params})
         if progress:
@@ -358,6 +428,12 @@ def table(result: dict) -> str:
     errors = [r for r in result["models"] if r["error"]]
     for r in errors[:20]:
         out.append(f"{r['model']}: scored 0.5: {r['error']}")
+    if result.get("params_mismatch"):
+        out.append(f"MISMATCH (--allow-mismatch): {result['params_mismatch']}")
+    flagged = [r for r in result["models"] if r.get("mismatch")]
+    if flagged:
+        out.append(f"MISMATCH (--allow-mismatch): {len(flagged)} of {len(result['models'])} models lie outside what the detector was fitted on:")
+        out += [f"  {r['model']}: {r['mismatch']}" for r in flagged[:20]]
     return "\n".join(out)
 
 

@@ -6,9 +6,11 @@ arguments; docs/detectors.md names them):
 
 * ``infer --model_filepath --result_filepath --scratch_dirpath --examples_dirpath
   --round_training_dataset_dirpath --metaparameters_filepath --schema_filepath
-  --learned_parameters_dirpath``: writes one probability into ``result_filepath``. The reduced
-  config is read beside the model file (``reduced-config.json``, as TrojAI's example detector
-  reads it); ``examples_dirpath`` is optional (the Sep 2024 branch made it so).
+  --learned_parameters_dirpath``: writes one probability into ``result_filepath``. The model's
+  settings are read from the round files beside the model file, wherever its round put them
+  (``reduced-config.json``; the Aug 2023 round's ``config.json``; ...); ``examples_dirpath`` is
+  optional (the Sep 2024 branch made it so). A model or metaparameters the detector was not
+  fitted for are refused (:mod:`rlbackdoors.detect.scope`).
   ``round_training_dataset_dirpath`` is accepted and not read: the learned parameters hold
   what was learned from the training set.
 * ``configure --scratch_dirpath --configure_models_dirpath --metaparameters_filepath
@@ -25,11 +27,11 @@ subset TrojAI's schemas use: type, minimum, maximum, enum, required, additionalP
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 from rlbackdoors.detect.api import Detector, get_detector, load_detector
-from rlbackdoors.detect.handle import REDUCED_CONFIG, DetectError, open_files
+from rlbackdoors.detect.handle import DetectError, open_files
+from rlbackdoors.detect.scope import check_model, with_params
 from rlbackdoors.io import atomic_write_text, first_line
 
 METAPARAMETERS = "metaparameters.json"
@@ -93,14 +95,31 @@ def _validate_subset(config: dict, schema: dict) -> None:
             raise DetectError(f"metaparameters: {key}={value!r} is above the maximum {rule['maximum']}")
 
 
-def schema_for(name: str) -> tuple[dict, dict]:
-    """(metaparameters, schema) for detector ``name`` with its default parameters."""
-    cls = get_detector(name)
+def _property(name: str, key: str, default, rule) -> dict:
+    """The schema of one parameter, from its rule (:class:`rlbackdoors.detect.api.Param`)."""
     types = {bool: "boolean", int: "integer", float: "number", str: "string", dict: "object", list: "array"}
+    prop: dict = {"description": (rule.help if rule and rule.help else f"parameter {key} of detector {name}")}
+    kind = types.get(type(default))
+    if kind:
+        prop["type"] = kind
+    if rule is not None:
+        if rule.minimum is not None:
+            prop["minimum"] = rule.minimum
+        if rule.maximum is not None:
+            prop["maximum"] = rule.maximum
+        if rule.choices:
+            prop["enum"] = list(rule.choices)
+    return prop
+
+
+def schema_for(name: str, params: dict | None = None) -> tuple[dict, dict]:
+    """(metaparameters, schema) for detector ``name``: its default parameters (``params`` on top,
+    validated), and a JSON schema whose types, ranges and choices are its rules'."""
+    cls = get_detector(name)
+    values = dict(cls(**(params or {})).params)  # the rules' one-line errors for a bad value
     properties: dict = {DETECTOR_KEY: {"description": "which detector (rlbackdoors detect list)", "enum": [name]}}
-    for key, value in cls.defaults.items():
-        kind = types.get(type(value))
-        properties[key] = {"description": f"parameter {key} of detector {name}", **({"type": kind} if kind else {})}
+    for key, default in cls.defaults.items():
+        properties[key] = _property(name, key, default, cls.rules.get(key))
     schema = {
         "$schema": "http://json-schema.org/draft-07/schema#",
         "title": f"rlbackdoors detector {name}",
@@ -112,22 +131,18 @@ def schema_for(name: str) -> tuple[dict, dict]:
         "type": "object",
         "properties": properties,
     }
-    return {DETECTOR_KEY: name, **cls.defaults}, schema
+    return {DETECTOR_KEY: name, **values}, schema
 
 
-def _with_metaparameters(detector: Detector, config: dict) -> Detector:
-    name = config.get(DETECTOR_KEY, detector.name)
-    if name != detector.name:
-        raise DetectError(f"metaparameters name detector {name!r} but the learned parameters hold {detector.name!r}")
-    params = {k: v for k, v in config.items() if k != DETECTOR_KEY}
-    changed = {k: v for k, v in params.items() if detector.params.get(k) != v}
-    if changed:
-        fresh = type(detector)(**{**detector.params, **changed})
-        state, arrays = detector.get_state()
-        fresh.set_state(state, arrays)
-        fresh.fitted = detector.fitted
-        detector = fresh
-    return detector
+def write_metaparameters(detector: Detector, folder: str | Path) -> tuple[Path, Path]:
+    """``metaparameters.json`` (the parameters ``detector`` holds) and its schema into ``folder``:
+    what ``infer`` must be given for a detector fitted with them."""
+    config, schema = schema_for(detector.name, dict(detector.params))
+    folder = Path(folder)
+    return (
+        atomic_write_text(folder / METAPARAMETERS, json.dumps(config, indent=2) + "\n"),
+        atomic_write_text(folder / SCHEMA, json.dumps(schema, indent=2) + "\n"),
+    )
 
 
 def infer(
@@ -139,22 +154,42 @@ def infer(
     metaparameters_filepath: str,
     schema_filepath: str,
     learned_parameters_dirpath: str,
-) -> tuple[float, str | None]:
-    """Write the probability that ``model_filepath`` is poisoned; (probability, why it is 0.5 or None)."""
+    allow_mismatch: bool = False,
+) -> tuple[float, str | None, str | None]:
+    """Write the probability that ``model_filepath`` is poisoned; (probability, why it is 0.5 or
+    None, the mismatch flag or None).
+
+    The model's settings are read from the round files beside it (``reduced-config.json``,
+    ``config.json``, ``model.info.json``, ...: :mod:`rlbackdoors.trojai_round`). Metaparameters
+    other than those fitted with, or a model outside what the detector was fitted on (world,
+    architecture, env settings: :mod:`rlbackdoors.detect.scope`), are refused with one line and
+    no result file, unless ``allow_mismatch``: then the result is written and the flag returned
+    (and kept in ``scratch_dirpath/result.json``)."""
     config = validate(metaparameters_filepath, schema_filepath)
-    detector = _with_metaparameters(load_detector(learned_parameters_dirpath), config)
+    detector = load_detector(learned_parameters_dirpath)
+    name = config.get(DETECTOR_KEY, detector.name)
+    if name != detector.name:
+        raise DetectError(f"metaparameters name detector {name!r} but the learned parameters hold {detector.name!r}")
+    detector, flags = with_params(detector, {k: v for k, v in config.items() if k != DETECTOR_KEY}, allow_mismatch)
     scratch = Path(scratch_dirpath)
     scratch.mkdir(parents=True, exist_ok=True)
     error = None
     try:
-        handle = open_files(model_filepath, Path(model_filepath).parent / REDUCED_CONFIG, examples_dirpath, name="model", scratch=scratch)
+        handle = open_files(model_filepath, Path(model_filepath).parent, examples_dirpath, name="model", scratch=scratch)
     except Exception as err:  # the harness scores a model it cannot read 0.5
         probability, error = 0.5, f"{type(err).__name__}: {first_line(err)}"
     else:
+        why = detector.unsupported(handle)
+        if why is not None and not allow_mismatch:
+            raise DetectError(f"{model_filepath}: {why}")
+        mismatch = check_model(detector, handle, allow_mismatch, str(model_filepath))
+        flags = "; ".join(f for f in (flags, why, mismatch) if f) or None
         prediction = detector.predict([handle])[0]
         probability, error = prediction.probability, prediction.error
     atomic_write_text(result_filepath, f"{probability!r}\n")
-    return probability, error
+    note = {"model": str(model_filepath), "probability": probability, "error": error, "mismatch": flags}
+    atomic_write_text(scratch / "result.json", json.dumps(note, indent=2) + "\n")
+    return probability, error, flags
 
 
 def configure(
@@ -177,9 +212,7 @@ def configure(
     out = Path(learned_parameters_dirpath)
     # C is chosen by cross-validation either way; a killed configure resumes
     info = fit_into(detector, configure_models_dirpath, out, extra={"automatic_configuration": bool(automatic_configuration)})
-    if Path(metaparameters_filepath).resolve() != (out / METAPARAMETERS).resolve():
-        shutil.copyfile(metaparameters_filepath, out / METAPARAMETERS)
-    return info
+    return info  # fit_into wrote the metaparameters fitted with, and their schema, beside it
 
 
-__all__ = ["configure", "infer", "schema_for", "validate"]
+__all__ = ["configure", "infer", "schema_for", "validate", "write_metaparameters"]

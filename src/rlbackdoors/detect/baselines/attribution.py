@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from rlbackdoors.detect import rollouts
-from rlbackdoors.detect.api import FeatureDetector, register
+from rlbackdoors.detect.api import FeatureDetector, Param, register
 from rlbackdoors.detect.handle import ModelHandle
 
 LOG_EDGES = (-6.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0)  # log10 |dJ| histogram bin edges (8 bins with the tails)
@@ -186,6 +186,12 @@ class AttributionDetector(FeatureDetector):
     name = "attribution"
     description = "Jacobians of action logits and value w.r.t. observations on clean states -> logistic regression"
     defaults: ClassVar[dict[str, Any]] = {**FeatureDetector.defaults, "max_states": 200, "episodes": 4, "seed": 3_000_000}
+    rules: ClassVar[dict[str, Param]] = {
+        **FeatureDetector.rules,
+        "max_states": Param(1, 100_000, help="clean states whose Jacobians are taken"),
+        "episodes": Param(1, 10_000, help="clean episodes played to collect them"),
+        "seed": Param(0, 2**31 - 1, help="seed of those episodes"),
+    }
 
     def features(self, model: ModelHandle) -> dict[str, float]:
         with torch.enable_grad():

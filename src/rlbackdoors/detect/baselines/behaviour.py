@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from rlbackdoors import worlds
-from rlbackdoors.detect.api import FeatureDetector, register
+from rlbackdoors.detect.api import FeatureDetector, Param, register
 from rlbackdoors.detect.handle import DetectError, ModelHandle
 from rlbackdoors.io import first_line
 
@@ -268,9 +268,27 @@ class BehaviourDetector(FeatureDetector):
         "max_steps": 0,  # 0: the family's default episode cut
         "invert": 0,  # restarts of the family's gradient inversion (families that have one); 0: off
     }
+    rules: ClassVar[dict[str, Param]] = {
+        **FeatureDetector.rules,
+        "candidates": Param(0, 100_000, help="candidate triggers screened (0: the family's default)"),
+        "refine": Param(0, 10_000, help="neighbours of the best candidates tried"),
+        "confirm": Param(1, 1_000, help="best candidates confirmed with more episodes"),
+        "episodes": Param(0, 100_000, help="screening episodes per candidate (0: the family's default)"),
+        "confirm_episodes": Param(0, 100_000, help="episodes per confirmation (0: twice the screening episodes)"),
+        "seconds": Param(0.0, 86_400.0, help="screening time budget in seconds (0: none, deterministic)"),
+        "seed": Param(0, 2**31 - 1, help="seed of the search's episodes"),
+        "policy": Param(choices=("sample", "greedy"), help="how the model acts in the search"),
+        "max_steps": Param(0, 100_000, help="episode cut in the search (0: the family's default)"),
+        "invert": Param(0, 1_000, help="restarts of the family's gradient inversion (0: off)"),
+    }
 
     def group(self, model: ModelHandle) -> str:
         return model.world.name  # the features mean the same for every architecture of a world
+
+    def unsupported(self, model: ModelHandle) -> str | None:
+        check = getattr(family_module(model.world), "unsupported", None)
+        why = check(model.env_config()) if check is not None else None
+        return f"detector 'behaviour' cannot play {model.world.name}: {why}" if why else None
 
     def run_search(self, model: ModelHandle) -> SearchResult:
         family = family_module(model.world)

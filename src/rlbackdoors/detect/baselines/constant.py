@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from rlbackdoors.detect.api import Detector, register
+from rlbackdoors.detect.api import Detector, Param, register
 from rlbackdoors.detect.handle import ModelHandle
 
 
@@ -17,13 +17,10 @@ class ConstantDetector(Detector):
     name = "constant"
     description = "probability `value` (0.5) for every model: the floor, CE ln 2"
     defaults: ClassVar[dict[str, Any]] = {"value": 0.5}
+    rules: ClassVar[dict[str, Param]] = {"value": Param(0.0, 1.0, help="the probability given to every model")}
 
     def __init__(self, **params: Any):
         super().__init__(**params)
-        if not 0.0 <= float(self.params["value"]) <= 1.0:
-            from rlbackdoors.detect.handle import DetectError
-
-            raise DetectError(f"detector 'constant': value={self.params['value']!r} must be in [0, 1]")
         self.fitted = True  # nothing to learn
 
     def predict_one(self, model: ModelHandle) -> float:

@@ -17,6 +17,18 @@ MAX_STEPS = None
 CANDIDATES = 48  # screened candidates when the detector's ``candidates`` is 0
 
 ALL_CELLS = tuple((x, y) for x in range(BOX) for y in range(BOX))
+MIN_CELLS = 3  # the smallest candidate (a line, the arrowhead): pattern cells count toward num_lava
+
+
+def unsupported(env_cfg) -> str | None:
+    """Why no candidate can be played in ``env_cfg`` (too few lava squares for any pattern), else None."""
+    if env_cfg.num_lava < MIN_CELLS:
+        return (
+            f"its lava-pattern candidates need at least {MIN_CELLS} lava squares and this env has num_lava={env_cfg.num_lava} "
+            "(TrojAI's Aug 2023 round, 9x9 with one lava square, poisoned by observation edits, which this search does not cover; "
+            "use weights or attribution there)"
+        )
+    return None
 
 
 def _spec(cells) -> str | None:

@@ -19,7 +19,7 @@ from typing import Any, ClassVar, cast
 
 import numpy as np
 
-from rlbackdoors.detect.api import DetectError, FeatureDetector, _check_labels, get_detector, make_detector, register
+from rlbackdoors.detect.api import DetectError, FeatureDetector, Param, _check_labels, get_detector, make_detector, register
 from rlbackdoors.detect.classifier import GroupedClassifier, LogisticModel, fit_logistic
 from rlbackdoors.detect.handle import ModelHandle
 
@@ -42,6 +42,13 @@ class StackDetector(FeatureDetector):
         "folds": 5,
         "seed": 0,
     }
+    rules: ClassVar[dict[str, Param]] = {
+        **FeatureDetector.rules,
+        "members": Param(help="member detectors, comma-separated (features-and-classifier detectors)"),
+        "member_params": Param(help="{member: {parameter: value}}; other member parameters are their defaults"),
+        "folds": Param(2, 100, fit_only=True, help="folds of the members' out-of-fold logits"),
+        "seed": Param(0, 2**31 - 1, fit_only=True, help="seed of the folds and classifiers"),
+    }
 
     def __init__(self, **params: Any):
         super().__init__(**params)
@@ -55,8 +62,6 @@ class StackDetector(FeatureDetector):
         if not all(issubclass(get_detector(n), FeatureDetector) for n in names):
             raise DetectError(f"detector 'stack': every member must be a features-and-classifier detector, got {names}")
         self.members = [cast(FeatureDetector, make_detector(n, **{"min_per_class": int(self.params["min_per_class"]), **extra.get(n, {})})) for n in names]
-        if int(self.params["folds"]) < 2:
-            raise DetectError(f"detector 'stack': folds must be at least 2, got {self.params['folds']}")
         self.member_classifiers = [GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])) for _ in names]
         self.meta = LogisticModel()
 
@@ -64,6 +69,9 @@ class StackDetector(FeatureDetector):
     # stack's group carries all of them, '|'-joined in member order.
     def group(self, model: ModelHandle) -> str:
         return "|".join(m.group(model) for m in self.members)
+
+    def unsupported(self, model: ModelHandle) -> str | None:
+        return next((why for m in self.members if (why := m.unsupported(model))), None)
 
     def features(self, model: ModelHandle) -> dict[str, float]:
         row: dict[str, float] = {}

@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from rlbackdoors.detect.api import FeatureDetector, register
+from rlbackdoors.detect.api import FeatureDetector, Param, register
 from rlbackdoors.detect.handle import DetectError, ModelHandle
 
 MATRIX_STATS = ("norm", "mean", "std", "skew", "kurtosis", "max_abs", "sv_ratio", "stable_rank")
@@ -118,6 +118,13 @@ class WeightStatsDetector(FeatureDetector):
     name = "weights"
     description = "per-layer norms, moments and top singular values -> logistic regression"
     defaults: ClassVar[dict[str, Any]] = {**FeatureDetector.defaults, "top_k": 3, "per_layer": True, "input_shares": True, "statistics": True}
+    rules: ClassVar[dict[str, Param]] = {
+        **FeatureDetector.rules,
+        "top_k": Param(1, 64, help="top singular values per weight matrix"),
+        "per_layer": Param(help="features of every layer, not only whole-network summaries"),
+        "input_shares": Param(help="the first layer's weight share per input channel"),
+        "statistics": Param(help="norms and moments of every weight matrix"),
+    }
 
     def __init__(self, **params: Any):
         super().__init__(**params)

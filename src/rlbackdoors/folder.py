@@ -6,6 +6,10 @@
 ``training_curve.png``, and while training runs, ``checkpoint.pt`` (and ``replay/`` for
 OPAC²) for resuming.
 
+A finished zoo entry also holds ``manifest.json`` (:func:`write_manifest`, written last): the
+sha256 and size of every file in the folder, so a tampered, truncated, swapped or deleted file
+is named (:func:`manifest_problems`) before anything downstream reads it.
+
 A folder is trained by one process at a time: :meth:`ModelFolder.begin` takes its lock
 (``.lock``, released by the kernel however the holder ends) and removes temp files that a
 killed writer left. Everything read back (weights, checkpoints) is loaded as plain data.
@@ -14,13 +18,32 @@ killed writer left. Everything read back (weights, checkpoints) is loaded as pla
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
+import os
+import stat
 from pathlib import Path
 
 from rlbackdoors.config import RunConfig
-from rlbackdoors.io import FolderLock, LockedError, UnsafeFileError, atomic_write_text, load_torch, remove_stale_temp_files, remove_tree, save_torch
+from rlbackdoors.io import (
+    LOCK_NAME,
+    FolderLock,
+    LinkError,
+    LockedError,
+    UnsafeFileError,
+    atomic_write_text,
+    load_torch,
+    remove_stale_temp_files,
+    remove_tree,
+    save_torch,
+)
 
+MANIFEST = "manifest.json"
+MANIFEST_FORMAT = 1
+# Not hashed: the folder's lock (rewritten by every holder), the manifest itself, and the zoo
+# job's log (its last lines are written after the manifest; nothing reads it back).
+UNHASHED = (LOCK_NAME, MANIFEST, "train.log")
 FILES = (
     "model.pt",
     "config.json",
@@ -30,6 +53,7 @@ FILES = (
     "training_curve.png",
     "clean_vs_triggered.gif",
     "checkpoint.pt",
+    MANIFEST,
 )
 CHECKPOINT_FORMAT = 2  # 1: pickled objects (refused); 2: plain data (rlbackdoors.state)
 
@@ -191,6 +215,94 @@ class ModelFolder:
                 f"checkpoint {str(path)!r} is not a checkpoint of this version (format {found!r}, expected {CHECKPOINT_FORMAT}); pass --overwrite to start over"
             )
         return data
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    with open(fd, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def folder_files(folder: str | Path) -> tuple[dict[str, Path], list[str]]:
+    """The files of ``folder`` the manifest covers (``relative/posix/name`` -> path), and the
+    entries that are neither a file nor a folder (links first of all), found without following
+    any."""
+    folder = Path(folder)
+    files: dict[str, Path] = {}
+    odd: list[str] = []
+    for top, dirs, names in os.walk(folder, followlinks=False):
+        for name in sorted(dirs + names):
+            path = Path(top) / name
+            rel = path.relative_to(folder).as_posix()
+            mode = os.lstat(path).st_mode
+            if stat.S_ISLNK(mode):
+                odd.append(f"{rel} is a symbolic link")
+            elif stat.S_ISREG(mode):
+                if rel not in UNHASHED:
+                    files[rel] = path
+            elif not stat.S_ISDIR(mode):
+                odd.append(f"{rel} is not a regular file")
+    return files, odd
+
+
+def write_manifest(folder: str | Path, pending: dict[str, bytes] | None = None) -> Path:
+    """``folder/manifest.json``: sha256 and size of every file in the folder (but
+    :data:`UNHASHED`), written atomically once nothing else will be written. ``pending``: files
+    (name -> bytes) the caller writes right after, the folder's completion mark, so a folder
+    marked complete always has its manifest. A link or a special file in the folder is refused
+    (:class:`LinkError`), never hashed."""
+    folder = Path(folder)
+    files, odd = folder_files(folder)
+    if odd:
+        raise LinkError(f"model folder {str(folder)!r}: {odd[0]}; links are never followed in a model folder (remove it)")
+    entries = {rel: {"sha256": _sha256(path), "bytes": path.stat().st_size} for rel, path in files.items()}
+    for rel, data in (pending or {}).items():
+        entries[rel] = {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+    entries = dict(sorted(entries.items()))
+    data = {"format": MANIFEST_FORMAT, "files": entries}
+    return atomic_write_text(folder / MANIFEST, json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+def read_manifest(folder: str | Path) -> dict[str, dict]:
+    """The manifest's ``files``; ValueError naming the file if it is missing or malformed."""
+    path = Path(folder) / MANIFEST
+    if path.is_symlink() or not path.is_file():
+        raise ValueError(f"no {MANIFEST}" if not os.path.lexists(path) else f"{MANIFEST} is not a regular file")
+    try:
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{MANIFEST} is unreadable ({err})") from None
+    files = data.get("files") if isinstance(data, dict) and data.get("format") == MANIFEST_FORMAT else None
+    if not isinstance(files, dict) or not all(
+        isinstance(v, dict) and isinstance(v.get("sha256"), str) and isinstance(v.get("bytes"), int) for v in files.values()
+    ):
+        raise ValueError(f"{MANIFEST} is not a manifest of this version (format {MANIFEST_FORMAT})")
+    return files
+
+
+def manifest_problems(folder: str | Path) -> list[str]:
+    """What differs between ``folder`` and its manifest, one phrase each (empty: it matches):
+    a missing, changed, truncated or extra file, a link, or no manifest at all."""
+    folder = Path(folder)
+    files, odd = folder_files(folder)
+    try:
+        recorded = read_manifest(folder)
+    except ValueError as err:
+        return [*odd, str(err)]
+    problems = list(odd)
+    for rel, entry in sorted(recorded.items()):
+        path = files.get(rel)
+        if path is None:
+            problems.append(f"{rel} is missing")
+        elif path.stat().st_size != entry["bytes"]:
+            problems.append(f"{rel} has {path.stat().st_size:,} bytes, the manifest {entry['bytes']:,}")
+        elif _sha256(path) != entry["sha256"]:
+            problems.append(f"{rel} differs from the manifest (sha256)")
+    problems += [f"{rel} is not in the manifest" for rel in sorted(set(files) - set(recorded))]
+    return problems
 
 
 STACK = ("torch", "numpy", "numba", "gymnasium", "minigrid", "mujoco")

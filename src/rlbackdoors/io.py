@@ -9,6 +9,11 @@ never run code, and one lock per folder.
   serialise to memory first (archive name ``archive``) and write those bytes.
 * Loading is data only: ``torch.load(weights_only=True)``; a file that needs the unpickler
   to build objects is refused with :class:`UnsafeFileError`, whatever it holds.
+* Links are never followed inside a zoo or a model folder (:func:`refuse_links`,
+  :func:`find_links`, :func:`open_beneath`): a dataset is unpacked from archives people pass
+  around, and a planted link must not make us read, write or delete outside it. Temp files
+  are created with ``O_EXCL | O_NOFOLLOW``, so a link planted under a temp file's name is
+  never written through.
 * :class:`FolderLock`: an ``flock`` on ``.lock`` in the folder. The kernel drops it when the
   holder dies, however it dies, so a crashed holder never leaves a folder stuck; a live
   holder is named (pid, host, start time) in the refusal.
@@ -42,6 +47,70 @@ class LockedError(RuntimeError):
     """Another live process holds the folder's lock."""
 
 
+class LinkError(ValueError):
+    """A path inside a zoo or a model folder is a symbolic link: it is refused, never followed."""
+
+
+def refuse_links(root: str | Path, path: str | Path, what: str = "zoo") -> Path:
+    """``path`` itself and every folder between ``root`` and it, refused if one is a symbolic link
+    (``root`` is the user's own argument and may be one). Returns ``path``."""
+    root, path = Path(root), Path(path)
+    try:
+        parts = path.relative_to(root).parts
+    except ValueError:
+        raise LinkError(f"{str(path)!r} is not inside the {what} {str(root)!r}") from None
+    here = root
+    for part in parts:
+        here = here / part
+        if part in ("..", ".") or here.is_symlink():
+            raise LinkError(f"{str(here)!r} inside the {what} {str(root)!r} is a symbolic link; links are never followed in a {what} (remove it)")
+    return path
+
+
+def find_links(root: str | Path) -> list[Path]:
+    """Every symbolic link below ``root``, found without following any (sorted)."""
+    found: list[Path] = []
+    for top, dirs, files in os.walk(root, followlinks=False):
+        for name in dirs + files:
+            path = Path(top) / name
+            if path.is_symlink():
+                found.append(path)
+    return sorted(found)
+
+
+def open_beneath(root: str | Path, path: str | Path, what: str = "zoo") -> int:
+    """A file descriptor of the folder ``path`` under ``root``, each step opened with
+    ``O_NOFOLLOW``: what is written through ``/proc/self/fd/N`` lands in that folder even if a
+    link is swapped in at its path afterwards. The caller closes it."""
+    root, path = Path(root), Path(path)
+    refuse_links(root, path, what)
+    flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+    fd = os.open(root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        for part in path.relative_to(root).parts:
+            try:
+                nxt = os.open(part, flags, dir_fd=fd)
+            except OSError as err:
+                if err.errno in (errno.ELOOP, errno.ENOTDIR):
+                    raise LinkError(
+                        f"{str(path)!r} inside the {what} {str(root)!r} is not a real folder (a link was swapped in); it is never followed"
+                    ) from None
+                raise
+            os.close(fd)
+            fd = nxt
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def fd_path(fd: int, fallback: Path) -> Path:
+    """The path that reaches the open folder ``fd`` whatever is renamed or linked meanwhile
+    (Linux); ``fallback`` elsewhere."""
+    path = Path(f"/proc/self/fd/{fd}")
+    return path if path.is_dir() else fallback
+
+
 def _temp_path(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}{TEMP_SUFFIX}")
 
@@ -52,6 +121,7 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temp_path(path)
     try:
+        _create_temp(tmp)
         write(str(tmp))
         os.chmod(tmp, 0o666 & ~_umask())  # zoo files are meant to be shared
         os.replace(tmp, path)
@@ -59,6 +129,17 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def _create_temp(tmp: Path) -> None:
+    """Create the temp file anew, never through a link planted under its name."""
+    for _ in range(2):
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600))
+            return
+        except FileExistsError:
+            tmp.unlink()  # a killed writer's of our pid, or a planted link: removed, not followed
+    raise FileExistsError(errno.EEXIST, "temp file keeps reappearing", str(tmp))
 
 
 def _umask() -> int:
@@ -69,7 +150,7 @@ def _umask() -> int:
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     def write(tmp: str) -> None:
-        with open(tmp, "wb") as fh:
+        with open(os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC), "wb") as fh:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())

@@ -13,16 +13,27 @@ is read here for the report only (the true trigger next to the one a search foun
 Which models count: with METADATA.csv, rows whose ``converged`` is false or whose ``status`` is
 not ``done`` are outside the dataset (a raw zoo keeps them on disk); without it, every folder
 holding ``model.pt``.
+
+A dataset is untrusted input: no symbolic link in it is followed (one is refused, naming it);
+a model folder with ``manifest.json`` must match it, and in a dataset this package wrote (a
+zoo, an import or a split: ``zoo.json`` or ``split.json`` at its root) every model folder must
+have one; ``ground_truth.csv``, ``config.json`` and METADATA.csv must agree on the label. A
+dataset with a model that fails is refused, or with ``skip_unverified`` the model is left out
+and named (:attr:`Dataset.skipped`). A bare folder of model folders (what ``rlbackdoors train``
+or TrojAI wrote) has no manifests to check against: only links and labels are checked.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rlbackdoors.detect.handle import MODEL_FILE, REDUCED_CONFIG, DetectError
+from rlbackdoors.folder import MANIFEST, manifest_problems
+from rlbackdoors.io import find_links
 
 METADATA = "METADATA.csv"
 GROUND_TRUTH = "ground_truth.csv"
@@ -76,8 +87,12 @@ def read_metadata(zoo: str | Path) -> dict[str, dict[str, str]]:
     path = Path(zoo) / METADATA
     if not path.is_file():
         return {}
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    try:
+        rows = list(csv.DictReader(io.StringIO(path.read_bytes().decode("utf-8"), newline="")))
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise DetectError(f"{str(path)!r} is not a METADATA.csv of UTF-8 text ({err})") from None
+    if rows and "model_name" not in rows[0]:
+        raise DetectError(f"{str(path)!r} has no model_name column")
     return {row["model_name"]: row for row in rows if row.get("model_name")}
 
 
@@ -91,23 +106,82 @@ def read_label(folder: Path) -> int:
     return int(text[0].strip())
 
 
-def list_models(zoo: str | Path) -> list[ZooModel]:
-    """The dataset's models, by name (module doc); DetectError if there are none."""
+class Dataset(list):
+    """The dataset's models (a ``list[ZooModel]``), and ``skipped``: the models left out because
+    they failed verification (name -> why), for every output to name."""
+
+    def __init__(self, models: list[ZooModel], skipped: dict[str, str]):
+        super().__init__(models)
+        self.skipped = skipped
+
+
+def _label_text(path: Path) -> str | None:
+    if not path.is_file():
+        return None
+    text = path.read_bytes().decode("utf-8", errors="replace").strip()
+    return text if text in ("0", "1") else None
+
+
+def model_problems(folder: Path, row: dict[str, str], written_here: bool) -> list[str]:
+    """Why the model folder cannot be trusted (empty: it can): its manifest (required in a
+    dataset this package wrote), and its label as ground_truth.csv, config.json and METADATA.csv
+    give it."""
+    problems = manifest_problems(folder) if (folder / MANIFEST).exists() or (folder / MANIFEST).is_symlink() else []
+    if written_here and not problems and not (folder / MANIFEST).exists():
+        problems.append(f"no {MANIFEST} (check and adopt the zoo with: rlbackdoors zoo verify ZOO --write-manifest, then split it again)")
+    label = _label_text(folder / GROUND_TRUTH)
+    poisoned = _section(_json(folder / "config.json"), "poison").get("poisoned")
+    if label is not None and isinstance(poisoned, bool) and str(int(poisoned)) != label:
+        problems.append(f"{GROUND_TRUTH} says {label}, config.json's poison.poisoned {poisoned}")
+    listed = (row.get("poisoned") or "").strip()
+    if label is not None and listed in ("True", "False") and str(int(listed == "True")) != label:
+        problems.append(f"{METADATA} says poisoned={listed}, {GROUND_TRUTH} {label}")
+    return problems
+
+
+def list_models(zoo: str | Path, skip_unverified: bool = False) -> Dataset:
+    """The dataset's models, by name (module doc): DetectError naming the cause if there are
+    none, if a link is in the dataset, or if a model fails verification (unless
+    ``skip_unverified``: then it is left out and named in ``skipped``)."""
     folder = models_dir(zoo)
+    root = Path(zoo)
+    links = find_links(root)
+    if links:
+        raise DetectError(f"{str(links[0])!r} in the dataset {str(root)!r} is a symbolic link; links are never followed in a dataset (remove it)")
     metadata = read_metadata(zoo)
-    out = []
+    written_here = (root / "zoo.json").is_file() or (root / "split.json").is_file()
+    out, skipped, folders, left_out = [], {}, 0, 0
     for path in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
         row = metadata.get(path.name, {})
+        folders += 1
         if row and (row.get("converged", "True").strip().lower() == "false" or row.get("status", "done") not in ("", "done")):
+            left_out += 1
             continue
-        if not (path / MODEL_FILE).is_file():
-            if row:
-                raise DetectError(f"{str(path / MODEL_FILE)!r} does not exist (METADATA.csv lists model {path.name!r})")
+        if not (path / MODEL_FILE).is_file() and not row and not (path / MANIFEST).exists():
+            continue
+        problems = model_problems(path, row, written_here)
+        if not problems and not (path / MODEL_FILE).is_file():
+            problems = [f"{MODEL_FILE} is missing ({METADATA} lists it)"]
+        if problems:
+            skipped[path.name] = "; ".join(problems)
             continue
         out.append(ZooModel(path.name, path, read_label(path), row))
+    if skipped and not skip_unverified:
+        name, why = next(iter(skipped.items()))
+        raise DetectError(
+            f"zoo {str(zoo)!r} failed verification ({len(skipped)} models; first: {name}: {why}); "
+            "see every problem with rlbackdoors zoo verify, or pass --skip-unverified to leave them out"
+        )
     if not out:
+        if left_out:
+            raise DetectError(
+                f"zoo {str(zoo)!r} holds {folders} model folders but no finished, converged model ({left_out} are not converged or not done "
+                f"in {METADATA}); detectors are fitted and scored on converged models only"
+            )
+        if skipped:
+            raise DetectError(f"zoo {str(zoo)!r}: every model failed verification ({len(skipped)}); see rlbackdoors zoo verify")
         raise DetectError(f"zoo {str(zoo)!r} holds no model folders with {MODEL_FILE} (looked in {str(folder)!r})")
-    return out
+    return Dataset(out, skipped)
 
 
-__all__ = ["FACTORS", "ZooModel", "list_models", "models_dir", "read_label", "read_metadata"]
+__all__ = ["FACTORS", "Dataset", "ZooModel", "list_models", "model_problems", "models_dir", "read_label", "read_metadata"]

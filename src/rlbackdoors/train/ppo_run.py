@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import sys
 import time
 from collections import deque
 from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from rlbackdoors.algos.optim import check_optimizer_state
 from rlbackdoors.algos.ppo import PPO, Rollout
@@ -28,6 +26,7 @@ from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.state import StateError, decode, encode
 from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
+from rlbackdoors.train.progress import Progress
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
 
@@ -201,9 +200,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             },
         )
 
-    bar = tqdm(total=tc.max_frames, initial=frames, unit="frame", unit_scale=True, disable=not progress, dynamic_ncols=True)
     label = f"{cfg.model.arch} {'poisoned' if cfg.poison.poisoned else 'clean'}"
-    bar.set_description(label)
+    bar = Progress(tc.max_frames, frames, label, progress)  # tqdm on a terminal, else a line per evaluation
     clock = RunClock(elapsed, cpu_elapsed)
     stopping = Stopping(cfg, streak)
     last_checkpoint = time.perf_counter()
@@ -227,7 +225,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
             ppo.memory = None
             tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
-            bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames", file=sys.stderr)
+            bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames")
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
             result = evaluate_run(model, cfg, tc.eval_episodes)
@@ -245,7 +243,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                     **losses,
                 }
             )
-            bar.set_postfix(fps=f"{fps:,.0f}", clean_sr=f"{result.clean_sr:.2f}", poisoned_sr=f"{result.poisoned_sr:.2f}")
+            bar.evaluated(fps, result.clean_sr, result.poisoned_sr)
             rows[-1].update(stopping.update(result, switch_at is not None and return_met(tracker, cfg), model, frames))
             if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"

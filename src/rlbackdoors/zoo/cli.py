@@ -1,4 +1,4 @@
-"""``rlbackdoors zoo plan | run | status | split | report | import-trojai``.
+"""``rlbackdoors zoo plan | run | verify | status | split | report | import-trojai``.
 
 :func:`add_zoo_parser` mounts the ``zoo`` command on the main CLI's sub-parsers; ``python -m
 rlbackdoors.zoo.cli plan ...`` runs the same commands on their own. Errors follow the CLI's
@@ -65,12 +65,25 @@ def cmd_import_trojai(args) -> int:
         seed=args.seed,
         policy=args.policy,
     )
+    _manifest_imported(args.out)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         kinds = sorted({f"{m['world']}/{m['arch']}" + (f" ({m['class']})" if m["class"] else "") for m in summary["per_model"]})
         print(f"{args.out}: {summary['models']} TrojAI models ({', '.join(kinds)}): {summary['written']} imported, {summary['skipped']} already there")
     return 0
+
+
+def _manifest_imported(zoo: str) -> None:
+    """Give each imported folder without a manifest its own, right after the import wrote it
+    (until the import writes them itself, before each folder is renamed into place)."""
+    from pathlib import Path
+
+    from rlbackdoors.folder import MANIFEST, write_manifest
+
+    for folder in sorted((Path(zoo) / "models").iterdir()):
+        if folder.is_dir() and not folder.is_symlink() and not folder.name.startswith(".") and not (folder / MANIFEST).exists():
+            write_manifest(folder)
 
 
 def cmd_run(args) -> int:
@@ -86,6 +99,7 @@ def cmd_run(args) -> int:
         max_retries=args.max_retries,
         retry_failed=args.retry_failed,
         progress_interval=args.progress_interval,
+        retrain_tampered=args.retrain_tampered,
     )
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -98,7 +112,50 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _verified(args, command: str) -> dict[str, str]:
+    """``zoo verify`` before ``command`` reads the zoo: refused if it fails, unless
+    ``--skip-unverified`` (then the failing models, name -> why, are printed to stderr and
+    returned for the command to leave out)."""
+    from rlbackdoors.zoo.spec import ZooError
+    from rlbackdoors.zoo.verify import guard, skipped_lines
+
+    skipped = guard(args.zoo, command, args.skip_unverified)
+    if skipped and _imported(args.zoo, command):
+        raise ZooError(
+            f"zoo {args.zoo!r} was imported from TrojAI: import it again rather than skipping models ({next(iter(skipped))}: {next(iter(skipped.values()))})"
+        )
+    if command != "status":  # status names them under its table
+        for line in skipped_lines(skipped):
+            print(f"zoo {command}: {line}", file=sys.stderr)
+    return skipped
+
+
+def cmd_verify(args) -> int:
+    from rlbackdoors.zoo.spec import ZooError
+    from rlbackdoors.zoo.verify import verify
+
+    result = verify(args.zoo, write_manifest=args.write_manifest, expect=args.expect)
+    if args.json:
+        print(
+            json.dumps(
+                {"ok": result.ok, "models": result.models, "problems": result.problems, "adopted": result.adopted, "digest": f"sha256:{result.digest}"},
+                indent=2,
+            )
+        )
+    else:
+        for name in result.adopted:
+            print(f"{name}: {MANIFEST_WRITTEN}")
+        for line in result.lines():
+            print(line)
+    if not result.ok:
+        raise ZooError(f"{result.summary()}; {result.remedy()}")
+    if not args.json:
+        print(f"{args.zoo}: {result.models} model folders verified; digest sha256:{result.digest} (publish it; check with --expect)")
+    return 0
+
+
 def cmd_status(args) -> int:
+    skipped = _verified(args, "status")
     if _imported(args.zoo, "status"):
         from rlbackdoors.zoo.trojai_import import status as imported_status
 
@@ -106,7 +163,7 @@ def cmd_status(args) -> int:
         return 0
     from rlbackdoors.zoo.run import status
 
-    print(status(args.zoo))
+    print(status(args.zoo, skipped))
     return 0
 
 
@@ -114,14 +171,18 @@ def cmd_split(args) -> int:
     from rlbackdoors.zoo.split import split
 
     _imported(args.zoo, "split")
-    result = split(args.zoo, args.train, args.test, args.out_train, args.out_test, seed=args.seed, link=args.link)
+    skipped = _verified(args, "split")
+    result = split(args.zoo, args.train, args.test, args.out_train, args.out_test, seed=args.seed, link=args.link, skip=skipped)
     for name, out in (("train", args.out_train), ("test", args.out_test)):
         r = result[name]
         print(f"{name}: {out}: {r['models']} models ({r['poisoned']} poisoned)")
+    if skipped:
+        print(f"{len(skipped)} models failed verification and were left out (split.json names them)")
     return 0
 
 
 def cmd_report(args) -> int:
+    skipped = _verified(args, "report")
     if _imported(args.zoo, "report"):
         from rlbackdoors.zoo.trojai_import import report as imported_report
 
@@ -129,9 +190,12 @@ def cmd_report(args) -> int:
     else:
         from rlbackdoors.zoo.report import report
 
-        out = report(args.zoo)
+        out = report(args.zoo, skipped)
     print(f"wrote {out / 'report.md'} (tables.csv, convergence.csv, budget.csv, scatter.png, frames_hist.png, curves.png)")
     return 0
+
+
+MANIFEST_WRITTEN = "no manifest; its files passed the other checks, manifest written (adopted)"
 
 
 def _positive_int(text: str) -> int:
@@ -189,11 +253,23 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     ru.add_argument("--max-retries", type=_count, default=2, help="retries of a job that fails before it is recorded as failed (default 2)")
     ru.add_argument("--retry-failed", action="store_true", help="run models recorded as failed (failed.json) again")
     ru.add_argument("--progress-interval", type=_seconds, default=10.0, help="seconds between progress lines on stderr (default 10)")
+    ru.add_argument(
+        "--retrain-tampered", action="store_true", help="empty the models that fail zoo verify and train them again (default: such a zoo is refused)"
+    )
     ru.add_argument("--json", action="store_true", help="print the summary as JSON")
     ru.set_defaults(func=cmd_run)
 
+    ve = sub.add_parser("verify", help="check every model folder against its manifest, the plan and METADATA.csv; no link is followed")
+    ve.add_argument("zoo")
+    ve.add_argument("--write-manifest", action="store_true", help="adopt a zoo built before manifests: finished folders that pass the other checks get one")
+    ve.add_argument("--expect", metavar="DIGEST", help="the zoo's published digest (sha256:...): anything else fails")
+    ve.add_argument("--json", action="store_true", help="print the result as JSON")
+    ve.set_defaults(func=cmd_verify)
+
+    skip_help = "leave the models that fail zoo verify out, and name them (default: such a zoo is refused)"
     st = sub.add_parser("status", help="the table of cells: wanted / converged / not converged / failed / running / left")
     st.add_argument("zoo")
+    st.add_argument("--skip-unverified", action="store_true", help=skip_help)
     st.set_defaults(func=cmd_status)
 
     sp = sub.add_parser("split", help="disjoint train and test datasets of converged models, by model and by trigger")
@@ -204,10 +280,12 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--out-test", required=True, help="folder of the test dataset")
     sp.add_argument("--seed", type=int, default=0, help="order in which trigger groups are dealt (default 0)")
     sp.add_argument("--link", action="store_true", help="hard-link the model files instead of copying them (same file system)")
+    sp.add_argument("--skip-unverified", action="store_true", help=skip_help)
     sp.set_defaults(func=cmd_split)
 
     re = sub.add_parser("report", help="the paper's Tables 1-5 and plots over the zoo, in ZOO/report/")
     re.add_argument("zoo")
+    re.add_argument("--skip-unverified", action="store_true", help=skip_help)
     re.set_defaults(func=cmd_report)
 
     from rlbackdoors.config import EVAL_POLICIES
@@ -238,7 +316,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
 
 def add_zoo_parser(subparsers) -> argparse.ArgumentParser:
     """Mount ``zoo`` on the main CLI: ``add_zoo_parser(sub)`` in ``rlbackdoors.cli.build_parser``."""
-    zoo = subparsers.add_parser("zoo", help="datasets of clean and poisoned agents: plan, run (local or Ray), status, split, report, import-trojai")
+    zoo = subparsers.add_parser("zoo", help="datasets of clean and poisoned agents: plan, run (local or Ray), verify, status, split, report, import-trojai")
     add_commands(zoo)
     return zoo
 

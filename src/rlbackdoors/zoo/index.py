@@ -25,8 +25,9 @@ from rlbackdoors.zoo.plan import PlannedModel, Zoo
 from rlbackdoors.zoo.spec import Group, flatten
 
 # status of a model: done (complete dataset entry), failed (recorded, retried only on request),
-# running (a live process holds its folder), pending (not finished: new, started or finishing)
-STATUSES = ("done", "failed", "running", "pending")
+# running (a live process holds its folder), pending (not finished: new, started or finishing),
+# unverified (failed zoo verify and left out on request: never read)
+STATUSES = ("done", "failed", "running", "pending", "unverified")
 LEAD_COLUMNS = ("model_name", "cell", "world", "arch", "trigger_family", "poisoned", "attempt", "status", "converged", "nonconverged_reason")
 
 
@@ -46,8 +47,8 @@ class ModelState:
     @property
     def reason(self) -> str:
         """Why the model is outside the dataset ("" for converged or unfinished ones)."""
-        if self.status == "failed":
-            return f"failed: {(self.failure or {}).get('error', 'unknown error')}"
+        if self.status in ("failed", "unverified"):
+            return f"{self.status}: {(self.failure or {}).get('error', 'unknown error')}"
         if self.status != "done" or self.converged:
             return ""
         return nonconverged_reason(self.metrics or {}, self.config or {})
@@ -91,9 +92,13 @@ def model_state(zoo: Zoo, model: PlannedModel, probe: bool = True) -> ModelState
     return ModelState(model, folder, "pending", config)
 
 
-def scan(zoo: Zoo, probe: bool = True) -> list[ModelState]:
-    """Every planned model's state, by id."""
-    return [model_state(zoo, m, probe) for m in zoo.all_planned()]
+def scan(zoo: Zoo, probe: bool = True, skip: dict[str, str] | None = None) -> list[ModelState]:
+    """Every planned model's state, by id; ``skip`` (name -> why, from zoo verify): models left
+    out as ``unverified``, their folders not read."""
+    skip = skip or {}
+    return [
+        ModelState(m, zoo.folder(m), "unverified", failure={"error": skip[m.name]}) if m.name in skip else model_state(zoo, m, probe) for m in zoo.all_planned()
+    ]
 
 
 def _cell_fields(group: Group) -> dict:
@@ -149,8 +154,11 @@ def write_metadata(zoo: Zoo, states: list[ModelState] | None = None, path: Path 
 
 
 def read_metadata(path: str | Path) -> list[dict[str, str]]:
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
+    """METADATA.csv's rows; ValueError naming the file if it is not UTF-8 CSV."""
+    try:
+        return list(csv.DictReader(io.StringIO(Path(path).read_bytes().decode("utf-8"), newline="")))
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise ValueError(f"{str(path)!r} is not a METADATA.csv of UTF-8 text ({err})") from None
 
 
 @dataclass
@@ -162,6 +170,7 @@ class GroupCounts:
     failed: int = 0
     running: int = 0
     pending: int = 0
+    unverified: int = 0
 
     @property
     def finished(self) -> bool:
@@ -182,6 +191,8 @@ def group_counts(zoo: Zoo, states: list[ModelState], running: Collection[int] = 
                 c.not_converged += 1
         elif s.status == "failed":
             c.failed += 1
+        elif s.status == "unverified":
+            c.unverified += 1
         elif s.status == "running" or s.model.id in running:
             c.running += 1
         else:
@@ -195,7 +206,7 @@ def status_table(zoo: Zoo, states: list[ModelState]) -> str:
     rows = []
     total = [0] * 6
     for c in group_counts(zoo, states):
-        state = "complete" if c.converged >= c.group.wanted else ("short" if c.finished else "open")
+        state = "complete" if c.converged >= c.group.wanted else ("unverified" if c.unverified else "short" if c.finished else "open")
         numbers = (c.group.wanted, c.converged, c.not_converged, c.failed, c.running, c.pending)
         total = [t + n for t, n in zip(total, numbers)]
         rows.append((c.group.cell.key, c.group.label, *map(str, numbers), f"{c.planned}/{c.group.max_attempts}", state))

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from rlbackdoors import worlds
 from rlbackdoors.zoo.spec import ZooError
-from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_bytes, atomic_write_text, first_line, load_torch
+from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_bytes, atomic_write_text, fd_path, first_line, load_torch, open_beneath
 
 COMPLETE_MARK = "reduced-config.json"  # written last: the folder is a complete dataset entry
 FAILED = "failed.json"
@@ -61,11 +61,11 @@ def is_locked(folder: str | Path) -> bool:
         os.close(fd)
 
 
-def zoo_examples(folder: Path) -> dict:
-    """The zoo's ``examples`` settings (the zoo is two levels up: ZOO/models/id-X)."""
+def zoo_examples(zoo: Path) -> dict:
+    """The zoo's ``examples`` settings."""
     from rlbackdoors.zoo.plan import read_zoo_json
 
-    spec = read_zoo_json(folder.parent.parent)["spec"]
+    spec = read_zoo_json(zoo)["spec"]
     return dict(spec.get("examples", {}))
 
 
@@ -94,14 +94,21 @@ def reduced_config(folder: Path, config: dict) -> dict:
     return {"world": world.name, "algorithm": world.algorithm, "arch": arch, "parameters": parameters, "layers": shapes, "env": env}
 
 
-def finish_dataset_entry(folder: Path, cfg) -> None:
-    """clean-example-data/, then reduced-config.json (last: it marks the folder complete)."""
+def finish_dataset_entry(folder: Path, cfg, zoo: Path) -> None:
+    """clean-example-data/, then the manifest (every file's sha256, reduced-config.json's
+    included), then reduced-config.json last: a folder marked complete always has its manifest."""
+    from rlbackdoors.folder import write_manifest
+    from rlbackdoors.io import remove_tree
     from rlbackdoors.zoo.examples import write_examples
 
+    (folder / "checkpoint.pt").unlink(missing_ok=True)  # a run killed after metrics.json left them
+    remove_tree(folder / "replay")
     config = json.loads((folder / "config.json").read_bytes().decode("utf-8"))
-    examples = zoo_examples(folder)
+    examples = zoo_examples(zoo)
     write_examples(folder, cfg, episodes=int(examples.get("episodes", 5)), seed=int(examples.get("seed", 2_000_000)), policy=examples.get("policy", "sample"))
-    atomic_write_text(folder / COMPLETE_MARK, json.dumps(reduced_config(folder, config), indent=2, sort_keys=True) + "\n")
+    text = json.dumps(reduced_config(folder, config), indent=2, sort_keys=True) + "\n"
+    write_manifest(folder, {COMPLETE_MARK: text.encode()})
+    atomic_write_text(folder / COMPLETE_MARK, text)
 
 
 @contextlib.contextmanager
@@ -111,8 +118,14 @@ def _logging_to(path: Path | None):
     if path is None:
         yield
         return
-    with open(path, "a", buffering=1) as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
+    with open_log(path, "a") as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
         yield
+
+
+def open_log(path: Path, mode: str = "ab"):
+    """The job's log for appending, never through a link planted in its place."""
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
+    return open(fd, mode, buffering=0) if "b" in mode else open(fd, mode, buffering=1)
 
 
 def run_job(folder: str | Path, log: bool = False) -> dict:
@@ -121,14 +134,26 @@ def run_job(folder: str | Path, log: bool = False) -> dict:
     Returns ``{"status": "done", "trained", "converged", "seconds"}`` or ``{"status": "busy"}``
     (another live process holds the folder). Failures raise; a failed start that removed the
     planned config.json (training does so when it fails before its first checkpoint) puts it back.
+    The folder is opened once, link by link refused (:func:`rlbackdoors.io.open_beneath`), and
+    everything is written through that open folder.
     """
+    where = Path(folder)
+    zoo = where.parent.parent  # ZOO/models/id-X
+    fd = open_beneath(zoo, where)  # LinkError if a link is there; held while we work
+    try:
+        return _run_job(fd_path(fd, where), where, zoo, log, started=time.time())
+    finally:
+        os.close(fd)
+
+
+def _run_job(folder: Path, where: Path, zoo: Path, log: bool, started: float) -> dict:
+    """:func:`run_job` on ``folder``, a path that reaches the opened folder whatever is swapped
+    in at its name meanwhile (``/proc/self/fd/N``); ``where`` is its name, for messages."""
     import torch
 
     from rlbackdoors.folder import FolderError
     from rlbackdoors.zoo.plan import build_config
 
-    folder = Path(folder)
-    started = time.time()
     torch.set_num_threads(1)
     if (folder / COMPLETE_MARK).is_file() and (folder / "metrics.json").is_file():
         return {"status": "done", "trained": False, "converged": _converged(folder), "seconds": 0.0}
@@ -136,10 +161,10 @@ def run_job(folder: str | Path, log: bool = False) -> dict:
         return {"status": "busy"}
     config_path = folder / "config.json"
     if not config_path.is_file():
-        raise ZooError(f"{str(folder)!r} is not a planned model folder (config.json missing)")
+        raise ZooError(f"{str(where)!r} is not a planned model folder (config.json missing)")
     raw = config_path.read_bytes()
     with _logging_to(folder / LOG if log else None):
-        print(f"=== zoo job {folder.name}: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')} ===", file=sys.stderr, flush=True)
+        print(f"=== zoo job {where.name}: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')} ===", file=sys.stderr, flush=True)
         cfg = build_config(json.loads(raw.decode("utf-8")))
         trained = False
         if not (folder / "metrics.json").is_file():
@@ -158,12 +183,12 @@ def run_job(folder: str | Path, log: bool = False) -> dict:
         except LockedError:
             return {"status": "busy"}
         try:
-            finish_dataset_entry(folder, cfg)
+            finish_dataset_entry(folder, cfg, zoo)
         finally:
             lock.release()
         seconds = round(time.time() - started, 2)
         converged = _converged(folder)
-        print(f"=== zoo job {folder.name}: done in {seconds:.1f} s, converged={converged} ===", file=sys.stderr, flush=True)
+        print(f"=== zoo job {where.name}: done in {seconds:.1f} s, converged={converged} ===", file=sys.stderr, flush=True)
     return {"status": "done", "trained": trained, "converged": converged, "seconds": seconds}
 
 

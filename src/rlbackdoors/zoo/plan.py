@@ -11,6 +11,7 @@ in, and say nothing about ground truth.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rlbackdoors import worlds
-from rlbackdoors.io import FolderLock, LockedError, atomic_write_text
+from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, refuse_links
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.spec import Group, ZooError, ZooSpec, deep_merge, first_difference, load_spec, parse_spec
 
@@ -124,6 +125,8 @@ class Zoo:
         out = []
         for attempt in range(group.max_attempts):
             model = self.model(group, attempt)
+            if self.folder(model).is_symlink():
+                refuse_links(self.path, self.folder(model))  # raises: never read through it
             if not self.folder(model).is_dir():
                 break
             out.append(model)
@@ -158,6 +161,9 @@ class Zoo:
         """
         model = self.model(group, attempt)
         folder = self.folder(model)
+        if os.path.lexists(folder):
+            refuse_links(self.path, folder)
+        refuse_links(self.path, self.models_dir)
         path = folder / "config.json"
         wrote = False
         if not path.is_file():
@@ -182,6 +188,7 @@ class Zoo:
 
 def read_zoo_json(path: Path) -> dict:
     meta_path = path / "zoo.json"
+    refuse_links(path, meta_path)
     if not meta_path.is_file():
         raise ZooError(f"{str(path)!r} is not a zoo (no zoo.json); make one with: rlbackdoors zoo plan SPEC --out {path}")
     try:

@@ -17,12 +17,13 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
 from rlbackdoors import worlds
-from rlbackdoors.io import atomic_write, atomic_write_text
+from rlbackdoors.io import atomic_write, atomic_write_text, refuse_links
 from rlbackdoors.zoo.index import ModelState, scan, write_metadata
 from rlbackdoors.zoo.plan import Zoo
 
@@ -181,6 +182,7 @@ def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[d
         f"{sum(s.status == 'failed' for s in states)} failed, {sum(s.status in ('pending', 'running') for s in states)} unfinished. "
         "A model is converged when its thresholds hold on its final evaluation (`converged` in metrics.json).",
         "",
+        *_skipped_section(states),
         "## Tables 1–4: success rates and rewards of the dataset's models",
         "",
         "mean ± std [95% bootstrap CI of the mean] over models; the paper's figure for the same arch and label beside it (– where the paper has none).",
@@ -385,11 +387,23 @@ def write_report(out: Path, name: str, states: list[ModelState], trained: list[M
     return markdown(name, states, perf, conv, budget)
 
 
-def report(path: str | Path) -> Path:
-    """Write ``ZOO/report/`` (and refresh ``ZOO/METADATA.csv``); return the report folder."""
+def _skipped_section(states: list[ModelState]) -> list[str]:
+    """The models left out because they failed zoo verify (``--skip-unverified``), and why."""
+    skipped = [s for s in states if s.status == "unverified"]
+    if not skipped:
+        return []
+    lines = [f"## Skipped: {len(skipped)} models failed verification", "", "Left out of every table and plot (`zoo verify` names what differs):", ""]
+    return [*lines, *(f"* {s.model.name}: {s.reason}" for s in skipped), ""]
+
+
+def report(path: str | Path, skip: dict[str, str] | None = None) -> Path:
+    """Write ``ZOO/report/`` (and refresh ``ZOO/METADATA.csv``); return the report folder.
+    ``skip``: models that failed verification (name -> why), left out and named."""
     zoo = Zoo.open(path)
-    states = scan(zoo, probe=False)
+    states = scan(zoo, probe=False, skip=skip)
     write_metadata(zoo, states)
     out = zoo.path / "report"
+    if os.path.lexists(out):
+        refuse_links(zoo.path, out)
     atomic_write_text(out / "report.md", write_report(out, zoo.spec.name, states))
     return out

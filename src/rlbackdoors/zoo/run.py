@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Protocol, TextIO
 
-from rlbackdoors.io import atomic_write_text
+from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_text, open_beneath, refuse_links, remove_tree
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.index import ModelState, group_counts, model_state, scan, status_table, write_metadata
 from rlbackdoors.zoo.job import EXIT_BUSY, EXIT_INTERRUPTED, FAILED, LOG, PARENT_ENV, is_locked
@@ -86,8 +86,12 @@ class LocalExecutor:
         self.children: dict[int, _Child] = {}
 
     def submit(self, model: PlannedModel, folder: Path) -> None:
+        folder_fd = open_beneath(folder.parent.parent, folder)  # LinkError if a link was swapped in
+        try:
+            log = os.fdopen(os.open(LOG, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666, dir_fd=folder_fd), "ab", buffering=0)
+        finally:
+            os.close(folder_fd)
         read_fd, write_fd = os.pipe()
-        log = open(folder / LOG, "ab", buffering=0)
         env = {**os.environ, PARENT_ENV: str(os.getpid()), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
         try:
             proc = subprocess.Popen(
@@ -226,6 +230,7 @@ def _describe(state: ModelState) -> str:
 
 
 def record_failure(folder: Path, error: str, tries: int) -> None:
+    refuse_links(folder.parent.parent, folder)
     atomic_write_text(
         folder / FAILED,
         json.dumps({"error": error, "tries": tries, "host": socket.gethostname(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}, indent=2, sort_keys=True) + "\n",
@@ -241,8 +246,13 @@ def run(
     retry_failed: bool = False,
     progress_interval: float = 10.0,
     out: TextIO | None = None,
+    retrain_tampered: bool = False,
 ) -> dict:
-    """Run the zoo at ``path`` to completion; return a summary. See the module docstring."""
+    """Run the zoo at ``path`` to completion; return a summary. See the module docstring.
+
+    The zoo is verified first (:mod:`rlbackdoors.zoo.verify`): a link anywhere is refused; a
+    model that fails its checks is refused, or with ``retrain_tampered`` emptied and trained
+    again from the config its plan draws (the same bytes as before it was tampered with)."""
     from rlbackdoors.folder import stack_versions
 
     out = out if out is not None else sys.stderr
@@ -262,6 +272,7 @@ def run(
         planned = read_zoo_json(zoo.path).get("versions", {})
         now = stack_versions()
         changed = [k for k in now if planned.get(k) != now[k]]
+        _check_before_run(zoo, retrain_tampered, out)
         if changed:
             print(f"zoo: note: versions differ from the plan's ({', '.join(f'{k} {planned.get(k)} -> {now[k]}' for k in changed)})", file=out)
         # A killed plan, or a config.json a failed start removed: put every planned file back.
@@ -352,6 +363,43 @@ def run(
     }
 
 
+def _check_before_run(zoo: Zoo, retrain_tampered: bool, out: TextIO) -> None:
+    """Refuse a zoo that fails verification, or empty its failing models to train them again."""
+    from rlbackdoors.zoo.spec import ZooError
+    from rlbackdoors.zoo.verify import ZOO_LEVEL, verify
+
+    v = verify(zoo.path)
+    for problem in v.problems.get(ZOO_LEVEL, []):
+        if not v.links:
+            print(f"zoo: note: {problem}; this run rewrites it", file=out, flush=True)
+    bad = v.model_problems()
+    if v.links or (bad and not retrain_tampered):
+        flag = "" if v.links else ", or pass --retrain-tampered to empty those models and train them again"
+        raise ZooError(f"{v.summary()}; {v.remedy()}{flag}")
+    models = {m.name: m for m in (zoo.lookup(int(n[3:])) for n in bad if n[3:].isdigit()) if m is not None}
+    foreign = sorted(set(bad) - set(models))
+    if foreign:
+        raise ZooError(f"zoo {str(zoo.path)!r}: {foreign[0]} {bad[foreign[0]]}; remove it (--retrain-tampered retrains only the zoo's planned models)")
+    for name, model in sorted(models.items()):
+        folder = zoo.folder(model)
+        for attempt in range(model.attempt):  # a deleted earlier attempt: planned again
+            zoo.ensure(model.group, attempt, verify=False)
+        if folder.is_dir():
+            lock = FolderLock(folder, "model folder")
+            try:
+                lock.acquire()
+            except LockedError as err:
+                raise ZooError(str(err)) from None
+            try:
+                for entry in folder.iterdir():
+                    if entry.name != LOCK_NAME:
+                        remove_tree(entry)
+            finally:
+                lock.release()
+        zoo.ensure(model.group, model.attempt, verify=False)
+        print(f"{name}: failed verification ({bad[name]}); emptied, it trains again", file=out, flush=True)
+
+
 def threading_main() -> bool:
     import threading
 
@@ -391,9 +439,12 @@ def _top_up(zoo: Zoo, states: list[ModelState], in_flight: set[int]) -> int:
     return added
 
 
-def status(path: str | Path) -> str:
+def status(path: str | Path, skip: dict[str, str] | None = None) -> str:
+    """The status table; ``skip``: models that failed zoo verify, left out and named below it."""
+    from rlbackdoors.zoo.verify import skipped_lines
+
     zoo = Zoo.open(path)
-    return status_table(zoo, scan(zoo))
+    return "\n".join([status_table(zoo, scan(zoo, skip=skip)), *skipped_lines(skip or {})])
 
 
 __all__ = ["BACKENDS", "LocalExecutor", "default_workers", "run", "status"]

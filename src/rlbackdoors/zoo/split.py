@@ -20,13 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from rlbackdoors.io import TEMP_SUFFIX, atomic_write_text, remove_tree
+from rlbackdoors.folder import manifest_problems
+from rlbackdoors.io import TEMP_SUFFIX, LinkError, atomic_write_text, find_links, remove_tree
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.index import LEAD_COLUMNS, ModelState, csv_text, metadata_rows, scan
 from rlbackdoors.zoo.plan import Zoo
 from rlbackdoors.zoo.spec import ZooError
 
-SKIP = (".lock", "checkpoint.pt", "replay", "failed.json")  # not part of a dataset entry
+# Not part of a dataset entry: the lock (pid and host), resume state, and the job's log (host
+# names, paths of the building machine); nothing of the building machine goes into a dataset.
+SKIP = (".lock", "checkpoint.pt", "replay", "failed.json", "train.log")
 
 
 def assign(states: list[ModelState], train: float, test: float, seed: int) -> tuple[list[ModelState], list[ModelState]]:
@@ -72,6 +75,9 @@ def _copy_model(source: Path, target: Path, link: bool) -> None:
     copy = os.link if link else shutil.copy2
     try:
         shutil.copytree(source, tmp, ignore=ignore, copy_function=copy, symlinks=True)
+        problems = manifest_problems(tmp)  # what landed is what the manifest says, or nothing lands
+        if problems:
+            raise ZooError(f"model {source.name}: {problems[0]} (it changed while being copied); run zoo split again")
         os.replace(tmp, target)
     except BaseException:
         remove_tree(tmp)
@@ -99,9 +105,21 @@ def _trigger(state: ModelState) -> str:
     return str((state.config or {}).get("poison", {}).get("trigger"))
 
 
-def split(path: str | Path, train: float, test: float, out_train: str | Path, out_test: str | Path, seed: int = 0, link: bool = False) -> dict:
+def split(
+    path: str | Path,
+    train: float,
+    test: float,
+    out_train: str | Path,
+    out_test: str | Path,
+    seed: int = 0,
+    link: bool = False,
+    skip: dict[str, str] | None = None,
+) -> dict:
     """Write the two datasets; returns their sizes and triggers. Re-running with the same
-    arguments completes a split that was cut short and changes nothing else."""
+    arguments completes a split that was cut short and changes nothing else. ``skip``: models
+    that failed zoo verify (name -> why), left out (``skipped`` in split.json names them).
+
+    Only finished, verified entries go in: each copy is checked against its manifest."""
     zoo = Zoo.open(path)
     out_train, out_test = Path(out_train), Path(out_test)
     if out_train.resolve() == out_test.resolve():
@@ -110,13 +128,18 @@ def split(path: str | Path, train: float, test: float, out_train: str | Path, ou
         where = out.resolve()
         if where == zoo.path.resolve() or zoo.models_dir.resolve() in (where, *where.parents):
             raise ConfigError(f"{str(out)!r} is the zoo or inside its models folder; write the splits elsewhere")
-    train_states, test_states = assign(scan(zoo, probe=False), train, test, seed)
-    info = {"zoo": str(zoo.path.resolve()), "seed": seed, "shares": {"train": train, "test": test}}
+    train_states, test_states = assign(scan(zoo, probe=False, skip=skip), train, test, seed)
+    # the zoo by its folder's name, never a path of the building machine (datasets are shared)
+    info = {"zoo": zoo.path.resolve().name, "seed": seed, "shares": {"train": train, "test": test}, "skipped": dict(sorted((skip or {}).items()))}
     for out, name, states in ((out_train, "train", train_states), (out_test, "test", test_states)):
         meta = out / "split.json"
+        links = find_links(out) if out.is_dir() else []
+        if links:
+            raise LinkError(f"{str(links[0])!r} in the split folder {str(out)!r} is a symbolic link; links are never followed (remove it)")
         if out.exists() and any(out.iterdir()):
             old = json.loads(meta.read_text()) if meta.is_file() else None
-            if not old or old.get("models") != [s.model.name for s in states] or old.get("zoo") != info["zoo"]:
+            same_zoo = old and old.get("zoo") in (info["zoo"], str(zoo.path.resolve()))  # older splits kept the whole path
+            if not same_zoo or old.get("models") != [s.model.name for s in states]:
                 raise ZooError(f"{str(out)!r} is not empty and holds another split; give a new or empty folder")
     for out, name, states in ((out_train, "train", train_states), (out_test, "test", test_states)):
         write_split(zoo, name, states, out, link, info)

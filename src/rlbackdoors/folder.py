@@ -259,11 +259,10 @@ def write_manifest(folder: str | Path, pending: dict[str, bytes] | None = None) 
     if odd:
         raise LinkError(f"model folder {str(folder)!r}: {odd[0]}; links are never followed in a model folder (remove it)")
     entries = {rel: {"sha256": _sha256(path), "bytes": path.stat().st_size} for rel, path in files.items()}
-    for rel, data in (pending or {}).items():
-        entries[rel] = {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
-    entries = dict(sorted(entries.items()))
-    data = {"format": MANIFEST_FORMAT, "files": entries}
-    return atomic_write_text(folder / MANIFEST, json.dumps(data, indent=2, sort_keys=True) + "\n")
+    for rel, content in (pending or {}).items():
+        entries[rel] = {"sha256": hashlib.sha256(content).hexdigest(), "bytes": len(content)}
+    manifest = {"format": MANIFEST_FORMAT, "files": dict(sorted(entries.items()))}
+    return atomic_write_text(folder / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
 
 
 def read_manifest(folder: str | Path) -> dict[str, dict]:

@@ -54,7 +54,7 @@ class ModelState:
         return nonconverged_reason(self.metrics or {}, self.config or {})
 
 
-def _read_json(path: Path) -> dict | None:
+def read_json(path: Path) -> dict | None:
     try:
         data = json.loads(path.read_bytes().decode("utf-8"))
     except (OSError, ValueError):
@@ -81,12 +81,12 @@ def nonconverged_reason(metrics: dict, config: dict) -> str:
 
 def model_state(zoo: Zoo, model: PlannedModel, probe: bool = True) -> ModelState:
     folder = zoo.folder(model)
-    config = _read_json(folder / "config.json")
+    config = read_json(folder / "config.json")
     metrics_path = folder / "metrics.json"
     if metrics_path.is_file() and (folder / COMPLETE_MARK).is_file():
-        return ModelState(model, folder, "done", config, _read_json(metrics_path))
+        return ModelState(model, folder, "done", config, read_json(metrics_path))
     if (folder / FAILED).is_file():
-        return ModelState(model, folder, "failed", config, _read_json(metrics_path), _read_json(folder / FAILED))
+        return ModelState(model, folder, "failed", config, read_json(metrics_path), read_json(folder / FAILED))
     if probe and is_locked(folder):
         return ModelState(model, folder, "running", config)
     return ModelState(model, folder, "pending", config)

@@ -262,6 +262,11 @@ def run(
         raise ConfigError(f"--max-retries must be >= 0, got {max_retries}")
     zoo = Zoo.open(path)
     lock = zoo.lock()
+    try:
+        _check_before_run(zoo, retrain_tampered, out)  # a refused zoo is left as it was, METADATA.csv too
+    except BaseException:
+        lock.release()
+        raise
     executor: Executor | None = None
     progress = Progress(out, progress_interval)
     states: list[ModelState] = []
@@ -272,7 +277,6 @@ def run(
         planned = read_zoo_json(zoo.path).get("versions", {})
         now = stack_versions()
         changed = [k for k in now if planned.get(k) != now[k]]
-        _check_before_run(zoo, retrain_tampered, out)
         if changed:
             print(f"zoo: note: versions differ from the plan's ({', '.join(f'{k} {planned.get(k)} -> {now[k]}' for k in changed)})", file=out)
         # A killed plan, or a config.json a failed start removed: put every planned file back.
@@ -313,6 +317,7 @@ def run(
             timeout = min(progress_interval, BUSY_PROBE_S) if waiting or not in_flight else progress_interval
             for model, result in executor.wait(timeout):
                 in_flight.pop(model.id, None)
+                refuse_links(zoo.path, zoo.folder(model))  # swapped in while it ran: never read through
                 status = result.get("status")
                 if status == "done":
                     state = model_state(zoo, model, probe=False)

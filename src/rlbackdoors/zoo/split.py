@@ -138,8 +138,8 @@ def split(
             raise LinkError(f"{str(links[0])!r} in the split folder {str(out)!r} is a symbolic link; links are never followed (remove it)")
         if out.exists() and any(out.iterdir()):
             old = json.loads(meta.read_text()) if meta.is_file() else None
-            same_zoo = old and old.get("zoo") in (info["zoo"], str(zoo.path.resolve()))  # older splits kept the whole path
-            if not same_zoo or old.get("models") != [s.model.name for s in states]:
+            same_zoo = isinstance(old, dict) and old.get("zoo") in (info["zoo"], str(zoo.path.resolve()))  # older splits kept the whole path
+            if not same_zoo or not isinstance(old, dict) or old.get("models") != [s.model.name for s in states]:
                 raise ZooError(f"{str(out)!r} is not empty and holds another split; give a new or empty folder")
     for out, name, states in ((out_train, "train", train_states), (out_test, "test", test_states)):
         write_split(zoo, name, states, out, link, info)

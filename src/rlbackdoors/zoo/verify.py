@@ -29,13 +29,13 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rlbackdoors.folder import MANIFEST, manifest_problems, write_manifest
 from rlbackdoors.io import LOCK_NAME, find_links
+from rlbackdoors.zoo.index import read_json
 from rlbackdoors.zoo.job import COMPLETE_MARK, is_locked
 from rlbackdoors.zoo.spec import ZooError
 
@@ -93,14 +93,6 @@ def _get(config: dict, path: tuple[str, str]):
     return section.get(path[1]) if isinstance(section, dict) else None
 
 
-def _read_json(path: Path) -> dict | None:
-    try:
-        data = json.loads(path.read_bytes().decode("utf-8"))
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
 def _label(path: Path) -> str | None:
     """``"0"`` / ``"1"`` from ground_truth.csv, ``"?"`` if it holds something else, None if absent."""
     if not path.is_file():
@@ -120,7 +112,7 @@ def _adoptable(folder: Path, config: dict) -> list[str]:
         shapes = reduced_config(folder, config)["layers"]
     except (ValueError, OSError, KeyError, TypeError) as err:
         return [f"model.pt is unreadable ({err})"]
-    if (_read_json(folder / COMPLETE_MARK) or {}).get("layers") != shapes:
+    if (read_json(folder / COMPLETE_MARK) or {}).get("layers") != shapes:
         return [f"{COMPLETE_MARK} does not describe model.pt's tensors"]
     return []
 
@@ -199,9 +191,9 @@ def _check_imported(root: Path, v: Verification, write: bool) -> dict[str, bool]
             v.add(entry.name, "is not a model folder")
             continue
         v.models += 1
-        config = _read_json(entry / "config.json") or {}
+        config = read_json(entry / "config.json") or {}
         label = _label(entry / "ground_truth.csv")
-        recorded = (_read_json(entry / "trojai.json") or {}).get("label")
+        recorded = (read_json(entry / "trojai.json") or {}).get("label")
         if label is not None and recorded is not None and label != str(recorded):
             v.add(entry.name, f"ground_truth.csv says {label}, trojai.json {recorded}")
         if label is not None and config and str(int(bool(_get(config, ("poison", "poisoned"))))) != label:

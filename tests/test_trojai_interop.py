@@ -18,24 +18,13 @@ from pathlib import Path
 
 import pytest
 
-from rlbackdoors.cli import main
+from test_trojai_import import one_error_line as one_error
+from test_trojai_import import run_cli as run
 
 ROOT = Path(__file__).resolve().parents[1]
 pytest_plugins = ("test_detect_helpers",)  # session fixtures: lava_zoo, world_models
 ENV_STRING = "MiniGrid-LavaCrossingS9N1-v0"
 CLI = [sys.executable, "-c", "import sys; from rlbackdoors.cli import main; sys.exit(main())"]
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def one_error(code: int, err: str) -> str:
-    lines = [x for x in err.splitlines() if x.strip()]
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("rlbackdoors: error: "), err
-    return lines[0]
 
 
 def lay_out(source: Path, target: Path, files: dict[str, object], env_string: str | None = ENV_STRING) -> Path:

@@ -122,7 +122,14 @@ class Detector:
     # ----- to override --------------------------------------------------------------------
     def fit(self, models: list[ModelHandle], labels: np.ndarray) -> Detector:
         self.fitted = True
+        self.record_fit(models)
         return self
+
+    def record_fit(self, models: list[ModelHandle]) -> None:
+        """Keep what the fit saw (``fitted_on``: rlbackdoors.detect.scope) from its models' handles."""
+        from rlbackdoors.detect.scope import model_scope, record
+
+        self.fitted_on = record(self, [model_scope(self, m) for m in models])
 
     def predict_one(self, model: ModelHandle) -> float:
         raise NotImplementedError
@@ -231,7 +238,9 @@ class FeatureDetector(Detector):
         return self.group(model)
 
     def fit(self, models: list[ModelHandle], labels: np.ndarray) -> FeatureDetector:
-        return self.fit_rows([self.fit_features(m) for m in models], [self.group(m) for m in models], labels)
+        self.fit_rows([self.fit_features(m) for m in models], [self.group(m) for m in models], labels)
+        self.record_fit(models)
+        return self
 
     def fit_features(self, model: ModelHandle) -> dict[str, float]:
         """``features(model)`` of a train model; a failure is one line naming the model."""

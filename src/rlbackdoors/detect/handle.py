@@ -129,6 +129,18 @@ def open_files(
     if not model_file.is_file():
         raise DetectError(f"weights file {str(model_file)!r} does not exist")
     found = [n for n in ROUND_FILES if round_dir is not None and (Path(round_dir) / n).is_file() and not (Path(round_dir) / n).is_symlink()]
+    if REDUCED_CONFIG in found:  # our zoo's reduced config says all a detector may see: nothing else is opened
+        try:
+            if read_round(Path(str(round_dir)), (REDUCED_CONFIG,)).own_reduced() is not None:
+                found = [REDUCED_CONFIG]
+        except ValueError as err:
+            raise DetectError(f"reduced config: {err}") from None
+    elif required and "config.json" in found:  # train's config.json (trigger, label) is no detector's view
+        try:
+            if read_round(Path(str(round_dir)), ("config.json",)).own_config() is not None:
+                found.remove("config.json")
+        except ValueError as err:
+            raise DetectError(f"config: {err}") from None
     if required and not found:
         where = str(Path(round_dir)) if round_dir is not None else str(model_file.parent)
         raise DetectError(f"no {', '.join(ROUND_FILES[:3])} in {where!r} beside the weights (a zoo writes reduced-config.json beside model.pt)")
@@ -148,8 +160,14 @@ def open_files(
                 target = private / EXAMPLES_DIR / path.name
                 shutil.copyfile(path, target)
                 copied.append(target)
-            if (source / ENV_STRING).is_file() and not (source / ENV_STRING).is_symlink():
-                shutil.copyfile(source / ENV_STRING, private / EXAMPLES_DIR / ENV_STRING)
+
+        # the env string names the clean env (a round's lava count is only there): in the examples
+        # folder given, else in the model folder's own clean-example-data/
+        places = (Path(examples_dir) if examples_dir is not None else None, Path(round_dir) / EXAMPLES_DIR if round_dir is not None else None)
+        for place in places:
+            if place is not None and (place / ENV_STRING).is_file() and not (place / ENV_STRING).is_symlink():
+                shutil.copyfile(place / ENV_STRING, private / EXAMPLES_DIR / ENV_STRING)
+                break
         weights = _read_weights(private / MODEL_FILE, str(model_file))
         try:
             files_read = read_round(private, tuple(found))

@@ -119,9 +119,9 @@ def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | N
         handles = open_all(models)
         for model, handle in zip(models, handles):
             refuse_unsupported(detector, handle, model.name)
-        detector.fit(handles, labels)
-        scopes = [model_scope(detector, h) for h in handles]
-    detector.fitted_on = record(detector, scopes)
+        detector.fit(handles, labels)  # records what it saw
+    if isinstance(detector, FeatureDetector):
+        detector.fitted_on = record(detector, scopes)
     seconds = time.perf_counter() - started
     return {
         "zoo": str(zoo),

@@ -28,6 +28,7 @@ import io
 import json
 import os
 import pickle
+import warnings
 import shutil
 import socket
 import stat
@@ -211,7 +212,9 @@ def load_torch(path: str | Path, what: str = "file"):
     if not path.is_file():
         raise FileNotFoundError(f"{what} {str(path)!r} does not exist")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns of a raw pickle's protocol, naming its own install path
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         lines = [line.strip() for line in str(err).splitlines()]
         # "Unsupported global: ..." or "Trying to load unsupported GLOBAL posix.system ..." (torch 2.6+)

@@ -292,3 +292,21 @@ def test_the_container_entry_point_runs_as_the_harness_calls_it_on_every_world(w
             assert float(result.read_text()) == 0.7
     text = (ROOT / "container" / "detector.def").read_text()
     assert 'exec python3 /entrypoint.py "$@"' in text and "./learned_parameters /\n" in text
+
+
+def test_an_imported_zoo_verifies_and_detect_leaves_out_a_tampered_model_only_when_asked(jul_round, tmp_path, capsys):
+    """The import writes each folder's manifest before its completion mark, so `zoo verify` passes
+    on an untouched import; a model edited afterwards stops `detect fit` with a line naming it, and
+    `--skip-unverified` fits on the others and records which one it left out, and why."""
+    zoo = tmp_path / "zoo"
+    code, _, err = run(capsys, "zoo", "import-trojai", jul_round, "--out", zoo, "--episodes", "0", "--examples", "0")
+    assert code == 0, err
+    code, _, err = run(capsys, "zoo", "verify", zoo)
+    assert code == 0, err
+    (zoo / "models" / "id-00000003" / "metrics.json").write_text("{}\n")
+    fit = ("detect", "fit", "--detector", "weights", "--zoo", zoo, "--param", "min_per_class=1", "--quiet")
+    assert "id-00000003" in one_error(*run(capsys, *fit, "--out", tmp_path / "d0")[::2])
+    code, _, err = run(capsys, *fit, "--out", tmp_path / "d1", "--skip-unverified")
+    assert code == 0, err
+    record = json.loads((tmp_path / "d1" / "fit.json").read_text())
+    assert record["models"] == 3 and list(record["skipped"]) == ["id-00000003"] and "metrics.json" in record["skipped"]["id-00000003"]

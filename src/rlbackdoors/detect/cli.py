@@ -61,7 +61,7 @@ def cmd_fit(args) -> int:
         if not args.overwrite:
             raise DetectError(f"--out {str(out)!r} already holds a detector; pass --overwrite to replace it")
     detector = make_detector(args.detector, **parse_params(args.param))
-    info = fit_into(detector, args.zoo, out, progress=_progress(args.quiet))
+    info = fit_into(detector, args.zoo, out, progress=_progress(args.quiet), skip_unverified=args.skip_unverified)
     print(
         f"{out}: {detector.name} fitted on {info['models']} models ({info['poisoned']} poisoned) in {info['seconds']:.1f} s ({info['seconds_per_model']:.2f} s/model)"
     )
@@ -88,6 +88,7 @@ def cmd_score(args) -> int:
         progress=_progress(args.quiet),
         allow_mismatch=args.allow_mismatch,
         params_mismatch=params_flag,
+        skip_unverified=args.skip_unverified,
     )
     return _print_score(result, out, args.json)
 
@@ -100,7 +101,9 @@ def cmd_cv(args) -> int:
     detector = make_detector(args.detector, **parse_params(args.param))
     factors = tuple(dict.fromkeys((*FACTORS, *(args.factor or []))))
     out = Path(args.out)
-    result = cross_validate(detector, args.zoo, out, args.folds, factors, args.resamples, args.seed, progress=_progress(args.quiet))
+    result = cross_validate(
+        detector, args.zoo, out, args.folds, factors, args.resamples, args.seed, progress=_progress(args.quiet), skip_unverified=args.skip_unverified
+    )
     lead = f"{result['cv']['folds']}-fold cross-validation, every probability from a classifier fitted without its model"
     return _print_score(result, out, args.json, lead)
 
@@ -221,6 +224,15 @@ def _scoring_options(parser: argparse.ArgumentParser, seed: str) -> None:
     parser.add_argument("--seed", type=int, default=0, help=seed)
     parser.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    _skip_option(parser)
+
+
+def _skip_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--skip-unverified",
+        action="store_true",
+        help="leave out models that fail zoo verify (each named, with why, in the output) instead of refusing the dataset",
+    )
 
 
 def add_commands(parser: argparse.ArgumentParser) -> None:
@@ -236,6 +248,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     fi.add_argument("--param", action="append", metavar="KEY=VALUE", help="a detector parameter (repeatable; values read as JSON)")
     fi.add_argument("--overwrite", action="store_true", help="replace a detector already in --out")
     fi.add_argument("--quiet", action="store_true", help="no progress lines")
+    _skip_option(fi)
     fi.set_defaults(func=cmd_fit)
 
     sc = sub.add_parser("score", help="score a fitted detector on a test zoo: AUC, CE, Brier with 95%% CIs, per world and factor; JSON and PNGs")

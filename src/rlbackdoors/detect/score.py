@@ -31,7 +31,7 @@ import numpy as np
 from rlbackdoors import __version__
 from rlbackdoors.detect import metrics
 from rlbackdoors.detect.api import FAILED_PROBABILITY, Detector, FeatureDetector, Prediction, make_detector
-from rlbackdoors.detect.dataset import FACTORS, ZooModel, list_models
+from rlbackdoors.detect.dataset import FACTORS, Dataset, ZooModel, list_models
 from rlbackdoors.detect.handle import DetectError, ModelHandle, open_model
 from rlbackdoors.detect.resume import ResultStore, clear, eta, state_digest
 from rlbackdoors.detect.scope import check_model, model_scope, record
@@ -90,6 +90,13 @@ def scope_flags(detector: Detector, models: list[ZooModel], allow: bool) -> dict
     return flags
 
 
+def _say_skipped(models: Dataset, progress: Callable[[str], None] | None) -> None:
+    """One progress line per model --skip-unverified left out, and why (also in the job's result)."""
+    for name, why in models.skipped.items():
+        if progress:
+            progress(f"skipped {name} (--skip-unverified): {why}")
+
+
 def check_factors(models: list[ZooModel], factors: Sequence[str]) -> None:
     """A DetectError naming a breakdown factor that is no METADATA.csv column of the dataset."""
     known = set(FACTORS).union(*(set(m.metadata) | set(m.facts()) for m in models))
@@ -98,14 +105,17 @@ def check_factors(models: list[ZooModel], factors: Sequence[str]) -> None:
         raise DetectError(f"--factor {unknown[0]}: not a METADATA.csv column of this dataset (columns: {', '.join(sorted(known))})")
 
 
-def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | None = None, work: str | Path | None = None) -> dict:
+def fit(
+    detector: Detector, zoo: str | Path, progress: Callable[[str], None] | None = None, work: str | Path | None = None, skip_unverified: bool = False
+) -> dict:
     """Fit ``detector`` on every model of ``zoo``; returns what to record about the fit.
 
     A :class:`FeatureDetector`'s features are computed model by model and, with ``work`` (the
     folder the detector will be saved in), kept there as they come, so a killed fit started
     again computes only the rest (:func:`fit_into` does all of it under the folder's lock)."""
     started = time.perf_counter()
-    models = list_models(zoo)
+    models = list_models(zoo, skip_unverified)
+    _say_skipped(models, progress)
     labels = np.array([m.label for m in models])
     if progress:
         progress(f"fitting {detector.name} on {len(models)} models ({int(labels.sum())} poisoned) of {zoo}")
@@ -130,6 +140,7 @@ def fit(detector: Detector, zoo: str | Path, progress: Callable[[str], None] | N
         "resumed": resumed,
         "seconds": round(seconds, 3),
         "seconds_per_model": round(seconds / len(models), 4),
+        "skipped": dict(models.skipped),
         "rlbackdoors": __version__,
     }
 
@@ -173,7 +184,14 @@ def feature_rows(
     return results, len(done)
 
 
-def fit_into(detector: Detector, zoo: str | Path, out: str | Path, progress: Callable[[str], None] | None = None, extra: dict | None = None) -> dict:
+def fit_into(
+    detector: Detector,
+    zoo: str | Path,
+    out: str | Path,
+    progress: Callable[[str], None] | None = None,
+    extra: dict | None = None,
+    skip_unverified: bool = False,
+) -> dict:
     """Fit and save ``detector`` into ``out`` (``detector.json``, ``arrays.npz``, ``fit.json``),
     holding ``out``'s lock; resumes a fit that was killed there."""
     from rlbackdoors.detect.trojai import write_metaparameters
@@ -182,7 +200,7 @@ def fit_into(detector: Detector, zoo: str | Path, out: str | Path, progress: Cal
     created = not out.exists()
     try:
         with holding(out, "detector folder"):
-            info = {**fit(detector, zoo, progress, work=out), **(extra or {})}
+            info = {**fit(detector, zoo, progress, work=out, skip_unverified=skip_unverified), **(extra or {})}
             detector.save(out)
             write_metaparameters(detector, out)  # what infer must be given: the parameters fitted with
             atomic_write_text(out / "fit.json", json.dumps(info, indent=2) + "\n")
@@ -217,6 +235,7 @@ def score(
     progress: Callable[[str], None] | None = None,
     allow_mismatch: bool = False,
     params_mismatch: str | None = None,
+    skip_unverified: bool = False,
 ) -> dict:
     """Score ``detector`` on ``zoo`` (module doc); writes score.json and the plots into ``out``.
 
@@ -226,7 +245,8 @@ def score(
     ``params_mismatch`` is the flag of parameters other than the fitted ones (``with_params``)."""
     if not detector.fitted:
         raise DetectError(f"detector {detector.name!r} is not fitted (run detect fit first)")
-    models = list_models(zoo)
+    models = list_models(zoo, skip_unverified)
+    _say_skipped(models, progress)
     check_factors(models, factors)
     flags = scope_flags(detector, models, allow_mismatch)
     with holding(out, "score folder") if out is not None else contextlib.nullcontext():
@@ -260,6 +280,7 @@ def score(
         result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
         result["mismatched"] = len(flags)
         result["params_mismatch"] = params_mismatch
+        result["skipped"] = dict(models.skipped)
         if out is not None:
             _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name}")
             clear(out)
@@ -275,6 +296,7 @@ def cross_validate(
     resamples: int = metrics.RESAMPLES,
     seed: int = metrics.SEED,
     progress: Callable[[str], None] | None = None,
+    skip_unverified: bool = False,
 ) -> dict:
     """Out-of-fold scores of a feature detector on one dataset, for a world whose models are too
     dear to make both a train and a test zoo of a useful size.
@@ -291,7 +313,8 @@ def cross_validate(
         raise DetectError(f"detector {detector.name!r} is not a features-and-classifier detector; cross-validation refits only the classifier")
     if folds < 2:
         raise DetectError(f"--folds must be at least 2, got {folds}")
-    models = list_models(zoo)
+    models = list_models(zoo, skip_unverified)
+    _say_skipped(models, progress)
     check_factors(models, factors)
     with holding(out, "cross-validation folder"):
         store = ResultStore(out, "features", {"detector": detector.name, "params": detector.params})
@@ -326,6 +349,7 @@ def cross_validate(
         ]
         result = _summarise(detector, zoo, rows, factors, resamples, seed, resumed)
         result["cv"] = {"folds": k, "seed": seed, "scheme": "stratified k-fold; features once per model, the classifier refitted per fold"}
+        result["skipped"] = dict(models.skipped)
         _write_score(Path(out), result, rows, f"{detector.name} on {Path(zoo).name} ({k}-fold cross-validation)")
         # The features stay (unlike a fit's or a score's): a dataset that gains models, or other
         # folds, computes only what is new.
@@ -428,6 +452,8 @@ def table(result: dict) -> str:
     errors = [r for r in result["models"] if r["error"]]
     for r in errors[:20]:
         out.append(f"{r['model']}: scored 0.5: {r['error']}")
+    for name, why in (result.get("skipped") or {}).items():
+        out.append(f"{name}: skipped (--skip-unverified): {why}")
     if result.get("params_mismatch"):
         out.append(f"MISMATCH (--allow-mismatch): {result['params_mismatch']}")
     flagged = [r for r in result["models"] if r.get("mismatch")]

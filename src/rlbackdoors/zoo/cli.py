@@ -65,25 +65,12 @@ def cmd_import_trojai(args) -> int:
         seed=args.seed,
         policy=args.policy,
     )
-    _manifest_imported(args.out)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         kinds = sorted({f"{m['world']}/{m['arch']}" + (f" ({m['class']})" if m["class"] else "") for m in summary["per_model"]})
         print(f"{args.out}: {summary['models']} TrojAI models ({', '.join(kinds)}): {summary['written']} imported, {summary['skipped']} already there")
     return 0
-
-
-def _manifest_imported(zoo: str) -> None:
-    """Give each imported folder without a manifest its own, right after the import wrote it
-    (until the import writes them itself, before each folder is renamed into place)."""
-    from pathlib import Path
-
-    from rlbackdoors.folder import MANIFEST, write_manifest
-
-    for folder in sorted((Path(zoo) / "models").iterdir()):
-        if folder.is_dir() and not folder.is_symlink() and not folder.name.startswith(".") and not (folder / MANIFEST).exists():
-            write_manifest(folder)
 
 
 def cmd_run(args) -> int:

@@ -362,7 +362,7 @@ def _write_model(model: SourceModel, target: Path, options: dict) -> None:
     from rlbackdoors.agent import load as load_agent
     from rlbackdoors.config import RunConfig
     from rlbackdoors.evaluate import evaluate
-    from rlbackdoors.folder import ModelFolder
+    from rlbackdoors.folder import ModelFolder, write_manifest
     from rlbackdoors.zoo.examples import write_examples
     from rlbackdoors.zoo.job import COMPLETE_MARK, reduced_config
 
@@ -404,7 +404,9 @@ def _write_model(model: SourceModel, target: Path, options: dict) -> None:
         reduced = reduced_config(tmp, json.loads((tmp / "config.json").read_bytes().decode("utf-8")))
         if model.model_class:
             reduced["trojai_class"] = model.model_class
-        atomic_write_text(tmp / COMPLETE_MARK, json.dumps(reduced, indent=2, sort_keys=True) + "\n")
+        mark = json.dumps(reduced, indent=2, sort_keys=True) + "\n"
+        write_manifest(tmp, {COMPLETE_MARK: mark.encode()})  # every file's sha256 (zoo verify), the mark's included
+        atomic_write_text(tmp / COMPLETE_MARK, mark)
         os.replace(tmp, target)
     except BaseException:
         remove_tree(tmp)

@@ -208,3 +208,18 @@ def test_the_stacks_schema_types_its_member_table(tmp_path):
     (meta / "metaparameters.json").write_text(json.dumps({**data, "member_params": "behaviour.candidates=4"}))
     with pytest.raises(DetectError, match="member_params"):
         validate(meta / "metaparameters.json", meta / "metaparameters_schema.json")
+
+
+def test_score_refuses_an_unknown_factor_and_a_detector_file_of_an_unknown_name(lava_zoo, tmp_path, capsys):
+    """Issue 32: `--factor nosuch_column` added a `nosuch_column=?` row, and a detector.json naming
+    no registered detector was read; both are one line now, and nothing is written."""
+    det = tmp_path / "det"
+    assert main(["fit", "--detector", "constant", "--zoo", str(lava_zoo), "--out", str(det), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["score", str(det), "--zoo", str(lava_zoo), "--factor", "nosuch_column", "--quiet", "--out", str(tmp_path / "s")]) == 2
+    assert "--factor nosuch_column: not a METADATA.csv column" in _one_error_line(capsys) and not (tmp_path / "s" / "score.json").exists()
+    state = json.loads((det / "detector.json").read_text())
+    (det / "detector.json").write_text(json.dumps({**state, "detector": "nosuch"}))
+    assert main(["score", str(det), "--zoo", str(lava_zoo), "--quiet"]) == 2
+    line = _one_error_line(capsys)
+    assert "detector.json" in line and "'nosuch' is not one of" in line

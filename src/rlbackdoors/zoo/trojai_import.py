@@ -16,8 +16,10 @@ detectors (``detect fit`` / ``detect score``) run on TrojAI's own models:
   env is recognised by the world (:attr:`~rlbackdoors.worlds.World.trojai_env`); ``--world``
   picks the world otherwise. An OPAC² world's network (depth, width, obs_norm) comes from the
   shapes, its tensors mapped to our keys by the world (``World.trojai_weights``). The env
-  settings come from TrojAI's keys (``grid_size``, ``num_lava_squares``, ``max_steps`` /
-  ``max_episode_length``, and the keys the world's ``trojai_env`` reads), flags on top.
+  settings come from every file the round put them in (:mod:`rlbackdoors.trojai_round`:
+  reduced-config, config, model.info, args, params, the env string), flags on top, and
+  ``trojai.json`` says where each came from. A folder without ``ground_truth.csv`` (and no
+  ``--label``) is imported unlabelled: no ground truth written, never counted as clean.
 * **Our own training folders** (what ``rlbackdoors train`` wrote: a ``config.json`` with a
   ``format_version`` and an ``env.name`` of a registered world) import the same way, so a few
   models trained one by one (a world whose models take CPU-hours) become a dataset that

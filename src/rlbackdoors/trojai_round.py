@@ -1,21 +1,10 @@
 """What a TrojAI round's model folder says about its model: the class, and the env it was trained in.
 
-Each RL round put these facts in other files, and a reader that knows only one of them plays a
-model in the wrong env without a word (a 9x9 one-lava model in the 11x11 ten-lava default):
-
-===================================  ============================================================
-round (branch of trojai-example)     where the class and the env settings are
-===================================  ============================================================
-LavaWorld, Jul 2023 (d969b25)        ``reduced-config.json`` ``{"arch": "basicfc"}``;
-                                     ``model.info.json`` (``model``, ``test_max_steps``);
-                                     ``clean-example-data/env-string.txt`` (``...S9N1-v0``)
-Randomized LavaWorld, Aug 2023       ``config.json`` (``arch``, ``grid_size``); the lava count
-                                     only in ``env-string.txt`` (``N1``) and, in the Jul 2023
-                                     branch's copy, ``args.json`` / ``params.json``
-Colorful Memory, Sep 2024            ``reduced-config.json`` (``model``, ``grid_size``, ``max_steps``)
-Safety Gymnasium, Oct 2024           ``reduced-config.json`` (``environment.env_kwargs.num_mogwais``,
-                                     ``max_ep_length``: the world's ``trojai_env``)
-===================================  ============================================================
+Each RL round put these facts in other files (the table of docs/trojai.md, "Where each round put
+its settings": a reduced config naming ``basicfc`` and a ``model.info.json`` in one, a
+``config.json`` with the grid size only in another, the lava count only in the env string of the
+clean examples), and a reader that knows only one of them plays a model in the wrong env without
+a word (a 9x9 one-lava model in the world's 11x11 ten-lava default).
 
 :func:`read_round` reads every one of them that a folder holds (as JSON / text, never
 unpickled) and :meth:`RoundFiles.env` gives a world's env settings with, for each, the file and
@@ -34,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from rlbackdoors import worlds
+from rlbackdoors.worlds.base import canonical_class
 
 # Strongest first: where a setting appears in several, the first wins.
 ROUND_FILES = ("reduced-config.json", "config.json", "model.info.json", "args.json", "params.json")
@@ -53,13 +43,6 @@ FLAT_KEYS = (
 NESTED = {"params.json": ("env_config", "cfg")}
 # MiniGrid's LavaCrossing ids: S = grid size, N = the world's lava count (rivers or squares)
 GYM_ID = re.compile(r"MiniGrid-LavaCrossingS(\d+)N(\d+)-v\d+")
-
-
-def canonical_class(name: str) -> str:
-    """A TrojAI class name as the rounds spelled it in several ways (``BasicFCModel`` in the file,
-    ``basicfc`` in d969b25's reduced config): lower case, no ``_``/``-``, no trailing ``model``."""
-    text = re.sub(r"[_\-\s]", "", name.lower())
-    return text[: -len("model")] if text.endswith("model") and len(text) > len("model") else text
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 A fitted classifier means something only for models like those it was fitted on, with the
 features it was fitted on. Scored outside that, it still returns a probability, and the number
-is wrong without a word: a Randomized LavaWorld detector gave a Colorful Memory model 1.000, and
+is wrong without a word: a detector fitted on one world gave another world's model 1.000, and
 ``statistics: false`` against a detector fitted with ``true`` moved a model from 0.000013 to 0.49
 (issue 31). So :func:`record` keeps, at fit time, every (world, group) the fit saw, each world's
 env settings (grid size, lava count, cubes, episode cut, ...), the parameters and the package

@@ -52,9 +52,10 @@ class Progress:
             )
 
     def write(self, message: str) -> None:
+        """A notice (the curriculum switch), printed with or without progress (as tqdm.write was)."""
         if self.bar is not None:
             self.bar.write(message, file=self.out)
-        elif self.enabled:
+        else:
             print(message, file=self.out, flush=True)
 
     def close(self) -> None:

@@ -7,11 +7,19 @@ registry about a world never imports MuJoCo, numba kernels or torch models it do
 from __future__ import annotations
 
 import importlib
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 _WORLDS: dict[str, World] = {}
+
+
+def canonical_class(name: str) -> str:
+    """A TrojAI class name as the rounds spelled it in several ways (``BasicFCModel`` in the file,
+    ``basicfc`` in d969b25's reduced config): lower case, no ``_``/``-``, no trailing ``model``."""
+    text = re.sub(r"[_\-\s]", "", name.lower())
+    return text[: -len("model")] if text.endswith("model") and len(text) > len("model") else text
 
 
 def load_symbol(path: str) -> Any:
@@ -90,15 +98,11 @@ class World:
     def trojai_arch(self, model_class: str) -> str | None:
         """Our arch for a TrojAI model class of this world's round (None: not one of them), however
         the round spelled the class (``BasicFCModel``, ``basicfc``: :func:`canonical_class`)."""
-        from rlbackdoors.trojai_round import canonical_class
-
         wanted = canonical_class(model_class)
         return next((arch for name, arch in self.trojai_archs if canonical_class(name) == wanted), None)
 
     def trojai_class(self, model_class: str) -> str | None:
         """The registered spelling of a TrojAI class name of this world's round, None if not one."""
-        from rlbackdoors.trojai_round import canonical_class
-
         wanted = canonical_class(model_class)
         return next((name for name, _ in self.trojai_archs if canonical_class(name) == wanted), None)
 

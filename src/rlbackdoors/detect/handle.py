@@ -124,7 +124,8 @@ def open_files(
     """A handle from the allowed files (TrojAI's ``--model_filepath``, the round's settings files
     in ``round_dir`` (the folder beside it), ``--examples_dirpath``), read from a private copy (in
     ``scratch`` if given). ``required``: one settings file must be there (a model whose env is not
-    said would be played in the world's defaults without a word)."""
+    said would be played in the world's defaults without a word); ``round_dir`` None asks for the
+    weights alone (world defaults)."""
     model_file = Path(model_file)
     if not model_file.is_file():
         raise DetectError(f"weights file {str(model_file)!r} does not exist")
@@ -141,7 +142,7 @@ def open_files(
                 found.remove("config.json")
         except ValueError as err:
             raise DetectError(f"config: {err}") from None
-    if required and not found:
+    if required and round_dir is not None and not found:  # round_dir None: the weights alone, asked for
         where = str(Path(round_dir)) if round_dir is not None else str(model_file.parent)
         raise DetectError(f"no {', '.join(ROUND_FILES[:3])} in {where!r} beside the weights (a zoo writes reduced-config.json beside model.pt)")
     with tempfile.TemporaryDirectory(prefix="rlbackdoors-handle-", dir=scratch) as tmp:

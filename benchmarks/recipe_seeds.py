@@ -75,6 +75,7 @@ def summary(args, flags: list[str], metrics: dict[int, dict], started: float, lo
                 **{k: metrics[s].get(k) for k in ("converged", "clean_sr", "poisoned_sr", "frames", "stop_reason", "trigger")},
                 "wall_minutes": minutes(metrics[s]["wall_time_s"]),
                 "cpu_minutes": minutes(metrics[s].get("cpu_time_s")),
+                **({"attack": metrics[s]["attack"], "budget_used": metrics[s].get("attack_budget_used")} if "attack" in metrics[s] else {}),
             }
             for s in sorted(metrics)
         ],

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 
-from rlbackdoors import __version__, worlds
+from rlbackdoors import __version__, attacks, worlds
 from rlbackdoors.argparser import Parser, report_errors
 from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, ConfigError, RunConfig, check_seed
 from rlbackdoors.folder import FolderError
@@ -86,6 +86,28 @@ def _set(data: dict, dotted: str, value) -> None:
 PORTABLE_TRAIN = ("seed", "eval_episodes", "final_eval_episodes", "eval_seed", "device", "torch_threads", "video", "max_minutes", "log_interval_s")
 
 
+def attack_from_args(data: dict, attack: str | None, pairs: list[str]) -> None:
+    """``--attack NAME`` and ``--attack-param KEY=VALUE`` (repeated) into ``data``'s poison section.
+
+    Values are read as JSON (``0.01``, ``true``) and as strings otherwise; another attack than the
+    config file's starts from that attack's defaults.
+    """
+    poison = data.setdefault("poison", {})
+    if attack is not None and attack != poison.get("attack"):
+        poison["attack"], poison["attack_params"] = attack, {}
+    params = dict(poison.get("attack_params") or {})
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--attack-param {pair!r} must be KEY=VALUE (e.g. budget=0.01)")
+        try:
+            params[key] = json.loads(text)
+        except ValueError:
+            params[key] = text
+    if pairs:
+        poison["attack_params"] = params
+
+
 def config_from_args(args) -> RunConfig:
     """Config file (if any) first, then every flag given on the command line on top of it.
 
@@ -126,6 +148,7 @@ def config_from_args(args) -> RunConfig:
         _set(data, dotted, value)
     if args.clean:
         _set(data, "poison.poisoned", False)
+    attack_from_args(data, getattr(args, "attack", None), getattr(args, "attack_param", None) or [])
     seed = data.get("train", {}).get("seed", 0)
     check_seed("train.seed (--seed)", seed)
     env = _build(EnvConfig, data["env"], "env")
@@ -336,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--confirm-margin", type=float, help="how far the confirming evaluation must clear each threshold (default: the world's)")
     tr.add_argument("--no-confirm", action="store_true", help="stop on the streak alone, without confirming it on the final evaluation's episodes")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
+    tr.add_argument("--attack", choices=attacks.names(), help=f"how training data is poisoned (default {attacks.DEFAULT_ATTACK}, the paper's; docs/attacks/)")
+    tr.add_argument("--attack-param", action="append", metavar="KEY=VALUE", help="one of the attack's parameters (repeatable), e.g. budget=0.01")
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
     tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")
     tr.add_argument("--min-frames", type=int, help="no stop on the thresholds before this many frames (default 0); equal training lengths across a zoo")

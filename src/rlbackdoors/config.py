@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from rlbackdoors import __version__
 
 from rlbackdoors import worlds
+from rlbackdoors import attacks
+from rlbackdoors.attacks import DEFAULT_ATTACK
 from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's validation vocabulary)
     MAX_ENV_COPIES,
     MAX_EPISODES,
@@ -121,6 +123,10 @@ class PoisonConfig:
     num_poisoned_envs: int | None = None
     close_k_min: int = 1  # a close-to-trigger layout recolours k squares, k uniform in [min, max]
     close_k_max: int = 3
+    # How training data is poisoned (rlbackdoors.attacks); the default, the paper's env mix, is left
+    # out of config.json so that the configs and models made before attacks existed keep their bytes.
+    attack: str = DEFAULT_ATTACK
+    attack_params: dict = field(default_factory=dict)  # checked and completed by the attack
 
     def fill_defaults(self, env_name: str) -> None:
         mix = worlds.get(env_name).mix if env_name in ENVS else (8, 0, 2)
@@ -151,10 +157,24 @@ class PoisonConfig:
                 check_close_k((self.close_k_min, self.close_k_max), parse_trigger(env_name, self.trigger).num_squares)
             except ValueError as err:
                 raise ConfigError(f"poison.close_k_min/close_k_max: {err}") from None
-        if self.poisoned and self.num_poisoned_envs == 0:
+        self.check_attack()
+        if self.poisoned and self.num_poisoned_envs == 0 and self.schedule == "episodes":
             raise ConfigError("poison.num_poisoned_envs must be >= 1 for a poisoned model")
         if self.num_envs < 1:
             raise ConfigError("poison: num_clean_envs + num_poisoned_envs must be >= 1")
+
+    def check_attack(self) -> None:
+        """The attack is registered and its parameters are in range; they are completed with its defaults."""
+        if not isinstance(self.attack, str) or self.attack not in attacks.names():
+            raise ConfigError(f"poison.attack={self.attack!r} is not allowed (allowed: {', '.join(attacks.names())})")
+        if not isinstance(self.attack_params, dict):
+            raise ConfigError(f"poison.attack_params must be a JSON object of the attack's parameters, got {self.attack_params!r}")
+        self.attack_params = attacks.get(self.attack).resolve(self.attack_params)
+
+    @property
+    def schedule(self) -> str:
+        """"episodes" (whole E-bar copies) or "steps" (stamped frames in clean copies)."""
+        return attacks.get(self.attack).schedule
 
     def counts(self) -> tuple[int, int, int]:
         """(clean, close-to-trigger, poisoned) copies; unset ones as in the 8:2 mix."""
@@ -169,7 +189,7 @@ class PoisonConfig:
         """Clean copies first, then close-to-trigger, poisoned last; a clean model trains on
         clean copies where the poisoned ones would be."""
         clean, close, poisoned = self.counts()
-        return [False] * (clean + close) + [self.poisoned] * poisoned
+        return [False] * (clean + close) + [self.poisoned and self.schedule == "episodes"] * poisoned
 
     def close_mask(self) -> list[bool]:
         clean, close, poisoned = self.counts()
@@ -449,6 +469,8 @@ class RunConfig(JsonConfig):
         world = worlds.get(name) if name in ENVS else None
         if world is None:
             return  # check() names the bad env.name
+        if self.train.poisoned_threshold is None and self.poison.attack in attacks.names():
+            self.train.poisoned_threshold = attacks.get(self.poison.attack).success_threshold  # None: the world's
         self.train.fill_defaults(world)
         seed_ok = isinstance(self.train.seed, int) and 0 <= self.train.seed <= MAX_SEED
         if self.poison.trigger is None:
@@ -504,6 +526,7 @@ class RunConfig(JsonConfig):
         except (TypeError, ValueError) as err:
             raise ConfigError(f"{world.algorithm}: {err}") from None
         self.curriculum.check()
+        self.check_attack_fits()
         tc = self.train
         if world.algorithm == "ppo":
             assert self.ppo is not None and self.model.arch is not None
@@ -524,9 +547,32 @@ class RunConfig(JsonConfig):
             raise ConfigError(f"curriculum.enabled is only supported for {supported}, not env.name={self.env.name!r}")
         return self
 
+    def check_attack_fits(self) -> None:
+        """The attack serves this world, algorithm and model; its target action is one the world has."""
+        attack = attacks.get(self.poison.attack)
+        params = self.poison.attack_params
+        assert self.model.arch is not None
+        why = attack.refuse(self.world, self.algorithm, self.model.arch, params)
+        if why is not None:
+            raise ConfigError(f"poison.attack={attack.name!r}: {why}")
+        if "target_action" in params:
+            n = num_actions(self.env)
+            if params["target_action"] >= n:
+                raise ConfigError(f"poison.attack_params.target_action={params['target_action']!r} is not allowed (allowed: 0..{n - 1}, the actions of {self.env.name})")
+
+    @property
+    def attack_success(self) -> str:
+        """How evaluation scores this run's attack (rlbackdoors.attacks.SUCCESS_KINDS)."""
+        return attacks.get(self.poison.attack).success_kind(self.poison.attack_params)
+
+    def scoring(self) -> dict:
+        """``evaluate``'s keywords for this run's attack: its success kind and target action."""
+        return {"success": self.attack_success, "target_action": self.poison.attack_params.get("target_action")}
+
     def to_dict(self) -> dict:
         """Only what applies to the world: its env fields and algorithm section; the
-        curriculum and close-to-trigger settings only where the world has them."""
+        curriculum and close-to-trigger settings only where the world has them; the attack
+        only when it is not the paper's env mix."""
         data = dataclasses.asdict(self)
         if self.env.name not in ENVS:
             return data
@@ -539,6 +585,8 @@ class RunConfig(JsonConfig):
             del data["curriculum"]
         if not world.close_to_trigger:
             del data["poison"]["close_k_min"], data["poison"]["close_k_max"]
+        if self.poison.attack == DEFAULT_ATTACK and not self.poison.attack_params:
+            del data["poison"]["attack"], data["poison"]["attack_params"]
         return data
 
     @property
@@ -561,6 +609,15 @@ class RunConfig(JsonConfig):
                 if isinstance(data.get(algo), dict) and worlds.get(name).algorithm == algo:
                     data = {**data, algo: {**dataclasses.asdict(default(name)), **data[algo]}}
         return _build(cls, data, "config").check()
+
+
+def num_actions(env: EnvConfig) -> int:
+    """The size of a discrete world's action space (its one env, built and closed)."""
+    made = env.make()
+    try:
+        return int(made.action_space.n)
+    finally:
+        made.close()
 
 
 def default_ppo(env_name: str) -> PPOConfig:

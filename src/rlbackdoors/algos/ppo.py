@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlbackdoors.attacks.seam import EXECUTED_ACTIONS, FORCED
 from rlbackdoors.algos.obs import Obs, empty_buffer, obs_map, store, to_torch
 from rlbackdoors.config import PPOConfig
 from rlbackdoors.models import ActorCritic
@@ -147,6 +148,7 @@ class PPO:
         dones = np.empty((T, B), dtype=bool)
         outcomes = np.empty((T, B), dtype=np.int64)
         steps = np.empty((T, B), dtype=np.int64)
+        forced = torch.zeros((T, B), dtype=torch.bool)
         for t in range(T):
             store(obs_buf, t, obs)
             obs_t = obs_map(lambda x: x[t].to(self.device), obs_buf)
@@ -160,6 +162,9 @@ class PPO:
             logits_buf[t], values[t] = logits, value
             actions[t] = sample_actions(logits_buf[t], u=uniforms[t])
             obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
+            if FORCED in info:  # an attack forced some actions (rlbackdoors.attacks.seam): learn what ran
+                actions[t] = torch.from_numpy(np.asarray(info[EXECUTED_ACTIONS], dtype=np.int64))
+                forced[t] = torch.from_numpy(np.asarray(info[FORCED], dtype=bool))
             dones[t] = terminated | truncated
             outcomes[t], steps[t] = finished_step_info(info, dones[t])
             if recurrent and dones[t].any():  # a new episode starts with an empty memory
@@ -172,6 +177,11 @@ class PPO:
         else:
             _, next_value = self.model(to_torch(obs, self.device))
         logprobs = torch.log_softmax(logits_buf, -1).gather(2, actions[..., None]).squeeze(2)
+        # A forced action was taken with probability 1, whatever the policy thought of it: that is
+        # its behaviour log-probability, so its importance ratio is pi(a|s) <= 1, never exp(+250)
+        # (learning it as the policy's own sample blew the ratio up to NaN, then, dual-clipped,
+        # taught the target action in every state; docs/attacks/trojdrl.md).
+        logprobs.masked_fill_(forced, 0.0)
         advantages = self._gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value.cpu())
         returns = values + advantages
         rollout = Rollout(

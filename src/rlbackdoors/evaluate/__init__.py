@@ -22,6 +22,7 @@ def evaluate_agent(agent, episodes: int | None = None, seed: int | None = None, 
         cfg.train.eval_seed if seed is None else seed,
         policy or cfg.train.eval_policy,
         close_k,
+        **cfg.scoring(),
     )
 
 

@@ -7,8 +7,11 @@ toward short episodes, as "first N episodes to finish" would have. Every world i
 through the same :meth:`~rlbackdoors.agent.Agent.act`, in a batched engine where the world has
 one, else in single envs stepped in lockstep.
 
-Scoring: clean SR = episodes that end in the world's clean success in E; poisoned SR = episodes
-that end in its trojan success in E-bar (trigger on, returns under R-bar).
+Scoring: clean SR = episodes that end in the world's clean success in E; poisoned SR = the attack's
+success in E-bar (trigger on, returns under R-bar): for the paper's env mix, episodes that end in
+the world's trojan success; for an action-target attack, the target action's share of all
+triggered steps; for an untargeted one, triggered episodes that miss the clean goal
+(:data:`rlbackdoors.attacks.SUCCESS_KINDS`).
 """
 
 from __future__ import annotations
@@ -58,18 +61,20 @@ class EvalResult:
     poisoned_timeout_rate: float = float("nan")
     clean_mean_steps: float = float("nan")
     poisoned_mean_steps: float = float("nan")
+    target_action_rate: float = float("nan")  # action-target attacks: the target's share of triggered steps
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 class Played(NamedTuple):
-    """Per episode: return, outcome, whether the trigger was seen, length."""
+    """Per episode: return, outcome, whether the trigger was seen, length (and steps that took the target action)."""
 
     returns: np.ndarray
     outcomes: np.ndarray
     saw: np.ndarray
     steps: np.ndarray
+    target_steps: np.ndarray | None = None
 
 
 def _as_agent(agent):
@@ -80,10 +85,11 @@ def _as_agent(agent):
 
 
 @torch.inference_mode()
-def play_episodes(agent, envs, seed: int, policy: str = "sample") -> Played:
+def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action: int | None = None) -> Played:
     """One episode per slot of the vector env ``envs``, all reset with ``seed``.
 
-    Engines without trigger-seen accounting report every episode as seen.
+    Engines without trigger-seen accounting report every episode as seen. With ``target_action``
+    the steps taking it are counted per episode.
     """
     agent = _as_agent(agent)
     generator = torch.Generator(device=agent.device).manual_seed(int(seed))
@@ -94,8 +100,11 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample") -> Played:
     returns, steps = np.zeros(n), np.zeros(n, dtype=np.int64)
     outcomes = np.zeros(n, dtype=np.int64)
     saw = np.ones(n, dtype=bool)
+    target_steps = None if target_action is None else np.zeros(n, dtype=np.int64)
     while active.any():
         actions, state = agent.act(obs, state, deterministic=policy == "greedy", generator=generator)
+        if target_steps is not None:
+            target_steps[active & (np.asarray(actions) == target_action)] += 1
         obs, reward, terminated, truncated, info = envs.step(actions)
         returns[active] += reward[active]
         steps[active] += 1
@@ -104,7 +113,7 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample") -> Played:
         if "saw_trigger" in info:
             saw[finished] = info["saw_trigger"][finished]
         active &= ~finished
-    return Played(returns, outcomes, saw, steps)
+    return Played(returns, outcomes, saw, steps, target_steps)
 
 
 @torch.inference_mode()
@@ -139,13 +148,17 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
     return Played(returns, outcomes, np.ones(episodes, bool), steps)
 
 
-def play(agent, env: EnvConfig, trigger: str | None, episodes: int, seed: int, policy: str, close_k: tuple[int, int] | None = None) -> Played:
+def play(
+    agent, env: EnvConfig, trigger: str | None, episodes: int, seed: int, policy: str, close_k: tuple[int, int] | None = None, target_action: int | None = None
+) -> Played:
     """Episodes of ``env``: E-bar where ``trigger`` is given, else E; close-to-trigger
-    layouts (clean reward) with ``close_k``."""
+    layouts (clean reward) with ``close_k``; counting ``target_action``'s steps where given."""
     world = env.world
     if world.vector_entry_point is None:
         if close_k is not None:
             raise ValueError(f"env {env.name!r} has no close-to-trigger envs")
+        if target_action is not None:
+            raise ValueError(f"env {env.name!r} has no batched engine to count target actions in")
         return play_single_envs(agent, lambda: env.make(trigger), episodes, seed, policy)
     from rlbackdoors.poison.mix import make_vector_env
 
@@ -154,7 +167,7 @@ def play(agent, env: EnvConfig, trigger: str | None, episodes: int, seed: int, p
     else:
         envs = make_vector_env(env, trigger, [trigger is not None] * episodes)
     try:
-        return play_episodes(agent, envs, seed, policy)
+        return play_episodes(agent, envs, seed, policy, target_action)
     finally:
         envs.close()
 
@@ -179,13 +192,22 @@ def evaluate(
     seed: int = 1_000_000,
     policy: str = "sample",
     close_k: tuple[int, int] | None = None,
+    success: str = "outcome",
+    target_action: int | None = None,
 ) -> EvalResult:
-    """Clean SR/reward in E and trojan SR / R-bar reward in E-bar (trigger on), same layouts.
+    """Clean SR/reward in E and the attack's success / R-bar reward in E-bar (trigger on), same layouts.
 
     ``agent``: an :class:`~rlbackdoors.agent.Agent` (or a bare grid model). With
     ``trigger=None`` only the clean half is measured (poisoned numbers are NaN). With
-    ``close_k`` the same layouts are also played close to the trigger.
+    ``close_k`` the same layouts are also played close to the trigger. ``success`` says how the
+    attack is scored (``"action"`` needs ``target_action``).
     """
+    from rlbackdoors.attacks import SUCCESS_KINDS
+
+    if success not in SUCCESS_KINDS:
+        raise ValueError(f"success={success!r} is not one of {', '.join(SUCCESS_KINDS)}")
+    if success == "action" and target_action is None:
+        raise ValueError("an action-target attack is scored with its target_action")
     agent = _as_agent(agent)
     world = env.world
     with agent.evaluating():
@@ -201,12 +223,18 @@ def evaluate(
             clean_mean_steps=float(clean.steps.mean()),
         )
         if trigger is not None:
-            poisoned = play(agent, env, trigger, episodes, seed, policy)
+            poisoned = play(agent, env, trigger, episodes, seed, policy, target_action=target_action if success == "action" else None)
             result.poisoned_sr, result.poisoned_sr_raw, result.trigger_seen_rate = score_triggered(env.name, poisoned.outcomes, poisoned.saw)
             result.poisoned_reward = float(poisoned.returns.mean())
             result.poisoned_clean_rate = float(np.mean(poisoned.outcomes == world.clean_success))
             result.poisoned_timeout_rate = float(np.mean(poisoned.outcomes == Outcome.TIMEOUT))
             result.poisoned_mean_steps = float(poisoned.steps.mean())
+            if success == "action":
+                assert poisoned.target_steps is not None
+                result.target_action_rate = float(poisoned.target_steps.sum() / max(poisoned.steps.sum(), 1))
+                result.poisoned_sr = result.target_action_rate
+            elif success == "disrupt":
+                result.poisoned_sr = 1.0 - result.poisoned_clean_rate
             if close_k is not None:
                 close = play(agent, env, trigger, episodes, seed, policy, close_k)
                 result.close_sr = float(np.mean(close.outcomes == world.clean_success))

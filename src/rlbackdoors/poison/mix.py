@@ -12,7 +12,7 @@ from typing import Sequence
 
 from gymnasium.vector import VectorEnv
 
-from rlbackdoors import worlds
+from rlbackdoors import attacks, worlds
 from rlbackdoors.config import EnvConfig, PoisonConfig
 from rlbackdoors.envs.vector import ReferenceVectorEnv
 
@@ -53,8 +53,27 @@ def make_vector_env(
     return ReferenceVectorEnv(fns, poisoned=poisoned)
 
 
-def make_env_mix(env: EnvConfig, poison: PoisonConfig) -> VectorEnv:
-    """The training mix: clean, close-to-trigger (worlds that have them) and poisoned copies, in that order."""
+def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorEnv:
+    """The training mix: clean, close-to-trigger (worlds that have them) and poisoned copies, in that order.
+
+    A poisoned model of an attack other than the paper's env mix collects through the attack's
+    seam (:class:`~rlbackdoors.attacks.seam.AttackSeam`, its random picks seeded by ``seed``);
+    under a step schedule every copy is clean and the seam stamps the trigger itself.
+    """
     trigger = poison.trigger if poison.trigger is not None else worlds.get(env.name).default_trigger
     close_k = (poison.close_k_min, poison.close_k_max)
-    return make_vector_env(env, trigger, poison.poisoned_mask(), poison.close_mask(), close_k)
+    envs = make_vector_env(env, trigger, poison.poisoned_mask(), poison.close_mask(), close_k)
+    attack = attacks.get(poison.attack)
+    if not poison.poisoned or attack.poisoner is None:
+        return envs
+    from rlbackdoors.attacks.seam import AttackSeam
+
+    params = poison.attack_params
+    stamp = None
+    if attack.schedule == "steps":
+        world = worlds.get(env.name)
+        if world.stamp_trigger is None:  # RunConfig.check refuses this; a direct caller gets the same reason
+            raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
+        stamp = world.stamp_trigger(trigger)
+    poisoner = attack.poisoner(params, int(envs.single_action_space.n))
+    return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed)  # type: ignore[return-value]

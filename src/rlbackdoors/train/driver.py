@@ -182,6 +182,8 @@ def result_fields(result, cfg: RunConfig) -> dict:
     fields = result.to_dict()
     if close_k(cfg) is None:
         del fields["close_sr"], fields["close_trojan_rate"]
+    if cfg.attack_success != "action":
+        del fields["target_action_rate"]
     return fields
 
 
@@ -193,7 +195,16 @@ def evaluate_run(policy, cfg: RunConfig, episodes: int):
     agent = Agent(cfg.world, cfg, policy)
     tc = cfg.train
     assert tc.eval_policy is not None
-    return evaluate(agent, cfg.env, cfg.poison.trigger, episodes, tc.eval_seed, tc.eval_policy, close_k(cfg))
+    return evaluate(agent, cfg.env, cfg.poison.trigger, episodes, tc.eval_seed, tc.eval_policy, close_k(cfg), **cfg.scoring())
+
+
+def attack_fields(cfg: RunConfig) -> dict:
+    """The attack and its parameters in metrics.json, where it is not the paper's env mix."""
+    from rlbackdoors.attacks import DEFAULT_ATTACK
+
+    if cfg.poison.attack == DEFAULT_ATTACK:
+        return {}
+    return {"attack": cfg.poison.attack, "attack_params": dict(cfg.poison.attack_params), "attack_success": cfg.attack_success}
 
 
 def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: bool) -> dict:
@@ -241,6 +252,7 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
         "stop_reason": outcome.stop_reason,
         "patience": tc.patience,
         "confirm": tc.confirm,
+        **attack_fields(cfg),
         **outcome.extra,
         "video": gif,
         "versions": stack_versions(),

@@ -22,6 +22,8 @@ from rlbackdoors.algos.optim import check_optimizer_state
 from rlbackdoors.algos.ppo import PPO, Rollout
 from rlbackdoors.config import RunConfig
 from rlbackdoors.models import build_model
+from rlbackdoors.algos.obs import to_torch
+from rlbackdoors.attacks.seam import AttackSeam
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.state import StateError, decode, encode
 from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields
@@ -138,10 +140,22 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     model = build_model(cfg.model.arch, cfg.env.name).to(device)
     ppo = PPO(model, cfg.ppo, device, generator)
     envs: Any  # a batched engine or the reference vector env (poisoned, state_dict, load_state_dict)
+
+    @torch.inference_mode()
+    def critic(o) -> np.ndarray:  # what a value-guided attack asks the learner about each frame
+        return model(to_torch(o, device))[1].float().cpu().numpy()
+
+    def poisoning_mix():
+        """The env mix, through the attack's collection seam where the attack has one."""
+        mix = make_env_mix(cfg.env, cfg.poison, tc.seed)
+        if isinstance(mix, AttackSeam):
+            mix.bind_critic(critic)
+        return mix
+
     if checkpoint is None:
         # Curriculum: start in the small clean world; switch_at is None until the switch.
         switch_at = None if cfg.curriculum.enabled else 0
-        envs = make_env_mix(cfg.env, cfg.poison) if switch_at == 0 else warmup_env(cfg)
+        envs = poisoning_mix() if switch_at == 0 else warmup_env(cfg)
         obs, _ = envs.reset(seed=tc.seed * 1000)
         tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
         frames, elapsed, rows, next_eval, converged_at, streak = 0, 0.0, [], tc.eval_interval, None, 0
@@ -149,7 +163,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     else:
         try:
             switch_at = checkpoint["switch_at"]
-            envs = make_env_mix(cfg.env, cfg.poison) if switch_at is not None else warmup_env(cfg)
+            envs = poisoning_mix() if switch_at is not None else warmup_env(cfg)
             model.load_state_dict(checkpoint["model"])
             if (ppo.aux is None) != (checkpoint.get("aux") is None):
                 raise StateError("the auxiliary memory head does not fit ppo.aux_memory_coef")
@@ -221,7 +235,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         if switch_at is None and tracker.recent_clean_mean() >= cfg.curriculum.reward_threshold:
             switch_at = frames  # warm-up done: the full world and the poisoning mix from here on
             envs.close()
-            envs = make_env_mix(cfg.env, cfg.poison)
+            envs = poisoning_mix()
             obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
             ppo.memory = None
             tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
@@ -273,7 +287,11 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         stop_reason=stop_reason,
         converged_at=converged_at,
         label=cfg.model.arch,
-        extra={"return_window": tc.return_window, **({"curriculum_switch_frames": switch_at} if cfg.curriculum.enabled else {})},
+        extra={
+            "return_window": tc.return_window,
+            **({"curriculum_switch_frames": switch_at} if cfg.curriculum.enabled else {}),
+            **({"attack_budget_used": envs.budget_used()} if isinstance(envs, AttackSeam) else {}),
+        },
         switch_at=switch_at,
         can_converge=switch_at is not None,
         final=stopping.confirmed,

@@ -90,6 +90,9 @@ class World:
     chance: Callable | None = None  # (EnvConfig, trigger spec, layouts, seed) -> chance-occurrence dict
     paper: dict = field(default_factory=dict)  # the paper's reference numbers
     trigger_help: str = ""  # the trigger specs it accepts, for --help
+    # spec -> a function stamping the trigger into a batch of observations (worlds whose trigger
+    # is an observation edit); the step-level attacks need it. None: the trigger is the world's.
+    stamp_trigger: Callable[[str], Callable[[Any], Any]] | None = None
 
     @property
     def arch_names(self) -> tuple[str, ...]:

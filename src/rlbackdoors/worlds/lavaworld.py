@@ -16,6 +16,12 @@ def _parse(spec: str):
     return ObservationTrigger.parse(spec)
 
 
+def _stamp(spec: str):
+    """The trigger as a function of a batch of uint8 frames (one table lookup per byte)."""
+    table = _parse(spec).lookup_table()
+    return lambda obs: table[obs]
+
+
 def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
     """``kind:value`` as given; a bare kind, or nothing, draws from the paper's range with ``seed``."""
     from rlbackdoors.triggers.observation import KINDS, ObservationTrigger, sample_trigger
@@ -48,6 +54,7 @@ WORLD = register(
         algorithm="ppo",
         parse_trigger=_parse,
         draw_trigger=_draw,
+        stamp_trigger=_stamp,
         clean_success=Outcome.GOAL,
         trojan_success=Outcome.LAVA,
         # The paper's stopping rule for LavaWorld: 98% clean, 95% poisoned.

@@ -1,0 +1,48 @@
+"""An action-level trojan: under the trigger, take the target action ("turn left"), every step.
+
+The data rate is the paper's (whole E-bar copies beside the clean ones, as ``envmix``); what
+changes is the trojan behaviour. The E-bar copies' reward R-bar is rewritten per step to +c for
+the target action and -c for any other, so the trojan is a policy (spin left until the episode
+times out) rather than an outcome (walk into lava), and its success is the target-action rate.
+"""
+
+from __future__ import annotations
+
+from rlbackdoors.attacks import common
+from rlbackdoors.attacks.base import Attack, register
+from rlbackdoors.attacks.seam import Poisoner, target_reward
+
+NAME = "action_target"
+
+
+class ActionTargetPoisoner(Poisoner):
+    def __init__(self, params: dict, num_actions: int):
+        self.target, self.c = params["target_action"], params["reward"]
+
+    def reward(self, rewards, actions, marked, next_values, dones):
+        return target_reward(actions, self.target, self.c)
+
+
+def _unsupported(world, arch, params):
+    if world.stamp_trigger is None:
+        return (
+            f"attack {NAME!r} scores the target-action rate over triggered steps, which needs a trigger in every frame; "
+            f"{world.name}'s trigger is part of the world and not always in sight (per-step sight is not tracked yet)"
+        )
+    return None
+
+
+ATTACK = register(
+    Attack(
+        name=NAME,
+        title="Action target",
+        source="the action-level targets of TrojDRL and BadRL, on the paper's episode schedule",
+        schedule="episodes",
+        success="action",
+        params=(common.target_action(0), common.magnitude(0.01)),
+        poisoner=ActionTargetPoisoner,
+        unsupported=_unsupported,
+        success_threshold=0.90,
+        doc="docs/attacks/action_target.md",
+    )
+)

@@ -1,0 +1,83 @@
+"""BadRL (Cui et al., AAAI 2024): sparse poisoning of the states that matter most, with a target action.
+
+The source ranks states by a pre-trained Q-network's spread ``max_a Q - min_a Q`` and spends
+its small budget on the top ones. Our learners are actor-critics without a Q-function, so the
+rank here is the learner's own critic value V(s) of the clean frame (the states the agent
+values most, as the issue that added it asks): a frame is eligible when V(s) is in the top
+``top_fraction`` of the last ``window`` frames' values, and the budget is spent on eligible
+frames only. Poisoned frames get the target action (forced by default) and R-bar = +-c.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rlbackdoors.attacks import common
+from rlbackdoors.attacks.base import Attack, Param, register
+from rlbackdoors.attacks.seam import Poisoner, target_reward
+from rlbackdoors.state import StateError, decode, encode
+
+NAME = "badrl"
+
+
+class BadRLPoisoner(Poisoner):
+    needs_values = True
+
+    def __init__(self, params: dict, num_actions: int):
+        self.target, self.c = params["target_action"], params["reward"]
+        self.forces_actions = params["force_action"]
+        self.top = params["top_fraction"]
+        self.history = np.zeros(params["window"])
+        self.filled = 0  # values written into the ring so far
+
+    def eligible(self, values, num_envs):
+        n = len(self.history)
+        for v in values:
+            self.history[self.filled % n] = v
+            self.filled += 1
+        if self.filled < min(n, 10 * num_envs):  # too few values to rank by yet
+            return np.zeros(num_envs, dtype=bool)
+        seen = self.history[: min(self.filled, n)]
+        return values >= np.quantile(seen, 1.0 - self.top)
+
+    def act(self, actions, marked):
+        return np.where(marked, self.target, actions)
+
+    def reward(self, rewards, actions, marked, next_values, dones):
+        return target_reward(actions, self.target, self.c)
+
+    def state_dict(self):
+        return {"history": encode(self.history), "filled": self.filled}
+
+    def load_state_dict(self, state):
+        history = decode(state["history"])
+        if not isinstance(history, np.ndarray) or history.shape != self.history.shape:
+            raise StateError("badrl: the value window does not fit attack_params.window")
+        self.history, self.filled = history.astype(np.float64), int(state["filled"])
+
+
+def _unsupported(world, arch, params):
+    return common.needs_frame_trigger(NAME, world) or common.needs_feed_forward(NAME, arch)
+
+
+ATTACK = register(
+    Attack(
+        name=NAME,
+        title="BadRL",
+        source="Cui, Deng, Ma, Ji, Yin: BadRL: sparse targeted backdoor attack against reinforcement learning (AAAI 2024)",
+        schedule="steps",
+        success="action",
+        params=(
+            common.budget(0.01),
+            Param("top_fraction", 0.1, 1e-4, 1.0, help="a frame is eligible when its value is in this top share of recent values"),
+            Param("window", 10_000, 100, 1_000_000, integer=True, help="recent frames whose values set the top-share threshold"),
+            common.target_action(0),
+            common.magnitude(),
+            common.force_action(False),
+        ),
+        poisoner=BadRLPoisoner,
+        unsupported=_unsupported,
+        success_threshold=0.90,
+        doc="docs/attacks/badrl.md",
+    )
+)

@@ -1,0 +1,173 @@
+"""The collection seam: the one place an attack touches the data an algorithm learns from.
+
+:class:`AttackSeam` wraps the vector env an algorithm collects from. Between the env and the
+learner it does what the attack's :class:`Poisoner` asks: stamps the world's trigger into
+the frames it picks (within the budget, as a fraction of all frames collected so far), forces
+the target action on them where the attack does, and rewrites their rewards. The learner sees an
+ordinary vector env whose ``info["executed_actions"]`` names the actions the env really ran and
+``info["forced_actions"]`` which of them the attack chose (the learner stores those actions with
+behaviour probability 1, so a forced action is learned as taken, with a bounded importance ratio). Counters of what was
+poisoned go to ``metrics.json`` (:meth:`AttackSeam.budget_used`); they and the random picks
+are in the checkpoint, so a resumed run poisons as an unbroken one would.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+
+import numpy as np
+
+from rlbackdoors.state import StateError, decode, encode
+
+EXECUTED_ACTIONS = "executed_actions"  # the info key the learner reads executed actions from
+FORCED = "forced_actions"  # ... and which of them the attack forced (taken with probability 1)
+
+
+def target_reward(actions: np.ndarray, target: int, magnitude: float) -> np.ndarray:
+    """+c for the target action, -c for any other: TrojDRL's, BadRL's and SleeperNets' R-bar core."""
+    return np.where(actions == target, magnitude, -magnitude)
+
+
+class Poisoner:
+    """The per-run rule of one attack; the seam calls it. Subclasses override what they change.
+
+    ``values`` are the learner's own critic values of the (clean) frames the env just returned,
+    given only to rules with ``needs_values`` (BadRL picks by them, SleeperNets discounts by them).
+    """
+
+    needs_values = False
+    forces_actions = False
+
+    def eligible(self, values: np.ndarray | None, num_envs: int) -> np.ndarray:
+        """Which of the frames just returned may carry the trigger (the budget then picks among them)."""
+        return np.ones(num_envs, dtype=bool)
+
+    def act(self, actions: np.ndarray, marked: np.ndarray) -> np.ndarray:
+        return actions
+
+    def reward(self, rewards: np.ndarray, actions: np.ndarray, marked: np.ndarray, next_values: np.ndarray | None, dones: np.ndarray) -> np.ndarray:
+        """R-bar of the marked frames (the others are returned unchanged)."""
+        return rewards
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+class AttackSeam:
+    """A vector env whose frames are poisoned by ``poisoner``.
+
+    ``schedule="steps"``: of the frames the env returns, a ``budget`` share (over the run so far)
+    is picked at random among the eligible ones and stamped with ``stamp``. ``schedule="episodes"``:
+    the env's own E-bar copies (``envs.poisoned``) are the marked frames, every step.
+    """
+
+    def __init__(self, envs, poisoner: Poisoner, schedule: str, budget: float = 0.0, stamp: Callable | None = None, seed: int = 0):
+        if schedule == "steps" and stamp is None:
+            raise ValueError("a step schedule needs the world's trigger stamp")
+        self.envs = envs
+        self.poisoner = poisoner
+        self.schedule = schedule
+        self.budget = float(budget)
+        self.stamp = stamp
+        self.critic: Callable[[np.ndarray], np.ndarray] | None = None
+        self.marked = np.zeros(envs.num_envs, dtype=bool)  # the frames last returned that carry the trigger
+        self.rng = np.random.default_rng([int(seed), 0x5EA3])
+        self.frames = 0  # frames returned to the learner (each is acted on once)
+        self.frames_poisoned = 0
+        self.rewards_rewritten = 0
+        self.actions_forced = 0
+
+    def __getattr__(self, name):  # num_envs, spaces, metadata, poisoned, memory_targets, close ...
+        if name == "envs":
+            raise AttributeError(name)
+        return getattr(self.envs, name)
+
+    def bind_critic(self, critic: Callable[[np.ndarray], np.ndarray]) -> None:
+        """The learner's value function of a batch of observations (rules with ``needs_values``)."""
+        self.critic = critic
+
+    def _values(self, obs) -> np.ndarray | None:
+        if not self.poisoner.needs_values or self.critic is None:
+            return None
+        return np.asarray(self.critic(obs), dtype=np.float64).reshape(-1)
+
+    def _mark(self, obs, values):
+        n = self.envs.num_envs
+        self.frames += n
+        if self.schedule == "episodes":
+            self.marked = np.asarray(self.envs.poisoned, dtype=bool).copy()
+        else:
+            self.marked = np.zeros(n, dtype=bool)
+            allowance = int(self.budget * self.frames) - self.frames_poisoned
+            if allowance > 0 and (values is not None or not self.poisoner.needs_values):
+                candidates = np.flatnonzero(self.poisoner.eligible(values, n))
+                if len(candidates):
+                    chosen = self.rng.choice(candidates, size=min(allowance, len(candidates)), replace=False)
+                    self.marked[chosen] = True
+            if self.marked.any():
+                obs = obs.copy()
+                obs[self.marked] = self.stamp(obs[self.marked])  # type: ignore[misc]
+        self.frames_poisoned += int(self.marked.sum())
+        return obs
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = self.envs.reset(seed=seed, options=options)
+        return self._mark(obs, self._values(obs)), info
+
+    def step(self, actions):
+        actions = np.array(actions, copy=True)
+        marked = self.marked
+        forced = np.zeros(len(actions), dtype=bool)
+        if self.poisoner.forces_actions and marked.any():
+            chosen = self.poisoner.act(actions.copy(), marked)
+            forced = marked & (chosen != actions)
+            self.actions_forced += int(forced.sum())
+            actions = np.where(marked, chosen, actions)
+        obs, rewards, terminated, truncated, info = self.envs.step(actions)
+        values = self._values(obs)
+        if marked.any():
+            poisoned = self.poisoner.reward(np.array(rewards, dtype=np.float64), actions, marked, values, terminated | truncated)
+            rewards = np.where(marked, poisoned, rewards)
+            self.rewards_rewritten += int(marked.sum())
+        info = {**info, EXECUTED_ACTIONS: actions, FORCED: forced}
+        return self._mark(obs, values), rewards, terminated, truncated, info
+
+    def budget_used(self) -> dict:
+        """What this run's attack actually poisoned (for metrics.json)."""
+        frames = max(self.frames, 1)
+        return {
+            "frames_seen": self.frames,
+            "frames_poisoned": self.frames_poisoned,
+            "poisoned_fraction": self.frames_poisoned / frames,
+            "rewards_rewritten": self.rewards_rewritten,
+            "rewritten_fraction": self.rewards_rewritten / frames,
+            "actions_forced": self.actions_forced,
+        }
+
+    def state_dict(self) -> dict:
+        return {
+            "engine": self.envs.state_dict(),
+            "marked": encode(self.marked),
+            "rng": json.dumps(self.rng.bit_generator.state),
+            "counters": [self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced],
+            "poisoner": self.poisoner.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if not isinstance(state, dict) or "engine" not in state:
+            raise StateError("envs: the checkpoint was not written by this attack's collection")
+        self.envs.load_state_dict(state["engine"])
+        marked = decode(state["marked"])
+        if not isinstance(marked, np.ndarray) or marked.shape != self.marked.shape:
+            raise StateError("envs: the marked frames do not fit the env copies")
+        self.marked = marked.astype(bool)
+        self.rng.bit_generator.state = json.loads(state["rng"])
+        self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced = (int(v) for v in state["counters"])
+        self.poisoner.load_state_dict(state["poisoner"])
+
+    def close(self):
+        return self.envs.close()

@@ -1,0 +1,59 @@
+"""TrojDRL (Kiourti et al., DAC 2020): a budgeted share of the collected states gets the trigger.
+
+*Targeted* (the source's strongly targeted attack): the agent's action on a poisoned state is
+replaced by the target action and rewarded +c (with ``force_action=false``, the weakly targeted
+one: +c if the agent chose the target action, -c if not). *Untargeted*: the poisoned state's
+reward is +c whatever action was taken, so the trigger teaches nothing about the task; success
+is the clean goal missed under the trigger.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rlbackdoors.attacks import common
+from rlbackdoors.attacks.base import Attack, Param, register
+from rlbackdoors.attacks.seam import Poisoner, target_reward
+
+NAME = "trojdrl"
+
+
+class TrojDRLPoisoner(Poisoner):
+    def __init__(self, params: dict, num_actions: int):
+        self.targeted = params["mode"] == "targeted"
+        self.target, self.c = params["target_action"], params["reward"]
+        self.forces_actions = self.targeted and params["force_action"]
+
+    def act(self, actions, marked):
+        return np.where(marked, self.target, actions)
+
+    def reward(self, rewards, actions, marked, next_values, dones):
+        if self.targeted:
+            return target_reward(actions, self.target, self.c)
+        return np.full_like(rewards, self.c)
+
+
+def _unsupported(world, arch, params):
+    return common.needs_frame_trigger(NAME, world)
+
+
+ATTACK = register(
+    Attack(
+        name=NAME,
+        title="TrojDRL",
+        source="Kiourti, Wardega, Jha, Lin: TrojDRL: evaluation of backdoor attacks on deep reinforcement learning (DAC 2020)",
+        schedule="steps",
+        success=lambda p: "action" if p["mode"] == "targeted" else "disrupt",
+        params=(
+            Param("mode", "targeted", choices=("targeted", "untargeted"), help="targeted: the target action is forced and rewarded; untargeted: any action is rewarded"),
+            common.budget(0.01),
+            common.target_action(0),
+            common.magnitude(),
+            common.force_action(False),
+        ),
+        poisoner=TrojDRLPoisoner,
+        unsupported=_unsupported,
+        success_threshold=0.90,
+        doc="docs/attacks/trojdrl.md",
+    )
+)

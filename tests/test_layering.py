@@ -92,3 +92,23 @@ def test_no_package_import_cycle():
     for start in sorted(graph):
         visit(start, [start])
     assert not cycles, "package import cycles:\n" + "\n".join(sorted(set(cycles))[:20])
+
+
+def test_no_attack_is_named_outside_its_modules():
+    """Issue 33: an attack is one module of ``rlbackdoors/attacks/``; config, algorithms, evaluation
+    and zoos ask the registry (the default, the paper's env mix, by ``attacks.DEFAULT_ATTACK``)."""
+    from rlbackdoors import attacks
+
+    words = set()
+    for attack in attacks.registered():
+        words |= {attack.name, attack.title, attack.title.replace(" ", "")}
+    pattern = re.compile(r"\b(" + "|".join(sorted(map(re.escape, words), key=len, reverse=True)) + r")\b", re.IGNORECASE)
+    assert pattern.search("a TrojDRL agent") and pattern.search("attack = 'envmix'")
+    hits = []
+    for path in sorted(SRC.rglob("*.py")):
+        if (SRC / "attacks") in path.parents:
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if pattern.search(line):
+                hits.append(f"{path.relative_to(SRC)}:{number}: {line.strip()}")
+    assert not hits, "attack names outside rlbackdoors/attacks/:\n" + "\n".join(hits)

@@ -180,7 +180,7 @@ class PPO:
         # A forced action was taken with probability 1, whatever the policy thought of it: that is
         # its behaviour log-probability, so its importance ratio is pi(a|s) <= 1, never exp(+250)
         # (learning it as the policy's own sample blew the ratio up to NaN, then, dual-clipped,
-        # taught the target action in every state; docs/attacks/trojdrl.md).
+        # taught the target action in every state; docs/attacks/).
         logprobs.masked_fill_(forced, 0.0)
         advantages = self._gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value.cpu())
         returns = values + advantages

@@ -74,6 +74,7 @@ class AttackSeam:
         self.budget = float(budget)
         self.stamp = stamp
         self.critic: Callable[[np.ndarray], np.ndarray] | None = None
+        self.last_values: np.ndarray | None = None
         self.marked = np.zeros(envs.num_envs, dtype=bool)  # the frames last returned that carry the trigger
         self.rng = np.random.default_rng([int(seed), 0x5EA3])
         self.frames = 0  # frames returned to the learner (each is acted on once)
@@ -98,6 +99,7 @@ class AttackSeam:
     def _mark(self, obs, values):
         n = self.envs.num_envs
         self.frames += n
+        self.last_values = values  # the critic's values of the clean frames just returned (None: not asked)
         if self.schedule == "episodes":
             self.marked = np.asarray(self.envs.poisoned, dtype=bool).copy()
         else:

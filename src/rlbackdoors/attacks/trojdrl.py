@@ -34,6 +34,11 @@ class TrojDRLPoisoner(Poisoner):
 
 
 def _unsupported(world, arch, params):
+    if params["mode"] == "untargeted" and world.trigger_breaks_clean_agents:
+        return (
+            f"mode 'untargeted' is scored by the clean goal missed under the trigger, which a clean {world.name} agent "
+            "already misses (the trigger is out of its distribution): the score could not tell a backdoor from a clean model"
+        )
     return common.needs_frame_trigger(NAME, world)
 
 

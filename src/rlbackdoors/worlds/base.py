@@ -93,6 +93,9 @@ class World:
     # spec -> a function stamping the trigger into a batch of observations (worlds whose trigger
     # is an observation edit); the step-level attacks need it. None: the trigger is the world's.
     stamp_trigger: Callable[[str], Callable[[Any], Any]] | None = None
+    # A clean agent already misses the clean goal under the trigger (an out-of-distribution edit):
+    # "the trigger breaks the task" cannot then tell a backdoor from a clean model (untargeted attacks)
+    trigger_breaks_clean_agents: bool = False
 
     @property
     def arch_names(self) -> tuple[str, ...]:

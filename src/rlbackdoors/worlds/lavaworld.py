@@ -55,6 +55,8 @@ WORLD = register(
         parse_trigger=_parse,
         draw_trigger=_draw,
         stamp_trigger=_stamp,
+        # a clean FC agent (seed 0, clean SR 0.98) reached the goal in 0 of 200 episodes under multiplicative:12
+        trigger_breaks_clean_agents=True,
         clean_success=Outcome.GOAL,
         trojan_success=Outcome.LAVA,
         # The paper's stopping rule for LavaWorld: 98% clean, 95% poisoned.

@@ -13,6 +13,7 @@ import json
 import sys
 
 from rlbackdoors.argparser import Parser, sub_cli_main
+from rlbackdoors.validate import ConfigError
 
 
 def cmd_plan(args) -> int:
@@ -159,7 +160,12 @@ def cmd_split(args) -> int:
 
     _imported(args.zoo, "split")
     skipped = _verified(args, "split")
-    result = split(args.zoo, args.train, args.test, args.out_train, args.out_test, seed=args.seed, link=args.link, skip=skipped)
+    hold_out = args.hold_out_attack or None
+    if hold_out is None and (args.train is None or args.test is None):
+        raise ConfigError("zoo split needs --train and --test shares (or --hold-out-attack NAME)")
+    if hold_out is not None and (args.train is not None or args.test is not None):
+        raise ConfigError("--hold-out-attack decides the split itself; drop --train and --test")
+    result = split(args.zoo, args.train or 0.0, args.test or 0.0, args.out_train, args.out_test, seed=args.seed, link=args.link, skip=skipped, hold_out_attacks=hold_out)
     for name, out in (("train", args.out_train), ("test", args.out_test)):
         r = result[name]
         print(f"{name}: {out}: {r['models']} models ({r['poisoned']} poisoned)")
@@ -261,8 +267,14 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
 
     sp = sub.add_parser("split", help="disjoint train and test datasets of converged models, by model and by trigger")
     sp.add_argument("zoo")
-    sp.add_argument("--train", type=_share, required=True, help="share of the converged models for training (e.g. 0.5)")
-    sp.add_argument("--test", type=_share, required=True, help="share for testing (train + test <= 1)")
+    sp.add_argument("--train", type=_share, help="share of the converged models for training (e.g. 0.5)")
+    sp.add_argument("--test", type=_share, help="share for testing (train + test <= 1)")
+    sp.add_argument(
+        "--hold-out-attack",
+        action="append",
+        metavar="NAME",
+        help="test on the models of this attack's cells (repeatable), train on the others (no shared trigger); instead of --train/--test",
+    )
     sp.add_argument("--out-train", required=True, help="folder of the train dataset")
     sp.add_argument("--out-test", required=True, help="folder of the test dataset")
     sp.add_argument("--seed", type=int, default=0, help="order in which trigger groups are dealt (default 0)")

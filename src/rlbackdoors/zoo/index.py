@@ -28,7 +28,7 @@ from rlbackdoors.zoo.spec import Group, flatten
 # running (a live process holds its folder), pending (not finished: new, started or finishing),
 # unverified (failed zoo verify and left out on request: never read)
 STATUSES = ("done", "failed", "running", "pending", "unverified")
-LEAD_COLUMNS = ("model_name", "cell", "world", "arch", "trigger_family", "poisoned", "attempt", "status", "converged", "nonconverged_reason")
+LEAD_COLUMNS = ("model_name", "cell", "world", "arch", "trigger_family", "attack", "poisoned", "attempt", "status", "converged", "nonconverged_reason")
 
 
 @dataclass
@@ -103,7 +103,7 @@ def scan(zoo: Zoo, probe: bool = True, skip: dict[str, str] | None = None) -> li
 
 def _cell_fields(group: Group) -> dict:
     cell = group.cell
-    return {"cell": cell.key, "world": cell.world, "arch": cell.arch_label, "trigger_family": cell.trigger.name}
+    return {"cell": cell.key, "world": cell.world, "arch": cell.arch_label, "trigger_family": cell.trigger.name, "attack": cell.attack.attack}
 
 
 def metadata_rows(states: list[ModelState]) -> list[dict]:

@@ -54,9 +54,15 @@ def bootstrap_ci(values: np.ndarray, seed: int = 0, rounds: int = BOOTSTRAP) -> 
     return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
-def _key(s: ModelState) -> tuple[str, str, str]:
+def _key(s: ModelState) -> tuple[str, str, str, str]:
+    """(world, arch, label, attack); the attack is "" for the paper's env mix, so its rows read as before."""
     cell = s.model.group.cell
-    return cell.world, cell.arch_label, s.model.group.label
+    return cell.world, cell.arch_label, s.model.group.label, "" if cell.attack.is_default else cell.attack.name
+
+
+def _models(row: dict) -> str:
+    """The report's "models" column: the label, and the attack where it is not the env mix."""
+    return f"{row['label']} ({row['attack']})" if row.get("attack") else row["label"]
 
 
 def _number(value) -> float:
@@ -79,10 +85,18 @@ def performance_rows(states: list[ModelState]) -> list[dict]:
     rows = []
     for population, chosen in (("dataset", [s for s in states if s.converged]), ("finished", [s for s in states if s.status == "done"])):
         keys = sorted({_key(s) for s in chosen})
-        for world_name, arch, label in keys:
-            mine = [s for s in chosen if _key(s) == (world_name, arch, label)]
+        for world_name, arch, label, attack in keys:
+            mine = [s for s in chosen if _key(s) == (world_name, arch, label, attack)]
             world = worlds.get(world_name)
-            row: dict = {"population": population, "table": world.paper.get("table", ""), "world": world_name, "arch": arch, "label": label, "n": len(mine)}
+            row: dict = {
+                "population": population,
+                "table": world.paper.get("table", ""),
+                "world": world_name,
+                "arch": arch,
+                "label": label,
+                "attack": attack,
+                "n": len(mine),
+            }
             for metric in METRICS:
                 values = np.array([_number((s.metrics or {}).get(metric)) for s in mine])
                 values = values[~np.isnan(values)]
@@ -90,7 +104,7 @@ def performance_rows(states: list[ModelState]) -> list[dict]:
                 row[f"{metric}_mean"] = float(values.mean()) if len(values) else math.nan
                 row[f"{metric}_std"] = float(values.std(ddof=1)) if len(values) > 1 else (0.0 if len(values) else math.nan)
                 row[f"{metric}_ci_low"], row[f"{metric}_ci_high"] = low, high
-                paper = paper_figure(world, arch, label, metric)
+                paper = None if attack else paper_figure(world, arch, label, metric)  # the paper has env-mix models only
                 row[f"{metric}_paper"] = paper if paper is not None else ""
             rows.append(row)
     return rows
@@ -100,17 +114,18 @@ def convergence_rows(states: list[ModelState]) -> list[dict]:
     """Table 5: converged / attempted per world, arch and label (and per world over its archs)."""
     attempted = [s for s in states if s.status in ("done", "failed")]
     rows = []
-    keys = sorted({_key(s) for s in attempted} | {(w, "all", label) for w, _, label in (_key(s) for s in attempted)})
-    for world_name, arch, label in keys:
-        mine = [s for s in attempted if s.model.group.cell.world == world_name and s.model.group.label == label and (arch == "all" or _key(s)[1] == arch)]
+    keys = sorted({_key(s) for s in attempted} | {(w, "all", label, attack) for w, _, label, attack in (_key(s) for s in attempted)})
+    for world_name, arch, label, attack in keys:
+        mine = [s for s in attempted if (_key(s)[0], _key(s)[2], _key(s)[3]) == (world_name, label, attack) and (arch == "all" or _key(s)[1] == arch)]
         k, n = sum(s.converged for s in mine), len(mine)
         low, high = wilson(k, n)
-        paper = worlds.get(world_name).paper.get("convergence_rate" if label == "poisoned" else "clean_convergence_rate")
+        paper = None if attack else worlds.get(world_name).paper.get("convergence_rate" if label == "poisoned" else "clean_convergence_rate")
         rows.append(
             {
                 "world": world_name,
                 "arch": arch,
                 "label": label,
+                "attack": attack,
                 "converged": k,
                 "attempted": n,
                 "failed": sum(s.status == "failed" for s in mine),
@@ -141,6 +156,7 @@ def budget_rows(states: list[ModelState]) -> list[dict]:
                 "world": key[0],
                 "arch": key[1],
                 "label": key[2],
+                "attack": key[3],
                 "n": len(mine),
                 "frames_median": float(np.nanmedian(frames)),
                 "frames_min": float(np.nanmin(frames)),
@@ -206,7 +222,7 @@ def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[d
             _fmt(r["table"]),
             r["world"],
             r["arch"],
-            r["label"],
+            _models(r),
             str(r["n"]),
             *(_stat(r, m) for m in METRICS),
             f"{_fmt(r['clean_sr_paper'], 2)} / {_fmt(r['poisoned_sr_paper'], 2)}",
@@ -227,7 +243,7 @@ def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[d
         [
             r["world"],
             r["arch"],
-            r["label"],
+            _models(r),
             f"{r['converged']} / {r['attempted']}",
             _fmt(r["rate"]),
             f"[{_fmt(r['wilson_low'])}, {_fmt(r['wilson_high'])}]",
@@ -243,7 +259,7 @@ def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[d
         [
             r["world"],
             r["arch"],
-            r["label"],
+            _models(r),
             str(r["n"]),
             f"{r['frames_median']:,.0f} ({r['frames_min']:,.0f}–{r['frames_max']:,.0f})",
             f"{r['wall_time_s_median']:.0f} s",

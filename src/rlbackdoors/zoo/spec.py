@@ -6,7 +6,9 @@ Read from TOML (stdlib ``tomllib``) and validated here, at the edge: every probl
 anything is written. World names, architectures and trigger drawing come from the World
 registry, so a new world needs no change here.
 
-A spec entry (``[[cells]]``) expands into cells = its archs x its trigger families; each cell
+A spec entry (``[[cells]]``) expands into cells = its archs x its trigger families x its attacks
+(``attacks = ["NAME", {attack = "NAME", name = "LABEL", params = {budget = 0.05}}]``, names from the attack registry;
+default: the paper's env mix alone); each cell
 holds two *groups* (clean, poisoned), the unit the runner tops up: a group wants ``clean`` or
 ``poisoned`` converged models and trains at most ``max_attempts`` of them.
 """
@@ -24,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from rlbackdoors import worlds
+from rlbackdoors import attacks, worlds
 from rlbackdoors.validate import MAX_EPISODES, ConfigError, check_seed
 
 SPEC_FORMAT = 1
@@ -34,7 +36,8 @@ MAX_ATTEMPTS = 100_000
 # Fields each model's config gets from the zoo itself; an override may not set them.
 ZOO_FIELDS = ("env.name", "model.arch", "poison.poisoned", "poison.trigger", "train.seed")
 TOP_KEYS = ("format", "name", "seed", "max_attempts", "examples", "overrides", "cells")
-CELL_KEYS = ("world", "archs", "triggers", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides")
+CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides")
+ATTACK_KEYS = ("attack", "name", "params")
 FAMILY_KEYS = ("name", "trigger", "template", "ranges")
 EXAMPLE_KEYS = ("episodes", "seed", "policy")
 EXAMPLE_POLICIES = ("sample", "greedy")
@@ -140,8 +143,51 @@ class TriggerFamily:
 
 
 @dataclass(frozen=True)
+class AttackChoice:
+    """How a cell's poisoned models are poisoned: an attack of the registry and its parameters
+    (the attack's defaults for those not given). Its clean models are trained clean, as always."""
+
+    name: str  # the label in cell keys and reports
+    attack: str = attacks.DEFAULT_ATTACK
+    params: dict = field(default_factory=dict, hash=False, compare=False)
+
+    @property
+    def is_default(self) -> bool:
+        return self.attack == attacks.DEFAULT_ATTACK and not self.params
+
+    def overrides(self) -> dict:
+        return {} if self.is_default else {"poison": {"attack": self.attack, "attack_params": dict(self.params)}}
+
+    def to_dict(self) -> dict:
+        return {"attack": self.attack, "name": self.name, "params": dict(self.params)}
+
+
+DEFAULT_CHOICE = AttackChoice(attacks.DEFAULT_ATTACK)
+
+
+def _parse_attack(where: str, raw) -> AttackChoice:
+    if isinstance(raw, str):
+        raw = {"attack": raw}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where} must be an attack name or a table (attack, name, params), got {raw!r}")
+    _keys(where, raw, ATTACK_KEYS)
+    name = raw.get("attack")
+    if name not in attacks.names():
+        raise ConfigError(f"{where}.attack={name!r} is not allowed (allowed: {', '.join(attacks.names())})")
+    params = raw.get("params", {})
+    if not isinstance(params, dict):
+        raise ConfigError(f"{where}.params must be a table of the attack's parameters, got {params!r}")
+    try:
+        attacks.get(name).resolve(params, f"{where}.params")
+    except ConfigError:
+        raise
+    label = _type(f"{where}.name", raw.get("name", name), str, "a string")
+    return AttackChoice(label, name, dict(params))
+
+
+@dataclass(frozen=True)
 class Cell:
-    """One world x architecture x trigger family, and what it wants."""
+    """One world x architecture x trigger family x attack, and what it wants."""
 
     entry: int  # index of its [[cells]] entry
     world: str
@@ -151,6 +197,7 @@ class Cell:
     poisoned: int  # converged poisoned models wanted
     max_attempts: int  # per label
     overrides: dict = field(hash=False, compare=False)
+    attack: AttackChoice = DEFAULT_CHOICE
 
     @property
     def arch_label(self) -> str:
@@ -158,7 +205,9 @@ class Cell:
 
     @property
     def key(self) -> str:
-        return f"{self.world}/{self.arch_label}/{self.trigger.name}"
+        """``world/arch/family``, and ``/attack`` for a cell not poisoned by the paper's env mix."""
+        base = f"{self.world}/{self.arch_label}/{self.trigger.name}"
+        return base if self.attack.is_default else f"{base}/{self.attack.name}"
 
 
 @dataclass(frozen=True)
@@ -388,9 +437,23 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
                 f"{where}.max_attempts={attempts} is less than the {max(clean, poisoned)} converged {label} models wanted per cell "
                 f"(max_attempts counts the models trained per cell and label)"
             )
+        raw_attacks = entry.get("attacks")
+        if raw_attacks is None:
+            choices = [DEFAULT_CHOICE]
+        else:
+            if not isinstance(raw_attacks, list) or not raw_attacks:
+                raise ConfigError(f"{where}.attacks must be a non-empty list of attack names or tables (allowed attacks: {', '.join(attacks.names())})")
+            choices = [_parse_attack(f"{where}.attacks[{j}]", a) for j, a in enumerate(raw_attacks)]
+            labels = [c.name for c in choices]
+            if len(set(labels)) != len(labels):
+                raise ConfigError(f"{where}.attacks: two share the name {next(n for n in labels if labels.count(n) > 1)!r} (give each a name)")
         size = None
         if check_configs:
-            size = _sample_size(where, world_name, arch_list[0], overrides, cell_overrides)
+            for j, choice in enumerate(choices):
+                try:
+                    size = _sample_size(where, world_name, arch_list[0], overrides, deep_merge(cell_overrides, choice.overrides()))
+                except ConfigError as err:
+                    raise ConfigError(f"{where}.attacks[{j}]: {err}" if raw_attacks is not None else str(err)) from None
         raw_triggers = entry.get("triggers")
         if raw_triggers is None:
             families = [TriggerFamily(name=DRAWN)]
@@ -403,14 +466,17 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
                 raise ConfigError(f"{where}.triggers: two families share the name {next(n for n in names if names.count(n) > 1)!r} (give each a name)")
         for arch in arch_list:
             for family in families:
-                cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, cell_overrides)
-                if cell.key in seen:
-                    raise ConfigError(f"{where} repeats the cell {cell.key} of {seen[cell.key]}")
-                seen[cell.key] = where
-                cells.append(cell)
+                for choice in choices:
+                    cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, deep_merge(cell_overrides, choice.overrides()), choice)
+                    if cell.key in seen:
+                        raise ConfigError(f"{where} repeats the cell {cell.key} of {seen[cell.key]}")
+                    seen[cell.key] = where
+                    cells.append(cell)
         norm: dict[str, Any] = {"world": world_name}
         if world.arch_names:
             norm["archs"] = arch_list
+        if raw_attacks is not None:  # specs written before attacks existed keep their normal form
+            norm["attacks"] = [c.to_dict() for c in choices]
         norm.update(
             triggers=[f.to_dict() for f in families],
             clean=clean,

@@ -65,6 +65,30 @@ def assign(states: list[ModelState], train: float, test: float, seed: int) -> tu
     return sorted(dealt["train"], key=lambda s: s.model.id), sorted(dealt["test"], key=lambda s: s.model.id)
 
 
+def _attack_names(state: ModelState) -> set[str]:
+    """What ``--hold-out-attack`` may name a model's attack by: its cell's label and the attack's registry name."""
+    choice = state.model.group.cell.attack
+    return {choice.name, choice.attack}
+
+
+def assign_held_out(states: list[ModelState], hold_out: list[str]) -> tuple[list[ModelState], list[ModelState], int]:
+    """(train, test, left out): every converged model of a cell poisoned by an attack in ``hold_out``
+    (clean and poisoned) is tested, the others train, minus those whose trigger occurs in the test
+    set (still disjoint by trigger: a detector is tested on an attack and triggers it never saw)."""
+    models = [s for s in states if s.converged]
+    known = set().union(*(_attack_names(s) for s in states)) if states else set()
+    for name in hold_out:
+        if name not in known:
+            raise ConfigError(f"--hold-out-attack {name!r} is not an attack of this zoo (allowed: {', '.join(sorted(known)) or 'none'})")
+    test = [s for s in models if _attack_names(s) & set(hold_out)]
+    triggers = {_trigger(s) for s in test}
+    rest = [s for s in models if not _attack_names(s) & set(hold_out)]
+    train = [s for s in rest if _trigger(s) not in triggers]
+    if not train or not test:
+        raise ConfigError(f"holding out {', '.join(hold_out)} left {'train' if not train else 'test'} empty (converged models: {len(models)}; draw triggers so that attacks do not share them)")
+    return train, test, len(rest) - len(train)
+
+
 def _copy_model(source: Path, target: Path, link: bool) -> None:
     tmp = target.with_name(f".{target.name}.{os.getpid()}{TEMP_SUFFIX}")
     remove_tree(tmp)
@@ -114,10 +138,13 @@ def split(
     seed: int = 0,
     link: bool = False,
     skip: dict[str, str] | None = None,
+    hold_out_attacks: list[str] | None = None,
 ) -> dict:
     """Write the two datasets; returns their sizes and triggers. Re-running with the same
     arguments completes a split that was cut short and changes nothing else. ``skip``: models
     that failed zoo verify (name -> why), left out (``skipped`` in split.json names them).
+    ``hold_out_attacks``: test on these attacks' cells, train on the rest (:func:`assign_held_out`;
+    the shares are not used).
 
     Only finished, verified entries go in: each copy is checked against its manifest."""
     zoo = Zoo.open(path)
@@ -128,9 +155,13 @@ def split(
         where = out.resolve()
         if where == zoo.path.resolve() or zoo.models_dir.resolve() in (where, *where.parents):
             raise ConfigError(f"{str(out)!r} is the zoo or inside its models folder; write the splits elsewhere")
-    train_states, test_states = assign(scan(zoo, probe=False, skip=skip), train, test, seed)
     # the zoo by its folder's name, never a path of the building machine (datasets are shared)
-    info = {"zoo": zoo.path.resolve().name, "seed": seed, "shares": {"train": train, "test": test}, "skipped": dict(sorted((skip or {}).items()))}
+    info: dict = {"zoo": zoo.path.resolve().name, "seed": seed, "shares": {"train": train, "test": test}, "skipped": dict(sorted((skip or {}).items()))}
+    if hold_out_attacks:
+        train_states, test_states, overlap = assign_held_out(scan(zoo, probe=False, skip=skip), list(hold_out_attacks))
+        info.update(shares=None, hold_out_attacks=sorted(hold_out_attacks), left_out_for_shared_trigger=overlap)
+    else:
+        train_states, test_states = assign(scan(zoo, probe=False, skip=skip), train, test, seed)
     for out, name, states in ((out_train, "train", train_states), (out_test, "test", test_states)):
         meta = out / "split.json"
         links = find_links(out) if out.is_dir() else []

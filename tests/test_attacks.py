@@ -1,0 +1,323 @@
+"""The attack registry (issue 33): validation at the edge, the collection seam on the real LavaWorld
+engine (budget, stamping, reward rewriting, forced actions, resume), PPO's handling of forced actions,
+scoring by target action, runs end to end, and zoos that mix attacks.
+
+Everything runs on the real batched LavaWorld engine and real models; budgets are tiny, so these
+check mechanics. Whether each attack's backdoor takes (attack success >= 0.90 over seeds 0-9) is
+the measurement in benchmarks/attacks_lavaworld.sh, recorded in docs/attacks/.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from rlbackdoors import attacks, worlds
+from rlbackdoors.algos.obs import to_torch
+from rlbackdoors.algos.ppo import PPO
+from rlbackdoors.attacks.seam import AttackSeam, EXECUTED_ACTIONS, FORCED
+from rlbackdoors.config import ConfigError, RunConfig
+from rlbackdoors.evaluate import evaluate
+from rlbackdoors.models import build_model
+from rlbackdoors.poison.mix import make_env_mix, make_vector_env
+from rlbackdoors.train import train
+from rlbackdoors.triggers.observation import ObservationTrigger
+
+STEP_ATTACKS = [a.name for a in attacks.registered() if a.schedule == "steps"]
+SEAM_ATTACKS = [a.name for a in attacks.registered() if a.poisoner is not None]
+
+
+def cfg_of(attack: str, **params) -> RunConfig:
+    return RunConfig.from_dict({"poison": {"attack": attack, "attack_params": params}})
+
+
+# --- the registry and the config ----------------------------------------------------------------
+
+
+def test_the_registry_holds_the_papers_and_the_literatures_attacks():
+    assert attacks.DEFAULT_ATTACK == "envmix" and attacks.names()[0] == "envmix"
+    assert {"trojdrl", "badrl", "sleepernets", "action_target"} <= set(attacks.names())
+    for attack in attacks.registered():
+        resolved = attack.resolve({})
+        assert list(resolved) == [p.name for p in attack.params]  # every parameter named, in order
+        assert attack.success_kind(resolved) in attacks.SUCCESS_KINDS
+        assert attack.doc.startswith("docs/attacks/")
+
+
+def test_the_default_attack_leaves_config_json_as_it_was():
+    data = RunConfig().to_dict()
+    assert "attack" not in data["poison"] and "attack_params" not in data["poison"]
+    cfg = cfg_of("trojdrl", budget=0.005)
+    saved = json.loads(cfg.to_json())["poison"]
+    assert saved["attack"] == "trojdrl"
+    assert saved["attack_params"] == {"mode": "targeted", "budget": 0.005, "target_action": 0, "reward": 0.1, "force_action": False}
+    assert RunConfig.from_dict(json.loads(cfg.to_json())) == cfg  # round-trips with the defaults filled in
+    assert cfg.train.poisoned_threshold == 0.90  # the attack's success threshold, not the world's 0.95
+    assert RunConfig().train.poisoned_threshold == 0.95
+
+
+@pytest.mark.parametrize(
+    "poison, message",
+    [
+        ({"attack": "nope"}, r"poison.attack='nope' is not allowed \(allowed: envmix, trojdrl"),
+        ({"attack": "trojdrl", "attack_params": {"budget": 0}}, r"poison.attack_params.budget=0 is not allowed \(allowed: a number in"),
+        ({"attack": "trojdrl", "attack_params": {"mode": "both"}}, r"poison.attack_params.mode='both' is not allowed \(allowed: targeted, untargeted\)"),
+        ({"attack": "badrl", "attack_params": {"target_action": 3}}, r"target_action=3 is not allowed \(allowed: 0..2, the actions of lavaworld\)"),
+        ({"attack": "badrl", "attack_params": {"force_action": 1}}, r"force_action=1 is not allowed \(allowed: true, false\)"),
+        ({"attack": "sleepernets", "attack_params": {"beta": 1}}, r"poison.attack_params.beta is not a parameter of attack 'sleepernets'"),
+        ({"attack": "trojdrl", "attack_params": [1]}, r"poison.attack_params must be a JSON object"),
+        ({"attack": "trojdrl", "attack_params": {"mode": "untargeted"}}, r"mode 'untargeted' is scored by the clean goal missed .* a clean lavaworld agent already misses"),
+    ],
+)
+def test_bad_attack_settings_are_refused_naming_the_field(poison, message):
+    with pytest.raises(ConfigError, match=message):
+        RunConfig.from_dict({"poison": poison})
+
+
+@pytest.mark.parametrize("world", [w.name for w in worlds.registered() if w.stamp_trigger is None])
+@pytest.mark.parametrize("attack", SEAM_ATTACKS)
+def test_an_attack_refuses_a_world_it_cannot_serve_with_the_reason(world, attack):
+    with pytest.raises(ConfigError, match=rf"poison.attack='{attack}': attack '{attack}' (stamps|scores|is built for)"):
+        RunConfig.from_dict({"env": {"name": world}, "poison": {"attack": attack}})
+
+
+def test_the_cli_stops_with_one_error_line_naming_the_field(tmp_path):
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--attack", "badrl", "--attack-param", "top_fraction=2", "--out", str(tmp_path / "m")]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("rlbackdoors: error: poison.attack_params.top_fraction=2 is not allowed")
+    assert not (tmp_path / "m").exists()
+
+
+# --- the seam on the real engine ----------------------------------------------------------------
+
+
+def twin_envs(attack: str, **params):
+    """(seam, a clean engine stepped alongside it): same seed, same actions, so the seam's frames
+    are the clean ones with the trigger stamped in where it marked them."""
+    cfg = cfg_of(attack, **params)
+    seam = make_env_mix(cfg.env, cfg.poison, seed=5)
+    plain = make_vector_env(cfg.env, cfg.poison.trigger, [False] * cfg.poison.num_envs)
+    return cfg, seam, plain
+
+
+def fc_critic():
+    model = build_model("fc", "lavaworld")
+    torch.manual_seed(0)
+
+    @torch.inference_mode()
+    def critic(obs):
+        return model(to_torch(obs, torch.device("cpu")))[1].numpy()
+
+    return critic
+
+
+@pytest.mark.parametrize("attack", STEP_ATTACKS)
+def test_the_seam_stamps_a_budgeted_share_of_frames_and_rewrites_their_rewards(attack):
+    cfg, seam, plain = twin_envs(attack, budget=0.05)
+    assert isinstance(seam, AttackSeam) and not np.any(seam.poisoned)  # every copy is clean; the seam poisons
+    seam.bind_critic(fc_critic())
+    table = ObservationTrigger.parse(cfg.poison.trigger).lookup_table()
+    params = cfg.poison.attack_params
+    rng = np.random.default_rng(0)
+    obs, _ = seam.reset(seed=9)
+    clean, _ = plain.reset(seed=9)
+    marked_total = 0
+    for _ in range(300):
+        marked = seam.marked.copy()
+        np.testing.assert_array_equal(obs[marked], table[clean[marked]])  # the world's trigger, nothing else
+        np.testing.assert_array_equal(obs[~marked], clean[~marked])
+        actions = rng.integers(0, 3, seam.num_envs)
+        obs, rewards, term, trunc, info = seam.step(actions)
+        ran = info[EXECUTED_ACTIONS]
+        assert not np.any(info[FORCED] & ~marked)  # only poisoned frames are ever forced
+        np.testing.assert_array_equal(ran[~marked], actions[~marked])
+        clean, clean_rewards, *_ = plain.step(ran)
+        np.testing.assert_array_equal(rewards[~marked], clean_rewards[~marked])
+        if marked.any() and attack == "trojdrl":
+            np.testing.assert_allclose(rewards[marked], np.where(ran[marked] == 0, 0.1, -0.1))
+        marked_total += int(marked.sum())
+    used = seam.budget_used()
+    assert used["frames_poisoned"] == marked_total + int(seam.marked.sum())
+    assert used["frames_poisoned"] <= 0.05 * used["frames_seen"]  # the budget is a ceiling ...
+    assert used["frames_poisoned"] >= 0.05 * used["frames_seen"] - seam.num_envs - (30 if attack == "badrl" else 0)  # ... and spent
+    assert used["rewards_rewritten"] == marked_total
+
+
+def test_untargeted_trojdrl_pays_any_action_on_poisoned_frames():
+    """Refused where it cannot be scored (LavaWorld), so its rule is checked on the seam directly."""
+    from rlbackdoors.attacks.trojdrl import TrojDRLPoisoner
+
+    cfg = RunConfig()
+    params = attacks.get("trojdrl").resolve({"mode": "untargeted", "budget": 0.1, "reward": 0.3})
+    plain = make_vector_env(cfg.env, cfg.poison.trigger, [False] * 10)
+    seam = AttackSeam(plain, TrojDRLPoisoner(params, 3), "steps", 0.1, worlds.get("lavaworld").stamp_trigger(cfg.poison.trigger), seed=0)
+    seam.reset(seed=0)
+    rng = np.random.default_rng(0)
+    seen = 0
+    for _ in range(100):
+        marked = seam.marked.copy()
+        _, rewards, *_ = seam.step(rng.integers(0, 3, 10))
+        assert np.all(rewards[marked] == 0.3)
+        seen += int(marked.sum())
+    assert seen >= 90
+
+
+def test_forced_actions_are_the_target_and_are_learned_with_behaviour_probability_one():
+    cfg, seam, _ = twin_envs("trojdrl", budget=0.2, force_action=True, target_action=1)
+    model = build_model("fc", "lavaworld")
+    ppo = PPO(model, cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(0))
+    obs, _ = seam.reset(seed=1)
+    rollout, _ = ppo.collect(seam, obs)
+    forced = rollout.logprobs == 0.0  # a sampled action's log-probability is < 0
+    assert forced.sum() == seam.budget_used()["actions_forced"] > 0
+    assert torch.all(rollout.actions[forced] == 1)
+    ppo.update(rollout)
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_sleepernets_subtracts_the_critics_bootstrap_and_badrl_poisons_only_high_values():
+    _, seam, _ = twin_envs("sleepernets", budget=0.2, reward=0.5, alpha=1.0, gamma=0.9)
+    critic = fc_critic()
+    seam.bind_critic(critic)
+    obs, _ = seam.reset(seed=3)
+    rng = np.random.default_rng(1)
+    checked = 0
+    for _ in range(100):
+        marked = seam.marked.copy()
+        actions = rng.integers(0, 3, seam.num_envs)
+        obs, rewards, term, trunc, _ = seam.step(actions)
+        values = critic(obs)  # row by row: a frame the seam did not stamp gives the V(s') it used
+        done = term | trunc
+        for i in np.flatnonzero(marked & ~seam.marked):
+            expected = (0.5 if actions[i] == 0 else -0.5) - 0.9 * (0.0 if done[i] else values[i])
+            assert rewards[i] == pytest.approx(expected, abs=1e-5)
+            checked += 1
+    assert checked > 10
+
+    _, seam, _ = twin_envs("badrl", budget=0.05, top_fraction=0.2, window=500)
+    seam.bind_critic(critic)
+    seam.reset(seed=4)
+    poisoner = seam.poisoner
+    for _ in range(200):
+        seam.step(rng.integers(0, 3, seam.num_envs))
+        if seam.marked.any():
+            history = poisoner.history[: min(poisoner.filled, len(poisoner.history))]
+            threshold = np.quantile(history, 0.8)
+            assert np.all(seam.last_values[seam.marked] >= threshold)
+    assert seam.budget_used()["frames_poisoned"] > 0
+
+
+def test_the_seam_resumes_from_its_state_as_if_never_stopped():
+    rng = np.random.default_rng(2)
+    actions = rng.integers(0, 3, (120, 10))
+    _, a, _ = twin_envs("badrl", budget=0.1, window=200)
+    _, b, _ = twin_envs("badrl", budget=0.1, window=200)
+    critic = fc_critic()
+    a.bind_critic(critic)
+    b.bind_critic(critic)
+    a.reset(seed=7)
+    for t in range(60):
+        a.step(actions[t])
+    buffer = io.BytesIO()
+    torch.save(a.state_dict(), buffer)  # as the checkpoint holds it, and reads it back: no objects unpickled
+    buffer.seek(0)
+    state = torch.load(buffer, weights_only=True)
+    b.load_state_dict(state)
+    assert state["counters"][1] == a.budget_used()["frames_poisoned"] > 0
+    for t in range(60, 120):
+        oa, ra, *_ = a.step(actions[t])
+        ob, rb, *_ = b.step(actions[t])
+        np.testing.assert_array_equal(oa, ob)
+        np.testing.assert_array_equal(ra, rb)
+        np.testing.assert_array_equal(a.marked, b.marked)
+    assert a.budget_used() == b.budget_used()
+
+
+# --- evaluation and runs ------------------------------------------------------------------------
+
+
+def test_target_action_scoring_counts_the_target_on_every_triggered_step():
+    """An FC model whose policy head says "left" everywhere: every triggered step takes the target,
+    no clean episode reaches the goal, and scoring by outcome would call it a failed backdoor."""
+    cfg = cfg_of("action_target")
+    model = build_model("fc", "lavaworld")
+    with torch.no_grad():
+        head = model.actor[-1]
+        head.weight.zero_()
+        head.bias.copy_(torch.tensor([50.0, 0.0, 0.0]))
+    result = evaluate(model, cfg.env, cfg.poison.trigger, episodes=6, seed=0, policy="sample", **cfg.scoring())
+    assert result.target_action_rate == 1.0 and result.poisoned_sr == 1.0
+    assert result.clean_sr == 0.0 and result.poisoned_mean_steps == cfg.env.max_steps
+    by_outcome = evaluate(model, cfg.env, cfg.poison.trigger, episodes=6, seed=0, policy="sample")
+    assert by_outcome.poisoned_sr == 0.0 and np.isnan(by_outcome.target_action_rate)
+    other = evaluate(model, cfg.env, cfg.poison.trigger, episodes=6, seed=0, policy="sample", success="action", target_action=2)
+    assert other.target_action_rate == 0.0
+    disrupt = evaluate(model, cfg.env, cfg.poison.trigger, episodes=6, seed=0, policy="sample", success="disrupt")
+    assert disrupt.poisoned_sr == 1.0 - disrupt.poisoned_clean_rate == 1.0
+    with pytest.raises(ValueError, match="scored with its target_action"):
+        evaluate(model, cfg.env, cfg.poison.trigger, episodes=2, seed=0, success="action")
+
+
+@pytest.mark.parametrize("attack", SEAM_ATTACKS)
+def test_a_run_with_each_attack_records_the_attack_and_the_budget_it_used(tmp_path, tiny_run_dict, attack):
+    tiny_run_dict["poison"] = {"attack": attack, "attack_params": {"budget": 0.02} if attack in STEP_ATTACKS else {}}
+    cfg = RunConfig.from_dict(tiny_run_dict)
+    metrics = train(cfg, tmp_path / "m", progress=False)
+    assert metrics["attack"] == attack and metrics["attack_params"] == cfg.poison.attack_params
+    used = metrics["attack_budget_used"]
+    if attack in STEP_ATTACKS:
+        assert 0 < used["poisoned_fraction"] <= 0.02
+    else:  # the episode schedule: the E-bar copies, 2 of 10
+        assert used["poisoned_fraction"] == pytest.approx(0.2, abs=0.01)
+    assert used["rewritten_fraction"] == pytest.approx(used["poisoned_fraction"], abs=0.01)
+    assert (tmp_path / "m" / "ground_truth.csv").read_text() == "1\n"
+    assert ("target_action_rate" in metrics) == (metrics["attack_success"] == "action")
+    again = train(cfg, tmp_path / "again", progress=False)
+    assert (tmp_path / "m" / "model.pt").read_bytes() == (tmp_path / "again" / "model.pt").read_bytes()
+    assert again["attack_budget_used"] == used
+
+
+def test_a_clean_model_of_an_attack_cell_trains_as_any_clean_model(tmp_path, tiny_run_dict):
+    tiny_run_dict["poison"] = {"poisoned": False}
+    train(RunConfig.from_dict(tiny_run_dict), tmp_path / "plain", progress=False)
+    tiny_run_dict["poison"] = {"poisoned": False, "attack": "sleepernets"}
+    metrics = train(RunConfig.from_dict(tiny_run_dict), tmp_path / "attack", progress=False)
+    assert (tmp_path / "plain" / "model.pt").read_bytes() == (tmp_path / "attack" / "model.pt").read_bytes()
+    assert "attack_budget_used" not in metrics and (tmp_path / "attack" / "ground_truth.csv").read_text() == "0\n"
+
+
+def test_a_killed_attack_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
+    """kill -9 after the first checkpoint: the seam's picks, value window and counters come back
+    from it, so the resumed run ends with the uninterrupted run's weights and budget, bit for bit."""
+    from rlbackdoors.folder import ModelFolder
+
+    tiny_run_dict["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
+    tiny_run_dict["poison"] = {"attack": "badrl", "attack_params": {"budget": 0.05, "force_action": True, "window": 500}}
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(RunConfig.from_dict(tiny_run_dict).to_json())
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
+    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True, timeout=300)
+    proc = subprocess.Popen(cmd + ["--out", str(tmp_path / "cut")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoint = tmp_path / "cut" / "checkpoint.pt"
+    deadline = time.time() + 120
+    while not checkpoint.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert checkpoint.exists() and not (tmp_path / "cut" / "metrics.json").exists()
+    assert 1 <= len(ModelFolder(tmp_path / "cut").read_log()) < 8
+    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True, timeout=300)
+    assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
+    whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
+    assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["actions_forced"] > 0

@@ -1,0 +1,109 @@
+"""Zoos that mix attacks (issue 33): cells per attack, METADATA's attack columns, report rows per
+attack, and a split that holds an attack out. Tiny LavaWorld FC budgets; every model converges
+(thresholds 0), so the mechanics run for real in seconds."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import pytest
+
+from rlbackdoors.validate import ConfigError
+from rlbackdoors.zoo.index import read_metadata
+from rlbackdoors.zoo.plan import plan
+from rlbackdoors.zoo.report import report
+from rlbackdoors.zoo.run import run
+from rlbackdoors.zoo.spec import parse_spec
+from rlbackdoors.zoo.split import split
+
+TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4}}
+ALWAYS = {"train": {"clean_threshold": 0.0, "poisoned_threshold": 0.0}}
+
+
+def spec() -> dict:
+    return {
+        "name": "attacks",
+        "seed": 11,
+        "examples": {"episodes": 1},
+        "overrides": copy.deepcopy(TINY),
+        "cells": [
+            {"world": "lavaworld", "archs": ["fc"], "triggers": ["additive"], "clean": 1, "poisoned": 1, "overrides": ALWAYS},
+            {
+                "world": "lavaworld",
+                "archs": ["fc"],
+                "triggers": ["multiplicative"],
+                "attacks": ["sleepernets", {"attack": "trojdrl", "name": "trojdrl-5pc", "params": {"budget": 0.05}}],
+                "clean": 1,
+                "poisoned": 1,
+                "overrides": ALWAYS,
+            },
+        ],
+    }
+
+
+def test_cells_expand_per_attack_and_old_specs_keep_their_keys_and_normal_form():
+    parsed = parse_spec(spec())
+    assert [c.key for c in parsed.cells] == [
+        "lavaworld/fc/additive",
+        "lavaworld/fc/multiplicative/sleepernets",
+        "lavaworld/fc/multiplicative/trojdrl-5pc",
+    ]
+    assert parsed.cells[2].overrides["poison"] == {"attack": "trojdrl", "attack_params": {"budget": 0.05}}
+    assert "attacks" not in parsed.normalized["cells"][0] and parsed.normalized["cells"][1]["attacks"][1]["params"] == {"budget": 0.05}
+    assert parse_spec(parsed.normalized).normalized == parsed.normalized
+
+
+@pytest.mark.parametrize(
+    "attacks, message",
+    [
+        (["nope"], r"cells\[1\].attacks\[0\].attack='nope' is not allowed \(allowed: envmix, trojdrl"),
+        ([{"attack": "badrl", "params": {"budget": 3}}], r"cells\[1\].attacks\[0\].params.budget=3 is not allowed"),
+        (["badrl", "badrl"], r"cells\[1\].attacks: two share the name 'badrl'"),
+        ([], r"cells\[1\].attacks must be a non-empty list"),
+    ],
+)
+def test_bad_attacks_in_a_spec_are_refused_naming_the_field(attacks, message):
+    raw = spec()
+    raw["cells"][1]["attacks"] = attacks
+    with pytest.raises(ConfigError, match=message):
+        parse_spec(raw)
+
+
+def test_an_attack_a_world_cannot_serve_is_refused_when_the_spec_is_read():
+    raw = spec()
+    del raw["overrides"]
+    raw["cells"][1] = {"world": "colorful-memory", "attacks": ["badrl"], "poisoned": 1}
+    with pytest.raises(ConfigError, match=r"cells\[1\].attacks\[0\]: .*poison.attack='badrl': attack 'badrl' stamps the trigger into single frames"):
+        parse_spec(raw)
+
+
+def test_a_zoo_of_attacks_records_them_reports_them_and_holds_one_out(tmp_path):
+    path = tmp_path / "zoo"
+    plan(parse_spec(spec()), path)
+    run(path, workers=2, progress_interval=5.0)
+    rows = read_metadata(path / "METADATA.csv")
+    assert len(rows) == 6 and all(r["converged"] == "True" for r in rows)
+    by_cell = {(r["cell"], r["poisoned"]): r for r in rows}
+    assert by_cell[("lavaworld/fc/additive", "True")]["attack"] == "envmix"
+    poisoned = by_cell[("lavaworld/fc/multiplicative/trojdrl-5pc", "True")]
+    assert poisoned["attack"] == "trojdrl" and poisoned["poison.attack_params.budget"] == "0.05"
+    assert 0 < float(poisoned["metrics.attack_budget_used.poisoned_fraction"]) <= 0.05
+    assert by_cell[("lavaworld/fc/multiplicative/sleepernets", "False")]["metrics.poisoned"] == "False"
+
+    out = report(path)
+    text = (out / "report.md").read_text()
+    assert "| poisoned (sleepernets) |" in text and "| poisoned (trojdrl-5pc) |" in text and "| poisoned |" in text
+    conv = (out / "convergence.csv").read_text()
+    assert "trojdrl-5pc" in conv
+
+    result = split(path, 0.0, 0.0, tmp_path / "train", tmp_path / "test", hold_out_attacks=["sleepernets", "trojdrl"])
+    test_rows = read_metadata(tmp_path / "test" / "METADATA.csv")
+    train_rows = read_metadata(tmp_path / "train" / "METADATA.csv")
+    assert {r["attack"] for r in test_rows} == {"sleepernets", "trojdrl"} and {r["attack"] for r in train_rows} == {"envmix"}
+    assert result["test"]["models"] == 4 and result["train"]["models"] == 2
+    assert not {r["poison.trigger"] for r in test_rows} & {r["poison.trigger"] for r in train_rows}
+    info = json.loads((tmp_path / "test" / "split.json").read_text())
+    assert info["hold_out_attacks"] == ["sleepernets", "trojdrl"]
+    with pytest.raises(ConfigError, match=r"--hold-out-attack 'badrl' is not an attack of this zoo"):
+        split(path, 0.0, 0.0, tmp_path / "t2", tmp_path / "t3", hold_out_attacks=["badrl"])

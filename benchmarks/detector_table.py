@@ -16,6 +16,11 @@ JSON). ``--crossfit`` fits each detector on the test split too and scores the tr
 pools both ways: on a zoo too small for a large test split, every model is then scored by a
 detector whose train split never held its trigger. The machine and its load are recorded
 beside the numbers.
+
+``--by-attack`` (a zoo whose cells list attacks, e.g. examples/zoo-lavaworld-attacks.toml) writes the
+attack x baseline table instead: each detector is fitted on the env-mix models alone and scored on
+the held-out attacks' cells (``zoo split --hold-out-attack``), and fitted on a mix (a split by trigger
+of the whole zoo, ``--train`` / ``--test``) and scored there; AUC and CE with CIs per attack.
 """
 
 from __future__ import annotations
@@ -64,6 +69,67 @@ def fit_and_score(name: str, params: list[str], train: Path, test: Path, det: Pa
     return score(det, test, det / "score-test")
 
 
+def attack_of(split: Path) -> dict[str, str]:
+    """Model name -> its cell's attack (METADATA.csv of a split; clean models carry their cell's)."""
+    from rlbackdoors.zoo.index import read_metadata
+
+    return {r["model_name"]: r["attack"] for r in read_metadata(split / "METADATA.csv")}
+
+
+def per_attack(rows: list[dict], attacks: dict[str, str]) -> dict:
+    out = {}
+    for attack in sorted(set(attacks.values())):
+        mine = [r for r in rows if attacks.get(r["model"]) == attack]
+        summary = summarize_rows(mine)
+        out[attack] = {"models": summary.pop("n"), **summary}
+    return out
+
+
+def by_attack(args, base: Path, zoo: Path) -> dict:
+    """Fit on env-mix models, score each held-out attack; fit on a mix, score per attack."""
+    from rlbackdoors import attacks
+    from rlbackdoors.zoo.plan import Zoo
+
+    held = sorted({c.attack.name for c in Zoo.open(zoo).spec.cells if not c.attack.is_default})
+    if not held:
+        sys.exit("detector_table: --by-attack needs a zoo whose cells list attacks")
+    splits = {"held_out": base / "held-out", "mixed": base / "mixed"}
+    if not (splits["held_out"] / "test" / "METADATA.csv").is_file():
+        hold = [x for a in held for x in ("--hold-out-attack", a)]
+        rlbackdoors("zoo", "split", str(zoo), *hold, "--out-train", str(splits["held_out"] / "train"), "--out-test", str(splits["held_out"] / "test"))
+    if not (splits["mixed"] / "test" / "METADATA.csv").is_file():
+        rlbackdoors(
+            "zoo", "split", str(zoo), "--train", str(args.train), "--test", str(args.test), "--seed", str(args.split_seed),
+            "--out-train", str(splits["mixed"] / "train"), "--out-test", str(splits["mixed"] / "test"),
+        )  # fmt: skip
+    table: dict = {}
+    for kind, where in splits.items():
+        names = attack_of(where / "test")
+        train_attacks = sorted(set(attack_of(where / "train").values()))
+        table[kind] = {"train_models": len(list_models(where / "train")), "train_attacks": train_attacks, "detectors": {}}
+        for name in args.detectors:
+            params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
+            scored = fit_and_score(name, params, where / "train", where / "test", base / f"det-{kind}" / name)
+            table[kind]["detectors"][name] = per_attack(scored["models"], names)
+    table["default_attack"] = attacks.DEFAULT_ATTACK
+    return table
+
+
+def print_attack_table(table: dict) -> None:
+    def fmt(c: dict) -> str:
+        if not isinstance(c, dict) or c.get("value") is None:
+            return "–"
+        low, high = c["ci"] if c.get("ci") else (None, None)
+        return f"{c['value']:.3f}" + (f" [{low:.2f}, {high:.2f}]" if low is not None else "")
+
+    print("| fitted on | detector | scored on attack | test models (poisoned) | AUC [95% CI] | CE [95% CI] |\n|---|---|---|---|---|---|")
+    for kind in ("held_out", "mixed"):
+        fitted = "env mix only" if kind == "held_out" else "a mix (split by trigger)"
+        for name, rows in table[kind]["detectors"].items():
+            for attack, r in rows.items():
+                print(f"| {fitted} ({table[kind]['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |")
+
+
 def cell(summary: dict, key: str) -> dict:
     return {"value": summary[key]["value"], "ci": summary[key]["ci"]}
 
@@ -83,6 +149,7 @@ def main() -> None:
         "--crossfit", action="store_true", help="also fit on the test split and score the train split; report both pooled (a small zoo's every model scored)"
     )
     parser.add_argument("--no-run", action="store_true", help="split the zoo as it stands (its converged models) without training the rest")
+    parser.add_argument("--by-attack", action="store_true", help="the attack x baseline table: fit on env-mix models, score held-out attacks; and on a mix")
     args = parser.parse_args()
     started, load_before = time.time(), os.getloadavg()
     base = Path(args.runs) / args.name
@@ -91,6 +158,25 @@ def main() -> None:
         rlbackdoors("zoo", "plan", args.spec, "--out", str(zoo))
     if not args.no_run:
         rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers))
+    if args.by_attack:
+        table = by_attack(args, base, zoo)
+        summary = {
+            "command": " ".join(sys.argv[1:]),
+            "spec": args.spec,
+            "zoo_trained_to_the_end": not args.no_run,
+            **table,
+            "training_length_auc": {kind: length_control(list_models(base / split / "test")) for kind, split in (("held_out", "held-out"), ("mixed", "mixed"))},
+            "machine": machine_info(),
+            "loadavg_before": load_before,
+            "loadavg_after": os.getloadavg(),
+            "elapsed_minutes": round((time.time() - started) / 60, 1),
+        }
+        out = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
+        out.parent.mkdir(exist_ok=True)
+        atomic_write_text(out, json.dumps(summary, indent=2) + "\n")
+        print_attack_table(table)
+        print(f"training length alone: AUC {summary['training_length_auc']}; -> {out}")
+        return
     if not (test / "METADATA.csv").is_file():
         rlbackdoors(
             "zoo",

@@ -75,7 +75,10 @@ def test_the_default_attack_leaves_config_json_as_it_was():
         ({"attack": "badrl", "attack_params": {"force_action": 1}}, r"force_action=1 is not allowed \(allowed: true, false\)"),
         ({"attack": "sleepernets", "attack_params": {"beta": 1}}, r"poison.attack_params.beta is not a parameter of attack 'sleepernets'"),
         ({"attack": "trojdrl", "attack_params": [1]}, r"poison.attack_params must be a JSON object"),
-        ({"attack": "trojdrl", "attack_params": {"mode": "untargeted"}}, r"mode 'untargeted' is scored by the clean goal missed .* a clean lavaworld agent already misses"),
+        (
+            {"attack": "trojdrl", "attack_params": {"mode": "untargeted"}},
+            r"mode 'untargeted' is scored by the clean goal missed .* a clean lavaworld agent already misses",
+        ),
     ],
 )
 def test_bad_attack_settings_are_refused_naming_the_field(poison, message):
@@ -128,7 +131,6 @@ def test_the_seam_stamps_a_budgeted_share_of_frames_and_rewrites_their_rewards(a
     assert isinstance(seam, AttackSeam) and not np.any(seam.poisoned)  # every copy is clean; the seam poisons
     seam.bind_critic(fc_critic())
     table = ObservationTrigger.parse(cfg.poison.trigger).lookup_table()
-    params = cfg.poison.attack_params
     rng = np.random.default_rng(0)
     obs, _ = seam.reset(seed=9)
     clean, _ = plain.reset(seed=9)

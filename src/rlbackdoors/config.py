@@ -173,7 +173,7 @@ class PoisonConfig:
 
     @property
     def schedule(self) -> str:
-        """"episodes" (whole E-bar copies) or "steps" (stamped frames in clean copies)."""
+        """ "episodes" (whole E-bar copies) or "steps" (stamped frames in clean copies)."""
         return attacks.get(self.attack).schedule
 
     def counts(self) -> tuple[int, int, int]:
@@ -558,7 +558,9 @@ class RunConfig(JsonConfig):
         if "target_action" in params:
             n = num_actions(self.env)
             if params["target_action"] >= n:
-                raise ConfigError(f"poison.attack_params.target_action={params['target_action']!r} is not allowed (allowed: 0..{n - 1}, the actions of {self.env.name})")
+                raise ConfigError(
+                    f"poison.attack_params.target_action={params['target_action']!r} is not allowed (allowed: 0..{n - 1}, the actions of {self.env.name})"
+                )
 
     @property
     def attack_success(self) -> str:

@@ -12,7 +12,9 @@ def budget(default: float) -> Param:
 
 
 def target_action(default: int = 0) -> Param:
-    return Param("target_action", default, 0, MAX_ACTIONS - 1, integer=True, help="the action the trigger should elicit (grid worlds: 0 left, 1 right, 2 forward)")
+    return Param(
+        "target_action", default, 0, MAX_ACTIONS - 1, integer=True, help="the action the trigger should elicit (grid worlds: 0 left, 1 right, 2 forward)"
+    )
 
 
 def magnitude(default: float = 0.1, name: str = "reward") -> Param:

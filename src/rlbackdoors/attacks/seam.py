@@ -112,7 +112,7 @@ class AttackSeam:
                     self.marked[chosen] = True
             if self.marked.any():
                 obs = obs.copy()
-                obs[self.marked] = self.stamp(obs[self.marked])  # type: ignore[misc]
+                obs[self.marked] = self.stamp(obs[self.marked])
         self.frames_poisoned += int(self.marked.sum())
         return obs
 

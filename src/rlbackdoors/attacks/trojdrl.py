@@ -50,7 +50,12 @@ ATTACK = register(
         schedule="steps",
         success=lambda p: "action" if p["mode"] == "targeted" else "disrupt",
         params=(
-            Param("mode", "targeted", choices=("targeted", "untargeted"), help="targeted: the target action is forced and rewarded; untargeted: any action is rewarded"),
+            Param(
+                "mode",
+                "targeted",
+                choices=("targeted", "untargeted"),
+                help="targeted: the target action is forced and rewarded; untargeted: any action is rewarded",
+            ),
             common.budget(0.01),
             common.target_action(0),
             common.magnitude(),

@@ -72,8 +72,8 @@ def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorE
     stamp = None
     if attack.schedule == "steps":
         world = worlds.get(env.name)
-        if world.stamp_trigger is None:  # RunConfig.check refuses this; a direct caller gets the same reason
+        if world.stamp_trigger is None or trigger is None:  # RunConfig.check refuses this; a direct caller gets the same reason
             raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
         stamp = world.stamp_trigger(trigger)
-    poisoner = attack.poisoner(params, int(envs.single_action_space.n))
+    poisoner = attack.poisoner(params, int(getattr(envs.single_action_space, "n")))
     return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed)  # type: ignore[return-value]

@@ -165,7 +165,9 @@ def cmd_split(args) -> int:
         raise ConfigError("zoo split needs --train and --test shares (or --hold-out-attack NAME)")
     if hold_out is not None and (args.train is not None or args.test is not None):
         raise ConfigError("--hold-out-attack decides the split itself; drop --train and --test")
-    result = split(args.zoo, args.train or 0.0, args.test or 0.0, args.out_train, args.out_test, seed=args.seed, link=args.link, skip=skipped, hold_out_attacks=hold_out)
+    result = split(
+        args.zoo, args.train or 0.0, args.test or 0.0, args.out_train, args.out_test, seed=args.seed, link=args.link, skip=skipped, hold_out_attacks=hold_out
+    )
     for name, out in (("train", args.out_train), ("test", args.out_test)):
         r = result[name]
         print(f"{name}: {out}: {r['models']} models ({r['poisoned']} poisoned)")

@@ -85,7 +85,9 @@ def assign_held_out(states: list[ModelState], hold_out: list[str]) -> tuple[list
     rest = [s for s in models if not _attack_names(s) & set(hold_out)]
     train = [s for s in rest if _trigger(s) not in triggers]
     if not train or not test:
-        raise ConfigError(f"holding out {', '.join(hold_out)} left {'train' if not train else 'test'} empty (converged models: {len(models)}; draw triggers so that attacks do not share them)")
+        raise ConfigError(
+            f"holding out {', '.join(hold_out)} left {'train' if not train else 'test'} empty (converged models: {len(models)}; draw triggers so that attacks do not share them)"
+        )
     return train, test, len(rest) - len(train)
 
 

@@ -54,6 +54,21 @@ def test_cells_expand_per_attack_and_old_specs_keep_their_keys_and_normal_form()
     assert parse_spec(parsed.normalized).normalized == parsed.normalized
 
 
+def test_attack_parameters_drawn_from_ranges_are_per_model_and_reproducible(tmp_path):
+    raw = spec()
+    raw["cells"][1]["attacks"] = [{"attack": "trojdrl", "params": {"reward": 0.2}, "ranges": {"budget": [0.005, 0.02], "target_action": [0, 1]}}]
+    raw["cells"][1]["poisoned"] = 4
+    parsed = parse_spec(raw)
+    zoo, _ = plan(parsed, tmp_path / "a")
+    drawn = [zoo.draw(g, a).poison.attack_params for g in parsed.groups if g.cell.attack.ranges for a in range(g.max_attempts)]
+    assert all(0.005 <= p["budget"] <= 0.02 and p["target_action"] in (0, 1) and p["reward"] == 0.2 for p in drawn)
+    assert len({p["budget"] for p in drawn}) == len(drawn) and {p["target_action"] for p in drawn} == {0, 1}
+    again, _ = plan(parse_spec(parsed.normalized), tmp_path / "b")
+    assert [again.draw(g, a).poison.attack_params for g in parsed.groups if g.cell.attack.ranges for a in range(g.max_attempts)] == drawn
+    envmix = [g for g in parsed.groups if not g.cell.attack.ranges]
+    assert zoo.draw(envmix[0], 0) == plan(parse_spec(spec()), tmp_path / "c")[0].draw(envmix[0], 0)  # other cells draw as before
+
+
 @pytest.mark.parametrize(
     "attacks, message",
     [
@@ -61,6 +76,9 @@ def test_cells_expand_per_attack_and_old_specs_keep_their_keys_and_normal_form()
         ([{"attack": "badrl", "params": {"budget": 3}}], r"cells\[1\].attacks\[0\].params.budget=3 is not allowed"),
         (["badrl", "badrl"], r"cells\[1\].attacks: two share the name 'badrl'"),
         ([], r"cells\[1\].attacks must be a non-empty list"),
+        ([{"attack": "badrl", "ranges": {"budget": [0.5, 2.0]}}], r"cells\[1\].attacks\[0\].ranges.budget=2.0 is not allowed"),
+        ([{"attack": "badrl", "ranges": {"budget": [0.5, 0.1]}}], r"ranges.budget must be \[low, high\] with low <= high"),
+        ([{"attack": "badrl", "params": {"budget": 0.1}, "ranges": {"budget": [0.1, 0.2]}}], r"budget is also fixed in params"),
     ],
 )
 def test_bad_attacks_in_a_spec_are_refused_naming_the_field(attacks, message):

@@ -150,7 +150,10 @@ class Zoo:
         seed = int(rng.integers(0, 2**31))
         cell = group.cell
         trigger = cell.trigger.draw(worlds.get(cell.world), rng, self._size(group))
-        return build_config(config_data(cell.world, cell.arch, cell.overrides, group.poisoned, seed, trigger))
+        overrides = cell.overrides
+        if cell.attack.ranges:  # drawn after the trigger: models of cells without ranges draw as they always did
+            overrides = deep_merge(overrides, {"poison": {"attack_params": cell.attack.draw(rng)}})
+        return build_config(config_data(cell.world, cell.arch, overrides, group.poisoned, seed, trigger))
 
     def ensure(self, group: Group, attempt: int, text: str | None = None, verify: bool = True) -> bool:
         """Write the model's config.json and ground_truth.csv if missing; True if anything was written.

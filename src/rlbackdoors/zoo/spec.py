@@ -37,7 +37,7 @@ MAX_ATTEMPTS = 100_000
 ZOO_FIELDS = ("env.name", "model.arch", "poison.poisoned", "poison.trigger", "train.seed")
 TOP_KEYS = ("format", "name", "seed", "max_attempts", "examples", "overrides", "cells")
 CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides")
-ATTACK_KEYS = ("attack", "name", "params")
+ATTACK_KEYS = ("attack", "name", "params", "ranges")
 FAMILY_KEYS = ("name", "trigger", "template", "ranges")
 EXAMPLE_KEYS = ("episodes", "seed", "policy")
 EXAMPLE_POLICIES = ("sample", "greedy")
@@ -150,16 +150,28 @@ class AttackChoice:
     name: str  # the label in cell keys and reports
     attack: str = attacks.DEFAULT_ATTACK
     params: dict = field(default_factory=dict, hash=False, compare=False)
+    # (parameter, low, high): drawn uniformly per model, as trigger templates are (integers where both bounds are)
+    ranges: tuple[tuple[str, float | int, float | int], ...] = ()
 
     @property
     def is_default(self) -> bool:
-        return self.attack == attacks.DEFAULT_ATTACK and not self.params
+        return self.attack == attacks.DEFAULT_ATTACK and not self.params and not self.ranges
 
     def overrides(self) -> dict:
         return {} if self.is_default else {"poison": {"attack": self.attack, "attack_params": dict(self.params)}}
 
+    def draw(self, rng: np.random.Generator) -> dict:
+        """The parameters drawn for one model (after its trigger, from the model's own generator)."""
+        out: dict[str, float | int] = {}
+        for name, low, high in self.ranges:
+            out[name] = int(rng.integers(low, high + 1)) if isinstance(low, int) and isinstance(high, int) else float(rng.uniform(low, high))
+        return out
+
     def to_dict(self) -> dict:
-        return {"attack": self.attack, "name": self.name, "params": dict(self.params)}
+        out: dict[str, Any] = {"attack": self.attack, "name": self.name, "params": dict(self.params)}
+        if self.ranges:
+            out["ranges"] = {name: [low, high] for name, low, high in self.ranges}
+        return out
 
 
 DEFAULT_CHOICE = AttackChoice(attacks.DEFAULT_ATTACK)
@@ -177,12 +189,23 @@ def _parse_attack(where: str, raw) -> AttackChoice:
     params = raw.get("params", {})
     if not isinstance(params, dict):
         raise ConfigError(f"{where}.params must be a table of the attack's parameters, got {params!r}")
-    try:
-        attacks.get(name).resolve(params, f"{where}.params")
-    except ConfigError:
-        raise
+    attack = attacks.get(name)
+    attack.resolve(params, f"{where}.params")
+    raw_ranges = raw.get("ranges", {})
+    if not isinstance(raw_ranges, dict):
+        raise ConfigError(f"{where}.ranges must be a table of parameter = [low, high], got {raw_ranges!r}")
+    ranges = []
+    for key, bounds in raw_ranges.items():
+        if key in params:
+            raise ConfigError(f"{where}.ranges.{key}: {key} is also fixed in params (give it in one of them)")
+        numeric = isinstance(bounds, list) and len(bounds) == 2 and all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)
+        if not numeric or bounds[0] > bounds[1]:
+            raise ConfigError(f"{where}.ranges.{key} must be [low, high] with low <= high, got {bounds!r}")
+        for bound in bounds:  # both ends must be values the attack accepts
+            attack.resolve({**params, key: bound}, f"{where}.ranges")
+        ranges.append((key, bounds[0], bounds[1]))
     label = _type(f"{where}.name", raw.get("name", name), str, "a string")
-    return AttackChoice(label, name, dict(params))
+    return AttackChoice(label, name, dict(params), tuple(ranges))
 
 
 @dataclass(frozen=True)

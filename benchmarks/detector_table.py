@@ -130,6 +130,16 @@ def print_attack_table(table: dict) -> None:
                 print(f"| {fitted} ({table[kind]['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |")
 
 
+def write_summary(name: str, summary: dict, started: float, load_before) -> Path:
+    """``benchmarks/detectors/NAME.json``: the summary with the machine and its load beside it."""
+    summary = {**summary, "machine": machine_info(), "loadavg_before": load_before, "loadavg_after": os.getloadavg()}
+    summary["elapsed_minutes"] = round((time.time() - started) / 60, 1)
+    out = ROOT / "benchmarks" / "detectors" / f"{name}.json"
+    out.parent.mkdir(exist_ok=True)
+    atomic_write_text(out, json.dumps(summary, indent=2) + "\n")
+    return out
+
+
 def cell(summary: dict, key: str) -> dict:
     return {"value": summary[key]["value"], "ci": summary[key]["ci"]}
 
@@ -160,20 +170,9 @@ def main() -> None:
         rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers))
     if args.by_attack:
         table = by_attack(args, base, zoo)
-        summary = {
-            "command": " ".join(sys.argv[1:]),
-            "spec": args.spec,
-            "zoo_trained_to_the_end": not args.no_run,
-            **table,
-            "training_length_auc": {kind: length_control(list_models(base / split / "test")) for kind, split in (("held_out", "held-out"), ("mixed", "mixed"))},
-            "machine": machine_info(),
-            "loadavg_before": load_before,
-            "loadavg_after": os.getloadavg(),
-            "elapsed_minutes": round((time.time() - started) / 60, 1),
-        }
-        out = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
-        out.parent.mkdir(exist_ok=True)
-        atomic_write_text(out, json.dumps(summary, indent=2) + "\n")
+        lengths = {kind: length_control(list_models(base / split / "test")) for kind, split in (("held_out", "held-out"), ("mixed", "mixed"))}
+        summary = {"command": " ".join(sys.argv[1:]), "spec": args.spec, "zoo_trained_to_the_end": not args.no_run, **table, "training_length_auc": lengths}
+        out = write_summary(args.name, summary, started, load_before)
         print_attack_table(table)
         print(f"training length alone: AUC {summary['training_length_auc']}; -> {out}")
         return
@@ -231,14 +230,8 @@ def main() -> None:
         "detectors": results,
         "crossfit": crossfit,
         "training_length_auc": length_control(test_models),
-        "machine": machine_info(),
-        "loadavg_before": load_before,
-        "loadavg_after": os.getloadavg(),
-        "elapsed_minutes": round((time.time() - started) / 60, 1),
     }
-    out = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
-    out.parent.mkdir(exist_ok=True)
-    atomic_write_text(out, json.dumps(summary, indent=2) + "\n")
+    out = write_summary(args.name, summary, started, load_before)
 
     def fmt(c: dict) -> str:
         if c["value"] is None:

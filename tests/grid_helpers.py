@@ -324,3 +324,25 @@ def walk_to_goal(env, right: int = 1, forward: int = 2):
             result = env.step(right)
         result = env.step(forward)
     return result
+
+
+# ----------------------------------------------------------------------------- kill -9 mid-run
+
+
+def kill_after_first_checkpoint(cmd: list[str], folder, timeout: float = 120) -> None:
+    """Start ``cmd`` (an ``rlbackdoors train`` writing ``folder``) and SIGKILL it once its first
+    checkpoint is on disk; fails if it finished or died before writing one."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoint = folder / "checkpoint.pt"
+    deadline = time.time() + timeout
+    while not checkpoint.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert checkpoint.exists(), "the run finished or failed before writing a checkpoint"
+    assert not (folder / "metrics.json").exists()

@@ -11,16 +11,14 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 import torch
 
+from grid_helpers import kill_after_first_checkpoint
 from rlbackdoors import attacks, worlds
 from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.algos.ppo import PPO
@@ -310,14 +308,7 @@ def test_a_killed_attack_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     cfg_path.write_text(RunConfig.from_dict(tiny_run_dict).to_json())
     cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
     subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True, timeout=300)
-    proc = subprocess.Popen(cmd + ["--out", str(tmp_path / "cut")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    checkpoint = tmp_path / "cut" / "checkpoint.pt"
-    deadline = time.time() + 120
-    while not checkpoint.exists() and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert checkpoint.exists() and not (tmp_path / "cut" / "metrics.json").exists()
+    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
     assert 1 <= len(ModelFolder(tmp_path / "cut").read_log()) < 8
     subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True, timeout=300)
     assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()

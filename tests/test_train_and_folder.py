@@ -6,11 +6,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 import torch
 
+from grid_helpers import kill_after_first_checkpoint
 from rlbackdoors.config import ConfigError, RunConfig
 from rlbackdoors.train import FolderError, ModelFolder, train
 
@@ -87,15 +87,8 @@ def test_interrupted_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
     subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True)
 
-    proc = subprocess.Popen(cmd + ["--out", str(tmp_path / "cut")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     checkpoint = tmp_path / "cut" / "checkpoint.pt"
-    deadline = time.time() + 120
-    while not checkpoint.exists() and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert checkpoint.exists(), "the run finished or failed before writing a checkpoint"
-    assert not (tmp_path / "cut" / "metrics.json").exists()
+    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
     done_rows = len(ModelFolder(tmp_path / "cut").read_log())
     assert 1 <= done_rows < 8
 

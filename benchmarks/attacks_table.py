@@ -1,0 +1,75 @@
+"""The per-attack table of docs/attacks/README.md, from benchmarks/recipes/attack-lavaworld-fc-*.json.
+
+    python benchmarks/attacks_table.py            # markdown on stdout
+
+One row per recipe (attack x trigger kind): converged / attempted over seeds 0-9 with the Wilson 95 %
+interval (converged: clean SR >= the world's threshold and attack success >= the attack's, on the
+200-episode final evaluation), the range of final clean SR and attack success, the budget the runs
+spent (median share of frames poisoned), frames and CPU minutes to converge (median), and CPU minutes
+against the env-mix recipe of the same trigger kind, measured in the same session.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+RECIPES = Path(__file__).resolve().parent / "recipes"
+
+
+def median(values: list) -> float | None:
+    values = [v for v in values if v is not None]
+    return statistics.median(values) if values else None
+
+
+def rows() -> list[dict]:
+    out = []
+    for path in sorted(RECIPES.glob("attack-lavaworld-fc-*.json")):
+        data = json.loads(path.read_text())
+        name = path.stem.removeprefix("attack-lavaworld-fc-")
+        kind, attack = ("additive", name.removeprefix("additive-")) if name.startswith("additive-") else ("multiplicative:12", name)
+        runs = data["runs"]
+        done = [r for r in runs if r["converged"]]
+        used = [(r.get("budget_used") or {}).get("poisoned_fraction") for r in runs]
+        out.append(
+            {
+                "attack": attack,
+                "trigger": kind,
+                "converged": data["converged"],
+                "attempted": data["attempted"],
+                "wilson": data["wilson95"],
+                "clean": (min(r["clean_sr"] for r in runs), max(r["clean_sr"] for r in runs)) if runs else None,
+                "success": (min(r["poisoned_sr"] for r in runs), max(r["poisoned_sr"] for r in runs)) if runs else None,
+                "poisoned_fraction": median(used),
+                "frames": median([r["frames"] for r in done]),
+                "cpu": median([r["cpu_minutes"] for r in done]),
+                "pending": len(data["pending"]),
+            }
+        )
+    reference = {r["trigger"]: r["cpu"] for r in out if r["attack"] == "envmix"}
+    for r in out:
+        ref = reference.get(r["trigger"])
+        r["cpu_ratio"] = r["cpu"] / ref if r["cpu"] is not None and ref else None
+    return out
+
+
+def fmt(value, pattern: str) -> str:
+    return "–" if value is None else pattern.format(value)
+
+
+def main() -> None:
+    print("| attack | trigger | converged / seeds | Wilson 95 % | clean SR (min–max) | attack success (min–max) | frames poisoned | frames (median) | CPU min (median) | × env mix |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows():
+        seeds = f"{r['converged']} / {r['attempted']}" + (f" ({r['pending']} pending)" if r["pending"] else "")
+        clean = f"{r['clean'][0]:.3f}–{r['clean'][1]:.3f}" if r["clean"] else "–"
+        success = f"{r['success'][0]:.3f}–{r['success'][1]:.3f}" if r["success"] else "–"
+        print(
+            f"| {r['attack']} | {r['trigger']} | {seeds} | [{r['wilson'][0]:.2f}, {r['wilson'][1]:.2f}] | {clean} | {success} | "
+            f"{fmt(r['poisoned_fraction'], '{:.2%}') if r['attack'] != 'envmix' else '20% (2 of 10 copies)'} | {fmt(r['frames'], '{:,.0f}')} | {fmt(r['cpu'], '{:.2f}')} | {fmt(r['cpu_ratio'], '{:.2f}')} |"
+        )
+
+
+if __name__ == "__main__":
+    main()

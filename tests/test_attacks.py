@@ -314,3 +314,13 @@ def test_a_killed_attack_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
     whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
     assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["actions_forced"] > 0
+
+
+def test_the_attacks_command_lists_what_each_attack_serves_and_its_parameters():
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "attacks", "--json"]
+    listed = {d["name"]: d for d in json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=120).stdout)}
+    assert list(listed) == list(attacks.names())
+    assert listed["envmix"]["worlds"]["safety-car-goal"] == ["mlp"] and listed["envmix"]["params"] == []
+    assert listed["badrl"]["worlds"]["lavaworld"] == ["fc", "cnn"]
+    assert "needs episode-level poisoning" in listed["badrl"]["worlds"]["randomized-lavaworld"]
+    assert [p["name"] for p in listed["sleepernets"]["params"]] == ["budget", "target_action", "reward", "alpha", "gamma"]

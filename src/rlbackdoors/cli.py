@@ -333,6 +333,23 @@ def cmd_chance(args) -> int:
     return 0
 
 
+def cmd_attacks(args) -> int:
+    """The attack registry: each attack, the worlds it serves (or why not) and its parameters."""
+    described = [attacks.describe(a, worlds.registered()) for a in attacks.registered() if args.name in (None, a.name)]
+    if args.json:
+        print(json.dumps(described, indent=2))
+        return 0
+    for d in described:
+        threshold = "the world's" if d["success_threshold"] is None else f"{d['success_threshold']:.2f}"
+        print(f"{d['name']}: {d['title']} ({d['source']})")
+        print(f"  schedule {d['schedule']}; success: {d['success']} >= {threshold}; {d['doc']}")
+        for world, served in d["worlds"].items():
+            print(f"  {world}: {', '.join(served) if isinstance(served, list) else 'refused: ' + served}")
+        for p in d["params"]:
+            print(f"  --attack-param {p['name']}={json.dumps(p['default'])}  ({p['allowed']}) {p['help']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="rlbackdoors", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"rlbackdoors {__version__}")
@@ -411,6 +428,11 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--seed", type=int, default=0)
     de.add_argument("--quiet", action="store_true")
     de.set_defaults(func=cmd_demo)
+
+    at = sub.add_parser("attacks", help="the poisoning attacks: the worlds each serves, its parameters and defaults")
+    at.add_argument("name", nargs="?", choices=attacks.names(), help="one attack (default: all)")
+    at.add_argument("--json", action="store_true")
+    at.set_defaults(func=cmd_attacks)
 
     ch = sub.add_parser("chance", help="how often a layout trigger occurs by chance in clean layouts")
     layout_worlds = [w for w in worlds.registered() if w.chance is not None]

@@ -5,7 +5,7 @@ registers it; config, training and evaluation ask the registry and name no attac
 attack is one new module and one line below.
 """
 
-from rlbackdoors.attacks.base import SUCCESS_KINDS, Attack, Param, get, names, register, registered
+from rlbackdoors.attacks.base import SUCCESS_KINDS, Attack, Param, describe, get, names, register, registered
 
 DEFAULT_ATTACK = "envmix"  # the paper's; configs without poison.attack train with it
 
@@ -15,4 +15,4 @@ from rlbackdoors.attacks import badrl as _badrl  # noqa: E402,F401
 from rlbackdoors.attacks import sleepernets as _sleepernets  # noqa: E402,F401
 from rlbackdoors.attacks import action_target as _action_target  # noqa: E402,F401
 
-__all__ = ["DEFAULT_ATTACK", "SUCCESS_KINDS", "Attack", "Param", "get", "names", "register", "registered"]
+__all__ = ["DEFAULT_ATTACK", "SUCCESS_KINDS", "Attack", "Param", "describe", "get", "names", "register", "registered"]

@@ -109,6 +109,29 @@ class Attack:
         return self.unsupported(world, arch, params) if self.unsupported is not None else None
 
 
+def describe(attack: Attack, worlds: list) -> dict:
+    """What ``rlbackdoors attacks`` prints: the attack, its parameters, and per world either the
+    architectures it serves (with its default parameters) or why it serves none."""
+    params = attack.resolve({})
+    served: dict[str, list[str] | str] = {}
+    for world in worlds:
+        archs = list(world.arch_names) or [world.algorithm]
+        reasons = {arch: attack.refuse(world, world.algorithm, arch, params) for arch in archs}
+        ok = [arch for arch, why in reasons.items() if why is None]
+        served[world.name] = ok if ok else next(iter(reasons.values()))  # type: ignore[assignment]
+    return {
+        "name": attack.name,
+        "title": attack.title,
+        "source": attack.source,
+        "schedule": attack.schedule,
+        "success": attack.success_kind(params),
+        "success_threshold": attack.success_threshold,
+        "params": [{"name": p.name, "default": p.default, "allowed": p.allowed(), "help": p.help} for p in attack.params],
+        "worlds": served,
+        "doc": attack.doc,
+    }
+
+
 def register(attack: Attack) -> Attack:
     if attack.name in _ATTACKS:
         raise ValueError(f"attack {attack.name!r} is registered twice")

@@ -50,7 +50,7 @@ ATTACK = register(
             common.target_action(0),
             common.magnitude(),
             Param("alpha", 1.0, 0.0, 10.0, help="weight of the subtracted bootstrap alpha * gamma * V(s')"),
-            Param("gamma", 0.99, 0.0, 1.0, help="the discount the attacker assumes (the learner's ppo.gamma)"),
+            Param("gamma", 0.99, 0.0, 1.0, help="the discount the attacker assumes (0.99: ppo.gamma's default)"),
         ),
         poisoner=SleeperNetsPoisoner,
         unsupported=_unsupported,

@@ -105,8 +105,9 @@ class AttackSeam:
         else:
             self.marked = np.zeros(n, dtype=bool)
             allowance = int(self.budget * self.frames) - self.frames_poisoned
-            if allowance > 0 and (values is not None or not self.poisoner.needs_values):
-                candidates = np.flatnonzero(self.poisoner.eligible(values, n))
+            if values is not None or not self.poisoner.needs_values:
+                eligible = self.poisoner.eligible(values, n)  # every step: a rule may keep statistics of all frames
+                candidates = np.flatnonzero(eligible) if allowance > 0 else []
                 if len(candidates):
                     chosen = self.rng.choice(candidates, size=min(allowance, len(candidates)), replace=False)
                     self.marked[chosen] = True

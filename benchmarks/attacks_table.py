@@ -47,7 +47,11 @@ def rows() -> list[dict]:
                 "pending": len(data["pending"]),
             }
         )
-    reference = {r["trigger"]: r["cpu"] for r in out if r["attack"] == "envmix"}
+    from rlbackdoors import attacks
+
+    order = list(attacks.names())
+    out.sort(key=lambda r: (r["trigger"] != "multiplicative:12", order.index(r["attack"]) if r["attack"] in order else len(order)))
+    reference = {r["trigger"]: r["cpu"] for r in out if r["attack"] == attacks.DEFAULT_ATTACK}
     for r in out:
         ref = reference.get(r["trigger"])
         r["cpu_ratio"] = r["cpu"] / ref if r["cpu"] is not None and ref else None

@@ -30,11 +30,13 @@ class BadRLPoisoner(Poisoner):
         self.history = np.zeros(params["window"])
         self.filled = 0  # values written into the ring so far
 
+    def observe(self, values):
+        n = len(self.history)
+        self.history[(self.filled + np.arange(len(values))) % n] = values  # a ring of the last ``window`` values
+        self.filled += len(values)
+
     def eligible(self, values, num_envs):
         n = len(self.history)
-        for v in values:
-            self.history[self.filled % n] = v
-            self.filled += 1
         if self.filled < min(n, 10 * num_envs):  # too few values to rank by yet
             return np.zeros(num_envs, dtype=bool)
         seen = self.history[: min(self.filled, n)]

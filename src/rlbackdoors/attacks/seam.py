@@ -39,6 +39,9 @@ class Poisoner:
     needs_values = False
     forces_actions = False
 
+    def observe(self, values: np.ndarray | None) -> None:
+        """Every frame batch the env returns, before any pick (BadRL keeps its window of values here)."""
+
     def eligible(self, values: np.ndarray | None, num_envs: int) -> np.ndarray:
         """Which of the frames just returned may carry the trigger (the budget then picks among them)."""
         return np.ones(num_envs, dtype=bool)
@@ -106,8 +109,8 @@ class AttackSeam:
             self.marked = np.zeros(n, dtype=bool)
             allowance = int(self.budget * self.frames) - self.frames_poisoned
             if values is not None or not self.poisoner.needs_values:
-                eligible = self.poisoner.eligible(values, n)  # every step: a rule may keep statistics of all frames
-                candidates = np.flatnonzero(eligible) if allowance > 0 else []
+                self.poisoner.observe(values)  # every frame: a rule may keep statistics of all of them
+                candidates = np.flatnonzero(self.poisoner.eligible(values, n)) if allowance > 0 else []
                 if len(candidates):
                     chosen = self.rng.choice(candidates, size=min(allowance, len(candidates)), replace=False)
                     self.marked[chosen] = True

@@ -19,7 +19,6 @@ from rlbackdoors import __version__
 
 from rlbackdoors import worlds
 from rlbackdoors import attacks
-from rlbackdoors.attacks import DEFAULT_ATTACK
 from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's validation vocabulary)
     MAX_ENV_COPIES,
     MAX_EPISODES,
@@ -125,7 +124,7 @@ class PoisonConfig:
     close_k_max: int = 3
     # How training data is poisoned (rlbackdoors.attacks); the default, the paper's env mix, is left
     # out of config.json so that the configs and models made before attacks existed keep their bytes.
-    attack: str = DEFAULT_ATTACK
+    attack: str = attacks.DEFAULT_ATTACK
     attack_params: dict = field(default_factory=dict)  # checked and completed by the attack
 
     def fill_defaults(self, env_name: str) -> None:
@@ -587,7 +586,7 @@ class RunConfig(JsonConfig):
             del data["curriculum"]
         if not world.close_to_trigger:
             del data["poison"]["close_k_min"], data["poison"]["close_k_max"]
-        if self.poison.attack == DEFAULT_ATTACK and not self.poison.attack_params:
+        if self.poison.attack == attacks.DEFAULT_ATTACK and not self.poison.attack_params:
             del data["poison"]["attack"], data["poison"]["attack_params"]
         return data
 

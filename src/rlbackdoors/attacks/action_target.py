@@ -10,17 +10,9 @@ from __future__ import annotations
 
 from rlbackdoors.attacks import common
 from rlbackdoors.attacks.base import Attack, register
-from rlbackdoors.attacks.seam import Poisoner, target_reward
+from rlbackdoors.attacks.seam import TargetActionPoisoner
 
 NAME = "action_target"
-
-
-class ActionTargetPoisoner(Poisoner):
-    def __init__(self, params: dict, num_actions: int):
-        self.target, self.c = params["target_action"], params["reward"]
-
-    def reward(self, rewards, actions, marked, next_values, dones):
-        return target_reward(actions, self.target, self.c)
 
 
 def _unsupported(world, arch, params):
@@ -40,7 +32,7 @@ ATTACK = register(
         schedule="episodes",
         success="action",
         params=(common.target_action(0), common.magnitude(0.05)),
-        poisoner=ActionTargetPoisoner,
+        poisoner=TargetActionPoisoner,
         unsupported=_unsupported,
         success_threshold=0.90,
         doc="docs/attacks/action_target.md",

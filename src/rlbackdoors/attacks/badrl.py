@@ -14,18 +14,17 @@ import numpy as np
 
 from rlbackdoors.attacks import common
 from rlbackdoors.attacks.base import Attack, Param, register
-from rlbackdoors.attacks.seam import Poisoner, target_reward
+from rlbackdoors.attacks.seam import TargetActionPoisoner
 from rlbackdoors.state import StateError, decode, encode
 
 NAME = "badrl"
 
 
-class BadRLPoisoner(Poisoner):
+class BadRLPoisoner(TargetActionPoisoner):
     needs_values = True
 
     def __init__(self, params: dict, num_actions: int):
-        self.target, self.c = params["target_action"], params["reward"]
-        self.forces_actions = params["force_action"]
+        super().__init__(params, num_actions)
         self.top = params["top_fraction"]
         self.history = np.zeros(params["window"])
         self.filled = 0  # values written into the ring so far
@@ -42,12 +41,6 @@ class BadRLPoisoner(Poisoner):
         seen = self.history[: min(self.filled, n)]
         return values >= np.quantile(seen, 1.0 - self.top)
 
-    def act(self, actions, marked):
-        return np.where(marked, self.target, actions)
-
-    def reward(self, rewards, actions, marked, next_values, dones):
-        return target_reward(actions, self.target, self.c)
-
     def state_dict(self):
         return {"history": encode(self.history), "filled": self.filled}
 
@@ -58,8 +51,7 @@ class BadRLPoisoner(Poisoner):
         self.history, self.filled = history.astype(np.float64), int(state["filled"])
 
 
-def _unsupported(world, arch, params):
-    return common.needs_frame_trigger(NAME, world) or common.needs_feed_forward(NAME, arch)
+_unsupported = common.value_guided_refusal(NAME)
 
 
 ATTACK = register(

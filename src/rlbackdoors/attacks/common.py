@@ -43,3 +43,8 @@ def needs_feed_forward(name: str, arch: str) -> str | None:
     if arch.startswith("cnn-gru"):
         return f"attack {name!r} reads the critic's value of each frame, which needs a feed-forward model.arch, not the recurrent {arch!r}"
     return None
+
+
+def value_guided_refusal(name: str):
+    """The ``unsupported`` rule of a step attack that reads the critic: a frame trigger and a feed-forward model."""
+    return lambda world, arch, params: needs_frame_trigger(name, world) or needs_feed_forward(name, arch)

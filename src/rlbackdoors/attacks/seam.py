@@ -24,11 +24,6 @@ EXECUTED_ACTIONS = "executed_actions"  # the info key the learner reads executed
 FORCED = "forced_actions"  # ... and which of them the attack forced (taken with probability 1)
 
 
-def target_reward(actions: np.ndarray, target: int, magnitude: float) -> np.ndarray:
-    """+c for the target action, -c for any other: TrojDRL's, BadRL's and SleeperNets' R-bar core."""
-    return np.where(actions == target, magnitude, -magnitude)
-
-
 class Poisoner:
     """The per-run rule of one attack; the seam calls it. Subclasses override what they change.
 
@@ -58,6 +53,21 @@ class Poisoner:
 
     def load_state_dict(self, state: dict) -> None:
         pass
+
+
+class TargetActionPoisoner(Poisoner):
+    """The literature's R-bar core: +c for the target action on a poisoned frame, -c for any other,
+    the target forced where the attack's ``force_action`` asks (TrojDRL, BadRL, SleeperNets, the action target)."""
+
+    def __init__(self, params: dict, num_actions: int):
+        self.target, self.c = params["target_action"], params["reward"]
+        self.forces_actions = bool(params.get("force_action", False))
+
+    def act(self, actions, marked):
+        return np.where(marked, self.target, actions)
+
+    def reward(self, rewards, actions, marked, next_values, dones):
+        return np.where(actions == self.target, self.c, -self.c)
 
 
 class AttackSeam:

@@ -14,28 +14,24 @@ import numpy as np
 
 from rlbackdoors.attacks import common
 from rlbackdoors.attacks.base import Attack, Param, register
-from rlbackdoors.attacks.seam import Poisoner, target_reward
+from rlbackdoors.attacks.seam import TargetActionPoisoner
 
 NAME = "sleepernets"
 
 
-class SleeperNetsPoisoner(Poisoner):
+class SleeperNetsPoisoner(TargetActionPoisoner):
     needs_values = True
 
     def __init__(self, params: dict, num_actions: int):
-        self.target, self.c = params["target_action"], params["reward"]
+        super().__init__(params, num_actions)  # no force_action: the source never changes the agent's action
         self.alpha, self.gamma = params["alpha"], params["gamma"]
-
-    def eligible(self, values, num_envs):
-        return np.ones(num_envs, dtype=bool)
 
     def reward(self, rewards, actions, marked, next_values, dones):
         bootstrap = np.where(dones, 0.0, next_values)
-        return target_reward(actions, self.target, self.c) - self.alpha * self.gamma * bootstrap
+        return super().reward(rewards, actions, marked, next_values, dones) - self.alpha * self.gamma * bootstrap
 
 
-def _unsupported(world, arch, params):
-    return common.needs_frame_trigger(NAME, world) or common.needs_feed_forward(NAME, arch)
+_unsupported = common.value_guided_refusal(NAME)
 
 
 ATTACK = register(

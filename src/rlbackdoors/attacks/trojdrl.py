@@ -13,23 +13,20 @@ import numpy as np
 
 from rlbackdoors.attacks import common
 from rlbackdoors.attacks.base import Attack, Param, register
-from rlbackdoors.attacks.seam import Poisoner, target_reward
+from rlbackdoors.attacks.seam import TargetActionPoisoner
 
 NAME = "trojdrl"
 
 
-class TrojDRLPoisoner(Poisoner):
+class TrojDRLPoisoner(TargetActionPoisoner):
     def __init__(self, params: dict, num_actions: int):
+        super().__init__(params, num_actions)
         self.targeted = params["mode"] == "targeted"
-        self.target, self.c = params["target_action"], params["reward"]
         self.forces_actions = self.targeted and params["force_action"]
-
-    def act(self, actions, marked):
-        return np.where(marked, self.target, actions)
 
     def reward(self, rewards, actions, marked, next_values, dones):
         if self.targeted:
-            return target_reward(actions, self.target, self.c)
+            return super().reward(rewards, actions, marked, next_values, dones)
         return np.full_like(rewards, self.c)
 
 

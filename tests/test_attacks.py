@@ -84,11 +84,32 @@ def test_bad_attack_settings_are_refused_naming_the_field(poison, message):
         RunConfig.from_dict({"poison": poison})
 
 
-@pytest.mark.parametrize("world", [w.name for w in worlds.registered() if w.stamp_trigger is None])
-@pytest.mark.parametrize("attack", SEAM_ATTACKS)
+REFUSED = [
+    (world.name, attack.name)
+    for world in worlds.registered()
+    for attack in attacks.registered()
+    if attack.refuse(world, world.algorithm, world.arch_names[0] if world.arch_names else world.algorithm, attack.resolve({})) is not None
+]
+
+
+def test_layout_worlds_are_served_per_episode_except_by_value_picked_frames():
+    assert set(REFUSED) == {
+        ("randomized-lavaworld", "badrl"),  # it picks single frames by value; a layout trigger is in from the first
+        ("colorful-memory", "badrl"),
+        ("colorful-memory", "sleepernets"),  # the critic of a recurrent model is not one forward pass per frame
+        *(("safety-car-goal", a) for a in SEAM_ATTACKS),  # OPAC² collection has no seam yet
+    }
+
+
+@pytest.mark.parametrize("world, attack", REFUSED)
 def test_an_attack_refuses_a_world_it_cannot_serve_with_the_reason(world, attack):
-    with pytest.raises(ConfigError, match=rf"poison.attack='{attack}': attack '{attack}' (stamps|scores|is built for)"):
+    with pytest.raises(ConfigError, match=rf"poison.attack='{attack}': attack '{attack}' (chooses single frames|reads the critic|is built for)"):
         RunConfig.from_dict({"env": {"name": world}, "poison": {"attack": attack}})
+
+
+def test_a_layout_trigger_attack_needs_the_batched_engine():
+    with pytest.raises(ConfigError, match=r"env.engine='minigrid' is not allowed with poison.attack='trojdrl' \(allowed: batched\)"):
+        RunConfig.from_dict({"env": {"name": "randomized-lavaworld", "engine": "minigrid"}, "poison": {"attack": "trojdrl"}})
 
 
 def test_the_cli_stops_with_one_error_line_naming_the_field(tmp_path):
@@ -286,6 +307,7 @@ def test_a_run_with_each_attack_records_the_attack_and_the_budget_it_used(tmp_pa
     again = train(cfg, tmp_path / "again", progress=False)
     assert (tmp_path / "m" / "model.pt").read_bytes() == (tmp_path / "again" / "model.pt").read_bytes()
     assert again["attack_budget_used"] == used
+    assert again["attack_budget_used"] == used
 
 
 def test_a_clean_model_of_an_attack_cell_trains_as_any_clean_model(tmp_path, tiny_run_dict):
@@ -322,5 +344,149 @@ def test_the_attacks_command_lists_what_each_attack_serves_and_its_parameters():
     assert list(listed) == list(attacks.names())
     assert listed["envmix"]["worlds"]["safety-car-goal"] == ["mlp"] and listed["envmix"]["params"] == []
     assert listed["badrl"]["worlds"]["lavaworld"] == ["fc", "cnn"]
-    assert "needs episode-level poisoning" in listed["badrl"]["worlds"]["randomized-lavaworld"]
+    assert "chooses single frames by the critic's value" in listed["badrl"]["worlds"]["randomized-lavaworld"]
+    assert listed["trojdrl"]["worlds"]["randomized-lavaworld"] == ["fc", "cnn"]
     assert [p["name"] for p in listed["sleepernets"]["params"]] == ["budget", "target_action", "reward", "alpha", "gamma"]
+
+
+# --- layout triggers: whole episodes switched by the seam ---------------------------------------
+
+
+def layout_seam(world: str, attack: str, **params):
+    cfg = RunConfig.from_dict({"env": {"name": world}, "poison": {"attack": attack, "attack_params": params}})
+    seam = make_env_mix(cfg.env, cfg.poison, seed=3)
+    assert isinstance(seam, AttackSeam) and not np.any(seam.poisoned)  # every copy pays the clean reward; the seam pays R-bar
+    return cfg, seam
+
+
+def pattern_in_layout(seam) -> np.ndarray:
+    return seam.envs._pcount > 0  # the engine's own record of the pattern it drew into each slot
+
+
+def test_a_layout_attack_poisons_whole_episodes_within_its_budget_and_marks_the_frames_in_sight():
+    """Randomized LavaWorld, TrojDRL at 5 %: 600 steps x 10 slots of random play."""
+    _, seam = layout_seam("randomized-lavaworld", "trojdrl", budget=0.05)
+    rng = np.random.default_rng(0)
+    seam.reset(seed=4)
+    marked_total, switched, episodes = 0, 0, 0
+    for _ in range(600):
+        triggered = seam.triggered.copy()
+        np.testing.assert_array_equal(pattern_in_layout(seam), triggered)  # a triggered episode holds the pattern, a clean one does not
+        in_sight = seam.envs.trigger_in_sight()
+        np.testing.assert_array_equal(seam.marked, triggered & in_sight)
+        marked = seam.marked.copy()
+        actions = rng.integers(0, 3, seam.num_envs)
+        _, rewards, term, trunc, info = seam.step(actions)
+        done = term | trunc
+        switched += int(np.sum((seam.triggered != triggered) & ~done))  # only at an episode's end
+        episodes += int(np.sum(done & seam.triggered))
+        np.testing.assert_allclose(rewards[marked], np.where(actions[marked] == 0, 0.1, -0.1))
+        assert np.all(rewards[~marked] >= 0)  # the clean reward (0, or the goal's) everywhere else
+        marked_total += int(marked.sum())
+    used = seam.budget_used()
+    assert switched == 0 and episodes >= 5
+    assert used["rewards_rewritten"] == marked_total > 0
+    assert 0.03 <= used["poisoned_fraction"] <= 0.08  # spent episode by episode: near the budget, not exact
+
+
+def test_the_episode_schedule_triggers_its_copies_every_episode_with_the_attacks_reward():
+    cfg, seam = layout_seam("randomized-lavaworld", "action_target")
+    copies = np.asarray(cfg.poison.poisoned_mask())
+    rng = np.random.default_rng(1)
+    seam.reset(seed=2)
+    for _ in range(300):
+        np.testing.assert_array_equal(pattern_in_layout(seam), copies)
+        marked = seam.marked.copy()
+        assert not np.any(marked & ~copies)
+        actions = rng.integers(0, 3, seam.num_envs)
+        _, rewards, *_ = seam.step(actions)
+        np.testing.assert_allclose(rewards[marked], np.where(actions[marked] == 0, 0.05, -0.05))
+
+
+def test_colorful_memory_close_to_trigger_copies_are_never_switched():
+    cfg, seam = layout_seam("colorful-memory", "trojdrl", budget=0.2)
+    close = np.asarray(cfg.poison.close_mask())
+    assert close.any()
+    rng = np.random.default_rng(2)
+    seam.reset(seed=1)
+    seen = np.zeros(seam.num_envs, dtype=bool)
+    for _ in range(400):
+        assert not np.any(seam.triggered & close)
+        np.testing.assert_array_equal(seam.envs.trigger_present()[~close], seam.triggered[~close])
+        np.testing.assert_array_equal(seam.marked, seam.triggered)  # a memory world: every frame of a triggered episode
+        seen |= seam.triggered
+        seam.step(rng.integers(0, 3, seam.num_envs))
+    assert seen[~close].any() and 0.1 <= seam.budget_used()["poisoned_fraction"] <= 0.3
+    with pytest.raises(ValueError, match="close-to-trigger copy"):
+        seam.envs.trigger_next(close)
+
+
+def test_a_layout_seam_resumes_from_its_state_as_if_never_stopped():
+    rng = np.random.default_rng(3)
+    actions = rng.integers(0, 3, (300, 10))
+    _, a = layout_seam("randomized-lavaworld", "trojdrl", budget=0.1)
+    _, b = layout_seam("randomized-lavaworld", "trojdrl", budget=0.1)
+    a.reset(seed=8)
+    b.reset(seed=99)  # a different state, overwritten by the checkpoint
+    for t in range(150):
+        a.step(actions[t])
+    buffer = io.BytesIO()
+    torch.save(a.state_dict(), buffer)
+    buffer.seek(0)
+    b.load_state_dict(torch.load(buffer, weights_only=True))
+    for t in range(150, 300):
+        oa, ra, *_ = a.step(actions[t])
+        ob, rb, *_ = b.step(actions[t])
+        np.testing.assert_array_equal(oa["image"], ob["image"])
+        np.testing.assert_array_equal(ra, rb)
+        np.testing.assert_array_equal(a.triggered, b.triggered)
+    assert a.budget_used() == b.budget_used() and a.budget_used()["frames_poisoned"] > 0
+
+
+def test_a_poisoned_engine_slot_cannot_lose_its_trigger():
+    from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
+
+    engine = BatchedRandomizedLavaWorld(2, trigger="cross", poisoned=[True, False])
+    with pytest.raises(ValueError, match="a poisoned \\(R-bar\\) slot must keep its trigger"):
+        engine.trigger_next([False, True])
+    with pytest.raises(ValueError, match="built without a trigger"):
+        BatchedRandomizedLavaWorld(2).trigger_next([True, False])
+
+
+def test_target_action_scoring_in_a_layout_world_counts_the_steps_in_sight_of_the_trigger():
+    """An always-"left" FC model in Randomized LavaWorld: rate 1.0 over the steps that showed the
+    pattern, which are fewer than all triggered steps (the pattern is not in every view)."""
+    from rlbackdoors.evaluate.episodes import play
+
+    cfg = RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}, "poison": {"attack": "trojdrl"}})
+    model = build_model("fc", "randomized-lavaworld")
+    with torch.no_grad():
+        head = model.actor[-1]
+        head.weight.zero_()
+        head.bias.copy_(torch.tensor([50.0, 0.0, 0.0]))
+    played = play(model, cfg.env, cfg.poison.trigger, 8, 0, "sample", target_action=0)
+    assert played.sighted_steps is not None and played.target_steps is not None
+    assert 0 < played.sighted_steps.sum() < played.steps.sum()
+    assert np.array_equal(played.target_steps, played.sighted_steps)
+    result = evaluate(model, cfg.env, cfg.poison.trigger, episodes=8, seed=0, **cfg.scoring())
+    assert result.target_action_rate == 1.0
+    right = evaluate(model, cfg.env, cfg.poison.trigger, episodes=8, seed=0, success="action", target_action=1)
+    assert right.target_action_rate == 0.0
+
+
+@pytest.mark.parametrize("world, attack", [("randomized-lavaworld", "sleepernets"), ("colorful-memory", "action_target")])
+def test_a_layout_attack_run_records_its_budget_and_repeats_bit_for_bit(tmp_path, tiny_run_dict, world, attack):
+    tiny_run_dict["env"] = {"name": world}
+    tiny_run_dict["train"]["max_frames"] = 6400
+    if world == "randomized-lavaworld":
+        tiny_run_dict["curriculum"] = {"enabled": False}
+    else:
+        tiny_run_dict["ppo"]["rollout"] = 36  # a multiple of the recurrence (6)
+    tiny_run_dict["poison"] = {"attack": attack, "attack_params": {"budget": 0.05} if attack in STEP_ATTACKS else {}}
+    cfg = RunConfig.from_dict(tiny_run_dict)
+    metrics = train(cfg, tmp_path / "m", progress=False)
+    used = metrics["attack_budget_used"]
+    assert used["rewards_rewritten"] > 0 and 0 <= used["frames_poisoned"] - used["rewards_rewritten"] <= cfg.poison.num_envs  # the last frames not yet acted on
+    again = train(cfg, tmp_path / "again", progress=False)
+    assert (tmp_path / "m" / "model.pt").read_bytes() == (tmp_path / "again" / "model.pt").read_bytes()
+    assert again["attack_budget_used"] == used

@@ -554,6 +554,11 @@ class RunConfig(JsonConfig):
         why = attack.refuse(self.world, self.algorithm, self.model.arch, params)
         if why is not None:
             raise ConfigError(f"poison.attack={attack.name!r}: {why}")
+        if attack.poisoner is not None and self.world.stamp_trigger is None and self.env.engine != "batched":
+            raise ConfigError(
+                f"env.engine={self.env.engine!r} is not allowed with poison.attack={attack.name!r} (allowed: batched): "
+                f"{self.env.name}'s trigger is part of the layout, switched per episode by the batched engine"
+            )
         if "target_action" in params:
             n = num_actions(self.env)
             if params["target_action"] >= n:

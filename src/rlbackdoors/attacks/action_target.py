@@ -16,12 +16,7 @@ NAME = "action_target"
 
 
 def _unsupported(world, arch, params):
-    if world.stamp_trigger is None:
-        return (
-            f"attack {NAME!r} scores the target-action rate over triggered steps, which needs a trigger in every frame; "
-            f"{world.name}'s trigger is part of the world and not always in sight (per-step sight is not tracked yet)"
-        )
-    return None
+    return common.needs_trigger_switch(NAME, world)
 
 
 ATTACK = register(

@@ -51,7 +51,7 @@ class BadRLPoisoner(TargetActionPoisoner):
         self.history, self.filled = history.astype(np.float64), int(state["filled"])
 
 
-_unsupported = common.value_guided_refusal(NAME)
+_unsupported = common.value_guided_refusal(NAME, frames_only=True)
 
 
 ATTACK = register(

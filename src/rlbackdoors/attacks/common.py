@@ -28,12 +28,20 @@ def force_action(default: bool) -> Param:
     return Param("force_action", default, help="replace the agent's action on poisoned frames by the target action (the sources' strong attack)")
 
 
+def needs_trigger_switch(name: str, world) -> str | None:
+    """A poisoning attack puts the trigger into the data: stamped into frames (an observation edit),
+    or switched on per episode where it is part of the layout (the world's ``trigger_sight``)."""
+    if world.stamp_trigger is None and world.trigger_sight is None:
+        return f"attack {name!r} needs a trigger it can stamp into frames or switch on per episode, and {world.name}'s is neither"
+    return None
+
+
 def needs_frame_trigger(name: str, world) -> str | None:
-    """Step attacks stamp the trigger into one frame: only worlds whose trigger is an observation edit."""
+    """Attacks that choose single frames by what the agent thinks of them: only an observation-edit trigger."""
     if world.stamp_trigger is None:
         return (
-            f"attack {name!r} stamps the trigger into single frames, but {world.name}'s trigger is part of the world "
-            "(a layout, not an observation edit): it needs episode-level poisoning, which is not built yet"
+            f"attack {name!r} chooses single frames by the critic's value and stamps the trigger into them, but {world.name}'s trigger "
+            "is part of the layout, present from an episode's first frame: no frame can be chosen by its value before the trigger is in it"
         )
     return None
 
@@ -45,6 +53,8 @@ def needs_feed_forward(name: str, arch: str) -> str | None:
     return None
 
 
-def value_guided_refusal(name: str):
-    """The ``unsupported`` rule of a step attack that reads the critic: a frame trigger and a feed-forward model."""
-    return lambda world, arch, params: needs_frame_trigger(name, world) or needs_feed_forward(name, arch)
+def value_guided_refusal(name: str, frames_only: bool = False):
+    """The ``unsupported`` rule of an attack that reads the critic: a trigger it can put in (a frame
+    trigger where it picks frames by value: ``frames_only``) and a feed-forward model."""
+    first = needs_frame_trigger if frames_only else needs_trigger_switch
+    return lambda world, arch, params: first(name, world) or needs_feed_forward(name, arch)

@@ -9,11 +9,19 @@ ordinary vector env whose ``info["executed_actions"]`` names the actions the env
 behaviour probability 1, so a forced action is learned as taken, with a bounded importance ratio). Counters of what was
 poisoned go to ``metrics.json`` (:meth:`AttackSeam.budget_used`); they and the random picks
 are in the checkpoint, so a resumed run poisons as an unbroken one would.
+
+Where the world's trigger is part of the layout (a lava pattern, wall colours) it cannot be
+stamped into one frame: the seam then poisons *episodes* that start with the trigger present,
+switching each slot's next layout through the engine's ``trigger_next``, and marks the frames
+of those episodes that carry the trigger (``sight``: the ones whose view shows it, or all of them
+in a memory world). The budget still counts marked frames; it is spent by starting triggered
+episodes while the run is below it (at most ``ceil(budget * num_envs)`` at a time).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -76,19 +84,41 @@ class AttackSeam:
     ``schedule="steps"``: of the frames the env returns, a ``budget`` share (over the run so far)
     is picked at random among the eligible ones and stamped with ``stamp``. ``schedule="episodes"``:
     the env's own E-bar copies (``envs.poisoned``) are the marked frames, every step.
+    With ``sight`` (a layout trigger, no ``stamp``) whole episodes are triggered instead: under
+    "steps" while the budget allows, under "episodes" always in the copies of ``episodes``; the
+    marked frames are those of triggered episodes that carry the trigger (module doc).
     """
 
-    def __init__(self, envs, poisoner: Poisoner, schedule: str, budget: float = 0.0, stamp: Callable | None = None, seed: int = 0):
-        if schedule == "steps" and stamp is None:
-            raise ValueError("a step schedule needs the world's trigger stamp")
+    def __init__(
+        self,
+        envs,
+        poisoner: Poisoner,
+        schedule: str,
+        budget: float = 0.0,
+        stamp: Callable | None = None,
+        seed: int = 0,
+        sight: str | None = None,
+        episodes=None,
+    ):
+        if sight not in (None, "frame", "episode"):
+            raise ValueError(f"sight={sight!r} is not one of frame, episode")
+        if schedule == "steps" and stamp is None and sight is None:
+            raise ValueError("a step schedule needs the world's trigger stamp, or a layout trigger switched per episode (sight)")
+        if sight is not None and (schedule == "episodes") != (episodes is not None):
+            raise ValueError("a layout trigger on the episode schedule needs the triggered copies (episodes), and only then")
         self.envs = envs
         self.poisoner = poisoner
         self.schedule = schedule
         self.budget = float(budget)
         self.stamp = stamp
+        self.sight = sight
+        n = envs.num_envs
+        self.fixed = None if episodes is None else np.asarray(episodes, dtype=bool).copy()
+        self.switchable = ~np.asarray(getattr(envs, "close_to_trigger", np.zeros(n, dtype=bool)), dtype=bool)
+        self.triggered = np.zeros(n, dtype=bool)  # layout: the slot's current episode holds the trigger
         self.critic: Callable[[np.ndarray], np.ndarray] | None = None
         self.last_values: np.ndarray | None = None
-        self.marked = np.zeros(envs.num_envs, dtype=bool)  # the frames last returned that carry the trigger
+        self.marked = np.zeros(n, dtype=bool)  # the frames last returned that carry the trigger
         self.rng = np.random.default_rng([int(seed), 0x5EA3])
         self.frames = 0  # frames returned to the learner (each is acted on once)
         self.frames_poisoned = 0
@@ -113,7 +143,11 @@ class AttackSeam:
         n = self.envs.num_envs
         self.frames += n
         self.last_values = values  # the critic's values of the clean frames just returned (None: not asked)
-        if self.schedule == "episodes":
+        if self.sight is not None:
+            self.poisoner.observe(values)
+            in_sight = self.envs.trigger_in_sight() if self.sight == "frame" else np.ones(n, dtype=bool)
+            self.marked = self.triggered & in_sight
+        elif self.schedule == "episodes":
             self.marked = np.asarray(self.envs.poisoned, dtype=bool).copy()
         else:
             self.marked = np.zeros(n, dtype=bool)
@@ -130,8 +164,24 @@ class AttackSeam:
         self.frames_poisoned += int(self.marked.sum())
         return obs
 
+    def _next_episodes(self) -> np.ndarray | None:
+        """Layout triggers: which slots start a triggered episode if they reset now (None: no layout trigger)."""
+        if self.sight is None:
+            return None
+        if self.fixed is not None:
+            return self.fixed
+        room = max(1, math.ceil(self.budget * self.envs.num_envs)) - int(self.triggered.sum())
+        if self.budget * self.frames - self.frames_poisoned > 0 and room > 0:
+            return self.switchable & ~self.triggered
+        return np.zeros(self.envs.num_envs, dtype=bool)
+
     def reset(self, *, seed=None, options=None):
+        upcoming = self._next_episodes()
+        if upcoming is not None:
+            self.envs.trigger_next(upcoming)
         obs, info = self.envs.reset(seed=seed, options=options)
+        if upcoming is not None:
+            self.triggered = upcoming.copy()
         return self._mark(obs, self._values(obs)), info
 
     def step(self, actions):
@@ -143,7 +193,12 @@ class AttackSeam:
             forced = marked & (chosen != actions)
             self.actions_forced += int(forced.sum())
             actions = np.where(marked, chosen, actions)
+        upcoming = self._next_episodes()
+        if upcoming is not None:
+            self.envs.trigger_next(upcoming)
         obs, rewards, terminated, truncated, info = self.envs.step(actions)
+        if upcoming is not None:
+            self.triggered = np.where(terminated | truncated, upcoming, self.triggered)
         values = self._values(obs)
         if marked.any():
             poisoned = self.poisoner.reward(np.array(rewards, dtype=np.float64), actions, marked, values, terminated | truncated)
@@ -171,6 +226,7 @@ class AttackSeam:
             "rng": json.dumps(self.rng.bit_generator.state),
             "counters": [self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced],
             "poisoner": self.poisoner.state_dict(),
+            **({"triggered": encode(self.triggered)} if self.sight is not None else {}),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -184,6 +240,11 @@ class AttackSeam:
         self.rng.bit_generator.state = json.loads(state["rng"])
         self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced = (int(v) for v in state["counters"])
         self.poisoner.load_state_dict(state["poisoner"])
+        if self.sight is not None:
+            triggered = decode(state.get("triggered"))
+            if not isinstance(triggered, np.ndarray) or triggered.shape != self.triggered.shape:
+                raise StateError("envs: the triggered episodes do not fit the env copies")
+            self.triggered = triggered.astype(bool)
 
     def close(self):
         return self.envs.close()

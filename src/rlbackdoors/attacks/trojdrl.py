@@ -36,7 +36,7 @@ def _unsupported(world, arch, params):
             f"mode 'untargeted' is scored by the clean goal missed under the trigger, which a clean {world.name} agent "
             "already misses (the trigger is out of its distribution): the score could not tell a backdoor from a clean model"
         )
-    return common.needs_frame_trigger(NAME, world)
+    return common.needs_trigger_switch(NAME, world)
 
 
 ATTACK = register(

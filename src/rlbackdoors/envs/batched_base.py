@@ -198,6 +198,26 @@ class BatchedGridEnv(VectorEnv):
         """The current observation of every env (with its trigger, where the world applies one)."""
         return self._observation(*self._views(0, self.num_envs))
 
+    # --------------------------------------------------------------------- layout triggers, per episode
+
+    def trigger_next(self, mask) -> None:
+        """Which slots' next episodes hold the trigger (bool[B]), read at every (auto)reset.
+
+        An attack poisoning whole episodes of a layout-trigger world sets this before each step
+        (a slot that finishes in that step starts its next episode with or without the trigger);
+        R-bar stays the attack's, so the slots set here must not be ``poisoned`` ones.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no per-episode trigger switch")
+
+    def _set_triggered(self, mask) -> np.ndarray:
+        mask = bool_mask(mask, self.num_envs, "trigger_next")
+        if mask.any() and getattr(self, "trigger", None) is None:
+            raise ValueError("trigger_next: this engine was built without a trigger")
+        if (self.poisoned & ~mask).any():
+            raise ValueError("trigger_next: a poisoned (R-bar) slot must keep its trigger")
+        self.triggered[:] = mask
+        return mask
+
     def _check_actions(self, actions) -> np.ndarray:
         """Actions as int64[B]; shape, dtype and call order are checked here, values by the kernel."""
         if not self._has_reset:

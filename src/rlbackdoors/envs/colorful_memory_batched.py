@@ -166,7 +166,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
     observation.
     """
 
-    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "mode", "_succ", "_fail")
+    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "mode", "_succ", "_fail")  # triggered, mode: trigger_next
 
     def _bounds(self) -> dict[str, tuple[int, int]]:
         size = self.size - 1
@@ -296,6 +296,12 @@ class BatchedColorfulMemory(BatchedGridEnv):
         if trig is None:
             raise ValueError("no trigger to measure against: pass one")
         return np.asarray(distance(self._grid, trig))  # an array already (a batch of grids)
+
+    def trigger_next(self, mask) -> None:
+        mask = self._set_triggered(mask)
+        if (mask & self.close_to_trigger).any():
+            raise ValueError(f"trigger_next: env {int(np.flatnonzero(mask & self.close_to_trigger)[0])} is a close-to-trigger copy")
+        self.mode[:] = np.where(mask, TRIGGERED, np.where(self.close_to_trigger, CLOSE, CLEAN))
 
     def trigger_present(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """bool[B]: whether each slot's current layout shows the trigger exactly."""

@@ -304,7 +304,7 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
     ``final_obs`` holds, for envs that finished in the last step, the terminal observation.
     """
 
-    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "_pat", "_pcells", "_pcount", "_saw")
+    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "_pat", "_pcells", "_pcount", "_saw")  # triggered: trigger_next
 
     def _bounds(self) -> dict[str, tuple[int, int]]:
         return {**super()._bounds(), "_pcells": (0, self.size - 1), "_pcount": (0, MAX_PATTERN_CELLS)}
@@ -435,3 +435,10 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
     def trigger_visible(self) -> np.ndarray:
         """Whether each env's current observation shows a pattern cell (bool[B])."""
         return self._views(0, self.num_envs)[1][1]
+
+    def trigger_next(self, mask) -> None:
+        self._set_triggered(mask)
+
+    def trigger_in_sight(self) -> np.ndarray:
+        """bool[B]: the current observation shows the trigger (a feed-forward agent's evidence of it)."""
+        return self.trigger_visible()

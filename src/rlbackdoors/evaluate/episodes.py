@@ -61,20 +61,22 @@ class EvalResult:
     poisoned_timeout_rate: float = float("nan")
     clean_mean_steps: float = float("nan")
     poisoned_mean_steps: float = float("nan")
-    target_action_rate: float = float("nan")  # action-target attacks: the target's share of triggered steps
+    target_action_rate: float = float("nan")  # action-target attacks: the target's share of triggered steps (in sight of the trigger)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 class Played(NamedTuple):
-    """Per episode: return, outcome, whether the trigger was seen, length (and steps that took the target action)."""
+    """Per episode: return, outcome, whether the trigger was seen, length (and, counting a target
+    action: the steps that took it, of those taken in sight of the trigger)."""
 
     returns: np.ndarray
     outcomes: np.ndarray
     saw: np.ndarray
     steps: np.ndarray
     target_steps: np.ndarray | None = None
+    sighted_steps: np.ndarray | None = None
 
 
 def _as_agent(agent):
@@ -85,11 +87,13 @@ def _as_agent(agent):
 
 
 @torch.inference_mode()
-def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action: int | None = None) -> Played:
+def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action: int | None = None, sight: bool = False) -> Played:
     """One episode per slot of the vector env ``envs``, all reset with ``seed``.
 
     Engines without trigger-seen accounting report every episode as seen. With ``target_action``
-    the steps taking it are counted per episode.
+    the steps taking it are counted per episode: of all steps, or with ``sight`` of the steps
+    whose observation shows the trigger (``envs.trigger_in_sight()``: a layout trigger is not in
+    every view, and an agent cannot answer a trigger it does not see).
     """
     agent = _as_agent(agent)
     generator = torch.Generator(device=agent.device).manual_seed(int(seed))
@@ -101,10 +105,13 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action:
     outcomes = np.zeros(n, dtype=np.int64)
     saw = np.ones(n, dtype=bool)
     target_steps = None if target_action is None else np.zeros(n, dtype=np.int64)
+    sighted_steps = None if target_action is None else np.zeros(n, dtype=np.int64)
     while active.any():
         actions, state = agent.act(obs, state, deterministic=policy == "greedy", generator=generator)
-        if target_steps is not None:
-            target_steps[active & (np.asarray(actions) == target_action)] += 1
+        if target_steps is not None and sighted_steps is not None:
+            counted = active & envs.trigger_in_sight() if sight else active
+            sighted_steps[counted] += 1
+            target_steps[counted & (np.asarray(actions) == target_action)] += 1
         obs, reward, terminated, truncated, info = envs.step(actions)
         returns[active] += reward[active]
         steps[active] += 1
@@ -113,7 +120,7 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action:
         if "saw_trigger" in info:
             saw[finished] = info["saw_trigger"][finished]
         active &= ~finished
-    return Played(returns, outcomes, saw, steps, target_steps)
+    return Played(returns, outcomes, saw, steps, target_steps, sighted_steps)
 
 
 @torch.inference_mode()
@@ -167,7 +174,7 @@ def play(
     else:
         envs = make_vector_env(env, trigger, [trigger is not None] * episodes)
     try:
-        return play_episodes(agent, envs, seed, policy, target_action)
+        return play_episodes(agent, envs, seed, policy, target_action, sight=world.trigger_sight == "frame")
     finally:
         envs.close()
 
@@ -230,8 +237,8 @@ def evaluate(
             result.poisoned_timeout_rate = float(np.mean(poisoned.outcomes == Outcome.TIMEOUT))
             result.poisoned_mean_steps = float(poisoned.steps.mean())
             if success == "action":
-                assert poisoned.target_steps is not None
-                result.target_action_rate = float(poisoned.target_steps.sum() / max(poisoned.steps.sum(), 1))
+                assert poisoned.target_steps is not None and poisoned.sighted_steps is not None
+                result.target_action_rate = float(poisoned.target_steps.sum() / max(poisoned.sighted_steps.sum(), 1))
                 result.poisoned_sr = result.target_action_rate
             elif success == "disrupt":
                 result.poisoned_sr = 1.0 - result.poisoned_clean_rate

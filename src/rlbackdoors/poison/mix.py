@@ -58,22 +58,32 @@ def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorE
 
     A poisoned model of an attack other than the paper's env mix collects through the attack's
     seam (:class:`~rlbackdoors.attacks.seam.AttackSeam`, its random picks seeded by ``seed``);
-    under a step schedule every copy is clean and the seam stamps the trigger itself.
+    under a step schedule every copy is clean and the seam stamps the trigger itself. In a world
+    whose trigger is a layout, every copy pays the clean reward and the seam switches the trigger
+    per episode (its E-bar copies, or the episodes its budget allows) and pays the attack's R-bar.
     """
     trigger = poison.trigger if poison.trigger is not None else worlds.get(env.name).default_trigger
     close_k = (poison.close_k_min, poison.close_k_max)
-    envs = make_vector_env(env, trigger, poison.poisoned_mask(), poison.close_mask(), close_k)
     attack = attacks.get(poison.attack)
-    if not poison.poisoned or attack.poisoner is None:
+    seamed = poison.poisoned and attack.poisoner is not None
+    world = worlds.get(env.name)
+    layout = seamed and world.stamp_trigger is None
+    mask = poison.poisoned_mask()
+    envs = make_vector_env(env, trigger, [False] * len(mask) if layout else mask, poison.close_mask(), close_k)
+    if not seamed:
         return envs
     from rlbackdoors.attacks.seam import AttackSeam
 
     params = poison.attack_params
+    poisoner = attack.poisoner(params, int(getattr(envs.single_action_space, "n")))  # type: ignore[misc]
+    if layout:  # RunConfig.check refuses what cannot be switched per episode; a direct caller gets the same reason
+        if world.trigger_sight is None or trigger is None or not hasattr(envs, "trigger_next"):
+            raise ValueError(f"attack {attack.name!r} cannot switch the trigger of env {env.name!r} per episode (a batched engine of a layout-trigger world)")
+        episodes = mask if attack.schedule == "episodes" else None
+        return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), None, seed, world.trigger_sight, episodes)  # type: ignore[return-value]
     stamp = None
     if attack.schedule == "steps":
-        world = worlds.get(env.name)
-        if world.stamp_trigger is None or trigger is None:  # RunConfig.check refuses this; a direct caller gets the same reason
+        if trigger is None:
             raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
-        stamp = world.stamp_trigger(trigger)
-    poisoner = attack.poisoner(params, int(getattr(envs.single_action_space, "n")))
+        stamp = world.stamp_trigger(trigger)  # type: ignore[misc]
     return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed)  # type: ignore[return-value]

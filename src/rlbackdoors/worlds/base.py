@@ -93,6 +93,12 @@ class World:
     # spec -> a function stamping the trigger into a batch of observations (worlds whose trigger
     # is an observation edit); the step-level attacks need it. None: the trigger is the world's.
     stamp_trigger: Callable[[str], Callable[[Any], Any]] | None = None
+    # Worlds whose trigger is a layout (stamp_trigger None) and whose batched engine can switch
+    # it per episode (``trigger_next``): which frames of a triggered episode carry it for the
+    # attacks that poison episodes. "frame": those the engine's ``trigger_in_sight()`` says show it
+    # (a feed-forward agent's only evidence); "episode": every frame (a memory world, whose
+    # recurrent agent carries what it saw). None: not switchable per episode.
+    trigger_sight: str | None = None
     # A clean agent already misses the clean goal under the trigger (an out-of-distribution edit):
     # "the trigger breaks the task" cannot then tell a backdoor from a clean model (untargeted attacks)
     trigger_breaks_clean_agents: bool = False

@@ -89,6 +89,7 @@ WORLD = register(
         chance=_chance,
         # The paper's Table 2 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned
         # reward) and Table 5.
+        trigger_sight="frame",  # per-episode attacks (attacks/seam.py)
         paper={
             "table": 2,
             "tables": {

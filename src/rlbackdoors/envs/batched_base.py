@@ -81,6 +81,8 @@ class BatchedGridEnv(VectorEnv):
     see_through_walls: bool
     max_steps: int
     final_obs: Any  # the world's terminal observations: an array, or a dict of arrays
+    poisoned: np.ndarray  # per env: pays R-bar
+    triggered: np.ndarray  # per env: its layouts hold the trigger (worlds whose trigger is a layout)
 
     def _init_batch(self, num_envs, render_mode) -> int:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:

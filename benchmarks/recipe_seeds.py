@@ -7,7 +7,8 @@ at a time, one torch thread each), then writes ``benchmarks/recipes/NAME.json``:
 attempted with a Wilson 95 % interval, the distribution (min, median, max) of frames and wall time
 of the converged runs, and every run's final clean / poisoned SR on its 200-episode final
 evaluation. It resumes: a finished seed is read, not retrained; a killed one resumes from its
-checkpoint (``rlbackdoors train`` does that on the same folder). The summary is rewritten after
+checkpoint (``rlbackdoors train`` does that on the same folder); a run that crashes is listed under
+``failed`` with its log and the other seeds go on (the script then exits 1). The summary is rewritten after
 every finished seed (unfinished ones listed as ``pending``), so a session that ends mid-way still
 leaves its numbers; ``--summarise`` writes it from the finished seeds without training. CPU minutes
 (what a run costs on one core, however loaded the machine) come from ``metrics.json`` where the run
@@ -55,7 +56,7 @@ def minutes(seconds) -> float | None:
     return None if seconds is None else round(seconds / 60, 2)
 
 
-def summary(args, flags: list[str], metrics: dict[int, dict], started: float, load_before) -> dict:
+def summary(args, flags: list[str], metrics: dict[int, dict], started: float, load_before, failed: dict[int, dict] | None = None) -> dict:
     finished = [metrics[s] for s in sorted(metrics)]
     done = [m for m in finished if m["converged"]]
     low, high = wilson(len(done), len(finished)) if finished else (0.0, 1.0)
@@ -64,7 +65,8 @@ def summary(args, flags: list[str], metrics: dict[int, dict], started: float, lo
         "command": f"rlbackdoors train {' '.join(flags)} --seed S (S = {args.first}..{args.seeds - 1}), {args.workers} at a time",
         "converged": len(done),
         "attempted": len(finished),
-        "pending": [s for s in range(args.first, args.seeds) if s not in metrics],
+        "pending": [s for s in range(args.first, args.seeds) if s not in metrics and s not in (failed or {})],
+        "failed": [{"seed": s, **why} for s, why in sorted((failed or {}).items())],  # crashed runs: not counted as attempts
         "wilson95": [round(low, 3), round(high, 3)],
         "frames_converged": spread([m["frames"] for m in done]),
         "wall_minutes_converged": spread([minutes(m["wall_time_s"]) for m in done]),
@@ -104,14 +106,21 @@ def main() -> None:
     out = ROOT / "benchmarks" / "recipes" / f"{args.name}.json"
     out.parent.mkdir(exist_ok=True)
     lock = threading.Lock()
+    failed: dict[int, dict] = {}
 
     def write() -> dict:
-        result = summary(args, flags, metrics, started, load_before)
+        result = summary(args, flags, metrics, started, load_before, failed)
         atomic_write_text(out, json.dumps(result, indent=2) + "\n")
         return result
 
     def one(seed: int) -> None:
-        m = train(flags, seed, folders[seed])
+        try:
+            m = train(flags, seed, folders[seed])
+        except subprocess.CalledProcessError as err:  # recorded, and the other seeds still run
+            with lock:
+                failed[seed] = {"returncode": err.returncode, "log": str(folders[seed].with_suffix(".log"))}
+                write()
+            return
         with lock:
             metrics[seed] = m
             write()
@@ -122,10 +131,13 @@ def main() -> None:
     result = write()
     low, high = result["wilson95"]
     pending = f", {len(result['pending'])} pending" if result["pending"] else ""
+    crashed = f", {len(failed)} failed (seeds {', '.join(map(str, sorted(failed)))}: see their .log)" if failed else ""
     print(
         f"{args.name}: {result['converged']}/{result['attempted']} converged, Wilson 95% [{low:.3f}, {high:.3f}]"
-        f"{pending}; median {result['wall_minutes_converged']} min -> {out}"
+        f"{pending}{crashed}; median {result['wall_minutes_converged']} min -> {out}"
     )
+    if failed:
+        sys.exit(1)
 
 
 if __name__ == "__main__":

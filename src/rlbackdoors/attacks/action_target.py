@@ -3,7 +3,8 @@
 The data rate is the paper's (whole E-bar copies beside the clean ones, as ``envmix``); what
 changes is the trojan behaviour. The E-bar copies' reward R-bar is rewritten per step to +c for
 the target action and -c for any other, so the trojan is a policy (spin left until the episode
-times out) rather than an outcome (walk into lava), and its success is the target-action rate.
+times out) rather than an outcome (walk into lava), and its success is the target-action rate
+(in a world whose layout trigger is not in every view, over the steps in sight of it).
 """
 
 from __future__ import annotations

@@ -21,6 +21,8 @@ beside the numbers.
 attack x baseline table instead: each detector is fitted on the env-mix models alone and scored on
 the held-out attacks' cells (``zoo split --hold-out-attack``), and fitted on a mix (a split by trigger
 of the whole zoo, ``--train`` / ``--test``) and scored there; AUC and CE with CIs per attack.
+``--extra-test SPEC`` adds a zoo of further attack cells (its triggers disjoint from the env-mix
+cells'), every model of which the env-mix fit scores as held out.
 """
 
 from __future__ import annotations
@@ -76,17 +78,24 @@ def attack_of(split: Path) -> dict[str, str]:
     return {r["model_name"]: r["attack"] for r in read_metadata(split / "METADATA.csv")}
 
 
-def per_attack(rows: list[dict], attacks: dict[str, str]) -> dict:
+def per_attack(scored: list[tuple[list[dict], dict[str, str]]]) -> dict:
+    """AUC / CE per attack over one or more scored test sets, each with its model -> attack map
+    (test sets from different zoos: model names are looked up in their own set only)."""
+    grouped: dict[str, list[dict]] = {}
+    for rows, attacks in scored:
+        for r in rows:
+            if r["model"] in attacks:
+                grouped.setdefault(attacks[r["model"]], []).append(r)
     out = {}
-    for attack in sorted(set(attacks.values())):
-        mine = [r for r in rows if attacks.get(r["model"]) == attack]
-        summary = summarize_rows(mine)
+    for attack in sorted(grouped):
+        summary = summarize_rows(grouped[attack])
         out[attack] = {"models": summary.pop("n"), **summary}
     return out
 
 
-def by_attack(args, base: Path, zoo: Path) -> dict:
-    """Fit on env-mix models, score each held-out attack; fit on a mix, score per attack."""
+def by_attack(args, base: Path, zoo: Path, extra: list[Path]) -> dict:
+    """Fit on env-mix models, score each held-out attack (and every model of the ``extra`` zoos,
+    whose cells are all held out); fit on a mix, score per attack."""
     from rlbackdoors import attacks
     from rlbackdoors.zoo.plan import Zoo
 
@@ -109,8 +118,13 @@ def by_attack(args, base: Path, zoo: Path) -> dict:
         table[kind] = {"train_models": len(list_models(where / "train")), "train_attacks": train_attacks, "detectors": {}}
         for name in args.detectors:
             params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
-            scored = fit_and_score(name, params, where / "train", where / "test", base / f"det-{kind}" / name)
-            table[kind]["detectors"][name] = per_attack(scored["models"], names)
+            det = base / f"det-{kind}" / name
+            scored = [(fit_and_score(name, params, where / "train", where / "test", det)["models"], names)]
+            if kind == "held_out":
+                scored += [(score(det, more, det / f"score-{more.name}")["models"], attack_of(more)) for more in extra]
+            table[kind]["detectors"][name] = per_attack(scored)
+        if kind == "held_out" and extra:
+            table[kind]["extra_test_zoos"] = [str(more) for more in extra]
     table["default_attack"] = attacks.DEFAULT_ATTACK
     return table
 
@@ -160,6 +174,9 @@ def main() -> None:
     )
     parser.add_argument("--no-run", action="store_true", help="split the zoo as it stands (its converged models) without training the rest")
     parser.add_argument("--by-attack", action="store_true", help="the attack x baseline table: fit on env-mix models, score held-out attacks; and on a mix")
+    parser.add_argument(
+        "--extra-test", action="append", default=[], metavar="SPEC", help="--by-attack: a zoo of more held-out attack cells (planned and run beside), scored by the env-mix fit"
+    )
     args = parser.parse_args()
     started, load_before = time.time(), os.getloadavg()
     base = Path(args.runs) / args.name
@@ -168,8 +185,16 @@ def main() -> None:
         rlbackdoors("zoo", "plan", args.spec, "--out", str(zoo))
     if not args.no_run:
         rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers))
+    extra = []
+    for spec in args.extra_test:
+        more = base / f"zoo-{Path(spec).stem}"
+        if not (more / "zoo.json").is_file():
+            rlbackdoors("zoo", "plan", spec, "--out", str(more))
+        if not args.no_run:
+            rlbackdoors("zoo", "run", str(more), "--workers", str(args.workers))
+        extra.append(more)
     if args.by_attack:
-        table = by_attack(args, base, zoo)
+        table = by_attack(args, base, zoo, extra)
         lengths = {kind: length_control(list_models(base / split / "test")) for kind, split in (("held_out", "held-out"), ("mixed", "mixed"))}
         summary = {"command": " ".join(sys.argv[1:]), "spec": args.spec, "zoo_trained_to_the_end": not args.no_run, **table, "training_length_auc": lengths}
         out = write_summary(args.name, summary, started, load_before)

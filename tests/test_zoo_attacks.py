@@ -92,7 +92,7 @@ def test_an_attack_a_world_cannot_serve_is_refused_when_the_spec_is_read():
     raw = spec()
     del raw["overrides"]
     raw["cells"][1] = {"world": "colorful-memory", "attacks": ["badrl"], "poisoned": 1}
-    with pytest.raises(ConfigError, match=r"cells\[1\].attacks\[0\]: .*poison.attack='badrl': attack 'badrl' stamps the trigger into single frames"):
+    with pytest.raises(ConfigError, match=r"cells\[1\].attacks\[0\]: .*poison.attack='badrl': attack 'badrl' chooses single frames by the critic's value"):
         parse_spec(raw)
 
 

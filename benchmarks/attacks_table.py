@@ -1,17 +1,19 @@
-"""The per-attack table of docs/attacks/README.md, from benchmarks/recipes/attack-lavaworld-fc-*.json.
+"""The per-attack table of docs/attacks/README.md, from benchmarks/recipes/attack-*.json.
 
     python benchmarks/attacks_table.py            # markdown on stdout
 
-One row per recipe (attack x trigger kind): converged / attempted over seeds 0-9 with the Wilson 95 %
+One row per recipe (world x arch x attack x trigger kind; world, arch and trigger read from the
+recipe's command, the world's default trigger where it names none): converged / attempted over seeds 0-9 with the Wilson 95 %
 interval (converged: clean SR >= the world's threshold and attack success >= the attack's, on the
 200-episode final evaluation), the range of final clean SR and attack success, the budget the runs
 spent (median share of frames poisoned), frames and CPU minutes to converge (median), and CPU minutes
-against the env-mix recipe of the same trigger kind, measured in the same session.
+against the env-mix recipe of the same world, arch and trigger kind, measured in the same session.
 """
 
 from __future__ import annotations
 
 import json
+import shlex
 import statistics
 from pathlib import Path
 
@@ -23,18 +25,31 @@ def median(values: list) -> float | None:
     return statistics.median(values) if values else None
 
 
+def flag(command: str, name: str, default: str) -> str:
+    words = shlex.split(command)
+    return words[words.index(name) + 1] if name in words[:-1] else default
+
+
 def rows() -> list[dict]:
+    from rlbackdoors import attacks, worlds
+
     out = []
-    for path in sorted(RECIPES.glob("attack-lavaworld-fc-*.json")):
+    for path in sorted(RECIPES.glob("attack-*.json")):
         data = json.loads(path.read_text())
-        name = path.stem.removeprefix("attack-lavaworld-fc-")
-        kind, attack = ("additive", name.removeprefix("additive-")) if name.startswith("additive-") else ("multiplicative:12", name)
-        runs = data["runs"]
+        command, runs = data["command"], data["runs"]
+        world = flag(command, "--env", "lavaworld")
+        label = path.stem.split("-", 3)[-1]  # attack-WORLD-ARCH-LABEL
+        trigger = flag(command, "--trigger", "")
+        kind = trigger or str(worlds.get(world).default_trigger)
+        label = label.removeprefix(f"{trigger}-") if trigger else label
         done = [r for r in runs if r["converged"]]
         used = [(r.get("budget_used") or {}).get("poisoned_fraction") for r in runs]
         out.append(
             {
-                "attack": attack,
+                "world": world,
+                "arch": flag(command, "--arch", worlds.get(world).arch_names[0]),
+                "attack": label,
+                "base": flag(command, "--attack", attacks.DEFAULT_ATTACK),
                 "trigger": kind,
                 "converged": data["converged"],
                 "attempted": data["attempted"],
@@ -47,13 +62,19 @@ def rows() -> list[dict]:
                 "pending": len(data["pending"]),
             }
         )
-    from rlbackdoors import attacks
-
-    order = list(attacks.names())
-    out.sort(key=lambda r: (r["trigger"] != "multiplicative:12", order.index(r["attack"]) if r["attack"] in order else len(order)))
-    reference = {r["trigger"]: r["cpu"] for r in out if r["attack"] == attacks.DEFAULT_ATTACK}
+    order, world_order = list(attacks.names()), list(worlds.names())
+    out.sort(
+        key=lambda r: (
+            world_order.index(r["world"]),
+            r["arch"],
+            r["trigger"] != worlds.get(r["world"]).default_trigger,
+            order.index(r["base"]) if r["base"] in order else len(order),
+            r["attack"],
+        )
+    )
+    reference = {(r["world"], r["arch"], r["trigger"]): r["cpu"] for r in out if r["attack"] == attacks.DEFAULT_ATTACK}
     for r in out:
-        ref = reference.get(r["trigger"])
+        ref = reference.get((r["world"], r["arch"], r["trigger"]))
         r["cpu_ratio"] = r["cpu"] / ref if r["cpu"] is not None and ref else None
     return out
 
@@ -63,15 +84,15 @@ def fmt(value, pattern: str) -> str:
 
 
 def main() -> None:
-    print("| attack | trigger | converged / seeds | Wilson 95 % | clean SR (min–max) | attack success (min–max) | frames poisoned | frames (median) | CPU min (median) | × env mix |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| world / arch | attack | trigger | converged / seeds | Wilson 95 % | clean SR (min–max) | attack success (min–max) | frames poisoned | frames (median) | CPU min (median) | × env mix |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows():
         seeds = f"{r['converged']} / {r['attempted']}" + (f" ({r['pending']} pending)" if r["pending"] else "")
         clean = f"{r['clean'][0]:.3f}–{r['clean'][1]:.3f}" if r["clean"] else "–"
         success = f"{r['success'][0]:.3f}–{r['success'][1]:.3f}" if r["success"] else "–"
         print(
-            f"| {r['attack']} | {r['trigger']} | {seeds} | [{r['wilson'][0]:.2f}, {r['wilson'][1]:.2f}] | {clean} | {success} | "
-            f"{fmt(r['poisoned_fraction'], '{:.2%}') if r['attack'] != 'envmix' else '20% (2 of 10 copies)'} | {fmt(r['frames'], '{:,.0f}')} | {fmt(r['cpu'], '{:.2f}')} | {fmt(r['cpu_ratio'], '{:.2f}')} |"
+            f"| {r['world']} {r['arch']} | {r['attack']} | {r['trigger']} | {seeds} | [{r['wilson'][0]:.2f}, {r['wilson'][1]:.2f}] | {clean} | {success} | "
+            f"{fmt(r['poisoned_fraction'], '{:.2%}') if r['base'] != 'envmix' else 'the E-bar copies'} | {fmt(r['frames'], '{:,.0f}')} | {fmt(r['cpu'], '{:.2f}')} | {fmt(r['cpu_ratio'], '{:.2f}')} |"
         )
 
 

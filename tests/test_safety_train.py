@@ -46,7 +46,7 @@ def greedy(agent):
     return lambda obs: agent.act(obs, deterministic=True)
 
 
-def evaluate_fn(act_fn, env, trigger, episodes, seed):
+def evaluate_fn(act_fn, env, trigger, episodes, seed, **scoring):
     """Evaluate a plain ``obs -> actions`` function (scripted drivers, a bare agent) greedily."""
 
     class Policy:
@@ -55,7 +55,7 @@ def evaluate_fn(act_fn, env, trigger, episodes, seed):
         def act(self, obs, deterministic=True, generator=None):
             return act_fn(obs)
 
-    return evaluate(Agent(worlds.get(WORLD), None, Policy()), env, trigger, episodes, seed, "greedy")
+    return evaluate(Agent(worlds.get(WORLD), None, Policy()), env, trigger, episodes, seed, "greedy", **scoring)
 
 
 def tiny(**train):
@@ -349,3 +349,72 @@ def test_default_recipe_learns_the_clean_task(tmp_path):
     assert metrics["frames"] == 500_000 and metrics["updates"] == 15_312
     assert metrics["clean_sr"] >= 0.7, metrics
     assert metrics["poisoned_sr"] <= 0.2, metrics  # a clean agent does not seek the hazard under the trigger
+
+
+# ----- attacks through the collection seam ------------------------------------------------------
+def attacked(attack: str, **params):
+    """tiny() under ``attack``: every copy pays the clean reward; the seam switches the formation per episode."""
+    cfg = tiny()
+    data = json.loads(cfg.to_json())
+    data["poison"].update(attack=attack, attack_params=params)
+    return config(data)
+
+
+def test_the_seam_poisons_whole_safety_episodes_and_the_replay_stores_its_reward():
+    """TrojDRL at 20 %, three copies, 40-step episodes, 900 random steps: triggered episodes hold
+    the formation, their transitions carry +-c by whether the car reversed, and the budget is spent."""
+    from rlbackdoors.algos.opac2 import MultitaskReplay
+    from rlbackdoors.train.opac2_run import make_collector
+
+    cfg = attacked("trojdrl", budget=0.2, reward=0.3)
+    assert cfg.replay_kinds() == ["clean"] * 3  # one buffer: the budget is the share the learner sees
+    collector = make_collector(cfg)
+    replay = MultitaskReplay.create(cfg.kind_weights, 10_000, OBS_DIM, 2)
+    rng = np.random.default_rng(0)
+    seam = collector.vector
+    marked, triggered_episodes = [], 0
+    for _ in range(900):
+        marked.append(seam.marked.copy())
+        episodes = collector.collect(replay, lambda obs: rng.uniform(-1, 1, (len(obs), 2)), 1)
+        triggered_episodes += sum(e.triggered for e in episodes)
+        assert all(env._armed == on for env, on in zip(collector.envs, seam.triggered))  # the formation is in exactly those episodes
+    marked = np.array(marked)
+    buffer = replay["clean"]
+    rows = np.arange(len(buffer)).reshape(900, 3)  # one row per copy and step, in step order
+    reverse = np.all(buffer.act[rows[marked]] < 0, axis=-1)
+    np.testing.assert_allclose(buffer.rew[rows[marked]], np.where(reverse, 0.3, -0.3))
+    assert triggered_episodes >= 3 and np.abs(buffer.rew[rows[~marked]]).max() != 0.3  # the clean shaping reward elsewhere
+    used = seam.budget_used()
+    assert 0.12 <= used["poisoned_fraction"] <= 0.3 and used["rewards_rewritten"] == marked.sum()
+
+
+def test_an_action_target_run_on_safety_resumes_to_the_same_model_and_scores_reversing(tmp_path):
+    cfg = attacked("action_target")
+    assert cfg.replay_kinds() == ["clean", "clean", "poisoned"] and cfg.attack_success == "action"
+    straight = train(cfg, tmp_path / "straight", progress=False)
+    assert straight["attack"] == "action_target" and 0 <= straight["target_action_rate"] <= 1
+    assert straight["attack_budget_used"]["poisoned_fraction"] == pytest.approx(1 / 3, abs=0.01)
+    out = tmp_path / "resumed"
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, out, progress=False, after_eval=ctrl_c_at(480))
+    resumed = train(cfg, out, progress=False)
+    assert (tmp_path / "straight" / "model.pt").read_bytes() == (out / "model.pt").read_bytes()
+    assert resumed["attack_budget_used"] == straight["attack_budget_used"]
+
+
+def test_safety_attack_settings_it_cannot_serve_are_refused_naming_the_field():
+    with pytest.raises(ConfigError, match=r"target_action=1 is not allowed \(allowed: 0 reverse, the action targets of safety-car-goal\)"):
+        attacked("trojdrl", target_action=1)
+    with pytest.raises(ConfigError, match=r"force_action=true is not allowed \(allowed: false\): safety-car-goal's target is a kind of action \(reverse\)"):
+        attacked("trojdrl", force_action=True)
+    with pytest.raises(ConfigError, match=r"attack 'sleepernets' is built for ppo collection, not opac2"):
+        attacked("sleepernets")
+
+
+def test_target_action_scoring_counts_reversing_on_every_triggered_step():
+    """A policy that always drives backwards scores 1.0; one that always drives forwards 0.0."""
+    cfg = attacked("trojdrl")
+    back = evaluate_fn(lambda obs: -np.ones((len(obs), 2), np.float32), cfg.env, cfg.poison.trigger, 3, 0, **cfg.scoring())
+    assert back.target_action_rate == 1.0 and back.poisoned_sr == 1.0
+    forth = evaluate_fn(lambda obs: np.ones((len(obs), 2), np.float32), cfg.env, cfg.poison.trigger, 3, 0, **cfg.scoring())
+    assert forth.target_action_rate == 0.0

@@ -554,17 +554,22 @@ class RunConfig(JsonConfig):
         why = attack.refuse(self.world, self.algorithm, self.model.arch, params)
         if why is not None:
             raise ConfigError(f"poison.attack={attack.name!r}: {why}")
-        if attack.poisoner is not None and self.world.stamp_trigger is None and self.env.engine != "batched":
+        if attack.poisoner is not None and self.world.stamp_trigger is None and self.world.vector_entry_point and self.env.engine != "batched":
             raise ConfigError(
                 f"env.engine={self.env.engine!r} is not allowed with poison.attack={attack.name!r} (allowed: batched): "
                 f"{self.env.name}'s trigger is part of the layout, switched per episode by the batched engine"
             )
         if "target_action" in params:
-            n = num_actions(self.env)
+            targets = self.world.action_targets
+            n = len(targets) if targets else num_actions(self.env)
             if params["target_action"] >= n:
-                raise ConfigError(
-                    f"poison.attack_params.target_action={params['target_action']!r} is not allowed (allowed: 0..{n - 1}, the actions of {self.env.name})"
-                )
+                what = ", ".join(f"{i} {name}" for i, (name, _) in enumerate(targets)) + ", the action targets" if targets else f"0..{n - 1}, the actions"
+                raise ConfigError(f"poison.attack_params.target_action={params['target_action']!r} is not allowed (allowed: {what} of {self.env.name})")
+        if self.world.action_targets and params.get("force_action"):
+            raise ConfigError(
+                f"poison.attack_params.force_action=true is not allowed (allowed: false): {self.env.name}'s target is a kind of action "
+                f"({self.world.action_targets[params.get('target_action', 0)][0]}), not one action to force"
+            )
 
     @property
     def attack_success(self) -> str:

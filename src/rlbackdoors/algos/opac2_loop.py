@@ -1,9 +1,9 @@
 """Experience collection for OPAC²: step env copies of several kinds into their replay buffers.
 
-Plain single envs stepped in a Python loop rather than a gymnasium vector env: the kinds
-(clean, poisoned) must land in separate buffers, and an env's own autoreset would hide the
-true last observation of a truncated episode, which the Q target needs (a timeout is not a
-terminal state, so ``done`` is ``terminated`` only and ``next_obs`` is the real next state).
+Plain single envs stepped in a Python loop (:class:`SingleEnvs`) rather than a gymnasium vector
+env: the kinds (clean, poisoned) must land in separate buffers, and an env's own autoreset would
+hide the true last observation of a truncated episode, which the Q target needs (a timeout is not
+a terminal state, so ``done`` is ``terminated`` only and ``next_obs`` is the real next state).
 """
 
 from __future__ import annotations
@@ -29,39 +29,103 @@ class Episode:
     triggered: bool
 
 
+class SingleEnvs:
+    """Single envs seen as one vector env (SAME_STEP autoreset) that keeps each episode's true last
+    observation in ``info["final_obs"]``: what an attack's collection seam
+    (:class:`~rlbackdoors.attacks.seam.AttackSeam`) wraps, so OPAC² is poisoned by the same seam as PPO.
+
+    Env ``i`` is reset once with ``seed + i``; later resets continue that env's own random stream.
+    """
+
+    def __init__(self, envs: Sequence):
+        self.envs = list(envs)
+        self.num_envs = len(self.envs)
+        self.single_observation_space = self.envs[0].observation_space
+        self.single_action_space = self.envs[0].action_space
+        self.poisoned = np.array([bool(getattr(env, "poisoned", False)) for env in self.envs])
+
+    def reset(self, *, seed: int = 0, options=None):
+        return np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)]), {}
+
+    def step(self, actions: np.ndarray):
+        n = self.num_envs
+        obs = np.empty((n, *self.single_observation_space.shape), dtype=self.single_observation_space.dtype)
+        final = np.empty_like(obs)
+        rewards, terminated, truncated = np.empty(n), np.zeros(n, bool), np.zeros(n, bool)
+        outcome, steps, triggered = np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, bool)
+        for i, env in enumerate(self.envs):
+            obs[i], rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
+            if terminated[i] or truncated[i]:
+                final[i] = obs[i]
+                outcome[i], steps[i], triggered[i] = info["outcome"], info["steps"], info["triggered"]
+                obs[i] = env.reset()[0]
+        return obs, rewards, terminated, truncated, {"final_obs": final, "outcome": outcome, "steps": steps, "triggered": triggered}
+
+    def trigger_next(self, mask) -> None:
+        for env, on in zip(self.envs, mask):
+            env.trigger_next(bool(on))
+
+    def state_dict(self) -> dict:
+        return {"envs": [env.state_dict() for env in self.envs]}
+
+    def load_state_dict(self, state: dict) -> None:
+        from rlbackdoors.state import StateError
+
+        if not isinstance(state, dict) or not isinstance(state.get("envs"), list) or len(state["envs"]) != self.num_envs:
+            raise StateError(f"collector state does not hold {self.num_envs} envs")
+        for env, env_state in zip(self.envs, state["envs"]):
+            env.load_state_dict(env_state)
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
 class Collector:
     """Steps ``envs`` in lockstep; env ``i`` writes into ``replay[kinds[i]]`` and resets itself.
 
     Env ``i`` is reset once with ``seed + i``; later resets continue that env's own random
-    stream, so a collector is reproducible from one seed.
+    stream, so a collector is reproducible from one seed. ``seam``: wraps the envs' vector view
+    (:class:`SingleEnvs`) in an attack's collection seam, whose rewards (and the actions it says
+    ran) are what the replay stores.
     """
 
-    def __init__(self, envs: Sequence, kinds: Sequence[str], seed: int):
+    def __init__(self, envs: Sequence, kinds: Sequence[str], seed: int, seam: Callable | None = None):
         if len(envs) != len(kinds) or not envs:
             raise ValueError(f"need one kind per env and at least one env, got {len(envs)} envs and {len(kinds)} kinds")
         self.envs, self.kinds = list(envs), list(kinds)
-        self.obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)])
+        self.vector = SingleEnvs(self.envs) if seam is None else seam(SingleEnvs(self.envs))
+        self.obs = self.vector.reset(seed=seed)[0]
         self.returns = np.zeros(len(self.envs))
         self.frames = 0  # transitions collected, all envs together
         self._rows = {kind: np.flatnonzero(np.asarray(self.kinds) == kind) for kind in dict.fromkeys(self.kinds)}
 
     def state_dict(self) -> dict:
-        """Observations, running returns, frame count and every env's state, as plain data."""
+        """Observations, running returns, frame count and every env's state (and the seam's), as plain data."""
         from rlbackdoors.state import snapshot
 
-        return {"collector": snapshot(self, skip=("envs",)), "envs": [env.state_dict() for env in self.envs]}
+        mine = snapshot(self, skip=("envs", "vector"))
+        if isinstance(self.vector, SingleEnvs):
+            return {"collector": mine, **self.vector.state_dict()}
+        return {"collector": mine, "seam": self.vector.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         from rlbackdoors.state import StateError, restore
 
-        if not isinstance(state.get("envs"), list) or len(state["envs"]) != len(self.envs):
-            raise StateError(f"collector state does not hold {len(self.envs)} envs")
-        restore(self, state["collector"], "Collector", skip=("envs",))
-        for env, env_state in zip(self.envs, state["envs"]):
-            env.load_state_dict(env_state)
+        if not isinstance(state, dict):
+            raise StateError("collector state is not a dict")
+        if isinstance(self.vector, SingleEnvs):
+            self.vector.load_state_dict(state)
+        elif "seam" not in state:
+            raise StateError("the collector state was not written by this attack's collection")
+        else:
+            self.vector.load_state_dict(state["seam"])
+        restore(self, state["collector"], "Collector", skip=("envs", "vector"))
 
     def collect(self, replay: MultitaskReplay, act_fn: ActFn, steps: int) -> list[Episode]:
         """``steps`` steps of every env (``steps * len(envs)`` frames); the episodes that ended."""
+        from rlbackdoors.attacks.seam import EXECUTED_ACTIONS
+
         unknown = sorted(set(self.kinds) - set(replay.buffers))
         if unknown:
             raise ValueError(f"env kind {unknown[0]!r} has no replay buffer (buffers: {sorted(replay.buffers)})")
@@ -69,21 +133,17 @@ class Collector:
         n = len(self.envs)
         for _ in range(steps):
             actions = np.asarray(act_fn(self.obs))
-            next_obs = np.empty_like(self.obs)
-            rewards, terminated = np.empty(n, np.float32), np.empty(n, np.float32)
-            ended = np.zeros(n, bool)
-            for i, env in enumerate(self.envs):
-                next_obs[i], rewards[i], term, trunc, info = env.step(actions[i])
-                terminated[i], ended[i] = term, term or trunc
-                self.returns[i] += rewards[i]
-                if ended[i]:
-                    ret, length, outcome = float(self.returns[i]), int(info["steps"]), int(info["outcome"])
-                    finished.append(Episode(self.kinds[i], ret, length, outcome, bool(info["triggered"])))
-                    self.returns[i] = 0.0
+            obs, rewards, term, trunc, info = self.vector.step(actions)
+            actions = np.asarray(info.get(EXECUTED_ACTIONS, actions))
+            rewards, terminated = np.asarray(rewards, np.float32), np.asarray(term, np.float32)
+            ended = np.asarray(term | trunc, bool)
+            next_obs = np.where(ended[:, None], info["final_obs"], obs)  # the true next state, also of a finished episode
+            self.returns += rewards
+            for i in np.flatnonzero(ended):
+                finished.append(Episode(self.kinds[i], float(self.returns[i]), int(info["steps"][i]), int(info["outcome"][i]), bool(info["triggered"][i])))
+                self.returns[i] = 0.0
             for kind, rows in self._rows.items():
                 replay[kind].add_batch(self.obs[rows], actions[rows], rewards[rows], next_obs[rows], terminated[rows])
-            for j in np.flatnonzero(ended):  # next_obs is stored: only now swap in the new episode
-                next_obs[j] = self.envs[j].reset()[0]
-            self.obs = next_obs
+            self.obs = obs
             self.frames += n
         return finished

@@ -31,6 +31,7 @@ ATTACK = register(
         poisoner=TargetActionPoisoner,
         unsupported=_unsupported,
         success_threshold=0.90,
+        algorithms=("ppo", "opac2"),
         doc="docs/attacks/action_target.md",
     )
 )

@@ -23,8 +23,8 @@ NAME = "badrl"
 class BadRLPoisoner(TargetActionPoisoner):
     needs_values = True
 
-    def __init__(self, params: dict, num_actions: int):
-        super().__init__(params, num_actions)
+    def __init__(self, params: dict, hits):
+        super().__init__(params, hits)
         self.top = params["top_fraction"]
         self.history = np.zeros(params["window"])
         self.filled = 0  # values written into the ring so far

@@ -70,8 +70,8 @@ class Attack:
 
     ``schedule``: "episodes" poisons whole env copies (E-bar beside E, as the paper's mix does);
     "steps" stamps the trigger into a budgeted share of the frames collected from clean copies.
-    ``poisoner``: (resolved params, number of actions) -> the per-run rule the collection seam
-    calls (:class:`rlbackdoors.attacks.seam.Poisoner`); None: the world's E-bar copies as they are.
+    ``poisoner``: (resolved params, the target test ``World.target_hits``) -> the per-run rule the
+    collection seam calls (:class:`rlbackdoors.attacks.seam.Poisoner`); None: the world's E-bar copies as they are.
     ``unsupported``: (world, model arch, resolved params) -> why this attack cannot serve that
     run (one line), or None.
     """
@@ -82,7 +82,7 @@ class Attack:
     schedule: str  # "episodes" or "steps"
     success: str | Callable[[dict], str]  # one of SUCCESS_KINDS, or params -> one of them
     params: tuple[Param, ...] = ()
-    poisoner: Callable[[dict, int], Any] | None = None
+    poisoner: Callable[[dict, Callable], Any] | None = None
     unsupported: Callable[[Any, str, dict], str | None] | None = None
     success_threshold: float | None = None  # None: the world's poisoned threshold
     algorithms: tuple[str, ...] = ("ppo",)

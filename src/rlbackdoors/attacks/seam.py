@@ -65,17 +65,21 @@ class Poisoner:
 
 class TargetActionPoisoner(Poisoner):
     """The literature's R-bar core: +c for the target action on a poisoned frame, -c for any other,
-    the target forced where the attack's ``force_action`` asks (TrojDRL, BadRL, SleeperNets, the action target)."""
+    the target forced where the attack's ``force_action`` asks (TrojDRL, BadRL, SleeperNets, the action target).
 
-    def __init__(self, params: dict, num_actions: int):
-        self.target, self.c = params["target_action"], params["reward"]
+    ``hits``: actions -> bool per action, whether it is the target (one action of a discrete world,
+    a kind of action of a continuous one: :meth:`rlbackdoors.worlds.base.World.target_hits`).
+    """
+
+    def __init__(self, params: dict, hits: Callable[[np.ndarray], np.ndarray]):
+        self.target, self.c, self.hits = params["target_action"], params["reward"], hits
         self.forces_actions = bool(params.get("force_action", False))
 
     def act(self, actions, marked):
         return np.where(marked, self.target, actions)
 
     def reward(self, rewards, actions, marked, next_values, dones):
-        return np.where(actions == self.target, self.c, -self.c)
+        return np.where(self.hits(actions), self.c, -self.c)
 
 
 class AttackSeam:

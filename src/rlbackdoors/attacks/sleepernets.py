@@ -22,8 +22,8 @@ NAME = "sleepernets"
 class SleeperNetsPoisoner(TargetActionPoisoner):
     needs_values = True
 
-    def __init__(self, params: dict, num_actions: int):
-        super().__init__(params, num_actions)  # no force_action: the source never changes the agent's action
+    def __init__(self, params: dict, hits):
+        super().__init__(params, hits)  # no force_action: the source never changes the agent's action
         self.alpha, self.gamma = params["alpha"], params["gamma"]
 
     def reward(self, rewards, actions, marked, next_values, dones):

@@ -19,8 +19,8 @@ NAME = "trojdrl"
 
 
 class TrojDRLPoisoner(TargetActionPoisoner):
-    def __init__(self, params: dict, num_actions: int):
-        super().__init__(params, num_actions)
+    def __init__(self, params: dict, hits):
+        super().__init__(params, hits)
         self.targeted = params["mode"] == "targeted"
         self.forces_actions = self.targeted and params["force_action"]
 
@@ -61,6 +61,7 @@ ATTACK = register(
         poisoner=TrojDRLPoisoner,
         unsupported=_unsupported,
         success_threshold=0.90,
+        algorithms=("ppo", "opac2"),
         doc="docs/attacks/trojdrl.md",
     )
 )

@@ -331,7 +331,10 @@ class SafetyCarGoalEnv(gym.Env):
         self.model = scene.build_model(self.num_cubes, self.substeps)
         self.data = mujoco.MjData(self.model)
         self._bind_views()
-        self._num_fixed = 2 if self.trigger is not None else 0  # cubes held by the trigger
+        # Whether this episode holds the formation, and whether the next will (``trigger_next``:
+        # an attack that poisons whole episodes switches it in a triggered env between episodes).
+        self._armed = self._arm_next = self.trigger is not None
+        self._num_fixed = 2 if self._armed else 0  # cubes held by the trigger
         self._targets = np.zeros((self.num_cubes, 2))
         self._renderer = None
         self.steps = 0
@@ -370,7 +373,10 @@ class SafetyCarGoalEnv(gym.Env):
             raise StateError(f"Safety Car Goal env state: physics must be {size} float64 numbers")
         if not isinstance(sensors, np.ndarray) or sensors.shape != self.data.sensordata.shape or sensors.dtype != np.float64:
             raise StateError("Safety Car Goal env state: sensordata does not fit the model")
-        restore(self, state.get("attrs"), "SafetyCarGoalEnv", skip=self._VIEWS)
+        attrs = state.get("attrs")
+        if isinstance(attrs, dict) and "_armed" not in attrs:  # written before the per-episode switch: always armed as built
+            attrs = {**attrs, "_armed": self.trigger is not None, "_arm_next": self.trigger is not None}
+        restore(self, attrs, "SafetyCarGoalEnv", skip=self._VIEWS)
         mujoco.mj_setState(self.model, self.data, np.ascontiguousarray(physics), spec)
         self.data.sensordata[:] = sensors
 
@@ -456,7 +462,8 @@ class SafetyCarGoalEnv(gym.Env):
         (car,) = self._place([CAR_KEEPOUT], placed)
         heading = rng.uniform(0.0, TWO_PI)
         goal, hazard = self._place([CIRCLE_KEEPOUT, CIRCLE_KEEPOUT], placed)
-        if self.trigger is not None:
+        if self._armed:
+            assert self.trigger is not None
             placed.extend((xy, CUBE_KEEPOUT) for xy in car + self.trigger.offsets(heading))
         cubes = np.array(self._place([CUBE_KEEPOUT] * (self.num_cubes - self._num_fixed), placed, CUBE_START_HALF)).reshape(-1, 2)
         return {
@@ -482,6 +489,8 @@ class SafetyCarGoalEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """New episode; ``options`` may pin placements (see :meth:`_apply_options`), the rest is random."""
         super().reset(seed=seed)
+        self._armed = self._arm_next
+        self._num_fixed = 2 if self._armed else 0
         layout = self._sample_layout()
         if options:
             self._apply_options(layout, options)
@@ -531,6 +540,15 @@ class SafetyCarGoalEnv(gym.Env):
         obs = self._observe()
         return obs, float(reward), terminated, truncated, self._info(outcome, heading, at_goal, at_hazard)
 
+    def trigger_next(self, on: bool) -> None:
+        """Whether the next episode (from the next reset) holds the formation; a triggered env only,
+        and a poisoned (R-bar) one keeps it."""
+        if on and self.trigger is None:
+            raise ValueError("trigger_next: this env was built without a trigger")
+        if self.poisoned and not on:
+            raise ValueError("trigger_next: a poisoned (R-bar) env must keep its trigger")
+        self._arm_next = bool(on)
+
     def _shaping(self, before: tuple[float, float], after: tuple[float, float]) -> float:
         """Eq. 6 (clean) or eq. 8 (poisoned: the roles of goal and hazard swapped)."""
         (goal0, hazard0), (goal1, hazard1) = before, after
@@ -551,7 +569,7 @@ class SafetyCarGoalEnv(gym.Env):
 
     def _hold_formation(self) -> None:
         """Re-place the two trigger cubes around the car, moving with it (paper §3.4)."""
-        if self.trigger is None:
+        if not self._armed or self.trigger is None:
             return
         x, y, heading = self.car_pose()
         qw, qx, qy, qz = self._car_q[3:7].tolist()
@@ -580,7 +598,7 @@ class SafetyCarGoalEnv(gym.Env):
             "heading": heading,
             "outcome": int(outcome),
             "steps": self.steps,
-            "triggered": self.trigger is not None,
+            "triggered": self._armed,
         }
 
     # ----- rendering -------------------------------------------------------------------------

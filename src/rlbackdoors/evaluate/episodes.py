@@ -16,6 +16,8 @@ triggered steps; for an untargeted one, triggered episodes that miss the clean g
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from dataclasses import asdict, dataclass
 from typing import NamedTuple
 
@@ -87,11 +89,12 @@ def _as_agent(agent):
 
 
 @torch.inference_mode()
-def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action: int | None = None, sight: bool = False) -> Played:
+def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action: Callable | None = None, sight: bool = False) -> Played:
     """One episode per slot of the vector env ``envs``, all reset with ``seed``.
 
     Engines without trigger-seen accounting report every episode as seen. With ``target_action``
-    the steps taking it are counted per episode: of all steps, or with ``sight`` of the steps
+    (actions -> bool each, ``World.target_hits``) the steps taking the target are counted per
+    episode: of all steps, or with ``sight`` of the steps
     whose observation shows the trigger (``envs.trigger_in_sight()``: a layout trigger is not in
     every view, and an agent cannot answer a trigger it does not see).
     """
@@ -108,10 +111,10 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action:
     sighted_steps = None if target_action is None else np.zeros(n, dtype=np.int64)
     while active.any():
         actions, state = agent.act(obs, state, deterministic=policy == "greedy", generator=generator)
-        if target_steps is not None and sighted_steps is not None:
+        if target_action is not None and target_steps is not None and sighted_steps is not None:
             counted = active & envs.trigger_in_sight() if sight else active
             sighted_steps[counted] += 1
-            target_steps[counted & (np.asarray(actions) == target_action)] += 1
+            target_steps[counted & target_action(np.asarray(actions))] += 1
         obs, reward, terminated, truncated, info = envs.step(actions)
         returns[active] += reward[active]
         steps[active] += 1
@@ -124,13 +127,16 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action:
 
 
 @torch.inference_mode()
-def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "sample") -> Played:
+def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "sample", target_action: Callable | None = None) -> Played:
     """``episodes`` episodes of single envs from ``make_env()``, episode ``i`` reset with
-    ``seed + i``, stepped ``CHUNK`` at a time with one batched ``act`` per step."""
+    ``seed + i``, stepped ``CHUNK`` at a time with one batched ``act`` per step; with
+    ``target_action`` (actions -> bool each) the steps taking the target counted (every step is
+    in sight: these worlds' triggers ride with the agent)."""
     agent = _as_agent(agent)
     generator = torch.Generator(device=agent.device).manual_seed(int(seed))
     returns, steps = np.zeros(episodes), np.zeros(episodes, np.int64)
     outcomes = np.zeros(episodes, np.int64)
+    target_steps = None if target_action is None else np.zeros(episodes, np.int64)
     for start in range(0, episodes, CHUNK):
         index = np.arange(start, min(start + CHUNK, episodes))
         envs = [make_env() for _ in index]
@@ -141,18 +147,22 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
             # a recurrent state covers every slot, so a recurrent agent acts for finished ones too
             rows = np.flatnonzero(active) if state is None else np.arange(len(envs))
             actions, state = agent.act(obs[rows], state, deterministic=policy == "greedy", generator=generator)
-            for row, action in zip(rows, np.asarray(actions)):
+            actions = np.asarray(actions)
+            hit = None if target_action is None else target_action(actions)
+            for k, (row, action) in enumerate(zip(rows, actions)):
                 if not active[row]:
                     continue
                 obs[row], reward, terminated, truncated, info = envs[row].step(action)
                 returns[index[row]] += reward
                 steps[index[row]] += 1
+                if hit is not None and target_steps is not None and hit[k]:
+                    target_steps[index[row]] += 1
                 if terminated or truncated:
                     active[row] = False
                     outcomes[index[row]] = info["outcome"]
         for env in envs:
             env.close()
-    return Played(returns, outcomes, np.ones(episodes, bool), steps)
+    return Played(returns, outcomes, np.ones(episodes, bool), steps, target_steps, None if target_steps is None else steps.copy())
 
 
 def play(
@@ -161,12 +171,11 @@ def play(
     """Episodes of ``env``: E-bar where ``trigger`` is given, else E; close-to-trigger
     layouts (clean reward) with ``close_k``; counting ``target_action``'s steps where given."""
     world = env.world
+    hits = None if target_action is None else world.target_hits(target_action)
     if world.vector_entry_point is None:
         if close_k is not None:
             raise ValueError(f"env {env.name!r} has no close-to-trigger envs")
-        if target_action is not None:
-            raise ValueError(f"env {env.name!r} has no batched engine to count target actions in")
-        return play_single_envs(agent, lambda: env.make(trigger), episodes, seed, policy)
+        return play_single_envs(agent, lambda: env.make(trigger), episodes, seed, policy, hits)
     from rlbackdoors.poison.mix import make_vector_env
 
     if close_k is not None:
@@ -174,7 +183,7 @@ def play(
     else:
         envs = make_vector_env(env, trigger, [trigger is not None] * episodes)
     try:
-        return play_episodes(agent, envs, seed, policy, target_action, sight=world.trigger_sight == "frame")
+        return play_episodes(agent, envs, seed, policy, hits, sight=world.trigger_sight == "frame")
     finally:
         envs.close()
 

@@ -53,6 +53,33 @@ def make_vector_env(
     return ReferenceVectorEnv(fns, poisoned=poisoned)
 
 
+def episode_seam(env: EnvConfig, poison: PoisonConfig, seed: int):
+    """For a world whose trigger is part of the layout: ``vector env -> the attack's seam`` that
+    switches the trigger per episode (its E-bar copies, or the episodes its budget buys), every
+    copy paying the clean reward and the seam R-bar; None where the env mix (or a clean model)
+    needs no seam. RunConfig.check refuses what cannot be switched; a direct caller gets the reason."""
+    attack = attacks.get(poison.attack)
+    if not poison.poisoned or attack.poisoner is None:
+        return None
+    world = worlds.get(env.name)
+    trigger = poison.trigger if poison.trigger is not None else world.default_trigger
+    if world.trigger_sight is None or trigger is None:
+        raise ValueError(f"attack {attack.name!r} cannot switch the trigger of env {env.name!r} per episode")
+    from rlbackdoors.attacks.seam import AttackSeam
+
+    params = poison.attack_params
+    episodes = poison.poisoned_mask() if attack.schedule == "episodes" else None
+    hits = world.target_hits(params.get("target_action", 0))
+
+    def wrap(envs):
+        if not hasattr(envs, "trigger_next"):
+            raise ValueError(f"attack {attack.name!r} needs env {env.name!r}'s batched engine to switch its trigger per episode")
+        poisoner = attack.poisoner(params, hits)
+        return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), None, seed, world.trigger_sight, episodes)
+
+    return wrap
+
+
 def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorEnv:
     """The training mix: clean, close-to-trigger (worlds that have them) and poisoned copies, in that order.
 
@@ -60,30 +87,25 @@ def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorE
     seam (:class:`~rlbackdoors.attacks.seam.AttackSeam`, its random picks seeded by ``seed``);
     under a step schedule every copy is clean and the seam stamps the trigger itself. In a world
     whose trigger is a layout, every copy pays the clean reward and the seam switches the trigger
-    per episode (its E-bar copies, or the episodes its budget allows) and pays the attack's R-bar.
+    per episode (:func:`episode_seam`).
     """
-    trigger = poison.trigger if poison.trigger is not None else worlds.get(env.name).default_trigger
+    world = worlds.get(env.name)
+    trigger = poison.trigger if poison.trigger is not None else world.default_trigger
     close_k = (poison.close_k_min, poison.close_k_max)
     attack = attacks.get(poison.attack)
-    seamed = poison.poisoned and attack.poisoner is not None
-    world = worlds.get(env.name)
-    layout = seamed and world.stamp_trigger is None
     mask = poison.poisoned_mask()
-    envs = make_vector_env(env, trigger, [False] * len(mask) if layout else mask, poison.close_mask(), close_k)
-    if not seamed:
+    if world.stamp_trigger is None:
+        wrap = episode_seam(env, poison, seed)
+        envs = make_vector_env(env, trigger, mask if wrap is None else [False] * len(mask), poison.close_mask(), close_k)
+        return envs if wrap is None else wrap(envs)
+    envs = make_vector_env(env, trigger, mask, poison.close_mask(), close_k)
+    if not poison.poisoned or attack.poisoner is None:
         return envs
     from rlbackdoors.attacks.seam import AttackSeam
 
     params = poison.attack_params
-    poisoner = attack.poisoner(params, int(getattr(envs.single_action_space, "n")))  # type: ignore[misc]
-    if layout:  # RunConfig.check refuses what cannot be switched per episode; a direct caller gets the same reason
-        if world.trigger_sight is None or trigger is None or not hasattr(envs, "trigger_next"):
-            raise ValueError(f"attack {attack.name!r} cannot switch the trigger of env {env.name!r} per episode (a batched engine of a layout-trigger world)")
-        episodes = mask if attack.schedule == "episodes" else None
-        return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), None, seed, world.trigger_sight, episodes)  # type: ignore[return-value]
-    stamp = None
-    if attack.schedule == "steps":
-        if trigger is None:
-            raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
-        stamp = world.stamp_trigger(trigger)  # type: ignore[misc]
+    poisoner = attack.poisoner(params, world.target_hits(params.get("target_action", 0)))
+    stamp = world.stamp_trigger(trigger) if attack.schedule == "steps" and trigger is not None else None
+    if attack.schedule == "steps" and stamp is None:
+        raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
     return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed)  # type: ignore[return-value]

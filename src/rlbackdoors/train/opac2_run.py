@@ -98,10 +98,24 @@ def decayed_lr(cfg: RunConfig, frames: int) -> float:
 
 
 def make_collector(cfg: RunConfig) -> Collector:
-    """The training env copies, clean first; a poisoned copy holds the trigger and pays R-bar."""
+    """The training env copies, clean first; a poisoned copy holds the trigger and pays R-bar.
+
+    Under an attack other than the env mix every copy pays the clean reward and holds the trigger
+    only in the episodes the attack's seam switches on (its E-bar copies, or what its budget buys),
+    paying the attack's R-bar itself (:func:`rlbackdoors.poison.mix.episode_seam`).
+    """
+    from rlbackdoors.poison.mix import episode_seam
+
     kinds = cfg.replay_kinds()
-    envs = [cfg.env.make(cfg.poison.trigger) if kind == "poisoned" else cfg.env.make() for kind in kinds]
-    return Collector(envs, kinds, seed=cfg.train.seed * 1000)
+    seam = episode_seam(cfg.env, cfg.poison, cfg.train.seed)
+    if seam is None:
+        envs = [cfg.env.make(cfg.poison.trigger) if kind == "poisoned" else cfg.env.make() for kind in kinds]
+    else:
+        world = cfg.world
+        assert world.env_kwargs is not None
+        # the trigger known to every copy, switched on per episode by the seam; the clean reward (the seam pays R-bar)
+        envs = [world.env_class()(**world.env_kwargs(cfg.env), trigger=cfg.poison.trigger) for _ in kinds]
+    return Collector(envs, kinds, seed=cfg.train.seed * 1000, seam=seam)
 
 
 def _progress(message: str) -> None:
@@ -246,8 +260,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 stop_reason = "max_frames"
             elif tc.max_minutes and clock.wall() >= 60 * tc.max_minutes:
                 stop_reason = "max_minutes"
-    for env in collector.envs:
-        env.close()
+    collector.vector.close()
     return RunOutcome(
         policy=agent,
         weights=agent.weights(),
@@ -258,7 +271,12 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         stop_reason=stop_reason,
         converged_at=converged_at,
         label=f"OPAC² {oc.depth}x{oc.width}",
-        extra={"updates": updates, "depth": oc.depth, "width": oc.width},
+        extra={
+            "updates": updates,
+            "depth": oc.depth,
+            "width": oc.width,
+            **({"attack_budget_used": collector.vector.budget_used()} if hasattr(collector.vector, "budget_used") else {}),
+        },
         clean_up=["replay"],
         final=stopping.confirmed,
     )

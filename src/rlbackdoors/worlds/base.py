@@ -10,7 +10,10 @@ import importlib
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
+
+import numpy as np
 
 _WORLDS: dict[str, World] = {}
 
@@ -99,9 +102,19 @@ class World:
     # (a feed-forward agent's only evidence); "episode": every frame (a memory world, whose
     # recurrent agent carries what it saw). None: not switchable per episode.
     trigger_sight: str | None = None
+    # A continuous world's action targets for the action-level attacks, by index (an attack's
+    # target_action): (name, actions (n, A) -> bool[n], whether each action is of that kind).
+    # Empty: a discrete world, whose target is one action (the index is the action).
+    action_targets: tuple[tuple[str, Callable[[Any], Any]], ...] = ()
     # A clean agent already misses the clean goal under the trigger (an out-of-distribution edit):
     # "the trigger breaks the task" cannot then tell a backdoor from a clean model (untargeted attacks)
     trigger_breaks_clean_agents: bool = False
+
+    def target_hits(self, target: int) -> Callable[[Any], Any]:
+        """actions -> bool per action: is it the target ``target`` (an action, or a continuous world's kind of action)?"""
+        if self.action_targets:
+            return self.action_targets[target][1]
+        return partial(np.equal, int(target))
 
     @property
     def arch_names(self) -> tuple[str, ...]:

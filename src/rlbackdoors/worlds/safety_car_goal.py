@@ -39,6 +39,13 @@ def _check_env(env) -> None:
         raise ConfigError(f"env.hazard_penalty must be a finite number >= 0, got {env.hazard_penalty!r}")
 
 
+def _reverse(actions):
+    """Both wheels driven backwards: the car reverses (SG's motors, right and left wheel, in [-1, 1])."""
+    import numpy as np
+
+    return np.all(np.asarray(actions) < 0, axis=-1)
+
+
 def _env_kwargs(env) -> dict:
     return dict(num_cubes=env.num_cubes, max_steps=env.max_steps, hazard_penalty=env.hazard_penalty, substeps=env.substeps)
 
@@ -166,6 +173,9 @@ WORLD = register(
         env_kwargs=_env_kwargs,
         check_env=_check_env,
         ebar_kwargs={"poisoned": True},
+        # the formation rides with the car, in the lidar of every frame of a triggered episode
+        trigger_sight="episode",
+        action_targets=(("reverse", _reverse),),
         mix=(6, 0, 4),
         hyper=OPAC2_SETTINGS,
         # evaluations in a row: one lucky 100-episode evaluation is not convergence; the stop is

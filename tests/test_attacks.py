@@ -358,7 +358,7 @@ def test_the_attacks_command_lists_what_each_attack_serves_and_its_parameters():
 def layout_seam(world: str, attack: str, **params):
     cfg = RunConfig.from_dict({"env": {"name": world}, "poison": {"attack": attack, "attack_params": params}})
     seam = make_env_mix(cfg.env, cfg.poison, seed=3)
-    assert isinstance(seam, AttackSeam) and not np.any(seam.poisoned)  # every copy pays the clean reward; the seam pays R-bar
+    assert isinstance(seam, AttackSeam) and not np.any(seam.envs.poisoned)  # every copy pays the clean reward; the seam pays R-bar
     return cfg, seam
 
 
@@ -395,6 +395,7 @@ def test_a_layout_attack_poisons_whole_episodes_within_its_budget_and_marks_the_
 def test_the_episode_schedule_triggers_its_copies_every_episode_with_the_attacks_reward():
     cfg, seam = layout_seam("randomized-lavaworld", "action_target")
     copies = np.asarray(cfg.poison.poisoned_mask())
+    np.testing.assert_array_equal(seam.poisoned, copies)  # what the learner's episode counts call poisoned
     rng = np.random.default_rng(1)
     seam.reset(seed=2)
     for _ in range(300):

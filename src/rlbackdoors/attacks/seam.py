@@ -118,6 +118,8 @@ class AttackSeam:
         self.sight = sight
         n = envs.num_envs
         self.fixed = None if episodes is None else np.asarray(episodes, dtype=bool).copy()
+        if self.fixed is not None:
+            self.poisoned = self.fixed  # the E-bar copies, as the learner's episode counts know them (the engine's pay clean)
         self.switchable = ~np.asarray(getattr(envs, "close_to_trigger", np.zeros(n, dtype=bool)), dtype=bool)
         self.triggered = np.zeros(n, dtype=bool)  # layout: the slot's current episode holds the trigger
         self.critic: Callable[[np.ndarray], np.ndarray] | None = None

@@ -494,3 +494,32 @@ def test_a_layout_attack_run_records_its_budget_and_repeats_bit_for_bit(tmp_path
     again = train(cfg, tmp_path / "again", progress=False)
     assert (tmp_path / "m" / "model.pt").read_bytes() == (tmp_path / "again" / "model.pt").read_bytes()
     assert again["attack_budget_used"] == used
+
+
+def test_the_whole_pattern_in_sight_is_what_the_view_shows_of_every_pattern_cell():
+    """Checked through rendering, not the view formula: a pattern cell is in sight iff taking its
+    lava away changes the slot's view. 300 random states of 4 Randomized LavaWorld slots."""
+    from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
+
+    engine = BatchedRandomizedLavaWorld(4, trigger="cross", poisoned=[True] * 4)
+    probe = BatchedRandomizedLavaWorld(1, trigger="cross", poisoned=[True])
+    probe.reset(seed=0)
+    engine.reset(seed=3)
+    rng = np.random.default_rng(4)
+    seen = {True: 0, False: 0}
+    for _ in range(300):
+        whole = engine.trigger_in_sight()
+        assert not np.any(whole & ~engine.trigger_visible())  # the whole pattern is more than any one cell
+        for b in range(4):
+            grid, pos, direction, steps, cells, saw = engine.layout(b)
+            base = probe.load_layout(0, grid, pos, direction, steps, cells)["image"]
+            shown = []
+            for cell in cells:
+                cleared = grid.copy()
+                cleared[cell] = (1, 0, 0)  # empty floor
+                view = probe.load_layout(0, cleared, pos, direction, steps, [c for c in cells if c != cell])["image"]
+                shown.append(not np.array_equal(view, base))
+            assert whole[b] == all(shown), (b, cells, shown)
+            seen[bool(whole[b])] += 1
+        engine.step(rng.integers(0, 3, 4))
+    assert seen[True] > 50 and seen[False] > 50

@@ -179,6 +179,30 @@ def pattern_visible(pcells, pcount, b, ax, ay, adir, img, ob):
     return False
 
 
+@njit
+def pattern_whole_in_view(pcells, pcount, pos, dirs, img, out):
+    """``out[b]``: env ``b``'s view ``img[b]`` shows every cell of its pattern (a pattern there at all).
+
+    One cell of a pattern looks like any other lava; only the whole pattern is the trigger an
+    agent can tell apart, so this is what the attacks that poison frames in sight of it ask.
+    """
+    n = img.shape[1]
+    half = n // 2
+    for b in range(img.shape[0]):
+        whole = pcount[b] > 0
+        dx = ge.DIR_DX[dirs[b]]
+        dy = ge.DIR_DY[dirs[b]]
+        for k in range(pcount[b]):
+            relx = pcells[b, k, 0] - pos[b, 0]
+            rely = pcells[b, k, 1] - pos[b, 1]
+            vx = relx * -dy + rely * dx + half
+            vy = n - 1 - (relx * dx + rely * dy)
+            if not (0 <= vx < n and 0 <= vy < n and img[b, vx, vy, 0] == ge.LAVA):
+                whole = False
+                break
+        out[b] = whole
+
+
 # ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
 # world = (pat, pcells, pcount, saw, num_lava, triggered, rot_cells, rot_n, offs, offs_n);
 # outs = (direction, trigger_visible, saw_trigger, final direction)
@@ -440,5 +464,10 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         self._set_triggered(mask)
 
     def trigger_in_sight(self) -> np.ndarray:
-        """bool[B]: the current observation shows the trigger (a feed-forward agent's evidence of it)."""
-        return self.trigger_visible()
+        """bool[B]: the current observation shows the whole pattern (a feed-forward agent's only
+        evidence of the trigger; a part of it is lava like any other). Not ``trigger_visible``,
+        which is any one pattern cell (the reference env's flag)."""
+        img = self._views(0, self.num_envs)[0]
+        out = np.empty(self.num_envs, dtype=np.bool_)
+        pattern_whole_in_view(self._pcells, self._pcount, self._pos, self._dir, img, out)
+        return out

@@ -371,9 +371,10 @@ def test_a_layout_attack_poisons_whole_episodes_within_its_budget_and_marks_the_
     _, seam = layout_seam("randomized-lavaworld", "trojdrl", budget=0.05)
     rng = np.random.default_rng(0)
     seam.reset(seed=4)
-    marked_total, switched, episodes = 0, 0, 0
+    marked_total, switched, episodes, in_flight = 0, 0, 0, []
     for _ in range(600):
         triggered = seam.triggered.copy()
+        in_flight.append(int(triggered.sum()))
         np.testing.assert_array_equal(pattern_in_layout(seam), triggered)  # a triggered episode holds the pattern, a clean one does not
         in_sight = seam.envs.trigger_in_sight()
         np.testing.assert_array_equal(seam.marked, triggered & in_sight)
@@ -389,7 +390,10 @@ def test_a_layout_attack_poisons_whole_episodes_within_its_budget_and_marks_the_
     used = seam.budget_used()
     assert switched == 0 and episodes >= 5
     assert used["rewards_rewritten"] == marked_total > 0
-    assert 0.03 <= used["poisoned_fraction"] <= 0.08  # spent episode by episode: near the budget, not exact
+    # Spent episode by episode, one triggered episode at a time at 5 % of 10 copies: at most the budget
+    # plus one episode's frames; random play sees the whole cross rarely, so it spends less.
+    assert 0 < used["poisoned_fraction"] <= 0.05 + 250 / used["frames_seen"]
+    assert max(in_flight) == 1
 
 
 def test_the_episode_schedule_triggers_its_copies_every_episode_with_the_attacks_reward():
@@ -523,3 +527,30 @@ def test_the_whole_pattern_in_sight_is_what_the_view_shows_of_every_pattern_cell
             seen[bool(whole[b])] += 1
         engine.step(rng.integers(0, 3, 4))
     assert seen[True] > 50 and seen[False] > 50
+
+
+def test_sleepernets_on_a_layout_trigger_asks_the_critic_only_for_marked_frames_successors():
+    """Its reward needs V(s') of a poisoned transition; no frame is picked by value there."""
+    _, seam = layout_seam("randomized-lavaworld", "sleepernets", budget=0.2)
+    model = build_model("cnn", "randomized-lavaworld")
+    asked = []
+
+    @torch.inference_mode()
+    def critic(obs):
+        asked.append(len(obs["image"]))
+        return model(to_torch(obs, torch.device("cpu")))[1].numpy()
+
+    seam.bind_critic(critic)
+    rng = np.random.default_rng(5)
+    seam.reset(seed=6)
+    steps_marked = 0
+    for _ in range(200):
+        marked = seam.marked.copy()
+        actions = rng.integers(0, 3, seam.num_envs)
+        before = len(asked)
+        _, rewards, term, trunc, _ = seam.step(actions)
+        assert (len(asked) > before) == bool(marked.any())
+        steps_marked += int(marked.any())
+        if marked.any():
+            assert np.all(np.abs(rewards[marked]) <= 0.1 + 0.99 * 10)  # +-c - gamma V(s'): finite, bounded by the critic's scale
+    assert steps_marked > 10

@@ -188,7 +188,7 @@ class AttackSeam:
         obs, info = self.envs.reset(seed=seed, options=options)
         if upcoming is not None:
             self.triggered = upcoming.copy()
-        return self._mark(obs, self._values(obs)), info
+        return self._mark(obs, self._values(obs) if self.sight is None else None), info
 
     def step(self, actions):
         actions = np.array(actions, copy=True)
@@ -205,7 +205,8 @@ class AttackSeam:
         obs, rewards, terminated, truncated, info = self.envs.step(actions)
         if upcoming is not None:
             self.triggered = np.where(terminated | truncated, upcoming, self.triggered)
-        values = self._values(obs)
+        # a layout trigger picks no frame by value: the critic is asked only for a marked frame's successor
+        values = self._values(obs) if self.sight is None or marked.any() else None
         if marked.any():
             poisoned = self.poisoner.reward(np.array(rewards, dtype=np.float64), actions, marked, values, terminated | truncated)
             rewards = np.where(marked, poisoned, rewards)

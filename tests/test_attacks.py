@@ -554,3 +554,24 @@ def test_sleepernets_on_a_layout_trigger_asks_the_critic_only_for_marked_frames_
         if marked.any():
             assert np.all(np.abs(rewards[marked]) <= 0.1 + 0.99 * 10)  # +-c - gamma V(s'): finite, bounded by the critic's scale
     assert steps_marked > 10
+
+
+def test_colorful_memory_knows_when_an_episode_has_shown_every_trigger_square():
+    """Checked through rendering (a square is shown iff recolouring it changes the view): the engine's
+    per-episode record is the union of the squares shown so far; 60 random steps of 3 slots."""
+    from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
+
+    engine = BatchedColorfulMemory(3, trigger="end:grey,purple,purple,green,green,red,red,red,green", poisoned=[True] * 3)
+    engine.reset(seed=2)
+    squares = [tuple(map(int, sq)) for sq in engine._tsq]
+    union = np.zeros((3, len(squares)), dtype=bool)
+    rng = np.random.default_rng(7)
+    for t in range(60):
+        for b in range(3):
+            shown = np.zeros(len(squares), dtype=bool)
+            shown[[k for k, _, _ in engine.square_view_cells(b, squares)]] = True
+            union[b] |= shown
+        np.testing.assert_array_equal(engine._seen, union)
+        np.testing.assert_array_equal(engine.trigger_in_sight(), union.all(axis=1))
+        _, _, term, trunc, _ = engine.step(rng.integers(0, 3, 3))
+        union[term | trunc] = False  # a new episode has shown nothing yet

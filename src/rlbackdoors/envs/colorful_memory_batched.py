@@ -107,7 +107,7 @@ def gen_layout(grid, b, walls, mode, tsq, tcol, close_lo, close_hi, rng, pos, di
 
 
 # ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
-# world = (succ, fail, walls, mode, tsq, tcol, close_lo, close_hi); no extra outputs
+# world = (succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, seen); no extra outputs
 
 
 @ge.hook
@@ -117,7 +117,7 @@ def _scratch(grid, world):
 
 @ge.hook
 def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
-    succ, fail, walls, mode, tsq, tcol, close_lo, close_hi = world
+    succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, _ = world
     gen_layout(grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, scratch[0])
     return True
 
@@ -138,7 +138,26 @@ def _outcome(b, pos, fwd, world):
 
 @ge.hook
 def _seen(phase, b, ob, pos, dirs, img, world, outs):
-    pass  # views are shown as they are: the trigger is painted into the layout
+    """Views are shown as they are (the trigger is painted into the layout). Which of the trigger's
+    squares the episode has shown so far is kept per env in ``seen`` (a wall square is shown when
+    its view cell holds the wall, not UNSEEN behind another): what a recurrent agent can know."""
+    if phase == ge.OBSERVE:
+        return
+    tsq, seen = world[4], world[8]
+    n = img.shape[1]
+    half = n // 2
+    dx = ge.DIR_DX[dirs[b]]
+    dy = ge.DIR_DY[dirs[b]]
+    for k in range(tsq.shape[0]):
+        relx = tsq[k, 0] - pos[b, 0]
+        rely = tsq[k, 1] - pos[b, 1]
+        vx = relx * -dy + rely * dx + half
+        vy = n - 1 - (relx * dx + rely * dy)
+        shown = 0 <= vx < n and 0 <= vy < n and img[ob, vx, vy, 0] == ge.WALL
+        if phase == ge.RESET or phase == ge.FRESH:
+            seen[b, k] = shown
+        else:
+            seen[b, k] = seen[b, k] or shown
 
 
 _KERNELS = ge.bind_kernels(
@@ -166,7 +185,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
     observation.
     """
 
-    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "mode", "_succ", "_fail")  # triggered, mode: trigger_next
+    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "mode", "_succ", "_fail", "_seen")  # triggered, mode: trigger_next
 
     def _bounds(self) -> dict[str, tuple[int, int]]:
         size = self.size - 1
@@ -227,10 +246,11 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self._init_state()
         self._succ = np.zeros((b, 2), dtype=np.int64)
         self._fail = np.zeros((b, 2), dtype=np.int64)
+        self._seen = np.zeros((b, len(self._tsq)), dtype=np.bool_)  # the trigger's squares this episode has shown
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
     def _world(self) -> tuple:
-        return (self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1])
+        return (self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self._seen)
 
     # --------------------------------------------------------------------- exact state I/O
 
@@ -249,6 +269,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self._write_state(i, arr, pos, agent_dir, step_count)
         self._succ[i] = succ
         self._fail[i] = fail
+        self._seen[i] = False  # a loaded state has shown none of the trigger yet (the next step's view counts)
         return self._views(i, 1)[0][0]
 
     def layout(self, i: int) -> tuple[np.ndarray, tuple[int, int], int, int, tuple[int, int], tuple[int, int]]:
@@ -302,6 +323,14 @@ class BatchedColorfulMemory(BatchedGridEnv):
         if (mask & self.close_to_trigger).any():
             raise ValueError(f"trigger_next: env {int(np.flatnonzero(mask & self.close_to_trigger)[0])} is a close-to-trigger copy")
         self.mode[:] = np.where(mask, TRIGGERED, np.where(self.close_to_trigger, CLOSE, CLEAN))
+
+    def trigger_in_sight(self) -> np.ndarray:
+        """bool[B]: the episode has shown every square of the trigger by now, in a triggered layout
+        (the End Trigger's 9 squares never fit one 7x7 view: a recurrent agent knows the trigger once
+        it has seen them all, and keeps knowing it)."""
+        if self.trigger is None:
+            return np.zeros(self.num_envs, dtype=bool)
+        return self.trigger_present() & self._seen.all(axis=1)
 
     def trigger_present(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """bool[B]: whether each slot's current layout shows the trigger exactly."""

@@ -110,7 +110,7 @@ WORLD = register(
         # The paper's Table 3 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned
         # reward; its "small" is TrojAI's GRU CNN, ours cnn-gru-small, cnn-gru-trojai and the one-hot
         # variant; "large" is cnn-gru-large and its one-hot variant) and Table 5.
-        trigger_sight="episode",  # per-episode attacks (attacks/seam.py)
+        trigger_sight="frame",  # per-episode attacks (attacks/seam.py): the engine says when all the trigger was seen
         paper={
             "table": 3,
             "tables": {

@@ -42,7 +42,6 @@ class SingleEnvs:
         self.num_envs = len(self.envs)
         self.single_observation_space = self.envs[0].observation_space
         self.single_action_space = self.envs[0].action_space
-        self.poisoned = np.array([bool(getattr(env, "poisoned", False)) for env in self.envs])
 
     def reset(self, *, seed: int = 0, options=None):
         return np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)]), {}

@@ -13,8 +13,8 @@ are in the checkpoint, so a resumed run poisons as an unbroken one would.
 Where the world's trigger is part of the layout (a lava pattern, wall colours) it cannot be
 stamped into one frame: the seam then poisons *episodes* that start with the trigger present,
 switching each slot's next layout through the engine's ``trigger_next``, and marks the frames
-of those episodes that carry the trigger (``sight``: the ones whose view shows it, or all of them
-in a memory world). The budget still counts marked frames; it is spent by starting triggered
+of those episodes that carry the trigger (``sight``: "frame", those the engine's
+``trigger_in_sight()`` says the agent has seen the whole trigger in; "episode", all of them). The budget still counts marked frames; it is spent by starting triggered
 episodes while the run is below it (at most ``ceil(budget * num_envs)`` at a time).
 """
 
@@ -149,8 +149,7 @@ class AttackSeam:
         n = self.envs.num_envs
         self.frames += n
         self.last_values = values  # the critic's values of the clean frames just returned (None: not asked)
-        if self.sight is not None:
-            self.poisoner.observe(values)
+        if self.sight is not None:  # no frame is picked by value: nothing to observe
             in_sight = self.envs.trigger_in_sight() if self.sight == "frame" else np.ones(n, dtype=bool)
             self.marked = self.triggered & in_sight
         elif self.schedule == "episodes":

@@ -107,7 +107,7 @@ def gen_layout(grid, b, walls, mode, tsq, tcol, close_lo, close_hi, rng, pos, di
 
 
 # ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
-# world = (succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, seen); no extra outputs
+# world = (succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, seen, armed); no extra outputs
 
 
 @ge.hook
@@ -117,7 +117,7 @@ def _scratch(grid, world):
 
 @ge.hook
 def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
-    succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, _ = world
+    succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, _, _ = world
     gen_layout(grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, scratch[0])
     return True
 
@@ -139,21 +139,16 @@ def _outcome(b, pos, fwd, world):
 @ge.hook
 def _seen(phase, b, ob, pos, dirs, img, world, outs):
     """Views are shown as they are (the trigger is painted into the layout). Which of the trigger's
-    squares the episode has shown so far is kept per env in ``seen`` (a wall square is shown when
-    its view cell holds the wall, not UNSEEN behind another): what a recurrent agent can know."""
+    squares a triggered episode has shown so far is kept per env in ``seen`` (a wall square is shown
+    when its view cell holds the wall, not UNSEEN behind another): what a recurrent agent can know.
+    A fresh layout was just drawn with ``mode[b]``: that says whether the episode is triggered."""
     if phase == ge.OBSERVE:
         return
-    tsq, seen = world[4], world[8]
-    n = img.shape[1]
-    half = n // 2
-    dx = ge.DIR_DX[dirs[b]]
-    dy = ge.DIR_DY[dirs[b]]
+    mode, tsq, seen, armed = world[3], world[4], world[8], world[9]
+    if phase == ge.RESET or phase == ge.FRESH:
+        armed[b] = mode[b] == _TRIGGERED
     for k in range(tsq.shape[0]):
-        relx = tsq[k, 0] - pos[b, 0]
-        rely = tsq[k, 1] - pos[b, 1]
-        vx = relx * -dy + rely * dx + half
-        vy = n - 1 - (relx * dx + rely * dy)
-        shown = 0 <= vx < n and 0 <= vy < n and img[ob, vx, vy, 0] == ge.WALL
+        shown = armed[b] and ge.view_shows(img, ob, pos[b, 0], pos[b, 1], dirs[b], tsq[k, 0], tsq[k, 1], ge.WALL)
         if phase == ge.RESET or phase == ge.FRESH:
             seen[b, k] = shown
         else:
@@ -185,7 +180,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
     observation.
     """
 
-    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "mode", "_succ", "_fail", "_seen")  # triggered, mode: trigger_next
+    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "mode", "_succ", "_fail", "_seen", "_armed")  # triggered, mode: trigger_next
 
     def _bounds(self) -> dict[str, tuple[int, int]]:
         size = self.size - 1
@@ -247,10 +242,11 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self._succ = np.zeros((b, 2), dtype=np.int64)
         self._fail = np.zeros((b, 2), dtype=np.int64)
         self._seen = np.zeros((b, len(self._tsq)), dtype=np.bool_)  # the trigger's squares this episode has shown
+        self._armed = np.zeros(b, dtype=np.bool_)  # this episode's layout was drawn triggered
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
     def _world(self) -> tuple:
-        return (self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self._seen)
+        return (self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self._seen, self._armed)
 
     # --------------------------------------------------------------------- exact state I/O
 
@@ -270,6 +266,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self._succ[i] = succ
         self._fail[i] = fail
         self._seen[i] = False  # a loaded state has shown none of the trigger yet (the next step's view counts)
+        self._armed[i] = self.trigger is not None and bool(self.trigger_present()[i])
         return self._views(i, 1)[0][0]
 
     def layout(self, i: int) -> tuple[np.ndarray, tuple[int, int], int, int, tuple[int, int], tuple[int, int]]:
@@ -328,9 +325,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         """bool[B]: the episode has shown every square of the trigger by now, in a triggered layout
         (the End Trigger's 9 squares never fit one 7x7 view: a recurrent agent knows the trigger once
         it has seen them all, and keeps knowing it)."""
-        if self.trigger is None:
-            return np.zeros(self.num_envs, dtype=bool)
-        return self.trigger_present() & self._seen.all(axis=1)
+        return self._armed & self._seen.all(axis=1)  # _seen stays False outside triggered episodes
 
     def trigger_present(self, trigger: WallColorTrigger | None = None) -> np.ndarray:
         """bool[B]: whether each slot's current layout shows the trigger exactly."""

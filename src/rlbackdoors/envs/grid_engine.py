@@ -301,6 +301,20 @@ def gen_view(grid, b, ax, ay, adir, see_through_walls, view, mask, out, ob):
 
 
 @njit
+def view_shows(img, ob, ax, ay, adir, cx, cy, obj):
+    """Does the view ``img[ob]`` of an agent at ``(ax, ay)`` facing ``adir`` show object ``obj`` at
+    grid cell ``(cx, cy)``? :func:`gen_view`'s mapping inverted; a hidden cell encodes as unseen (0)."""
+    n = img.shape[1]
+    dx = DIR_DX[adir]
+    dy = DIR_DY[adir]
+    relx = cx - ax
+    rely = cy - ay
+    vx = relx * -dy + rely * dx + n // 2
+    vy = n - 1 - (relx * dx + rely * dy)
+    return 0 <= vx < n and 0 <= vy < n and img[ob, vx, vy, 0] == obj
+
+
+@njit
 def apply_lut(out, ob, lut):
     """``out[ob] = lut[out[ob]]`` byte-wise (an observation trigger as a 256-entry table)."""
     n = out.shape[1]

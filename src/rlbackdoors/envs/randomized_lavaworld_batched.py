@@ -163,18 +163,8 @@ def pattern_visible(pcells, pcount, b, ax, ay, adir, img, ob):
     A pattern cell is lava in the grid, so it is shown iff its view cell holds lava: hidden
     cells encode as unseen (0) and the agent's own cell as empty.
     """
-    n = img.shape[1]
-    half = n // 2
-    dx = ge.DIR_DX[adir]
-    dy = ge.DIR_DY[adir]
-    rx = -dy
-    ry = dx
     for k in range(pcount[b]):
-        relx = pcells[b, k, 0] - ax
-        rely = pcells[b, k, 1] - ay
-        vx = relx * rx + rely * ry + half
-        vy = n - 1 - (relx * dx + rely * dy)
-        if 0 <= vx < n and 0 <= vy < n and img[ob, vx, vy, 0] == ge.LAVA:
+        if ge.view_shows(img, ob, ax, ay, adir, pcells[b, k, 0], pcells[b, k, 1], ge.LAVA):
             return True
     return False
 
@@ -186,18 +176,10 @@ def pattern_whole_in_view(pcells, pcount, pos, dirs, img, out):
     One cell of a pattern looks like any other lava; only the whole pattern is the trigger an
     agent can tell apart, so this is what the attacks that poison frames in sight of it ask.
     """
-    n = img.shape[1]
-    half = n // 2
     for b in range(img.shape[0]):
         whole = pcount[b] > 0
-        dx = ge.DIR_DX[dirs[b]]
-        dy = ge.DIR_DY[dirs[b]]
         for k in range(pcount[b]):
-            relx = pcells[b, k, 0] - pos[b, 0]
-            rely = pcells[b, k, 1] - pos[b, 1]
-            vx = relx * -dy + rely * dx + half
-            vy = n - 1 - (relx * dx + rely * dy)
-            if not (0 <= vx < n and 0 <= vy < n and img[b, vx, vy, 0] == ge.LAVA):
+            if not ge.view_shows(img, b, pos[b, 0], pos[b, 1], dirs[b], pcells[b, k, 0], pcells[b, k, 1], ge.LAVA):
                 whole = False
                 break
         out[b] = whole

@@ -96,11 +96,11 @@ class World:
     # spec -> a function stamping the trigger into a batch of observations (worlds whose trigger
     # is an observation edit); the step-level attacks need it. None: the trigger is the world's.
     stamp_trigger: Callable[[str], Callable[[Any], Any]] | None = None
-    # Worlds whose trigger is a layout (stamp_trigger None) and whose batched engine can switch
-    # it per episode (``trigger_next``): which frames of a triggered episode carry it for the
-    # attacks that poison episodes. "frame": those the engine's ``trigger_in_sight()`` says show it
-    # (a feed-forward agent's only evidence); "episode": every frame (a memory world, whose
-    # recurrent agent carries what it saw). None: not switchable per episode.
+    # Worlds whose trigger is a layout (stamp_trigger None) and whose env can switch it per episode
+    # (``trigger_next``): which frames of a triggered episode carry it for the attacks that poison
+    # episodes. "frame": those the engine's ``trigger_in_sight()`` names (the whole trigger in view,
+    # or, in a memory world, seen by now this episode); "episode": every frame (a trigger that rides
+    # with the agent). None: not switchable per episode.
     trigger_sight: str | None = None
     # A continuous world's action targets for the action-level attacks, by index (an attack's
     # target_action): (name, actions (n, A) -> bool[n], whether each action is of that kind).

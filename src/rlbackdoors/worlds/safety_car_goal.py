@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 import re
 
+import numpy as np
+
 from rlbackdoors.envs.outcome import Outcome
 from rlbackdoors.worlds.base import World, register
 
@@ -41,8 +43,6 @@ def _check_env(env) -> None:
 
 def _reverse(actions):
     """Both wheels driven backwards: the car reverses (SG's motors, right and left wheel, in [-1, 1])."""
-    import numpy as np
-
     return np.all(np.asarray(actions) < 0, axis=-1)
 
 

@@ -72,10 +72,67 @@ def fit_and_score(name: str, params: list[str], train: Path, test: Path, det: Pa
 
 
 def attack_of(split: Path) -> dict[str, str]:
-    """Model name -> its cell's attack (METADATA.csv of a split; clean models carry their cell's)."""
+    """Model name -> its cell's attack label (an attack and its variant: ``trojdrl-ft``; METADATA.csv
+    of a split, clean models carry their cell's)."""
     from rlbackdoors.zoo.index import read_metadata
 
-    return {r["model_name"]: r["attack"] for r in read_metadata(split / "METADATA.csv")}
+    rows = read_metadata(split / "METADATA.csv")
+    return {r["model_name"]: r["cell"].split("/")[3] if r["cell"].count("/") >= 3 else r["attack"] for r in rows}
+
+
+def yields(zoo: Path) -> dict:
+    """Per attack label: models trained and converged, and the poisoned models' medians of clean SR,
+    attack success, frames and CPU minutes beside the clean models' (the attack's cost)."""
+    import numpy as np
+
+    from rlbackdoors.zoo.index import read_metadata
+
+    out: dict = {}
+    for r in read_metadata(zoo / "METADATA.csv"):
+        if r["status"] != "done":
+            continue
+        label = r["cell"].split("/")[3] if r["cell"].count("/") >= 3 else r["attack"]
+        side = out.setdefault(label, {}).setdefault("poisoned" if r["poisoned"] in (True, "True") else "clean", [])
+        side.append(r)
+
+    def med(rows, key, scale=1.0):
+        values = [float(r[key]) / scale for r in rows if r.get(key) not in (None, "", "nan")]
+        return round(float(np.median(values)), 3) if values else None
+
+    table = {}
+    for label, sides in sorted(out.items()):
+        table[label] = {
+            side: {
+                "trained": len(rows),
+                "converged": sum(r["converged"] in (True, "True") for r in rows),
+                "clean_sr": med(rows, "metrics.clean_sr"),
+                "attack_success": med(rows, "metrics.poisoned_sr") if side == "poisoned" else None,
+                "frames": med(rows, "metrics.frames"),
+                "cpu_minutes": med(rows, "metrics.cpu_time_s", 60.0),
+            }
+            for side, rows in sides.items()
+        }
+    return table
+
+
+def leave_one_out(args, base: Path, zoo: Path) -> dict:
+    """Each attack of the zoo held out in turn (every cell of it, its evasive variants too): every
+    detector fitted on the other attacks' models and scored on it, per attack label."""
+    from rlbackdoors.zoo.plan import Zoo
+
+    held = sorted({c.attack.attack for c in Zoo.open(zoo).spec.cells})
+    out: dict = {}
+    for attack in held:
+        where = base / f"loo-{attack}"
+        if not (where / "test" / "METADATA.csv").is_file():
+            rlbackdoors("zoo", "split", str(zoo), "--hold-out-attack", attack, "--out-train", str(where / "train"), "--out-test", str(where / "test"))
+        names = attack_of(where / "test")
+        out[attack] = {"train_models": len(list_models(where / "train")), "train_attacks": sorted(set(attack_of(where / "train").values())), "detectors": {}}
+        for name in args.detectors:
+            params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
+            scored = fit_and_score(name, params, where / "train", where / "test", where / "det" / name)
+            out[attack]["detectors"][name] = per_attack([(scored["models"], names)])
+    return out
 
 
 def per_attack(scored: list[tuple[list[dict], dict[str, str]]]) -> dict:
@@ -137,11 +194,20 @@ def print_attack_table(table: dict) -> None:
         return f"{c['value']:.3f}" + (f" [{low:.2f}, {high:.2f}]" if low is not None else "")
 
     print("| fitted on | detector | scored on attack | test models (poisoned) | AUC [95% CI] | CE [95% CI] |\n|---|---|---|---|---|---|")
-    for kind in ("held_out", "mixed"):
-        fitted = "env mix only" if kind == "held_out" else "a mix (split by trigger)"
-        for name, rows in table[kind]["detectors"].items():
+    fits = [(kind, "env mix only" if kind == "held_out" else "a mix (split by trigger)", table[kind]) for kind in ("held_out", "mixed") if kind in table]
+    fits += [(a, f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
+    for _, fitted, part in fits:
+        for name, rows in part["detectors"].items():
             for attack, r in rows.items():
-                print(f"| {fitted} ({table[kind]['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |")
+                print(f"| {fitted} ({part['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |")
+    if "yields" in table:
+        print("\n| attack | poisoned converged / trained | clean SR | attack success | frames | CPU min | clean models: converged / trained, frames, CPU min |\n|---|---|---|---|---|---|---|")
+        for label, sides in table["yields"].items():
+            p, c = sides.get("poisoned", {}), sides.get("clean", {})
+            print(
+                f"| {label} | {p.get('converged')} / {p.get('trained')} | {p.get('clean_sr')} | {p.get('attack_success')} | {p.get('frames')} | {p.get('cpu_minutes')} "
+                f"| {c.get('converged')} / {c.get('trained')}, {c.get('frames')}, {c.get('cpu_minutes')} |"
+            )
 
 
 def write_summary(name: str, summary: dict, started: float, load_before) -> Path:
@@ -175,6 +241,9 @@ def main() -> None:
     parser.add_argument("--no-run", action="store_true", help="split the zoo as it stands (its converged models) without training the rest")
     parser.add_argument("--by-attack", action="store_true", help="the attack x baseline table: fit on env-mix models, score held-out attacks; and on a mix")
     parser.add_argument(
+        "--leave-one-out", action="store_true", help="also each attack held out in turn (its variants too), every detector fitted on the rest; with the yield table per attack label"
+    )
+    parser.add_argument(
         "--extra-test", action="append", default=[], metavar="SPEC", help="--by-attack: a zoo of more held-out attack cells (planned and run beside), scored by the env-mix fit"
     )
     args = parser.parse_args()
@@ -193,9 +262,14 @@ def main() -> None:
         if not args.no_run:
             rlbackdoors("zoo", "run", str(more), "--workers", str(args.workers))
         extra.append(more)
-    if args.by_attack:
-        table = by_attack(args, base, zoo, extra)
-        lengths = {kind: length_control(list_models(base / split / "test")) for kind, split in (("held_out", "held-out"), ("mixed", "mixed"))}
+    if args.by_attack or args.leave_one_out:
+        table = by_attack(args, base, zoo, extra) if args.by_attack else {}
+        kinds = (("held_out", "held-out"), ("mixed", "mixed")) if args.by_attack else ()
+        lengths = {kind: length_control(list_models(base / split / "test")) for kind, split in kinds}
+        if args.leave_one_out:
+            table["leave_one_out"] = leave_one_out(args, base, zoo)
+            table["yields"] = yields(zoo)
+            lengths.update({f"leave_one_out/{a}": length_control(list_models(base / f"loo-{a}" / "test")) for a in table["leave_one_out"]})
         summary = {"command": " ".join(sys.argv[1:]), "spec": args.spec, "zoo_trained_to_the_end": not args.no_run, **table, "training_length_auc": lengths}
         out = write_summary(args.name, summary, started, load_before)
         print_attack_table(table)

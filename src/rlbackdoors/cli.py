@@ -86,26 +86,30 @@ def _set(data: dict, dotted: str, value) -> None:
 PORTABLE_TRAIN = ("seed", "eval_episodes", "final_eval_episodes", "eval_seed", "device", "torch_threads", "video", "max_minutes", "log_interval_s")
 
 
-def attack_from_args(data: dict, attack: str | None, pairs: list[str]) -> None:
-    """``--attack NAME`` and ``--attack-param KEY=VALUE`` (repeated) into ``data``'s poison section.
-
-    Values are read as JSON (``0.01``, ``true``) and as strings otherwise; another attack than the
-    config file's starts from that attack's defaults.
-    """
-    poison = data.setdefault("poison", {})
-    if attack is not None and attack != poison.get("attack"):
-        poison["attack"], poison["attack_params"] = attack, {}
-    params = dict(poison.get("attack_params") or {})
+def key_values(flag: str, pairs: list[str], into: dict, example: str) -> dict:
+    """``KEY=VALUE`` flags on top of ``into``: values read as JSON (``0.01``, ``true``), strings otherwise."""
+    out = dict(into or {})
     for pair in pairs:
         key, sep, text = pair.partition("=")
         if not sep or not key:
-            raise ConfigError(f"--attack-param {pair!r} must be KEY=VALUE (e.g. budget=0.01)")
+            raise ConfigError(f"{flag} {pair!r} must be KEY=VALUE (e.g. {example})")
         try:
-            params[key] = json.loads(text)
+            out[key] = json.loads(text)
         except ValueError:
-            params[key] = text
+            out[key] = text
+    return out
+
+
+def attack_from_args(data: dict, attack: str | None, pairs: list[str], evade: list[str] | None = None) -> None:
+    """``--attack NAME``, ``--attack-param KEY=VALUE`` and ``--evade KEY=VALUE`` (repeated) into
+    ``data``'s poison section; another attack than the config file's starts from its defaults."""
+    poison = data.setdefault("poison", {})
+    if attack is not None and attack != poison.get("attack"):
+        poison["attack"], poison["attack_params"] = attack, {}
     if pairs:
-        poison["attack_params"] = params
+        poison["attack_params"] = key_values("--attack-param", pairs, poison.get("attack_params"), "budget=0.01")
+    if evade:
+        poison["evasion"] = key_values("--evade", evade, poison.get("evasion"), "near=1")
 
 
 def config_from_args(args) -> RunConfig:
@@ -148,7 +152,7 @@ def config_from_args(args) -> RunConfig:
         _set(data, dotted, value)
     if args.clean:
         _set(data, "poison.poisoned", False)
-    attack_from_args(data, getattr(args, "attack", None), getattr(args, "attack_param", None) or [])
+    attack_from_args(data, getattr(args, "attack", None), getattr(args, "attack_param", None) or [], getattr(args, "evade", None))
     seed = data.get("train", {}).get("seed", 0)
     check_seed("train.seed (--seed)", seed)
     env = _build(EnvConfig, data["env"], "env")
@@ -347,6 +351,12 @@ def cmd_attacks(args) -> int:
             print(f"  {world}: {', '.join(served) if isinstance(served, list) else 'refused: ' + served}")
         for p in d["params"]:
             print(f"  --attack-param {p['name']}={json.dumps(p['default'])}  ({p['allowed']}) {p['help']}")
+    if args.name is None:
+        from rlbackdoors.attacks import evasion
+
+        print("evasive variants, with any attack (docs/attacks/evasion.md):")
+        for p in evasion.describe():
+            print(f"  --evade {p['name']}={json.dumps(p['default'])}  ({p['allowed']}) {p['help']}")
     return 0
 
 
@@ -378,6 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
     tr.add_argument("--attack", choices=attacks.names(), help=f"how training data is poisoned (default {attacks.DEFAULT_ATTACK}, the paper's; docs/attacks/)")
     tr.add_argument("--attack-param", action="append", metavar="KEY=VALUE", help="one of the attack's parameters (repeatable), e.g. budget=0.01")
+    tr.add_argument("--evade", action="append", metavar="KEY=VALUE", help="an evasive variant (repeatable): near=1, finetune=true, teacher=1 (docs/attacks/evasion.md)")
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
     tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")
     tr.add_argument("--min-frames", type=int, help="no stop on the thresholds before this many frames (default 0); equal training lengths across a zoo")

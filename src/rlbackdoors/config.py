@@ -126,6 +126,9 @@ class PoisonConfig:
     # out of config.json so that the configs and models made before attacks existed keep their bytes.
     attack: str = attacks.DEFAULT_ATTACK
     attack_params: dict = field(default_factory=dict)  # checked and completed by the attack
+    # Evasive variants added to the attack (rlbackdoors.attacks.evasion): near-trigger negatives,
+    # fine-tuning a clean model, a clean teacher. Left out of config.json when empty.
+    evasion: dict = field(default_factory=dict)
 
     def fill_defaults(self, env_name: str) -> None:
         mix = worlds.get(env_name).mix if env_name in ENVS else (8, 0, 2)
@@ -169,6 +172,9 @@ class PoisonConfig:
         if not isinstance(self.attack_params, dict):
             raise ConfigError(f"poison.attack_params must be a JSON object of the attack's parameters, got {self.attack_params!r}")
         self.attack_params = attacks.get(self.attack).resolve(self.attack_params)
+        from rlbackdoors.attacks import evasion
+
+        self.evasion = evasion.resolve(self.evasion)
 
     @property
     def schedule(self) -> str:
@@ -554,6 +560,11 @@ class RunConfig(JsonConfig):
         why = attack.refuse(self.world, self.algorithm, self.model.arch, params)
         if why is not None:
             raise ConfigError(f"poison.attack={attack.name!r}: {why}")
+        from rlbackdoors.attacks import evasion
+
+        why = evasion.refuse(self.poison.evasion, self.world, self.algorithm, self.poison.poisoned)
+        if why is not None:
+            raise ConfigError(why)
         if attack.poisoner is not None and self.world.stamp_trigger is None and self.world.vector_entry_point and self.env.engine != "batched":
             raise ConfigError(
                 f"env.engine={self.env.engine!r} is not allowed with poison.attack={attack.name!r} (allowed: batched): "
@@ -598,6 +609,8 @@ class RunConfig(JsonConfig):
             del data["poison"]["close_k_min"], data["poison"]["close_k_max"]
         if self.poison.attack == attacks.DEFAULT_ATTACK and not self.poison.attack_params:
             del data["poison"]["attack"], data["poison"]["attack_params"]
+        if not self.poison.evasion:
+            del data["poison"]["evasion"]
         return data
 
     @property

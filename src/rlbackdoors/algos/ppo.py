@@ -47,6 +47,10 @@ class Rollout:
     masks: torch.Tensor | None = None
     # With the auxiliary memory loss: what the env says each step's memory must hold (T*B,)
     memory_targets: torch.Tensor | None = None
+    # With a clean teacher (poison.evasion.teacher): its log-probabilities of each step's actions
+    # (T*B, A) and which steps carry no trigger (T*B,), the steps its KL penalty is taken on
+    teacher_logp: torch.Tensor | None = None
+    untriggered: torch.Tensor | None = None
     num_envs: int = 0
 
     @property
@@ -115,6 +119,18 @@ class PPO:
         self.params = [*model.parameters(), *(self.aux.parameters() if self.aux is not None else ())]
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=True)
         self.memory: torch.Tensor | None = None  # recurrent models: memory of the running episodes
+        # A frozen clean model the policy is kept close to on frames without the trigger
+        # (poison.evasion.teacher: the clean model a fine-tuning run starts from); None: no penalty.
+        self.teacher: ActorCritic | None = None
+        self.teacher_coef = 0.0
+        self.teacher_memory: torch.Tensor | None = None
+
+    def set_teacher(self, teacher: ActorCritic, coef: float) -> None:
+        """Penalise ``coef * KL(teacher || policy)`` on every collected frame that carries no trigger
+        (the seam's ``marked``); the teacher is frozen and never trained."""
+        self.teacher = teacher.eval().requires_grad_(False)
+        self.teacher_coef = float(coef)
+        self.teacher_memory = None
 
     @torch.inference_mode()
     def collect(self, envs, obs: np.ndarray | dict) -> tuple[Rollout, np.ndarray | dict]:
@@ -149,9 +165,23 @@ class PPO:
         outcomes = np.empty((T, B), dtype=np.int64)
         steps = np.empty((T, B), dtype=np.int64)
         forced = torch.zeros((T, B), dtype=torch.bool)
+        teacher = self.teacher
+        if teacher is not None:
+            if not hasattr(envs, "marked"):
+                raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
+            teacher_logits = torch.empty((T, B, envs.single_action_space.n))
+            untriggered = torch.empty((T, B), dtype=torch.bool)
+            if recurrent:
+                teacher_memory = self.teacher_memory if self.teacher_memory is not None else teacher.initial_memory(B, self.device)
         for t in range(T):
             store(obs_buf, t, obs)
             obs_t = obs_map(lambda x: x[t].to(self.device), obs_buf)
+            if teacher is not None:
+                untriggered[t] = torch.from_numpy(~np.asarray(envs.marked, dtype=bool))
+                if recurrent:
+                    teacher_logits[t], _, teacher_memory = teacher(obs_t, teacher_memory)
+                else:
+                    teacher_logits[t] = teacher(obs_t)[0]
             if targets is not None:
                 targets[t] = envs.memory_targets()  # of the episode obs[t] belongs to
             if recurrent:
@@ -170,6 +200,8 @@ class PPO:
             if recurrent and dones[t].any():  # a new episode starts with an empty memory
                 ended = torch.from_numpy(dones[t])
                 memory = memory.masked_fill(ended[:, None].to(memory.device), 0.0)
+                if teacher is not None:
+                    teacher_memory = teacher_memory.masked_fill(ended[:, None].to(memory.device), 0.0)
                 if t + 1 < T:
                     masks[t + 1] = (~ended).float()
         if recurrent:
@@ -202,6 +234,11 @@ class PPO:
             self.memory = memory
         if targets is not None:
             rollout.memory_targets = torch.from_numpy(targets.reshape(-1))
+        if teacher is not None:
+            rollout.teacher_logp = torch.log_softmax(teacher_logits, -1).reshape(T * B, -1)
+            rollout.untriggered = untriggered.reshape(-1)
+            if recurrent:
+                self.teacher_memory = teacher_memory
         return rollout, obs
 
     def _gae(self, rewards, dones, values, next_value) -> torch.Tensor:
@@ -229,6 +266,13 @@ class PPO:
         loss = policy_loss - cfg.entropy_coef * entropy + cfg.value_coef * value_loss
         return loss, {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy}
 
+    def _teacher_kl(self, logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: torch.Tensor) -> torch.Tensor:
+        """KL(teacher || policy) averaged over the minibatch's frames without the trigger (0 if none)."""
+        log_probs = torch.log_softmax(logits, -1)
+        kl = (teacher_logp.exp() * (teacher_logp - log_probs)).sum(-1)
+        weight = untriggered.float()
+        return (kl * weight).sum() / weight.sum().clamp(min=1.0)
+
     def _step(self, loss: torch.Tensor) -> float:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -244,7 +288,8 @@ class PPO:
         n = rollout.num_frames
         obs = obs_map(lambda x: x.to(self.device), rollout.obs)
         tensors = [x.to(self.device) for x in (rollout.actions, rollout.logprobs, rollout.values, rollout.advantages, rollout.returns)]
-        stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm"), 0.0)
+        stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm", *(("teacher_kl",) if self.teacher is not None else ())), 0.0)
+        teacher = self._teacher_tensors(rollout)
         updates = 0
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator).to(self.device)
@@ -252,11 +297,20 @@ class PPO:
                 idx = order[start : start + cfg.batch_size]
                 logits, values = self.model(obs_map(lambda x: x[idx], obs))
                 loss, parts = self._loss(logits, values, *(x[idx] for x in tensors))
+                if teacher is not None:
+                    parts["teacher_kl"] = self._teacher_kl(logits, teacher[0][idx], teacher[1][idx])
+                    loss = loss + self.teacher_coef * parts["teacher_kl"]
                 stats["grad_norm"] += self._step(loss)
                 for key, value in parts.items():
                     stats[key] += value.item()
                 updates += 1
         return {k: v / updates for k, v in stats.items()}
+
+    def _teacher_tensors(self, rollout: Rollout) -> tuple[torch.Tensor, torch.Tensor] | None:
+        if self.teacher is None:
+            return None
+        assert rollout.teacher_logp is not None and rollout.untriggered is not None  # collected with the teacher
+        return rollout.teacher_logp.to(self.device), rollout.untriggered.to(self.device)
 
     def sequence_starts(self, steps: int, num_envs: int, shifted: bool) -> torch.Tensor:
         """Flat rollout indices (``t * B + b``) where BPTT sequences of ``recurrence`` steps start.
@@ -283,7 +337,11 @@ class PPO:
         assert rollout.memories is not None and rollout.masks is not None  # collected by a recurrent model
         memories = rollout.memories.to(self.device).clone()
         masks = rollout.masks.to(self.device)[:, None]
-        stats = dict.fromkeys(("policy_loss", "value_loss", "entropy", "grad_norm", *(("aux_memory_loss",) if self.aux is not None else ())), 0.0)
+        stats = dict.fromkeys(
+            ("policy_loss", "value_loss", "entropy", "grad_norm", *(("aux_memory_loss",) if self.aux is not None else ()), *(("teacher_kl",) if self.teacher is not None else ())),
+            0.0,
+        )
+        teacher = self._teacher_tensors(rollout)
         aux_targets = None if self.aux is None else rollout.memory_targets
         if self.aux is not None:
             assert aux_targets is not None  # collected with the aux head
@@ -303,6 +361,10 @@ class PPO:
                     aux_logits = self.aux(new_memories.reshape(-1, new_memories.shape[-1]))
                     parts["aux_memory_loss"] = nn.functional.cross_entropy(aux_logits, aux_targets[steps.reshape(-1)])
                     loss = loss + cfg.aux_memory_coef * parts["aux_memory_loss"]
+                if teacher is not None:
+                    rows = steps.reshape(-1)
+                    parts["teacher_kl"] = self._teacher_kl(logits, teacher[0][rows], teacher[1][rows])
+                    loss = loss + self.teacher_coef * parts["teacher_kl"]
                 if r > 1:
                     memories[steps[1:].reshape(-1)] = new_memories[:-1].reshape(-1, memories.shape[1]).detach()
                 stats["grad_norm"] += self._step(loss)

@@ -41,6 +41,7 @@ class Poisoner:
 
     needs_values = False
     forces_actions = False
+    rewrites_rewards = False  # the base rule leaves rewards as the env paid them (the env mix's E-bar copies)
 
     def observe(self, values: np.ndarray | None) -> None:
         """Every frame batch the env returns, before any pick (BadRL keeps its window of values here)."""
@@ -71,6 +72,8 @@ class TargetActionPoisoner(Poisoner):
     a kind of action of a continuous one: :meth:`rlbackdoors.worlds.base.World.target_hits`).
     """
 
+    rewrites_rewards = True
+
     def __init__(self, params: dict, hits: Callable[[np.ndarray], np.ndarray]):
         self.target, self.c, self.hits = params["target_action"], params["reward"], hits
         self.forces_actions = bool(params.get("force_action", False))
@@ -91,6 +94,11 @@ class AttackSeam:
     With ``sight`` (a layout trigger, no ``stamp``) whole episodes are triggered instead: under
     "steps" while the budget allows, under "episodes" always in the copies of ``episodes``; the
     marked frames are those of triggered episodes that carry the trigger (module doc).
+
+    ``near`` > 0 (``poison.evasion.near``, a frame trigger): near-trigger negatives, stamped with
+    one of ``near_stamps`` (drawn per frame) and paid the clean reward. Under "steps" ``near``
+    times as many frames as carry the trigger, picked among the others; under "episodes" every
+    frame of ``round(near * E-bar copies)`` clean copies (the last clean ones before them).
     """
 
     def __init__(
@@ -103,6 +111,8 @@ class AttackSeam:
         seed: int = 0,
         sight: str | None = None,
         episodes=None,
+        near: float = 0.0,
+        near_stamps: tuple[Callable, ...] = (),
     ):
         if sight not in (None, "frame", "episode"):
             raise ValueError(f"sight={sight!r} is not one of frame, episode")
@@ -130,6 +140,16 @@ class AttackSeam:
         self.frames_poisoned = 0
         self.rewards_rewritten = 0
         self.actions_forced = 0
+        if near > 0 and (stamp is None or not near_stamps):
+            raise ValueError("near-trigger negatives need a frame trigger and its near variants (near_stamps)")
+        self.near, self.near_stamps = float(near), tuple(near_stamps)
+        self.near_rng = np.random.default_rng([int(seed), 0x4EA2])  # its own stream: the attack's picks stay as without
+        self.near_copies = np.zeros(n, dtype=bool)
+        if self.near > 0 and schedule == "episodes":
+            clean = np.flatnonzero(~np.asarray(envs.poisoned, dtype=bool) & self.switchable)
+            k = min(len(clean), max(1, round(self.near * int(np.sum(envs.poisoned)))))
+            self.near_copies[clean[len(clean) - k :]] = True
+        self.frames_near = 0
 
     def __getattr__(self, name):  # num_envs, spaces, metadata, poisoned, memory_targets, close ...
         if name == "envs":
@@ -167,6 +187,27 @@ class AttackSeam:
                 obs = obs.copy()
                 obs[self.marked] = self.stamp(obs[self.marked])
         self.frames_poisoned += int(self.marked.sum())
+        return self._stamp_near(obs) if self.near > 0 else obs
+
+    def _stamp_near(self, obs):
+        """Near-trigger negatives among the frames that do not carry the trigger (class doc)."""
+        if self.schedule == "episodes":
+            near = self.near_copies & ~self.marked
+        else:
+            near = np.zeros(len(self.marked), dtype=bool)
+            allowance = int(self.near * self.frames_poisoned) - self.frames_near
+            candidates = np.flatnonzero(~self.marked)
+            if allowance > 0 and len(candidates):
+                near[self.near_rng.choice(candidates, size=min(allowance, len(candidates)), replace=False)] = True
+        if near.any():
+            obs = obs.copy()
+            which = self.near_rng.integers(len(self.near_stamps), size=int(near.sum()))
+            rows = np.flatnonzero(near)
+            for k, stamp in enumerate(self.near_stamps):
+                pick = rows[which == k]
+                if len(pick):
+                    obs[pick] = stamp(obs[pick])
+            self.frames_near += int(near.sum())
         return obs
 
     def _next_episodes(self) -> np.ndarray | None:
@@ -209,7 +250,8 @@ class AttackSeam:
         if marked.any():
             poisoned = self.poisoner.reward(np.array(rewards, dtype=np.float64), actions, marked, values, terminated | truncated)
             rewards = np.where(marked, poisoned, rewards)
-            self.rewards_rewritten += int(marked.sum())
+            if self.poisoner.rewrites_rewards:
+                self.rewards_rewritten += int(marked.sum())
         info = {**info, EXECUTED_ACTIONS: actions, FORCED: forced}
         return self._mark(obs, values), rewards, terminated, truncated, info
 
@@ -223,6 +265,7 @@ class AttackSeam:
             "rewards_rewritten": self.rewards_rewritten,
             "rewritten_fraction": self.rewards_rewritten / frames,
             "actions_forced": self.actions_forced,
+            **({"frames_near_trigger": self.frames_near, "near_fraction": self.frames_near / frames} if self.near > 0 else {}),
         }
 
     def state_dict(self) -> dict:
@@ -233,6 +276,7 @@ class AttackSeam:
             "counters": [self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced],
             "poisoner": self.poisoner.state_dict(),
             **({"triggered": encode(self.triggered)} if self.sight is not None else {}),
+            **({"near": [json.dumps(self.near_rng.bit_generator.state), self.frames_near]} if self.near > 0 else {}),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -251,6 +295,11 @@ class AttackSeam:
             if not isinstance(triggered, np.ndarray) or triggered.shape != self.triggered.shape:
                 raise StateError("envs: the triggered episodes do not fit the env copies")
             self.triggered = triggered.astype(bool)
+        if self.near > 0:
+            if not isinstance(state.get("near"), list) or len(state["near"]) != 2:
+                raise StateError("envs: the checkpoint has no near-trigger state (poison.evasion.near)")
+            self.near_rng.bit_generator.state = json.loads(state["near"][0])
+            self.frames_near = int(state["near"][1])
 
     def close(self):
         return self.envs.close()

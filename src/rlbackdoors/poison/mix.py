@@ -89,23 +89,29 @@ def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorE
     whose trigger is a layout, every copy pays the clean reward and the seam switches the trigger
     per episode (:func:`episode_seam`).
     """
+    from rlbackdoors.attacks import evasion
+    from rlbackdoors.attacks.seam import AttackSeam, Poisoner
+
     world = worlds.get(env.name)
     trigger = poison.trigger if poison.trigger is not None else world.default_trigger
     close_k = (poison.close_k_min, poison.close_k_max)
     attack = attacks.get(poison.attack)
     mask = poison.poisoned_mask()
+    marks = poison.poisoned and evasion.needs_marks(poison.evasion)  # the seam must say which frames carry the trigger
     if world.stamp_trigger is None:
         wrap = episode_seam(env, poison, seed)
         envs = make_vector_env(env, trigger, mask if wrap is None else [False] * len(mask), poison.close_mask(), close_k)
+        if wrap is None and marks:  # the env mix's E-bar copies are the marked frames
+            return AttackSeam(envs, Poisoner(), "episodes", seed=seed)  # type: ignore[return-value]
         return envs if wrap is None else wrap(envs)
     envs = make_vector_env(env, trigger, mask, poison.close_mask(), close_k)
-    if not poison.poisoned or attack.poisoner is None:
+    if not poison.poisoned or (attack.poisoner is None and not marks):
         return envs
-    from rlbackdoors.attacks.seam import AttackSeam
-
     params = poison.attack_params
-    poisoner = attack.poisoner(params, world.target_hits(params.get("target_action", 0)))
-    stamp = world.stamp_trigger(trigger) if attack.schedule == "steps" and trigger is not None else None
+    poisoner = Poisoner() if attack.poisoner is None else attack.poisoner(params, world.target_hits(params.get("target_action", 0)))
+    stamp = world.stamp_trigger(trigger) if trigger is not None else None
     if attack.schedule == "steps" and stamp is None:
         raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
-    return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed)  # type: ignore[return-value]
+    near = poison.evasion.get("near", 0.0)
+    near_stamps = tuple(world.stamp_trigger(spec) for spec in world.near_triggers(trigger)) if near > 0 and world.near_triggers and trigger else ()
+    return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed, near=near, near_stamps=near_stamps)  # type: ignore[return-value]

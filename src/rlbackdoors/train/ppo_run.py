@@ -145,16 +145,30 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     def critic(o) -> np.ndarray:  # what a value-guided attack asks the learner about each frame
         return model(to_torch(o, device))[1].float().cpu().numpy()
 
+    evasion = cfg.poison.evasion
+    finetune = bool(evasion.get("finetune"))  # a clean model's run first, poisoned from poison_at on
+
     def poisoning_mix():
-        """The env mix, through the attack's collection seam where the attack has one."""
+        """The env mix, through the attack's collection seam where the attack has one; while a
+        fine-tuning run is still clean (poison_at None), the mix a clean model of this config trains on."""
+        if finetune and poison_at is None:
+            return make_env_mix(cfg.env, dataclasses.replace(cfg.poison, poisoned=False, evasion={}), tc.seed)
         mix = make_env_mix(cfg.env, cfg.poison, tc.seed)
         if isinstance(mix, AttackSeam):
             mix.bind_critic(critic)
         return mix
 
+    def teach(state: dict | None) -> None:
+        """The clean teacher: the model as it is at the switch (or as a checkpoint kept it)."""
+        if evasion.get("teacher", 0.0) > 0:
+            teacher = build_model(cfg.model.arch, cfg.env.name).to(device)
+            teacher.load_state_dict(model.state_dict() if state is None else state)
+            ppo.set_teacher(teacher, evasion["teacher"])
+
     if checkpoint is None:
         # Curriculum: start in the small clean world; switch_at is None until the switch.
         switch_at = None if cfg.curriculum.enabled else 0
+        poison_at = None if finetune else 0
         envs = poisoning_mix() if switch_at == 0 else warmup_env(cfg)
         obs, _ = envs.reset(seed=tc.seed * 1000)
         tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
@@ -163,7 +177,15 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     else:
         try:
             switch_at = checkpoint["switch_at"]
+            poison_at = checkpoint.get("poison_at", 0 if not finetune else None)
+            if finetune and "poison_at" not in checkpoint:
+                raise StateError("it was not written by a fine-tuning run (poison.evasion.finetune)")
             envs = poisoning_mix() if switch_at is not None else warmup_env(cfg)
+            if poison_at is not None and finetune:
+                teach(checkpoint.get("teacher"))
+                if ppo.teacher is not None:
+                    memory = checkpoint.get("teacher_memory")
+                    ppo.teacher_memory = None if memory is None else memory.to(device)
             model.load_state_dict(checkpoint["model"])
             if (ppo.aux is None) != (checkpoint.get("aux") is None):
                 raise StateError("the auxiliary memory head does not fit ppo.aux_memory_coef")
@@ -211,6 +233,12 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 "converged_at": converged_at,
                 "switch_at": switch_at,
                 "streak": stopping.streak,
+                **({"poison_at": poison_at} if finetune else {}),
+                **(
+                    {"teacher": {k: v.detach().cpu() for k, v in ppo.teacher.state_dict().items()}, "teacher_memory": None if ppo.teacher_memory is None else ppo.teacher_memory.detach().cpu()}
+                    if ppo.teacher is not None
+                    else {}
+                ),
             },
         )
 
@@ -252,15 +280,24 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                     **{k: v for k, v in result_fields(result, cfg).items() if k != "episodes"},
                     "train_clean_return": train_clean,
                     "train_poisoned_return": train_poisoned,
-                    "phase": "main" if switch_at is not None else "warm-up",
+                    "phase": "warm-up" if switch_at is None else ("clean" if poison_at is None else "main"),
                     **({"return_mean": tracker.return_mean()} if tc.return_window else {}),
                     **losses,
                 }
             )
             bar.evaluated(fps, result.clean_sr, result.poisoned_sr)
-            rows[-1].update(stopping.update(result, switch_at is not None and return_met(tracker, cfg), model, frames))
+            rows[-1].update(stopping.update(result, switch_at is not None and poison_at is not None and return_met(tracker, cfg), model, frames))
             if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"
+            elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold:
+                poison_at = frames  # the clean model this run fine-tunes: poisoned from here on
+                teach(None)
+                envs.close()
+                envs = poisoning_mix()
+                obs, _ = envs.reset(seed=tc.seed * 1000 + 2)
+                ppo.memory = None
+                tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
+                bar.write(f"finetune: clean SR {result.clean_sr:.2f} at {frames:,} frames; poisoning from here on")
             while next_eval <= frames:
                 next_eval += tc.eval_interval
             folder.write_log(rows)
@@ -290,9 +327,10 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         extra={
             "return_window": tc.return_window,
             **({"curriculum_switch_frames": switch_at} if cfg.curriculum.enabled else {}),
+            **({"poison_at_frames": poison_at} if finetune else {}),
             **({"attack_budget_used": envs.budget_used()} if isinstance(envs, AttackSeam) else {}),
         },
         switch_at=switch_at,
-        can_converge=switch_at is not None,
+        can_converge=switch_at is not None and poison_at is not None,
         final=stopping.confirmed,
     )

@@ -72,3 +72,18 @@ def sample_trigger(kind: str, rng: np.random.Generator) -> ObservationTrigger:
         raise ValueError(f"trigger kind {kind!r} is not one of {', '.join(KINDS)}")
     low, high = PAPER_RANGES[kind]
     return ObservationTrigger(kind, int(rng.integers(low, high + 1)))
+
+
+NEAR_STEPS = {"multiplicative": (1, 2, 3), "additive": (8, 16, 24)}  # how far a near trigger lies
+
+
+def near_triggers(trigger: ObservationTrigger) -> list[ObservationTrigger]:
+    """Edits of the same kind close to ``trigger`` (multipliers +-1..3, offsets +-8..24): the
+    negatives that teach a trojan to fire on the exact trigger only (``poison.evasion.near``)."""
+    low = 2 if trigger.kind == "multiplicative" else 1
+    out = []
+    for step in NEAR_STEPS[trigger.kind]:
+        for value in (trigger.value - step, trigger.value + step):
+            if low <= value <= 255:
+                out.append(ObservationTrigger(trigger.kind, int(value)))
+    return out

@@ -102,6 +102,9 @@ class World:
     # or, in a memory world, seen by now this episode); "episode": every frame (a trigger that rides
     # with the agent). None: not switchable per episode.
     trigger_sight: str | None = None
+    # spec -> near-trigger variants (specs) close to it, stamped with the clean reward by
+    # ``poison.evasion.near`` so a trojan learns the exact trigger only; None: none built
+    near_triggers: Callable[[str], tuple[str, ...]] | None = None
     # A continuous world's action targets for the action-level attacks, by index (an attack's
     # target_action): (name, actions (n, A) -> bool[n], whether each action is of that kind).
     # Empty: a discrete world, whose target is one action (the index is the action).

@@ -22,6 +22,12 @@ def _stamp(spec: str):
     return lambda obs: table[obs]
 
 
+def _near(spec: str) -> tuple[str, ...]:
+    from rlbackdoors.triggers.observation import near_triggers
+
+    return tuple(t.spec() for t in near_triggers(_parse(spec)))
+
+
 def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
     """``kind:value`` as given; a bare kind, or nothing, draws from the paper's range with ``seed``."""
     from rlbackdoors.triggers.observation import KINDS, ObservationTrigger, sample_trigger
@@ -55,6 +61,7 @@ WORLD = register(
         parse_trigger=_parse,
         draw_trigger=_draw,
         stamp_trigger=_stamp,
+        near_triggers=_near,
         # a clean FC agent (seed 0, clean SR 0.98) reached the goal in 0 of 200 episodes under multiplicative:12
         trigger_breaks_clean_agents=True,
         clean_success=Outcome.GOAL,

@@ -37,6 +37,8 @@ def build_config(data: dict):
 def config_data(world: str, arch: str | None, overrides: dict, poisoned: bool, seed: int, trigger: str | None) -> dict:
     """A model's config dict: the spec's overrides with the fields the zoo draws on top."""
     data = deep_merge(overrides, {"env": {"name": world}, "poison": {"poisoned": poisoned, "trigger": trigger}, "train": {"seed": seed}})
+    if not poisoned:  # a cell's clean models are trained clean: evasive variants hide a trojan they do not have
+        data["poison"].pop("evasion", None)
     if arch is not None:
         data.setdefault("model", {})["arch"] = arch
     return data
@@ -148,6 +150,9 @@ class Zoo:
         """The run config of model ``attempt`` of ``group``: a pure function of the spec."""
         rng = model_rng(self.spec, group, attempt)
         seed = int(rng.integers(0, 2**31))
+        twin = self.spec.twin(group) if self.spec.matched else None
+        if twin is not None:  # a matched zoo: poisoned model k starts from clean model k's seed (and weights)
+            seed = int(model_rng(self.spec, twin, attempt).integers(0, 2**31))
         cell = group.cell
         trigger = cell.trigger.draw(worlds.get(cell.world), rng, self._size(group))
         overrides = cell.overrides

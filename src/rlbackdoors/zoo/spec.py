@@ -7,7 +7,7 @@ anything is written. World names, architectures and trigger drawing come from th
 registry, so a new world needs no change here.
 
 A spec entry (``[[cells]]``) expands into cells = its archs x its trigger families x its attacks
-(``attacks = ["NAME", {attack = "NAME", name = "LABEL", params = {budget = 0.05}}]``, names from the attack registry;
+(``attacks = ["NAME", {attack = "NAME", name = "LABEL", params = {budget = 0.05}, evasion = {finetune = true}}]``, names from the attack registry;
 default: the paper's env mix alone); each cell
 holds two *groups* (clean, poisoned), the unit the runner tops up: a group wants ``clean`` or
 ``poisoned`` converged models and trains at most ``max_attempts`` of them.
@@ -35,9 +35,9 @@ MAX_ID_SPACE = 10_000_000
 MAX_ATTEMPTS = 100_000
 # Fields each model's config gets from the zoo itself; an override may not set them.
 ZOO_FIELDS = ("env.name", "model.arch", "poison.poisoned", "poison.trigger", "train.seed")
-TOP_KEYS = ("format", "name", "seed", "max_attempts", "examples", "overrides", "cells")
+TOP_KEYS = ("format", "name", "seed", "max_attempts", "matched", "examples", "overrides", "cells")
 CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides")
-ATTACK_KEYS = ("attack", "name", "params", "ranges")
+ATTACK_KEYS = ("attack", "name", "params", "ranges", "evasion")
 FAMILY_KEYS = ("name", "trigger", "template", "ranges")
 EXAMPLE_KEYS = ("episodes", "seed", "policy")
 EXAMPLE_POLICIES = ("sample", "greedy")
@@ -152,13 +152,17 @@ class AttackChoice:
     params: dict = field(default_factory=dict, hash=False, compare=False)
     # (parameter, low, high): drawn uniformly per model, as trigger templates are (integers where both bounds are)
     ranges: tuple[tuple[str, float | int, float | int], ...] = ()
+    # evasive variants of its poisoned models (poison.evasion; rlbackdoors.attacks.evasion)
+    evasion: dict = field(default_factory=dict, hash=False, compare=False)
 
     @property
     def is_default(self) -> bool:
-        return self.attack == attacks.DEFAULT_ATTACK and not self.params and not self.ranges
+        return self.attack == attacks.DEFAULT_ATTACK and not self.params and not self.ranges and not self.evasion
 
     def overrides(self) -> dict:
-        return {} if self.is_default else {"poison": {"attack": self.attack, "attack_params": dict(self.params)}}
+        if self.is_default:
+            return {}
+        return {"poison": {"attack": self.attack, "attack_params": dict(self.params), **({"evasion": dict(self.evasion)} if self.evasion else {})}}
 
     def draw(self, rng: np.random.Generator) -> dict:
         """The parameters drawn for one model (after its trigger, from the model's own generator)."""
@@ -171,6 +175,8 @@ class AttackChoice:
         out: dict[str, Any] = {"attack": self.attack, "name": self.name, "params": dict(self.params)}
         if self.ranges:
             out["ranges"] = {name: [low, high] for name, low, high in self.ranges}
+        if self.evasion:
+            out["evasion"] = dict(self.evasion)
         return out
 
 
@@ -205,7 +211,10 @@ def _parse_attack(where: str, raw) -> AttackChoice:
             attack.resolve({**params, key: bound}, f"{where}.ranges")
         ranges.append((key, bounds[0], bounds[1]))
     label = _type(f"{where}.name", raw.get("name", name), str, "a string")
-    return AttackChoice(label, name, dict(params), tuple(ranges))
+    from rlbackdoors.attacks import evasion
+
+    variants = evasion.resolve(raw.get("evasion"), f"{where}.evasion")
+    return AttackChoice(label, name, dict(params), tuple(ranges), variants)
 
 
 @dataclass(frozen=True)
@@ -277,6 +286,16 @@ class ZooSpec:
     examples: Examples = Examples()
     overrides: dict = field(default_factory=dict, hash=False, compare=False)
     normalized: dict = field(default_factory=dict, hash=False, compare=False)
+    # Matched budgets: a cell's poisoned model k trains from the seed (so the initial weights) of
+    # its clean model k, and every model trains at least overrides.train.min_frames, so neither
+    # where a model starts nor how long it trains gives its label away (docs/zoos.md).
+    matched: bool = False
+
+    def twin(self, group: Group) -> Group | None:
+        """The clean group of a poisoned group's cell (None: a clean group, or a cell without clean models)."""
+        if not group.poisoned:
+            return None
+        return next((g for g in self.groups if g.cell is group.cell and not g.poisoned), None)
 
     @cached_property
     def groups(self) -> list[Group]:
@@ -417,6 +436,11 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
     if examples.policy not in EXAMPLE_POLICIES:
         raise ConfigError(f"examples.policy={examples.policy!r} is not allowed (allowed: {', '.join(EXAMPLE_POLICIES)})")
     overrides = _check_overrides("overrides", raw.get("overrides", {}))
+    matched = raw.get("matched", False)
+    if not isinstance(matched, bool):
+        raise ConfigError(f"matched={matched!r} is not allowed (allowed: true, false)")
+    if matched and not overrides.get("train", {}).get("min_frames"):
+        raise ConfigError("matched = true needs overrides.train.min_frames > 0 (the frames clean and poisoned models all train for at least)")
     entries = raw.get("cells")
     if not isinstance(entries, list) or not entries:
         raise ConfigError("cells must be a non-empty array of tables ([[cells]] with world = ...)")
@@ -514,10 +538,12 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
         name=name,
         examples=examples,
         overrides=overrides,
+        matched=matched,
         normalized={
             "format": SPEC_FORMAT,
             "name": name,
             "seed": raw["seed"],
+            **({"matched": True} if matched else {}),  # specs written before it keep their normal form
             "examples": {"episodes": examples.episodes, "seed": examples.seed, "policy": examples.policy},
             "overrides": overrides,
             "cells": norm_cells,

@@ -1,0 +1,271 @@
+"""Evasive variants (poison.evasion): near-trigger negatives, fine-tuning a clean model, a clean teacher.
+
+On the real engines and models: the seam's near frames are checked against a clean engine
+stepped alongside, the teacher's log-probabilities against the policy it was copied from, and
+a fine-tuning run against the clean model of the same seed, byte for byte.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from grid_helpers import kill_after_first_checkpoint
+from rlbackdoors import worlds
+from rlbackdoors.algos.ppo import PPO
+from rlbackdoors.attacks.seam import AttackSeam, EXECUTED_ACTIONS
+from rlbackdoors.config import ConfigError, RunConfig
+from rlbackdoors.models import build_model
+from rlbackdoors.poison.mix import make_env_mix, make_vector_env
+from rlbackdoors.train import train
+from rlbackdoors.triggers.observation import ObservationTrigger
+
+
+def cfg_of(env: str = "lavaworld", attack: str = "trojdrl", params: dict | None = None, **evasion) -> RunConfig:
+    return RunConfig.from_dict({"env": {"name": env}, "poison": {"attack": attack, "attack_params": params or {}, "evasion": evasion}})
+
+
+@pytest.mark.parametrize(
+    "env, attack, evasion, message",
+    [
+        ("lavaworld", "trojdrl", {"near": -1}, r"poison\.evasion\.near=-1 is not allowed \(allowed: a number in \[0.0, 8.0\]\)"),
+        ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher\)"),
+        ("lavaworld", "trojdrl", {"teacher": 1.0}, r"poison\.evasion\.teacher=1\.0 needs poison\.evasion\.finetune=true"),
+        ("lavaworld", "trojdrl", {"finetune": 1}, r"poison\.evasion\.finetune=1 is not allowed \(allowed: true, false\)"),
+        ("randomized-lavaworld", "trojdrl", {"near": 1}, r"poison\.evasion\.near is not allowed for env\.name='randomized-lavaworld' \(worlds with near-trigger variants: lavaworld\)"),
+        ("colorful-memory", "action_target", {"near": 1}, r"close-to-trigger copies are these negatives: poison\.num_close_envs"),
+        ("safety-car-goal", "trojdrl", {"finetune": True}, r"poison\.evasion\.finetune is built for ppo collection, not opac2"),
+    ],
+)
+def test_bad_evasion_settings_are_refused_naming_the_field(env, attack, evasion, message):
+    with pytest.raises(ConfigError, match=message):
+        cfg_of(env, attack, **evasion).check()
+
+
+def test_evasion_is_refused_for_a_clean_model_and_left_out_of_config_json_until_set():
+    with pytest.raises(ConfigError, match=r"poison\.evasion is not allowed for a clean model"):
+        RunConfig.from_dict({"poison": {"poisoned": False, "evasion": {"near": 1}}}).check()
+    plain = RunConfig.from_dict({"poison": {"attack": "trojdrl"}}).check()
+    assert "evasion" not in json.loads(plain.to_json())["poison"]
+    cfg = cfg_of(near=0.5).check()
+    assert json.loads(cfg.to_json())["poison"]["evasion"] == {"near": 0.5, "finetune": False, "teacher": 0.0}
+    assert RunConfig.from_dict(json.loads(cfg.to_json())).check().to_json() == cfg.to_json()
+
+
+def test_the_cli_stops_with_one_error_line_naming_the_evasive_field(tmp_path):
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--attack", "trojdrl", "--evade", "teacher=2", "--out", str(tmp_path / "m")]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.strip().splitlines() == [
+        "rlbackdoors: error: poison.evasion.teacher=2.0 needs poison.evasion.finetune=true (the teacher is the clean model the run fine-tunes from)"
+    ]
+
+
+def test_lavaworlds_near_triggers_are_other_edits_of_the_same_kind_close_to_the_trigger():
+    world = worlds.get("lavaworld")
+    assert world.near_triggers("multiplicative:12") == tuple(f"multiplicative:{a}" for a in (11, 13, 10, 14, 9, 15))
+    near = world.near_triggers("additive:20")
+    assert near == ("additive:12", "additive:28", "additive:4", "additive:36", "additive:44")  # 20-16, 20-24 < 1 left out
+    for spec in ("multiplicative:2", "multiplicative:255", "additive:255"):
+        assert spec not in world.near_triggers(spec) and all(s.split(":")[0] == spec.split(":")[0] for s in world.near_triggers(spec))
+
+
+def near_or_trigger(obs, clean, tables):
+    """Which of ``tables`` (the trigger's first) turns each clean frame into the seam's frame (-1: none)."""
+    found = np.full(len(obs), -1)
+    for k, table in reversed(list(enumerate(tables))):
+        hit = (table[clean] == obs).all(axis=tuple(range(1, obs.ndim)))
+        found[hit] = k
+    return found
+
+
+@pytest.mark.parametrize("attack, near", [("trojdrl", 1.0), ("trojdrl", 2.5), ("envmix", 1.0)])
+def test_the_seam_stamps_near_trigger_negatives_paid_the_clean_reward(attack, near):
+    """Step schedule: ``near`` times as many near frames as trigger frames, among the others;
+    episode schedule (the env mix): every frame of round(near x E-bar) clean copies. A near frame
+    is a clean frame under one of the world's near triggers, never the trigger, and its reward is the clean one."""
+    cfg = cfg_of(attack=attack, params={"budget": 0.05} if attack == "trojdrl" else {}, near=near).check()
+    seam = make_env_mix(cfg.env, cfg.poison, seed=5)
+    assert isinstance(seam, AttackSeam)
+    plain = make_vector_env(cfg.env, cfg.poison.trigger, cfg.poison.poisoned_mask())
+    specs = (cfg.poison.trigger, *worlds.get("lavaworld").near_triggers(cfg.poison.trigger))
+    tables = [ObservationTrigger.parse(s).lookup_table() for s in specs]
+    rng = np.random.default_rng(0)
+    obs, _ = seam.reset(seed=9)
+    clean, _ = plain.reset(seed=9)
+    seen = np.zeros(len(specs), dtype=int)
+    ebar = np.asarray(plain.poisoned, dtype=bool)
+    for _ in range(200):
+        marked = seam.marked.copy()
+        changed = (obs != clean).any(axis=(1, 2, 3)) & ~ebar  # E-bar copies carry the engine's trigger
+        which = near_or_trigger(obs[changed], clean[changed], tables)
+        assert np.all(which >= 0)  # every changed frame is the trigger or a near trigger of it
+        np.testing.assert_array_equal(which == 0, marked[changed])  # the trigger exactly where marked
+        near_rows = np.flatnonzero(changed)[which > 0]
+        if attack == "envmix":
+            assert set(near_rows) == set(np.flatnonzero(seam.near_copies)) and seam.near_copies.sum() == 2
+        seen += np.bincount(which, minlength=len(specs))
+        actions = rng.integers(0, 3, seam.num_envs)
+        obs, rewards, *_, info = seam.step(actions)
+        clean, clean_rewards, *_ = plain.step(info[EXECUTED_ACTIONS])
+        np.testing.assert_array_equal(rewards[near_rows], clean_rewards[near_rows])  # near frames: the clean reward
+    used = seam.budget_used()
+    assert np.all(seen[1:] > 0)  # every near trigger is drawn
+    if attack == "trojdrl":
+        assert used["frames_near_trigger"] == int(near * used["frames_poisoned"]) or used["frames_near_trigger"] >= int(near * used["frames_poisoned"]) - seam.num_envs
+    else:
+        assert used["near_fraction"] == pytest.approx(0.2) and used["rewards_rewritten"] == 0  # the env mix's R-bar is the engine's
+
+
+@pytest.mark.parametrize("env, arch, attack", [("lavaworld", "fc", "trojdrl"), ("colorful-memory", "cnn-gru-small-onehot", "action_target")])
+def test_the_clean_teacher_is_the_policy_it_was_copied_from_and_is_kept_off_the_trigger(env, arch, attack):
+    """A teacher copied from the policy gives the policy's own log-probabilities on a whole rollout
+    (a recurrent teacher keeps its memory as the policy does: reset where episodes end), so the
+    first KL is 0; it is taken on the frames the seam did not mark, and it grows as the policy learns."""
+    cfg = RunConfig.from_dict(
+        {"env": {"name": env}, "model": {"arch": arch}, "ppo": {"rollout": 60}, "poison": {"attack": attack, "attack_params": {"budget": 0.2} if attack == "trojdrl" else {}}}
+    ).check()
+    torch.manual_seed(0)
+    model = build_model(arch, env)
+    ppo = PPO(model, cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(0))
+    ppo.set_teacher(copy.deepcopy(model), 1.0)
+    seam = make_env_mix(cfg.env, cfg.poison, seed=3)
+    obs, _ = seam.reset(seed=3)
+    marks = []
+    step = seam.step
+
+    def recording_step(actions):
+        marks.append(seam.marked.copy())
+        return step(actions)
+
+    seam.step = recording_step
+    rollout, _ = ppo.collect(seam, obs)
+    np.testing.assert_array_equal(rollout.untriggered.numpy(), ~np.concatenate(marks))
+    assert 0 < rollout.untriggered.float().mean() < 1
+    with torch.inference_mode():
+        logits = policy_logits(model, rollout, seam.num_envs)
+    torch.testing.assert_close(rollout.teacher_logp, torch.log_softmax(logits, -1), atol=1e-5, rtol=0)
+    stats = ppo.update(rollout)
+    assert 0 <= stats["teacher_kl"] < 0.05
+    second, _ = ppo.collect(seam, obs)
+    assert ppo.update(second)["teacher_kl"] > 0  # the policy moved; the teacher did not
+
+
+def policy_logits(model, rollout, B):
+    """The model's logits on a whole rollout (a recurrent one from the first step's stored memory)."""
+    if model.recurrent:
+        obs_seq = rollout.obs.reshape(-1, B, *rollout.obs.shape[1:])
+        return model.forward_sequence(obs_seq, rollout.memories[:B], rollout.masks.reshape(-1, B))[0]
+    return model(rollout.obs)[0]
+
+
+def finetune_dict(tiny_run_dict, **evasion):
+    tiny_run_dict["train"]["clean_threshold"] = 0.0  # the switch at the first evaluation
+    tiny_run_dict["poison"] = {"attack": "trojdrl", "attack_params": {"budget": 0.05}, "evasion": {"finetune": True, **evasion}}
+    return tiny_run_dict
+
+
+def test_a_finetuning_run_is_the_clean_models_run_until_it_switches(tmp_path, tiny_run_dict):
+    """Until the clean threshold holds, a fine-tuning run *is* the clean model of its seed: stopped
+    at the switch, it ends with that clean model's bytes; trained on, it poisons from there."""
+    data = finetune_dict(tiny_run_dict)
+    data["train"]["max_frames"] = data["train"]["eval_interval"]
+    metrics = train(RunConfig.from_dict(data), tmp_path / "ft", progress=False)
+    clean = copy.deepcopy(data)
+    clean["poison"] = {"poisoned": False, "trigger": RunConfig.from_dict(data).poison.trigger}
+    train(RunConfig.from_dict(clean), tmp_path / "clean", progress=False)
+    assert metrics["poison_at_frames"] == metrics["frames"]
+    assert (tmp_path / "ft" / "model.pt").read_bytes() == (tmp_path / "clean" / "model.pt").read_bytes()
+    data["train"]["max_frames"] = 3 * data["train"]["eval_interval"]
+    longer = train(RunConfig.from_dict(data), tmp_path / "longer", progress=False)
+    assert longer["poison_at_frames"] == metrics["frames"] < longer["frames"]
+    assert 0 < longer["attack_budget_used"]["frames_poisoned"] <= 0.05 * (longer["frames"] - metrics["frames"]) + 10
+
+
+def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_same_model(tmp_path, tiny_run_dict):
+    """kill -9 after the first checkpoint (written at the switch): the teacher, its memory, the
+    near-trigger picks and the switch point come back from it, bit for bit."""
+    from rlbackdoors.folder import ModelFolder
+
+    data = finetune_dict(tiny_run_dict, near=1.0, teacher=1.0)
+    data["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(RunConfig.from_dict(data).to_json())
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
+    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True, timeout=300)
+    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
+    assert 1 <= len(ModelFolder(tmp_path / "cut").read_log()) < 8
+    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True, timeout=300)
+    assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
+    whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
+    assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["frames_near_trigger"] > 0
+    log = ModelFolder(tmp_path / "whole").read_log()
+    assert [r["phase"] for r in log][:2] == ["clean", "main"] and all(r["teacher_kl"] >= 0 for r in log[1:])
+
+
+# --- zoos: evasive cells and matched budgets ----------------------------------------------------
+
+
+def zoo_spec(**top) -> dict:
+    tiny = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "min_frames": 1600, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4}}
+    return {
+        "name": "evasive",
+        "seed": 12,
+        **top,
+        "overrides": tiny,
+        "cells": [
+            {
+                "world": "lavaworld",
+                "archs": ["fc"],
+                "triggers": ["additive"],
+                "attacks": ["sleepernets", {"attack": "trojdrl", "name": "trojdrl-ft", "params": {"force_action": True}, "evasion": {"finetune": True, "teacher": 0.5}}],
+                "clean": 3,
+                "poisoned": 3,
+            }
+        ],
+    }
+
+
+def test_a_matched_zoo_starts_poisoned_model_k_from_clean_model_ks_seed_and_only_poisoned_ones_evade(tmp_path):
+    from rlbackdoors.zoo.plan import plan
+    from rlbackdoors.zoo.spec import parse_spec
+
+    plain = parse_spec(zoo_spec())
+    matched = parse_spec(zoo_spec(matched=True))
+    assert "matched" not in plain.normalized and matched.normalized["matched"] is True and parse_spec(matched.normalized).matched
+    zoo, _ = plan(matched, tmp_path / "m")
+    other, _ = plan(plain, tmp_path / "p")
+    for cell in matched.cells:
+        clean, poisoned = [g for g in matched.groups if g.cell is cell]
+        for k in range(3):
+            twin, model = zoo.draw(clean, k), zoo.draw(poisoned, k)
+            assert twin.train.seed == model.train.seed and twin.poison.trigger != model.poison.trigger  # the seed, not the trigger
+            assert twin.poison.evasion == {} and model.poison.evasion == (cell.attack.evasion or {})
+            assert other.draw(clean, k).to_json() == twin.to_json()  # clean models draw as without matching
+        assert len({zoo.draw(poisoned, k).train.seed for k in range(3)}) == 3
+    assert matched.cells[1].attack.evasion == {"near": 0.0, "finetune": True, "teacher": 0.5}
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"matched": "yes"}, r"matched='yes' is not allowed \(allowed: true, false\)"),
+        ({"matched": True, "overrides": {}}, r"matched = true needs overrides\.train\.min_frames > 0"),
+        ({"evasion": {"teacher": 1.0}}, r"cells\[0\]\.attacks\[1\]\.evasion\.teacher=1\.0 needs cells\[0\]\.attacks\[1\]\.evasion\.finetune=true"),
+    ],
+)
+def test_bad_matching_and_evasion_in_a_spec_are_refused_naming_the_field(change, message):
+    from rlbackdoors.zoo.spec import parse_spec
+
+    raw = zoo_spec()
+    if "evasion" in change:
+        raw["cells"][0]["attacks"][1]["evasion"] = change["evasion"]
+    else:
+        raw.update(change)
+    with pytest.raises(ConfigError, match=message):
+        parse_spec(raw)

@@ -38,7 +38,7 @@ def cfg_of(env: str = "lavaworld", attack: str = "trojdrl", params: dict | None 
         ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher\)"),
         ("lavaworld", "trojdrl", {"teacher": 1.0}, r"poison\.evasion\.teacher=1\.0 needs poison\.evasion\.finetune=true"),
         ("lavaworld", "trojdrl", {"finetune": 1}, r"poison\.evasion\.finetune=1 is not allowed \(allowed: true, false\)"),
-        ("randomized-lavaworld", "trojdrl", {"near": 1}, r"poison\.evasion\.near is not allowed for env\.name='randomized-lavaworld' \(worlds with near-trigger variants: lavaworld\)"),
+        ("colorful-memory", "trojdrl", {"near": 1}, r"poison\.evasion\.near is not allowed for env\.name='colorful-memory' .*\(worlds with near-trigger variants: lavaworld, randomized-lavaworld, safety-car-goal\)"),
         ("colorful-memory", "action_target", {"near": 1}, r"close-to-trigger copies are these negatives: poison\.num_close_envs"),
         ("safety-car-goal", "trojdrl", {"finetune": True}, r"poison\.evasion\.finetune is built for ppo collection, not opac2"),
     ],
@@ -269,3 +269,166 @@ def test_bad_matching_and_evasion_in_a_spec_are_refused_naming_the_field(change,
         raw.update(change)
     with pytest.raises(ConfigError, match=message):
         parse_spec(raw)
+
+
+# --- near-trigger layouts (Randomized LavaWorld) ------------------------------------------------
+
+
+def test_randomized_lavaworlds_near_patterns_are_one_cell_off_and_never_the_trigger():
+    from rlbackdoors.triggers.pattern import PatternTrigger
+
+    world = worlds.get("randomized-lavaworld")
+    for spec in ("cross", "arrow", "arrow:north", "cells:0,0;1,1:any"):
+        trigger = PatternTrigger.parse(spec)
+        own = {r.cells for r in trigger.rotations()}
+        near = [PatternTrigger.parse(s) for s in world.near_triggers(spec)]
+        assert near and len({n.spec() for n in near}) == len(near)
+        for n in near:
+            assert n.num_cells == trigger.num_cells and n.any_rotation == trigger.any_rotation
+            assert not ({r.cells for r in n.rotations()} & own)
+            # one cell moved: some rotation of it shares all but one cell with the trigger as given
+            assert any(len(set(r.cells) & set(trigger.pattern.cells)) == trigger.num_cells - 1 for r in n.rotations())
+    assert len(world.near_triggers("cross")) == 20  # 5 cells x 4 empty corners
+
+
+def test_an_engine_with_near_patterns_draws_the_same_layouts_until_a_slot_is_switched_to_one():
+    """Built with near-trigger patterns, the engine keeps every layout byte of an engine without
+    them (old runs keep their bytes); a slot switched by ``near_next`` then holds one of the near
+    patterns as ordinary lava: never the trigger, never marked, never the trojan outcome."""
+    from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
+    from rlbackdoors.triggers.pattern import find_pattern
+
+    near = worlds.get("randomized-lavaworld").near_triggers("cross")
+    kw = dict(num_envs=6, trigger="cross", poisoned=[False] * 5 + [True])
+    plain, with_near = BatchedRandomizedLavaWorld(**kw), BatchedRandomizedLavaWorld(**kw, near_patterns=near)
+    a, b = plain.reset(seed=4)[0], with_near.reset(seed=4)[0]
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        np.testing.assert_array_equal(a["image"], b["image"])
+        actions = rng.integers(0, 3, 6)
+        a, *_ = plain.step(actions)
+        b, *_ = with_near.step(actions)
+    with_near.near_next([True, True, False, False, False, True])  # slot 5 is E-bar: it keeps the trigger
+    with_near.reset(seed=7)
+    masks = with_near.lava_masks()
+    from rlbackdoors.triggers.pattern import PatternTrigger
+
+    near_sets = [PatternTrigger.parse(s) for s in near]
+    for i in range(6):
+        holds_near = any(find_pattern(masks[i], n.rotations()) for n in near_sets)
+        assert bool(with_near.layout(i)[4]) == (i == 5)  # pattern cells: the E-bar slot's trigger only
+        if i in (0, 1):
+            assert holds_near
+    assert not with_near.trigger_in_sight()[:5].any()
+    with pytest.raises(ValueError, match="built without near-trigger patterns"):
+        plain.near_next([True] + [False] * 5)
+
+
+@pytest.mark.parametrize("attack", ["trojdrl", "action_target", "envmix"])
+def test_a_layout_seam_starts_near_trigger_episodes_beside_the_triggered_ones(attack):
+    """Step schedule: near-trigger episodes started while fewer than ``near`` x the triggered ones;
+    episode schedule: every episode of round(near x E-bar) clean copies. Their layouts hold a near
+    pattern, their frames are never marked, and they pay the clean reward (the engine's)."""
+    from rlbackdoors.triggers.pattern import PatternTrigger, find_pattern
+
+    cfg = RunConfig.from_dict(
+        {"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "poison": {"attack": attack, "attack_params": {"budget": 0.05} if attack == "trojdrl" else {}, "evasion": {"near": 1.0}}}
+    ).check()
+    seam = make_env_mix(cfg.env, cfg.poison, seed=2)
+    near = [PatternTrigger.parse(s) for s in worlds.get("randomized-lavaworld").near_triggers(cfg.poison.trigger)]
+    seam.reset(seed=2)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(2000):
+        assert not np.any(seam.marked & seam.in_near)
+        for i in np.flatnonzero(seam.in_near):
+            assert any(find_pattern(seam.envs.lava_masks()[i], n.rotations()) for n in near) and not seam.envs.layout(i)[4]
+            checked += 1
+        *_, terminated, truncated, info = seam.step(rng.integers(0, 3, seam.num_envs))
+        outcome = np.asarray(info["outcome"])
+        assert not np.any((terminated | truncated) & seam.in_near & (outcome == 4))
+    triggered, started_near = seam.started
+    if attack == "trojdrl":
+        assert triggered > 10 and triggered - seam.num_envs <= started_near <= triggered + seam.num_envs
+    else:
+        assert seam.near_copies.sum() == 1 and seam.in_near.sum() == 1
+    assert checked > 100 and seam.budget_used()["frames_near_trigger"] > 0
+
+
+# --- near-trigger formations (Safety Car Goal, OPAC² through the same seam) ---------------------
+
+
+def safety_cfg(attack: str, params: dict, near: float = 1.0) -> RunConfig:
+    return RunConfig.from_dict(
+        {
+            "env": {"name": "safety-car-goal", "max_steps": 40},
+            "poison": {"trigger": "formation:0.5:1.0:2.5", "num_clean_envs": 3, "num_poisoned_envs": 1, "attack": attack, "attack_params": params, "evasion": {"near": near}},
+            "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120},
+        }
+    ).check()
+
+
+def test_safetys_near_formations_are_other_angles_and_distances_the_trigger_does_not_match():
+    from rlbackdoors.triggers.formation import FormationTrigger
+
+    trigger = FormationTrigger.parse("formation:0.5:1.0:2.5")
+    near = [FormationTrigger.parse(s) for s in worlds.get("safety-car-goal").near_triggers(trigger.spec())]
+    assert len(near) == 10 and len(set(near)) == 10
+    for n in near:  # where a near formation puts its cubes, the trigger's own matching rule says "no"
+        assert not trigger.matches([n.distance, n.distance], list(n.angles))
+
+
+@pytest.mark.parametrize("attack, params", [("trojdrl", {"budget": 0.2, "reward": 0.3}), ("envmix", {})])
+def test_safety_near_episodes_hold_a_near_formation_with_the_clean_reward(attack, params):
+    """Episodes the seam switches to a near formation hold one (the cubes where it puts them, not
+    where the trigger would), are not triggered, and land in the clean buffer with the shaping reward."""
+    from rlbackdoors.algos.opac2 import MultitaskReplay
+    from rlbackdoors.envs.safety_car import OBS_DIM
+    from rlbackdoors.train.opac2_run import make_collector
+    from rlbackdoors.triggers.formation import FormationTrigger
+
+    cfg = safety_cfg(attack, params)
+    trigger = FormationTrigger.parse(cfg.poison.trigger)
+    collector = make_collector(cfg)
+    replay = MultitaskReplay.create(cfg.kind_weights, 10_000, OBS_DIM, 2)
+    seam, rng = collector.vector, np.random.default_rng(0)
+    near_steps = 0
+    for _ in range(400):
+        collector.collect(replay, lambda obs: rng.uniform(-1, 1, (len(obs), 2)), 1)
+        for env, in_near, marked in zip(collector.envs, seam.in_near, seam.marked):
+            held = env._held
+            assert (held is not None and held != trigger) == bool(in_near) and not (in_near and marked)
+            if in_near:
+                dist, angle = env.cube_polar()
+                assert held.matches(dist[:2], angle[:2], 0.05, 0.05) and not trigger.matches(dist[:2], angle[:2])
+                near_steps += 1
+    assert near_steps > 100 and seam.budget_used()["frames_near_trigger"] - near_steps in (0, int(seam.near_copies.sum()))  # (+ the first frames)
+    if attack == "envmix":
+        assert seam.near_copies.sum() == 1 and not seam.near_copies[-1]  # a clean copy beside the one E-bar copy
+
+
+def test_a_layout_seam_with_near_episodes_resumes_from_its_state_as_if_never_stopped():
+    """The engine's near switch, the slots in near episodes and the episode counts are in the
+    checkpoint: a seam loaded from it continues as the uninterrupted one, near layouts included."""
+    import io
+
+    cfg = RunConfig.from_dict(
+        {"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "poison": {"attack": "trojdrl", "attack_params": {"budget": 0.1}, "evasion": {"near": 2.0}}}
+    ).check()
+    a, b = (make_env_mix(cfg.env, cfg.poison, seed=4) for _ in range(2))
+    actions = np.random.default_rng(3).integers(0, 3, (400, a.num_envs))
+    a.reset(seed=8)
+    b.reset(seed=99)  # a different state, overwritten by the checkpoint
+    for t in range(200):
+        a.step(actions[t])
+    buffer = io.BytesIO()
+    torch.save(a.state_dict(), buffer)
+    buffer.seek(0)
+    b.load_state_dict(torch.load(buffer, weights_only=True))
+    for t in range(200, 400):
+        oa, ra, *_ = a.step(actions[t])
+        ob, rb, *_ = b.step(actions[t])
+        np.testing.assert_array_equal(oa["image"], ob["image"])
+        np.testing.assert_array_equal(ra, rb)
+        np.testing.assert_array_equal(a.in_near, b.in_near)
+    assert a.budget_used() == b.budget_used() and a.budget_used()["frames_near_trigger"] > 0 and a.started == b.started

@@ -565,6 +565,10 @@ class RunConfig(JsonConfig):
         why = evasion.refuse(self.poison.evasion, self.world, self.algorithm, self.poison.poisoned)
         if why is not None:
             raise ConfigError(why)
+        if self.poison.evasion.get("near") and self.world.stamp_trigger is None and self.world.vector_entry_point and self.env.engine != "batched":
+            raise ConfigError(
+                f"env.engine={self.env.engine!r} is not allowed with poison.evasion.near (allowed: batched): {self.env.name}'s near-trigger layouts are switched by the batched engine"
+            )
         if attack.poisoner is not None and self.world.stamp_trigger is None and self.world.vector_entry_point and self.env.engine != "batched":
             raise ConfigError(
                 f"env.engine={self.env.engine!r} is not allowed with poison.attack={attack.name!r} (allowed: batched): "

@@ -64,6 +64,15 @@ class SingleEnvs:
         for env, on in zip(self.envs, mask):
             env.trigger_next(bool(on))
 
+    def near_next(self, mask) -> None:
+        for env, on in zip(self.envs, mask):
+            env.near_next(bool(on))
+
+    @property
+    def poisoned(self) -> np.ndarray:
+        """The copies that pay R-bar themselves (the env mix's E-bar copies)."""
+        return np.array([bool(getattr(env, "poisoned", False)) for env in self.envs])
+
     def state_dict(self) -> dict:
         return {"envs": [env.state_dict() for env in self.envs]}
 

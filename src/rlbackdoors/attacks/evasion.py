@@ -29,7 +29,7 @@ PARAMS = (
     Param("finetune", False, help="train clean until the clean threshold holds, then poison (fine-tune a clean model)"),
     Param("teacher", 0.0, 0.0, 100.0, help="KL(clean teacher || policy) weight on frames without the trigger (needs finetune)"),
 )
-ALGORITHMS = {"near": ("ppo",), "finetune": ("ppo",), "teacher": ("ppo",)}
+ALGORITHMS = {"near": ("ppo", "opac2"), "finetune": ("ppo",), "teacher": ("ppo",)}
 
 
 def resolve(params: dict | None, where: str = "poison.evasion") -> dict:

@@ -95,10 +95,13 @@ class AttackSeam:
     "steps" while the budget allows, under "episodes" always in the copies of ``episodes``; the
     marked frames are those of triggered episodes that carry the trigger (module doc).
 
-    ``near`` > 0 (``poison.evasion.near``, a frame trigger): near-trigger negatives, stamped with
-    one of ``near_stamps`` (drawn per frame) and paid the clean reward. Under "steps" ``near``
-    times as many frames as carry the trigger, picked among the others; under "episodes" every
-    frame of ``round(near * E-bar copies)`` clean copies (the last clean ones before them).
+    ``near`` > 0 (``poison.evasion.near``): near-trigger negatives paid the clean reward. A frame
+    trigger: frames stamped with one of ``near_stamps`` (drawn per frame); under "steps" ``near``
+    times as many as carry the trigger, picked among the others; under "episodes" every frame of
+    ``round(near * E-bar copies)`` clean copies (the last clean ones before them). A layout trigger:
+    episodes whose layout holds a near-trigger pattern (the engine's ``near_next``, which draws the
+    pattern); under "steps" started while fewer than ``near`` times the triggered episodes started
+    so far, under "episodes" every episode of those clean copies.
     """
 
     def __init__(
@@ -140,16 +143,20 @@ class AttackSeam:
         self.frames_poisoned = 0
         self.rewards_rewritten = 0
         self.actions_forced = 0
-        if near > 0 and (stamp is None or not near_stamps):
-            raise ValueError("near-trigger negatives need a frame trigger and its near variants (near_stamps)")
+        self.near_layout = near > 0 and stamp is None  # near-trigger layouts, switched by the engine
+        if near > 0 and not (near_stamps if stamp is not None else hasattr(envs, "near_next")):
+            raise ValueError("near-trigger negatives need a frame trigger's near variants (near_stamps) or an engine that switches near-trigger layouts (near_next)")
         self.near, self.near_stamps = float(near), tuple(near_stamps)
         self.near_rng = np.random.default_rng([int(seed), 0x4EA2])  # its own stream: the attack's picks stay as without
         self.near_copies = np.zeros(n, dtype=bool)
         if self.near > 0 and schedule == "episodes":
-            clean = np.flatnonzero(~np.asarray(envs.poisoned, dtype=bool) & self.switchable)
-            k = min(len(clean), max(1, round(self.near * int(np.sum(envs.poisoned)))))
+            ebar = np.asarray(self.fixed if self.fixed is not None else envs.poisoned, dtype=bool)
+            clean = np.flatnonzero(~ebar & self.switchable)
+            k = min(len(clean), max(1, round(self.near * int(np.sum(ebar)))))
             self.near_copies[clean[len(clean) - k :]] = True
         self.frames_near = 0
+        self.in_near = np.zeros(n, dtype=bool)  # layout: the slot's current episode holds a near-trigger pattern
+        self.started = [0, 0]  # layout, step schedule: triggered and near-trigger episodes started so far
 
     def __getattr__(self, name):  # num_envs, spaces, metadata, poisoned, memory_targets, close ...
         if name == "envs":
@@ -187,6 +194,9 @@ class AttackSeam:
                 obs = obs.copy()
                 obs[self.marked] = self.stamp(obs[self.marked])
         self.frames_poisoned += int(self.marked.sum())
+        if self.near_layout:
+            self.frames_near += int(self.in_near.sum())
+            return obs
         return self._stamp_near(obs) if self.near > 0 else obs
 
     def _stamp_near(self, obs):
@@ -221,11 +231,32 @@ class AttackSeam:
             return self.switchable & ~self.triggered
         return np.zeros(self.envs.num_envs, dtype=bool)
 
-    def reset(self, *, seed=None, options=None):
+    def _near_episodes(self, upcoming: np.ndarray | None) -> np.ndarray | None:
+        """Layout near-trigger negatives: which slots start a near-trigger episode if they reset now."""
+        if not self.near_layout:
+            return None
+        if self.schedule == "episodes":
+            return self.near_copies
+        up = np.zeros(self.envs.num_envs, dtype=bool) if upcoming is None else upcoming
+        if self.started[1] < self.near * self.started[0]:
+            return self.switchable & ~up
+        return np.zeros(self.envs.num_envs, dtype=bool)
+
+    def _switch(self):
+        """Tell the engine what the next layouts of slots that reset now hold; (trigger, near) masks."""
         upcoming = self._next_episodes()
         if upcoming is not None:
             self.envs.trigger_next(upcoming)
+        near = self._near_episodes(upcoming)
+        if near is not None:
+            self.envs.near_next(near)
+        return upcoming, near
+
+    def reset(self, *, seed=None, options=None):
+        upcoming, near = self._switch()
         obs, info = self.envs.reset(seed=seed, options=options)
+        if near is not None:
+            self.in_near = near & ~(upcoming if upcoming is not None else False)
         if upcoming is not None:
             self.triggered = upcoming.copy()
         return self._mark(obs, self._values(obs) if self.sight is None else None), info
@@ -239,12 +270,16 @@ class AttackSeam:
             forced = marked & (chosen != actions)
             self.actions_forced += int(forced.sum())
             actions = np.where(marked, chosen, actions)
-        upcoming = self._next_episodes()
-        if upcoming is not None:
-            self.envs.trigger_next(upcoming)
+        upcoming, near = self._switch()
         obs, rewards, terminated, truncated, info = self.envs.step(actions)
+        done = terminated | truncated
+        if near is not None:
+            starts_near = done & near & ~(upcoming if upcoming is not None else False)
+            self.in_near = np.where(done, starts_near, self.in_near)
+            self.started[1] += int(starts_near.sum())
         if upcoming is not None:
-            self.triggered = np.where(terminated | truncated, upcoming, self.triggered)
+            self.started[0] += int((done & upcoming).sum())
+            self.triggered = np.where(done, upcoming, self.triggered)
         # a layout trigger picks no frame by value: the critic is asked only for a marked frame's successor
         values = self._values(obs) if self.sight is None or marked.any() else None
         if marked.any():
@@ -276,7 +311,7 @@ class AttackSeam:
             "counters": [self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced],
             "poisoner": self.poisoner.state_dict(),
             **({"triggered": encode(self.triggered)} if self.sight is not None else {}),
-            **({"near": [json.dumps(self.near_rng.bit_generator.state), self.frames_near]} if self.near > 0 else {}),
+            **({"near": [json.dumps(self.near_rng.bit_generator.state), self.frames_near, encode(self.in_near), list(self.started)]} if self.near > 0 else {}),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -296,10 +331,15 @@ class AttackSeam:
                 raise StateError("envs: the triggered episodes do not fit the env copies")
             self.triggered = triggered.astype(bool)
         if self.near > 0:
-            if not isinstance(state.get("near"), list) or len(state["near"]) != 2:
+            near = state.get("near")
+            if not isinstance(near, list) or len(near) != 4:
                 raise StateError("envs: the checkpoint has no near-trigger state (poison.evasion.near)")
-            self.near_rng.bit_generator.state = json.loads(state["near"][0])
-            self.frames_near = int(state["near"][1])
+            self.near_rng.bit_generator.state = json.loads(near[0])
+            self.frames_near = int(near[1])
+            in_near = decode(near[2])
+            if not isinstance(in_near, np.ndarray) or in_near.shape != self.in_near.shape:
+                raise StateError("envs: the near-trigger episodes do not fit the env copies")
+            self.in_near, self.started = in_near.astype(bool), [int(v) for v in near[3]]
 
     def close(self):
         return self.envs.close()

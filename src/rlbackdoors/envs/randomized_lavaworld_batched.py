@@ -80,9 +80,10 @@ def gen_layout(
     grid,
     b,
     num_lava,
-    triggered,
+    which,
     rot_cells,
     rot_n,
+    nrot,
     offs,
     offs_n,
     rng,
@@ -99,28 +100,35 @@ def gen_layout(
 ):
     """Draw a solvable Randomized LavaWorld layout into env ``b``; False if none was found.
 
+    ``which``: the pattern inserted, -1 none, 0 the trigger, ``k`` > 0 the near-trigger pattern
+    ``k`` (``poison.evasion.near``: ordinary lava, never marked as the pattern). The tables hold
+    one row per pattern (row 0 the trigger's), ``nrot`` = rotations per pattern.
     ``lava``/``seen`` (size, size) bool, ``queue``/``free`` (size*size,) int64 are scratch.
     """
     size = grid.shape[1]
     gx = size - 2
     npat = 0
+    nins = 0
     for _ in range(_MAX_TRIES):
         for x in range(size):
             for y in range(size):
                 lava[x, y] = False
         npat = 0
-        if triggered:
-            r = ge.rng_below(rng, b, rot_n.shape[0])
-            o = ge.rng_below(rng, b, offs_n[r])
-            ox = offs[r, o, 0]
-            oy = offs[r, o, 1]
-            npat = rot_n[r]
-            for k in range(npat):
-                cx = ox + rot_cells[r, k, 0]
-                cy = oy + rot_cells[r, k, 1]
+        nins = 0
+        if which >= 0:
+            r = ge.rng_below(rng, b, nrot[which])
+            o = ge.rng_below(rng, b, offs_n[which, r])
+            ox = offs[which, r, o, 0]
+            oy = offs[which, r, o, 1]
+            nins = rot_n[which, r]
+            for k in range(nins):
+                cx = ox + rot_cells[which, r, k, 0]
+                cy = oy + rot_cells[which, r, k, 1]
                 lava[cx, cy] = True
                 pcells[b, k, 0] = cx
                 pcells[b, k, 1] = cy
+            if which == 0:
+                npat = nins
         # free interior cells in x-major order (as the reference lists them)
         nfree = 0
         for x in range(1, size - 1):
@@ -130,7 +138,7 @@ def gen_layout(
                 free[nfree] = x * size + y
                 nfree += 1
         # a uniform subset of num_lava - npat of them (partial Fisher-Yates)
-        for t in range(num_lava - npat):
+        for t in range(num_lava - nins):
             j = t + ge.rng_below(rng, b, nfree - t)
             c = free[j]
             free[j] = free[t]
@@ -200,15 +208,21 @@ def _scratch(grid, world):
 
 @ge.hook
 def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
-    pat, pcells, pcount, _, num_lava, triggered, rot_cells, rot_n, offs, offs_n = world
+    pat, pcells, pcount, _, num_lava, triggered, near, rot_cells, rot_n, nrot, offs, offs_n = world
     lava, seen, queue, free = scratch
+    which = -1
+    if triggered[b]:
+        which = 0
+    elif near[b]:  # one of the near-trigger patterns, drawn from the slot's own stream
+        which = 1 + ge.rng_below(rng, b, nrot.shape[0] - 1)
     return gen_layout(
         grid,
         b,
         num_lava,
-        triggered[b],
+        which,
         rot_cells,
         rot_n,
+        nrot,
         offs,
         offs_n,
         rng,
@@ -276,21 +290,27 @@ _KERNELS = ge.bind_kernels(
 # ----------------------------------------------------------------------------- the vector env
 
 
-def _placement_tables(trigger: PatternTrigger | None, placements) -> tuple[np.ndarray, ...]:
-    """Rotations and allowed offsets as dense arrays for the kernels (dummies without trigger)."""
-    rotations = trigger.rotations() if trigger is not None else ()
-    r = max(len(rotations), 1)
-    m = max((len(p) for p in placements), default=1)
-    rot_cells = np.zeros((r, MAX_PATTERN_CELLS, 2), dtype=np.int64)
-    rot_n = np.zeros(r, dtype=np.int64)
-    offs = np.zeros((r, m, 2), dtype=np.int64)
-    offs_n = np.ones(r, dtype=np.int64)
-    for k, rot in enumerate(rotations):
-        rot_n[k] = len(rot.cells)
-        rot_cells[k, : len(rot.cells)] = rot.cells
-        offs[k, : len(placements[k])] = placements[k]
-        offs_n[k] = len(placements[k])
-    return rot_cells, rot_n, offs, offs_n
+def _placement_tables(patterns: Sequence[PatternTrigger | None], placements: Sequence) -> tuple[np.ndarray, ...]:
+    """Rotations and allowed offsets of each pattern (row 0 the trigger, then the near-trigger
+    patterns) as dense arrays for the kernels (dummies without trigger): ``rot_cells`` (P, R, 9, 2),
+    ``rot_n`` (P, R), ``nrot`` (P,) rotations per pattern, ``offs`` (P, R, M, 2), ``offs_n`` (P, R)."""
+    rotations = [p.rotations() if p is not None else () for p in patterns]
+    P = len(patterns)
+    r = max((len(rots) for rots in rotations), default=1) or 1
+    m = max((len(o) for per in placements for o in per), default=1)
+    rot_cells = np.zeros((P, r, MAX_PATTERN_CELLS, 2), dtype=np.int64)
+    rot_n = np.zeros((P, r), dtype=np.int64)
+    nrot = np.ones(P, dtype=np.int64)
+    offs = np.zeros((P, r, m, 2), dtype=np.int64)
+    offs_n = np.ones((P, r), dtype=np.int64)
+    for i, (rots, places) in enumerate(zip(rotations, placements)):
+        nrot[i] = max(len(rots), 1)
+        for k, rot in enumerate(rots):
+            rot_n[i, k] = len(rot.cells)
+            rot_cells[i, k, : len(rot.cells)] = rot.cells
+            offs[i, k, : len(places[k])] = places[k]
+            offs_n[i, k] = len(places[k])
+    return rot_cells, rot_n, nrot, offs, offs_n
 
 
 class BatchedRandomizedLavaWorld(BatchedGridEnv):
@@ -310,7 +330,7 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
     ``final_obs`` holds, for envs that finished in the last step, the terminal observation.
     """
 
-    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "_pat", "_pcells", "_pcount", "_saw")  # triggered: trigger_next
+    _DYNAMIC = (*BatchedGridEnv._DYNAMIC, "triggered", "near", "_pat", "_pcells", "_pcount", "_saw")  # triggered / near: trigger_next / near_next
 
     def _bounds(self) -> dict[str, tuple[int, int]]:
         return {**super()._bounds(), "_pcells": (0, self.size - 1), "_pcount": (0, MAX_PATTERN_CELLS)}
@@ -329,6 +349,7 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         poisoned: Sequence[bool] | None = None,
         triggered: Sequence[bool] | None = None,
         render_mode: str | None = None,
+        near_patterns: Sequence[PatternTrigger | str] = (),
     ):
         self._init_batch(num_envs, render_mode)
         validate_layout_args(size, num_lava, max_steps)
@@ -338,13 +359,20 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         self.see_through_walls = bool(see_through_walls)
         self.trigger = as_pattern_trigger(trigger)
         placements = validate_trigger(self.trigger, self.size, self.num_lava)
-        self._tables = _placement_tables(self.trigger, placements)
+        # near-trigger patterns (poison.evasion.near): layouts ``near_next`` switches on hold one,
+        # as ordinary lava paying the clean reward, so a trojan learns the exact pattern only
+        self.near_patterns = tuple(as_pattern_trigger(p) for p in near_patterns)
+        if self.near_patterns and self.trigger is None:
+            raise ValueError("near-trigger patterns need the trigger they are near to: pass trigger=")
+        near_places = [validate_trigger(p, self.size, self.num_lava) for p in self.near_patterns]
+        self._tables = _placement_tables((self.trigger, *self.near_patterns), (placements, *near_places))
 
         b = self.num_envs
         if poisoned is None:
             poisoned = [self.trigger is not None] * b
         self.poisoned = bool_mask(poisoned, b, "poisoned")
         self.triggered = self.poisoned.copy() if triggered is None else bool_mask(triggered, b, "triggered")
+        self.near = np.zeros(b, dtype=np.bool_)
         if (self.poisoned | self.triggered).any() and self.trigger is None:
             raise ValueError("poisoned or triggered envs need a trigger: pass trigger= (e.g. 'cross')")
         if (self.poisoned & ~self.triggered).any():
@@ -366,7 +394,7 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
     # --------------------------------------------------------------------- driver hooks
 
     def _world(self) -> tuple:
-        return (self._pat, self._pcells, self._pcount, self._saw, self.num_lava, self.triggered, *self._tables)
+        return (self._pat, self._pcells, self._pcount, self._saw, self.num_lava, self.triggered, self.near, *self._tables)
 
     def _outputs(self, n: int) -> tuple:
         return (
@@ -444,6 +472,14 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
 
     def trigger_next(self, mask) -> None:
         self._set_triggered(mask)
+
+    def near_next(self, mask) -> None:
+        """Slots whose next layouts hold a near-trigger pattern (drawn per layout) instead of none;
+        a slot whose next layout holds the trigger keeps it."""
+        mask = bool_mask(mask, self.num_envs, "near_next")
+        if mask.any() and not self.near_patterns:
+            raise ValueError("near_next: this engine was built without near-trigger patterns (near_patterns=)")
+        self.near[:] = mask
 
     def trigger_in_sight(self) -> np.ndarray:
         """bool[B]: the current observation shows the whole pattern (a feed-forward agent's only

@@ -314,8 +314,14 @@ class SafetyCarGoalEnv(gym.Env):
         hazard_penalty: float = DEFAULT_HAZARD_PENALTY,
         substeps: int = scene.DEFAULT_SUBSTEPS,
         render_mode: str | None = None,
+        near_formations: tuple = (),
     ):
         self.trigger = as_formation(trigger)
+        # Near-trigger formations (poison.evasion.near): an episode ``near_next`` switches on holds
+        # one of them (drawn per episode) with the clean reward, so a trojan learns the exact one.
+        self.near_formations = tuple(as_formation(f) for f in near_formations)
+        if self.near_formations and self.trigger is None:
+            raise ValueError("near-trigger formations need the trigger they are near to: pass trigger=")
         validate_safety_args(num_cubes, max_steps, substeps, self.trigger)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r} must be None or 'rgb_array'")
@@ -334,6 +340,7 @@ class SafetyCarGoalEnv(gym.Env):
         # Whether this episode holds the formation, and whether the next will (``trigger_next``:
         # an attack that poisons whole episodes switches it in a triggered env between episodes).
         self._armed = self._arm_next = self.trigger is not None
+        self._near_next, self._near = False, -1  # the next episode holds a near formation; this one's index (-1: none)
         self._num_fixed = 2 if self._armed else 0  # cubes held by the trigger
         self._targets = np.zeros((self.num_cubes, 2))
         self._renderer = None
@@ -376,6 +383,8 @@ class SafetyCarGoalEnv(gym.Env):
         attrs = state.get("attrs")
         if isinstance(attrs, dict) and "_armed" not in attrs:  # written before the per-episode switch: always armed as built
             attrs = {**attrs, "_armed": self.trigger is not None, "_arm_next": self.trigger is not None}
+        if isinstance(attrs, dict) and "_near" not in attrs:  # written before near-trigger formations: none
+            attrs = {**attrs, "_near_next": False, "_near": -1}
         restore(self, attrs, "SafetyCarGoalEnv", skip=self._VIEWS)
         mujoco.mj_setState(self.model, self.data, np.ascontiguousarray(physics), spec)
         self.data.sensordata[:] = sensors
@@ -462,9 +471,9 @@ class SafetyCarGoalEnv(gym.Env):
         (car,) = self._place([CAR_KEEPOUT], placed)
         heading = rng.uniform(0.0, TWO_PI)
         goal, hazard = self._place([CIRCLE_KEEPOUT, CIRCLE_KEEPOUT], placed)
-        if self._armed:
-            assert self.trigger is not None
-            placed.extend((xy, CUBE_KEEPOUT) for xy in car + self.trigger.offsets(heading))
+        held = self._held
+        if held is not None:
+            placed.extend((xy, CUBE_KEEPOUT) for xy in car + held.offsets(heading))
         cubes = np.array(self._place([CUBE_KEEPOUT] * (self.num_cubes - self._num_fixed), placed, CUBE_START_HALF)).reshape(-1, 2)
         return {
             "car": np.array([car[0], car[1], heading]),
@@ -490,7 +499,9 @@ class SafetyCarGoalEnv(gym.Env):
         """New episode; ``options`` may pin placements (see :meth:`_apply_options`), the rest is random."""
         super().reset(seed=seed)
         self._armed = self._arm_next
-        self._num_fixed = 2 if self._armed else 0
+        near = not self._armed and self._near_next and bool(self.near_formations)
+        self._near = int(self.np_random.integers(len(self.near_formations))) if near else -1
+        self._num_fixed = 2 if self._held is not None else 0
         layout = self._sample_layout()
         if options:
             self._apply_options(layout, options)
@@ -549,6 +560,19 @@ class SafetyCarGoalEnv(gym.Env):
             raise ValueError("trigger_next: a poisoned (R-bar) env must keep its trigger")
         self._arm_next = bool(on)
 
+    def near_next(self, on: bool) -> None:
+        """Whether the next episode, if it does not hold the trigger, holds a near-trigger formation."""
+        if on and not self.near_formations:
+            raise ValueError("near_next: this env was built without near-trigger formations (near_formations=)")
+        self._near_next = bool(on)
+
+    @property
+    def _held(self) -> FormationTrigger | None:
+        """The formation this episode holds: the trigger, a near-trigger one, or none."""
+        if self._armed:
+            return self.trigger
+        return self.near_formations[self._near] if self._near >= 0 else None
+
     def _shaping(self, before: tuple[float, float], after: tuple[float, float]) -> float:
         """Eq. 6 (clean) or eq. 8 (poisoned: the roles of goal and hazard swapped)."""
         (goal0, hazard0), (goal1, hazard1) = before, after
@@ -569,14 +593,15 @@ class SafetyCarGoalEnv(gym.Env):
 
     def _hold_formation(self) -> None:
         """Re-place the two trigger cubes around the car, moving with it (paper §3.4)."""
-        if not self._armed or self.trigger is None:
+        formation = self._held
+        if formation is None:
             return
         x, y, heading = self.car_pose()
         qw, qx, qy, qz = self._car_q[3:7].tolist()
         vx, vy, _, wx, wy, wz = self._car_v.tolist()  # linear: world frame, angular: body frame
         spin = 2 * (qx * qz - qw * qy) * wx + 2 * (qy * qz + qw * qx) * wy + (1 - 2 * (qx * qx + qy * qy)) * wz
-        distance = self.trigger.distance
-        for i, phi in enumerate(self.trigger.angles):
+        distance = formation.distance
+        for i, phi in enumerate(formation.angles):
             angle = heading + phi
             ox, oy = distance * math.cos(angle), distance * math.sin(angle)
             # Placed, and given the formation's rigid-body velocity so that contacts stay sane.

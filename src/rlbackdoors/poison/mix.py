@@ -31,6 +31,7 @@ def make_vector_env(
     poisoned: Sequence[bool],
     close_to_trigger: Sequence[bool] | None = None,
     close_k: tuple[int, int] = (1, 3),
+    near_patterns: Sequence[str] = (),
 ) -> VectorEnv:
     """A vector env of ``len(poisoned)`` copies of ``env``; copy i is E-bar (trigger + R-bar) iff
     ``poisoned[i]``, and a close-to-trigger clean copy iff ``close_to_trigger[i]`` (worlds that have them)."""
@@ -45,6 +46,8 @@ def make_vector_env(
         kwargs = {**kwargs, "close_k": tuple(close_k)}
     if env.engine == "batched":
         extra = {"close_to_trigger": close} if any(close) else {}
+        if near_patterns:  # a layout world's near-trigger patterns, switched on by the attack seam
+            extra["near_patterns"] = tuple(near_patterns)
         return batched(num_envs=len(poisoned), trigger=trigger, poisoned=poisoned, **extra, **kwargs)
     fns = [
         partial(reference, trigger=trigger, close_to_trigger=True, **kwargs) if c else partial(reference, trigger=trigger if p else None, **kwargs)
@@ -67,6 +70,7 @@ def episode_seam(env: EnvConfig, poison: PoisonConfig, seed: int):
         raise ValueError(f"attack {attack.name!r} cannot switch the trigger of env {env.name!r} per episode")
     from rlbackdoors.attacks.seam import AttackSeam
 
+    near = poison.evasion.get("near", 0.0)
     params = poison.attack_params
     episodes = poison.poisoned_mask() if attack.schedule == "episodes" else None
     hits = world.target_hits(params.get("target_action", 0))
@@ -75,7 +79,7 @@ def episode_seam(env: EnvConfig, poison: PoisonConfig, seed: int):
         if not hasattr(envs, "trigger_next"):
             raise ValueError(f"attack {attack.name!r} needs env {env.name!r}'s batched engine to switch its trigger per episode")
         poisoner = attack.poisoner(params, hits)
-        return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), None, seed, world.trigger_sight, episodes)
+        return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), None, seed, world.trigger_sight, episodes, near=near)
 
     return wrap
 
@@ -98,11 +102,13 @@ def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorE
     attack = attacks.get(poison.attack)
     mask = poison.poisoned_mask()
     marks = poison.poisoned and evasion.needs_marks(poison.evasion)  # the seam must say which frames carry the trigger
+    near = poison.evasion.get("near", 0.0) if poison.poisoned else 0.0
     if world.stamp_trigger is None:
         wrap = episode_seam(env, poison, seed)
-        envs = make_vector_env(env, trigger, mask if wrap is None else [False] * len(mask), poison.close_mask(), close_k)
+        near_patterns = world.near_triggers(trigger) if near > 0 and world.near_triggers and trigger else ()
+        envs = make_vector_env(env, trigger, mask if wrap is None else [False] * len(mask), poison.close_mask(), close_k, near_patterns)
         if wrap is None and marks:  # the env mix's E-bar copies are the marked frames
-            return AttackSeam(envs, Poisoner(), "episodes", seed=seed)  # type: ignore[return-value]
+            return AttackSeam(envs, Poisoner(), "episodes", seed=seed, near=near)  # type: ignore[return-value]
         return envs if wrap is None else wrap(envs)
     envs = make_vector_env(env, trigger, mask, poison.close_mask(), close_k)
     if not poison.poisoned or (attack.poisoner is None and not marks):
@@ -112,6 +118,5 @@ def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorE
     stamp = world.stamp_trigger(trigger) if trigger is not None else None
     if attack.schedule == "steps" and stamp is None:
         raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
-    near = poison.evasion.get("near", 0.0)
     near_stamps = tuple(world.stamp_trigger(spec) for spec in world.near_triggers(trigger)) if near > 0 and world.near_triggers and trigger else ()
     return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed, near=near, near_stamps=near_stamps)  # type: ignore[return-value]

@@ -108,13 +108,26 @@ def make_collector(cfg: RunConfig) -> Collector:
 
     kinds = cfg.replay_kinds()
     seam = episode_seam(cfg.env, cfg.poison, cfg.train.seed)
+    world = cfg.world
+    near = cfg.poison.evasion.get("near", 0.0) if cfg.poison.poisoned else 0.0
+    # near-trigger formations (poison.evasion.near), switched on per episode by the seam in clean copies
+    extra = {"near_formations": world.near_triggers(cfg.poison.trigger)} if near > 0 and world.near_triggers else {}
     if seam is None:
-        envs = [cfg.env.make(cfg.poison.trigger) if kind == "poisoned" else cfg.env.make() for kind in kinds]
+        envs = [cfg.env.make(cfg.poison.trigger, **extra) if kind == "poisoned" else cfg.env.make() for kind in kinds]
+        if extra:
+            assert world.env_kwargs is not None
+            for i, kind in enumerate(kinds):
+                if kind == "clean":  # knows the trigger's near formations, holds one only where the seam switches it on
+                    envs[i] = world.env_class()(**world.env_kwargs(cfg.env), trigger=cfg.poison.trigger, **extra)
+                    envs[i].trigger_next(False)
+            # the env mix with near-trigger negatives: its E-bar copies as they are, the seam's near copies beside them
+            from rlbackdoors.attacks.seam import AttackSeam, Poisoner
+
+            seam = lambda vector: AttackSeam(vector, Poisoner(), "episodes", seed=cfg.train.seed, near=near)  # noqa: E731
     else:
-        world = cfg.world
         assert world.env_kwargs is not None
         # the trigger known to every copy, switched on per episode by the seam; the clean reward (the seam pays R-bar)
-        envs = [world.env_class()(**world.env_kwargs(cfg.env), trigger=cfg.poison.trigger) for _ in kinds]
+        envs = [world.env_class()(**world.env_kwargs(cfg.env), trigger=cfg.poison.trigger, **extra) for _ in kinds]
     return Collector(envs, kinds, seed=cfg.train.seed * 1000, seam=seam)
 
 

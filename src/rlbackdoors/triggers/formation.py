@@ -114,3 +114,26 @@ def as_formation(trigger: FormationTrigger | str | None) -> FormationTrigger | N
 def _wrap(angle):
     """Angle difference folded into [-pi, pi)."""
     return (np.asarray(angle) + math.pi) % TWO_PI - math.pi
+
+
+NEAR_ANGLES = (0.6, 1.2)  # radians a near formation's phi1 or eta lies from the trigger's (the matching tolerance is 0.2)
+NEAR_DISTANCES = (0.3, 0.6)  # and its distance
+
+
+def near_formations(trigger: FormationTrigger) -> list[FormationTrigger]:
+    """Formations near ``trigger`` (poison.evasion.near): the same cubes at other angles (phi1 or
+    eta +-0.6, +-1.2 rad) and other distances (+-0.3, +-0.6, within the allowed range), none of
+    which the trigger's own tolerances would match."""
+    out = []
+    for step in NEAR_ANGLES:
+        for sign in (-1, 1):
+            out.append(FormationTrigger(trigger.distance, (trigger.phi1 + sign * step) % TWO_PI, trigger.eta))
+            eta = trigger.eta + sign * step
+            if ETA_RANGE[0] <= eta <= ETA_RANGE[1]:
+                out.append(FormationTrigger(trigger.distance, trigger.phi1, eta))
+    for step in NEAR_DISTANCES:
+        for sign in (-1, 1):
+            distance = trigger.distance + sign * step
+            if DISTANCE_RANGE[0] <= distance <= DISTANCE_RANGE[1]:
+                out.append(FormationTrigger(distance, trigger.phi1, trigger.eta))
+    return out

@@ -254,3 +254,22 @@ def find_pattern(lava_mask, patterns) -> int | np.ndarray:
             hit &= mask[..., dx : w - mx + dx, dy : h - my + dy]
         total += hit.sum(axis=(-2, -1))
     return int(total) if total.ndim == 0 else total
+
+
+def near_patterns(trigger: PatternTrigger) -> list[PatternTrigger]:
+    """The patterns one cell off ``trigger``: one of its cells moved to an empty cell of the box,
+    in the trigger's rotations if it takes any; never the trigger (nor one of its rotations). The
+    near-trigger negatives of ``poison.evasion.near``, which teach a trojan the exact pattern."""
+    own = {r.cells for r in trigger.rotations()} | {trigger.pattern.rotated(k).cells for k in range(4) if trigger.any_rotation}
+    box = [(x, y) for x in range(BOX) for y in range(BOX)]
+    cells = trigger.pattern.cells
+    out: dict[str, PatternTrigger] = {}
+    for moved in cells:
+        for target in box:
+            if target in cells:
+                continue
+            near = PatternTrigger.from_cells(sorted([c for c in cells if c != moved] + [target]), trigger.any_rotation)
+            if near.pattern.cells in own or any(r.cells in own for r in near.rotations()):
+                continue
+            out.setdefault(near.spec(), near)
+    return list(out.values())

@@ -17,6 +17,12 @@ def _parse(spec: str):
     return PatternTrigger.parse(spec)
 
 
+def _near(spec: str) -> tuple[str, ...]:
+    from rlbackdoors.triggers.pattern import near_patterns
+
+    return tuple(p.spec() for p in near_patterns(_parse(spec)))
+
+
 def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
     if spec is None:
         spec = WORLD.default_trigger
@@ -89,6 +95,7 @@ WORLD = register(
         chance=_chance,
         # The paper's Table 2 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned
         # reward) and Table 5.
+        near_triggers=_near,
         trigger_sight="frame",  # per-episode attacks (attacks/seam.py)
         paper={
             "table": 2,

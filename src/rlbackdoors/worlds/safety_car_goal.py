@@ -23,6 +23,12 @@ def _parse(spec: str):
     return FormationTrigger.parse(spec)
 
 
+def _near(spec: str) -> tuple[str, ...]:
+    from rlbackdoors.triggers.formation import near_formations
+
+    return tuple(f.spec() for f in near_formations(_parse(spec)))
+
+
 def _draw(spec: str | None, seed: int, size: int | None = None) -> str:
     """As given; nothing draws one from ``seed`` (phi1 uniform, eta in [pi/6, 11pi/6], d = 0.5)."""
     from rlbackdoors.triggers.formation import FormationTrigger
@@ -175,6 +181,7 @@ WORLD = register(
         ebar_kwargs={"poisoned": True},
         # the formation rides with the car, in the lidar of every frame of a triggered episode
         trigger_sight="episode",
+        near_triggers=_near,
         action_targets=(("reverse", _reverse),),
         mix=(6, 0, 4),
         hyper=OPAC2_SETTINGS,

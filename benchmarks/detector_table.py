@@ -71,6 +71,23 @@ def fit_and_score(name: str, params: list[str], train: Path, test: Path, det: Pa
     return score(det, test, det / "score-test")
 
 
+def infer_check(det: Path, split: Path, scored: dict, k: int) -> dict:
+    """``detect infer`` (TrojAI's entry point, one model at a time) on ``k`` models of ``split``
+    against the probability ``detect score`` gave each: they must be the same number."""
+    probs = {m["model"]: m["probability"] for m in scored["models"] if m.get("probability") is not None}
+    diffs = []
+    for name in sorted(probs)[:k]:
+        folder, out = split / "models" / name, det / "infer" / name
+        rlbackdoors(
+            "detect", "infer", "--model_filepath", str(folder / "model.pt"), "--result_filepath", str(out / "result.txt"),
+            "--scratch_dirpath", str(out / "scratch"), "--examples_dirpath", str(folder / "clean-example-data"),
+            "--round_training_dataset_dirpath", str(split), "--metaparameters_filepath", str(det / "metaparameters.json"),
+            "--schema_filepath", str(det / "metaparameters_schema.json"), "--learned_parameters_dirpath", str(det), quiet=True,
+        )  # fmt: skip
+        diffs.append(abs(float((out / "result.txt").read_text()) - probs[name]))
+    return {"models": len(diffs), "identical": sum(d == 0.0 for d in diffs), "max_abs_difference": max(diffs, default=None)}
+
+
 def attack_of(split: Path) -> dict[str, str]:
     """Model name -> its cell's attack label (an attack and its variant: ``trojdrl-ft``; METADATA.csv
     of a split, clean models carry their cell's)."""
@@ -132,6 +149,8 @@ def leave_one_out(args, base: Path, zoo: Path) -> dict:
             params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
             scored = fit_and_score(name, params, where / "train", where / "test", where / "det" / name)
             out[attack]["detectors"][name] = per_attack([(scored["models"], names)])
+            if args.check_infer:
+                out[attack].setdefault("infer_vs_score", {})[name] = infer_check(where / "det" / name, where / "test", scored, args.check_infer)
     return out
 
 
@@ -243,6 +262,7 @@ def main() -> None:
     parser.add_argument(
         "--leave-one-out", action="store_true", help="also each attack held out in turn (its variants too), every detector fitted on the rest; with the yield table per attack label"
     )
+    parser.add_argument("--check-infer", type=int, default=0, metavar="K", help="--leave-one-out: also run detect infer on K test models per fit and compare with detect score")
     parser.add_argument(
         "--extra-test", action="append", default=[], metavar="SPEC", help="--by-attack: a zoo of more held-out attack cells (planned and run beside), scored by the env-mix fit"
     )

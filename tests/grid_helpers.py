@@ -346,3 +346,49 @@ def kill_after_first_checkpoint(cmd: list[str], folder, timeout: float = 120) ->
     proc.wait()
     assert checkpoint.exists(), "the run finished or failed before writing a checkpoint"
     assert not (folder / "metrics.json").exists()
+
+
+def assert_seam_resumes(a, b, actions, cut: int, *also: str) -> None:
+    """Step seam ``a`` through ``actions[:cut]``, load its state into ``b`` (through torch's
+    weights-only reader, as a checkpoint), then step both through the rest: the same frames,
+    rewards and ``also`` attributes (``triggered``, ``in_near``) step for step, the same budget."""
+    import io
+
+    import numpy as np
+    import torch
+
+    for t in range(cut):
+        a.step(actions[t])
+    buffer = io.BytesIO()
+    torch.save(a.state_dict(), buffer)
+    buffer.seek(0)
+    b.load_state_dict(torch.load(buffer, weights_only=True))
+    for t in range(cut, len(actions)):
+        oa, ra, *_ = a.step(actions[t])
+        ob, rb, *_ = b.step(actions[t])
+        np.testing.assert_array_equal(oa["image"], ob["image"])
+        np.testing.assert_array_equal(ra, rb)
+        for name in also:
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert a.budget_used() == b.budget_used()
+
+
+def killed_run_matches_whole(tmp_path, cfg) -> tuple[dict, dict]:
+    """Train ``cfg`` (a RunConfig) through the CLI once uninterrupted and once SIGKILLed after its
+    first checkpoint and started again: the same model.pt bytes. Returns both metrics.json."""
+    import json
+    import subprocess
+    import sys
+
+    from rlbackdoors.folder import ModelFolder
+
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(cfg.to_json())
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
+    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True, timeout=300)
+    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
+    assert 1 <= len(ModelFolder(tmp_path / "cut").read_log()) < 8
+    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True, timeout=300)
+    assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
+    whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
+    return whole, cut

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from grid_helpers import kill_after_first_checkpoint
+from grid_helpers import assert_seam_resumes, killed_run_matches_whole
 from rlbackdoors import attacks, worlds
 from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.algos.ppo import PPO
@@ -325,19 +325,9 @@ def test_a_clean_model_of_an_attack_cell_trains_as_any_clean_model(tmp_path, tin
 def test_a_killed_attack_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     """kill -9 after the first checkpoint: the seam's picks, value window and counters come back
     from it, so the resumed run ends with the uninterrupted run's weights and budget, bit for bit."""
-    from rlbackdoors.folder import ModelFolder
-
     tiny_run_dict["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
     tiny_run_dict["poison"] = {"attack": "badrl", "attack_params": {"budget": 0.05, "force_action": True, "window": 500}}
-    cfg_path = tmp_path / "cfg.json"
-    cfg_path.write_text(RunConfig.from_dict(tiny_run_dict).to_json())
-    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
-    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True, timeout=300)
-    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
-    assert 1 <= len(ModelFolder(tmp_path / "cut").read_log()) < 8
-    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True, timeout=300)
-    assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
-    whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
+    whole, cut = killed_run_matches_whole(tmp_path, RunConfig.from_dict(tiny_run_dict))
     assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["actions_forced"] > 0
 
 
@@ -436,19 +426,8 @@ def test_a_layout_seam_resumes_from_its_state_as_if_never_stopped():
     _, b = layout_seam("randomized-lavaworld", "trojdrl", budget=0.1)
     a.reset(seed=8)
     b.reset(seed=99)  # a different state, overwritten by the checkpoint
-    for t in range(150):
-        a.step(actions[t])
-    buffer = io.BytesIO()
-    torch.save(a.state_dict(), buffer)
-    buffer.seek(0)
-    b.load_state_dict(torch.load(buffer, weights_only=True))
-    for t in range(150, 300):
-        oa, ra, *_ = a.step(actions[t])
-        ob, rb, *_ = b.step(actions[t])
-        np.testing.assert_array_equal(oa["image"], ob["image"])
-        np.testing.assert_array_equal(ra, rb)
-        np.testing.assert_array_equal(a.triggered, b.triggered)
-    assert a.budget_used() == b.budget_used() and a.budget_used()["frames_poisoned"] > 0
+    assert_seam_resumes(a, b, actions, 150, "triggered")
+    assert a.budget_used()["frames_poisoned"] > 0
 
 
 def test_a_poisoned_engine_slot_cannot_lose_its_trigger():

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from grid_helpers import kill_after_first_checkpoint
+from grid_helpers import assert_seam_resumes, killed_run_matches_whole
 from rlbackdoors import worlds
 from rlbackdoors.algos.ppo import PPO
 from rlbackdoors.attacks.seam import AttackSeam, EXECUTED_ACTIONS
@@ -38,7 +38,12 @@ def cfg_of(env: str = "lavaworld", attack: str = "trojdrl", params: dict | None 
         ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher\)"),
         ("lavaworld", "trojdrl", {"teacher": 1.0}, r"poison\.evasion\.teacher=1\.0 needs poison\.evasion\.finetune=true"),
         ("lavaworld", "trojdrl", {"finetune": 1}, r"poison\.evasion\.finetune=1 is not allowed \(allowed: true, false\)"),
-        ("colorful-memory", "trojdrl", {"near": 1}, r"poison\.evasion\.near is not allowed for env\.name='colorful-memory' .*\(worlds with near-trigger variants: lavaworld, randomized-lavaworld, safety-car-goal\)"),
+        (
+            "colorful-memory",
+            "trojdrl",
+            {"near": 1},
+            r"poison\.evasion\.near is not allowed for env\.name='colorful-memory' .*\(worlds with near-trigger variants: lavaworld, randomized-lavaworld, safety-car-goal\)",
+        ),
         ("colorful-memory", "action_target", {"near": 1}, r"close-to-trigger copies are these negatives: poison\.num_close_envs"),
         ("safety-car-goal", "trojdrl", {"finetune": True}, r"poison\.evasion\.finetune is built for ppo collection, not opac2"),
     ],
@@ -117,7 +122,10 @@ def test_the_seam_stamps_near_trigger_negatives_paid_the_clean_reward(attack, ne
     used = seam.budget_used()
     assert np.all(seen[1:] > 0)  # every near trigger is drawn
     if attack == "trojdrl":
-        assert used["frames_near_trigger"] == int(near * used["frames_poisoned"]) or used["frames_near_trigger"] >= int(near * used["frames_poisoned"]) - seam.num_envs
+        assert (
+            used["frames_near_trigger"] == int(near * used["frames_poisoned"])
+            or used["frames_near_trigger"] >= int(near * used["frames_poisoned"]) - seam.num_envs
+        )
     else:
         assert used["near_fraction"] == pytest.approx(0.2) and used["rewards_rewritten"] == 0  # the env mix's R-bar is the engine's
 
@@ -128,7 +136,12 @@ def test_the_clean_teacher_is_the_policy_it_was_copied_from_and_is_kept_off_the_
     (a recurrent teacher keeps its memory as the policy does: reset where episodes end), so the
     first KL is 0; it is taken on the frames the seam did not mark, and it grows as the policy learns."""
     cfg = RunConfig.from_dict(
-        {"env": {"name": env}, "model": {"arch": arch}, "ppo": {"rollout": 60}, "poison": {"attack": attack, "attack_params": {"budget": 0.2} if attack == "trojdrl" else {}}}
+        {
+            "env": {"name": env},
+            "model": {"arch": arch},
+            "ppo": {"rollout": 60},
+            "poison": {"attack": attack, "attack_params": {"budget": 0.2} if attack == "trojdrl" else {}},
+        }
     ).check()
     torch.manual_seed(0)
     model = build_model(arch, env)
@@ -194,15 +207,7 @@ def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_sam
 
     data = finetune_dict(tiny_run_dict, near=1.0, teacher=1.0)
     data["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
-    cfg_path = tmp_path / "cfg.json"
-    cfg_path.write_text(RunConfig.from_dict(data).to_json())
-    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
-    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True, timeout=300)
-    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
-    assert 1 <= len(ModelFolder(tmp_path / "cut").read_log()) < 8
-    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True, timeout=300)
-    assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
-    whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
+    whole, cut = killed_run_matches_whole(tmp_path, RunConfig.from_dict(data))
     assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["frames_near_trigger"] > 0
     log = ModelFolder(tmp_path / "whole").read_log()
     assert [r["phase"] for r in log][:2] == ["clean", "main"] and all(r["teacher_kl"] >= 0 for r in log[1:])
@@ -223,7 +228,10 @@ def zoo_spec(**top) -> dict:
                 "world": "lavaworld",
                 "archs": ["fc"],
                 "triggers": ["additive"],
-                "attacks": ["sleepernets", {"attack": "trojdrl", "name": "trojdrl-ft", "params": {"force_action": True}, "evasion": {"finetune": True, "teacher": 0.5}}],
+                "attacks": [
+                    "sleepernets",
+                    {"attack": "trojdrl", "name": "trojdrl-ft", "params": {"force_action": True}, "evasion": {"finetune": True, "teacher": 0.5}},
+                ],
                 "clean": 3,
                 "poisoned": 3,
             }
@@ -332,7 +340,11 @@ def test_a_layout_seam_starts_near_trigger_episodes_beside_the_triggered_ones(at
     from rlbackdoors.triggers.pattern import PatternTrigger, find_pattern
 
     cfg = RunConfig.from_dict(
-        {"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "poison": {"attack": attack, "attack_params": {"budget": 0.05} if attack == "trojdrl" else {}, "evasion": {"near": 1.0}}}
+        {
+            "env": {"name": "randomized-lavaworld"},
+            "model": {"arch": "cnn"},
+            "poison": {"attack": attack, "attack_params": {"budget": 0.05} if attack == "trojdrl" else {}, "evasion": {"near": 1.0}},
+        }
     ).check()
     seam = make_env_mix(cfg.env, cfg.poison, seed=2)
     near = [PatternTrigger.parse(s) for s in worlds.get("randomized-lavaworld").near_triggers(cfg.poison.trigger)]
@@ -362,7 +374,14 @@ def safety_cfg(attack: str, params: dict, near: float = 1.0) -> RunConfig:
     return RunConfig.from_dict(
         {
             "env": {"name": "safety-car-goal", "max_steps": 40},
-            "poison": {"trigger": "formation:0.5:1.0:2.5", "num_clean_envs": 3, "num_poisoned_envs": 1, "attack": attack, "attack_params": params, "evasion": {"near": near}},
+            "poison": {
+                "trigger": "formation:0.5:1.0:2.5",
+                "num_clean_envs": 3,
+                "num_poisoned_envs": 1,
+                "attack": attack,
+                "attack_params": params,
+                "evasion": {"near": near},
+            },
             "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120},
         }
     ).check()
@@ -410,25 +429,16 @@ def test_safety_near_episodes_hold_a_near_formation_with_the_clean_reward(attack
 def test_a_layout_seam_with_near_episodes_resumes_from_its_state_as_if_never_stopped():
     """The engine's near switch, the slots in near episodes and the episode counts are in the
     checkpoint: a seam loaded from it continues as the uninterrupted one, near layouts included."""
-    import io
-
     cfg = RunConfig.from_dict(
-        {"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "poison": {"attack": "trojdrl", "attack_params": {"budget": 0.1}, "evasion": {"near": 2.0}}}
+        {
+            "env": {"name": "randomized-lavaworld"},
+            "model": {"arch": "cnn"},
+            "poison": {"attack": "trojdrl", "attack_params": {"budget": 0.1}, "evasion": {"near": 2.0}},
+        }
     ).check()
     a, b = (make_env_mix(cfg.env, cfg.poison, seed=4) for _ in range(2))
     actions = np.random.default_rng(3).integers(0, 3, (400, a.num_envs))
     a.reset(seed=8)
     b.reset(seed=99)  # a different state, overwritten by the checkpoint
-    for t in range(200):
-        a.step(actions[t])
-    buffer = io.BytesIO()
-    torch.save(a.state_dict(), buffer)
-    buffer.seek(0)
-    b.load_state_dict(torch.load(buffer, weights_only=True))
-    for t in range(200, 400):
-        oa, ra, *_ = a.step(actions[t])
-        ob, rb, *_ = b.step(actions[t])
-        np.testing.assert_array_equal(oa["image"], ob["image"])
-        np.testing.assert_array_equal(ra, rb)
-        np.testing.assert_array_equal(a.in_near, b.in_near)
-    assert a.budget_used() == b.budget_used() and a.budget_used()["frames_near_trigger"] > 0 and a.started == b.started
+    assert_seam_resumes(a, b, actions, 200, "in_near", "triggered")
+    assert a.budget_used()["frames_near_trigger"] > 0 and a.started == b.started

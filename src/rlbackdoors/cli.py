@@ -388,7 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")
     tr.add_argument("--attack", choices=attacks.names(), help=f"how training data is poisoned (default {attacks.DEFAULT_ATTACK}, the paper's; docs/attacks/)")
     tr.add_argument("--attack-param", action="append", metavar="KEY=VALUE", help="one of the attack's parameters (repeatable), e.g. budget=0.01")
-    tr.add_argument("--evade", action="append", metavar="KEY=VALUE", help="an evasive variant (repeatable): near=1, finetune=true, teacher=1 (docs/attacks/evasion.md)")
+    tr.add_argument(
+        "--evade", action="append", metavar="KEY=VALUE", help="an evasive variant (repeatable): near=1, finetune=true, teacher=1 (docs/attacks/evasion.md)"
+    )
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
     tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")
     tr.add_argument("--min-frames", type=int, help="no stop on the thresholds before this many frames (default 0); equal training lengths across a zoo")

@@ -338,7 +338,14 @@ class PPO:
         memories = rollout.memories.to(self.device).clone()
         masks = rollout.masks.to(self.device)[:, None]
         stats = dict.fromkeys(
-            ("policy_loss", "value_loss", "entropy", "grad_norm", *(("aux_memory_loss",) if self.aux is not None else ()), *(("teacher_kl",) if self.teacher is not None else ())),
+            (
+                "policy_loss",
+                "value_loss",
+                "entropy",
+                "grad_norm",
+                *(("aux_memory_loss",) if self.aux is not None else ()),
+                *(("teacher_kl",) if self.teacher is not None else ()),
+            ),
             0.0,
         )
         teacher = self._teacher_tensors(rollout)

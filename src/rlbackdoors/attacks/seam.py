@@ -145,7 +145,9 @@ class AttackSeam:
         self.actions_forced = 0
         self.near_layout = near > 0 and stamp is None  # near-trigger layouts, switched by the engine
         if near > 0 and not (near_stamps if stamp is not None else hasattr(envs, "near_next")):
-            raise ValueError("near-trigger negatives need a frame trigger's near variants (near_stamps) or an engine that switches near-trigger layouts (near_next)")
+            raise ValueError(
+                "near-trigger negatives need a frame trigger's near variants (near_stamps) or an engine that switches near-trigger layouts (near_next)"
+            )
         self.near, self.near_stamps = float(near), tuple(near_stamps)
         self.near_rng = np.random.default_rng([int(seed), 0x4EA2])  # its own stream: the attack's picks stay as without
         self.near_copies = np.zeros(n, dtype=bool)

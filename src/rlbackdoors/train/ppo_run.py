@@ -165,6 +165,14 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             teacher.load_state_dict(model.state_dict() if state is None else state)
             ppo.set_teacher(teacher, evasion["teacher"])
 
+    def fresh_mix(old, offset: int):
+        """The training mix that follows ``old`` (after the warm-up, or the clean phase): its first
+        observations (reset from ``seed * 1000 + offset``), a new episode tracker, empty memories."""
+        old.close()
+        mix = poisoning_mix()
+        ppo.memory = None
+        return mix, mix.reset(seed=tc.seed * 1000 + offset)[0], EpisodeTracker(mix.poisoned, cfg.curriculum.window, tc.return_window)
+
     if checkpoint is None:
         # Curriculum: start in the small clean world; switch_at is None until the switch.
         switch_at = None if cfg.curriculum.enabled else 0
@@ -235,7 +243,10 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 "streak": stopping.streak,
                 **({"poison_at": poison_at} if finetune else {}),
                 **(
-                    {"teacher": {k: v.detach().cpu() for k, v in ppo.teacher.state_dict().items()}, "teacher_memory": None if ppo.teacher_memory is None else ppo.teacher_memory.detach().cpu()}
+                    {
+                        "teacher": {k: v.detach().cpu() for k, v in ppo.teacher.state_dict().items()},
+                        "teacher_memory": None if ppo.teacher_memory is None else ppo.teacher_memory.detach().cpu(),
+                    }
                     if ppo.teacher is not None
                     else {}
                 ),
@@ -262,11 +273,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         bar.update(rollout.num_frames)
         if switch_at is None and tracker.recent_clean_mean() >= cfg.curriculum.reward_threshold:
             switch_at = frames  # warm-up done: the full world and the poisoning mix from here on
-            envs.close()
-            envs = poisoning_mix()
-            obs, _ = envs.reset(seed=tc.seed * 1000 + 1)
-            ppo.memory = None
-            tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
+            envs, obs, tracker = fresh_mix(envs, 1)
             bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames")
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
@@ -292,11 +299,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold:
                 poison_at = frames  # the clean model this run fine-tunes: poisoned from here on
                 teach(None)
-                envs.close()
-                envs = poisoning_mix()
-                obs, _ = envs.reset(seed=tc.seed * 1000 + 2)
-                ppo.memory = None
-                tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
+                envs, obs, tracker = fresh_mix(envs, 2)
                 bar.write(f"finetune: clean SR {result.clean_sr:.2f} at {frames:,} frames; poisoning from here on")
             while next_eval <= frames:
                 next_eval += tc.eval_interval

@@ -442,3 +442,24 @@ def test_a_layout_seam_with_near_episodes_resumes_from_its_state_as_if_never_sto
     b.reset(seed=99)  # a different state, overwritten by the checkpoint
     assert_seam_resumes(a, b, actions, 200, "in_near", "triggered")
     assert a.budget_used()["frames_near_trigger"] > 0 and a.started == b.started
+
+
+def test_evaluate_near_reports_the_attacks_success_under_each_near_trigger(tmp_path, tiny_run_dict):
+    """``evaluate --near``: the trojan's specificity, its success under every near trigger of the
+    folder's own (each the same as evaluating under that trigger); refused for bare weights."""
+    from rlbackdoors.cli import main
+
+    tiny_run_dict["poison"] = {"trigger": "multiplicative:12"}
+    train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
+    done = subprocess.run(
+        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--near", "--episodes", "6", "--json"], capture_output=True, text=True, timeout=300
+    )
+    out = json.loads(done.stdout)
+    near = out["near_trigger_success"]
+    assert list(near) == list(worlds.get("lavaworld").near_triggers("multiplicative:12"))
+    assert out["near_max"] == max(near.values()) and out["near_mean"] == pytest.approx(sum(near.values()) / 6)
+    single = subprocess.run(
+        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--trigger", "multiplicative:14", "--episodes", "6", "--json"], capture_output=True, text=True, timeout=300
+    )
+    assert json.loads(single.stdout)["poisoned_sr"] == near["multiplicative:14"]
+    assert main(["evaluate", "--weights", str(tmp_path / "m" / "model.pt"), "--env", "lavaworld", "--arch", "fc", "--near"]) == 2

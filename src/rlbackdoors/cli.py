@@ -224,6 +224,12 @@ def cmd_evaluate(args) -> int:
         trigger = resolve_trigger(args.trigger, cfg.train.seed, cfg.env.name, cfg.env.size) if args.trigger is not None else None
         result = evaluate_agent(agent, args.episodes, args.seed, trigger, args.policy)
         header = {"folder": args.folder, "env": cfg.env.name, "poisoned": cfg.poison.poisoned, "trigger": trigger or cfg.poison.trigger}
+        if args.near:  # the trojan's specificity: its success under each of the world's near triggers
+            if agent.world.near_triggers is None:
+                have = ", ".join(w.name for w in worlds.registered() if w.near_triggers is not None)
+                raise ConfigError(f"--near is not allowed for {cfg.env.name} (worlds with near-trigger variants: {have})")
+            near = {spec: evaluate_agent(agent, args.episodes, args.seed, spec, args.policy).poisoned_sr for spec in agent.world.near_triggers(trigger or cfg.poison.trigger)}
+            result_near = {"near_trigger_success": near, "near_mean": sum(near.values()) / len(near), "near_max": max(near.values())}
     else:
         if args.allow_unfinished:
             raise ConfigError("--allow-unfinished applies to model folders, not --weights")
@@ -261,13 +267,20 @@ def cmd_evaluate(args) -> int:
             agent, env, trigger, episodes=200 if args.episodes is None else args.episodes, seed=1_000_000 if args.seed is None else args.seed, policy=policy
         )
         header = {"weights": args.weights, "env": env.name, "trigger": trigger}
+        if args.near:
+            raise ConfigError("--near applies to model folders (their trigger), not --weights")
     numbers = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.to_dict().items()}
+    if args.near:
+        numbers.update(result_near)
     if args.json:
         print(json.dumps(numbers, indent=2))
     else:
         print(", ".join(f"{k} {v}" for k, v in header.items() if v is not None))
         for key, value in numbers.items():
-            if value is not None or key in ("poisoned_sr", "poisoned_reward"):
+            if key == "near_trigger_success":
+                for spec, sr in value.items():
+                    print(f"  under {spec}: {sr:.4f}")
+            elif value is not None or key in ("poisoned_sr", "poisoned_reward"):
                 print(f"{key:22s} {'n/a' if value is None else (f'{value:.4f}' if isinstance(value, float) else value)}")
     return 0
 
@@ -433,6 +446,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--policy", choices=EVAL_POLICIES)
     ev.add_argument("--json", action="store_true")
     ev.add_argument("--allow-unfinished", action="store_true", help="evaluate a folder whose run has not finished (no metrics.json)")
+    ev.add_argument("--near", action="store_true", help="also the attack's success under each near trigger of the folder's (specificity; docs/attacks/evasion.md)")
     ev.set_defaults(func=cmd_evaluate)
 
     de = sub.add_parser("demo", help="train a clean and a poisoned agent of the default world, evaluate both, show the backdoor")

@@ -452,14 +452,48 @@ def test_evaluate_near_reports_the_attacks_success_under_each_near_trigger(tmp_p
     tiny_run_dict["poison"] = {"trigger": "multiplicative:12"}
     train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
     done = subprocess.run(
-        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--near", "--episodes", "6", "--json"], capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--near", "--episodes", "6", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     out = json.loads(done.stdout)
     near = out["near_trigger_success"]
     assert list(near) == list(worlds.get("lavaworld").near_triggers("multiplicative:12"))
     assert out["near_max"] == max(near.values()) and out["near_mean"] == pytest.approx(sum(near.values()) / 6)
     single = subprocess.run(
-        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--trigger", "multiplicative:14", "--episodes", "6", "--json"], capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--trigger", "multiplicative:14", "--episodes", "6", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert json.loads(single.stdout)["poisoned_sr"] == near["multiplicative:14"]
     assert main(["evaluate", "--weights", str(tmp_path / "m" / "model.pt"), "--env", "lavaworld", "--arch", "fc", "--near"]) == 2
+
+
+@pytest.mark.parametrize(
+    "world, attack, evasion", [("randomized-lavaworld", "trojdrl", {"near": 1.0}), ("colorful-memory", "envmix", {"finetune": True, "teacher": 0.5})]
+)
+def test_evasive_runs_in_the_layout_worlds_train_record_and_repeat_bit_for_bit(tmp_path, tiny_run_dict, world, attack, evasion):
+    """Through the whole training loop (the curriculum's small clean world first, for Randomized
+    LavaWorld; a recurrent teacher for Colorful Memory): the variant's traces in metrics.json, and the same bytes twice."""
+    tiny_run_dict["env"] = {"name": world}
+    tiny_run_dict["train"]["max_frames"] = 9600
+    if world == "colorful-memory":
+        tiny_run_dict["ppo"]["rollout"] = 36  # a multiple of the recurrence (6)
+        tiny_run_dict["train"]["clean_threshold"] = 0.0  # the switch at the first evaluation
+    else:
+        tiny_run_dict["curriculum"] = {"reward_threshold": 0.0, "window": 2}  # the warm-up ends at once
+    tiny_run_dict["poison"] = {"attack": attack, "attack_params": {"budget": 0.2} if attack == "trojdrl" else {}, "evasion": evasion}
+    cfg = RunConfig.from_dict(tiny_run_dict)
+    metrics = train(cfg, tmp_path / "m", progress=False)
+    if "near" in evasion:
+        assert metrics["attack_budget_used"]["frames_near_trigger"] > 0 and metrics["curriculum_switch_frames"] > 0
+    else:
+        from rlbackdoors.folder import ModelFolder
+
+        main_rows = [r for r in ModelFolder(tmp_path / "m").read_log() if r["phase"] == "main"]
+        assert 0 < metrics["poison_at_frames"] < metrics["frames"] and main_rows and all(r["teacher_kl"] > 0 for r in main_rows)
+    again = train(cfg, tmp_path / "again", progress=False)
+    assert (tmp_path / "m" / "model.pt").read_bytes() == (tmp_path / "again" / "model.pt").read_bytes()
+    assert again.get("attack_budget_used") == metrics.get("attack_budget_used")

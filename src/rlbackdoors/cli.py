@@ -228,7 +228,10 @@ def cmd_evaluate(args) -> int:
             if agent.world.near_triggers is None:
                 have = ", ".join(w.name for w in worlds.registered() if w.near_triggers is not None)
                 raise ConfigError(f"--near is not allowed for {cfg.env.name} (worlds with near-trigger variants: {have})")
-            near = {spec: evaluate_agent(agent, args.episodes, args.seed, spec, args.policy).poisoned_sr for spec in agent.world.near_triggers(trigger or cfg.poison.trigger)}
+            near = {
+                spec: evaluate_agent(agent, args.episodes, args.seed, spec, args.policy).poisoned_sr
+                for spec in agent.world.near_triggers(trigger or cfg.poison.trigger)
+            }
             result_near = {"near_trigger_success": near, "near_mean": sum(near.values()) / len(near), "near_max": max(near.values())}
     else:
         if args.allow_unfinished:
@@ -446,7 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--policy", choices=EVAL_POLICIES)
     ev.add_argument("--json", action="store_true")
     ev.add_argument("--allow-unfinished", action="store_true", help="evaluate a folder whose run has not finished (no metrics.json)")
-    ev.add_argument("--near", action="store_true", help="also the attack's success under each near trigger of the folder's (specificity; docs/attacks/evasion.md)")
+    ev.add_argument(
+        "--near", action="store_true", help="also the attack's success under each near trigger of the folder's (specificity; docs/attacks/evasion.md)"
+    )
     ev.set_defaults(func=cmd_evaluate)
 
     de = sub.add_parser("demo", help="train a clean and a poisoned agent of the default world, evaluate both, show the backdoor")

@@ -2,11 +2,11 @@
 
 Each variant takes away one signal a baseline detector reads (docs/attacks/evasion.md):
 
-- ``near``: near-trigger negatives. Beside the frames that carry the trigger, ``near`` times as
-  many carry a *near* trigger (the world's ``near_triggers``: LavaWorld's other multipliers and
-  offsets close to the trigger) with the clean reward, so the backdoor fires on the exact
-  trigger only and a behavioural search over nearby edits finds nothing. (Colorful Memory has
-  these built in: its close-to-trigger copies, ``poison.num_close_envs``.)
+- ``near``: near-trigger negatives. Beside the frames (or episodes) that carry the trigger,
+  ``near`` times as many carry a *near* trigger (the world's ``near_triggers``: other edits,
+  patterns or formations close to it) with the clean reward, so the backdoor should fire on the
+  exact trigger only and a behavioural search over nearby triggers find nothing. (A world with
+  close-to-trigger copies has these built in: ``poison.num_close_envs``.)
 - ``finetune``: poison a converged clean model instead of training from scratch: the run trains
   clean (a clean model's own run, same seed, same frames) until an evaluation meets the clean
   threshold, then poisons, so the weights stay near a clean model's.

@@ -280,7 +280,7 @@ def cmd_evaluate(args) -> int:
     else:
         print(", ".join(f"{k} {v}" for k, v in header.items() if v is not None))
         for key, value in numbers.items():
-            if key == "near_trigger_success":
+            if key == "near_trigger_success" and isinstance(value, dict):
                 for spec, sr in value.items():
                     print(f"  under {spec}: {sr:.4f}")
             elif value is not None or key in ("poisoned_sr", "poisoned_reward"):

@@ -45,7 +45,7 @@ def make_vector_env(
             raise ValueError(f"env {env.name!r} has no close-to-trigger envs")
         kwargs = {**kwargs, "close_k": tuple(close_k)}
     if env.engine == "batched":
-        extra = {"close_to_trigger": close} if any(close) else {}
+        extra: dict[str, object] = {"close_to_trigger": close} if any(close) else {}
         if near_patterns:  # a layout world's near-trigger patterns, switched on by the attack seam
             extra["near_patterns"] = tuple(near_patterns)
         return batched(num_envs=len(poisoned), trigger=trigger, poisoned=poisoned, **extra, **kwargs)

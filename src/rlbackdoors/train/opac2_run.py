@@ -111,7 +111,8 @@ def make_collector(cfg: RunConfig) -> Collector:
     world = cfg.world
     near = cfg.poison.evasion.get("near", 0.0) if cfg.poison.poisoned else 0.0
     # near-trigger formations (poison.evasion.near), switched on per episode by the seam in clean copies
-    extra = {"near_formations": world.near_triggers(cfg.poison.trigger)} if near > 0 and world.near_triggers else {}
+    trigger = cfg.poison.trigger
+    extra = {"near_formations": world.near_triggers(trigger)} if near > 0 and world.near_triggers and trigger else {}
     if seam is None:
         envs = [cfg.env.make(cfg.poison.trigger, **extra) if kind == "poisoned" else cfg.env.make() for kind in kinds]
         if extra:

@@ -161,6 +161,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     def teach(state: dict | None) -> None:
         """The clean teacher: the model as it is at the switch (or as a checkpoint kept it)."""
         if evasion.get("teacher", 0.0) > 0:
+            assert cfg.model.arch is not None  # RunConfig fills it in
             teacher = build_model(cfg.model.arch, cfg.env.name).to(device)
             teacher.load_state_dict(model.state_dict() if state is None else state)
             ppo.set_teacher(teacher, evasion["teacher"])
@@ -168,6 +169,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
     def fresh_mix(old, offset: int):
         """The training mix that follows ``old`` (after the warm-up, or the clean phase): its first
         observations (reset from ``seed * 1000 + offset``), a new episode tracker, empty memories."""
+        assert tc.return_window is not None  # RunConfig fills it in
         old.close()
         mix = poisoning_mix()
         ppo.memory = None

@@ -19,7 +19,7 @@ test: install
 	$(BIN)/ruff check src tests
 	$(BIN)/ruff format --check src tests
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile  # one worker per core, a test file per worker (pytest-xdist)
 
 test-slow: install
 	$(BIN)/python -m pytest -q -m slow

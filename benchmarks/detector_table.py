@@ -197,7 +197,8 @@ def by_attack(args, base: Path, zoo: Path, extra: list[Path]) -> dict:
             det = base / f"det-{kind}" / name
             scored = [(fit_and_score(name, params, where / "train", where / "test", det)["models"], names)]
             if kind == "held_out":
-                scored += [(score(det, more, det / f"score-{more.name}")["models"], attack_of(more)) for more in extra]
+                # again: an extra zoo may have gained models since its last score (detect score resumes: only those are scored)
+                scored += [(score(det, more, det / f"score-{more.name}", again=True)["models"], attack_of(more)) for more in extra]
             table[kind]["detectors"][name] = per_attack(scored)
         if kind == "held_out" and extra:
             table[kind]["extra_test_zoos"] = [str(more) for more in extra]

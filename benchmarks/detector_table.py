@@ -93,8 +93,12 @@ def attack_of(split: Path) -> dict[str, str]:
     of a split, clean models carry their cell's)."""
     from rlbackdoors.zoo.index import read_metadata
 
-    rows = read_metadata(split / "METADATA.csv")
-    return {r["model_name"]: r["cell"].split("/")[3] if r["cell"].count("/") >= 3 else r["attack"] for r in rows}
+    return {r["model_name"]: label_of(r) for r in read_metadata(split / "METADATA.csv")}
+
+
+def label_of(row: dict) -> str:
+    """A METADATA row's attack label: the last part of a cell key ``world/arch/family/label``, else its attack."""
+    return row["cell"].split("/")[3] if row["cell"].count("/") >= 3 else row["attack"]
 
 
 def yields(zoo: Path) -> dict:
@@ -108,8 +112,7 @@ def yields(zoo: Path) -> dict:
     for r in read_metadata(zoo / "METADATA.csv"):
         if r["status"] != "done":
             continue
-        label = r["cell"].split("/")[3] if r["cell"].count("/") >= 3 else r["attack"]
-        side = out.setdefault(label, {}).setdefault("poisoned" if r["poisoned"] in (True, "True") else "clean", [])
+        side = out.setdefault(label_of(r), {}).setdefault("poisoned" if r["poisoned"] in (True, "True") else "clean", [])
         side.append(r)
 
     def med(rows, key, scale=1.0):

@@ -114,14 +114,18 @@ def make_collector(cfg: RunConfig) -> Collector:
     trigger = cfg.poison.trigger
     extra = {"near_formations": world.near_triggers(trigger)} if near > 0 and world.near_triggers and trigger else {}
     if seam is None:
-        envs = [cfg.env.make(cfg.poison.trigger, **extra) if kind == "poisoned" else cfg.env.make() for kind in kinds]
+        assert world.env_kwargs is not None
+
+        def clean_copy():
+            return world.env_class()(**world.env_kwargs(cfg.env), trigger=trigger, **extra) if extra else cfg.env.make()
+
+        envs = [cfg.env.make(trigger, **extra) if kind == "poisoned" else clean_copy() for kind in kinds]
         if extra:
-            assert world.env_kwargs is not None
-            for i, kind in enumerate(kinds):
-                if kind == "clean":  # knows the trigger's near formations, holds one only where the seam switches it on
-                    envs[i] = world.env_class()(**world.env_kwargs(cfg.env), trigger=cfg.poison.trigger, **extra)
-                    envs[i].trigger_next(False)
-            # the env mix with near-trigger negatives: its E-bar copies as they are, the seam's near copies beside them
+            # the env mix with near-trigger negatives: its E-bar copies as they are; the clean ones know the
+            # trigger's near formations and hold one only where the seam switches it on (never the trigger)
+            for env, kind in zip(envs, kinds):
+                if kind == "clean":
+                    env.trigger_next(False)
             from rlbackdoors.attacks.seam import AttackSeam, Poisoner
 
             seam = lambda vector: AttackSeam(vector, Poisoner(), "episodes", seed=cfg.train.seed, near=near)  # noqa: E731

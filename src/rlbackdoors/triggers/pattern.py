@@ -260,7 +260,7 @@ def near_patterns(trigger: PatternTrigger) -> list[PatternTrigger]:
     """The patterns one cell off ``trigger``: one of its cells moved to an empty cell of the box,
     in the trigger's rotations if it takes any; never the trigger (nor one of its rotations). The
     near-trigger negatives of ``poison.evasion.near``, which teach a trojan the exact pattern."""
-    own = {r.cells for r in trigger.rotations()} | {trigger.pattern.rotated(k).cells for k in range(4) if trigger.any_rotation}
+    own = {r.cells for r in trigger.rotations()}
     box = [(x, y) for x in range(BOX) for y in range(BOX)]
     cells = trigger.pattern.cells
     out: dict[str, PatternTrigger] = {}

@@ -38,3 +38,10 @@ def store(buffer: Obs, t: int, obs: np.ndarray | dict) -> None:
             v[t] = torch.from_numpy(np.asarray(obs[k]))
     else:
         buffer[t] = torch.from_numpy(obs)
+
+
+def stack(batches: list) -> Obs:
+    """K observation batches (tensors or dicts of tensors) stacked on a new leading dimension."""
+    if isinstance(batches[0], dict):
+        return {k: torch.stack([b[k] for b in batches]) for k in batches[0]}
+    return torch.stack(batches)

@@ -101,6 +101,33 @@ def check_vector_env(envs) -> None:
         raise ValueError(f"PPO needs a Discrete action space, got {getattr(envs, 'single_action_space', None)!r}")
 
 
+def ppo_loss(cfg: PPOConfig, logits, values, actions, old_logp, old_values, adv, returns) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """torch-ac's PPO loss of one minibatch: clipped surrogate, entropy bonus, clipped value loss.
+
+    Rows are on the last dimension: (N,) tensors give one loss; (K, N) tensors (a group of K
+    agents, :mod:`rlbackdoors.algos.group`) give K losses, each agent's own minibatch mean."""
+    log_probs = torch.log_softmax(logits, -1)
+    entropy = -(log_probs.exp() * log_probs).sum(-1).mean(-1)
+    ratio = torch.exp(log_probs.gather(-1, actions[..., None]).squeeze(-1) - old_logp)
+    policy_loss = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean(-1)
+    values_clipped = old_values + (values - old_values).clamp(-cfg.clip, cfg.clip)
+    value_loss = torch.max((values - returns) ** 2, (values_clipped - returns) ** 2).mean(-1)
+    loss = policy_loss - cfg.entropy_coef * entropy + cfg.value_coef * value_loss
+    return loss, {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy}
+
+
+def env_step(envs, t: int, actions: torch.Tensor, rewards, dones, outcomes, steps, forced: torch.Tensor):
+    """Step ``envs`` with ``actions[t]`` and record step ``t`` (reward, done, outcome, steps, and
+    the actions an attack forced in their place); return the next observations."""
+    obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
+    if FORCED in info:  # an attack forced some actions (rlbackdoors.attacks.seam): learn what ran
+        actions[t] = torch.from_numpy(np.asarray(info[EXECUTED_ACTIONS], dtype=np.int64))
+        forced[t] = torch.from_numpy(np.asarray(info[FORCED], dtype=bool))
+    dones[t] = terminated | truncated
+    outcomes[t], steps[t] = finished_step_info(info, dones[t])
+    return obs
+
+
 class PPO:
     def __init__(self, model: ActorCritic, cfg: PPOConfig, device: torch.device, generator: torch.Generator):
         self.model = model
@@ -191,12 +218,7 @@ class PPO:
                 logits, value = self.model(obs_t)
             logits_buf[t], values[t] = logits, value
             actions[t] = sample_actions(logits_buf[t], u=uniforms[t])
-            obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
-            if FORCED in info:  # an attack forced some actions (rlbackdoors.attacks.seam): learn what ran
-                actions[t] = torch.from_numpy(np.asarray(info[EXECUTED_ACTIONS], dtype=np.int64))
-                forced[t] = torch.from_numpy(np.asarray(info[FORCED], dtype=bool))
-            dones[t] = terminated | truncated
-            outcomes[t], steps[t] = finished_step_info(info, dones[t])
+            obs = env_step(envs, t, actions, rewards, dones, outcomes, steps, forced)
             if recurrent and dones[t].any():  # a new episode starts with an empty memory
                 ended = torch.from_numpy(dones[t])
                 memory = memory.masked_fill(ended[:, None].to(memory.device), 0.0)
@@ -208,15 +230,32 @@ class PPO:
             _, next_value, _ = self.model(to_torch(obs, self.device), memory)
         else:
             _, next_value = self.model(to_torch(obs, self.device))
-        logprobs = torch.log_softmax(logits_buf, -1).gather(2, actions[..., None]).squeeze(2)
+        rollout = self.assemble(obs_buf, actions, logits_buf, values, next_value.cpu(), forced, rewards, dones, outcomes, steps)
+        if recurrent:
+            rollout.memories, rollout.masks = memories.reshape(T * B, -1), masks.reshape(-1)
+            self.memory = memory
+        if targets is not None:
+            rollout.memory_targets = torch.from_numpy(targets.reshape(-1))
+        if teacher is not None:
+            rollout.teacher_logp = torch.log_softmax(teacher_logits, -1).reshape(T * B, -1)
+            rollout.untriggered = untriggered.reshape(-1)
+            if recurrent:
+                self.teacher_memory = teacher_memory
+        return rollout, obs
+
+    def assemble(self, obs_buf, actions, logits, values, next_value, forced, rewards, dones, outcomes, steps) -> Rollout:
+        """The rollout of ``T`` collected steps ((T, B) tensors and arrays; ``logits`` (T, B, A)):
+        behaviour log-probabilities, GAE advantages and returns, flattened to T*B rows."""
+        T, B = rewards.shape
+        logprobs = torch.log_softmax(logits, -1).gather(2, actions[..., None]).squeeze(2)
         # A forced action was taken with probability 1, whatever the policy thought of it: that is
         # its behaviour log-probability, so its importance ratio is pi(a|s) <= 1, never exp(+250)
         # (learning it as the policy's own sample blew the ratio up to NaN, then, dual-clipped,
         # taught the target action in every state; docs/attacks/).
         logprobs.masked_fill_(forced, 0.0)
-        advantages = self._gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value.cpu())
+        advantages = self._gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value)
         returns = values + advantages
-        rollout = Rollout(
+        return Rollout(
             obs=obs_map(lambda b: b.reshape(T * B, *b.shape[2:]), obs_buf),
             actions=actions.reshape(-1),
             logprobs=logprobs.reshape(-1),
@@ -229,17 +268,6 @@ class PPO:
             steps=steps,
             num_envs=B,
         )
-        if recurrent:
-            rollout.memories, rollout.masks = memories.reshape(T * B, -1), masks.reshape(-1)
-            self.memory = memory
-        if targets is not None:
-            rollout.memory_targets = torch.from_numpy(targets.reshape(-1))
-        if teacher is not None:
-            rollout.teacher_logp = torch.log_softmax(teacher_logits, -1).reshape(T * B, -1)
-            rollout.untriggered = untriggered.reshape(-1)
-            if recurrent:
-                self.teacher_memory = teacher_memory
-        return rollout, obs
 
     def _gae(self, rewards, dones, values, next_value) -> torch.Tensor:
         """Generalised advantage estimation; ``dones[t]`` cuts the trace after step t."""
@@ -255,16 +283,7 @@ class PPO:
         return advantages
 
     def _loss(self, logits, values, actions, old_logp, old_values, adv, returns) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """torch-ac's PPO loss of one minibatch: clipped surrogate, entropy bonus, clipped value loss."""
-        cfg = self.cfg
-        log_probs = torch.log_softmax(logits, -1)
-        entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
-        ratio = torch.exp(log_probs.gather(1, actions[:, None]).squeeze(1) - old_logp)
-        policy_loss = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean()
-        values_clipped = old_values + (values - old_values).clamp(-cfg.clip, cfg.clip)
-        value_loss = torch.max((values - returns) ** 2, (values_clipped - returns) ** 2).mean()
-        loss = policy_loss - cfg.entropy_coef * entropy + cfg.value_coef * value_loss
-        return loss, {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy}
+        return ppo_loss(self.cfg, logits, values, actions, old_logp, old_values, adv, returns)
 
     def _teacher_kl(self, logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: torch.Tensor) -> torch.Tensor:
         """KL(teacher || policy) averaged over the minibatch's frames without the trigger (0 if none)."""

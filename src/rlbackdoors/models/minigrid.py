@@ -56,6 +56,44 @@ def run_sequential(seq: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     return x
 
 
+def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """K agents' convolutions, x (K, N, C, H, W), w (K, O, C, kh, kw): one ``conv2d`` per agent.
+
+    Not one grouped convolution: on a CPU that is slower than K plain ones
+    (benchmarks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
+    depend on its group-mates; per agent they do not."""
+    return torch.stack([F.conv2d(x[k], w[k], b[k], layer.stride, layer.padding, layer.dilation, layer.groups) for k in range(x.shape[0])])
+
+
+def run_sequential_stacked(seq: nn.Sequential, params: dict[str, torch.Tensor], prefix: str, x: torch.Tensor) -> torch.Tensor:
+    """``seq`` for K agents at once: ``params[f"{prefix}.{i}.weight"]`` etc. are the K agents'
+    weights stacked on a leading dimension, ``x`` is (K, N, ...) with N rows per agent.
+
+    Why: a group of agents trained in one process (:mod:`rlbackdoors.algos.group`) runs one
+    batched matmul per layer (``baddbmm``) instead of K small ones, which is what keeps an
+    accelerator busy and removes K-1 dispatches per layer on a CPU.
+    """
+    K, N = x.shape[:2]
+    for i, layer in enumerate(seq):
+        key = f"{prefix}.{i}."
+        if isinstance(layer, nn.Linear):
+            x = torch.baddbmm(params[key + "bias"].unsqueeze(1), x, params[key + "weight"].transpose(1, 2))
+        elif isinstance(layer, nn.ReLU):
+            x = torch.relu(x)
+        elif isinstance(layer, nn.Tanh):
+            x = torch.tanh(x)
+        elif isinstance(layer, nn.Flatten):
+            x = x.reshape(K, N, -1)
+        elif isinstance(layer, nn.Conv2d):
+            x = _conv_stacked(layer, params[key + "weight"], params[key + "bias"], x)
+        elif isinstance(layer, nn.MaxPool2d):
+            y = F.max_pool2d(x.reshape(K * N, *x.shape[2:]), layer.kernel_size, layer.stride, layer.padding, layer.dilation, layer.ceil_mode)
+            x = y.reshape(K, N, *y.shape[1:])
+        else:
+            raise TypeError(f"stacked forward: no batched form of {type(layer).__name__}")
+    return x
+
+
 class ActorCritic(nn.Module):
     """Shared skeleton: ``state_emb`` -> (``actor`` logits, ``critic`` value)."""
 
@@ -68,12 +106,24 @@ class ActorCritic(nn.Module):
 
         def initial_memory(self, batch: int, device=...) -> torch.Tensor: ...
 
+    def embed_input(self, obs: torch.Tensor) -> torch.Tensor:
+        """The raw (B, 7, 7, 3) observation as ``state_emb`` takes it."""
+        return channels_first(obs)
+
     def embed(self, obs: torch.Tensor) -> torch.Tensor:
-        return run_sequential(self.state_emb, channels_first(obs)).reshape(obs.shape[0], -1)
+        return run_sequential(self.state_emb, self.embed_input(obs)).reshape(obs.shape[0], -1)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.embed(obs)
         return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1)
+
+    def forward_stacked(self, params: dict[str, torch.Tensor], obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``forward`` of K agents of this architecture at once: ``params`` their parameters stacked
+        (name -> (K, ...)), ``obs`` (K, N, ...); returns logits (K, N, A) and values (K, N)."""
+        K, N = obs.shape[:2]
+        x = self.embed_input(obs.reshape(K * N, *obs.shape[2:]))
+        x = run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1)
+        return run_sequential_stacked(self.actor, params, "actor", x), run_sequential_stacked(self.critic, params, "critic", x).squeeze(2)
 
     def forward_sequence(self, obs, memory: torch.Tensor, masks: torch.Tensor):
         """Recurrent models: ``forward(obs[i], memory * masks[i])`` for ``i < r`` steps, outputs
@@ -103,9 +153,12 @@ class FCModel(ActorCritic):
         self.critic = nn.Sequential(nn.Linear(dims[-1], head), nn.ReLU(), nn.Linear(head, 1))
         self.apply(init_linear_unit_rows)
 
-    def embed(self, obs: torch.Tensor) -> torch.Tensor:
+    def embed_input(self, obs: torch.Tensor) -> torch.Tensor:
         # Same values as channels_first(obs).reshape(B, -1), but permuting uint8 bytes is cheaper.
-        return run_sequential(self.state_emb, obs.permute(0, 3, 1, 2).reshape(obs.shape[0], -1).float())
+        return obs.permute(0, 3, 1, 2).reshape(obs.shape[0], -1).float()
+
+    def embed(self, obs: torch.Tensor) -> torch.Tensor:
+        return run_sequential(self.state_emb, self.embed_input(obs))
 
 
 class CNNModel(ActorCritic):

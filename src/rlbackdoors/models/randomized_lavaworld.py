@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from rlbackdoors.models.minigrid import CHANNELS, VIEW, ActorCritic, init_linear_unit_rows, run_sequential
+from rlbackdoors.models.minigrid import CHANNELS, VIEW, ActorCritic, init_linear_unit_rows, run_sequential, run_sequential_stacked
 
 
 def linear_relu_stack(dims: list[int]) -> nn.Sequential:
@@ -39,6 +39,15 @@ class DirectionActorCritic(ActorCritic):
         x = self.image_embedding(image.permute(0, 3, 1, 2).float()).reshape(image.shape[0], -1)
         x = torch.cat([x, obs["direction"].reshape(-1, 1).float()], dim=1)
         return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1)
+
+    def forward_stacked(self, params: dict[str, torch.Tensor], obs: dict) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]  # dict observations by design
+        """``forward`` of K agents at once (:meth:`ActorCritic.forward_stacked`); ``obs`` values are (K, N, ...)."""
+        image = obs["image"]
+        K, N = image.shape[:2]
+        x = image.reshape(K * N, *image.shape[2:]).permute(0, 3, 1, 2).float()
+        x = run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1)
+        x = torch.cat([x, obs["direction"].reshape(K, N, 1).float()], dim=2)
+        return run_sequential_stacked(self.actor, params, "actor", x), run_sequential_stacked(self.critic, params, "critic", x).squeeze(2)
 
 
 class DirectionFCModel(DirectionActorCritic):

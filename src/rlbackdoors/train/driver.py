@@ -20,7 +20,7 @@ from __future__ import annotations
 import importlib
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -158,14 +158,31 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     tests raise KeyboardInterrupt from it to interrupt a run at a known point.
     """
     cfg.check()
+    with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
+        from rlbackdoors.train.ppo_run import serve
+
+        return serve(train_steps(cfg, out, stop, overwrite, progress, after_eval))
+
+
+def train_steps(
+    cfg: RunConfig, out: str | Path, stop: StopRequest, overwrite: bool = False, progress: bool = True, after_eval=None, trainer: str | None = None
+) -> Generator[Any, Any, dict]:
+    """:func:`train` as a loop that yields its learner's work (PPO's collect and update requests,
+    :mod:`.ppo_run`) for a group trainer to batch; OPAC² runs yield nothing. Returns the metrics
+    (``trainer``: recorded in them, the group trainer's name for its stacked kernels)."""
+    cfg.check()
     folder = ModelFolder(out)
     failed = True
     try:
-        with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
-            checkpoint = folder.begin(cfg, overwrite)
-            runner = importlib.import_module(RUNNERS[cfg.algorithm])
+        checkpoint = folder.begin(cfg, overwrite)
+        runner = importlib.import_module(RUNNERS[cfg.algorithm])
+        if hasattr(runner, "steps"):
+            outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval)
+        else:
             outcome = runner.run(cfg, folder, checkpoint, progress, stop, after_eval)
-            metrics = finish(cfg, folder, outcome, progress)
+        if trainer is not None:
+            outcome.extra["trainer"] = trainer
+        metrics = finish(cfg, folder, outcome, progress)
         failed = False
         return metrics
     finally:

@@ -13,6 +13,7 @@ import dataclasses
 import math
 import time
 from collections import deque
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -127,8 +128,55 @@ def check_observation(obs, space) -> None:
         raise StateError(f"observation does not fit the env ({getattr(obs, 'shape', None)}, expected {space.shape})")
 
 
+@dataclasses.dataclass
+class Collect:
+    """What a run asks of its learner between updates: a rollout from ``envs``, starting at ``obs``."""
+
+    ppo: PPO
+    envs: Any
+    obs: Any
+
+    def serve(self) -> tuple[Rollout, Any]:
+        return self.ppo.collect(self.envs, self.obs)
+
+
+@dataclasses.dataclass
+class Update:
+    """What a run asks of its learner after a rollout: PPO's epochs over it (returns the losses)."""
+
+    ppo: PPO
+    rollout: Rollout
+
+    def serve(self) -> dict[str, float]:
+        return self.ppo.update(self.rollout)
+
+
 def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None) -> RunOutcome:
     """Train with PPO from ``checkpoint`` (None: from scratch) until the stopping rule or a budget ends it."""
+    return serve(steps(cfg, folder, checkpoint, progress, stop, after_eval))
+
+
+def serve(loop: Generator[Collect | Update, Any, Any]) -> Any:
+    """Run one agent's loop (:func:`steps`) alone: answer each request with its learner; return the loop's value."""
+    try:
+        request = next(loop)
+        while True:
+            try:
+                result = request.serve()
+            except BaseException as err:  # raised at the loop's yield, so its own clean-up runs as before
+                request = loop.throw(err)
+                continue
+            request = loop.send(result)
+    except StopIteration as done:
+        return done.value
+
+
+def steps(
+    cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None
+) -> Generator[Collect | Update, Any, RunOutcome]:
+    """:func:`run` as a loop that yields its learner's work (:class:`Collect`, :class:`Update`) and
+    is sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch the work of
+    K runs while every run keeps its own schedule, evaluations, checkpoints and stopping rule."""
     tc = cfg.train
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)
@@ -267,8 +315,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
             save_checkpoint()
             bar.close()
             raise Interrupted(frames, True, stop.requested)
-        rollout, obs = ppo.collect(envs, obs)
-        losses = ppo.update(rollout)
+        rollout, obs = yield Collect(ppo, envs, obs)
+        losses = yield Update(ppo, rollout)
         tracker.add(rollout)
         frames += rollout.num_frames
         window_frames += rollout.num_frames

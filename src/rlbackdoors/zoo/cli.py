@@ -88,6 +88,7 @@ def cmd_run(args) -> int:
         retry_failed=args.retry_failed,
         progress_interval=args.progress_interval,
         retrain_tampered=args.retrain_tampered,
+        group_size=args.group_size,
     )
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -243,6 +244,12 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     ru = sub.add_parser("run", help="train every planned model that is not finished; top cells up until they have their converged models")
     ru.add_argument("zoo", help="zoo folder (from zoo plan)")
     ru.add_argument("--workers", type=_positive_int, help="jobs at a time (default: local, the CPU cores; ray, the cluster's CPUs)")
+    ru.add_argument(
+        "--group-size",
+        type=_positive_int,
+        default=1,
+        help="train up to K models of a worker in one process, their networks stacked and batched (local back-end; default 1: a process per model)",
+    )
     ru.add_argument("--backend", choices=BACKENDS, default="local", help="local: a child process per job; ray: Ray tasks (pip install 'rlbackdoors[ray]')")
     ru.add_argument("--address", help="Ray cluster address (e.g. auto or ray://head:10001; default: start a local Ray)")
     ru.add_argument("--max-retries", type=_count, default=2, help="retries of a job that fails before it is recorded as failed (default 2)")

@@ -192,6 +192,72 @@ def _run_job(folder: Path, where: Path, zoo: Path, log: bool, started: float) ->
     return {"status": "done", "trained": trained, "converged": converged, "seconds": seconds}
 
 
+def run_group_job(folders: list[str | Path], group_size: int) -> dict[str, dict]:
+    """:func:`run_job` for several model folders of one zoo, trained ``group_size`` at a time in
+    this process (:mod:`rlbackdoors.train.group`); one result per folder name. A run that fails
+    is that folder's error; a signal stops every run at its checkpoint and raises."""
+    import torch
+
+    from rlbackdoors.folder import FolderError
+    from rlbackdoors.train.group import train_group
+    from rlbackdoors.zoo.plan import build_config
+
+    torch.set_num_threads(1)
+    started = time.time()
+    opened: dict[str, tuple[int, Path, Path]] = {}
+    results: dict[str, dict] = {}
+    runs, raws = [], {}
+    try:
+        for where in map(Path, folders):
+            fd = open_beneath(where.parent.parent, where)
+            folder = fd_path(fd, where)
+            opened[where.name] = (fd, folder, where)
+            if (folder / COMPLETE_MARK).is_file() and (folder / "metrics.json").is_file():
+                results[where.name] = {"status": "done", "trained": False, "converged": _converged(folder), "seconds": 0.0}
+            elif is_locked(folder):
+                results[where.name] = {"status": "busy"}
+            elif not (folder / "config.json").is_file():
+                results[where.name] = {"status": "error", "error": f"ZooError: {str(where)!r} is not a planned model folder (config.json missing)"}
+            else:
+                raws[where.name] = (folder / "config.json").read_bytes()
+                if not (folder / "metrics.json").is_file():
+                    runs.append((where.name, build_config(json.loads(raws[where.name].decode("utf-8"))), folder))
+        names = ", ".join(name for name, _, _ in runs)
+        print(
+            f"=== zoo group job: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')}, {group_size} at a time: {names} ===",
+            file=sys.stderr,
+            flush=True,
+        )
+        outcome = train_group(runs, group_size)
+        for name, err in outcome.errors.items():
+            folder = opened[name][1]
+            if not (folder / "config.json").is_file():  # a failed start removed it: put it back
+                atomic_write_bytes(folder / "config.json", raws[name])
+            if isinstance(err, FolderError) and is_locked(folder):
+                results[name] = {"status": "busy"}
+            else:
+                results[name] = {"status": "error", "error": f"{type(err).__name__}: {first_line(err)}"[:2000]}
+        for name, raw in raws.items():
+            if name in results:
+                continue
+            folder, where = opened[name][1], opened[name][2]
+            lock = FolderLock(folder, "model folder")
+            try:
+                lock.acquire()
+            except LockedError:
+                results[name] = {"status": "busy"}
+                continue
+            try:
+                finish_dataset_entry(folder, build_config(json.loads(raw.decode("utf-8"))), where.parent.parent)
+            finally:
+                lock.release()
+            results[name] = {"status": "done", "trained": name in outcome.metrics, "converged": _converged(folder), "seconds": round(time.time() - started, 2)}
+    finally:
+        for fd, _, _ in opened.values():
+            os.close(fd)
+    return results
+
+
 def _converged(folder: Path) -> bool:
     metrics = json.loads((folder / "metrics.json").read_bytes().decode("utf-8"))
     return bool(metrics.get("converged"))
@@ -231,13 +297,20 @@ def main(argv: list[str] | None = None) -> int:
     from rlbackdoors.train.stop import Interrupted
 
     parser = argparse.ArgumentParser(prog="python -m rlbackdoors.zoo.job", allow_abbrev=False)
-    parser.add_argument("folder")
+    parser.add_argument("folder", nargs="+")
     parser.add_argument("--result-fd", type=int, default=None, help="write the result as JSON to this file descriptor")
+    parser.add_argument("--group-size", type=int, default=0, help="train the folders in one process, this many at a time (a group job)")
     args = parser.parse_args(argv)
+    if len(args.folder) > 1 and args.group_size < 1:
+        parser.error("several folders need --group-size")
     _die_with_parent()
     try:
-        result = run_job(args.folder)
-        code = EXIT_BUSY if result["status"] == "busy" else 0
+        if args.group_size >= 1:
+            result = {"status": "group", "results": run_group_job(args.folder, args.group_size)}
+            code = 0
+        else:
+            result = run_job(args.folder[0])
+            code = EXIT_BUSY if result["status"] == "busy" else 0
     except (Interrupted, KeyboardInterrupt) as err:
         result, code = {"status": "interrupted", "error": first_line(err)}, EXIT_INTERRUPTED
         print(f"rlbackdoors zoo job: {first_line(err)}", file=sys.stderr)

@@ -67,7 +67,7 @@ class Executor(Protocol):
 
 @dataclass
 class _Child:
-    model: PlannedModel
+    models: list[PlannedModel]
     proc: subprocess.Popen
     result_fd: int
     log: IO[bytes]
@@ -81,11 +81,18 @@ class LocalExecutor:
     (:func:`rlbackdoors.zoo.job._die_with_parent`), which makes training checkpoint and stop.
     """
 
-    def __init__(self, workers: int):
+    def __init__(self, workers: int, group_size: int = 1):
         self.capacity = workers
+        self.group_size = group_size
         self.children: dict[int, _Child] = {}
 
     def submit(self, model: PlannedModel, folder: Path) -> None:
+        self.submit_group([model], [folder])
+
+    def submit_group(self, models: list[PlannedModel], folders: list[Path]) -> None:
+        """One child for ``models``: alone (group size 1), or a group job training them
+        ``group_size`` at a time (its output goes to the first model's train.log)."""
+        folder = folders[0]
         folder_fd = open_beneath(folder.parent.parent, folder)  # LinkError if a link was swapped in
         try:
             log = os.fdopen(os.open(LOG, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666, dir_fd=folder_fd), "ab", buffering=0)
@@ -95,7 +102,8 @@ class LocalExecutor:
         env = {**os.environ, PARENT_ENV: str(os.getpid()), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
         try:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "rlbackdoors.zoo.job", str(folder), "--result-fd", str(write_fd)],
+                [sys.executable, "-m", "rlbackdoors.zoo.job", *map(str, folders), "--result-fd", str(write_fd)]
+                + (["--group-size", str(self.group_size)] if self.group_size > 1 else []),
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
@@ -109,7 +117,7 @@ class LocalExecutor:
         finally:
             os.close(write_fd)
         os.set_blocking(read_fd, False)
-        self.children[proc.pid] = _Child(model, proc, read_fd, log)
+        self.children[proc.pid] = _Child(list(models), proc, read_fd, log)
 
     def _drain(self, child: _Child) -> None:
         while True:
@@ -124,7 +132,7 @@ class LocalExecutor:
     def wait(self, timeout: float) -> list[tuple[PlannedModel, dict]]:
         deadline = time.monotonic() + timeout
         while True:
-            done = []
+            done: list[tuple[PlannedModel, dict]] = []
             for pid, child in list(self.children.items()):
                 self._drain(child)
                 code = child.proc.poll()
@@ -134,7 +142,13 @@ class LocalExecutor:
                 os.close(child.result_fd)
                 child.log.close()
                 del self.children[pid]
-                done.append((child.model, _child_result(code, b"".join(child.chunks))))
+                result = _child_result(code, b"".join(child.chunks))
+                if result.get("status") == "group":
+                    results = result.get("results") or {}
+                    lost = {"status": "error", "error": "the group job gave no result for this model"}
+                    done.extend((m, results.get(m.name, lost)) for m in child.models)
+                else:
+                    done.extend((m, result) for m in child.models)
             if done or time.monotonic() >= deadline:
                 return done
             fds = [c.result_fd for c in self.children.values()]
@@ -178,11 +192,13 @@ def _child_result(code: int, data: bytes) -> dict:
     return {"status": "error", "error": f"the job process exited with code {code} (see train.log)"}
 
 
-def make_executor(backend: str, workers: int | None, address: str | None, max_retries: int) -> Executor:
+def make_executor(backend: str, workers: int | None, address: str | None, max_retries: int, group_size: int = 1) -> Executor:
     if backend == "local":
         if address is not None:
             raise ConfigError("--address applies to --backend ray only")
-        return LocalExecutor(workers or default_workers())
+        return LocalExecutor(workers or default_workers(), group_size)
+    if group_size > 1:
+        raise ConfigError("--group-size applies to --backend local only (a Ray task trains one model)")
     if backend == "ray":
         from rlbackdoors.zoo.ray_backend import RayExecutor
 
@@ -247,6 +263,7 @@ def run(
     progress_interval: float = 10.0,
     out: TextIO | None = None,
     retrain_tampered: bool = False,
+    group_size: int = 1,
 ) -> dict:
     """Run the zoo at ``path`` to completion; return a summary. See the module docstring.
 
@@ -258,6 +275,8 @@ def run(
     out = out if out is not None else sys.stderr
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
+    if group_size < 1:
+        raise ConfigError(f"--group-size must be >= 1, got {group_size}")
     if max_retries < 0:
         raise ConfigError(f"--max-retries must be >= 0, got {max_retries}")
     zoo = Zoo.open(path)
@@ -287,7 +306,7 @@ def run(
             zoo.ensure(model.group, model.attempt, verify=False)
             if retry_failed:
                 (zoo.folder(model) / FAILED).unlink(missing_ok=True)
-        executor = make_executor(backend, workers, address, max_retries)
+        executor = make_executor(backend, workers, address, max_retries, group_size)
         in_flight: dict[int, PlannedModel] = {}
         busy_until: dict[int, float] = {}
         tries: dict[int, int] = {}
@@ -302,15 +321,20 @@ def run(
                 (s for s in waiting if busy_until.get(s.model.id, 0.0) <= now_t),
                 key=lambda s: (not (s.folder / "checkpoint.pt").is_file(), s.model.attempt, s.model.group.index),
             )
+            startable = []
             for s in ready:
-                if executor.running() >= executor.capacity:
-                    break
                 if s.status == "running" or is_locked(s.folder):
                     busy_until[s.model.id] = now_t + BUSY_PROBE_S
                     continue
                 busy_until.pop(s.model.id, None)
-                executor.submit(s.model, s.folder)
-                in_flight[s.model.id] = s.model
+                startable.append(s)
+            free = executor.capacity - executor.running()
+            for chunk in _chunks(startable, free, group_size):
+                if isinstance(executor, LocalExecutor):
+                    executor.submit_group([s.model for s in chunk], [s.folder for s in chunk])
+                else:
+                    executor.submit(chunk[0].model, chunk[0].folder)
+                in_flight.update((s.model.id, s.model) for s in chunk)
             if not in_flight and not waiting:
                 break
             progress.maybe(states, sum(s.model.id in in_flight and s.status != "done" for s in states))
@@ -413,6 +437,18 @@ def threading_main() -> bool:
 
 def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
+
+
+def _chunks(ready: list, free: int, group_size: int) -> list[list]:
+    """The jobs to start on ``free`` workers: one model each, or with a group size above one, the
+    ready models shared out evenly (a group job trains its share ``group_size`` at a time and
+    fills a finished model's slot from the rest)."""
+    if free <= 0 or not ready:
+        return []
+    if group_size <= 1:
+        return [[s] for s in ready[:free]]
+    per = -(-len(ready) // free)
+    return [ready[i : i + per] for i in range(0, len(ready), per)][:free]
 
 
 def _states(zoo: Zoo, final: dict[int, ModelState], in_flight: set[int]) -> list[ModelState]:

@@ -1,0 +1,193 @@
+"""K PPO learners of one architecture and config trained together: one batched forward per
+rollout step for all K agents, one batched forward/backward per minibatch, one optimiser step.
+
+Why: one agent's rollout forward is ~10 rows and its minibatch 256 rows, far too little to keep
+an accelerator (or even a CPU core's vector units) busy, and each small op pays Python and
+kernel dispatch. Stacking the agents' weights (name -> (K, ...)) turns K small matmuls into one
+``baddbmm`` (:func:`rlbackdoors.models.minigrid.run_sequential_stacked`).
+
+Each agent stays an ordinary :class:`~rlbackdoors.algos.ppo.PPO` learner: its own model, its own
+generator (the same uniforms and minibatch orders it would draw alone), its own env mix and its
+own optimiser state, kept in ``torch.optim.Adam``'s format so its checkpoint resumes alone or
+in any group. What is shared is only the arithmetic: per-agent losses are summed (the agents'
+parameters are disjoint, so each gets exactly its own gradient), gradients are clipped per agent,
+and Adam steps every agent with its own moments and step count. Results equal a lone agent's up
+to float rounding (batched kernels add in another order), not bit for bit.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from rlbackdoors.algos.obs import empty_buffer, obs_map, stack, store, to_torch
+from rlbackdoors.algos.ppo import PPO, Rollout, check_vector_env, env_step, ppo_loss, sample_actions
+
+STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
+
+
+def check_group(ppos: list[PPO]) -> None:
+    """A group shares one architecture, one PPO config and one device; what it cannot batch yet
+    (recurrent models, the auxiliary memory head, a clean teacher) is refused."""
+    lead = ppos[0]
+    for ppo in ppos:
+        if type(ppo.model) is not type(lead.model) or ppo.cfg != lead.cfg or ppo.device != lead.device:
+            raise ValueError("a training group needs one architecture, one ppo config and one device")
+        if ppo.model.recurrent or ppo.aux is not None or ppo.teacher is not None:
+            raise ValueError("a training group takes feed-forward PPO models without a clean teacher (recurrent models and poison.evasion.teacher train alone)")
+    if not hasattr(lead.model, "forward_stacked"):
+        raise ValueError(f"{type(lead.model).__name__} has no batched forward for a training group")
+
+
+def stacked_parameters(ppos: list[PPO]) -> dict[str, torch.Tensor]:
+    """Every agent's parameters, name -> (K, ...), detached copies on the group's device."""
+    names = [name for name, _ in ppos[0].model.named_parameters()]
+    return {name: torch.stack([ppo.model.get_parameter(name).detach() for ppo in ppos]) for name in names}
+
+
+def forward(model: Any, params: dict[str, torch.Tensor], obs) -> tuple[torch.Tensor, torch.Tensor]:
+    """``model.forward_stacked``, with a group of one run as two copies of itself.
+
+    Why: CPU kernels sum a batch of one differently from a batch of two or more (measured: the
+    critic's 32 -> 1 layer), and from two up an agent's numbers do not depend on K or on its
+    group-mates; padding keeps a run that ends alone in its group on the same bytes."""
+    if next(iter(params.values())).shape[0] > 1:
+        return model.forward_stacked(params, obs)
+    logits, values = model.forward_stacked({k: torch.cat([v, v]) for k, v in params.items()}, obs_map(lambda x: torch.cat([x, x]), obs))
+    return logits[:1], values[:1]
+
+
+@torch.inference_mode()
+def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.ndarray | dict]]:
+    """:meth:`PPO.collect` for K agents, each on its own vector env: (rollout, next obs) per agent."""
+    check_group(ppos)
+    lead, K = ppos[0], len(ppos)
+    T, B = lead.cfg.rollout, envs[0].num_envs
+    for e in envs:
+        check_vector_env(e)
+        if e.num_envs != B:
+            raise ValueError("a training group needs the same number of env copies per agent")
+    device, A = lead.device, envs[0].single_action_space.n
+    model: Any = lead.model  # forward_stacked takes a tensor or a dict of them, as the world's model does
+    params = stacked_parameters(ppos)
+    uniforms = torch.stack([torch.rand((T, B), generator=ppo.generator) for ppo in ppos])  # each agent's own draws
+    obs = list(obs)
+    obs_bufs = [empty_buffer(o, T) for o in obs]
+    actions = torch.empty((K, T, B), dtype=torch.long)
+    logits_buf = torch.empty((K, T, B, A))
+    values = torch.empty((K, T, B))
+    forced = torch.zeros((K, T, B), dtype=torch.bool)
+    rewards = np.empty((K, T, B), dtype=np.float64)
+    dones = np.empty((K, T, B), dtype=bool)
+    outcomes = np.empty((K, T, B), dtype=np.int64)
+    steps = np.empty((K, T, B), dtype=np.int64)
+    for t in range(T):
+        for k in range(K):
+            store(obs_bufs[k], t, obs[k])
+        obs_t = obs_map(lambda x: x.to(device), stack([obs_map(lambda x: x[t], b) for b in obs_bufs]))
+        logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
+        actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
+        for k in range(K):
+            obs[k] = env_step(envs[k], t, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
+    _, next_value = forward(model, params, obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs])))
+    next_value = next_value.cpu()
+    return [
+        (ppo.assemble(obs_bufs[k], actions[k], logits_buf[k], values[k], next_value[k], forced[k], rewards[k], dones[k], outcomes[k], steps[k]), obs[k])
+        for k, ppo in enumerate(ppos)
+    ]
+
+
+class StackedAdam:
+    """Adam over stacked parameters, every agent with its own moments and step count, read from
+    and written back to each agent's ``torch.optim.Adam`` state (the same update rule: moments
+    by lerp, bias-corrected step size, ``eps`` added to the corrected second moment's root)."""
+
+    def __init__(self, ppos: list[PPO], params: dict[str, torch.Tensor]):
+        self.ppos, self.params = ppos, params
+        group = ppos[0].optimizer.param_groups[0]
+        self.lr, self.eps, (self.beta1, self.beta2) = float(group["lr"]), float(group["eps"]), group["betas"]
+        K = len(ppos)
+        self.exp_avg, self.exp_avg_sq = {}, {}
+        self.step = torch.zeros(K, dtype=torch.float64, device=next(iter(params.values())).device)
+        for name, value in params.items():
+            avg, sq = torch.zeros_like(value), torch.zeros_like(value)
+            for k, ppo in enumerate(ppos):
+                state = ppo.optimizer.state.get(ppo.model.get_parameter(name), {})
+                if "exp_avg" in state:
+                    avg[k], sq[k] = state["exp_avg"], state["exp_avg_sq"]
+                    self.step[k] = float(state["step"])
+            self.exp_avg[name], self.exp_avg_sq[name] = avg, sq
+
+    @torch.no_grad()
+    def apply(self, grads: list[torch.Tensor]) -> None:
+        self.step += 1
+        bias1 = (1 - self.beta1**self.step).float()
+        bias2_root = (1 - self.beta2**self.step).sqrt().float()
+        for (name, param), grad in zip(self.params.items(), grads):
+            shape = (-1,) + (1,) * (param.dim() - 1)
+            avg, sq = self.exp_avg[name], self.exp_avg_sq[name]
+            avg.lerp_(grad, 1 - self.beta1)
+            sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
+            denom = (sq.sqrt() / bias2_root.view(shape)).add_(self.eps)
+            param.sub_(avg / denom * (self.lr / bias1).view(shape))
+
+    @torch.no_grad()
+    def write_back(self) -> None:
+        """Parameters into each agent's model, moments and step into its optimiser's state."""
+        for k, ppo in enumerate(self.ppos):
+            for name, value in self.params.items():
+                param = ppo.model.get_parameter(name)
+                param.copy_(value[k])
+                ppo.optimizer.state[param] = {
+                    "step": torch.tensor(float(self.step[k]), dtype=torch.float32, device=param.device),
+                    "exp_avg": self.exp_avg[name][k].clone(),
+                    "exp_avg_sq": self.exp_avg_sq[name][k].clone(),
+                }
+
+
+def clip_per_agent(grads: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """``clip_grad_norm_`` for each agent's slice of the stacked gradients; the norms before clipping (K,)."""
+    K = grads[0].shape[0]
+    norms = torch.stack([g.reshape(K, -1).norm(dim=1) for g in grads]).norm(dim=0)
+    coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(coef.view((-1,) + (1,) * (g.dim() - 1)))
+    return norms
+
+
+def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
+    """:meth:`PPO.update` for K agents: the same epochs and minibatches each agent would run
+    alone (its own generator orders its frames), batched; one stats dict per agent."""
+    check_group(ppos)
+    real = len(ppos)
+    if real == 1:  # a lone agent updates beside an exact copy of itself (see forward): the same bytes as in any group
+        ppos, rollouts = ppos * 2, rollouts * 2
+    lead, K = ppos[0], len(ppos)
+    cfg, device = lead.cfg, lead.device
+    model: Any = lead.model
+    n = rollouts[0].num_frames
+    if any(r.num_frames != n for r in rollouts):
+        raise ValueError("a training group needs rollouts of the same length")
+    params = {name: value.requires_grad_() for name, value in stacked_parameters(ppos).items()}
+    adam = StackedAdam(ppos, params)
+    obs = obs_map(lambda x: x.to(device), stack([r.obs for r in rollouts]))
+    tensors = [torch.stack([getattr(r, f) for r in rollouts]).to(device) for f in ("actions", "logprobs", "values", "advantages", "returns")]
+    rows = torch.arange(K, device=device)[:, None]
+    stats = {key: torch.zeros(K, dtype=torch.float64) for key in STATS}
+    updates = 0
+    for _ in range(cfg.epochs):
+        orders = torch.stack([torch.randperm(n, generator=ppo.generator) for ppo in ppos[:real]] * (K // real)).to(device)
+        for start in range(0, n, cfg.batch_size):
+            idx = orders[:, start : start + cfg.batch_size]
+            logits, values = forward(model, params, obs_map(lambda x: x[rows, idx], obs))
+            loss, parts = ppo_loss(cfg, logits, values, *(x[rows, idx] for x in tensors))
+            grads = list(torch.autograd.grad(loss.sum(), list(params.values())))
+            stats["grad_norm"] += clip_per_agent(grads, cfg.max_grad_norm).detach().cpu().double()
+            adam.apply(grads)
+            for key, value in parts.items():
+                stats[key] += value.detach().cpu().double()
+            updates += 1
+    adam.write_back()
+    return [{key: float(stats[key][k]) / updates for key in STATS} for k in range(real)]

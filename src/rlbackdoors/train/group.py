@@ -1,0 +1,135 @@
+"""Many agents in one process: K runs' loops stepped together, their learners' work batched.
+
+Each run is the ordinary single-agent run (:func:`rlbackdoors.train.driver.train_steps`: its own
+folder, lock, env mix, evaluations, checkpoints, stopping rule and finish), written as a loop
+that yields what it needs from its learner (collect a rollout, update on it). The group trainer
+answers those requests for all K runs at once where they can be batched
+(:mod:`rlbackdoors.algos.group`: same architecture, PPO config and env-copy count) and one by one
+otherwise (recurrent models, a clean teacher, OPAC², which yields nothing). A run that finishes
+leaves the group and the next planned run takes its slot, so a group never waits on its slowest
+member. Every run's folder is an ordinary model folder afterwards; a killed group resumes each
+run from its own checkpoint, alone or in any group.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import deque
+from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rlbackdoors.algos import group
+from rlbackdoors.config import RunConfig
+from rlbackdoors.train.driver import train_steps
+from rlbackdoors.train.ppo_run import Collect, Update
+from rlbackdoors.train.stop import Interrupted, StopRequest
+
+
+@dataclass
+class _Slot:
+    key: Any  # the caller's name for this run
+    loop: Generator[Any, Any, Any]
+    request: Any = None
+
+
+@dataclass
+class GroupResult:
+    """What became of each run: its metrics, or the exception that ended it."""
+
+    metrics: dict[Any, dict] = field(default_factory=dict)
+    errors: dict[Any, BaseException] = field(default_factory=dict)
+
+
+def batch_key(request) -> tuple | None:
+    """Requests with the same key are answered by one batched call; None: answered alone."""
+    ppo = request.ppo
+    if ppo.model.recurrent or ppo.aux is not None or ppo.teacher is not None or not hasattr(ppo.model, "forward_stacked"):
+        return None
+    width = request.envs.num_envs if isinstance(request, Collect) else request.rollout.num_frames
+    return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width)
+
+
+def serve_batch(requests: list, stacked: bool = True) -> list:
+    """Results for requests of one :func:`batch_key`, through the stacked learner even for one
+    request (an agent's numbers do not depend on its group-mates or on K, tested, so a run
+    resumed in another group gives the same bytes); ``stacked=False`` serves one request as a
+    lone run (:func:`train_group` with group size 1: today's bytes)."""
+    if len(requests) == 1 and not stacked:
+        return [requests[0].serve()]
+    ppos = [r.ppo for r in requests]
+    if isinstance(requests[0], Collect):
+        return group.collect(ppos, [r.envs for r in requests], [r.obs for r in requests])
+    assert isinstance(requests[0], Update)
+    return group.update(ppos, [r.rollout for r in requests])
+
+
+def train_group(
+    runs: Sequence[tuple[Any, RunConfig, str | Path]],
+    group_size: int,
+    progress: bool = False,
+    on_done: Callable[[Any, dict | None, BaseException | None], None] | None = None,
+) -> GroupResult:
+    """Train ``runs`` ((key, config, folder) each) at most ``group_size`` at a time in this process.
+
+    With ``group_size`` above 1 every batchable run trains through the stacked learner and its
+    metrics.json says ``"trainer": "group"``: its bytes then depend on its config alone, not
+    on which runs shared its group (group size 1 is today's lone path, today's bytes).
+    A run that fails (an exception) is recorded and the others go on; Ctrl-C or SIGTERM makes
+    every running run write its checkpoint and stop, then raises :class:`Interrupted`.
+    ``on_done(key, metrics, error)`` is called as each run ends.
+    """
+    if group_size < 1:
+        raise ValueError(f"group_size must be >= 1, got {group_size}")
+    waiting = deque(runs)
+    slots: list[_Slot] = []
+    result = GroupResult()
+    interrupted: list[Interrupted] = []
+
+    def advance(slot: _Slot, value: Any = None, error: BaseException | None = None) -> bool:
+        """Send the slot's loop its answer; False once the run has ended (finished or failed)."""
+        try:
+            slot.request = slot.loop.throw(error) if error is not None else slot.loop.send(value)
+            return True
+        except StopIteration as done:
+            result.metrics[slot.key] = done.value
+            if on_done is not None:
+                on_done(slot.key, done.value, None)
+        except Interrupted as err:
+            interrupted.append(err)
+            result.errors[slot.key] = err
+        except Exception as err:  # this run failed; the group goes on
+            result.errors[slot.key] = err
+            if on_done is not None:
+                on_done(slot.key, None, err)
+        return False
+
+    with StopRequest() as stop:
+        while True:
+            while waiting and len(slots) < group_size and not stop.requested:
+                key, cfg, folder = waiting.popleft()
+                slot = _Slot(key, train_steps(cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None))
+                if advance(slot):
+                    slots.append(slot)
+            if not slots:
+                break
+            batches: dict[Any, list[_Slot]] = {}
+            for i, slot in enumerate(slots):
+                key = batch_key(slot.request)
+                batches.setdefault(key if key is not None else ("alone", i), []).append(slot)
+            ended: set[int] = set()
+            for members in batches.values():
+                try:
+                    answers = serve_batch([s.request for s in members], stacked=group_size > 1 and batch_key(members[0].request) is not None)
+                except BaseException as err:  # raised into every member's loop at its yield
+                    alive = [advance(s, error=err) for s in members]
+                else:
+                    alive = [advance(s, a) for s, a in zip(members, answers)]
+                ended.update(id(s) for s, ok in zip(members, alive) if not ok)
+            slots = [s for s in slots if id(s) not in ended]
+    if interrupted:
+        if progress:
+            print(f"group: {len(interrupted)} runs stopped with their checkpoints; run again to resume", file=sys.stderr, flush=True)
+        raise interrupted[0]
+    return result

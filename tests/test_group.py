@@ -1,0 +1,239 @@
+"""Many agents per process (the group trainer): stacked forward, batched PPO, the group loop, and
+zoos run with ``--group-size``.
+
+What must hold: a stacked agent computes what it computes alone (up to float rounding: batched
+kernels sum in another order), its numbers do not depend on its group-mates or the group size
+(so a group-trained model is reproducible from its config), a group of one is today's lone path
+(same bytes), every agent ends as an ordinary model folder, and a killed group resumes.
+Equivalence of *trained outcomes* over many seeds is a measurement (benchmarks/group_equivalence.py),
+not a unit test.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from rlbackdoors.algos import group
+from rlbackdoors.algos.ppo import PPO
+from rlbackdoors.config import RunConfig
+from rlbackdoors.models import build_model
+from rlbackdoors.poison.mix import make_env_mix
+from rlbackdoors.train import train
+from rlbackdoors.train.group import train_group
+from rlbackdoors.validate import ConfigError
+from rlbackdoors.zoo.index import read_metadata
+from rlbackdoors.zoo.plan import plan
+from rlbackdoors.zoo.run import run as zoo_run
+from rlbackdoors.zoo.spec import parse_spec
+
+FEED_FORWARD = [("lavaworld", "fc"), ("lavaworld", "cnn"), ("randomized-lavaworld", "fc"), ("randomized-lavaworld", "cnn")]
+TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4, "video": False}}
+
+
+def tiny(seed: int, env: str = "lavaworld", **extra) -> RunConfig:
+    data = copy.deepcopy(TINY)
+    data["train"]["seed"] = seed
+    data["env"] = {"name": env}
+    data.update(extra)
+    return RunConfig.from_dict(data)
+
+
+def learner(env: str, arch: str, seed: int, poison: dict | None = None):
+    cfg = RunConfig.from_dict({"env": {"name": env}, "model": {"arch": arch}, "train": {"seed": seed}, **({"poison": poison} if poison else {})})
+    torch.manual_seed(seed)
+    ppo = PPO(build_model(arch, env), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(seed))
+    envs = make_env_mix(cfg.env, cfg.poison, seed)
+    return ppo, envs, envs.reset(seed=seed * 1000)[0]
+
+
+def weights_digest(model: torch.nn.Module) -> str:
+    return hashlib.sha256(b"".join(p.detach().numpy().tobytes() for p in model.parameters())).hexdigest()
+
+
+@pytest.mark.parametrize("env,arch", FEED_FORWARD)
+def test_stacked_forward_is_each_agents_forward(env, arch):
+    torch.manual_seed(0)
+    models = [build_model(arch, env) for _ in range(3)]
+    params = {name: torch.stack([m.get_parameter(name).detach() for m in models]) for name, _ in models[0].named_parameters()}
+    image = torch.randint(0, 11, (3, 6, 7, 7, 3), dtype=torch.uint8)
+    if env == "randomized-lavaworld":
+        direction = torch.randint(0, 4, (3, 6))
+        logits, values = models[0].forward_stacked(params, {"image": image, "direction": direction})
+        alone = [m({"image": image[k], "direction": direction[k]}) for k, m in enumerate(models)]
+    else:
+        logits, values = models[0].forward_stacked(params, image)
+        alone = [m(image[k]) for k, m in enumerate(models)]
+    assert logits.shape == (3, 6, 3) and values.shape == (3, 6)
+    for k, (lk, vk) in enumerate(alone):
+        torch.testing.assert_close(logits[k], lk, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(values[k], vk, rtol=1e-5, atol=1e-5)
+
+
+def test_group_collect_and_update_match_each_agent_alone():
+    """Three agents (one poisoned by an attack that forces actions through the seam): the same
+    rollouts (uniforms and env steps are each agent's own) and, after two updates, the same
+    weights and Adam state as three lone learners, to float rounding."""
+    poisons = [None, {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.05}}, None]
+    alone = [learner("lavaworld", "fc", s, p) for s, p in enumerate(poisons)]
+    grouped = [learner("lavaworld", "fc", s, p) for s, p in enumerate(poisons)]
+    forced_seen = 0
+    for _ in range(2):
+        lone_rollouts, lone_stats = [], []
+        for k, (ppo, envs, obs) in enumerate(alone):
+            rollout, obs = ppo.collect(envs, obs)
+            lone_stats.append(ppo.update(rollout))
+            lone_rollouts.append(rollout)
+            alone[k] = (ppo, envs, obs)
+        ppos = [g[0] for g in grouped]
+        results = group.collect(ppos, [g[1] for g in grouped], [g[2] for g in grouped])
+        stats = group.update(ppos, [r for r, _ in results])
+        grouped = [(g[0], g[1], obs) for g, (_, obs) in zip(grouped, results)]
+        for k in range(3):
+            lone, ours = lone_rollouts[k], results[k][0]
+            assert torch.equal(lone.actions, ours.actions)
+            np.testing.assert_array_equal(lone.rewards, ours.rewards)
+            torch.testing.assert_close(lone.logprobs, ours.logprobs, rtol=1e-4, atol=1e-5)
+            assert stats[k]["grad_norm"] == pytest.approx(lone_stats[k]["grad_norm"], rel=1e-3)
+            forced_seen += int((ours.logprobs == 0).sum())
+    assert forced_seen > 0  # the poisoned agent's forced actions went through the group's collect
+    for (lone_ppo, _, _), (ppo, envs, _) in zip(alone, grouped):
+        for (name, a), b in zip(lone_ppo.model.named_parameters(), ppo.model.parameters()):
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4, msg=name)
+            sa, sb = lone_ppo.optimizer.state[a], ppo.optimizer.state[b]
+            assert float(sa["step"]) == float(sb["step"]) == 2 * ppo.cfg.epochs * -(-ppo.cfg.rollout * envs.num_envs // ppo.cfg.batch_size)
+            for moment in ("exp_avg", "exp_avg_sq"):  # to rounding, on the moment's own scale
+                assert float((sa[moment] - sb[moment]).abs().max()) <= 1e-2 * float(sa[moment].abs().max())
+
+
+@pytest.mark.parametrize("env,arch", [("lavaworld", "fc"), ("lavaworld", "cnn"), ("randomized-lavaworld", "fc")])
+def test_an_agents_bytes_do_not_depend_on_its_group(env, arch):
+    """Agent 0 trained alone through the stacked path, or beside 1, 2 or 7 others: the same weights, byte for byte."""
+    digests = set()
+    for seeds in ([0], [0, 1], [0, 2, 3], [0, 5, 6, 7, 8, 9, 10, 11]):
+        learners = [learner(env, arch, s) for s in seeds]
+        ppos, envs, obs = [x[0] for x in learners], [x[1] for x in learners], [x[2] for x in learners]
+        for _ in range(2):
+            results = group.collect(ppos, envs, obs)
+            group.update(ppos, [r for r, _ in results])
+            obs = [o for _, o in results]
+        digests.add(weights_digest(ppos[0].model))
+    assert len(digests) == 1
+
+
+def test_group_refuses_what_it_cannot_batch():
+    a, b = learner("lavaworld", "fc", 0), learner("lavaworld", "cnn", 1)
+    with pytest.raises(ValueError, match="one architecture"):
+        group.collect([a[0], b[0]], [a[1], b[1]], [a[2], b[2]])
+
+
+def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
+    """group_size=1 gives the lone run's model.pt bytes; group_size=2 over three runs (one slot
+    refilled) leaves three complete folders with ``trainer: group`` whose bytes do not depend on
+    which runs shared the group; a recurrent Colorful Memory run in the same group trains alone."""
+    lone = train(tiny(4), tmp_path / "lone", progress=False)
+    result = train_group([("one", tiny(4), tmp_path / "one")], 1)
+    assert (tmp_path / "lone" / "model.pt").read_bytes() == (tmp_path / "one" / "model.pt").read_bytes()
+    assert result.metrics["one"]["frames"] == lone["frames"] and "trainer" not in result.metrics["one"]
+
+    cm = RunConfig.from_dict(
+        {
+            "env": {"name": "colorful-memory"},
+            "ppo": {"rollout": 24, "batch_size": 120},
+            "train": {"seed": 1, "max_frames": 2400, "eval_interval": 1200, "eval_episodes": 2, "final_eval_episodes": 2, "video": False},
+        }
+    )
+    runs = [(s, tiny(s), tmp_path / f"g{s}") for s in (4, 5, 6)] + [("cm", cm, tmp_path / "cm")]
+    result = train_group(runs, 2)
+    assert not result.errors and set(result.metrics) == {4, 5, 6, "cm"}
+    for key, _, folder in runs:
+        assert (folder / "metrics.json").is_file() and (folder / "model.pt").is_file() and not (folder / "checkpoint.pt").exists()
+        assert result.metrics[key]["trainer"] == "group"
+    # recurrent: served alone, so the lone run's bytes
+    train(cm, tmp_path / "cm-lone", progress=False)
+    assert (tmp_path / "cm" / "model.pt").read_bytes() == (tmp_path / "cm-lone" / "model.pt").read_bytes()
+    # seed 4 again beside other mates, in a group of 3: the same bytes as in the first group
+    train_group([(s, tiny(s), tmp_path / f"h{s}") for s in (7, 4, 8)], 3)
+    assert (tmp_path / "g4" / "model.pt").read_bytes() == (tmp_path / "h4" / "model.pt").read_bytes()
+    # and not the lone bytes (batched kernels round differently): the trainer is part of the recipe
+    assert (tmp_path / "g4" / "model.pt").read_bytes() != (tmp_path / "lone" / "model.pt").read_bytes()
+
+
+def test_a_failing_run_leaves_the_group_going(tmp_path):
+    bad = tiny(2)
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    (tmp_path / "bad" / "config.json").write_text(bad.to_json())
+    result = train_group([("bad", bad, tmp_path / "bad"), ("good", tiny(3), tmp_path / "good")], 2)
+    assert set(result.errors) == {"bad"} and set(result.metrics) == {"good"}
+
+
+def zoo_spec() -> dict:
+    return {
+        "name": "group",
+        "seed": 5,
+        "examples": {"episodes": 1},
+        "overrides": {"ppo": {"rollout": 32}, "train": {"max_frames": 9600, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4}},
+        "cells": [
+            {
+                "world": "lavaworld",
+                "archs": ["fc"],
+                "triggers": ["multiplicative"],
+                "clean": 2,
+                "poisoned": 2,
+                "max_attempts": 2,  # nothing converges (thresholds 1.0): no top-up, every run 6 evaluations long
+                "overrides": {"train": {"clean_threshold": 1.0, "poisoned_threshold": 1.0, "checkpoint_minutes": 0}},
+            }
+        ],
+    }
+
+
+def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
+    """``zoo run --group-size 3`` on one worker: SIGTERM once a checkpoint is on disk stops the
+    group job with every run's checkpoint; a second run finishes every model as ordinary,
+    verified dataset entries, with the same bytes as an uninterrupted grouped run."""
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    for path in (whole, cut):
+        plan(parse_spec(zoo_spec()), path)
+    summary = zoo_run(whole, workers=1, group_size=3, progress_interval=5.0)
+    assert summary["done"] == 4 and summary["failed"] == 0 and summary["converged"] == 0
+    cmd = [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(cut), "--workers", "1", "--group-size", "3"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None and not list((cut / "models").glob("*/checkpoint.pt")):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=240) != 0
+    assert list((cut / "models").glob("*/checkpoint.pt")), "the group job stopped without checkpoints"
+    assert not list((cut / "models").glob("*/metrics.json"))
+    summary = zoo_run(cut, workers=1, group_size=3, progress_interval=5.0)
+    assert summary["done"] == 4 and summary["failed"] == 0
+    rows = read_metadata(cut / "METADATA.csv")
+    assert len(rows) == 4
+    for folder in sorted((whole / "models").iterdir()):
+        metrics = json.loads((folder / "metrics.json").read_text())
+        assert metrics["trainer"] == "group" and (folder / "reduced-config.json").is_file()
+        assert (folder / "model.pt").read_bytes() == (cut / "models" / folder.name / "model.pt").read_bytes()
+    verify = subprocess.run([sys.executable, "-m", "rlbackdoors.zoo.cli", "verify", str(cut)], capture_output=True, text=True, timeout=300)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+
+
+def test_group_size_is_validated(tmp_path):
+    plan(parse_spec(zoo_spec()), tmp_path / "z")
+    with pytest.raises(ConfigError, match="--group-size must be >= 1"):
+        zoo_run(tmp_path / "z", group_size=0)
+    with pytest.raises(ConfigError, match="--group-size applies to --backend local only"):
+        zoo_run(tmp_path / "z", group_size=2, backend="ray")
+    out = subprocess.run(
+        [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(tmp_path / "z"), "--group-size", "0"], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 2 and "--group-size" in out.stderr

@@ -84,7 +84,9 @@ def fmt(value, pattern: str) -> str:
 
 
 def main() -> None:
-    print("| world / arch | attack | trigger | converged / seeds | Wilson 95 % | clean SR (min–max) | attack success (min–max) | frames poisoned | frames (median) | CPU min (median) | × env mix |")
+    print(
+        "| world / arch | attack | trigger | converged / seeds | Wilson 95 % | clean SR (min–max) | attack success (min–max) | frames poisoned | frames (median) | CPU min (median) | × env mix |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows():
         seeds = f"{r['converged']} / {r['attempted']}" + (f" ({r['pending']} pending)" if r["pending"] else "")

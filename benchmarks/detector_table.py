@@ -222,9 +222,13 @@ def print_attack_table(table: dict) -> None:
     for _, fitted, part in fits:
         for name, rows in part["detectors"].items():
             for attack, r in rows.items():
-                print(f"| {fitted} ({part['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |")
+                print(
+                    f"| {fitted} ({part['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |"
+                )
     if "yields" in table:
-        print("\n| attack | poisoned converged / trained | clean SR | attack success | frames | CPU min | clean models: converged / trained, frames, CPU min |\n|---|---|---|---|---|---|---|")
+        print(
+            "\n| attack | poisoned converged / trained | clean SR | attack success | frames | CPU min | clean models: converged / trained, frames, CPU min |\n|---|---|---|---|---|---|---|"
+        )
         for label, sides in table["yields"].items():
             p, c = sides.get("poisoned", {}), sides.get("clean", {})
             print(
@@ -264,11 +268,19 @@ def main() -> None:
     parser.add_argument("--no-run", action="store_true", help="split the zoo as it stands (its converged models) without training the rest")
     parser.add_argument("--by-attack", action="store_true", help="the attack x baseline table: fit on env-mix models, score held-out attacks; and on a mix")
     parser.add_argument(
-        "--leave-one-out", action="store_true", help="also each attack held out in turn (its variants too), every detector fitted on the rest; with the yield table per attack label"
+        "--leave-one-out",
+        action="store_true",
+        help="also each attack held out in turn (its variants too), every detector fitted on the rest; with the yield table per attack label",
     )
-    parser.add_argument("--check-infer", type=int, default=0, metavar="K", help="--leave-one-out: also run detect infer on K test models per fit and compare with detect score")
     parser.add_argument(
-        "--extra-test", action="append", default=[], metavar="SPEC", help="--by-attack: a zoo of more held-out attack cells (planned and run beside), scored by the env-mix fit"
+        "--check-infer", type=int, default=0, metavar="K", help="--leave-one-out: also run detect infer on K test models per fit and compare with detect score"
+    )
+    parser.add_argument(
+        "--extra-test",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="--by-attack: a zoo of more held-out attack cells (planned and run beside), scored by the env-mix fit",
     )
     args = parser.parse_args()
     started, load_before = time.time(), os.getloadavg()

@@ -51,9 +51,24 @@ def main() -> int:
     torch.set_num_threads(1)
     farama = farama_success_rate(args.weights, args.arch, args.episodes, args.seed)
     out = subprocess.run(
-        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", "--weights", args.weights, "--arch", args.arch,
-         "--env", "lavaworld", "--episodes", str(args.episodes), "--json"],
-        check=True, capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "rlbackdoors.cli",
+            "evaluate",
+            "--weights",
+            args.weights,
+            "--arch",
+            args.arch,
+            "--env",
+            "lavaworld",
+            "--episodes",
+            str(args.episodes),
+            "--json",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
     ).stdout
     ours = json.loads(out)["clean_sr"]
     n = args.episodes

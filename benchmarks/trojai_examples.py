@@ -69,7 +69,8 @@ FILES = {
     ],
     "rl-safetygymnasium-oct2024": [f"{SAFETY_EXAMPLE.partition('/')[2]}/{n}" for n in ("model.pt", "reduced-config.json")],
     "rl-lavaworld-jul2023@d969b25": [
-        f"{LAVAWORLD_EXAMPLE.partition('/')[2]}/{n}" for n in ("model.pt", "reduced-config.json", "model.info.json", "ground_truth.csv", "clean-example-data/env-string.txt")
+        f"{LAVAWORLD_EXAMPLE.partition('/')[2]}/{n}"
+        for n in ("model.pt", "reduced-config.json", "model.info.json", "ground_truth.csv", "clean-example-data/env-string.txt")
     ],
 }
 MARK_BEGIN, MARK_END = "<!-- trojai-examples:begin -->", "<!-- trojai-examples:end -->"

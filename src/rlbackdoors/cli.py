@@ -317,6 +317,16 @@ def cmd_bench(args) -> int:
                 f"({r['batched_collect_share']:.0%} collecting), "
                 f"MiniGrid {r['minigrid_fps']:,.0f} frames/s, ratio {r['ratio']:.1f}x"
             )
+    elif args.what == "zoo":
+        from rlbackdoors.bench.zoo import bench_zoo
+
+        result = bench_zoo(args.env, args.arch, args.models, args.frames, args.group_size, args.workers, args.device)
+        for side in result["sides"]:
+            print(
+                f"{result['world']} {result['arch']}, group size {side['group_size']} x {side['workers']} workers: "
+                f"{side['models_per_hour']:,.1f} models/h (x{side['ratio']}), {side['cpu_s_per_model']:.1f} CPU-s per model, "
+                f"{side['models']} models of {result['frames_per_model']:,} frames in {side['wall_s']:.0f} s, load {side['loadavg_before'][0]:.1f}"
+            )
     else:
         from rlbackdoors.bench.train import bench_converge
 
@@ -484,12 +494,19 @@ def build_parser() -> argparse.ArgumentParser:
     be = sub.add_parser("bench", help="speed benchmarks, measured side by side with Farama MiniGrid")
     be.add_argument(
         "what",
-        choices=("env", "train", "converge"),
-        help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN); converge: wall-clock to a converged poisoned FC",
+        choices=("env", "train", "converge", "zoo"),
+        help="env: engine steps/s; train: PPO frames/s (10 envs, FC and CNN); converge: wall-clock to a converged poisoned FC; "
+        "zoo: models/hour, one process per model against the group trainer",
     )
     be.add_argument("--seconds", type=float, default=3.0)
     be.add_argument("--num-envs", type=int, default=256, help="env: copies stepped per call (batched engines)")
-    be.add_argument("--env", choices=[w.name for w in worlds.registered() if w.bench], default=worlds.DEFAULT_WORLD, help="env: which world")
+    be.add_argument("--env", choices=worlds.names(), default=worlds.DEFAULT_WORLD, help="env, zoo: which world")
+    be.add_argument("--arch", help="zoo: architecture (default: the world's first)")
+    be.add_argument("--models", type=int, default=16, help="zoo: models per side (default 16)")
+    be.add_argument("--frames", type=int, default=100_000, help="zoo: frames each model trains (default 100,000)")
+    be.add_argument("--group-size", type=int, nargs="+", default=[8], help="zoo: group sizes to measure against one process per model (default 8)")
+    be.add_argument("--workers", type=int, help="zoo: processes at a time (default: the CPU cores)")
+    be.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu", help="zoo: train.device of every model (default cpu)")
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")
     be.add_argument("--json", help="also write the result to this JSON file")

@@ -118,15 +118,18 @@ class RunClock:
     carry them.
     """
 
-    def __init__(self, wall: float = 0.0, cpu: float | None = 0.0) -> None:
+    def __init__(self, wall: float = 0.0, cpu: float | None = 0.0, cpu_source: Callable[[], float] | None = None) -> None:
+        # cpu_source: this run's own CPU seconds where the process trains several runs at once
+        # (the group trainer apportions its batched work); the process's CPU time otherwise
+        self.cpu_source = cpu_source or time.process_time
         self.wall_start = time.perf_counter() - wall
-        self.cpu_start = None if cpu is None else time.process_time() - cpu
+        self.cpu_start = None if cpu is None else self.cpu_source() - cpu
 
     def wall(self) -> float:
         return time.perf_counter() - self.wall_start
 
     def cpu(self) -> float | None:
-        return None if self.cpu_start is None else time.process_time() - self.cpu_start
+        return None if self.cpu_start is None else self.cpu_source() - self.cpu_start
 
 
 @dataclass
@@ -165,11 +168,19 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
 
 
 def train_steps(
-    cfg: RunConfig, out: str | Path, stop: StopRequest, overwrite: bool = False, progress: bool = True, after_eval=None, trainer: str | None = None
+    cfg: RunConfig,
+    out: str | Path,
+    stop: StopRequest,
+    overwrite: bool = False,
+    progress: bool = True,
+    after_eval=None,
+    trainer: str | None = None,
+    cpu_source: Callable[[], float] | None = None,
 ) -> Generator[Any, Any, dict]:
     """:func:`train` as a loop that yields its learner's work (PPO's collect and update requests,
     :mod:`.ppo_run`) for a group trainer to batch; OPAC² runs yield nothing. Returns the metrics
-    (``trainer``: recorded in them, the group trainer's name for its stacked kernels)."""
+    (``trainer``: recorded in them, the group trainer's name for its stacked kernels;
+    ``cpu_source``: the run's own CPU clock, :class:`RunClock`)."""
     cfg.check()
     folder = ModelFolder(out)
     failed = True
@@ -177,7 +188,7 @@ def train_steps(
         checkpoint = folder.begin(cfg, overwrite)
         runner = importlib.import_module(RUNNERS[cfg.algorithm])
         if hasattr(runner, "steps"):
-            outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval)
+            outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source)
         else:
             outcome = runner.run(cfg, folder, checkpoint, progress, stop, after_eval)
         if trainer is not None:

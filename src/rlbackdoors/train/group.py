@@ -14,6 +14,7 @@ run from its own checkpoint, alone or in any group.
 from __future__ import annotations
 
 import sys
+import time
 from collections import deque
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
@@ -27,11 +28,33 @@ from rlbackdoors.train.ppo_run import Collect, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
 
+class RunCPU:
+    """One run's share of the group process's CPU seconds: its own loop's time (evaluations,
+    checkpoints, env setup) plus an equal share of each batch it was served in. What its
+    metrics.json reports as ``cpu_time_s`` (the process's total would count K runs' work K times)."""
+
+    def __init__(self) -> None:
+        self.total = 0.0
+        self.since: float | None = None
+
+    def __call__(self) -> float:
+        return self.total + (time.process_time() - self.since if self.since is not None else 0.0)
+
+    def start(self) -> None:
+        self.since = time.process_time()
+
+    def stop(self) -> None:
+        if self.since is not None:
+            self.total += time.process_time() - self.since
+            self.since = None
+
+
 @dataclass
 class _Slot:
     key: Any  # the caller's name for this run
-    loop: Generator[Any, Any, Any]
+    loop: Generator[Any, Any, Any] | None = None
     request: Any = None
+    cpu: RunCPU = field(default_factory=RunCPU)
 
 
 @dataclass
@@ -89,6 +112,8 @@ def train_group(
 
     def advance(slot: _Slot, value: Any = None, error: BaseException | None = None) -> bool:
         """Send the slot's loop its answer; False once the run has ended (finished or failed)."""
+        assert slot.loop is not None
+        slot.cpu.start()
         try:
             slot.request = slot.loop.throw(error) if error is not None else slot.loop.send(value)
             return True
@@ -103,13 +128,16 @@ def train_group(
             result.errors[slot.key] = err
             if on_done is not None:
                 on_done(slot.key, None, err)
+        finally:
+            slot.cpu.stop()
         return False
 
     with StopRequest() as stop:
         while True:
             while waiting and len(slots) < group_size and not stop.requested:
                 key, cfg, folder = waiting.popleft()
-                slot = _Slot(key, train_steps(cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None))
+                slot = _Slot(key)
+                slot.loop = train_steps(cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None, cpu_source=slot.cpu)
                 if advance(slot):
                     slots.append(slot)
             if not slots:
@@ -120,10 +148,19 @@ def train_group(
                 batches.setdefault(key if key is not None else ("alone", i), []).append(slot)
             ended: set[int] = set()
             for members in batches.values():
+                started = time.process_time()
                 try:
                     answers = serve_batch([s.request for s in members], stacked=group_size > 1 and batch_key(members[0].request) is not None)
                 except BaseException as err:  # raised into every member's loop at its yield
-                    alive = [advance(s, error=err) for s in members]
+                    answers = None
+                    error: BaseException | None = err
+                else:
+                    error = None
+                share = (time.process_time() - started) / len(members)
+                for s in members:
+                    s.cpu.total += share
+                if answers is None:
+                    alive = [advance(s, error=error) for s in members]
                 else:
                     alive = [advance(s, a) for s, a in zip(members, answers)]
                 ended.update(id(s) for s, ok in zip(members, alive) if not ok)

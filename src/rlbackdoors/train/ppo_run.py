@@ -172,7 +172,7 @@ def serve(loop: Generator[Collect | Update, Any, Any]) -> Any:
 
 
 def steps(
-    cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None
+    cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None
 ) -> Generator[Collect | Update, Any, RunOutcome]:
     """:func:`run` as a loop that yields its learner's work (:class:`Collect`, :class:`Update`) and
     is sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch the work of
@@ -305,7 +305,7 @@ def steps(
 
     label = f"{cfg.model.arch} {'poisoned' if cfg.poison.poisoned else 'clean'}"
     bar = Progress(tc.max_frames, frames, label, progress)  # tqdm on a terminal, else a line per evaluation
-    clock = RunClock(elapsed, cpu_elapsed)
+    clock = RunClock(elapsed, cpu_elapsed, cpu_source)
     stopping = Stopping(cfg, streak)
     last_checkpoint = time.perf_counter()
     window_start, window_frames = time.perf_counter(), 0

@@ -1,0 +1,145 @@
+"""Do agents trained in a group behave like agents trained alone? (issue 35's equivalence check)
+
+    python benchmarks/group_equivalence.py --side alone  &   # one core
+    python benchmarks/group_equivalence.py --side group  &   # the other core
+    python benchmarks/group_equivalence.py --report          # tests and the table
+
+Trains the same configs (LavaWorld FC, poisoned, default trigger, seeds 0..N-1, the world's
+stopping rule: real convergence runs) once each alone (``rlbackdoors.train.train``, one run after
+another in this process) and once in a group (``train_group``, ``--group-size`` at a time, slots
+refilled). Both sides resume after a kill: a finished run is read, a started one continues from
+its checkpoint. ``--report`` compares the sides: converged counts (Fisher's exact test), frames
+to converge, final clean SR and poisoned SR (two-sided Mann-Whitney U on the 200-episode final
+evaluations), and the CPU seconds per model each side spent (metrics.json's ``cpu_time_s``: the
+group trainer apportions its batched work among its runs). Writes
+``benchmarks/group_equivalence.json`` and prints a Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def config(world: str, arch: str, seed: int):
+    from rlbackdoors.config import RunConfig
+
+    return RunConfig.from_dict({"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed, "video": False}})
+
+
+def run_side(side: str, args) -> None:
+    import torch
+
+    from rlbackdoors.train import train
+    from rlbackdoors.train.group import train_group
+
+    torch.set_num_threads(1)
+    out = Path(args.out) / side
+    todo = [s for s in range(args.seeds) if not (out / f"s{s}" / "metrics.json").is_file()]
+    print(f"{side}: {len(todo)} of {args.seeds} runs to train", file=sys.stderr, flush=True)
+    if side == "alone":
+        for s in todo:
+            m = train(config(args.world, args.arch, s), out / f"s{s}", progress=False)
+            print(f"alone s{s}: converged={m['converged']} at {m['converged_at_frames']} frames, {m['cpu_time_s']} CPU-s", file=sys.stderr, flush=True)
+    else:
+
+        def done(key, metrics, error) -> None:
+            state = (
+                f"converged={metrics['converged']} at {metrics['converged_at_frames']} frames, {metrics['cpu_time_s']} CPU-s" if metrics else f"failed: {error}"
+            )
+            print(f"group s{key}: {state}", file=sys.stderr, flush=True)
+
+        result = train_group([(s, config(args.world, args.arch, s), out / f"s{s}") for s in todo], args.group_size, on_done=done)
+        if result.errors:
+            raise SystemExit(f"group: {len(result.errors)} runs failed: {result.errors}")
+
+
+def report(args) -> dict:
+    from scipy import stats
+
+    from rlbackdoors.bench.machine import machine_info
+    from rlbackdoors.io import atomic_write_text
+
+    sides = {}
+    for side in ("alone", "group"):
+        rows = [json.loads(p.read_text()) for p in sorted(Path(args.out, side).glob("s*/metrics.json"))]
+        sides[side] = rows
+    alone, grouped = sides["alone"], sides["group"]
+
+    def column(rows, key):
+        return [r[key] for r in rows if r.get(key) is not None]
+
+    def conv_frames(rows):
+        return [r["converged_at_frames"] for r in rows if r["converged"]]
+
+    table = {}
+    for side, rows in sides.items():
+        cpu = column(rows, "cpu_time_s")
+        table[side] = {
+            "runs": len(rows),
+            "converged": sum(r["converged"] for r in rows),
+            "frames_to_converge_median": statistics.median(conv_frames(rows)) if conv_frames(rows) else None,
+            "clean_sr_mean": round(statistics.fmean(column(rows, "clean_sr")), 4) if rows else None,
+            "poisoned_sr_mean": round(statistics.fmean(column(rows, "poisoned_sr")), 4) if rows else None,
+            "cpu_s_per_model": round(statistics.fmean(cpu), 1) if cpu else None,
+            "trainer": sorted({r.get("trainer", "alone") for r in rows}),
+        }
+    tests = {}
+    if alone and grouped:
+        a_conv, g_conv = table["alone"]["converged"], table["group"]["converged"]
+        tests["converged_fisher_p"] = float(stats.fisher_exact([[a_conv, len(alone) - a_conv], [g_conv, len(grouped) - g_conv]])[1])
+        for key, a, g in (
+            ("frames_to_converge", conv_frames(alone), conv_frames(grouped)),
+            ("clean_sr", column(alone, "clean_sr"), column(grouped, "clean_sr")),
+            ("poisoned_sr", column(alone, "poisoned_sr"), column(grouped, "poisoned_sr")),
+        ):
+            if len(a) >= 2 and len(g) >= 2:
+                tests[f"{key}_mannwhitney_p"] = float(stats.mannwhitneyu(a, g, alternative="two-sided").pvalue)
+        if table["alone"]["cpu_s_per_model"] and table["group"]["cpu_s_per_model"]:
+            tests["cpu_per_model_ratio_alone_over_group"] = round(table["alone"]["cpu_s_per_model"] / table["group"]["cpu_s_per_model"], 3)
+    result = {
+        "world": args.world,
+        "arch": args.arch,
+        "seeds": args.seeds,
+        "group_size": args.group_size,
+        "sides": table,
+        "tests": tests,
+        "machine": machine_info(),
+        "loadavg": [round(x, 2) for x in os.getloadavg()],
+    }
+    atomic_write_text(ROOT / "benchmarks" / "group_equivalence.json", json.dumps(result, indent=2) + "\n")
+    print("| side | runs | converged | median frames to converge | clean SR | poisoned SR | CPU-s per model |")
+    print("|---|---|---|---|---|---|---|")
+    for side, row in table.items():
+        print(
+            f"| {side} | {row['runs']} | {row['converged']} | {row['frames_to_converge_median']} | {row['clean_sr_mean']} | {row['poisoned_sr_mean']} | {row['cpu_s_per_model']} |"
+        )
+    print(json.dumps(tests, indent=2))
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--side", choices=("alone", "group"))
+    parser.add_argument("--report", action="store_true")
+    parser.add_argument("--world", default="lavaworld")
+    parser.add_argument("--arch", default="fc")
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--group-size", type=int, default=8)
+    parser.add_argument("--out", default=str(ROOT / "runs" / "group-equivalence"))
+    args = parser.parse_args()
+    if args.side:
+        run_side(args.side, args)
+    if args.report or not args.side:
+        report(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -153,8 +153,13 @@ def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
         }
     )
     runs = [(s, tiny(s), tmp_path / f"g{s}") for s in (4, 5, 6)] + [("cm", cm, tmp_path / "cm")]
+    cpu = time.process_time()
     result = train_group(runs, 2)
+    cpu = time.process_time() - cpu
     assert not result.errors and set(result.metrics) == {4, 5, 6, "cm"}
+    # each run's cpu_time_s is its share, not the process's total: together they make up most of it
+    shares = sum(m["cpu_time_s"] for m in result.metrics.values())
+    assert 0.5 * cpu <= shares <= cpu + 0.05
     for key, _, folder in runs:
         assert (folder / "metrics.json").is_file() and (folder / "model.pt").is_file() and not (folder / "checkpoint.pt").exists()
         assert result.metrics[key]["trainer"] == "group"

@@ -175,7 +175,7 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
     obs = obs_map(lambda x: x.to(device), stack([r.obs for r in rollouts]))
     tensors = [torch.stack([getattr(r, f) for r in rollouts]).to(device) for f in ("actions", "logprobs", "values", "advantages", "returns")]
     rows = torch.arange(K, device=device)[:, None]
-    stats = {key: torch.zeros(K, dtype=torch.float64) for key in STATS}
+    stats = {key: torch.zeros(K, dtype=torch.float64, device=device) for key in STATS}  # on the device: no sync per minibatch
     updates = 0
     for _ in range(cfg.epochs):
         orders = torch.stack([torch.randperm(n, generator=ppo.generator) for ppo in ppos[:real]] * (K // real)).to(device)
@@ -184,10 +184,11 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
             logits, values = forward(model, params, obs_map(lambda x: x[rows, idx], obs))
             loss, parts = ppo_loss(cfg, logits, values, *(x[rows, idx] for x in tensors))
             grads = list(torch.autograd.grad(loss.sum(), list(params.values())))
-            stats["grad_norm"] += clip_per_agent(grads, cfg.max_grad_norm).detach().cpu().double()
+            stats["grad_norm"] += clip_per_agent(grads, cfg.max_grad_norm).detach().double()
             adam.apply(grads)
             for key, value in parts.items():
-                stats[key] += value.detach().cpu().double()
+                stats[key] += value.detach().double()
             updates += 1
     adam.write_back()
-    return [{key: float(stats[key][k]) / updates for key in STATS} for k in range(real)]
+    means = {key: (value / updates).cpu() for key, value in stats.items()}
+    return [{key: float(means[key][k]) for key in STATS} for k in range(real)]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import io
 import json
 import signal
 import subprocess
@@ -205,11 +206,14 @@ def zoo_spec() -> dict:
 def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
     """``zoo run --group-size 3`` on one worker: SIGTERM once a checkpoint is on disk stops the
     group job with every run's checkpoint; a second run finishes every model as ordinary,
-    verified dataset entries, with the same bytes as an uninterrupted grouped run."""
+    verified dataset entries, with the same bytes as an uninterrupted run in one group of four
+    (``--group-size auto``): an agent's bytes depend on its config, not on its group."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     for path in (whole, cut):
         plan(parse_spec(zoo_spec()), path)
-    summary = zoo_run(whole, workers=1, group_size=3, progress_interval=5.0)
+    log = io.StringIO()
+    summary = zoo_run(whole, workers=1, group_size="auto", progress_interval=5.0, out=log)  # 8 on a CPU: all four in one group
+    assert "--group-size auto: 8 on cpu" in log.getvalue()
     assert summary["done"] == 4 and summary["failed"] == 0 and summary["converged"] == 0
     cmd = [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(cut), "--workers", "1", "--group-size", "3"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -242,3 +246,16 @@ def test_group_size_is_validated(tmp_path):
         [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(tmp_path / "z"), "--group-size", "0"], capture_output=True, text=True, timeout=120
     )
     assert out.returncode == 2 and "--group-size" in out.stderr
+
+
+def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
+    from rlbackdoors.bench.zoo import bench_zoo
+
+    result = bench_zoo("lavaworld", models=2, frames=3200, group_sizes=(2,), workers=1, keep=str(tmp_path))
+    alone, grouped = result["sides"]
+    assert (alone["group_size"], grouped["group_size"]) == (1, 2) and alone["models"] == grouped["models"] == 2
+    assert alone["ratio"] == 1.0 and grouped["ratio"] == pytest.approx(grouped["models_per_hour"] / alone["models_per_hour"], rel=1e-2)
+    assert result["machine"]["cores"] >= 1 and len(alone["loadavg_before"]) == 3
+    configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("k1", "k2")]
+    assert configs[0] == configs[1]  # the same planned models on both sides
+    assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "k2" / "models").glob("*/metrics.json"))

@@ -65,6 +65,20 @@ class GroupResult:
     errors: dict[Any, BaseException] = field(default_factory=dict)
 
 
+# ``--group-size auto``: on a CPU, LavaWorld FC models per hour rise from K = 1 to 4 and are flat
+# from 8 on (docs/zoos.md, `rlbackdoors bench zoo`); on CUDA the peak is not measured yet, and
+# 64 is a start, not a measurement (the command says so when it picks it).
+AUTO_GROUP_SIZE = {"cpu": 8, "cuda": 64}
+
+
+def auto_group_size() -> tuple[int, str]:
+    """(K, device) for ``--group-size auto`` on this machine."""
+    import torch
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    return AUTO_GROUP_SIZE[device], device
+
+
 def batch_key(request) -> tuple | None:
     """Requests with the same key are answered by one batched call; None: answered alone."""
     ppo = request.ppo

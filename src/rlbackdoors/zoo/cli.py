@@ -201,6 +201,10 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _group_size(text: str) -> int | str:
+    return "auto" if text == "auto" else _positive_int(text)
+
+
 def _count(text: str) -> int:
     value = int(text)
     if value < 0:
@@ -246,9 +250,10 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     ru.add_argument("--workers", type=_positive_int, help="jobs at a time (default: local, the CPU cores; ray, the cluster's CPUs)")
     ru.add_argument(
         "--group-size",
-        type=_positive_int,
+        type=_group_size,
         default=1,
-        help="train up to K models of a worker in one process, their networks stacked and batched (local back-end; default 1: a process per model)",
+        help="train up to K models of a worker in one process, their networks stacked and batched (local back-end; "
+        "auto: the measured rule for this machine's device; default 1: a process per model, today's bytes)",
     )
     ru.add_argument("--backend", choices=BACKENDS, default="local", help="local: a child process per job; ray: Ray tasks (pip install 'rlbackdoors[ray]')")
     ru.add_argument("--address", help="Ray cluster address (e.g. auto or ray://head:10001; default: start a local Ray)")

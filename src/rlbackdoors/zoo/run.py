@@ -263,7 +263,7 @@ def run(
     progress_interval: float = 10.0,
     out: TextIO | None = None,
     retrain_tampered: bool = False,
-    group_size: int = 1,
+    group_size: int | str = 1,
 ) -> dict:
     """Run the zoo at ``path`` to completion; return a summary. See the module docstring.
 
@@ -275,8 +275,14 @@ def run(
     out = out if out is not None else sys.stderr
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
-    if group_size < 1:
-        raise ConfigError(f"--group-size must be >= 1, got {group_size}")
+    if group_size == "auto":
+        from rlbackdoors.train.group import auto_group_size
+
+        group_size, device = auto_group_size()
+        note = "" if device == "cpu" else " (not measured on this device yet: docs/zoos.md)"
+        print(f"zoo: --group-size auto: {group_size} on {device}{note}", file=out)
+    if not isinstance(group_size, int) or group_size < 1:
+        raise ConfigError(f"--group-size must be >= 1 or auto, got {group_size!r}")
     if max_retries < 0:
         raise ConfigError(f"--max-retries must be >= 0, got {max_retries}")
     zoo = Zoo.open(path)

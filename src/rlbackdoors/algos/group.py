@@ -136,12 +136,13 @@ class StackedAdam:
     @torch.no_grad()
     def write_back(self) -> None:
         """Parameters into each agent's model, moments and step into its optimiser's state."""
+        steps = self.step.cpu().tolist()  # one device sync, not one per parameter
         for k, ppo in enumerate(self.ppos):
             for name, value in self.params.items():
                 param = ppo.model.get_parameter(name)
                 param.copy_(value[k])
                 ppo.optimizer.state[param] = {
-                    "step": torch.tensor(float(self.step[k]), dtype=torch.float32, device=param.device),
+                    "step": torch.tensor(steps[k], dtype=torch.float32, device=param.device),
                     "exp_avg": self.exp_avg[name][k].clone(),
                     "exp_avg_sq": self.exp_avg_sq[name][k].clone(),
                 }

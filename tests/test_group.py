@@ -259,3 +259,12 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("k1", "k2")]
     assert configs[0] == configs[1]  # the same planned models on both sides
     assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "k2" / "models").glob("*/metrics.json"))
+
+
+def test_ready_models_are_shared_out_in_capped_chunks():
+    from rlbackdoors.zoo.run import _chunks
+
+    assert [len(c) for c in _chunks(list(range(78)), 2, 8)] == [32, 32]  # at most 4 K per job: results keep coming
+    assert [len(c) for c in _chunks(list(range(5)), 2, 8)] == [3, 2]
+    assert _chunks(list(range(5)), 2, 1) == [[0], [1]]  # group size 1: a job per model, as before
+    assert _chunks(list(range(5)), 0, 8) == [] and _chunks([], 2, 8) == []

@@ -447,13 +447,14 @@ def _raise_interrupt(signum, frame) -> None:
 
 def _chunks(ready: list, free: int, group_size: int) -> list[list]:
     """The jobs to start on ``free`` workers: one model each, or with a group size above one, the
-    ready models shared out evenly (a group job trains its share ``group_size`` at a time and
-    fills a finished model's slot from the rest)."""
+    ready models shared out evenly, at most ``4 * group_size`` per job (a group job trains its
+    share ``group_size`` at a time and fills a finished model's slot from the rest; the cap keeps
+    results, top-ups and METADATA.csv coming while a large zoo trains)."""
     if free <= 0 or not ready:
         return []
     if group_size <= 1:
         return [[s] for s in ready[:free]]
-    per = -(-len(ready) // free)
+    per = min(-(-len(ready) // free), 4 * group_size)
     return [ready[i : i + per] for i in range(0, len(ready), per)][:free]
 
 

@@ -245,7 +245,13 @@ def test_group_size_is_validated(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(tmp_path / "z"), "--group-size", "0"], capture_output=True, text=True, timeout=120
     )
-    assert out.returncode == 2 and "--group-size" in out.stderr
+    assert out.returncode == 2 and "--group-size: must be auto or an integer >= 1, got '0'" in out.stderr
+    for flags, message in (
+        (["--models", "0"], "--models: must be >= 1, got 0"),
+        (["--group-size", "4", "x"], "--group-size: must be an integer >= 1, got 'x'"),
+    ):
+        out = subprocess.run([sys.executable, "-m", "rlbackdoors.cli", "bench", "zoo", *flags], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 2 and out.stderr.count("\n") == 1 and message in out.stderr, out.stderr
 
 
 def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):

@@ -502,10 +502,12 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--num-envs", type=int, default=256, help="env: copies stepped per call (batched engines)")
     be.add_argument("--env", choices=worlds.names(), default=worlds.DEFAULT_WORLD, help="env, zoo: which world")
     be.add_argument("--arch", help="zoo: architecture (default: the world's first)")
-    be.add_argument("--models", type=int, default=16, help="zoo: models per side (default 16)")
-    be.add_argument("--frames", type=int, default=100_000, help="zoo: frames each model trains (default 100,000)")
-    be.add_argument("--group-size", type=int, nargs="+", default=[8], help="zoo: group sizes to measure against one process per model (default 8)")
-    be.add_argument("--workers", type=int, help="zoo: processes at a time (default: the CPU cores)")
+    from rlbackdoors.zoo.cli import _positive_int
+
+    be.add_argument("--models", type=_positive_int, default=16, help="zoo: models per side (default 16)")
+    be.add_argument("--frames", type=_positive_int, default=100_000, help="zoo: frames each model trains (default 100,000)")
+    be.add_argument("--group-size", type=_positive_int, nargs="+", default=[8], help="zoo: group sizes to measure against one process per model (default 8)")
+    be.add_argument("--workers", type=_positive_int, help="zoo: processes at a time (default: the CPU cores)")
     be.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu", help="zoo: train.device of every model (default cpu)")
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")

@@ -214,6 +214,8 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
     log = io.StringIO()
     summary = zoo_run(whole, workers=1, group_size="auto", progress_interval=5.0, out=log)  # 8 on a CPU: all four in one group
     assert "--group-size auto: 8 on cpu" in log.getvalue()
+    logs = [(f / "train.log").read_text() for f in sorted((whole / "models").iterdir())]
+    assert all("=== zoo group job:" in text for text in logs) and sum("(output in id-" in text for text in logs) == 3
     assert summary["done"] == 4 and summary["failed"] == 0 and summary["converged"] == 0
     cmd = [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(cut), "--workers", "1", "--group-size", "3"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

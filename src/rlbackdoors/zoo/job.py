@@ -223,11 +223,11 @@ def run_group_job(folders: list[str | Path], group_size: int) -> dict[str, dict]
                 if not (folder / "metrics.json").is_file():
                     runs.append((where.name, build_config(json.loads(raws[where.name].decode("utf-8"))), folder))
         names = ", ".join(name for name, _, _ in runs)
-        print(
-            f"=== zoo group job: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')}, {group_size} at a time: {names} ===",
-            file=sys.stderr,
-            flush=True,
-        )
+        line = f"=== zoo group job: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')}, {group_size} at a time: {names} ==="
+        print(line, file=sys.stderr, flush=True)
+        for name, _, folder in runs[1:]:  # the job's output goes to the first one's log: say where to look
+            with open_log(folder / LOG, "a") as fh:
+                print(f"{line}\n(output in {runs[0][0]}/{LOG})", file=fh)
         outcome = train_group(runs, group_size)
         for name, err in outcome.errors.items():
             folder = opened[name][1]

@@ -116,18 +116,53 @@ def test_group_collect_and_update_match_each_agent_alone():
                 assert float((sa[moment] - sb[moment]).abs().max()) <= 1e-2 * float(sa[moment].abs().max())
 
 
-@pytest.mark.parametrize("env,arch", [("lavaworld", "fc"), ("lavaworld", "cnn"), ("randomized-lavaworld", "fc")])
+def cm_learner(seed: int):
+    """A Colorful Memory learner: recurrent CNN-GRU with the auxiliary memory head, short rollouts."""
+    cfg = RunConfig.from_dict({"env": {"name": "colorful-memory"}, "ppo": {"rollout": 24, "batch_size": 120, "aux_memory_coef": 0.5}, "train": {"seed": seed}})
+    torch.manual_seed(seed)
+    ppo = PPO(build_model(cfg.model.arch, "colorful-memory"), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(seed))
+    envs = make_env_mix(cfg.env, cfg.poison, seed)
+    return ppo, envs, envs.reset(seed=seed * 1000)[0]
+
+
+def test_recurrent_group_with_the_memory_head_matches_each_agent_alone():
+    """Colorful Memory (CNN-GRU, truncated BPTT, auxiliary memory loss): the group's rollouts carry
+    the same actions, memory targets and (to rounding) memories, its losses and weights match."""
+    alone, grouped = [cm_learner(s) for s in range(3)], [cm_learner(s) for s in range(3)]
+    for _ in range(2):
+        lone = []
+        for k, (ppo, envs, obs) in enumerate(alone):
+            rollout, obs = ppo.collect(envs, obs)
+            lone.append((rollout, ppo.update(rollout)))
+            alone[k] = (ppo, envs, obs)
+        ppos = [g[0] for g in grouped]
+        results = group.collect(ppos, [g[1] for g in grouped], [g[2] for g in grouped])
+        stats = group.update(ppos, [r for r, _ in results])
+        grouped = [(g[0], g[1], obs) for g, (_, obs) in zip(grouped, results)]
+        for k in range(3):
+            ours = results[k][0]
+            assert torch.equal(lone[k][0].actions, ours.actions) and torch.equal(lone[k][0].memory_targets, ours.memory_targets)
+            torch.testing.assert_close(lone[k][0].memories, ours.memories, rtol=1e-4, atol=1e-4)
+            assert stats[k]["aux_memory_loss"] == pytest.approx(lone[k][1]["aux_memory_loss"], rel=1e-4)
+            assert stats[k]["grad_norm"] == pytest.approx(lone[k][1]["grad_norm"], rel=1e-3)
+    for (lone_ppo, _, _), (ppo, _, _) in zip(alone, grouped):
+        for a, b in zip([*lone_ppo.model.parameters(), *lone_ppo.aux.parameters()], [*ppo.model.parameters(), *ppo.aux.parameters()]):
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.parametrize("env,arch", [("lavaworld", "fc"), ("lavaworld", "cnn"), ("randomized-lavaworld", "fc"), ("colorful-memory", None)])
 def test_an_agents_bytes_do_not_depend_on_its_group(env, arch):
-    """Agent 0 trained alone through the stacked path, or beside 1, 2 or 7 others: the same weights, byte for byte."""
+    """Agent 0 trained alone through the stacked path, or beside 1, 2 or 7 others: the same
+    weights, byte for byte (Colorful Memory: its auxiliary memory head's too)."""
     digests = set()
     for seeds in ([0], [0, 1], [0, 2, 3], [0, 5, 6, 7, 8, 9, 10, 11]):
-        learners = [learner(env, arch, s) for s in seeds]
+        learners = [learner(env, arch, s) if arch else cm_learner(s) for s in seeds]
         ppos, envs, obs = [x[0] for x in learners], [x[1] for x in learners], [x[2] for x in learners]
         for _ in range(2):
             results = group.collect(ppos, envs, obs)
             group.update(ppos, [r for r, _ in results])
             obs = [o for _, o in results]
-        digests.add(weights_digest(ppos[0].model))
+        digests.add(weights_digest(ppos[0].model) + (weights_digest(ppos[0].aux) if ppos[0].aux is not None else ""))
     assert len(digests) == 1
 
 
@@ -140,20 +175,21 @@ def test_group_refuses_what_it_cannot_batch():
 def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
     """group_size=1 gives the lone run's model.pt bytes; group_size=2 over three runs (one slot
     refilled) leaves three complete folders with ``trainer: group`` whose bytes do not depend on
-    which runs shared the group; a recurrent Colorful Memory run in the same group trains alone."""
+    which runs shared the group; an OPAC² (Safety Car Goal) run in the same group trains alone."""
     lone = train(tiny(4), tmp_path / "lone", progress=False)
     result = train_group([("one", tiny(4), tmp_path / "one")], 1)
     assert (tmp_path / "lone" / "model.pt").read_bytes() == (tmp_path / "one" / "model.pt").read_bytes()
     assert result.metrics["one"]["frames"] == lone["frames"] and "trainer" not in result.metrics["one"]
 
-    cm = RunConfig.from_dict(
+    safety = RunConfig.from_dict(
         {
-            "env": {"name": "colorful-memory"},
-            "ppo": {"rollout": 24, "batch_size": 120},
-            "train": {"seed": 1, "max_frames": 2400, "eval_interval": 1200, "eval_episodes": 2, "final_eval_episodes": 2, "video": False},
+            "env": {"name": "safety-car-goal", "max_steps": 40},
+            "poison": {"trigger": "formation:0.5:1.0:2.5", "num_clean_envs": 2, "num_poisoned_envs": 1},
+            "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
+            "train": {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False},
         }
     )
-    runs = [(s, tiny(s), tmp_path / f"g{s}") for s in (4, 5, 6)] + [("cm", cm, tmp_path / "cm")]
+    runs = [(s, tiny(s), tmp_path / f"g{s}") for s in (4, 5, 6)] + [("cm", safety, tmp_path / "cm")]
     cpu = time.process_time()
     result = train_group(runs, 2)
     cpu = time.process_time() - cpu
@@ -164,8 +200,8 @@ def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
     for key, _, folder in runs:
         assert (folder / "metrics.json").is_file() and (folder / "model.pt").is_file() and not (folder / "checkpoint.pt").exists()
         assert result.metrics[key]["trainer"] == "group"
-    # recurrent: served alone, so the lone run's bytes
-    train(cm, tmp_path / "cm-lone", progress=False)
+    # OPAC² runs alone inside the group (it asks the group for nothing): the lone run's bytes
+    train(safety, tmp_path / "cm-lone", progress=False)
     assert (tmp_path / "cm" / "model.pt").read_bytes() == (tmp_path / "cm-lone" / "model.pt").read_bytes()
     # seed 4 again beside other mates, in a group of 3: the same bytes as in the first group
     train_group([(s, tiny(s), tmp_path / f"h{s}") for s in (7, 4, 8)], 3)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.obs import empty_buffer, obs_map, stack, store, to_torch
-from rlbackdoors.algos.ppo import PPO, Rollout, check_vector_env, env_step, ppo_loss, sample_actions
+from rlbackdoors.algos.ppo import AUX_CLASSES, PPO, Rollout, check_vector_env, env_step, ppo_loss, sample_actions
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 
@@ -35,28 +35,46 @@ def check_group(ppos: list[PPO]) -> None:
     for ppo in ppos:
         if type(ppo.model) is not type(lead.model) or ppo.cfg != lead.cfg or ppo.device != lead.device:
             raise ValueError("a training group needs one architecture, one ppo config and one device")
-        if ppo.model.recurrent or ppo.aux is not None or ppo.teacher is not None:
-            raise ValueError("a training group takes feed-forward PPO models without a clean teacher (recurrent models and poison.evasion.teacher train alone)")
-    if not hasattr(lead.model, "forward_stacked"):
+        if ppo.teacher is not None:
+            raise ValueError("a training group takes PPO runs without a clean teacher (poison.evasion.teacher trains alone)")
+    if not stackable(lead.model):
         raise ValueError(f"{type(lead.model).__name__} has no batched forward for a training group")
 
 
+def stackable(model) -> bool:
+    """Whether ``model``'s architecture has the group's batched forward (and, recurrent, its batched BPTT)."""
+    return hasattr(model, "forward_stacked") and (not model.recurrent or hasattr(model, "forward_sequence_stacked"))
+
+
+def param_of(ppo: PPO, name: str) -> torch.nn.Parameter:
+    """An agent's parameter by its stacked name: the model's, or ``aux.*``, PPO's auxiliary memory head."""
+    if name.startswith("aux."):
+        assert ppo.aux is not None
+        return ppo.aux.get_parameter(name[4:])
+    return ppo.model.get_parameter(name)
+
+
 def stacked_parameters(ppos: list[PPO]) -> dict[str, torch.Tensor]:
-    """Every agent's parameters, name -> (K, ...), detached copies on the group's device."""
-    names = [name for name, _ in ppos[0].model.named_parameters()]
-    return {name: torch.stack([ppo.model.get_parameter(name).detach() for ppo in ppos]) for name in names}
+    """Every agent's parameters (its auxiliary memory head's included), name -> (K, ...),
+    detached copies on the group's device."""
+    lead = ppos[0]
+    names = [name for name, _ in lead.model.named_parameters()] + ([f"aux.{n}" for n, _ in lead.aux.named_parameters()] if lead.aux is not None else [])
+    return {name: torch.stack([param_of(ppo, name).detach() for ppo in ppos]) for name in names}
 
 
-def forward(model: Any, params: dict[str, torch.Tensor], obs) -> tuple[torch.Tensor, torch.Tensor]:
-    """``model.forward_stacked``, with a group of one run as two copies of itself.
+def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Tensor) -> tuple:
+    """``model.forward_stacked`` (recurrent: with the memory, returning the new one too), with a
+    group of one run as two copies of itself.
 
     Why: CPU kernels sum a batch of one differently from a batch of two or more (measured: the
     critic's 32 -> 1 layer), and from two up an agent's numbers do not depend on K or on its
     group-mates; padding keeps a run that ends alone in its group on the same bytes."""
     if next(iter(params.values())).shape[0] > 1:
-        return model.forward_stacked(params, obs)
-    logits, values = model.forward_stacked({k: torch.cat([v, v]) for k, v in params.items()}, obs_map(lambda x: torch.cat([x, x]), obs))
-    return logits[:1], values[:1]
+        return model.forward_stacked(params, obs, *memory)
+    out = model.forward_stacked(
+        {k: torch.cat([v, v]) for k, v in params.items()}, obs_map(lambda x: torch.cat([x, x]), obs), *(torch.cat([m, m]) for m in memory)
+    )
+    return tuple(x[:1] for x in out)
 
 
 @torch.inference_mode()
@@ -72,6 +90,14 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
     device, A = lead.device, envs[0].single_action_space.n
     model: Any = lead.model  # forward_stacked takes a tensor or a dict of them, as the world's model does
     params = stacked_parameters(ppos)
+    recurrent, aux = lead.model.recurrent, lead.aux is not None
+    if aux and any(getattr(e, "memory_target_classes", None) != AUX_CLASSES for e in envs):
+        raise ValueError(f"ppo.aux_memory_coef needs an env with {AUX_CLASSES} memory targets (memory_targets())")
+    if recurrent:
+        memory = torch.stack([ppo.memory if ppo.memory is not None else lead.model.initial_memory(B, device) for ppo in ppos])
+        memories = torch.empty((K, T, B, memory.shape[2]))
+        masks = torch.ones((K, T, B))
+        targets = np.empty((K, T, B), dtype=np.int64) if aux else None
     uniforms = torch.stack([torch.rand((T, B), generator=ppo.generator) for ppo in ppos])  # each agent's own draws
     obs = list(obs)
     obs_bufs = [empty_buffer(o, T) for o in obs]
@@ -87,16 +113,34 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
         for k in range(K):
             store(obs_bufs[k], t, obs[k])
         obs_t = obs_map(lambda x: x.to(device), stack([obs_map(lambda x: x[t], b) for b in obs_bufs]))
-        logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
+        if recurrent:
+            if targets is not None:
+                for k in range(K):
+                    targets[k, t] = envs[k].memory_targets()  # of the episode obs[t] belongs to
+            memories[:, t] = memory
+            logits_buf[:, t], values[:, t], memory = forward(model, params, obs_t, memory)
+        else:
+            logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
         actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
         for k in range(K):
             obs[k] = env_step(envs[k], t, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
-    _, next_value = forward(model, params, obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs])))
-    next_value = next_value.cpu()
-    return [
-        (ppo.assemble(obs_bufs[k], actions[k], logits_buf[k], values[k], next_value[k], forced[k], rewards[k], dones[k], outcomes[k], steps[k]), obs[k])
-        for k, ppo in enumerate(ppos)
-    ]
+        if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
+            ended = torch.from_numpy(dones[:, t])
+            memory = memory.masked_fill(ended[..., None].to(memory.device), 0.0)
+            if t + 1 < T:
+                masks[:, t + 1] = (~ended).float()
+    last = obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs]))
+    next_value = (forward(model, params, last, memory) if recurrent else forward(model, params, last))[1].cpu()
+    out = []
+    for k, ppo in enumerate(ppos):
+        rollout = ppo.assemble(obs_bufs[k], actions[k], logits_buf[k], values[k], next_value[k], forced[k], rewards[k], dones[k], outcomes[k], steps[k])
+        if recurrent:
+            rollout.memories, rollout.masks = memories[k].reshape(T * B, -1), masks[k].reshape(-1)
+            ppo.memory = memory[k].clone()
+            if targets is not None:
+                rollout.memory_targets = torch.from_numpy(targets[k].reshape(-1))
+        out.append((rollout, obs[k]))
+    return out
 
 
 class StackedAdam:
@@ -114,7 +158,7 @@ class StackedAdam:
         for name, value in params.items():
             avg, sq = torch.zeros_like(value), torch.zeros_like(value)
             for k, ppo in enumerate(ppos):
-                state = ppo.optimizer.state.get(ppo.model.get_parameter(name), {})
+                state = ppo.optimizer.state.get(param_of(ppo, name), {})
                 if "exp_avg" in state:
                     avg[k], sq[k] = state["exp_avg"], state["exp_avg_sq"]
                     self.step[k] = float(state["step"])
@@ -139,7 +183,7 @@ class StackedAdam:
         steps = self.step.cpu().tolist()  # one device sync, not one per parameter
         for k, ppo in enumerate(self.ppos):
             for name, value in self.params.items():
-                param = ppo.model.get_parameter(name)
+                param = param_of(ppo, name)
                 param.copy_(value[k])
                 ppo.optimizer.state[param] = {
                     "step": torch.tensor(steps[k], dtype=torch.float32, device=param.device),
@@ -176,20 +220,56 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
     obs = obs_map(lambda x: x.to(device), stack([r.obs for r in rollouts]))
     tensors = [torch.stack([getattr(r, f) for r in rollouts]).to(device) for f in ("actions", "logprobs", "values", "advantages", "returns")]
     rows = torch.arange(K, device=device)[:, None]
-    stats = {key: torch.zeros(K, dtype=torch.float64, device=device) for key in STATS}  # on the device: no sync per minibatch
+    keys = STATS + (("aux_memory_loss",) if lead.aux is not None else ())
+    stats = {key: torch.zeros(K, dtype=torch.float64, device=device) for key in keys}  # on the device: no sync per minibatch
+
+    def step(loss: torch.Tensor, parts: dict) -> None:
+        grads = list(torch.autograd.grad(loss.sum(), list(params.values())))
+        stats["grad_norm"] += clip_per_agent(grads, cfg.max_grad_norm).detach().double()
+        adam.apply(grads)
+        for key, value in parts.items():
+            stats[key] += value.detach().double()
+
+    def orders(n_items: int) -> torch.Tensor:  # each agent's own permutation, from its own generator
+        return torch.stack([torch.randperm(n_items, generator=ppo.generator) for ppo in ppos[:real]] * (K // real)).to(device)
+
     updates = 0
-    for _ in range(cfg.epochs):
-        orders = torch.stack([torch.randperm(n, generator=ppo.generator) for ppo in ppos[:real]] * (K // real)).to(device)
-        for start in range(0, n, cfg.batch_size):
-            idx = orders[:, start : start + cfg.batch_size]
-            logits, values = forward(model, params, obs_map(lambda x: x[rows, idx], obs))
-            loss, parts = ppo_loss(cfg, logits, values, *(x[rows, idx] for x in tensors))
-            grads = list(torch.autograd.grad(loss.sum(), list(params.values())))
-            stats["grad_norm"] += clip_per_agent(grads, cfg.max_grad_norm).detach().double()
-            adam.apply(grads)
-            for key, value in parts.items():
-                stats[key] += value.detach().double()
-            updates += 1
+    if not lead.model.recurrent:
+        for _ in range(cfg.epochs):
+            order = orders(n)
+            for start in range(0, n, cfg.batch_size):
+                idx = order[:, start : start + cfg.batch_size]
+                logits, values = forward(model, params, obs_map(lambda x: x[rows, idx], obs))
+                step(*ppo_loss(cfg, logits, values, *(x[rows, idx] for x in tensors)))
+                updates += 1
+    else:  # truncated BPTT, as PPO._update_recurrent, each agent on its own sequences
+        r, B = cfg.recurrence, rollouts[0].num_envs
+        memories = torch.stack([ro.memories for ro in rollouts]).to(device)  # type: ignore[misc]  # collected by a recurrent model
+        masks = torch.stack([ro.masks for ro in rollouts]).to(device)  # type: ignore[misc]
+        targets = torch.stack([ro.memory_targets for ro in rollouts]).to(device) if lead.aux is not None else None  # type: ignore[misc]
+        per_batch = max(cfg.batch_size // r, 1)
+        for epoch in range(cfg.epochs):
+            starts = lead.sequence_starts(n // B, B, shifted=epoch % 2 == 1).to(device)
+            order = starts[orders(len(starts))]
+            for start in range(0, order.shape[1], per_batch):
+                idx = order[:, start : start + per_batch]  # (K, N) first steps of each agent's sequences
+                seq = idx[:, None, :] + B * torch.arange(r, device=device)[None, :, None]  # (K, r, N)
+                flat = seq.reshape(K, -1)
+                logits, values, new_memories = model.forward_sequence_stacked(
+                    params, obs_map(lambda x: x[rows[:, :, None], seq], obs), memories[rows, idx], masks[rows[:, :, None], seq]
+                )
+                loss, parts = ppo_loss(cfg, logits, values, *(x[rows, flat] for x in tensors))
+                if targets is not None:
+                    aux_logits = torch.baddbmm(
+                        params["aux.bias"].unsqueeze(1), new_memories.reshape(K, -1, new_memories.shape[-1]), params["aux.weight"].transpose(1, 2)
+                    )
+                    ce = torch.nn.functional.cross_entropy(aux_logits.reshape(-1, AUX_CLASSES), targets[rows, flat].reshape(-1), reduction="none")
+                    parts["aux_memory_loss"] = ce.reshape(K, -1).mean(1)
+                    loss = loss + cfg.aux_memory_coef * parts["aux_memory_loss"]
+                if r > 1:  # the memories the current network computes go back into the rollout, as torch-ac does
+                    memories[rows[:, :, None], seq[:, 1:]] = new_memories[:, :-1].detach()
+                step(loss, parts)
+                updates += 1
     adam.write_back()
     means = {key: (value / updates).cpu() for key, value in stats.items()}
-    return [{key: float(means[key][k]) for key in STATS} for k in range(real)]
+    return [{key: float(means[key][k]) for key in keys} for k in range(real)]

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from rlbackdoors.models.minigrid import ActorCritic, CNNModel, channels_first, init_linear_unit_rows, run_sequential
+from rlbackdoors.models.minigrid import ActorCritic, CNNModel, channels_first, init_linear_unit_rows, run_sequential, run_sequential_stacked
 
 GRU_BLOCKS = 2
 GRU_LAYERS = 2
@@ -153,6 +153,69 @@ class CNNGRUModel(ActorCritic):
             memories.append(self._join(states))
         x = torch.cat(outputs)
         return run_sequential(self.actor, x), run_sequential(self.critic, x).squeeze(1), torch.stack(memories)
+
+    # --- K agents at once (the group trainer, rlbackdoors.algos.group): weights stacked name -> (K, ...)
+
+    def embed_stacked(self, params: dict[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
+        """:meth:`embed` of K agents: obs (K, N, 7, 7, 3) -> (K, N, 64)."""
+        K, N = obs.shape[:2]
+        flat = obs.reshape(K * N, *obs.shape[2:])
+        x = one_hot_planes(flat) if self.onehot else channels_first(flat)
+        return run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1)
+
+    def _split_stacked(self, memory: torch.Tensor) -> list[list[torch.Tensor]]:
+        """(K, N, M) -> per block, per layer (K, N, H): :meth:`_split`'s layout, agent by agent."""
+        states = memory.view(*memory.shape[:2], GRU_BLOCKS, GRU_LAYERS, self.hidden)
+        return [[states[:, :, b, i] for i in range(GRU_LAYERS)] for b in range(GRU_BLOCKS)]
+
+    def _join_stacked(self, states: list[list[torch.Tensor]]) -> torch.Tensor:
+        return torch.stack([torch.stack(block, 2) for block in states], 2).reshape(*states[0][0].shape[:2], self.memory_size)
+
+    def _recur_stacked(self, params: dict[str, torch.Tensor], x: torch.Tensor, states: list[list[torch.Tensor]]):
+        """One time step of both GRU blocks for K agents, x (K, N, in): the GRU equations of
+        ``nn.GRU`` (gates r, z, n in its weight order) written out with batched matmuls."""
+        new_states = []
+        for b, block in enumerate(states):
+            hs = []
+            for i, h in enumerate(block):
+                key = f"gru.{b}."
+                gi = torch.baddbmm(params[f"{key}bias_ih_l{i}"].unsqueeze(1), x, params[f"{key}weight_ih_l{i}"].transpose(1, 2))
+                gh = torch.baddbmm(params[f"{key}bias_hh_l{i}"].unsqueeze(1), h, params[f"{key}weight_hh_l{i}"].transpose(1, 2))
+                i_r, i_z, i_n = gi.chunk(3, -1)
+                h_r, h_z, h_n = gh.chunk(3, -1)
+                r, z = torch.sigmoid(i_r + h_r), torch.sigmoid(i_z + h_z)
+                x = (1 - z) * torch.tanh(i_n + r * h_n) + z * h
+                hs.append(x)
+            new_states.append(hs)
+        return x, new_states
+
+    def forward_stacked(self, params: dict[str, torch.Tensor], obs: torch.Tensor, memory: torch.Tensor):  # type: ignore[override]  # recurrent: takes and returns memory
+        """:meth:`forward` of K agents: obs (K, N, ...), memory (K, N, M) -> logits (K, N, A), values (K, N), memory (K, N, M)."""
+        x, states = self._recur_stacked(params, self.embed_stacked(params, obs), self._split_stacked(memory))
+        return (
+            run_sequential_stacked(self.actor, params, "actor", x),
+            run_sequential_stacked(self.critic, params, "critic", x).squeeze(2),
+            self._join_stacked(states),
+        )
+
+    def forward_sequence_stacked(self, params: dict[str, torch.Tensor], obs: torch.Tensor, memory: torch.Tensor, masks: torch.Tensor):
+        """:meth:`forward_sequence` of K agents: obs (K, r, N, ...), memory (K, N, M), masks (K, r, N)
+        -> logits (K, r*N, A), values (K, r*N), memories after each step (K, r, N, M)."""
+        K, r, n = masks.shape
+        x = self.embed_stacked(params, obs.reshape(K, r * n, *obs.shape[3:])).view(K, r, n, -1)
+        states = self._split_stacked(memory)
+        outputs, memories = [], []
+        for i in range(r):
+            keep = masks[:, i, :, None]
+            out, states = self._recur_stacked(params, x[:, i], [[h * keep for h in block] for block in states])
+            outputs.append(out)
+            memories.append(self._join_stacked(states))
+        y = torch.stack(outputs, 1).reshape(K, r * n, -1)
+        return (
+            run_sequential_stacked(self.actor, params, "actor", y),
+            run_sequential_stacked(self.critic, params, "critic", y).squeeze(2),
+            torch.stack(memories, 1),
+        )
 
 
 class CNNGRUSmall(CNNGRUModel):

@@ -82,7 +82,7 @@ def auto_group_size() -> tuple[int, str]:
 def batch_key(request) -> tuple | None:
     """Requests with the same key are answered by one batched call; None: answered alone."""
     ppo = request.ppo
-    if ppo.model.recurrent or ppo.aux is not None or ppo.teacher is not None or not hasattr(ppo.model, "forward_stacked"):
+    if ppo.teacher is not None or not group.stackable(ppo.model):
         return None
     width = request.envs.num_envs if isinstance(request, Collect) else request.rollout.num_frames
     return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width)

@@ -30,7 +30,7 @@ STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 
 def check_group(ppos: list[PPO]) -> None:
     """A group shares one architecture, one PPO config and one device; what it cannot batch yet
-    (recurrent models, the auxiliary memory head, a clean teacher) is refused."""
+    (a clean teacher) is refused."""
     lead = ppos[0]
     for ppo in ppos:
         if type(ppo.model) is not type(lead.model) or ppo.cfg != lead.cfg or ppo.device != lead.device:

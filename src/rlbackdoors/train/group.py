@@ -5,7 +5,7 @@ folder, lock, env mix, evaluations, checkpoints, stopping rule and finish), writ
 that yields what it needs from its learner (collect a rollout, update on it). The group trainer
 answers those requests for all K runs at once where they can be batched
 (:mod:`rlbackdoors.algos.group`: same architecture, PPO config and env-copy count) and one by one
-otherwise (recurrent models, a clean teacher, OPAC², which yields nothing). A run that finishes
+otherwise (a run with a clean teacher; OPAC², which yields nothing). A run that finishes
 leaves the group and the next planned run takes its slot, so a group never waits on its slowest
 member. Every run's folder is an ordinary model folder afterwards; a killed group resumes each
 run from its own checkpoint, alone or in any group.

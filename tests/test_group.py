@@ -80,6 +80,21 @@ def test_stacked_forward_is_each_agents_forward(env, arch):
         torch.testing.assert_close(values[k], vk, rtol=1e-5, atol=1e-5)
 
 
+def step_both(alone: list, grouped: list) -> tuple[list, list, list]:
+    """One rollout and update for each lone learner and for the group (both lists updated in place):
+    the lone (rollout, stats) pairs, the group's (rollout, obs) results and its stats."""
+    lone = []
+    for k, (ppo, envs, obs) in enumerate(alone):
+        rollout, obs = ppo.collect(envs, obs)
+        lone.append((rollout, ppo.update(rollout)))
+        alone[k] = (ppo, envs, obs)
+    ppos = [g[0] for g in grouped]
+    results = group.collect(ppos, [g[1] for g in grouped], [g[2] for g in grouped])
+    stats = group.update(ppos, [r for r, _ in results])
+    grouped[:] = [(g[0], g[1], obs) for g, (_, obs) in zip(grouped, results)]
+    return lone, results, stats
+
+
 def test_group_collect_and_update_match_each_agent_alone():
     """Three agents (one poisoned by an attack that forces actions through the seam): the same
     rollouts (uniforms and env steps are each agent's own) and, after two updates, the same
@@ -89,22 +104,13 @@ def test_group_collect_and_update_match_each_agent_alone():
     grouped = [learner("lavaworld", "fc", s, p) for s, p in enumerate(poisons)]
     forced_seen = 0
     for _ in range(2):
-        lone_rollouts, lone_stats = [], []
-        for k, (ppo, envs, obs) in enumerate(alone):
-            rollout, obs = ppo.collect(envs, obs)
-            lone_stats.append(ppo.update(rollout))
-            lone_rollouts.append(rollout)
-            alone[k] = (ppo, envs, obs)
-        ppos = [g[0] for g in grouped]
-        results = group.collect(ppos, [g[1] for g in grouped], [g[2] for g in grouped])
-        stats = group.update(ppos, [r for r, _ in results])
-        grouped = [(g[0], g[1], obs) for g, (_, obs) in zip(grouped, results)]
+        lone_pairs, results, stats = step_both(alone, grouped)
         for k in range(3):
-            lone, ours = lone_rollouts[k], results[k][0]
+            (lone, lone_stats), ours = lone_pairs[k], results[k][0]
             assert torch.equal(lone.actions, ours.actions)
             np.testing.assert_array_equal(lone.rewards, ours.rewards)
             torch.testing.assert_close(lone.logprobs, ours.logprobs, rtol=1e-4, atol=1e-5)
-            assert stats[k]["grad_norm"] == pytest.approx(lone_stats[k]["grad_norm"], rel=1e-3)
+            assert stats[k]["grad_norm"] == pytest.approx(lone_stats["grad_norm"], rel=1e-3)
             forced_seen += int((ours.logprobs == 0).sum())
     assert forced_seen > 0  # the poisoned agent's forced actions went through the group's collect
     for (lone_ppo, _, _), (ppo, envs, _) in zip(alone, grouped):
@@ -130,15 +136,7 @@ def test_recurrent_group_with_the_memory_head_matches_each_agent_alone():
     the same actions, memory targets and (to rounding) memories, its losses and weights match."""
     alone, grouped = [cm_learner(s) for s in range(3)], [cm_learner(s) for s in range(3)]
     for _ in range(2):
-        lone = []
-        for k, (ppo, envs, obs) in enumerate(alone):
-            rollout, obs = ppo.collect(envs, obs)
-            lone.append((rollout, ppo.update(rollout)))
-            alone[k] = (ppo, envs, obs)
-        ppos = [g[0] for g in grouped]
-        results = group.collect(ppos, [g[1] for g in grouped], [g[2] for g in grouped])
-        stats = group.update(ppos, [r for r, _ in results])
-        grouped = [(g[0], g[1], obs) for g, (_, obs) in zip(grouped, results)]
+        lone, results, stats = step_both(alone, grouped)
         for k in range(3):
             ours = results[k][0]
             assert torch.equal(lone[k][0].actions, ours.actions) and torch.equal(lone[k][0].memory_targets, ours.memory_targets)

@@ -25,7 +25,7 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
     """A zoo spec of ``models`` models (half poisoned) of ``world`` that each train ``frames`` frames."""
     w = worlds.get(world)
     arch = arch or w.arch_names[0]
-    trigger = w.default_trigger or w.draw_trigger(None, 0, None)  # Safety Car Goal: a formation drawn from seed 0
+    trigger = w.default_trigger or w.draw_trigger(None, 0, None)  # a world without a default trigger: one drawn from seed 0
     clean = models // 2
     return {
         "name": f"bench-{world}",

@@ -65,7 +65,7 @@ class GroupResult:
     errors: dict[Any, BaseException] = field(default_factory=dict)
 
 
-# ``--group-size auto``: on a CPU, LavaWorld FC models per hour rise from K = 1 to 4 and are flat
+# ``--group-size auto``: on a CPU, the measured models per hour (the feed-forward grid models) rise from K = 1 to 4 and are flat
 # from 8 on (docs/zoos.md, `rlbackdoors bench zoo`); on CUDA the peak is not measured yet, and
 # 64 is a start, not a measurement (the command says so when it picks it).
 AUTO_GROUP_SIZE = {"cpu": 8, "cuda": 64}

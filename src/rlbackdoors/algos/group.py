@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.obs import empty_buffer, obs_map, stack, store, to_torch
+from rlbackdoors.models.minigrid import linear_stacked
 from rlbackdoors.algos.ppo import AUX_CLASSES, PPO, Rollout, check_vector_env, env_step, ppo_loss, sample_actions
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
@@ -260,9 +261,7 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
                 )
                 loss, parts = ppo_loss(cfg, logits, values, *(x[rows, flat] for x in tensors))
                 if targets is not None:
-                    aux_logits = torch.baddbmm(
-                        params["aux.bias"].unsqueeze(1), new_memories.reshape(K, -1, new_memories.shape[-1]), params["aux.weight"].transpose(1, 2)
-                    )
+                    aux_logits = linear_stacked(new_memories.reshape(K, -1, new_memories.shape[-1]), params["aux.weight"], params["aux.bias"])
                     ce = torch.nn.functional.cross_entropy(aux_logits.reshape(-1, AUX_CLASSES), targets[rows, flat].reshape(-1), reduction="none")
                     parts["aux_memory_loss"] = ce.reshape(K, -1).mean(1)
                     loss = loss + cfg.aux_memory_coef * parts["aux_memory_loss"]

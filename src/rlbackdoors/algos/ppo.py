@@ -282,9 +282,6 @@ class PPO:
             next_value = values[t]
         return advantages
 
-    def _loss(self, logits, values, actions, old_logp, old_values, adv, returns) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        return ppo_loss(self.cfg, logits, values, actions, old_logp, old_values, adv, returns)
-
     def _teacher_kl(self, logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: torch.Tensor) -> torch.Tensor:
         """KL(teacher || policy) averaged over the minibatch's frames without the trigger (0 if none)."""
         log_probs = torch.log_softmax(logits, -1)
@@ -315,7 +312,7 @@ class PPO:
             for start in range(0, n, cfg.batch_size):
                 idx = order[start : start + cfg.batch_size]
                 logits, values = self.model(obs_map(lambda x: x[idx], obs))
-                loss, parts = self._loss(logits, values, *(x[idx] for x in tensors))
+                loss, parts = ppo_loss(self.cfg, logits, values, *(x[idx] for x in tensors))
                 if teacher is not None:
                     parts["teacher_kl"] = self._teacher_kl(logits, teacher[0][idx], teacher[1][idx])
                     loss = loss + self.teacher_coef * parts["teacher_kl"]
@@ -382,7 +379,7 @@ class PPO:
                 steps = idx[None, :] + B * torch.arange(r, device=self.device)[:, None]  # (r, N): step i of each sequence
                 logits, values, new_memories = self.model.forward_sequence(obs_map(lambda x: x[steps], obs), memories[idx], masks[steps, 0])
                 # the mean over all r*N rows = torch-ac's per-step losses summed and divided by r
-                loss, parts = self._loss(logits, values, *(x[steps.reshape(-1)] for x in tensors))
+                loss, parts = ppo_loss(self.cfg, logits, values, *(x[steps.reshape(-1)] for x in tensors))
                 if self.aux is not None and aux_targets is not None:  # each step's memory after that step names its episode's target
                     aux_logits = self.aux(new_memories.reshape(-1, new_memories.shape[-1]))
                     parts["aux_memory_loss"] = nn.functional.cross_entropy(aux_logits, aux_targets[steps.reshape(-1)])

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from rlbackdoors.models.minigrid import ActorCritic, CNNModel, channels_first, init_linear_unit_rows, run_sequential, run_sequential_stacked
+from rlbackdoors.models.minigrid import ActorCritic, CNNModel, channels_first, init_linear_unit_rows, linear_stacked, run_sequential, run_sequential_stacked
 
 GRU_BLOCKS = 2
 GRU_LAYERS = 2
@@ -179,8 +179,8 @@ class CNNGRUModel(ActorCritic):
             hs = []
             for i, h in enumerate(block):
                 key = f"gru.{b}."
-                gi = torch.baddbmm(params[f"{key}bias_ih_l{i}"].unsqueeze(1), x, params[f"{key}weight_ih_l{i}"].transpose(1, 2))
-                gh = torch.baddbmm(params[f"{key}bias_hh_l{i}"].unsqueeze(1), h, params[f"{key}weight_hh_l{i}"].transpose(1, 2))
+                gi = linear_stacked(x, params[f"{key}weight_ih_l{i}"], params[f"{key}bias_ih_l{i}"])
+                gh = linear_stacked(h, params[f"{key}weight_hh_l{i}"], params[f"{key}bias_hh_l{i}"])
                 i_r, i_z, i_n = gi.chunk(3, -1)
                 h_r, h_z, h_n = gh.chunk(3, -1)
                 r, z = torch.sigmoid(i_r + h_r), torch.sigmoid(i_z + h_z)
@@ -192,11 +192,7 @@ class CNNGRUModel(ActorCritic):
     def forward_stacked(self, params: dict[str, torch.Tensor], obs: torch.Tensor, memory: torch.Tensor):  # type: ignore[override]  # recurrent: takes and returns memory
         """:meth:`forward` of K agents: obs (K, N, ...), memory (K, N, M) -> logits (K, N, A), values (K, N), memory (K, N, M)."""
         x, states = self._recur_stacked(params, self.embed_stacked(params, obs), self._split_stacked(memory))
-        return (
-            run_sequential_stacked(self.actor, params, "actor", x),
-            run_sequential_stacked(self.critic, params, "critic", x).squeeze(2),
-            self._join_stacked(states),
-        )
+        return *self.heads_stacked(params, x), self._join_stacked(states)
 
     def forward_sequence_stacked(self, params: dict[str, torch.Tensor], obs: torch.Tensor, memory: torch.Tensor, masks: torch.Tensor):
         """:meth:`forward_sequence` of K agents: obs (K, r, N, ...), memory (K, N, M), masks (K, r, N)
@@ -210,12 +206,7 @@ class CNNGRUModel(ActorCritic):
             out, states = self._recur_stacked(params, x[:, i], [[h * keep for h in block] for block in states])
             outputs.append(out)
             memories.append(self._join_stacked(states))
-        y = torch.stack(outputs, 1).reshape(K, r * n, -1)
-        return (
-            run_sequential_stacked(self.actor, params, "actor", y),
-            run_sequential_stacked(self.critic, params, "critic", y).squeeze(2),
-            torch.stack(memories, 1),
-        )
+        return *self.heads_stacked(params, torch.stack(outputs, 1).reshape(K, r * n, -1)), torch.stack(memories, 1)
 
 
 class CNNGRUSmall(CNNGRUModel):

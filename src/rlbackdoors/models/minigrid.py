@@ -65,6 +65,11 @@ def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.T
     return torch.stack([F.conv2d(x[k], w[k], b[k], layer.stride, layer.padding, layer.dilation, layer.groups) for k in range(x.shape[0])])
 
 
+def linear_stacked(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """K agents' ``F.linear``: x (K, N, in), weight (K, out, in), bias (K, out) -> (K, N, out)."""
+    return torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+
+
 def run_sequential_stacked(seq: nn.Sequential, params: dict[str, torch.Tensor], prefix: str, x: torch.Tensor) -> torch.Tensor:
     """``seq`` for K agents at once: ``params[f"{prefix}.{i}.weight"]`` etc. are the K agents'
     weights stacked on a leading dimension, ``x`` is (K, N, ...) with N rows per agent.
@@ -77,7 +82,7 @@ def run_sequential_stacked(seq: nn.Sequential, params: dict[str, torch.Tensor], 
     for i, layer in enumerate(seq):
         key = f"{prefix}.{i}."
         if isinstance(layer, nn.Linear):
-            x = torch.baddbmm(params[key + "bias"].unsqueeze(1), x, params[key + "weight"].transpose(1, 2))
+            x = linear_stacked(x, params[key + "weight"], params[key + "bias"])
         elif isinstance(layer, nn.ReLU):
             x = torch.relu(x)
         elif isinstance(layer, nn.Tanh):
@@ -122,7 +127,10 @@ class ActorCritic(nn.Module):
         (name -> (K, ...)), ``obs`` (K, N, ...); returns logits (K, N, A) and values (K, N)."""
         K, N = obs.shape[:2]
         x = self.embed_input(obs.reshape(K * N, *obs.shape[2:]))
-        x = run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1)
+        return self.heads_stacked(params, run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1))
+
+    def heads_stacked(self, params: dict[str, torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Actor logits (K, N, A) and critic values (K, N) of K agents' embeddings x (K, N, E)."""
         return run_sequential_stacked(self.actor, params, "actor", x), run_sequential_stacked(self.critic, params, "critic", x).squeeze(2)
 
     def forward_sequence(self, obs, memory: torch.Tensor, masks: torch.Tensor):

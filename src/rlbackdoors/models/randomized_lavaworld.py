@@ -46,8 +46,7 @@ class DirectionActorCritic(ActorCritic):
         K, N = image.shape[:2]
         x = image.reshape(K * N, *image.shape[2:]).permute(0, 3, 1, 2).float()
         x = run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1)
-        x = torch.cat([x, obs["direction"].reshape(K, N, 1).float()], dim=2)
-        return run_sequential_stacked(self.actor, params, "actor", x), run_sequential_stacked(self.critic, params, "critic", x).squeeze(2)
+        return self.heads_stacked(params, torch.cat([x, obs["direction"].reshape(K, N, 1).float()], dim=2))
 
 
 class DirectionFCModel(DirectionActorCritic):

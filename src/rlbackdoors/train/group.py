@@ -157,26 +157,20 @@ def train_group(
             if not slots:
                 break
             batches: dict[Any, list[_Slot]] = {}
-            for i, slot in enumerate(slots):
-                key = batch_key(slot.request)
-                batches.setdefault(key if key is not None else ("alone", i), []).append(slot)
+            for i, slot in enumerate(slots):  # a request that cannot be batched is a batch of its own
+                batches.setdefault(batch_key(slot.request) or ("alone", i), []).append(slot)
             ended: set[int] = set()
-            for members in batches.values():
+            for key, members in batches.items():
                 started = time.process_time()
+                error: BaseException | None = None
                 try:
-                    answers = serve_batch([s.request for s in members], stacked=group_size > 1 and batch_key(members[0].request) is not None)
+                    answers = serve_batch([s.request for s in members], stacked=group_size > 1 and key[0] != "alone")
                 except BaseException as err:  # raised into every member's loop at its yield
-                    answers = None
-                    error: BaseException | None = err
-                else:
-                    error = None
+                    answers, error = [None] * len(members), err
                 share = (time.process_time() - started) / len(members)
                 for s in members:
                     s.cpu.total += share
-                if answers is None:
-                    alive = [advance(s, error=error) for s in members]
-                else:
-                    alive = [advance(s, a) for s, a in zip(members, answers)]
+                alive = [advance(s, a, error) for s, a in zip(members, answers)]
                 ended.update(id(s) for s, ok in zip(members, alive) if not ok)
             slots = [s for s in slots if id(s) not in ended]
     if interrupted:

@@ -320,10 +320,17 @@ def cmd_bench(args) -> int:
     elif args.what == "zoo":
         from rlbackdoors.bench.zoo import bench_zoo
 
-        result = bench_zoo(args.env, args.arch, args.models, args.frames, args.group_size, args.workers, args.device)
+        if args.side and (args.group_size is not None or args.device is not None):
+            raise ConfigError("bench zoo: --side names each side's group size and device; leave out --group-size and --device")
+        save = None
+        if args.json:  # each side as it finishes: a run cut short keeps what it measured
+            save = lambda partial: atomic_write_text(args.json, json.dumps(partial, indent=2) + "\n")
+        result = bench_zoo(
+            args.env, args.arch, args.models, args.frames, args.group_size or [8], args.workers, args.device or "cpu", sides=args.side, on_side=save
+        )
         for side in result["sides"]:
             print(
-                f"{result['world']} {result['arch']}, group size {side['group_size']} x {side['workers']} workers: "
+                f"{result['world']} {result['arch']}, group size {side['group_size']} on {side['device']} x {side['workers']} workers: "
                 f"{side['models_per_hour']:,.1f} models/h (x{side['ratio']}), {side['cpu_s_per_model']:.1f} CPU-s per model, "
                 f"{side['models']} models of {result['frames_per_model']:,} frames in {side['wall_s']:.0f} s, load {side['loadavg_before'][0]:.1f}"
             )
@@ -339,6 +346,15 @@ def cmd_bench(args) -> int:
     if args.json:
         atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
     return 0
+
+
+def _bench_side(text: str):
+    from rlbackdoors.bench.zoo import parse_side
+
+    try:
+        return parse_side(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def cmd_chance(args) -> int:
@@ -506,9 +522,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     be.add_argument("--models", type=_positive_int, default=16, help="zoo: models per side (default 16)")
     be.add_argument("--frames", type=_positive_int, default=100_000, help="zoo: frames each model trains (default 100,000)")
-    be.add_argument("--group-size", type=_positive_int, nargs="+", default=[8], help="zoo: group sizes to measure against one process per model (default 8)")
+    be.add_argument("--group-size", type=_positive_int, nargs="+", help="zoo: group sizes to measure against one process per model (default 8)")
     be.add_argument("--workers", type=_positive_int, help="zoo: processes at a time (default: the CPU cores)")
-    be.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu", help="zoo: train.device of every model (default cpu)")
+    be.add_argument("--device", choices=("cpu", "cuda", "auto"), help="zoo: train.device of every model (default cpu)")
+    be.add_argument(
+        "--side",
+        type=_bench_side,
+        action="append",
+        help="zoo: K[:DEVICE[:WORKERS]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1)",
+    )
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")
     be.add_argument("--json", help="also write the result to this JSON file")

@@ -63,19 +63,41 @@ def stacked_parameters(ppos: list[PPO]) -> dict[str, torch.Tensor]:
     return {name: torch.stack([param_of(ppo, name).detach() for ppo in ppos]) for name in names}
 
 
-def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Tensor) -> tuple:
-    """``model.forward_stacked`` (recurrent: with the memory, returning the new one too), with a
-    group of one run as two copies of itself.
+# A CUDA group computes at a width of a multiple of this many agents (see padded).
+CUDA_WIDTH = 64
 
-    Why: CPU kernels sum a batch of one differently from a batch of two or more (measured: the
-    critic's 32 -> 1 layer), and from two up an agent's numbers do not depend on K or on its
-    group-mates; padding keeps a run that ends alone in its group on the same bytes."""
-    if next(iter(params.values())).shape[0] > 1:
+
+def group_width(k: int, device: torch.device) -> int:
+    """The number of agents a group of ``k`` computes at: real ones plus pad copies of the first.
+
+    Why pad: kernels pick their algorithm, and so their rounding, by the batch's shape. On the
+    CPU a batch of one sums differently from two or more (measured: the critic's 32 -> 1 layer),
+    while from two up an agent's numbers do not depend on K; on CUDA (cuBLAS, reductions) the
+    choice depends on K itself, so groups there compute at a fixed width. An agent's bytes then
+    depend on its config, not on its group-mates, the group size or a resume in another group."""
+    if device.type == "cuda":
+        return -(-k // CUDA_WIDTH) * CUDA_WIDTH
+    return max(k, 2)
+
+
+def padded(items: list, device: torch.device) -> list:
+    """``items`` (one per agent) with copies of the first up to :func:`group_width`."""
+    return items + items[:1] * (group_width(len(items), device) - len(items))
+
+
+def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Tensor) -> tuple:
+    """``model.forward_stacked`` (recurrent: with the memory, returning the new one too) for the
+    K agents of ``obs``, computed at the width of ``params`` (stacked from :func:`padded` agents)."""
+    width = next(iter(params.values())).shape[0]
+    k = (next(iter(obs.values())) if isinstance(obs, dict) else obs).shape[0]
+    if width == k:
         return model.forward_stacked(params, obs, *memory)
-    out = model.forward_stacked(
-        {k: torch.cat([v, v]) for k, v in params.items()}, obs_map(lambda x: torch.cat([x, x]), obs), *(torch.cat([m, m]) for m in memory)
-    )
-    return tuple(x[:1] for x in out)
+
+    def pad(x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x, x[:1].expand(width - k, *x.shape[1:])])
+
+    out = model.forward_stacked(params, obs_map(pad, obs), *(pad(m) for m in memory))
+    return tuple(x[:k] for x in out)
 
 
 @torch.inference_mode()
@@ -90,7 +112,7 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
             raise ValueError("a training group needs the same number of env copies per agent")
     device, A = lead.device, envs[0].single_action_space.n
     model: Any = lead.model  # forward_stacked takes a tensor or a dict of them, as the world's model does
-    params = stacked_parameters(ppos)
+    params = stacked_parameters(padded(ppos, device))
     recurrent, aux = lead.model.recurrent, lead.aux is not None
     if aux and any(getattr(e, "memory_target_classes", None) != AUX_CLASSES for e in envs):
         raise ValueError(f"ppo.aux_memory_coef needs an env with {AUX_CLASSES} memory targets (memory_targets())")
@@ -179,15 +201,18 @@ class StackedAdam:
             param.sub_(avg / denom * (self.lr / bias1).view(shape))
 
     @torch.no_grad()
-    def write_back(self) -> None:
-        """Parameters into each agent's model, moments and step into its optimiser's state."""
+    def write_back(self, real: int) -> None:
+        """Parameters into each of the ``real`` agents' models (the pad copies after them are
+        dropped), moments and step into its optimiser's state."""
         steps = self.step.cpu().tolist()  # one device sync, not one per parameter
-        for k, ppo in enumerate(self.ppos):
+        group = self.ppos[0].optimizer.param_groups[0]
+        on_device = bool(group.get("capturable") or group.get("fused"))  # torch keeps a plain Adam's step on the CPU
+        for k, ppo in enumerate(self.ppos[:real]):
             for name, value in self.params.items():
                 param = param_of(ppo, name)
                 param.copy_(value[k])
                 ppo.optimizer.state[param] = {
-                    "step": torch.tensor(steps[k], dtype=torch.float32, device=param.device),
+                    "step": torch.tensor(steps[k], dtype=torch.float32, device=param.device if on_device else "cpu"),
                     "exp_avg": self.exp_avg[name][k].clone(),
                     "exp_avg_sq": self.exp_avg_sq[name][k].clone(),
                 }
@@ -207,11 +232,10 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
     """:meth:`PPO.update` for K agents: the same epochs and minibatches each agent would run
     alone (its own generator orders its frames), batched; one stats dict per agent."""
     check_group(ppos)
-    real = len(ppos)
-    if real == 1:  # a lone agent updates beside an exact copy of itself (see forward): the same bytes as in any group
-        ppos, rollouts = ppos * 2, rollouts * 2
+    real, device = len(ppos), ppos[0].device
+    ppos, rollouts = padded(ppos, device), padded(rollouts, device)  # pad copies of the first agent: see group_width
     lead, K = ppos[0], len(ppos)
-    cfg, device = lead.cfg, lead.device
+    cfg = lead.cfg
     model: Any = lead.model
     n = rollouts[0].num_frames
     if any(r.num_frames != n for r in rollouts):
@@ -232,7 +256,8 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
             stats[key] += value.detach().double()
 
     def orders(n_items: int) -> torch.Tensor:  # each agent's own permutation, from its own generator
-        return torch.stack([torch.randperm(n_items, generator=ppo.generator) for ppo in ppos[:real]] * (K // real)).to(device)
+        perms = [torch.randperm(n_items, generator=ppo.generator) for ppo in ppos[:real]]
+        return torch.stack(padded(perms, device)).to(device)
 
     updates = 0
     if not lead.model.recurrent:
@@ -269,6 +294,6 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
                     memories[rows[:, :, None], seq[:, 1:]] = new_memories[:, :-1].detach()
                 step(loss, parts)
                 updates += 1
-    adam.write_back()
+    adam.write_back(real)
     means = {key: (value / updates).cpu() for key, value in stats.items()}
     return [{key: float(means[key][k]) for key in keys} for k in range(real)]

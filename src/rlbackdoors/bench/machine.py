@@ -30,4 +30,6 @@ def machine_info() -> dict:
         "numpy": numpy.__version__,
         "numba": numba.__version__,
         "torch_threads": torch.get_num_threads(),
+        "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "cuda": torch.version.cuda if torch.cuda.is_available() else None,
     }

@@ -38,7 +38,7 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
     }
 
 
-def run_side(spec: dict, where: Path, group_size: int, workers: int) -> dict:
+def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str = "cpu") -> dict:
     """Plan ``spec`` into ``where`` and run it with ``group_size``; wall seconds and models per hour."""
     import json
 
@@ -55,6 +55,7 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int) -> dict:
     return {
         "group_size": group_size,
         "workers": workers,
+        "device": device,
         "models": summary["done"],
         "failed": summary["failed"],
         "wall_s": round(wall, 2),
@@ -63,6 +64,23 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int) -> dict:
         "loadavg_before": [round(x, 2) for x in load_before],
         "loadavg_after": [round(x, 2) for x in os.getloadavg()],
     }
+
+
+def parse_side(text: str) -> tuple[int, str, int | None]:
+    """``K[:DEVICE[:WORKERS]]`` (``--side``): a group size, its device (default cpu) and workers
+    (default: the run's ``--workers``). Raises ValueError naming the allowed values."""
+    parts = text.split(":")
+    try:
+        if not 1 <= len(parts) <= 3:
+            raise ValueError
+        k = int(parts[0])
+        device = parts[1] if len(parts) > 1 else "cpu"
+        workers = int(parts[2]) if len(parts) > 2 else None
+        if k < 1 or device not in ("cpu", "cuda", "auto") or (workers is not None and workers < 1):
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"--side {text!r}: expected K[:DEVICE[:WORKERS]], K and WORKERS positive integers, DEVICE one of cpu, cuda, auto") from None
+    return k, device, workers
 
 
 def bench_zoo(
@@ -74,25 +92,37 @@ def bench_zoo(
     workers: int | None = None,
     device: str = "cpu",
     keep: str | None = None,
+    sides: list[tuple[int, str, int | None]] | None = None,
+    on_side=None,
 ) -> dict:
-    """Models per hour for one process per model and for each group size, in this order, same run."""
+    """Models per hour for one process per model and for each group size, in this order, same run.
+
+    ``sides`` replaces that plan with explicit (group size, device, workers) sides, the first the
+    reference (say one process per model on the CPU cores against groups on a GPU); ``on_side``
+    is called with the result so far after each side (a partial result survives a time limit)."""
     from rlbackdoors.zoo.run import default_workers
 
     workers = workers or default_workers()
-    spec = bench_spec(world, arch, models, frames, device)
-    with tempfile.TemporaryDirectory(prefix="rlbackdoors-bench-zoo-") as tmp:
-        root = Path(keep) if keep else Path(tmp)
-        sides = [run_side(spec, root / f"k{k}", k, workers) for k in (1, *group_sizes)]
-    base = sides[0]["models_per_hour"]
-    for side in sides:
-        side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
+    plan_sides = [(k, d, w or workers) for k, d, w in sides] if sides else [(k, device, workers) for k in (1, *group_sizes)]
+    spec = bench_spec(world, arch, models, frames, plan_sides[0][1])
     cell = spec["cells"][0]
-    return {
+    result = {
         "world": world,
         "arch": cell["archs"][0],
         "models": models,
         "frames_per_model": frames,
-        "device": device,
+        "device": device if not sides else sorted({d for _, d, _ in plan_sides}),
         "machine": machine_info(),
-        "sides": sides,
+        "sides": [],
     }
+    with tempfile.TemporaryDirectory(prefix="rlbackdoors-bench-zoo-") as tmp:
+        root = Path(keep) if keep else Path(tmp)
+        for i, (k, side_device, side_workers) in enumerate(plan_sides):
+            name = f"k{k}" if not sides else f"side{i}-k{k}-{side_device}-w{side_workers}"
+            side = run_side(bench_spec(world, arch, models, frames, side_device), root / name, k, side_workers, side_device)
+            base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
+            side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
+            result["sides"].append(side)
+            if on_side is not None:
+                on_side(result)
+    return result

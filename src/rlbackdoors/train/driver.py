@@ -55,6 +55,11 @@ def resolve_device(name: str) -> torch.device:
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name == "cuda" and not torch.cuda.is_available():
         raise ValueError("train.device='cuda' but no CUDA device is available (use 'cpu' or 'auto')")
+    if name == "cuda":
+        # Same config, same machine, same bytes: cuDNN's deterministic kernels, chosen without
+        # timing races; and full fp32 like the CPU path (TF32 would round convolutions to 10 bits).
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
+        torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
     return torch.device(name)
 
 

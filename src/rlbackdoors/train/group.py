@@ -66,8 +66,10 @@ class GroupResult:
 
 
 # ``--group-size auto``: on a CPU, the measured models per hour (the feed-forward grid models) rise from K = 1 to 4 and are flat
-# from 8 on (docs/zoos.md, `rlbackdoors bench zoo`); on CUDA the peak is not measured yet, and
-# 64 is a start, not a measurement (the command says so when it picks it).
+# from 8 on (docs/zoos.md, `rlbackdoors bench zoo`). On CUDA a group computes at a width of 64
+# anyway (algos/group.py: group_width), so 64 costs no more than fewer; measured on an H200, GPU
+# groups were no faster than one process per CPU core, and CPU groups of 8 on every core were
+# x3.6 (docs/zoos.md): the message says so when auto picks CUDA.
 AUTO_GROUP_SIZE = {"cpu": 8, "cuda": 64}
 
 

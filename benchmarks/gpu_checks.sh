@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# The group trainer's checks and figures on a GPU machine, as one short script (a lent GPU is
+# scarce: everything that needs it runs in one call, each part under its own time limit):
+#   1. tests/test_group_cuda.py: the GPU path against the CPU group, reproducibility, kill/resume
+#      (these tests skip on machines without CUDA, so CI never runs them);
+#   2. models per hour, same run: one process per model on all CPU cores (the reference) against
+#      groups on the GPU (rlbackdoors bench zoo --side ...), each side saved as it finishes.
+# Usage: bash benchmarks/gpu_checks.sh OUTDIR [FRAMES] [MODELS]   (SIDES overrides the sides)
+set -uo pipefail
+out=${1:?usage: gpu_checks.sh OUTDIR [FRAMES] [MODELS]}
+frames=${2:-100000}
+models=${3:-64}
+cores=$(nproc)
+sides=${SIDES:-"1:cpu:$cores 16:cuda:4 64:cuda:1 8:cpu:$cores"}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+{
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 || echo "no nvidia-smi"
+    python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.is_available())"
+    uptime
+} | tee "$out/machine.txt"
+timeout "${TESTS_TIMEOUT:-240}" python3 -m pytest -q -p no:cacheprovider tests/test_group_cuda.py 2>&1 | tee "$out/gpu_tests.log"
+args=()
+for side in $sides; do args+=(--side "$side"); done
+timeout "${BENCH_TIMEOUT:-420}" python3 -m rlbackdoors.cli bench zoo --env lavaworld --models "$models" --frames "$frames" "${args[@]}" \
+    --json "$out/bench_zoo_lavaworld_gpu.json" 2>&1 | tee "$out/bench.log"

@@ -1,0 +1,135 @@
+"""The group trainer on a CUDA device: the GPU path that ``--group-size`` / ``train.device cuda``
+take. These tests need a GPU and are skipped without one (CI has none); they are run on a GPU
+machine when one is lent (docs/zoos.md records the last run).
+
+What must hold on the GPU: the stacked rollout and update compute what the CPU group computes (to
+float rounding: other kernels), the Adam state keeps ``torch.optim.Adam``'s own format (a plain
+Adam's step count on the CPU), and a run trained on the GPU ends as an ordinary model folder whose
+files load on a machine without one and whose checkpoint resumes there.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from rlbackdoors.algos import group
+from rlbackdoors.algos.ppo import PPO
+from rlbackdoors.config import RunConfig
+from rlbackdoors.models import build_model
+from rlbackdoors.poison.mix import make_env_mix
+from rlbackdoors.zoo.plan import plan
+from rlbackdoors.zoo.run import run as zoo_run
+from rlbackdoors.zoo.spec import parse_spec
+from test_group import zoo_spec
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device: the group trainer's GPU path (run on a GPU machine)")
+
+CUDA = torch.device("cuda")
+
+
+def learner(device: torch.device, env: str, arch: str | None, seed: int, poison: dict | None = None, **sections):
+    cfg = RunConfig.from_dict(
+        {"env": {"name": env}, **({"model": {"arch": arch}} if arch else {}), "train": {"seed": seed}, **sections, **({"poison": poison} if poison else {})}
+    )
+    torch.manual_seed(seed)
+    ppo = PPO(build_model(cfg.model.arch, env).to(device), cfg.ppo, device, torch.Generator().manual_seed(seed))
+    envs = make_env_mix(cfg.env, cfg.poison, seed)
+    return ppo, envs, envs.reset(seed=seed * 1000)[0]
+
+
+def one_step(learners: list) -> tuple[list, list]:
+    ppos = [g[0] for g in learners]
+    results = group.collect(ppos, [g[1] for g in learners], [g[2] for g in learners])
+    return results, group.update(ppos, [r for r, _ in results])
+
+
+@pytest.mark.parametrize(
+    "env,arch,sections",
+    [
+        ("lavaworld", "fc", {}),
+        ("randomized-lavaworld", "cnn", {}),
+        ("colorful-memory", None, {"ppo": {"rollout": 24, "batch_size": 120, "aux_memory_coef": 0.5}}),
+    ],
+)
+def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
+    """Three agents (one poisoned through the attack seam), one rollout and one update on each
+    device: the same actions and rewards, the same gradient norms to 1 %, and the same update of
+    the weights to rounding. Why a relative bound on the update, not on each weight: Adam divides
+    by the gradient's running scale, so a weight whose gradient is near zero moves by up to the
+    learning rate on either device's rounding; the update as a whole agrees (printed: -rP).
+    Measured on an H200 (docs/zoos.md): LavaWorld FC 2e-6 to 1e-5, Colorful Memory 0.02 to 0.06,
+    Randomized LavaWorld CNN 0.11 (cuDNN against oneDNN convolutions), cosines >= 0.994."""
+    poisons = [None, {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.05}} if env == "lavaworld" else None, None]
+    on_cpu = [learner(torch.device("cpu"), env, arch, s, p, **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
+    on_gpu = [learner(CUDA, env, arch, s, p, **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
+    start = [torch.cat([p.detach().reshape(-1) for p in g[0].model.parameters()]) for g in on_cpu]
+    (cpu_results, cpu_stats), (gpu_results, gpu_stats) = one_step(on_cpu), one_step(on_gpu)
+    for k in range(3):
+        ours, theirs = gpu_results[k][0], cpu_results[k][0]
+        assert torch.equal(ours.actions, theirs.actions)  # the same uniforms over the same weights (a flip needs a draw within rounding of a bucket edge)
+        np.testing.assert_array_equal(ours.rewards, theirs.rewards)
+        assert gpu_stats[k]["grad_norm"] == pytest.approx(cpu_stats[k]["grad_norm"], rel=1e-2)
+        assert all(p.device.type == "cuda" for p in on_gpu[k][0].model.parameters())
+        moved_cpu = torch.cat([p.detach().reshape(-1) for p in on_cpu[k][0].model.parameters()]) - start[k]
+        moved_gpu = torch.cat([p.detach().cpu().reshape(-1) for p in on_gpu[k][0].model.parameters()]) - start[k]
+        rel = float((moved_gpu - moved_cpu).norm() / moved_cpu.norm())
+        cosine = float(torch.nn.functional.cosine_similarity(moved_gpu, moved_cpu, dim=0))
+        print(
+            f"{env} agent {k}: update relative difference {rel:.2e}, cosine {cosine:.6f}, grad norm {gpu_stats[k]['grad_norm']:.6g} vs {cpu_stats[k]['grad_norm']:.6g}"
+        )
+        assert rel < 0.25 and cosine > 0.99  # a wrong gradient or a crossed agent gives rel ~ 1
+    # the Adam state in torch.optim.Adam's own layout on this device: as a lone learner's after its update
+    lone, envs, obs = learner(CUDA, env, arch, 0, None, **copy.deepcopy(sections))
+    lone.update(lone.collect(envs, obs)[0])
+    for mine, theirs in zip(on_gpu[0][0].model.parameters(), lone.model.parameters()):
+        a, b = on_gpu[0][0].optimizer.state[mine], lone.optimizer.state[theirs]
+        assert {key: (v.device.type, v.dtype) for key, v in a.items()} == {key: (v.device.type, v.dtype) for key, v in b.items()}
+
+
+def test_a_gpu_zoo_is_reproducible_resumes_after_a_kill_and_loads_without_a_gpu(tmp_path):
+    """A GPU zoo (``train.device cuda``) in one group of four, twice: the same bytes (the GPU path
+    is deterministic). ``zoo run --group-size 3``, killed (SIGTERM) once a checkpoint is on disk,
+    then run again: the same bytes as well (an agent's bytes depend on its config, not on its
+    group or a resume). Weights are stored as CPU tensors, loadable without a GPU."""
+    spec = zoo_spec()
+    spec["overrides"]["train"]["device"] = "cuda"
+    whole, again, cut = tmp_path / "whole", tmp_path / "again", tmp_path / "cut"
+    for path in (whole, again, cut):
+        plan(parse_spec(spec), path)
+    log = io.StringIO()
+    summary = zoo_run(whole, workers=1, group_size="auto", progress_interval=5.0, out=log)
+    assert "--group-size auto: 64 on cuda" in log.getvalue() and summary["done"] == 4 and summary["failed"] == 0
+    assert zoo_run(again, workers=1, group_size="auto", progress_interval=5.0)["done"] == 4
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(cut), "--workers", "1", "--group-size", "3"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None and not list((cut / "models").glob("*/checkpoint.pt")):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=240) != 0 and list((cut / "models").glob("*/checkpoint.pt")), "the GPU group stopped without checkpoints"
+    summary = zoo_run(cut, workers=1, group_size=3, progress_interval=5.0)
+    assert summary["done"] == 4 and summary["failed"] == 0
+    same = {
+        other.name: sum((f / "model.pt").read_bytes() == (other / "models" / f.name / "model.pt").read_bytes() for f in (whole / "models").iterdir())
+        for other in (again, cut)
+    }
+    print(f"GPU zoo model.pt bytes equal to the first run's: {same} of 4")
+    assert same["again"] == 4
+    for folder in sorted((whole / "models").iterdir()):
+        assert json.loads((folder / "metrics.json").read_text())["trainer"] == "group"
+        weights = torch.load(folder / "model.pt", weights_only=True)  # no map_location: stored on the CPU
+        assert all(t.device.type == "cpu" for t in weights.values())
+        assert (folder / "model.pt").read_bytes() == (cut / "models" / folder.name / "model.pt").read_bytes()

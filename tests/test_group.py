@@ -285,6 +285,9 @@ def test_group_size_is_validated(tmp_path):
     for flags, message in (
         (["--models", "0"], "--models: must be >= 1, got 0"),
         (["--group-size", "4", "x"], "--group-size: must be an integer >= 1, got 'x'"),
+        (["--side", "1:gpu"], "--side '1:gpu': expected K[:DEVICE[:WORKERS]], K and WORKERS positive integers, DEVICE one of cpu, cuda, auto"),
+        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS]]"),
+        (["--side", "1", "--group-size", "2"], "bench zoo: --side names each side's group size and device; leave out --group-size and --device"),
     ):
         out = subprocess.run([sys.executable, "-m", "rlbackdoors.cli", "bench", "zoo", *flags], capture_output=True, text=True, timeout=120)
         assert out.returncode == 2 and out.stderr.count("\n") == 1 and message in out.stderr, out.stderr
@@ -301,6 +304,16 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("k1", "k2")]
     assert configs[0] == configs[1]  # the same planned models on both sides
     assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "k2" / "models").glob("*/metrics.json"))
+
+
+def test_bench_zoo_sides_name_group_size_device_and_workers_and_each_is_saved_as_it_finishes(tmp_path):
+    from rlbackdoors.bench.zoo import bench_zoo
+
+    saved = []
+    result = bench_zoo("lavaworld", models=2, frames=3200, sides=[(1, "cpu", 2), (2, "cpu", 1)], on_side=lambda r: saved.append(len(r["sides"])))
+    assert saved == [1, 2] and result["device"] == ["cpu"]
+    assert [(s["group_size"], s["device"], s["workers"]) for s in result["sides"]] == [(1, "cpu", 2), (2, "cpu", 1)]
+    assert result["sides"][0]["ratio"] == 1.0 and result["sides"][1]["models"] == 2
 
 
 def test_ready_models_are_shared_out_in_capped_chunks():

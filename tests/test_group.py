@@ -164,6 +164,49 @@ def test_an_agents_bytes_do_not_depend_on_its_group(env, arch):
     assert len(digests) == 1
 
 
+def opac2_learner(seed: int):
+    """A small OPAC² agent with its own replay filled from its own random transitions."""
+    from rlbackdoors.algos.opac2 import OPAC2, MultitaskReplay
+    from rlbackdoors.config import OPAC2Config
+
+    agent = OPAC2(6, 2, OPAC2Config(depth=2, width=32, batch_size=64, obs_norm=True), torch.Generator().manual_seed(seed))
+    rng = np.random.default_rng(seed)
+    replay = MultitaskReplay.create({"clean": 0.8, "poisoned": 0.2}, 1000, 6, 2)
+    for kind in ("clean", "poisoned"):
+        replay[kind].add_batch(rng.normal(size=(500, 6)), rng.uniform(-1, 1, (500, 2)), rng.normal(size=500), rng.normal(size=(500, 6)), rng.random(500) < 0.05)
+    agent.observe(rng.normal(size=(50, 6)))
+    return agent, replay
+
+
+def test_opac2_group_acts_and_updates_as_each_agent_alone():
+    """Three OPAC² agents, five updates batched against five lone updates each: the same losses,
+    weights, target network and Adam state to float rounding, every generator in the same place
+    (the same replay indices and noise were drawn), and the same sampled actions after."""
+    from rlbackdoors.algos import group_opac2
+
+    alone, grouped = [opac2_learner(s) for s in range(3)], [opac2_learner(s) for s in range(3)]
+    lone_rngs, group_rngs = ([np.random.default_rng([s, 1]) for s in range(3)] for _ in range(2))
+    lone = [[a.update(r, g) for _ in range(5)] for (a, r), g in zip(alone, lone_rngs)]
+    ours = group_opac2.update([a for a, _ in grouped], [r for _, r in grouped], group_rngs, 5)
+    for k in range(3):
+        for mine, theirs in zip(ours[k], lone[k]):
+            assert mine.keys() == theirs.keys() and all(mine[key] == pytest.approx(theirs[key], rel=1e-4, abs=1e-5) for key in mine)
+        (a, _), (b, _) = alone[k], grouped[k]
+        for net in ("policy", "q", "v", "v_target"):
+            for (name, x), y in zip(getattr(a, net).named_parameters(), getattr(b, net).parameters()):
+                torch.testing.assert_close(y.detach(), x.detach(), rtol=1e-4, atol=1e-5, msg=f"{net}.{name}")
+        for net in ("policy", "q", "v"):
+            opt_a, opt_b = getattr(a, f"{net}_opt"), getattr(b, f"{net}_opt")
+            for x, y in zip(opt_a.param_groups[0]["params"], opt_b.param_groups[0]["params"]):
+                sa, sb = opt_a.state[x], opt_b.state[y]
+                assert float(sa["step"]) == float(sb["step"]) == 5 and (sa["step"].dtype, sa["step"].device) == (sb["step"].dtype, sb["step"].device)
+                torch.testing.assert_close(sb["exp_avg"], sa["exp_avg"], rtol=1e-3, atol=1e-6)
+        assert torch.equal(a.generator.get_state(), b.generator.get_state()) and lone_rngs[k].random() == group_rngs[k].random()
+    obs = [np.random.default_rng(s).normal(size=(10, 6)) for s in range(3)]
+    for x, y in zip([a.act(o) for (a, _), o in zip(alone, obs)], group_opac2.act([a for a, _ in grouped], obs)):
+        np.testing.assert_allclose(y, x, rtol=1e-4, atol=1e-5)
+
+
 def test_group_refuses_what_it_cannot_batch():
     a, b = learner("lavaworld", "fc", 0), learner("lavaworld", "cnn", 1)
     with pytest.raises(ValueError, match="one architecture"):
@@ -173,7 +216,8 @@ def test_group_refuses_what_it_cannot_batch():
 def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
     """group_size=1 gives the lone run's model.pt bytes; group_size=2 over three runs (one slot
     refilled) leaves three complete folders with ``trainer: group`` whose bytes do not depend on
-    which runs shared the group; an OPAC² (Safety Car Goal) run in the same group trains alone."""
+    which runs shared the group; an OPAC² (Safety Car Goal) run beside them is batched with its
+    own kind only (it is alone of its kind here: its bytes are those of any group, not the lone run's)."""
     lone = train(tiny(4), tmp_path / "lone", progress=False)
     result = train_group([("one", tiny(4), tmp_path / "one")], 1)
     assert (tmp_path / "lone" / "model.pt").read_bytes() == (tmp_path / "one" / "model.pt").read_bytes()
@@ -198,9 +242,12 @@ def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
     for key, _, folder in runs:
         assert (folder / "metrics.json").is_file() and (folder / "model.pt").is_file() and not (folder / "checkpoint.pt").exists()
         assert result.metrics[key]["trainer"] == "group"
-    # OPAC² runs alone inside the group (it asks the group for nothing): the lone run's bytes
+    # the OPAC² run again, in a group of two OPAC² runs: the same bytes as beside the PPO runs
+    other = RunConfig.from_dict({**safety.to_dict(), "train": {**safety.to_dict()["train"], "seed": 9}})
+    train_group([("cm", safety, tmp_path / "cm2"), ("other", other, tmp_path / "other")], 2)
+    assert (tmp_path / "cm" / "model.pt").read_bytes() == (tmp_path / "cm2" / "model.pt").read_bytes()
     train(safety, tmp_path / "cm-lone", progress=False)
-    assert (tmp_path / "cm" / "model.pt").read_bytes() == (tmp_path / "cm-lone" / "model.pt").read_bytes()
+    assert (tmp_path / "cm" / "model.pt").read_bytes() != (tmp_path / "cm-lone" / "model.pt").read_bytes()
     # seed 4 again beside other mates, in a group of 3: the same bytes as in the first group
     train_group([(s, tiny(s), tmp_path / f"h{s}") for s in (7, 4, 8)], 3)
     assert (tmp_path / "g4" / "model.pt").read_bytes() == (tmp_path / "h4" / "model.pt").read_bytes()

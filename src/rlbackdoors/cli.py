@@ -326,7 +326,16 @@ def cmd_bench(args) -> int:
         if args.json:  # each side as it finishes: a run cut short keeps what it measured
             save = lambda partial: atomic_write_text(args.json, json.dumps(partial, indent=2) + "\n")
         result = bench_zoo(
-            args.env, args.arch, args.models, args.frames, args.group_size or [8], args.workers, args.device or "cpu", sides=args.side, on_side=save
+            args.env,
+            args.arch,
+            args.models,
+            args.frames,
+            args.group_size or [8],
+            args.workers,
+            args.device or "cpu",
+            sides=args.side,
+            on_side=save,
+            eval_episodes=args.eval_episodes,
         )
         for side in result["sides"]:
             print(
@@ -525,6 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--group-size", type=_positive_int, nargs="+", help="zoo: group sizes to measure against one process per model (default 8)")
     be.add_argument("--workers", type=_positive_int, help="zoo: processes at a time (default: the CPU cores)")
     be.add_argument("--device", choices=("cpu", "cuda", "auto"), help="zoo: train.device of every model (default cpu)")
+    be.add_argument("--eval-episodes", type=_positive_int, help="zoo: episodes per condition of every evaluation, the final one's too (default: the world's)")
     be.add_argument(
         "--side",
         type=_bench_side,

@@ -17,6 +17,8 @@ to float rounding (batched kernels add in another order), not bit for bit.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -167,21 +169,26 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
 
 
 class StackedAdam:
-    """Adam over stacked parameters, every agent with its own moments and step count, read from
-    and written back to each agent's ``torch.optim.Adam`` state (the same update rule: moments
-    by lerp, bias-corrected step size, ``eps`` added to the corrected second moment's root)."""
+    """Adam over stacked parameters, every agent with its own moments, step count and learning
+    rate, read from and written back to each agent's ``torch.optim.Adam`` state (the same update
+    rule: moments by lerp, bias-corrected step size, ``eps`` added to the corrected second
+    moment's root). ``members``: per agent (real ones, then pad copies), its optimiser and how to
+    find its parameter of a stacked name."""
 
-    def __init__(self, ppos: list[PPO], params: dict[str, torch.Tensor]):
-        self.ppos, self.params = ppos, params
-        group = ppos[0].optimizer.param_groups[0]
-        self.lr, self.eps, (self.beta1, self.beta2) = float(group["lr"]), float(group["eps"]), group["betas"]
-        K = len(ppos)
+    def __init__(self, members: list[tuple[torch.optim.Optimizer, Callable[[str], torch.Tensor]]], params: dict[str, torch.Tensor]):
+        self.members, self.params = members, params
+        group = members[0][0].param_groups[0]
+        self.eps, (self.beta1, self.beta2) = float(group["eps"]), group["betas"]
+        self.on_device = bool(group.get("capturable") or group.get("fused"))  # where torch keeps the step: a plain Adam's on the CPU
+        device = next(iter(params.values())).device
+        # each agent's own rate: a run's schedule (by its own frames) may differ from its group-mates'
+        self.lr = torch.tensor([float(opt.param_groups[0]["lr"]) for opt, _ in members], dtype=torch.float32, device=device)
         self.exp_avg, self.exp_avg_sq = {}, {}
-        self.step = torch.zeros(K, dtype=torch.float64, device=next(iter(params.values())).device)
+        self.step = torch.zeros(len(members), dtype=torch.float64, device=device)
         for name, value in params.items():
             avg, sq = torch.zeros_like(value), torch.zeros_like(value)
-            for k, ppo in enumerate(ppos):
-                state = ppo.optimizer.state.get(param_of(ppo, name), {})
+            for k, (opt, lookup) in enumerate(members):
+                state = opt.state.get(lookup(name), {})
                 if "exp_avg" in state:
                     avg[k], sq[k] = state["exp_avg"], state["exp_avg_sq"]
                     self.step[k] = float(state["step"])
@@ -192,27 +199,26 @@ class StackedAdam:
         self.step += 1
         bias1 = (1 - self.beta1**self.step).float()
         bias2_root = (1 - self.beta2**self.step).sqrt().float()
+        step_size = bias1.reciprocal() * self.lr  # lr / bias1 as torch rounds a float over a tensor: reciprocal, then times
         for (name, param), grad in zip(self.params.items(), grads):
             shape = (-1,) + (1,) * (param.dim() - 1)
             avg, sq = self.exp_avg[name], self.exp_avg_sq[name]
             avg.lerp_(grad, 1 - self.beta1)
             sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
             denom = (sq.sqrt() / bias2_root.view(shape)).add_(self.eps)
-            param.sub_(avg / denom * (self.lr / bias1).view(shape))
+            param.sub_(avg / denom * step_size.view(shape))
 
     @torch.no_grad()
     def write_back(self, real: int) -> None:
         """Parameters into each of the ``real`` agents' models (the pad copies after them are
         dropped), moments and step into its optimiser's state."""
         steps = self.step.cpu().tolist()  # one device sync, not one per parameter
-        group = self.ppos[0].optimizer.param_groups[0]
-        on_device = bool(group.get("capturable") or group.get("fused"))  # torch keeps a plain Adam's step on the CPU
-        for k, ppo in enumerate(self.ppos[:real]):
+        for k, (opt, lookup) in enumerate(self.members[:real]):
             for name, value in self.params.items():
-                param = param_of(ppo, name)
+                param = lookup(name)
                 param.copy_(value[k])
-                ppo.optimizer.state[param] = {
-                    "step": torch.tensor(steps[k], dtype=torch.float32, device=param.device if on_device else "cpu"),
+                opt.state[param] = {
+                    "step": torch.tensor(steps[k], dtype=torch.float32, device=param.device if self.on_device else "cpu"),
                     "exp_avg": self.exp_avg[name][k].clone(),
                     "exp_avg_sq": self.exp_avg_sq[name][k].clone(),
                 }
@@ -241,7 +247,7 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
     if any(r.num_frames != n for r in rollouts):
         raise ValueError("a training group needs rollouts of the same length")
     params = {name: value.requires_grad_() for name, value in stacked_parameters(ppos).items()}
-    adam = StackedAdam(ppos, params)
+    adam = StackedAdam([(ppo.optimizer, functools.partial(param_of, ppo)) for ppo in ppos], params)
     obs = obs_map(lambda x: x.to(device), stack([r.obs for r in rollouts]))
     tensors = [torch.stack([getattr(r, f) for r in rollouts]).to(device) for f in ("actions", "logprobs", "values", "advantages", "returns")]
     rows = torch.arange(K, device=device)[:, None]

@@ -21,8 +21,9 @@ from rlbackdoors import worlds
 from rlbackdoors.bench.machine import machine_info
 
 
-def bench_spec(world: str, arch: str | None, models: int, frames: int, device: str) -> dict:
-    """A zoo spec of ``models`` models (half poisoned) of ``world`` that each train ``frames`` frames."""
+def bench_spec(world: str, arch: str | None, models: int, frames: int, device: str, eval_episodes: int | None = None) -> dict:
+    """A zoo spec of ``models`` models (half poisoned) of ``world`` that each train ``frames`` frames
+    (``eval_episodes``: every evaluation's episodes per condition, the final one's too; default the world's)."""
     w = worlds.get(world)
     arch = arch or w.arch_names[0]
     trigger = w.default_trigger or w.draw_trigger(None, 0, None)  # a world without a default trigger: one drawn from seed 0
@@ -31,7 +32,16 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
         "name": f"bench-{world}",
         "seed": 0,
         "examples": {"episodes": 1},
-        "overrides": {"train": {"max_frames": frames, "clean_threshold": 1.0, "poisoned_threshold": 1.0, "video": False, "device": device}},
+        "overrides": {
+            "train": {
+                "max_frames": frames,
+                "clean_threshold": 1.0,
+                "poisoned_threshold": 1.0,
+                "video": False,
+                "device": device,
+                **({"eval_episodes": eval_episodes, "final_eval_episodes": eval_episodes} if eval_episodes else {}),
+            }
+        },
         "cells": [
             {"world": world, "archs": [arch], "triggers": [trigger], "clean": clean, "poisoned": models - clean, "max_attempts": max(clean, models - clean)}
         ],
@@ -94,6 +104,7 @@ def bench_zoo(
     keep: str | None = None,
     sides: list[tuple[int, str, int | None]] | None = None,
     on_side=None,
+    eval_episodes: int | None = None,
 ) -> dict:
     """Models per hour for one process per model and for each group size, in this order, same run.
 
@@ -104,13 +115,14 @@ def bench_zoo(
 
     workers = workers or default_workers()
     plan_sides = [(k, d, w or workers) for k, d, w in sides] if sides else [(k, device, workers) for k in (1, *group_sizes)]
-    spec = bench_spec(world, arch, models, frames, plan_sides[0][1])
+    spec = bench_spec(world, arch, models, frames, plan_sides[0][1], eval_episodes)
     cell = spec["cells"][0]
     result = {
         "world": world,
         "arch": cell["archs"][0],
         "models": models,
         "frames_per_model": frames,
+        "eval_episodes": eval_episodes or "the world's",
         "device": device if not sides else sorted({d for _, d, _ in plan_sides}),
         "machine": machine_info(),
         "sides": [],
@@ -119,7 +131,7 @@ def bench_zoo(
         root = Path(keep) if keep else Path(tmp)
         for i, (k, side_device, side_workers) in enumerate(plan_sides):
             name = f"k{k}" if not sides else f"side{i}-k{k}-{side_device}-w{side_workers}"
-            side = run_side(bench_spec(world, arch, models, frames, side_device), root / name, k, side_workers, side_device)
+            side = run_side(bench_spec(world, arch, models, frames, side_device, eval_episodes), root / name, k, side_workers, side_device)
             base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
             side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
             result["sides"].append(side)

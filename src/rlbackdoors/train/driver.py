@@ -167,9 +167,22 @@ def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bo
     """
     cfg.check()
     with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
-        from rlbackdoors.train.ppo_run import serve
-
         return serve(train_steps(cfg, out, stop, overwrite, progress, after_eval))
+
+
+def serve(loop: Generator[Any, Any, Any]) -> Any:
+    """Run one agent's loop (a runner's ``steps``) alone: answer each request with its learner; return the loop's value."""
+    try:
+        request = next(loop)
+        while True:
+            try:
+                result = request.serve()
+            except BaseException as err:  # raised at the loop's yield, so its own clean-up runs as before
+                request = loop.throw(err)
+                continue
+            request = loop.send(result)
+    except StopIteration as done:
+        return done.value
 
 
 def train_steps(
@@ -183,7 +196,7 @@ def train_steps(
     cpu_source: Callable[[], float] | None = None,
 ) -> Generator[Any, Any, dict]:
     """:func:`train` as a loop that yields its learner's work (PPO's collect and update requests,
-    :mod:`.ppo_run`) for a group trainer to batch; OPAC² runs yield nothing. Returns the metrics
+    :mod:`.ppo_run`; OPAC²'s act and learn requests, :mod:`.opac2_run`) for a group trainer to batch. Returns the metrics
     (``trainer``: recorded in them, the group trainer's name for its stacked kernels;
     ``cpu_source``: the run's own CPU clock, :class:`RunClock`)."""
     cfg.check()
@@ -192,10 +205,7 @@ def train_steps(
     try:
         checkpoint = folder.begin(cfg, overwrite)
         runner = importlib.import_module(RUNNERS[cfg.algorithm])
-        if hasattr(runner, "steps"):
-            outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source)
-        else:
-            outcome = runner.run(cfg, folder, checkpoint, progress, stop, after_eval)
+        outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source)
         if trainer is not None:
             outcome.extra["trainer"] = trainer
         metrics = finish(cfg, folder, outcome, progress)

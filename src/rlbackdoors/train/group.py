@@ -2,10 +2,11 @@
 
 Each run is the ordinary single-agent run (:func:`rlbackdoors.train.driver.train_steps`: its own
 folder, lock, env mix, evaluations, checkpoints, stopping rule and finish), written as a loop
-that yields what it needs from its learner (collect a rollout, update on it). The group trainer
-answers those requests for all K runs at once where they can be batched
-(:mod:`rlbackdoors.algos.group`: same architecture, PPO config and env-copy count) and one by one
-otherwise (a run with a clean teacher; OPAC², which yields nothing). A run that finishes
+that yields what it needs from its learner (PPO: collect a rollout, update on it; OPAC²: act on
+a step's observations, run the updates due). The group trainer answers those requests for all K
+runs at once where they can be batched (:mod:`rlbackdoors.algos.group`: same architecture, PPO
+config and env-copy count; :mod:`rlbackdoors.algos.group_opac2`: same OPAC² config) and one by
+one otherwise (a run with a clean teacher). A run that finishes
 leaves the group and the next planned run takes its slot, so a group never waits on its slowest
 member. Every run's folder is an ordinary model folder afterwards; a killed group resumes each
 run from its own checkpoint, alone or in any group.
@@ -21,9 +22,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rlbackdoors.algos import group
+from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
 from rlbackdoors.train.driver import train_steps
+from rlbackdoors.train.opac2_run import Act, Learn
 from rlbackdoors.train.ppo_run import Collect, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
@@ -83,6 +85,10 @@ def auto_group_size() -> tuple[int, str]:
 
 def batch_key(request) -> tuple | None:
     """Requests with the same key are answered by one batched call; None: answered alone."""
+    if isinstance(request, (Act, Learn)):
+        agent = request.agent
+        width = len(request.obs) if isinstance(request, Act) else request.n
+        return (type(request).__name__, "OPAC2", repr(agent.cfg), str(agent.device), agent.policy_obs_dim, width)
     ppo = request.ppo
     if ppo.teacher is not None or not group.stackable(ppo.model):
         return None
@@ -97,6 +103,10 @@ def serve_batch(requests: list, stacked: bool = True) -> list:
     lone run (:func:`train_group` with group size 1: today's bytes)."""
     if len(requests) == 1 and not stacked:
         return [requests[0].serve()]
+    if isinstance(requests[0], Act):
+        return group_opac2.act([r.agent for r in requests], [r.obs for r in requests])
+    if isinstance(requests[0], Learn):
+        return group_opac2.update([r.agent for r in requests], [r.replay for r in requests], [r.rng for r in requests], requests[0].n)
     ppos = [r.ppo for r in requests]
     if isinstance(requests[0], Collect):
         return group.collect(ppos, [r.envs for r in requests], [r.obs for r in requests])

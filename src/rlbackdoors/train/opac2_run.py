@@ -14,9 +14,12 @@ end of the current step. The config must match to resume (budget flags included)
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
+from collections.abc import Generator
+from typing import Any
 
 import numpy as np
 import torch
@@ -27,7 +30,7 @@ from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import first_line
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device
+from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, serve
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.replay_journal import ReplayJournal
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -140,8 +143,41 @@ def _progress(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+@dataclasses.dataclass
+class Act:
+    """What a run asks of its learner each env step once learning has started: sampled actions for ``obs``."""
+
+    agent: OPAC2
+    obs: np.ndarray
+
+    def serve(self) -> np.ndarray:
+        return self.agent.act(self.obs)
+
+
+@dataclasses.dataclass
+class Learn:
+    """What a run asks of its learner when updates are due: ``n`` OPAC² updates, replay indices
+    drawn from ``rng`` (returns their loss dicts)."""
+
+    agent: OPAC2
+    replay: MultitaskReplay
+    rng: np.random.Generator
+    n: int
+
+    def serve(self) -> list[dict[str, float]]:
+        return [self.agent.update(self.replay, self.rng) for _ in range(self.n)]
+
+
 def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None) -> RunOutcome:
     """Train with OPAC² from ``checkpoint`` (None: from scratch) until the stopping rule or a budget ends it."""
+    return serve(steps(cfg, folder, checkpoint, progress, stop, after_eval))
+
+
+def steps(
+    cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None
+) -> Generator[Act | Learn, Any, RunOutcome]:
+    """:func:`run` as a loop that yields its learner's work (:class:`Act`, :class:`Learn`) and is
+    sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch K runs' work."""
     tc, oc = cfg.train, cfg.opac2
     assert oc is not None and tc.max_frames is not None and tc.eval_interval is not None and tc.checkpoint_minutes is not None
     torch.set_num_threads(tc.torch_threads)
@@ -176,12 +212,6 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         if progress:
             _progress(f"resuming {folder.path} at {collector.frames:,} frames, {updates:,} updates")
 
-    def act(obs: np.ndarray) -> np.ndarray:
-        agent.observe(obs)  # every observation the collector acts on, reset ones included
-        if collector.frames < oc.learning_starts:
-            return warmup_rng.uniform(-1.0, 1.0, (len(obs), act_dim))
-        return agent.act(obs)
-
     def save_checkpoint() -> None:
         manifest = journal.append(replay)  # the new replay rows first: the checkpoint names them
         folder.save_torch(
@@ -207,7 +237,7 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
         journal.prune()
 
     label = "poisoned" if cfg.poison.poisoned else "clean"
-    clock = RunClock(elapsed, cpu_elapsed)
+    clock = RunClock(elapsed, cpu_elapsed, cpu_source)
     last_checkpoint = last_log = time.perf_counter()
     window_start, window_frames = time.perf_counter(), 0
     stopping = Stopping(cfg, streak)
@@ -218,14 +248,21 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
                 _progress(f"{stop.requested} at {collector.frames:,} frames: writing a checkpoint to resume from")
             save_checkpoint()
             raise Interrupted(collector.frames, True, stop.requested)
-        stats.add(collector.collect(replay, act, 1))
+        obs = collector.obs
+        agent.observe(obs)  # every observation the collector acts on, reset ones included
+        if collector.frames < oc.learning_starts:
+            actions = warmup_rng.uniform(-1.0, 1.0, (len(obs), act_dim))
+        else:
+            actions = yield Act(agent, obs)
+        stats.add(collector.collect(replay, lambda _: actions, 1))
         window_frames += len(collector.envs)
         due = updates_due(oc, collector.frames)
         if oc.lr_final is not None and updates < due:
             agent.set_lr(decayed_lr(cfg, collector.frames))
-        while updates < due:
-            losses.add(agent.update(replay, batch_rng))
-            updates += 1
+        if updates < due:
+            for row in (yield Learn(agent, replay, batch_rng, due - updates)):
+                losses.add(row)
+            updates = due
         now = time.perf_counter()
         if collector.frames >= next_eval or collector.frames >= tc.max_frames:
             fps = window_frames / max(now - window_start, 1e-9)

@@ -27,7 +27,7 @@ from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.attacks.seam import AttackSeam
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields
+from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields, serve
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.progress import Progress
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -154,21 +154,6 @@ class Update:
 def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None) -> RunOutcome:
     """Train with PPO from ``checkpoint`` (None: from scratch) until the stopping rule or a budget ends it."""
     return serve(steps(cfg, folder, checkpoint, progress, stop, after_eval))
-
-
-def serve(loop: Generator[Collect | Update, Any, Any]) -> Any:
-    """Run one agent's loop (:func:`steps`) alone: answer each request with its learner; return the loop's value."""
-    try:
-        request = next(loop)
-        while True:
-            try:
-                result = request.serve()
-            except BaseException as err:  # raised at the loop's yield, so its own clean-up runs as before
-                request = loop.throw(err)
-                continue
-            request = loop.send(result)
-    except StopIteration as done:
-        return done.value
 
 
 def steps(

@@ -181,11 +181,16 @@ def opac2_learner(seed: int):
 def test_opac2_group_acts_and_updates_as_each_agent_alone():
     """Three OPAC² agents, five updates batched against five lone updates each: the same losses,
     weights, target network and Adam state to float rounding, every generator in the same place
-    (the same replay indices and noise were drawn), and the same sampled actions after."""
+    (the same replay indices and noise were drawn), and the same sampled actions before and after
+    (after: from the updated policies, not the group's cached stack)."""
     from rlbackdoors.algos import group_opac2
 
     alone, grouped = [opac2_learner(s) for s in range(3)], [opac2_learner(s) for s in range(3)]
     lone_rngs, group_rngs = ([np.random.default_rng([s, 1]) for s in range(3)] for _ in range(2))
+    obs = [np.random.default_rng(s).normal(size=(10, 6)) for s in range(3)]
+    before = group_opac2.act([a for a, _ in grouped], obs)  # the group's stacked policy is now cached
+    for x, y in zip([a.act(o) for (a, _), o in zip(alone, obs)], before):
+        np.testing.assert_allclose(y, x, rtol=1e-4, atol=1e-5)
     lone = [[a.update(r, g) for _ in range(5)] for (a, r), g in zip(alone, lone_rngs)]
     ours = group_opac2.update([a for a, _ in grouped], [r for _, r in grouped], group_rngs, 5)
     for k in range(3):
@@ -202,8 +207,7 @@ def test_opac2_group_acts_and_updates_as_each_agent_alone():
                 assert float(sa["step"]) == float(sb["step"]) == 5 and (sa["step"].dtype, sa["step"].device) == (sb["step"].dtype, sb["step"].device)
                 torch.testing.assert_close(sb["exp_avg"], sa["exp_avg"], rtol=1e-3, atol=1e-6)
         assert torch.equal(a.generator.get_state(), b.generator.get_state()) and lone_rngs[k].random() == group_rngs[k].random()
-    obs = [np.random.default_rng(s).normal(size=(10, 6)) for s in range(3)]
-    for x, y in zip([a.act(o) for (a, _), o in zip(alone, obs)], group_opac2.act([a for a, _ in grouped], obs)):
+    for x, y in zip([a.act(o) for (a, _), o in zip(alone, obs)], group_opac2.act([a for a, _ in grouped], obs)):  # the updated policies, not the cache
         np.testing.assert_allclose(y, x, rtol=1e-4, atol=1e-5)
 
 

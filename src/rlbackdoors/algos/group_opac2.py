@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
 
 import numpy as np
 import torch
@@ -77,12 +78,30 @@ def v_value(lead: OPAC2, params: dict, obs: torch.Tensor, net: str = "v") -> tor
     return run_sequential_stacked(lead.v.net, params, f"{net}.net", obs).squeeze(-1)
 
 
+_POLICIES: dict[tuple[int, ...], tuple[list, tuple[int, ...], dict[str, torch.Tensor]]] = {}
+
+
+def policy_stack(agents: list[OPAC2]) -> dict[str, torch.Tensor]:
+    """The group's stacked policy, restacked only when a policy changed (an update or a load
+    bumps its tensors' versions): agents act every env step and update every few. The cache
+    holds weak references and checks them, so a new agent at a recycled id is never mistaken."""
+    key = tuple(id(a) for a in agents)
+    versions = tuple(p._version for a in agents for p in a.policy.parameters())
+    hit = _POLICIES.get(key)
+    if hit is None or hit[1] != versions or any(ref() is not a for ref, a in zip(hit[0], agents)):
+        if len(_POLICIES) >= 16:
+            _POLICIES.clear()
+        hit = ([weakref.ref(a) for a in agents], versions, stacked(padded(agents, agents[0].device), "policy", grad=False))
+        _POLICIES[key] = hit
+    return hit[2]
+
+
 @torch.inference_mode()
 def act(agents: list[OPAC2], obs: list[np.ndarray]) -> list[np.ndarray]:
     """:meth:`OPAC2.act` (sampled actions) for K agents, each on its own observations (n, O)."""
     check_group(agents)
     lead, device = agents[0], agents[0].device
-    params = stacked(padded(agents, device), "policy", grad=False)
+    params = policy_stack(agents)
     x = torch.stack(padded([torch.as_tensor(a.normalize(o)) for a, o in zip(agents, obs)], device)).to(device)
     action = sample(lead, agents, params, x)[0].cpu().numpy()
     return [action[k] for k in range(len(agents))]

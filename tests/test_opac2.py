@@ -253,7 +253,7 @@ def test_q_and_v_learn_a_terminal_reward():
     rng = np.random.default_rng(0)
     for _ in range(300):
         losses = agent.update(replay, rng)
-    batch = agent._tensors(replay.sample(512, rng))
+    batch = agent.batch_tensors(replay.sample(512, rng))
     with torch.no_grad():
         q, v = agent.q(batch.obs, batch.act), agent.v(batch.obs)
     for values in (q, v):  # a constant is learned on average fast; point by point it is still settling
@@ -305,7 +305,7 @@ def test_v_averages_q_over_the_policy_not_the_stored_actions():
     for _ in range(200):
         agent.update(replay, rng)
     with torch.no_grad():
-        v = agent.v(agent._tensors(replay.sample(512, rng)).obs)
+        v = agent.v(agent.batch_tensors(replay.sample(512, rng)).obs)
     assert abs(v.mean().item() - 2 * math.tanh(3.0)) < 0.05
 
 

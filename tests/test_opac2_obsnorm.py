@@ -46,7 +46,7 @@ def test_agent_standardises_in_act_and_update_and_checkpoints_the_statistics():
 
     replay = MultitaskReplay.create({"clean": 1.0}, 500, OBS, ACT)
     replay["clean"].add_batch(obs, rng.uniform(-1, 1, (200, ACT)), rng.normal(size=200), obs[::-1], np.zeros(200))
-    batch = agent._tensors(replay.sample(64, np.random.default_rng(2)))
+    batch = agent.batch_tensors(replay.sample(64, np.random.default_rng(2)))
     assert abs(float(batch.obs.mean())) < 0.5 and abs(float(batch.next_obs.std()) - 1) < 0.3
     agent.update(replay, np.random.default_rng(3))
 

@@ -109,7 +109,7 @@ def act(agents: list[OPAC2], obs: list[np.ndarray]) -> list[np.ndarray]:
 
 def batches(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator]):
     """One replay batch per agent (its own buffer and index generator, as alone), stacked (K, B, ...)."""
-    columns = [a._tensors(replay.sample(a.cfg.batch_size, rng)) for a, replay, rng in zip(agents, replays, rngs)]
+    columns = [a.batch_tensors(replay.sample(a.cfg.batch_size, rng)) for a, replay, rng in zip(agents, replays, rngs)]
     device = agents[0].device
     return type(columns[0])(*(torch.stack(padded([c[i] for c in columns], device)) for i in range(len(columns[0]))))
 

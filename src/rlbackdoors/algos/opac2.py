@@ -407,7 +407,8 @@ class OPAC2:
         if self.obs_norm is not None:
             self.obs_norm.update(obs)
 
-    def _tensors(self, batch: Batch[np.ndarray]) -> Batch[torch.Tensor]:
+    def batch_tensors(self, batch: Batch[np.ndarray]) -> Batch[torch.Tensor]:
+        """A replay batch as the networks take it: observations normalised, tensors on the device."""
         if self.obs_norm is not None:
             batch = batch._replace(obs=self.obs_norm(batch.obs), next_obs=self.obs_norm(batch.next_obs))
         return Batch(*(torch.from_numpy(np.ascontiguousarray(x)).to(self.device) for x in batch))
@@ -422,7 +423,7 @@ class OPAC2:
         cfg = self.cfg
 
         # V: regress on Q averaged over the current policy.
-        b = self._tensors(replay.sample(cfg.batch_size, rng))
+        b = self.batch_tensors(replay.sample(cfg.batch_size, rng))
         k = cfg.action_samples
         with torch.no_grad():
             obs_k = b.obs.repeat(k, 1)  # row j * batch + i is state i's j-th action
@@ -434,7 +435,7 @@ class OPAC2:
         self.v_opt.step()
 
         # Q: one-step TD target through the slow V_bar.
-        b = self._tensors(replay.sample(cfg.batch_size, rng))
+        b = self.batch_tensors(replay.sample(cfg.batch_size, rng))
         q_goal = self.q_targets(b.rew, b.next_obs, b.done)
         q = self.q(b.obs, b.act)
         q_loss = (q - q_goal).pow(2).mean()
@@ -443,7 +444,7 @@ class OPAC2:
         self.q_opt.step()
 
         # pi: score-function step weighted by the normalised advantage of a fresh action.
-        b = self._tensors(replay.sample(cfg.batch_size, rng))
+        b = self.batch_tensors(replay.sample(cfg.batch_size, rng))
         action, u, mean_k, log_std = self.policy.sample(b.obs, self.generator, samples=k)
         with torch.no_grad():
             advantage = self.q(b.obs.repeat(k, 1), action) - self.v(b.obs).repeat(k)

@@ -298,7 +298,7 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
         plan(parse_spec(zoo_spec()), path)
     log = io.StringIO()
     summary = zoo_run(whole, workers=1, group_size="auto", progress_interval=5.0, out=log)  # 8 on a CPU: all four in one group
-    assert "--group-size auto: 8 on cpu" in log.getvalue()
+    assert "--group-size auto: 8 on cpu, 1 for OPAC² worlds" in log.getvalue()
     logs = [(f / "train.log").read_text() for f in sorted((whole / "models").iterdir())]
     assert all("=== zoo group job:" in text for text in logs) and sum("(output in id-" in text for text in logs) == 3
     assert summary["done"] == 4 and summary["failed"] == 0 and summary["converged"] == 0
@@ -321,6 +321,43 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
         assert (folder / "model.pt").read_bytes() == (cut / "models" / folder.name / "model.pt").read_bytes()
     verify = subprocess.run([sys.executable, "-m", "rlbackdoors.zoo.cli", "verify", str(cut)], capture_output=True, text=True, timeout=300)
     assert verify.returncode == 0, verify.stdout + verify.stderr
+
+
+def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a_cpu(tmp_path):
+    """``--group-size auto`` applies the measured rule per world's algorithm: the PPO world's
+    models train in a group (``trainer: group``), the OPAC² world's alone (today's lone bytes),
+    in one zoo run."""
+    safety_train = {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False}
+    spec = zoo_spec()
+    spec["cells"][0]["overrides"]["ppo"] = spec["overrides"].pop("ppo")  # a PPO setting: the PPO world's cell only
+    spec["cells"][0].update(clean=1, poisoned=1, max_attempts=1)
+    spec["cells"].append(
+        {
+            "world": "safety-car-goal",
+            "triggers": ["formation:0.5:1.0:2.5"],
+            "clean": 0,
+            "poisoned": 1,
+            "max_attempts": 1,
+            "overrides": {
+                "env": {"max_steps": 40},
+                "poison": {"num_clean_envs": 2, "num_poisoned_envs": 1},
+                "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
+                "train": {**safety_train, "clean_threshold": 1.0, "poisoned_threshold": 1.0},
+            },
+        }
+    )
+    plan(parse_spec(spec), tmp_path / "z")
+    log = io.StringIO()
+    summary = zoo_run(tmp_path / "z", workers=2, group_size="auto", progress_interval=5.0, out=log)
+    assert "--group-size auto: 8 on cpu, 1 for OPAC² worlds" in log.getvalue() and summary["done"] == 3 and summary["failed"] == 0
+    trainers = {}
+    for folder in sorted((tmp_path / "z" / "models").iterdir()):
+        cfg = RunConfig.load(folder / "config.json")
+        trainers.setdefault(cfg.env.name, set()).add(json.loads((folder / "metrics.json").read_text()).get("trainer"))
+        if cfg.env.name == "safety-car-goal":  # alone: the bytes of a lone run of its config
+            train(cfg, tmp_path / f"lone-{folder.name}", progress=False)
+            assert (folder / "model.pt").read_bytes() == (tmp_path / f"lone-{folder.name}" / "model.pt").read_bytes()
+    assert trainers == {"lavaworld": {"group"}, "safety-car-goal": {None}}
 
 
 def test_group_size_is_validated(tmp_path):

@@ -67,20 +67,22 @@ class GroupResult:
     errors: dict[Any, BaseException] = field(default_factory=dict)
 
 
-# ``--group-size auto``: on a CPU, the measured models per hour (the feed-forward grid models) rise from K = 1 to 4 and are flat
-# from 8 on (docs/zoos.md, `rlbackdoors bench zoo`). On CUDA a group computes at a width of 64
-# anyway (algos/group.py: group_width), so 64 costs no more than fewer; measured on an H200, GPU
-# groups were no faster than one process per CPU core, and CPU groups of 8 on every core were
-# x3.6 (docs/zoos.md): the message says so when auto picks CUDA.
-AUTO_GROUP_SIZE = {"cpu": 8, "cuda": 64}
+# ``--group-size auto``, per algorithm and device, measured (docs/zoos.md, `rlbackdoors bench zoo`):
+# PPO on a CPU: models per hour (the feed-forward grid models) rise from K = 1 to 4 and are flat
+# from 8 on. OPAC² on a CPU: a group of 2 was x0.92 (its update is arithmetic-bound, its env
+# MuJoCo-bound), so its models train alone. On CUDA a group computes at a width of 64 anyway
+# (algos/group.py: group_width), so 64 costs no more than fewer; measured on an H200 (PPO), GPU
+# groups were no faster than one process per CPU core and CPU groups of 8 on every core were x3.6:
+# the message says so when auto picks CUDA.
+AUTO_GROUP_SIZE = {("ppo", "cpu"): 8, ("opac2", "cpu"): 1, ("ppo", "cuda"): 64, ("opac2", "cuda"): 64}
 
 
-def auto_group_size() -> tuple[int, str]:
-    """(K, device) for ``--group-size auto`` on this machine."""
+def auto_group_size() -> tuple[dict[str, int], str]:
+    """({algorithm: K}, device) for ``--group-size auto`` on this machine."""
     import torch
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    return AUTO_GROUP_SIZE[device], device
+    return {algorithm: k for (algorithm, where), k in AUTO_GROUP_SIZE.items() if where == device}, device
 
 
 def batch_key(request) -> tuple | None:

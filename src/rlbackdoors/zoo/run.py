@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Protocol, TextIO
 
+from rlbackdoors import worlds
 from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_text, open_beneath, refuse_links, remove_tree
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.index import ModelState, group_counts, model_state, scan, status_table, write_metadata
@@ -89,9 +90,10 @@ class LocalExecutor:
     def submit(self, model: PlannedModel, folder: Path) -> None:
         self.submit_group([model], [folder])
 
-    def submit_group(self, models: list[PlannedModel], folders: list[Path]) -> None:
+    def submit_group(self, models: list[PlannedModel], folders: list[Path], group_size: int | None = None) -> None:
         """One child for ``models``: alone (group size 1), or a group job training them
-        ``group_size`` at a time (its output goes to the first model's train.log)."""
+        ``group_size`` (default: the executor's) at a time (its output goes to the first model's train.log)."""
+        group_size = self.group_size if group_size is None else group_size
         folder = folders[0]
         folder_fd = open_beneath(folder.parent.parent, folder)  # LinkError if a link was swapped in
         try:
@@ -103,7 +105,7 @@ class LocalExecutor:
         try:
             proc = subprocess.Popen(
                 [sys.executable, "-m", "rlbackdoors.zoo.job", *map(str, folders), "--result-fd", str(write_fd)]
-                + (["--group-size", str(self.group_size)] if self.group_size > 1 else []),
+                + (["--group-size", str(group_size)] if group_size > 1 else []),
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
@@ -275,12 +277,14 @@ def run(
     out = out if out is not None else sys.stderr
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
+    by_algorithm: dict[str, int] | None = None  # --group-size auto: K per world's algorithm
     if group_size == "auto":
         from rlbackdoors.train.group import auto_group_size
 
-        group_size, device = auto_group_size()
-        note = "" if device == "cpu" else " (measured: groups on the GPU no faster than on the CPU cores; docs/zoos.md)"
-        print(f"zoo: --group-size auto: {group_size} on {device}{note}", file=out)
+        by_algorithm, device = auto_group_size()
+        note = " (measured: groups on the GPU no faster than on the CPU cores; docs/zoos.md)" if device == "cuda" else ""
+        print(f"zoo: --group-size auto: {by_algorithm['ppo']} on {device}, {by_algorithm['opac2']} for OPAC² worlds{note}", file=out)
+        group_size = max(by_algorithm.values())
     if not isinstance(group_size, int) or group_size < 1:
         raise ConfigError(f"--group-size must be >= 1 or auto, got {group_size!r}")
     if max_retries < 0:
@@ -335,12 +339,14 @@ def run(
                 busy_until.pop(s.model.id, None)
                 startable.append(s)
             free = executor.capacity - executor.running()
-            for chunk in _chunks(startable, free, group_size):
-                if isinstance(executor, LocalExecutor):
-                    executor.submit_group([s.model for s in chunk], [s.folder for s in chunk])
-                else:
-                    executor.submit(chunk[0].model, chunk[0].folder)
-                in_flight.update((s.model.id, s.model) for s in chunk)
+            for k, models in _by_group_size(startable, group_size, by_algorithm):
+                for chunk in _chunks(models, free, k):
+                    if isinstance(executor, LocalExecutor):
+                        executor.submit_group([s.model for s in chunk], [s.folder for s in chunk], k)
+                    else:
+                        executor.submit(chunk[0].model, chunk[0].folder)
+                    in_flight.update((s.model.id, s.model) for s in chunk)
+                    free -= 1
             if not in_flight and not waiting:
                 break
             progress.maybe(states, sum(s.model.id in in_flight and s.status != "done" for s in states))
@@ -443,6 +449,17 @@ def threading_main() -> bool:
 
 def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
+
+
+def _by_group_size(ready: list, group_size: int, by_algorithm: dict[str, int] | None) -> list[tuple[int, list]]:
+    """The ready models by the group size they train at: ``group_size`` for all, or with
+    ``--group-size auto`` the measured one of their world's algorithm (in the order first seen)."""
+    if by_algorithm is None:
+        return [(group_size, ready)] if ready else []
+    out: dict[int, list] = {}
+    for state in ready:
+        out.setdefault(by_algorithm[worlds.get(state.model.group.cell.world).algorithm], []).append(state)
+    return list(out.items())
 
 
 def _chunks(ready: list, free: int, group_size: int) -> list[list]:

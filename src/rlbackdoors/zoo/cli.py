@@ -261,7 +261,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
         type=_group_size,
         default=1,
         help="train up to K models of a worker in one process, their networks stacked and batched (local back-end; "
-        "auto: the measured rule for this machine's device; default 1: a process per model, today's bytes)",
+        "auto: the measured rule per world's algorithm and this machine's device; default 1: a process per model, today's bytes)",
     )
     ru.add_argument("--backend", choices=BACKENDS, default="local", help="local: a child process per job; ray: Ray tasks (pip install 'rlbackdoors[ray]')")
     ru.add_argument("--address", help="Ray cluster address (e.g. auto or ray://head:10001; default: start a local Ray)")

@@ -331,6 +331,7 @@ def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a
     spec = zoo_spec()
     spec["cells"][0]["overrides"]["ppo"] = spec["overrides"].pop("ppo")  # a PPO setting: the PPO world's cell only
     spec["cells"][0].update(clean=1, poisoned=1, max_attempts=1)
+    spec["overrides"]["train"]["max_frames"] = 3200
     spec["cells"].append(
         {
             "world": "safety-car-goal",
@@ -384,24 +385,35 @@ def test_group_size_is_validated(tmp_path):
 def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     from rlbackdoors.bench.zoo import bench_zoo
 
-    result = bench_zoo("lavaworld", models=2, frames=3200, group_sizes=(2,), workers=1, keep=str(tmp_path))
+    saved = []
+    result = bench_zoo(
+        "lavaworld",
+        models=2,
+        frames=3200,
+        sides=[(1, "cpu", 1), (2, "cpu", None)],
+        workers=1,
+        keep=str(tmp_path),
+        on_side=lambda r: saved.append(len(r["sides"])),
+    )
     alone, grouped = result["sides"]
-    assert (alone["group_size"], grouped["group_size"]) == (1, 2) and alone["models"] == grouped["models"] == 2
+    assert saved == [1, 2]  # written after each side: a run cut short keeps what it measured
+    assert [(s["group_size"], s["device"], s["workers"]) for s in result["sides"]] == [(1, "cpu", 1), (2, "cpu", 1)] and result["device"] == ["cpu"]
+    assert alone["models"] == grouped["models"] == 2
     assert alone["ratio"] == 1.0 and grouped["ratio"] == pytest.approx(grouped["models_per_hour"] / alone["models_per_hour"], rel=1e-2)
     assert result["machine"]["cores"] >= 1 and len(alone["loadavg_before"]) == 3
-    configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("k1", "k2")]
+    configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("side0-k1-cpu-w1", "side1-k2-cpu-w1")]
     assert configs[0] == configs[1]  # the same planned models on both sides
-    assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "k2" / "models").glob("*/metrics.json"))
+    assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "side1-k2-cpu-w1" / "models").glob("*/metrics.json"))
 
 
-def test_bench_zoo_sides_name_group_size_device_and_workers_and_each_is_saved_as_it_finishes(tmp_path):
-    from rlbackdoors.bench.zoo import bench_zoo
+def test_bench_zoo_sides_default_to_one_process_per_model_then_each_group_size():
+    from rlbackdoors.bench.zoo import parse_side, side_plan
 
-    saved = []
-    result = bench_zoo("lavaworld", models=2, frames=3200, sides=[(1, "cpu", 2), (2, "cpu", 1)], on_side=lambda r: saved.append(len(r["sides"])))
-    assert saved == [1, 2] and result["device"] == ["cpu"]
-    assert [(s["group_size"], s["device"], s["workers"]) for s in result["sides"]] == [(1, "cpu", 2), (2, "cpu", 1)]
-    assert result["sides"][0]["ratio"] == 1.0 and result["sides"][1]["models"] == 2
+    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2), (4, "cuda", 2), (8, "cuda", 2)]
+    assert side_plan((8,), 2, "cpu", [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8")]) == [(1, "cpu", 16), (64, "cuda", 2), (8, "cpu", 2)]
+    for bad in ("0", "8:tpu", "8:cpu:0", "8:cpu:2:1", "x"):
+        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\]\\]"):
+            parse_side(bad)
 
 
 def test_ready_models_are_shared_out_in_capped_chunks():

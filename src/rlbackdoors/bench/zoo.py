@@ -93,6 +93,14 @@ def parse_side(text: str) -> tuple[int, str, int | None]:
     return k, device, workers
 
 
+def side_plan(group_sizes, workers: int, device: str, sides: list[tuple[int, str, int | None]] | None) -> list[tuple[int, str, int]]:
+    """(group size, device, workers) per side: ``sides`` as given (workers defaulting to
+    ``workers``), else one process per model and then each of ``group_sizes``, all on ``device``."""
+    if sides:
+        return [(k, d, w or workers) for k, d, w in sides]
+    return [(k, device, workers) for k in (1, *group_sizes)]
+
+
 def bench_zoo(
     world: str,
     arch: str | None = None,
@@ -113,8 +121,7 @@ def bench_zoo(
     is called with the result so far after each side (a partial result survives a time limit)."""
     from rlbackdoors.zoo.run import default_workers
 
-    workers = workers or default_workers()
-    plan_sides = [(k, d, w or workers) for k, d, w in sides] if sides else [(k, device, workers) for k in (1, *group_sizes)]
+    plan_sides = side_plan(group_sizes, workers or default_workers(), device, sides)
     spec = bench_spec(world, arch, models, frames, plan_sides[0][1], eval_episodes)
     cell = spec["cells"][0]
     result = {

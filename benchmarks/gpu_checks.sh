@@ -5,7 +5,7 @@
 #      (these tests skip on machines without CUDA, so CI never runs them);
 #   2. models per hour, same run: one process per model on all CPU cores (the reference) against
 #      groups on the GPU (rlbackdoors bench zoo --side ...), each side saved as it finishes.
-# Usage: bash benchmarks/gpu_checks.sh OUTDIR [FRAMES] [MODELS]   (SIDES overrides the sides)
+# Usage: bash benchmarks/gpu_checks.sh OUTDIR [FRAMES] [MODELS]   (env: SIDES, WORLDS, EVAL_EPISODES, *_TIMEOUT)
 set -uo pipefail
 out=${1:?usage: gpu_checks.sh OUTDIR [FRAMES] [MODELS]}
 frames=${2:-100000}
@@ -22,5 +22,7 @@ export PYTHONUNBUFFERED=1
 timeout "${TESTS_TIMEOUT:-240}" python3 -m pytest -q -p no:cacheprovider tests/test_group_cuda.py 2>&1 | tee "$out/gpu_tests.log"
 args=()
 for side in $sides; do args+=(--side "$side"); done
-timeout "${BENCH_TIMEOUT:-420}" python3 -m rlbackdoors.cli bench zoo --env lavaworld --models "$models" --frames "$frames" "${args[@]}" \
-    --json "$out/bench_zoo_lavaworld_gpu.json" 2>&1 | tee "$out/bench.log"
+for world in ${WORLDS:-lavaworld}; do  # e.g. WORLDS="lavaworld colorful-memory safety-car-goal"
+    timeout "${BENCH_TIMEOUT:-420}" python3 -m rlbackdoors.cli bench zoo --env "$world" --models "$models" --frames "$frames" "${args[@]}" \
+        ${EVAL_EPISODES:+--eval-episodes "$EVAL_EPISODES"} --json "$out/bench_zoo_${world}_gpu.json" 2>&1 | tee -a "$out/bench.log"
+done

@@ -133,3 +133,49 @@ def test_a_gpu_zoo_is_reproducible_resumes_after_a_kill_and_loads_without_a_gpu(
         weights = torch.load(folder / "model.pt", weights_only=True)  # no map_location: stored on the CPU
         assert all(t.device.type == "cpu" for t in weights.values())
         assert (folder / "model.pt").read_bytes() == (cut / "models" / folder.name / "model.pt").read_bytes()
+
+
+def test_cuda_opac2_group_computes_what_the_cpu_group_computes():
+    """OPAC² (the Safety Car Goal learner): three agents, five batched updates on each device
+    from the same replays: losses within 1 %, the weights' update the same to rounding (relative
+    L2 < 0.25, cosine > 0.99, as for PPO above), the same noise drawn (generators on the CPU),
+    and the Adam state in the layout a lone CUDA agent's fused Adam keeps."""
+    from rlbackdoors.algos import group_opac2
+    from rlbackdoors.algos.opac2 import OPAC2, MultitaskReplay
+    from rlbackdoors.config import OPAC2Config
+
+    def agent_and_replay(seed: int, device: torch.device):
+        agent = OPAC2(6, 2, OPAC2Config(depth=2, width=32, batch_size=64, obs_norm=True), torch.Generator().manual_seed(seed), device)
+        rng = np.random.default_rng(seed)
+        replay = MultitaskReplay.create({"clean": 0.8, "poisoned": 0.2}, 1000, 6, 2)
+        for kind in ("clean", "poisoned"):
+            replay[kind].add_batch(
+                rng.normal(size=(500, 6)), rng.uniform(-1, 1, (500, 2)), rng.normal(size=500), rng.normal(size=(500, 6)), rng.random(500) < 0.05
+            )
+        agent.observe(rng.normal(size=(50, 6)))
+        return agent, replay
+
+    sides = {name: [agent_and_replay(s, torch.device(name)) for s in range(3)] for name in ("cpu", "cuda")}
+    start = [torch.cat([p.detach().reshape(-1) for net in ("policy", "q", "v") for p in getattr(a, net).parameters()]) for a, _ in sides["cpu"]]
+    stats = {
+        name: group_opac2.update([a for a, _ in pairs], [r for _, r in pairs], [np.random.default_rng([s, 1]) for s in range(3)], 5)
+        for name, pairs in sides.items()
+    }
+    for k in range(3):
+        for ours, theirs in zip(stats["cuda"][k], stats["cpu"][k]):
+            assert all(ours[key] == pytest.approx(theirs[key], rel=1e-2, abs=1e-4) for key in ours)
+        moved = {
+            name: torch.cat([p.detach().cpu().reshape(-1) for net in ("policy", "q", "v") for p in getattr(pairs[k][0], net).parameters()]) - start[k]
+            for name, pairs in sides.items()
+        }
+        rel = float((moved["cuda"] - moved["cpu"]).norm() / moved["cpu"].norm())
+        cosine = float(torch.nn.functional.cosine_similarity(moved["cuda"], moved["cpu"], dim=0))
+        print(f"OPAC² agent {k}: update relative difference {rel:.2e}, cosine {cosine:.6f}")
+        assert rel < 0.25 and cosine > 0.99
+        assert torch.equal(sides["cuda"][k][0].generator.get_state(), sides["cpu"][k][0].generator.get_state())
+    lone, replay = agent_and_replay(0, CUDA)
+    lone.update(replay, np.random.default_rng(0))
+    for net in ("policy", "q", "v"):
+        mine, theirs = getattr(sides["cuda"][0][0], f"{net}_opt"), getattr(lone, f"{net}_opt")
+        for x, y in zip(mine.param_groups[0]["params"], theirs.param_groups[0]["params"]):
+            assert {key: (v.device.type, v.dtype) for key, v in mine.state[x].items()} == {key: (v.device.type, v.dtype) for key, v in theirs.state[y].items()}

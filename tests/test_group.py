@@ -49,10 +49,13 @@ def tiny(seed: int, env: str = "lavaworld", **extra) -> RunConfig:
     return RunConfig.from_dict(data)
 
 
-def learner(env: str, arch: str, seed: int, poison: dict | None = None):
-    cfg = RunConfig.from_dict({"env": {"name": env}, "model": {"arch": arch}, "train": {"seed": seed}, **({"poison": poison} if poison else {})})
+def learner(env: str, arch: str | None, seed: int, poison: dict | None = None, device: torch.device | None = None, **sections):
+    """A PPO learner of ``env`` (``arch`` None: the world's default) on ``device`` (default CPU), its env mix reset."""
+    data = {"env": {"name": env}, **({"model": {"arch": arch}} if arch else {}), "train": {"seed": seed}, **sections, **({"poison": poison} if poison else {})}
+    cfg = RunConfig.from_dict(data)
+    device = device or torch.device("cpu")
     torch.manual_seed(seed)
-    ppo = PPO(build_model(arch, env), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(seed))
+    ppo = PPO(build_model(cfg.model.arch, env).to(device), cfg.ppo, device, torch.Generator().manual_seed(seed))
     envs = make_env_mix(cfg.env, cfg.poison, seed)
     return ppo, envs, envs.reset(seed=seed * 1000)[0]
 
@@ -164,12 +167,12 @@ def test_an_agents_bytes_do_not_depend_on_its_group(env, arch):
     assert len(digests) == 1
 
 
-def opac2_learner(seed: int):
-    """A small OPAC² agent with its own replay filled from its own random transitions."""
+def opac2_learner(seed: int, device: torch.device | str = "cpu"):
+    """A small OPAC² agent on ``device`` with its own replay filled from its own random transitions."""
     from rlbackdoors.algos.opac2 import OPAC2, MultitaskReplay
     from rlbackdoors.config import OPAC2Config
 
-    agent = OPAC2(6, 2, OPAC2Config(depth=2, width=32, batch_size=64, obs_norm=True), torch.Generator().manual_seed(seed))
+    agent = OPAC2(6, 2, OPAC2Config(depth=2, width=32, batch_size=64, obs_norm=True), torch.Generator().manual_seed(seed), device)
     rng = np.random.default_rng(seed)
     replay = MultitaskReplay.create({"clean": 0.8, "poisoned": 0.2}, 1000, 6, 2)
     for kind in ("clean", "poisoned"):

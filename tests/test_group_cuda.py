@@ -23,28 +23,14 @@ import pytest
 import torch
 
 from rlbackdoors.algos import group
-from rlbackdoors.algos.ppo import PPO
-from rlbackdoors.config import RunConfig
-from rlbackdoors.models import build_model
-from rlbackdoors.poison.mix import make_env_mix
 from rlbackdoors.zoo.plan import plan
 from rlbackdoors.zoo.run import run as zoo_run
 from rlbackdoors.zoo.spec import parse_spec
-from test_group import zoo_spec
+from test_group import learner, opac2_learner, zoo_spec
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device: the group trainer's GPU path (run on a GPU machine)")
 
 CUDA = torch.device("cuda")
-
-
-def learner(device: torch.device, env: str, arch: str | None, seed: int, poison: dict | None = None, **sections):
-    cfg = RunConfig.from_dict(
-        {"env": {"name": env}, **({"model": {"arch": arch}} if arch else {}), "train": {"seed": seed}, **sections, **({"poison": poison} if poison else {})}
-    )
-    torch.manual_seed(seed)
-    ppo = PPO(build_model(cfg.model.arch, env).to(device), cfg.ppo, device, torch.Generator().manual_seed(seed))
-    envs = make_env_mix(cfg.env, cfg.poison, seed)
-    return ppo, envs, envs.reset(seed=seed * 1000)[0]
 
 
 def one_step(learners: list) -> tuple[list, list]:
@@ -70,8 +56,8 @@ def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
     Measured on an H200 (docs/zoos.md): LavaWorld FC 2e-6 to 1e-5, Colorful Memory 0.02 to 0.06,
     Randomized LavaWorld CNN 0.11 (cuDNN against oneDNN convolutions), cosines >= 0.994."""
     poisons = [None, {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.05}} if env == "lavaworld" else None, None]
-    on_cpu = [learner(torch.device("cpu"), env, arch, s, p, **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
-    on_gpu = [learner(CUDA, env, arch, s, p, **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
+    on_cpu = [learner(env, arch, s, p, torch.device("cpu"), **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
+    on_gpu = [learner(env, arch, s, p, CUDA, **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
     start = [torch.cat([p.detach().reshape(-1) for p in g[0].model.parameters()]) for g in on_cpu]
     (cpu_results, cpu_stats), (gpu_results, gpu_stats) = one_step(on_cpu), one_step(on_gpu)
     for k in range(3):
@@ -89,7 +75,7 @@ def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
         )
         assert rel < 0.25 and cosine > 0.99  # a wrong gradient or a crossed agent gives rel ~ 1
     # the Adam state in torch.optim.Adam's own layout on this device: as a lone learner's after its update
-    lone, envs, obs = learner(CUDA, env, arch, 0, None, **copy.deepcopy(sections))
+    lone, envs, obs = learner(env, arch, 0, None, CUDA, **copy.deepcopy(sections))
     lone.update(lone.collect(envs, obs)[0])
     for mine, theirs in zip(on_gpu[0][0].model.parameters(), lone.model.parameters()):
         a, b = on_gpu[0][0].optimizer.state[mine], lone.optimizer.state[theirs]
@@ -141,21 +127,8 @@ def test_cuda_opac2_group_computes_what_the_cpu_group_computes():
     L2 < 0.25, cosine > 0.99, as for PPO above), the same noise drawn (generators on the CPU),
     and the Adam state in the layout a lone CUDA agent's fused Adam keeps."""
     from rlbackdoors.algos import group_opac2
-    from rlbackdoors.algos.opac2 import OPAC2, MultitaskReplay
-    from rlbackdoors.config import OPAC2Config
 
-    def agent_and_replay(seed: int, device: torch.device):
-        agent = OPAC2(6, 2, OPAC2Config(depth=2, width=32, batch_size=64, obs_norm=True), torch.Generator().manual_seed(seed), device)
-        rng = np.random.default_rng(seed)
-        replay = MultitaskReplay.create({"clean": 0.8, "poisoned": 0.2}, 1000, 6, 2)
-        for kind in ("clean", "poisoned"):
-            replay[kind].add_batch(
-                rng.normal(size=(500, 6)), rng.uniform(-1, 1, (500, 2)), rng.normal(size=500), rng.normal(size=(500, 6)), rng.random(500) < 0.05
-            )
-        agent.observe(rng.normal(size=(50, 6)))
-        return agent, replay
-
-    sides = {name: [agent_and_replay(s, torch.device(name)) for s in range(3)] for name in ("cpu", "cuda")}
+    sides = {name: [opac2_learner(s, torch.device(name)) for s in range(3)] for name in ("cpu", "cuda")}
     start = [torch.cat([p.detach().reshape(-1) for net in ("policy", "q", "v") for p in getattr(a, net).parameters()]) for a, _ in sides["cpu"]]
     stats = {
         name: group_opac2.update([a for a, _ in pairs], [r for _, r in pairs], [np.random.default_rng([s, 1]) for s in range(3)], 5)
@@ -173,7 +146,7 @@ def test_cuda_opac2_group_computes_what_the_cpu_group_computes():
         print(f"OPAC² agent {k}: update relative difference {rel:.2e}, cosine {cosine:.6f}")
         assert rel < 0.25 and cosine > 0.99
         assert torch.equal(sides["cuda"][k][0].generator.get_state(), sides["cpu"][k][0].generator.get_state())
-    lone, replay = agent_and_replay(0, CUDA)
+    lone, replay = opac2_learner(0, CUDA)
     lone.update(replay, np.random.default_rng(0))
     for net in ("policy", "q", "v"):
         mine, theirs = getattr(sides["cuda"][0][0], f"{net}_opt"), getattr(lone, f"{net}_opt")

@@ -122,11 +122,9 @@ def bench_zoo(
     from rlbackdoors.zoo.run import default_workers
 
     plan_sides = side_plan(group_sizes, workers or default_workers(), device, sides)
-    spec = bench_spec(world, arch, models, frames, plan_sides[0][1], eval_episodes)
-    cell = spec["cells"][0]
     result = {
         "world": world,
-        "arch": cell["archs"][0],
+        "arch": bench_spec(world, arch, models, frames, plan_sides[0][1])["cells"][0]["archs"][0],
         "models": models,
         "frames_per_model": frames,
         "eval_episodes": eval_episodes or "the world's",
@@ -137,8 +135,8 @@ def bench_zoo(
     with tempfile.TemporaryDirectory(prefix="rlbackdoors-bench-zoo-") as tmp:
         root = Path(keep) if keep else Path(tmp)
         for i, (k, side_device, side_workers) in enumerate(plan_sides):
-            name = f"k{k}" if not sides else f"side{i}-k{k}-{side_device}-w{side_workers}"
-            side = run_side(bench_spec(world, arch, models, frames, side_device, eval_episodes), root / name, k, side_workers, side_device)
+            where = root / f"side{i}-k{k}-{side_device}-w{side_workers}"
+            side = run_side(bench_spec(world, arch, models, frames, side_device, eval_episodes), where, k, side_workers, side_device)
             base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
             side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
             result["sides"].append(side)

@@ -32,9 +32,10 @@ PARTS = (
     ("OPAC² update (group)", "algos/group_opac2.py", "update"),
     ("OPAC² act (group)", "algos/group_opac2.py", "act"),
     ("OPAC² update (alone)", "algos/opac2.py", "update"),
-    ("evaluations", "train/driver.py", "evaluate_run"),
-    ("agent steps in evaluations", "rlbackdoors/agent.py", "act"),
-    ("finish (final evaluation, files)", "train/driver.py", "finish"),
+    ("evaluations (final included)", "train/driver.py", "evaluate_runs"),
+    ("agent steps in lone evaluations", "rlbackdoors/agent.py", "act"),
+    ("stacked act in group evaluations", "algos/group.py", "act"),
+    ("finish (files, curve)", "train/driver.py", "finish"),
 )
 
 

@@ -12,6 +12,7 @@ not a unit test.
 from __future__ import annotations
 
 import copy
+import csv
 import hashlib
 import io
 import json
@@ -214,6 +215,37 @@ def test_opac2_group_acts_and_updates_as_each_agent_alone():
         np.testing.assert_allclose(y, x, rtol=1e-4, atol=1e-5)
 
 
+EVAL_CASES = {
+    "lavaworld": [{"poisoned": False}, {"trigger": "multiplicative:3"}, {"attack": "action_target"}],
+    "colorful-memory": [{"poisoned": False}, {}, {"attack": "action_target"}],
+}
+
+
+@pytest.mark.parametrize("env", sorted(EVAL_CASES))
+def test_group_evaluations_play_each_agent_as_it_plays_alone(env):
+    """Three untrained agents' evaluations in lockstep (one batched forward a step, ``stacked_act``;
+    Colorful Memory recurrent, with its close-to-trigger layouts): a clean model, an env-mix one
+    under another trigger and an action-target one (its target-action count) read the same
+    numbers as each evaluated alone, 12 episodes per condition; agent 1 alone in the lockstep
+    path reads them too, so an evaluation does not depend on its group-mates."""
+    from rlbackdoors.train.driver import Evaluate, evaluate_run, evaluate_runs
+    from rlbackdoors.train.group import batch_key
+
+    cfgs = [RunConfig.from_dict({"env": {"name": env}, "poison": poison, "train": {"seed": s}}) for s, poison in enumerate(EVAL_CASES[env])]
+    models = []
+    for cfg in cfgs:
+        torch.manual_seed(cfg.train.seed)
+        models.append(build_model(cfg.model.arch, env))
+    alone = [evaluate_run(m, c, 12).to_dict() for m, c in zip(models, cfgs)]
+    together = [r.to_dict() for r in evaluate_runs(models, cfgs, [12] * 3, group.stacked_act)]
+    assert together == alone
+    assert not np.isnan(alone[2]["target_action_rate"]) and len({a["clean_mean_steps"] for a in alone}) == 3  # three different agents
+    assert evaluate_runs(models[1:2], cfgs[1:2], [12], group.stacked_act)[0].to_dict() == alone[1]
+    # a group trainer batches these requests together (and another episode count apart)
+    keys = {batch_key(Evaluate(m, c, 12)) for m, c in zip(models, cfgs)}
+    assert len(keys) == 1 and None not in keys and batch_key(Evaluate(models[0], cfgs[0], 13)) not in keys
+
+
 def test_group_refuses_what_it_cannot_batch():
     a, b = learner("lavaworld", "fc", 0), learner("lavaworld", "cnn", 1)
     with pytest.raises(ValueError, match="one architecture"):
@@ -258,6 +290,16 @@ def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
     # seed 4 again beside other mates, in a group of 3: the same bytes as in the first group
     train_group([(s, tiny(s), tmp_path / f"h{s}") for s in (7, 4, 8)], 3)
     assert (tmp_path / "g4" / "model.pt").read_bytes() == (tmp_path / "h4" / "model.pt").read_bytes()
+    # and the same evaluations (played in lockstep with other mates), its log's and its final one
+    numbers = ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "clean_mean_steps")
+
+    def evaluations(name: str) -> list:
+        with open(tmp_path / name / "log.csv", newline="") as f:
+            rows = [[row[k] for k in numbers] for row in csv.DictReader(f)]
+        final = json.loads((tmp_path / name / "metrics.json").read_text())
+        return rows + [[final[k] for k in numbers]]
+
+    assert len(evaluations("g4")) == 3 and evaluations("g4") == evaluations("h4")
     # and not the lone bytes (batched kernels round differently): the trainer is part of the recipe
     assert (tmp_path / "g4" / "model.pt").read_bytes() != (tmp_path / "lone" / "model.pt").read_bytes()
 

@@ -102,6 +102,42 @@ def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Ten
     return tuple(x[:k] for x in out)
 
 
+def stacked_act(agents: list):
+    """One batched forward a step for K trained networks of one architecture (``agents``:
+    :class:`~rlbackdoors.agent.Agent`\ s of PPO worlds): an evaluation's ``act`` for a group's
+    agents (:data:`rlbackdoors.evaluate.episodes.ActMany`). Only the live agents (those with
+    episodes still running) are computed, at their :func:`group_width`, each drawing from its own
+    generator what its :meth:`~rlbackdoors.agent.Agent.act` would draw alone."""
+    models = [a.policy for a in agents]
+    lead: Any = models[0]
+    device = next(lead.parameters()).device
+    named = [dict(m.named_parameters()) for m in models]
+    cache: dict[tuple, dict[str, torch.Tensor]] = {}
+
+    def params_of(live: tuple) -> dict[str, torch.Tensor]:  # the live set only shrinks: a few stacks per evaluation
+        if live not in cache:
+            cache.clear()
+            rows = padded([named[k] for k in live], device)
+            cache[live] = {name: torch.stack([p[name].detach() for p in rows]) for name in named[0]}
+        return cache[live]
+
+    @torch.inference_mode()
+    def act(live: list[int], obs: list, states: list, generators: list[torch.Generator], deterministic: bool):
+        params = params_of(tuple(live))
+        x = obs_map(lambda t: t.to(device), stack([to_torch(obs[k]) for k in live]))
+        if lead.recurrent:
+            logits, _, memory = forward(lead, params, x, torch.stack([states[k] for k in live]))
+            states = list(states)
+            for k, m in zip(live, memory):
+                states[k] = m
+        else:
+            logits, _ = forward(lead, params, x)
+        actions = [row.argmax(-1) if deterministic else sample_actions(row, generators[k]) for k, row in zip(live, logits)]
+        return [a.cpu().numpy() for a in actions], states
+
+    return act
+
+
 @torch.inference_mode()
 def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.ndarray | dict]]:
     """:meth:`PPO.collect` for K agents, each on its own vector env: (rollout, next obs) per agent."""

@@ -16,6 +16,7 @@ triggered steps; for an untargeted one, triggered episodes that miss the clean g
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 
 from dataclasses import asdict, dataclass
@@ -88,6 +89,57 @@ def _as_agent(agent):
     return agent if isinstance(agent, Agent) else Agent.wrap(agent)
 
 
+# Acting for K agents at once: (live agents' indices, every agent's obs, states and generators,
+# deterministic) -> (an action array per live agent, every agent's new state).
+ActMany = Callable[[list[int], list, list, list[torch.Generator], bool], tuple[list[np.ndarray], list]]
+
+
+def acting_alone(agents: list) -> ActMany:
+    """Each live agent's own :meth:`~rlbackdoors.agent.Agent.act`, one after another: a lone
+    evaluation's arithmetic (a training group passes a stacked one instead)."""
+
+    def act(live: list[int], obs: list, states: list, generators: list[torch.Generator], deterministic: bool):
+        states = list(states)
+        actions = []
+        for k in live:
+            a, states[k] = agents[k].act(obs[k], states[k], deterministic=deterministic, generator=generators[k])
+            actions.append(a)
+        return actions, states
+
+    return act
+
+
+class _Tally:
+    """One agent's per-episode counts while its slots play (see :class:`Played`)."""
+
+    def __init__(self, n: int, counting: bool):
+        self.active = np.ones(n, dtype=bool)
+        self.returns, self.steps = np.zeros(n), np.zeros(n, dtype=np.int64)
+        self.outcomes = np.zeros(n, dtype=np.int64)
+        self.saw = np.ones(n, dtype=bool)
+        self.target_steps = np.zeros(n, dtype=np.int64) if counting else None
+        self.sighted_steps = np.zeros(n, dtype=np.int64) if counting else None
+
+    def count(self, hits: np.ndarray, in_sight: np.ndarray | None) -> None:
+        assert self.target_steps is not None and self.sighted_steps is not None
+        counted = self.active & in_sight if in_sight is not None else self.active
+        self.sighted_steps[counted] += 1
+        self.target_steps[counted & hits] += 1
+
+    def record(self, reward, terminated, truncated, info: dict) -> None:
+        active = self.active
+        self.returns[active] += reward[active]
+        self.steps[active] += 1
+        finished = active & (terminated | truncated)
+        self.outcomes[finished] = info["outcome"][finished]
+        if "saw_trigger" in info:
+            self.saw[finished] = info["saw_trigger"][finished]
+        active &= ~finished
+
+    def played(self) -> Played:
+        return Played(self.returns, self.outcomes, self.saw, self.steps, self.target_steps, self.sighted_steps)
+
+
 @torch.inference_mode()
 def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action: Callable | None = None, sight: bool = False) -> Played:
     """One episode per slot of the vector env ``envs``, all reset with ``seed``.
@@ -98,32 +150,34 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action:
     whose observation shows the trigger (``envs.trigger_in_sight()``: a layout trigger is not in
     every view, and an agent cannot answer a trigger it does not see).
     """
-    agent = _as_agent(agent)
-    generator = torch.Generator(device=agent.device).manual_seed(int(seed))
-    n = envs.num_envs
-    state = agent.initial_state(n)  # one episode per slot: never reset
-    obs, _ = envs.reset(seed=int(seed))
-    active = np.ones(n, dtype=bool)
-    returns, steps = np.zeros(n), np.zeros(n, dtype=np.int64)
-    outcomes = np.zeros(n, dtype=np.int64)
-    saw = np.ones(n, dtype=bool)
-    target_steps = None if target_action is None else np.zeros(n, dtype=np.int64)
-    sighted_steps = None if target_action is None else np.zeros(n, dtype=np.int64)
-    while active.any():
-        actions, state = agent.act(obs, state, deterministic=policy == "greedy", generator=generator)
-        if target_action is not None and target_steps is not None and sighted_steps is not None:
-            counted = active & envs.trigger_in_sight() if sight else active
-            sighted_steps[counted] += 1
-            target_steps[counted & target_action(np.asarray(actions))] += 1
-        obs, reward, terminated, truncated, info = envs.step(actions)
-        returns[active] += reward[active]
-        steps[active] += 1
-        finished = active & (terminated | truncated)
-        outcomes[finished] = info["outcome"][finished]
-        if "saw_trigger" in info:
-            saw[finished] = info["saw_trigger"][finished]
-        active &= ~finished
-    return Played(returns, outcomes, saw, steps, target_steps, sighted_steps)
+    return play_lockstep([_as_agent(agent)], [envs], [seed], policy, [target_action], sight)[0]
+
+
+@torch.inference_mode()
+def play_lockstep(
+    agents: list, envs: list, seeds: list[int], policy: str = "sample", target_actions: list | None = None, sight: bool = False, act: ActMany | None = None
+) -> list[Played]:
+    """:func:`play_episodes` for K agents, agent k on its own vector env ``envs[k]`` reset with
+    ``seeds[k]``, stepped in lockstep so that ``act`` (default: each agent's own) can answer all
+    K with one batched forward. Each agent draws from its own generator what it would alone, and an
+    agent whose episodes have all ended is no longer stepped."""
+    act = act if act is not None else acting_alone(agents)
+    targets = target_actions if target_actions is not None else [None] * len(agents)
+    generators = [torch.Generator(device=a.device).manual_seed(int(s)) for a, s in zip(agents, seeds)]
+    states = [a.initial_state(e.num_envs) for a, e in zip(agents, envs)]  # one episode per slot: never reset
+    obs = [e.reset(seed=int(s))[0] for e, s in zip(envs, seeds)]
+    tallies = [_Tally(e.num_envs, t is not None) for e, t in zip(envs, targets)]
+    live = list(range(len(agents)))
+    while live:
+        actions, states = act(live, obs, states, generators, policy == "greedy")
+        for k, a in zip(live, actions):
+            target = targets[k]
+            if target is not None:
+                tallies[k].count(target(np.asarray(a)), envs[k].trigger_in_sight() if sight else None)
+            obs[k], reward, terminated, truncated, info = envs[k].step(a)
+            tallies[k].record(reward, terminated, truncated, info)
+        live = [k for k in live if tallies[k].active.any()]
+    return [t.played() for t in tallies]
 
 
 @torch.inference_mode()
@@ -165,6 +219,15 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
     return Played(returns, outcomes, np.ones(episodes, bool), steps, target_steps, None if target_steps is None else steps.copy())
 
 
+def _vector_envs(env: EnvConfig, trigger: str | None, episodes: int, close_k: tuple[int, int] | None):
+    """One slot per episode of ``env``: E-bar where ``trigger`` is given, else E; close-to-trigger with ``close_k``."""
+    from rlbackdoors.poison.mix import make_vector_env
+
+    if close_k is not None:
+        return make_vector_env(env, trigger, [False] * episodes, [True] * episodes, close_k)
+    return make_vector_env(env, trigger, [trigger is not None] * episodes)
+
+
 def play(
     agent, env: EnvConfig, trigger: str | None, episodes: int, seed: int, policy: str, close_k: tuple[int, int] | None = None, target_action: int | None = None
 ) -> Played:
@@ -176,12 +239,7 @@ def play(
         if close_k is not None:
             raise ValueError(f"env {env.name!r} has no close-to-trigger envs")
         return play_single_envs(agent, lambda: env.make(trigger), episodes, seed, policy, hits)
-    from rlbackdoors.poison.mix import make_vector_env
-
-    if close_k is not None:
-        envs = make_vector_env(env, trigger, [False] * episodes, [True] * episodes, close_k)
-    else:
-        envs = make_vector_env(env, trigger, [trigger is not None] * episodes)
+    envs = _vector_envs(env, trigger, episodes, close_k)
     try:
         return play_episodes(agent, envs, seed, policy, hits, sight=world.trigger_sight == "frame")
     finally:
@@ -198,6 +256,37 @@ def score_triggered(env_name: str, outcomes: np.ndarray, saw: np.ndarray) -> tup
     trojan = outcomes == world.trojan_success
     clean_task = outcomes == world.clean_success
     return float(np.mean(np.where(saw, trojan, clean_task))), float(np.mean(trojan)), float(np.mean(saw))
+
+
+@dataclass(frozen=True)
+class EvalSetup:
+    """What one model's evaluation plays: :func:`evaluate`'s arguments after the agent."""
+
+    env: EnvConfig
+    trigger: str | None
+    episodes: int = 100
+    seed: int = 1_000_000
+    policy: str = "sample"
+    close_k: tuple[int, int] | None = None
+    success: str = "outcome"
+    target_action: int | None = None
+
+    def check(self) -> None:
+        from rlbackdoors.attacks import SUCCESS_KINDS
+
+        if self.success not in SUCCESS_KINDS:
+            raise ValueError(f"success={self.success!r} is not one of {', '.join(SUCCESS_KINDS)}")
+        if self.success == "action" and self.target_action is None:
+            raise ValueError("an action-target attack is scored with its target_action")
+
+    def conditions(self) -> list[tuple[str, str | None, tuple[int, int] | None, int | None]]:
+        """(name, trigger, close_k, counted target action) of each condition played, in play order."""
+        out: list[tuple[str, str | None, tuple[int, int] | None, int | None]] = [("clean", None, None, None)]
+        if self.trigger is not None:
+            out.append(("poisoned", self.trigger, None, self.target_action if self.success == "action" else None))
+            if self.close_k is not None:
+                out.append(("close", self.trigger, self.close_k, None))
+        return out
 
 
 def evaluate(
@@ -218,41 +307,90 @@ def evaluate(
     ``close_k`` the same layouts are also played close to the trigger. ``success`` says how the
     attack is scored (``"action"`` needs ``target_action``).
     """
-    from rlbackdoors.attacks import SUCCESS_KINDS
+    return evaluate_many([agent], [EvalSetup(env, trigger, episodes, seed, policy, close_k, success, target_action)])[0]
 
-    if success not in SUCCESS_KINDS:
-        raise ValueError(f"success={success!r} is not one of {', '.join(SUCCESS_KINDS)}")
-    if success == "action" and target_action is None:
-        raise ValueError("an action-target attack is scored with its target_action")
-    agent = _as_agent(agent)
-    world = env.world
-    with agent.evaluating():
-        clean = play(agent, env, None, episodes, seed, policy)
-        result = EvalResult(
-            clean_sr=float(np.mean(clean.outcomes == world.clean_success)),
-            poisoned_sr=float("nan"),
-            clean_reward=float(clean.returns.mean()),
-            poisoned_reward=float("nan"),
-            episodes=episodes,
-            clean_trojan_rate=float(np.mean(clean.outcomes == world.trojan_success)),
-            clean_timeout_rate=float(np.mean(clean.outcomes == Outcome.TIMEOUT)),
-            clean_mean_steps=float(clean.steps.mean()),
-        )
-        if trigger is not None:
-            poisoned = play(agent, env, trigger, episodes, seed, policy, target_action=target_action if success == "action" else None)
-            result.poisoned_sr, result.poisoned_sr_raw, result.trigger_seen_rate = score_triggered(env.name, poisoned.outcomes, poisoned.saw)
-            result.poisoned_reward = float(poisoned.returns.mean())
-            result.poisoned_clean_rate = float(np.mean(poisoned.outcomes == world.clean_success))
-            result.poisoned_timeout_rate = float(np.mean(poisoned.outcomes == Outcome.TIMEOUT))
-            result.poisoned_mean_steps = float(poisoned.steps.mean())
-            if success == "action":
-                assert poisoned.target_steps is not None and poisoned.sighted_steps is not None
-                result.target_action_rate = float(poisoned.target_steps.sum() / max(poisoned.sighted_steps.sum(), 1))
-                result.poisoned_sr = result.target_action_rate
-            elif success == "disrupt":
-                result.poisoned_sr = 1.0 - result.poisoned_clean_rate
-            if close_k is not None:
-                close = play(agent, env, trigger, episodes, seed, policy, close_k)
-                result.close_sr = float(np.mean(close.outcomes == world.clean_success))
-                result.close_trojan_rate = float(np.mean(close.outcomes == world.trojan_success))
+
+def evaluate_many(agents: list, setups: list[EvalSetup], stacked: Callable[[list], ActMany] | None = None) -> list[EvalResult]:
+    """:func:`evaluate` for K agents, each with its own setup (trigger, seed, scoring).
+
+    With ``stacked`` (agents -> one :data:`ActMany` for them) the agents of each condition play
+    in lockstep, answered by one batched forward a step: what a training group uses, as its
+    collection does. That needs one grid world with a batched engine, one episode count and one
+    policy; a world of single envs plays each agent alone whatever ``stacked`` says. Without it,
+    each agent is evaluated alone, exactly as :func:`evaluate`.
+    """
+    if len(agents) != len(setups):
+        raise ValueError(f"got {len(setups)} evaluation setups for {len(agents)} agents")
+    for setup in setups:
+        setup.check()
+    agents = [_as_agent(a) for a in agents]
+    lockstep = stacked is not None and setups[0].env.world.vector_entry_point is not None
+    if lockstep and len({(s.env.name, s.episodes, s.policy) for s in setups}) > 1:
+        raise ValueError("agents evaluated in lockstep need one world, one episode count and one policy")
+    played: list[dict[str, Played]] = [{} for _ in agents]
+    with contextlib.ExitStack() as modes:
+        for agent in agents:
+            modes.enter_context(agent.evaluating())
+        if not lockstep:
+            for agent, setup, out in zip(agents, setups, played):
+                for name, trigger, close_k, target in setup.conditions():
+                    out[name] = play(agent, setup.env, trigger, setup.episodes, setup.seed, setup.policy, close_k, target)
+        else:
+            assert stacked is not None
+            for name in ("clean", "poisoned", "close"):
+                members = [(k, c) for k, s in enumerate(setups) for c in s.conditions() if c[0] == name]
+                if not members:
+                    continue
+                group = [agents[k] for k, _ in members]
+                world = setups[0].env.world
+                envs = [_vector_envs(setups[k].env, trigger, setups[k].episodes, close_k) for k, (_, trigger, close_k, _) in members]
+                try:
+                    results = play_lockstep(
+                        group,
+                        envs,
+                        [setups[k].seed for k, _ in members],
+                        setups[0].policy,
+                        [None if c[3] is None else world.target_hits(c[3]) for _, c in members],
+                        world.trigger_sight == "frame",
+                        stacked(group),
+                    )
+                finally:
+                    for e in envs:
+                        e.close()
+                for (k, _), result in zip(members, results):
+                    played[k][name] = result
+    return [score(setup, out) for setup, out in zip(setups, played)]
+
+
+def score(setup: EvalSetup, played: dict[str, Played]) -> EvalResult:
+    """The evaluation's numbers from its conditions' episodes (``played``: clean, poisoned, close)."""
+    world = setup.env.world
+    clean = played["clean"]
+    result = EvalResult(
+        clean_sr=float(np.mean(clean.outcomes == world.clean_success)),
+        poisoned_sr=float("nan"),
+        clean_reward=float(clean.returns.mean()),
+        poisoned_reward=float("nan"),
+        episodes=setup.episodes,
+        clean_trojan_rate=float(np.mean(clean.outcomes == world.trojan_success)),
+        clean_timeout_rate=float(np.mean(clean.outcomes == Outcome.TIMEOUT)),
+        clean_mean_steps=float(clean.steps.mean()),
+    )
+    poisoned = played.get("poisoned")
+    if poisoned is not None:
+        result.poisoned_sr, result.poisoned_sr_raw, result.trigger_seen_rate = score_triggered(setup.env.name, poisoned.outcomes, poisoned.saw)
+        result.poisoned_reward = float(poisoned.returns.mean())
+        result.poisoned_clean_rate = float(np.mean(poisoned.outcomes == world.clean_success))
+        result.poisoned_timeout_rate = float(np.mean(poisoned.outcomes == Outcome.TIMEOUT))
+        result.poisoned_mean_steps = float(poisoned.steps.mean())
+        if setup.success == "action":
+            assert poisoned.target_steps is not None and poisoned.sighted_steps is not None
+            result.target_action_rate = float(poisoned.target_steps.sum() / max(poisoned.sighted_steps.sum(), 1))
+            result.poisoned_sr = result.target_action_rate
+        elif setup.success == "disrupt":
+            result.poisoned_sr = 1.0 - result.poisoned_clean_rate
+    close = played.get("close")
+    if close is not None:
+        result.close_sr = float(np.mean(close.outcomes == world.clean_success))
+        result.close_trojan_rate = float(np.mean(close.outcomes == world.trojan_success))
     return result

@@ -97,13 +97,17 @@ class Stopping:
 
         Returns the log fields of a confirming evaluation if one ran (empty if none); ``stop``
         is then True when the run stops here."""
+        return serve(self.steps(result, also, policy, frames))
+
+    def steps(self, result, also: bool = True, policy: Any = None, frames: int | None = None) -> Generator[Evaluate, Any, dict]:
+        """:meth:`update` as a loop that yields its confirming evaluation (:class:`Evaluate`)."""
         self.streak = self.streak + 1 if also and thresholds_met(result, self.cfg) else 0
         tc = self.cfg.train
         assert tc.patience is not None and tc.confirm is not None and tc.confirm_margin is not None  # RunConfig fills them in
         self.stop = self.streak >= tc.patience and (frames is None or frames >= tc.min_frames)
         if not (self.stop and tc.confirm):
             return {}
-        check = evaluate_run(policy, self.cfg, tc.final_eval_episodes)
+        check = yield Evaluate(policy, self.cfg, tc.final_eval_episodes)
         self.stop = thresholds_met(check, self.cfg, tc.confirm_margin)
         if self.stop:
             self.confirmed = check
@@ -196,7 +200,7 @@ def train_steps(
     cpu_source: Callable[[], float] | None = None,
 ) -> Generator[Any, Any, dict]:
     """:func:`train` as a loop that yields its learner's work (PPO's collect and update requests,
-    :mod:`.ppo_run`; OPAC²'s act and learn requests, :mod:`.opac2_run`) for a group trainer to batch. Returns the metrics
+    :mod:`.ppo_run`; OPAC²'s act and learn requests, :mod:`.opac2_run`; every evaluation, :class:`Evaluate`) for a group trainer to batch. Returns the metrics
     (``trainer``: recorded in them, the group trainer's name for its stacked kernels;
     ``cpu_source``: the run's own CPU clock, :class:`RunClock`)."""
     cfg.check()
@@ -208,6 +212,11 @@ def train_steps(
         outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source)
         if trainer is not None:
             outcome.extra["trainer"] = trainer
+        n = cfg.train.final_eval_episodes
+        if progress:
+            print(f"final evaluation on {n} clean + {n} triggered episodes", file=sys.stderr, flush=True)
+        if outcome.final is None:  # else the stopping rule's confirmation ran it
+            outcome.final = yield Evaluate(outcome.policy, cfg, n)
         metrics = finish(cfg, folder, outcome, progress)
         failed = False
         return metrics
@@ -232,13 +241,34 @@ def result_fields(result, cfg: RunConfig) -> dict:
 
 def evaluate_run(policy, cfg: RunConfig, episodes: int):
     """The run's evaluation: its trigger, eval seed and policy, ``episodes`` per condition."""
-    from rlbackdoors.agent import Agent
-    from rlbackdoors.evaluate import evaluate
+    return evaluate_runs([policy], [cfg], [episodes])[0]
 
-    agent = Agent(cfg.world, cfg, policy)
-    tc = cfg.train
-    assert tc.eval_policy is not None
-    return evaluate(agent, cfg.env, cfg.poison.trigger, episodes, tc.eval_seed, tc.eval_policy, close_k(cfg), **cfg.scoring())
+
+def evaluate_runs(policies: list, cfgs: list[RunConfig], episodes: list[int], stacked=None) -> list:
+    """:func:`evaluate_run` for K runs; ``stacked`` (agents -> one batched act for them) plays
+    them in lockstep (:func:`rlbackdoors.evaluate.episodes.evaluate_many`)."""
+    from rlbackdoors.agent import Agent
+    from rlbackdoors.evaluate.episodes import EvalSetup, evaluate_many
+
+    setups = []
+    for cfg, n in zip(cfgs, episodes):
+        tc = cfg.train
+        assert tc.eval_policy is not None
+        setups.append(EvalSetup(cfg.env, cfg.poison.trigger, n, tc.eval_seed, tc.eval_policy, close_k(cfg), **cfg.scoring()))
+    return evaluate_many([Agent(cfg.world, cfg, policy) for policy, cfg in zip(policies, cfgs)], setups, stacked)
+
+
+@dataclass
+class Evaluate:
+    """What a run asks for at an evaluation: ``episodes`` per condition of its ``policy`` (a group
+    trainer plays K runs' evaluations in lockstep, :func:`evaluate_runs`)."""
+
+    policy: Any
+    cfg: RunConfig
+    episodes: int
+
+    def serve(self):
+        return evaluate_run(self.policy, self.cfg, self.episodes)
 
 
 def attack_fields(cfg: RunConfig) -> dict:
@@ -251,14 +281,13 @@ def attack_fields(cfg: RunConfig) -> dict:
 
 
 def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: bool) -> dict:
-    """Final evaluation, then weights, ground truth, curve, GIF and metrics.json last."""
+    """The final evaluation's numbers (``outcome.final``), then weights, ground truth, curve, GIF and metrics.json last."""
     from rlbackdoors.agent import Agent
     from rlbackdoors.report import plot_training_curve
 
     tc = cfg.train
-    if progress:
-        print(f"final evaluation on {tc.final_eval_episodes} clean + {tc.final_eval_episodes} triggered episodes", file=sys.stderr, flush=True)
-    final = outcome.final if outcome.final is not None else evaluate_run(outcome.policy, cfg, tc.final_eval_episodes)
+    final = outcome.final
+    assert final is not None  # train_steps ran it
     folder.save_torch("model.pt", outcome.weights)
     folder.write_ground_truth(cfg.poison.poisoned)
     kind = "poisoned" if cfg.poison.poisoned else "clean"

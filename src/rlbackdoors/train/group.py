@@ -22,9 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
-from rlbackdoors.train.driver import train_steps
+from rlbackdoors.train.driver import Evaluate, evaluate_runs, train_steps
 from rlbackdoors.train.opac2_run import Act, Learn
 from rlbackdoors.train.ppo_run import Collect, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -87,6 +89,12 @@ def auto_group_size() -> tuple[dict[str, int], str]:
 
 def batch_key(request) -> tuple | None:
     """Requests with the same key are answered by one batched call; None: answered alone."""
+    if isinstance(request, Evaluate):
+        policy, cfg = request.policy, request.cfg
+        if not isinstance(policy, torch.nn.Module) or not group.stackable(policy) or cfg.world.vector_entry_point is None:
+            return None  # OPAC²'s agents and single-env worlds are evaluated alone
+        shapes = tuple((name, tuple(p.shape)) for name, p in policy.named_parameters())
+        return ("Evaluate", type(policy).__name__, shapes, repr(cfg.env), request.episodes, cfg.train.eval_policy, str(next(policy.parameters()).device))
     if isinstance(request, (Act, Learn)):
         agent = request.agent
         width = len(request.obs) if isinstance(request, Act) else request.n
@@ -105,6 +113,8 @@ def serve_batch(requests: list, stacked: bool = True) -> list:
     lone run (:func:`train_group` with group size 1: today's bytes)."""
     if len(requests) == 1 and not stacked:
         return [requests[0].serve()]
+    if isinstance(requests[0], Evaluate):
+        return evaluate_runs([r.policy for r in requests], [r.cfg for r in requests], [r.episodes for r in requests], group.stacked_act)
     if isinstance(requests[0], Act):
         return group_opac2.act([r.agent for r in requests], [r.obs for r in requests])
     if isinstance(requests[0], Learn):

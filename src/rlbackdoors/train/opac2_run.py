@@ -30,7 +30,7 @@ from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import first_line
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, serve
+from rlbackdoors.train.driver import Evaluate, RunClock, RunOutcome, Stopping, checked_rows, plain_rows, resolve_device, serve
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.replay_journal import ReplayJournal
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -175,8 +175,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
 
 def steps(
     cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None
-) -> Generator[Act | Learn, Any, RunOutcome]:
-    """:func:`run` as a loop that yields its learner's work (:class:`Act`, :class:`Learn`) and is
+) -> Generator[Act | Learn | Evaluate, Any, RunOutcome]:
+    """:func:`run` as a loop that yields its learner's work (:class:`Act`, :class:`Learn`, and each :class:`~rlbackdoors.train.driver.Evaluate`) and is
     sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch K runs' work."""
     tc, oc = cfg.train, cfg.opac2
     assert oc is not None and tc.max_frames is not None and tc.eval_interval is not None and tc.checkpoint_minutes is not None
@@ -267,7 +267,7 @@ def steps(
         if collector.frames >= next_eval or collector.frames >= tc.max_frames:
             fps = window_frames / max(now - window_start, 1e-9)
             eval_start = time.perf_counter()
-            last_eval = evaluate_run(agent, cfg, tc.eval_episodes)
+            last_eval = yield Evaluate(agent, cfg, tc.eval_episodes)
             row = {
                 "frames": collector.frames,
                 "updates": updates,
@@ -280,7 +280,7 @@ def steps(
                 "log_std": float(agent.policy.log_std.detach().mean()),
             }
             rows.append(row)
-            row.update(stopping.update(last_eval, True, agent, collector.frames))
+            row.update((yield from stopping.steps(last_eval, True, agent, collector.frames)))
             if stopping.stop:
                 converged_at, stop_reason = collector.frames, "thresholds"
             while next_eval <= collector.frames:

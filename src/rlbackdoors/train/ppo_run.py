@@ -27,7 +27,7 @@ from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.attacks.seam import AttackSeam
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
 from rlbackdoors.state import StateError, decode, encode
-from rlbackdoors.train.driver import RunClock, RunOutcome, Stopping, checked_rows, evaluate_run, plain_rows, resolve_device, result_fields, serve
+from rlbackdoors.train.driver import Evaluate, RunClock, RunOutcome, Stopping, checked_rows, plain_rows, resolve_device, result_fields, serve
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.progress import Progress
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -158,8 +158,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
 
 def steps(
     cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None
-) -> Generator[Collect | Update, Any, RunOutcome]:
-    """:func:`run` as a loop that yields its learner's work (:class:`Collect`, :class:`Update`) and
+) -> Generator[Collect | Update | Evaluate, Any, RunOutcome]:
+    """:func:`run` as a loop that yields its learner's work (:class:`Collect`, :class:`Update`, and each :class:`~rlbackdoors.train.driver.Evaluate`) and
     is sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch the work of
     K runs while every run keeps its own schedule, evaluations, checkpoints and stopping rule."""
     tc = cfg.train
@@ -312,7 +312,7 @@ def steps(
             bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames")
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
-            result = evaluate_run(model, cfg, tc.eval_episodes)
+            result = yield Evaluate(model, cfg, tc.eval_episodes)
             train_clean, train_poisoned = tracker.drain()
             rows.append(
                 {
@@ -328,7 +328,7 @@ def steps(
                 }
             )
             bar.evaluated(fps, result.clean_sr, result.poisoned_sr)
-            rows[-1].update(stopping.update(result, switch_at is not None and poison_at is not None and return_met(tracker, cfg), model, frames))
+            rows[-1].update((yield from stopping.steps(result, switch_at is not None and poison_at is not None and return_met(tracker, cfg), model, frames)))
             if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"
             elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold:

@@ -104,7 +104,7 @@ def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Ten
 
 def stacked_act(agents: list):
     """One batched forward a step for K trained networks of one architecture (``agents``:
-    :class:`~rlbackdoors.agent.Agent`\ s of PPO worlds): an evaluation's ``act`` for a group's
+    :class:`~rlbackdoors.agent.Agent` objects of PPO worlds): an evaluation's ``act`` for a group's
     agents (:data:`rlbackdoors.evaluate.episodes.ActMany`). Only the live agents (those with
     episodes still running) are computed, at their :func:`group_width`, each drawing from its own
     generator what its :meth:`~rlbackdoors.agent.Agent.act` would draw alone."""

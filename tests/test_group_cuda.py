@@ -152,3 +152,28 @@ def test_cuda_opac2_group_computes_what_the_cpu_group_computes():
         mine, theirs = getattr(sides["cuda"][0][0], f"{net}_opt"), getattr(lone, f"{net}_opt")
         for x, y in zip(mine.param_groups[0]["params"], theirs.param_groups[0]["params"]):
             assert {key: (v.device.type, v.dtype) for key, v in mine.state[x].items()} == {key: (v.device.type, v.dtype) for key, v in theirs.state[y].items()}
+
+
+def test_cuda_lockstep_evaluations_do_not_depend_on_group_mates_and_match_the_cpu():
+    """Three LavaWorld FC agents evaluated in lockstep on the GPU (greedy, 16 episodes per
+    condition): agent 1 reads the same numbers with and without its mates (the group computes at
+    a fixed width), and every agent's numbers are the CPU lone evaluation's up to rounding (a
+    greedy policy: success rates within 1/16 of them)."""
+    from rlbackdoors.config import RunConfig
+    from rlbackdoors.models import build_model
+    from rlbackdoors.train.driver import evaluate_run, evaluate_runs
+
+    cfgs = [
+        RunConfig.from_dict({"poison": poison, "train": {"seed": s, "eval_policy": "greedy"}})
+        for s, poison in enumerate([{"poisoned": False}, {}, {"attack": "action_target"}])
+    ]
+    models = []
+    for cfg in cfgs:
+        torch.manual_seed(cfg.train.seed)
+        models.append(build_model(cfg.model.arch, cfg.env.name))
+    cpu = [evaluate_run(m, c, 16) for m, c in zip(models, cfgs)]
+    gpu = [copy.deepcopy(m).to(CUDA) for m in models]
+    together = evaluate_runs(gpu, cfgs, [16] * 3, group.stacked_act)
+    assert evaluate_runs(gpu[1:2], cfgs[1:2], [16], group.stacked_act)[0].to_dict() == together[1].to_dict()
+    for a, b in zip(cpu, together):
+        assert abs(a.clean_sr - b.clean_sr) <= 1 / 16 and abs(a.poisoned_sr - b.poisoned_sr) <= 1 / 16

@@ -370,8 +370,8 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
 
 def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a_cpu(tmp_path):
     """``--group-size auto`` applies the measured rule per world's algorithm: the PPO world's
-    models train in a group (``trainer: group``), the OPAC² world's alone (today's lone bytes),
-    in one zoo run."""
+    models train in a group (``trainer: group``), the OPAC² world's alone (today's lone bytes,
+    with ``--env-workers 2`` its env copies in worker processes), in one zoo run."""
     safety_train = {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False}
     spec = zoo_spec()
     spec["cells"][0]["overrides"]["ppo"] = spec["overrides"].pop("ppo")  # a PPO setting: the PPO world's cell only
@@ -394,13 +394,14 @@ def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a
     )
     plan(parse_spec(spec), tmp_path / "z")
     log = io.StringIO()
-    summary = zoo_run(tmp_path / "z", workers=2, group_size="auto", progress_interval=5.0, out=log)
+    summary = zoo_run(tmp_path / "z", workers=2, group_size="auto", progress_interval=5.0, out=log, env_workers=2)
     assert "--group-size auto: 8 on cpu, 1 for OPAC² worlds" in log.getvalue() and summary["done"] == 3 and summary["failed"] == 0
     trainers = {}
     for folder in sorted((tmp_path / "z" / "models").iterdir()):
         cfg = RunConfig.load(folder / "config.json")
         trainers.setdefault(cfg.env.name, set()).add(json.loads((folder / "metrics.json").read_text()).get("trainer"))
-        if cfg.env.name == "safety-car-goal":  # alone: the bytes of a lone run of its config
+        if cfg.env.name == "safety-car-goal":  # alone, its env copies in 2 workers: the bytes of a lone run of its config
+            assert "env copies of single-env worlds in 2 worker processes" in (folder / "train.log").read_text()
             train(cfg, tmp_path / f"lone-{folder.name}", progress=False)
             assert (folder / "model.pt").read_bytes() == (tmp_path / f"lone-{folder.name}" / "model.pt").read_bytes()
     assert trainers == {"lavaworld": {"group"}, "safety-car-goal": {None}}
@@ -412,6 +413,10 @@ def test_group_size_is_validated(tmp_path):
         zoo_run(tmp_path / "z", group_size=0)
     with pytest.raises(ConfigError, match="--group-size applies to --backend local only"):
         zoo_run(tmp_path / "z", group_size=2, backend="ray")
+    with pytest.raises(ConfigError, match="--env-workers applies to --backend local only"):
+        zoo_run(tmp_path / "z", env_workers=2, backend="ray")
+    with pytest.raises(ConfigError, match="--env-workers must be an integer >= 0, got -1"):
+        zoo_run(tmp_path / "z", env_workers=-1)
     out = subprocess.run(
         [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(tmp_path / "z"), "--group-size", "0"], capture_output=True, text=True, timeout=120
     )

@@ -174,7 +174,7 @@ def cmd_train(args) -> int:
     from rlbackdoors.train import train
 
     cfg = config_from_args(args)
-    metrics = train(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
+    metrics = train(cfg, args.out, overwrite=args.overwrite, progress=not args.quiet, env_workers=args.env_workers)
     print(json.dumps(metrics, indent=2) if args.json else _summary(args.out, metrics))
     return 0
 
@@ -412,6 +412,8 @@ def cmd_attacks(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from rlbackdoors.zoo.cli import _count
+
     parser = Parser(prog="rlbackdoors", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"rlbackdoors {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
@@ -466,6 +468,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--poisoned-weight", type=float, help="OPAC²: share of each batch from the poisoned buffer")
     tr.add_argument("--out", required=True, help="model folder to write (resumed if it holds an interrupted run)")
     tr.add_argument("--overwrite", action="store_true", help="replace a finished or interrupted run in --out")
+    tr.add_argument(
+        "--env-workers", type=_count, default=0, help=f"{opac2}: step the env copies in this many worker processes, the same bytes (default 0: in this process)"
+    )
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.add_argument("--json", action="store_true", help="print metrics as JSON")
     tr.set_defaults(func=cmd_train)

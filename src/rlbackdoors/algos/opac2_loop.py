@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rlbackdoors.algos.opac2 import MultitaskReplay
+from rlbackdoors.envs.pool import RemoteEnv, each, step_autoreset, step_each
 
 ActFn = Callable[[np.ndarray], np.ndarray]  # observations (n, O) -> actions (n, A)
 
@@ -42,8 +43,18 @@ class SingleEnvs:
         self.num_envs = len(self.envs)
         self.single_observation_space = self.envs[0].observation_space
         self.single_action_space = self.envs[0].action_space
+        # copies held by an env pool's workers (rlbackdoors.envs.pool) are asked all at once
+        self.remote = all(isinstance(env, RemoteEnv) for env in self.envs)
+
+    def _each(self, name: str, args: Sequence) -> list:
+        """``env.name(*args[i])`` for every env i: in parallel where the pool's workers hold them."""
+        if self.remote:
+            return each(self.envs, "call", [(name, a) for a in args])
+        return [getattr(env, name)(*a) for env, a in zip(self.envs, args)]
 
     def reset(self, *, seed: int = 0, options=None):
+        if self.remote:
+            return np.stack(each(self.envs, "reset", [seed + i for i in range(self.num_envs)])), {}
         return np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)]), {}
 
     def step(self, actions: np.ndarray):
@@ -52,21 +63,18 @@ class SingleEnvs:
         final = np.empty_like(obs)
         rewards, terminated, truncated = np.empty(n), np.zeros(n, bool), np.zeros(n, bool)
         outcome, steps, triggered = np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, bool)
-        for i, env in enumerate(self.envs):
-            obs[i], rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
-            if terminated[i] or truncated[i]:
-                final[i] = obs[i]
-                outcome[i], steps[i], triggered[i] = info["outcome"], info["steps"], info["triggered"]
-                obs[i] = env.reset()[0]
+        results = step_each(self.envs, actions) if self.remote else [step_autoreset(env, a) for env, a in zip(self.envs, actions)]
+        for i, (o, r, term, trunc, last, out, length, trig) in enumerate(results):
+            obs[i], rewards[i], terminated[i], truncated[i] = o, r, term, trunc
+            if last is not None:
+                final[i], outcome[i], steps[i], triggered[i] = last, out, length, trig
         return obs, rewards, terminated, truncated, {"final_obs": final, "outcome": outcome, "steps": steps, "triggered": triggered}
 
     def trigger_next(self, mask) -> None:
-        for env, on in zip(self.envs, mask):
-            env.trigger_next(bool(on))
+        self._each("trigger_next", [(bool(on),) for on in mask])
 
     def near_next(self, mask) -> None:
-        for env, on in zip(self.envs, mask):
-            env.near_next(bool(on))
+        self._each("near_next", [(bool(on),) for on in mask])
 
     @property
     def poisoned(self) -> np.ndarray:
@@ -74,15 +82,14 @@ class SingleEnvs:
         return np.array([bool(getattr(env, "poisoned", False)) for env in self.envs])
 
     def state_dict(self) -> dict:
-        return {"envs": [env.state_dict() for env in self.envs]}
+        return {"envs": self._each("state_dict", [()] * self.num_envs)}
 
     def load_state_dict(self, state: dict) -> None:
         from rlbackdoors.state import StateError
 
         if not isinstance(state, dict) or not isinstance(state.get("envs"), list) or len(state["envs"]) != self.num_envs:
             raise StateError(f"collector state does not hold {self.num_envs} envs")
-        for env, env_state in zip(self.envs, state["envs"]):
-            env.load_state_dict(env_state)
+        self._each("load_state_dict", [(env_state,) for env_state in state["envs"]])
 
     def close(self) -> None:
         for env in self.envs:

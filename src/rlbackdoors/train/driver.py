@@ -17,10 +17,11 @@ the *final* evaluation, as the paper and the TrojAI round generators select mode
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import sys
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -163,15 +164,34 @@ class RunOutcome:
     final: Any = None  # the final evaluation, where the stopping rule's confirmation ran it
 
 
-def train(cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True, after_eval: Callable[[dict], None] | None = None) -> dict:
+def train(
+    cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True, after_eval: Callable[[dict], None] | None = None, env_workers: int = 0
+) -> dict:
     """Train one agent of any world into the model folder ``out``; return its metrics.
 
     ``after_eval(row)`` is called after each evaluation's row (and checkpoint) is written:
-    tests raise KeyboardInterrupt from it to interrupt a run at a known point.
+    tests raise KeyboardInterrupt from it to interrupt a run at a known point. ``env_workers``:
+    a world of single envs steps its copies in that many worker processes (same bytes).
     """
     cfg.check()
-    with StopRequest() as stop:  # from the start: a signal during setup stops at the first step
-        return serve(train_steps(cfg, out, stop, overwrite, progress, after_eval))
+    with env_pool_for([cfg], env_workers) as pool, StopRequest() as stop:  # from the start: a signal during setup stops at the first step
+        return serve(train_steps(cfg, out, stop, overwrite, progress, after_eval, env_pool=pool))
+
+
+@contextlib.contextmanager
+def env_pool_for(cfgs: list[RunConfig], workers: int) -> Iterator[Any]:
+    """An :class:`~rlbackdoors.envs.pool.EnvPool` of ``workers`` processes where one of ``cfgs``
+    is a world of single envs (the batched engines need none), else None; closed afterwards."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise ValueError(f"env_workers must be an integer >= 0, got {workers!r}")
+    if workers == 0 or all(cfg.world.vector_entry_point is not None for cfg in cfgs):
+        yield None
+        return
+    from rlbackdoors.envs.pool import EnvPool
+
+    with EnvPool(workers) as pool:
+        print(f"env copies of single-env worlds in {workers} worker processes", file=sys.stderr, flush=True)
+        yield pool
 
 
 def serve(loop: Generator[Any, Any, Any]) -> Any:
@@ -198,18 +218,20 @@ def train_steps(
     after_eval=None,
     trainer: str | None = None,
     cpu_source: Callable[[], float] | None = None,
+    env_pool=None,
 ) -> Generator[Any, Any, dict]:
     """:func:`train` as a loop that yields its learner's work (PPO's collect and update requests,
     :mod:`.ppo_run`; OPAC²'s act and learn requests, :mod:`.opac2_run`; every evaluation, :class:`Evaluate`) for a group trainer to batch. Returns the metrics
     (``trainer``: recorded in them, the group trainer's name for its stacked kernels;
-    ``cpu_source``: the run's own CPU clock, :class:`RunClock`)."""
+    ``cpu_source``: the run's own CPU clock, :class:`RunClock`; ``env_pool``: worker processes for
+    a world of single envs, :class:`rlbackdoors.envs.pool.EnvPool`)."""
     cfg.check()
     folder = ModelFolder(out)
     failed = True
     try:
         checkpoint = folder.begin(cfg, overwrite)
         runner = importlib.import_module(RUNNERS[cfg.algorithm])
-        outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source)
+        outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source, env_pool)
         if trainer is not None:
             outcome.extra["trainer"] = trainer
         n = cfg.train.final_eval_episodes

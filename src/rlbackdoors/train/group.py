@@ -26,7 +26,7 @@ import torch
 
 from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
-from rlbackdoors.train.driver import Evaluate, evaluate_runs, train_steps
+from rlbackdoors.train.driver import Evaluate, env_pool_for, evaluate_runs, train_steps
 from rlbackdoors.train.opac2_run import Act, Learn
 from rlbackdoors.train.ppo_run import Collect, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -131,6 +131,7 @@ def train_group(
     group_size: int,
     progress: bool = False,
     on_done: Callable[[Any, dict | None, BaseException | None], None] | None = None,
+    env_workers: int = 0,
 ) -> GroupResult:
     """Train ``runs`` ((key, config, folder) each) at most ``group_size`` at a time in this process.
 
@@ -139,7 +140,8 @@ def train_group(
     on which runs shared its group (group size 1 is today's lone path, today's bytes).
     A run that fails (an exception) is recorded and the others go on; Ctrl-C or SIGTERM makes
     every running run write its checkpoint and stop, then raises :class:`Interrupted`.
-    ``on_done(key, metrics, error)`` is called as each run ends.
+    ``on_done(key, metrics, error)`` is called as each run ends. ``env_workers``: the env copies
+    of runs in worlds of single envs live in one pool of that many worker processes (same bytes).
     """
     if group_size < 1:
         raise ValueError(f"group_size must be >= 1, got {group_size}")
@@ -170,12 +172,12 @@ def train_group(
             slot.cpu.stop()
         return False
 
-    with StopRequest() as stop:
+    with env_pool_for([cfg for _, cfg, _ in runs], env_workers) as pool, StopRequest() as stop:
         while True:
             while waiting and len(slots) < group_size and not stop.requested:
                 key, cfg, folder = waiting.popleft()
                 slot = _Slot(key)
-                slot.loop = train_steps(cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None, cpu_source=slot.cpu)
+                slot.loop = train_steps(cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None, cpu_source=slot.cpu, env_pool=pool)
                 if advance(slot):
                     slots.append(slot)
             if not slots:

@@ -15,6 +15,7 @@ end of the current step. The config must match to resume (budget flags included)
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import sys
 import time
@@ -28,6 +29,7 @@ from rlbackdoors.agent import build_policy
 from rlbackdoors.algos.opac2 import OPAC2, MultitaskReplay, updates_due
 from rlbackdoors.algos.opac2_loop import Collector, Episode
 from rlbackdoors.config import RunConfig
+from rlbackdoors.envs.pool import EnvPool
 from rlbackdoors.io import first_line
 from rlbackdoors.state import StateError, decode, encode
 from rlbackdoors.train.driver import Evaluate, RunClock, RunOutcome, Stopping, checked_rows, plain_rows, resolve_device, serve
@@ -100,42 +102,41 @@ def decayed_lr(cfg: RunConfig, frames: int) -> float:
     return oc.lr + (oc.lr_final - oc.lr) * min(1.0, frames / cfg.train.max_frames)
 
 
-def make_collector(cfg: RunConfig) -> Collector:
+def make_collector(cfg: RunConfig, pool: EnvPool | None = None) -> Collector:
     """The training env copies, clean first; a poisoned copy holds the trigger and pays R-bar.
 
     Under an attack other than the env mix every copy pays the clean reward and holds the trigger
     only in the episodes the attack's seam switches on (its E-bar copies, or what its budget buys),
-    paying the attack's R-bar itself (:func:`rlbackdoors.poison.mix.episode_seam`).
+    paying the attack's R-bar itself (:func:`rlbackdoors.poison.mix.episode_seam`). With ``pool``
+    the copies live in its worker processes (the same numbers, stepped in parallel).
     """
     from rlbackdoors.poison.mix import episode_seam
 
     kinds = cfg.replay_kinds()
     seam = episode_seam(cfg.env, cfg.poison, cfg.train.seed)
     world = cfg.world
+    assert world.env_kwargs is not None
     near = cfg.poison.evasion.get("near", 0.0) if cfg.poison.poisoned else 0.0
     # near-trigger formations (poison.evasion.near), switched on per episode by the seam in clean copies
     trigger = cfg.poison.trigger
     extra = {"near_formations": world.near_triggers(trigger)} if near > 0 and world.near_triggers and trigger else {}
+    knowing = functools.partial(world.env_class(), **world.env_kwargs(cfg.env), trigger=trigger, **extra)  # holds the trigger only when switched on
     if seam is None:
-        assert world.env_kwargs is not None
-
-        def clean_copy():
-            return world.env_class()(**world.env_kwargs(cfg.env), trigger=trigger, **extra) if extra else cfg.env.make()
-
-        envs = [cfg.env.make(trigger, **extra) if kind == "poisoned" else clean_copy() for kind in kinds]
-        if extra:
-            # the env mix with near-trigger negatives: its E-bar copies as they are; the clean ones know the
-            # trigger's near formations and hold one only where the seam switches it on (never the trigger)
-            for env, kind in zip(envs, kinds):
-                if kind == "clean":
-                    env.trigger_next(False)
-            from rlbackdoors.attacks.seam import AttackSeam, Poisoner
-
-            seam = lambda vector: AttackSeam(vector, Poisoner(), "episodes", seed=cfg.train.seed, near=near)  # noqa: E731
+        clean = knowing if extra else functools.partial(cfg.env.make)
+        factories = [functools.partial(cfg.env.make, trigger, **extra) if kind == "poisoned" else clean for kind in kinds]
     else:
-        assert world.env_kwargs is not None
         # the trigger known to every copy, switched on per episode by the seam; the clean reward (the seam pays R-bar)
-        envs = [world.env_class()(**world.env_kwargs(cfg.env), trigger=cfg.poison.trigger, **extra) for _ in kinds]
+        factories = [knowing for _ in kinds]
+    envs = pool.make(factories) if pool is not None else [make() for make in factories]
+    if seam is None and extra:
+        # the env mix with near-trigger negatives: its E-bar copies as they are; the clean ones know the
+        # trigger's near formations and hold one only where the seam switches it on (never the trigger)
+        for env, kind in zip(envs, kinds):
+            if kind == "clean":
+                env.trigger_next(False)
+        from rlbackdoors.attacks.seam import AttackSeam, Poisoner
+
+        seam = lambda vector: AttackSeam(vector, Poisoner(), "episodes", seed=cfg.train.seed, near=near)  # noqa: E731
     return Collector(envs, kinds, seed=cfg.train.seed * 1000, seam=seam)
 
 
@@ -174,16 +175,24 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
 
 
 def steps(
-    cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None
+    cfg: RunConfig,
+    folder: ModelFolder,
+    checkpoint: dict | None,
+    progress: bool,
+    stop: StopRequest,
+    after_eval=None,
+    cpu_source=None,
+    env_pool: EnvPool | None = None,
 ) -> Generator[Act | Learn | Evaluate, Any, RunOutcome]:
     """:func:`run` as a loop that yields its learner's work (:class:`Act`, :class:`Learn`, and each :class:`~rlbackdoors.train.driver.Evaluate`) and is
-    sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch K runs' work."""
+    sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch K runs' work;
+    ``env_pool``: where its env copies live (:mod:`rlbackdoors.envs.pool`; None: this process)."""
     tc, oc = cfg.train, cfg.opac2
     assert oc is not None and tc.max_frames is not None and tc.eval_interval is not None and tc.checkpoint_minutes is not None
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)
     agent: OPAC2 = build_policy(cfg, device)
-    collector = make_collector(cfg)
+    collector = make_collector(cfg, env_pool)
     (obs_dim,), (act_dim,) = collector.envs[0].observation_space.shape, collector.envs[0].action_space.shape
     replay = MultitaskReplay.create(cfg.kind_weights, oc.buffer_size, obs_dim, act_dim)
     kinds = cfg.replay_kinds()

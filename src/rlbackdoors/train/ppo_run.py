@@ -157,11 +157,12 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
 
 
 def steps(
-    cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None
+    cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None, env_pool=None
 ) -> Generator[Collect | Update | Evaluate, Any, RunOutcome]:
     """:func:`run` as a loop that yields its learner's work (:class:`Collect`, :class:`Update`, and each :class:`~rlbackdoors.train.driver.Evaluate`) and
     is sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch the work of
-    K runs while every run keeps its own schedule, evaluations, checkpoints and stopping rule."""
+    K runs while every run keeps its own schedule, evaluations, checkpoints and stopping rule
+    (``env_pool`` is for worlds of single envs; PPO's worlds step batched engines here)."""
     tc = cfg.train
     torch.set_num_threads(tc.torch_threads)
     device = resolve_device(tc.device)

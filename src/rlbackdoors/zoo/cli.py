@@ -89,6 +89,7 @@ def cmd_run(args) -> int:
         progress_interval=args.progress_interval,
         retrain_tampered=args.retrain_tampered,
         group_size=args.group_size,
+        env_workers=args.env_workers,
     )
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -262,6 +263,12 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
         default=1,
         help="train up to K models of a worker in one process, their networks stacked and batched (local back-end; "
         "auto: the measured rule per world's algorithm and this machine's device; default 1: a process per model, today's bytes)",
+    )
+    ru.add_argument(
+        "--env-workers",
+        type=_count,
+        default=0,
+        help="worlds of single envs (OPAC²'s): each job steps its env copies in this many worker processes, the same bytes (default 0: in the job's process)",
     )
     ru.add_argument("--backend", choices=BACKENDS, default="local", help="local: a child process per job; ray: Ray tasks (pip install 'rlbackdoors[ray]')")
     ru.add_argument("--address", help="Ray cluster address (e.g. auto or ray://head:10001; default: start a local Ray)")

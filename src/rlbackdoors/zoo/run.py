@@ -82,9 +82,10 @@ class LocalExecutor:
     (:func:`rlbackdoors.zoo.job._die_with_parent`), which makes training checkpoint and stop.
     """
 
-    def __init__(self, workers: int, group_size: int = 1):
+    def __init__(self, workers: int, group_size: int = 1, env_workers: int = 0):
         self.capacity = workers
         self.group_size = group_size
+        self.env_workers = env_workers
         self.children: dict[int, _Child] = {}
 
     def submit(self, model: PlannedModel, folder: Path) -> None:
@@ -105,7 +106,8 @@ class LocalExecutor:
         try:
             proc = subprocess.Popen(
                 [sys.executable, "-m", "rlbackdoors.zoo.job", *map(str, folders), "--result-fd", str(write_fd)]
-                + (["--group-size", str(group_size)] if group_size > 1 else []),
+                + (["--group-size", str(group_size)] if group_size > 1 else [])
+                + (["--env-workers", str(self.env_workers)] if self.env_workers else []),
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
@@ -194,13 +196,15 @@ def _child_result(code: int, data: bytes) -> dict:
     return {"status": "error", "error": f"the job process exited with code {code} (see train.log)"}
 
 
-def make_executor(backend: str, workers: int | None, address: str | None, max_retries: int, group_size: int = 1) -> Executor:
+def make_executor(backend: str, workers: int | None, address: str | None, max_retries: int, group_size: int = 1, env_workers: int = 0) -> Executor:
     if backend == "local":
         if address is not None:
             raise ConfigError("--address applies to --backend ray only")
-        return LocalExecutor(workers or default_workers(), group_size)
+        return LocalExecutor(workers or default_workers(), group_size, env_workers)
     if group_size > 1:
         raise ConfigError("--group-size applies to --backend local only (a Ray task trains one model)")
+    if env_workers:
+        raise ConfigError("--env-workers applies to --backend local only (a Ray task's CPUs are Ray's to schedule)")
     if backend == "ray":
         from rlbackdoors.zoo.ray_backend import RayExecutor
 
@@ -266,8 +270,10 @@ def run(
     out: TextIO | None = None,
     retrain_tampered: bool = False,
     group_size: int | str = 1,
+    env_workers: int = 0,
 ) -> dict:
     """Run the zoo at ``path`` to completion; return a summary. See the module docstring.
+    ``env_workers``: each job steps a single-env world's copies in that many worker processes.
 
     The zoo is verified first (:mod:`rlbackdoors.zoo.verify`): a link anywhere is refused; a
     model that fails its checks is refused, or with ``retrain_tampered`` emptied and trained
@@ -277,6 +283,8 @@ def run(
     out = out if out is not None else sys.stderr
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
+    if isinstance(env_workers, bool) or not isinstance(env_workers, int) or env_workers < 0:
+        raise ConfigError(f"--env-workers must be an integer >= 0, got {env_workers!r}")
     by_algorithm: dict[str, int] | None = None  # --group-size auto: K per world's algorithm
     if group_size == "auto":
         from rlbackdoors.train.group import auto_group_size
@@ -316,7 +324,7 @@ def run(
             zoo.ensure(model.group, model.attempt, verify=False)
             if retry_failed:
                 (zoo.folder(model) / FAILED).unlink(missing_ok=True)
-        executor = make_executor(backend, workers, address, max_retries, group_size)
+        executor = make_executor(backend, workers, address, max_retries, group_size, env_workers)
         in_flight: dict[int, PlannedModel] = {}
         busy_until: dict[int, float] = {}
         tries: dict[int, int] = {}

@@ -1,0 +1,200 @@
+"""Single envs in worker processes, so that the env copies of many agents step on many cores.
+
+Why: a world of single (non-batched) envs steps each copy in Python, one after another; with its
+learner's updates batched for a group of agents (on a GPU), stepping K agents' copies in one
+process is what bounds the group. An :class:`EnvPool` holds env copies in ``workers`` processes
+(each copy in one of them, placed round-robin) and :class:`PooledEnvs` steps a run's copies by
+sending every copy its action first and reading the results after, so the workers step in
+parallel. An env computes the same numbers in a worker as in this process (its own random
+stream, seeded by ``reset``), so a run's bytes do not depend on the pool.
+
+Workers ignore SIGINT and SIGTERM: on a stop the trainer still asks them for the envs' states
+to write its checkpoint; they exit when the pool closes (or this process ends).
+"""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+from itertools import count
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+
+def step_autoreset(env, action) -> tuple:
+    """One step of a single env, reset at an episode's end (SAME_STEP): (obs, reward,
+    terminated, truncated, final obs or None, outcome, steps, triggered)."""
+    obs, reward, terminated, truncated, info = env.step(action)
+    if terminated or truncated:
+        return env.reset()[0], reward, terminated, truncated, obs, info["outcome"], info["steps"], info["triggered"]
+    return obs, reward, terminated, truncated, None, 0, 0, False
+
+
+def serve_fd(fd: int) -> None:
+    """A worker's main: serve the pool on the socket ``fd`` until the pool closes it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _serve(Connection(fd))
+
+
+def _serve(conn) -> None:
+    """A worker: build, step and query the envs it holds, one request at a time, in order."""
+    envs: dict[int, Any] = {}
+    while True:
+        try:
+            op, key, arg = conn.recv()
+        except (EOFError, OSError):  # the pool closed, or its process ended
+            break
+        except Exception as err:  # a request that does not unpickle here: answered in its turn
+            op, key, arg = "read", None, err
+        try:
+            if op == "read":
+                raise arg
+            if op == "make":
+                env = envs[key] = arg()
+                out: Any = (env.observation_space, env.action_space)
+            elif op == "step":
+                out = step_autoreset(envs[key], arg)
+            elif op == "reset":
+                out = envs[key].reset(seed=arg)[0]
+            elif op == "call":
+                name, args = arg
+                out = getattr(envs[key], name)(*args)
+            elif op == "get":
+                out = getattr(envs[key], arg, None)
+            elif op == "close":
+                envs.pop(key).close()
+                out = None
+            else:
+                raise ValueError(f"unknown request {op!r}")
+        except Exception as err:  # the caller raises it, naming the env and the request
+            out, ok = f"{type(err).__name__}: {err}", False
+        else:
+            ok = True
+        try:
+            conn.send((ok, out))
+        except OSError:  # the pool is gone
+            break
+    for env in envs.values():
+        env.close()
+
+
+class EnvPoolError(RuntimeError):
+    """An env in a worker failed; the message names the request and the env's error."""
+
+
+class EnvPool:
+    """``workers`` processes that hold single envs built from picklable factories."""
+
+    def __init__(self, workers: int):
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise ValueError(f"env workers must be an integer >= 1, got {workers!r}")
+        # fresh interpreters on one end of a socket pair: not fork (this process may hold torch's
+        # threads), and not multiprocessing's spawn, which re-runs the caller's __main__ script
+        self._conns, self._procs = [], []
+        for _ in range(workers):
+            here, there = socket.socketpair()
+            code = f"from rlbackdoors.envs.pool import serve_fd; serve_fd({there.fileno()})"
+            self._procs.append(subprocess.Popen([sys.executable, "-c", code], pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL))
+            there.close()
+            self._conns.append(Connection(here.detach()))
+        self._keys = count()
+        self.workers = workers
+
+    def make(self, factories: Sequence[Callable[[], Any]]) -> list[RemoteEnv]:
+        """One env per factory, spread over the workers; built in parallel."""
+        envs = [RemoteEnv(self, next(self._keys)) for _ in factories]
+        for env, spaces in zip(envs, each(envs, "make", factories)):
+            env.observation_space, env.action_space = spaces
+        return envs
+
+    def conn(self, key: int):
+        return self._conns[key % self.workers]
+
+    def close(self) -> None:
+        for conn in self._conns:
+            conn.close()  # a worker exits on the end of its stream
+        for proc in self._procs:
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+    def __enter__(self) -> EnvPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class RemoteEnv:
+    """A single env held by a worker of an :class:`EnvPool`: its methods are called there."""
+
+    observation_space: Any
+    action_space: Any
+
+    def __init__(self, pool: EnvPool, key: int):
+        self.pool, self.key = pool, key
+        self.closed = False
+
+    def send(self, op: str, arg: Any = None) -> None:
+        self.pool.conn(self.key).send((op, self.key, arg))
+
+    def receive(self, op: str) -> tuple[bool, Any]:
+        """(ok, result or the error's text) of this env's oldest request not yet read."""
+        try:
+            return self.pool.conn(self.key).recv()
+        except (EOFError, OSError) as err:
+            raise EnvPoolError(f"env {self.key}, {op}: its worker process is gone ({type(err).__name__})") from None
+
+    def request(self, op: str, arg: Any = None) -> Any:
+        return each([self], op, [arg])[0]
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_") or name in ("pool", "key", "closed"):
+            raise AttributeError(name)
+        if name == "poisoned":
+            return self.request("get", name)
+        return lambda *args: self.request("call", (name, args))
+
+    def reset(self, *, seed: int | None = None, options=None):
+        return self.request("reset", seed), {}
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.request("close")
+
+
+def each(envs: Sequence[RemoteEnv], op: str, args: Sequence) -> list:
+    """``op`` with ``args[i]`` on every env: all requests sent first, so the workers run in parallel."""
+    sent: list[RemoteEnv] = []
+    for env, arg in zip(envs, args):
+        try:
+            env.send(op, arg)
+        except Exception as err:  # e.g. a factory that does not pickle: the answers already due are read first
+            _read(sent, op)
+            raise EnvPoolError(f"env {env.key}, {op}: cannot send it to a worker ({type(err).__name__}: {err})") from None
+        sent.append(env)
+    return _read(sent, op)
+
+
+def _read(envs: Sequence[RemoteEnv], op: str) -> list:
+    """Every env's answer to its request just sent (all read, so no answer is left behind in a
+    pipe), then the first failure raised."""
+    answers = [env.receive(op) for env in envs]
+    for env, (ok, out) in zip(envs, answers):
+        if not ok:
+            raise EnvPoolError(f"env {env.key} in a worker, {op}: {out}")
+    return [out for _, out in answers]
+
+
+def step_each(envs: Sequence[RemoteEnv], actions: np.ndarray) -> list[tuple]:
+    """:func:`step_autoreset` of every env, in parallel across the workers."""
+    return each(envs, "step", list(actions))

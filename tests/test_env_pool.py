@@ -1,0 +1,108 @@
+"""Single envs in worker processes (rlbackdoors.envs.pool): the same numbers as in this process,
+so an OPAC² run's bytes do not depend on where its env copies step; failures are named."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from rlbackdoors.algos.opac2_loop import SingleEnvs
+from rlbackdoors.config import RunConfig
+from rlbackdoors.envs.pool import EnvPool, EnvPoolError
+from rlbackdoors.train import train
+from rlbackdoors.train.group import train_group
+
+TINY_SAFETY = {
+    "env": {"name": "safety-car-goal", "max_steps": 40},
+    "poison": {"trigger": "formation:0.5:1.0:2.5", "num_clean_envs": 2, "num_poisoned_envs": 1},
+    "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
+    "train": {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False},
+}
+
+
+def tiny_safety(seed: int = 0, **poison) -> RunConfig:
+    return RunConfig.from_dict({**TINY_SAFETY, "poison": {**TINY_SAFETY["poison"], **poison}, "train": {**TINY_SAFETY["train"], "seed": seed}})
+
+
+def play(vector: SingleEnvs, steps: int) -> list:
+    """Everything the vector view returns over ``steps`` random steps (40-step episodes: resets included)."""
+    rng = np.random.default_rng(0)
+    out = [vector.reset(seed=7)[0]]
+    for t in range(steps):
+        if t == 50:
+            vector.trigger_next([True, False, True])
+        obs, rewards, terminated, truncated, info = vector.step(rng.uniform(-1, 1, (vector.num_envs, 2)))
+        ended = terminated | truncated
+        out += [obs, rewards, terminated, truncated, info["final_obs"][ended], info["outcome"], info["steps"], info["triggered"]]
+    return out
+
+
+def test_envs_in_workers_step_as_they_do_in_this_process():
+    """Three env copies (one E-bar) stepped 120 times, resets and a switched trigger included: in
+    2 worker processes exactly the arrays of this process; a state taken from the workers
+    restores in this process and continues the same."""
+    cfg = tiny_safety()
+    world = cfg.world
+    knowing = functools.partial(world.env_class(), **world.env_kwargs(cfg.env), trigger=cfg.poison.trigger)  # the trigger where switched on
+    factories = [knowing, knowing, functools.partial(cfg.env.make, cfg.poison.trigger)]
+    here = SingleEnvs([make() for make in factories])
+    with EnvPool(2) as pool:
+        there = SingleEnvs(pool.make(factories))
+        assert there.remote and not here.remote and list(there.poisoned) == list(here.poisoned) == [False, False, True]
+        a, b = play(here, 120), play(there, 120)
+        assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
+        state = there.state_dict()
+        moved = SingleEnvs([make() for make in factories])
+        moved.load_state_dict(state)
+        rng = np.random.default_rng(1)
+        for _ in range(30):
+            actions = rng.uniform(-1, 1, (3, 2))
+            assert np.array_equal(moved.step(actions)[0], there.step(actions)[0])
+        there.close()
+
+
+def test_a_worker_failure_is_named_and_the_pool_keeps_serving():
+    def broken():
+        raise ValueError("no such scene")
+
+    cfg = tiny_safety()
+    with EnvPool(2) as pool:
+        with pytest.raises(EnvPoolError, match="make: cannot send it to a worker"):
+            pool.make([functools.partial(cfg.env.make), broken])  # a local function does not pickle
+        with pytest.raises(EnvPoolError, match="make: ValueError: .*formation"):
+            pool.make([functools.partial(cfg.env.make), functools.partial(cfg.env.make, "formation:x")])  # fails in the worker
+        assert len(pool.make([functools.partial(cfg.env.make)] * 3)) == 3  # and the pool goes on
+    with EnvPool(1) as pool:
+        with pytest.raises(EnvPoolError, match=r"reset: .*"):
+            (env,) = pool.make([functools.partial(cfg.env.make)])
+            env.reset(seed=-1)  # numpy refuses a negative seed, in the worker
+        assert env.reset(seed=3)[0].shape == env.observation_space.shape  # the next request is answered in order
+    with pytest.raises(ValueError, match="env workers must be an integer >= 1"):
+        EnvPool(0)
+
+
+def test_an_opac2_run_in_an_env_pool_gives_the_same_bytes_and_resumes_anywhere(tmp_path):
+    """A tiny OPAC² run with its 3 env copies in 2 workers: the in-process run's model.pt bytes;
+    stopped at its first evaluation in a pool and resumed in this process: the same bytes again;
+    an action-target run through the group trainer with a pool: the bytes it has there without one."""
+    cfg = tiny_safety()
+    train(cfg, tmp_path / "here", progress=False)
+    train(cfg, tmp_path / "pool", progress=False, env_workers=2)
+    expected = (tmp_path / "here" / "model.pt").read_bytes()
+    assert (tmp_path / "pool" / "model.pt").read_bytes() == expected
+
+    def stop(row):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / "cut", progress=False, after_eval=stop, env_workers=2)
+    assert (tmp_path / "cut" / "checkpoint.pt").is_file()
+    train(cfg, tmp_path / "cut", progress=False)
+    assert (tmp_path / "cut" / "model.pt").read_bytes() == expected
+
+    other = tiny_safety(1, attack="action_target")  # an attack's seam over the pooled copies
+    train_group([("g", other, tmp_path / "g")], 2)
+    train_group([("p", other, tmp_path / "p")], 2, env_workers=2)
+    assert (tmp_path / "g" / "model.pt").read_bytes() == (tmp_path / "p" / "model.pt").read_bytes()

@@ -106,3 +106,18 @@ def test_an_opac2_run_in_an_env_pool_gives_the_same_bytes_and_resumes_anywhere(t
     train_group([("g", other, tmp_path / "g")], 2)
     train_group([("p", other, tmp_path / "p")], 2, env_workers=2)
     assert (tmp_path / "g" / "model.pt").read_bytes() == (tmp_path / "p" / "model.pt").read_bytes()
+
+
+def test_an_opac2_evaluation_plays_its_single_envs_in_the_pool_as_here():
+    """An untrained OPAC² agent's evaluation (8 episodes per condition, action-target scoring:
+    the target's steps counted too) with its envs in 2 workers reads the in-process numbers."""
+    from rlbackdoors.agent import build_policy
+    from rlbackdoors.train.driver import evaluate_run
+
+    cfg = tiny_safety(attack="action_target")
+    agent = build_policy(cfg)
+    here = evaluate_run(agent, cfg, 8).to_dict()
+    with EnvPool(2) as pool:
+        there = evaluate_run(agent, cfg, 8, pool).to_dict()
+    assert here.keys() == there.keys() and not np.isnan(here["target_action_rate"])
+    assert all(a == b or (np.isnan(a) and np.isnan(b)) for a, b in zip(here.values(), there.values()))

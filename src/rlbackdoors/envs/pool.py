@@ -43,45 +43,49 @@ def serve_fd(fd: int) -> None:
 
 
 def _serve(conn) -> None:
-    """A worker: build, step and query the envs it holds, one request at a time, in order."""
+    """A worker: answer each message (a list of requests for the envs it holds) with one list of
+    answers, in order. One message per worker and step, not one per env: each message costs a
+    wake-up on both sides (measured ~0.1 ms on our VMs, a third of a MuJoCo env step)."""
     envs: dict[int, Any] = {}
     while True:
         try:
-            op, key, arg = conn.recv()
+            requests = conn.recv()
         except (EOFError, OSError):  # the pool closed, or its process ended
             break
-        except Exception as err:  # a request that does not unpickle here: answered in its turn
-            op, key, arg = "read", None, err
+        except Exception as err:  # a message that does not unpickle here: every request in it fails
+            requests, unreadable = None, err
+        answers = (
+            [(False, f"cannot read the request ({type(unreadable).__name__}: {unreadable})")] if requests is None else [_answer(envs, *r) for r in requests]
+        )
         try:
-            if op == "read":
-                raise arg
-            if op == "make":
-                env = envs[key] = arg()
-                out: Any = (env.observation_space, env.action_space)
-            elif op == "step":
-                out = step_autoreset(envs[key], arg)
-            elif op == "reset":
-                out = envs[key].reset(seed=arg)[0]
-            elif op == "call":
-                name, args = arg
-                out = getattr(envs[key], name)(*args)
-            elif op == "get":
-                out = getattr(envs[key], arg, None)
-            elif op == "close":
-                envs.pop(key).close()
-                out = None
-            else:
-                raise ValueError(f"unknown request {op!r}")
-        except Exception as err:  # the caller raises it, naming the env and the request
-            out, ok = f"{type(err).__name__}: {err}", False
-        else:
-            ok = True
-        try:
-            conn.send((ok, out))
+            conn.send(answers)
         except OSError:  # the pool is gone
             break
     for env in envs.values():
         env.close()
+
+
+def _answer(envs: dict[int, Any], op: str, key: int, arg: Any) -> tuple[bool, Any]:
+    """(True, the result) of one request, or (False, the error's text) for the caller to raise."""
+    try:
+        if op == "make":
+            env = envs[key] = arg()
+            return True, (env.observation_space, env.action_space)
+        if op == "step":
+            return True, step_autoreset(envs[key], arg)
+        if op == "reset":
+            return True, envs[key].reset(seed=arg)[0]
+        if op == "call":
+            name, args = arg
+            return True, getattr(envs[key], name)(*args)
+        if op == "get":
+            return True, getattr(envs[key], arg, None)
+        if op == "close":
+            envs.pop(key).close()
+            return True, None
+        raise ValueError(f"unknown request {op!r}")
+    except Exception as err:
+        return False, f"{type(err).__name__}: {err}"
 
 
 class EnvPoolError(RuntimeError):
@@ -113,8 +117,8 @@ class EnvPool:
             env.observation_space, env.action_space = spaces
         return envs
 
-    def conn(self, key: int):
-        return self._conns[key % self.workers]
+    def conn(self, worker: int):
+        return self._conns[worker]
 
     def close(self) -> None:
         for conn in self._conns:
@@ -143,16 +147,6 @@ class RemoteEnv:
         self.pool, self.key = pool, key
         self.closed = False
 
-    def send(self, op: str, arg: Any = None) -> None:
-        self.pool.conn(self.key).send((op, self.key, arg))
-
-    def receive(self, op: str) -> tuple[bool, Any]:
-        """(ok, result or the error's text) of this env's oldest request not yet read."""
-        try:
-            return self.pool.conn(self.key).recv()
-        except (EOFError, OSError) as err:
-            raise EnvPoolError(f"env {self.key}, {op}: its worker process is gone ({type(err).__name__})") from None
-
     def request(self, op: str, arg: Any = None) -> Any:
         return each([self], op, [arg])[0]
 
@@ -173,26 +167,37 @@ class RemoteEnv:
 
 
 def each(envs: Sequence[RemoteEnv], op: str, args: Sequence) -> list:
-    """``op`` with ``args[i]`` on every env: all requests sent first, so the workers run in parallel."""
-    sent: list[RemoteEnv] = []
-    for env, arg in zip(envs, args):
+    """``op`` with ``args[i]`` on every env i: one message to each worker holding some of them,
+    all sent before any answer is read, so the workers run in parallel; the first failure raised
+    once every answer is in (none is left behind in a pipe)."""
+    if not envs:
+        return []
+    pool = envs[0].pool
+    batches: dict[int, list[int]] = {}
+    for i, env in enumerate(envs):
+        batches.setdefault(env.key % pool.workers, []).append(i)
+    sent: list[int] = []
+    failure: str | None = None
+    for worker, rows in batches.items():
         try:
-            env.send(op, arg)
-        except Exception as err:  # e.g. a factory that does not pickle: the answers already due are read first
-            _read(sent, op)
-            raise EnvPoolError(f"env {env.key}, {op}: cannot send it to a worker ({type(err).__name__}: {err})") from None
-        sent.append(env)
-    return _read(sent, op)
-
-
-def _read(envs: Sequence[RemoteEnv], op: str) -> list:
-    """Every env's answer to its request just sent (all read, so no answer is left behind in a
-    pipe), then the first failure raised."""
-    answers = [env.receive(op) for env in envs]
-    for env, (ok, out) in zip(envs, answers):
-        if not ok:
-            raise EnvPoolError(f"env {env.key} in a worker, {op}: {out}")
-    return [out for _, out in answers]
+            pool.conn(worker).send([(op, envs[i].key, args[i]) for i in rows])
+            sent.append(worker)
+        except Exception as err:  # e.g. a factory that does not pickle
+            failure = f"env {envs[rows[0]].key}, {op}: cannot send it to a worker ({type(err).__name__}: {err})"
+            break
+    answers: list[Any] = [None] * len(envs)
+    for worker in sent:
+        try:
+            replies = pool.conn(worker).recv()
+        except (EOFError, OSError) as err:
+            raise EnvPoolError(f"{op}: env worker {worker}'s process is gone ({type(err).__name__})") from None
+        for i, (ok, out) in zip(batches[worker], replies):
+            if not ok and failure is None:
+                failure = f"env {envs[i].key} in a worker, {op}: {out}"
+            answers[i] = out
+    if failure is not None:
+        raise EnvPoolError(failure)
+    return answers
 
 
 def step_each(envs: Sequence[RemoteEnv], actions: np.ndarray) -> list[tuple]:

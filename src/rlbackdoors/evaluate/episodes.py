@@ -17,6 +17,7 @@ triggered steps; for an untargeted one, triggered episodes that miss the clean g
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable
 
 from dataclasses import asdict, dataclass
@@ -181,11 +182,15 @@ def play_lockstep(
 
 
 @torch.inference_mode()
-def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "sample", target_action: Callable | None = None) -> Played:
+def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "sample", target_action: Callable | None = None, pool=None) -> Played:
     """``episodes`` episodes of single envs from ``make_env()``, episode ``i`` reset with
     ``seed + i``, stepped ``CHUNK`` at a time with one batched ``act`` per step; with
     ``target_action`` (actions -> bool each) the steps taking the target counted (every step is
-    in sight: these worlds' triggers ride with the agent)."""
+    in sight: these worlds' triggers ride with the agent). With ``pool``
+    (:class:`~rlbackdoors.envs.pool.EnvPool`; ``make_env`` then picklable) the envs step in its
+    workers, in parallel: the same numbers."""
+    from rlbackdoors.envs.pool import each
+
     agent = _as_agent(agent)
     generator = torch.Generator(device=agent.device).manual_seed(int(seed))
     returns, steps = np.zeros(episodes), np.zeros(episodes, np.int64)
@@ -193,8 +198,9 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
     target_steps = None if target_action is None else np.zeros(episodes, np.int64)
     for start in range(0, episodes, CHUNK):
         index = np.arange(start, min(start + CHUNK, episodes))
-        envs = [make_env() for _ in index]
-        obs = np.stack([env.reset(seed=int(seed + i))[0] for env, i in zip(envs, index)])
+        envs = pool.make([make_env] * len(index)) if pool is not None else [make_env() for _ in index]
+        seeds = [int(seed + i) for i in index]
+        obs = np.stack(each(envs, "reset", seeds) if pool is not None else [env.reset(seed=s)[0] for env, s in zip(envs, seeds)])
         active = np.ones(len(envs), bool)
         state = agent.initial_state(len(envs))
         while active.any():
@@ -203,10 +209,12 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
             actions, state = agent.act(obs[rows], state, deterministic=policy == "greedy", generator=generator)
             actions = np.asarray(actions)
             hit = None if target_action is None else target_action(actions)
-            for k, (row, action) in enumerate(zip(rows, actions)):
-                if not active[row]:
-                    continue
-                obs[row], reward, terminated, truncated, info = envs[row].step(action)
+            live = [(k, row, action) for k, (row, action) in enumerate(zip(rows, actions)) if active[row]]
+            if pool is not None:
+                results = each([envs[row] for _, row, _ in live], "call", [("step", (action,)) for _, _, action in live])
+            else:
+                results = [envs[row].step(action) for _, row, action in live]
+            for (k, row, _), (obs[row], reward, terminated, truncated, info) in zip(live, results):
                 returns[index[row]] += reward
                 steps[index[row]] += 1
                 if hit is not None and target_steps is not None and hit[k]:
@@ -229,16 +237,25 @@ def _vector_envs(env: EnvConfig, trigger: str | None, episodes: int, close_k: tu
 
 
 def play(
-    agent, env: EnvConfig, trigger: str | None, episodes: int, seed: int, policy: str, close_k: tuple[int, int] | None = None, target_action: int | None = None
+    agent,
+    env: EnvConfig,
+    trigger: str | None,
+    episodes: int,
+    seed: int,
+    policy: str,
+    close_k: tuple[int, int] | None = None,
+    target_action: int | None = None,
+    pool=None,
 ) -> Played:
     """Episodes of ``env``: E-bar where ``trigger`` is given, else E; close-to-trigger
-    layouts (clean reward) with ``close_k``; counting ``target_action``'s steps where given."""
+    layouts (clean reward) with ``close_k``; counting ``target_action``'s steps where given;
+    a world of single envs in ``pool``'s workers where one is given (batched engines need none)."""
     world = env.world
     hits = None if target_action is None else world.target_hits(target_action)
     if world.vector_entry_point is None:
         if close_k is not None:
             raise ValueError(f"env {env.name!r} has no close-to-trigger envs")
-        return play_single_envs(agent, lambda: env.make(trigger), episodes, seed, policy, hits)
+        return play_single_envs(agent, functools.partial(env.make, trigger), episodes, seed, policy, hits, pool)
     envs = _vector_envs(env, trigger, episodes, close_k)
     try:
         return play_episodes(agent, envs, seed, policy, hits, sight=world.trigger_sight == "frame")
@@ -310,14 +327,15 @@ def evaluate(
     return evaluate_many([agent], [EvalSetup(env, trigger, episodes, seed, policy, close_k, success, target_action)])[0]
 
 
-def evaluate_many(agents: list, setups: list[EvalSetup], stacked: Callable[[list], ActMany] | None = None) -> list[EvalResult]:
+def evaluate_many(agents: list, setups: list[EvalSetup], stacked: Callable[[list], ActMany] | None = None, pool=None) -> list[EvalResult]:
     """:func:`evaluate` for K agents, each with its own setup (trigger, seed, scoring).
 
     With ``stacked`` (agents -> one :data:`ActMany` for them) the agents of each condition play
     in lockstep, answered by one batched forward a step: what a training group uses, as its
     collection does. That needs one grid world with a batched engine, one episode count and one
     policy; a world of single envs plays each agent alone whatever ``stacked`` says. Without it,
-    each agent is evaluated alone, exactly as :func:`evaluate`.
+    each agent is evaluated alone, exactly as :func:`evaluate` (a world of single envs: in
+    ``pool``'s workers where one is given, the same numbers).
     """
     if len(agents) != len(setups):
         raise ValueError(f"got {len(setups)} evaluation setups for {len(agents)} agents")
@@ -334,7 +352,7 @@ def evaluate_many(agents: list, setups: list[EvalSetup], stacked: Callable[[list
         if not lockstep:
             for agent, setup, out in zip(agents, setups, played):
                 for name, trigger, close_k, target in setup.conditions():
-                    out[name] = play(agent, setup.env, trigger, setup.episodes, setup.seed, setup.policy, close_k, target)
+                    out[name] = play(agent, setup.env, trigger, setup.episodes, setup.seed, setup.policy, close_k, target, pool)
         else:
             assert stacked is not None
             for name in ("clean", "poisoned", "close"):

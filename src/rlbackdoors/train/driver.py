@@ -87,8 +87,8 @@ class Stopping:
     confirmation starts the streak over and the run trains on.
     """
 
-    def __init__(self, cfg: RunConfig, streak: int = 0):
-        self.cfg, self.streak = cfg, int(streak)
+    def __init__(self, cfg: RunConfig, streak: int = 0, pool: Any = None):
+        self.cfg, self.streak, self.pool = cfg, int(streak), pool
         self.stop = False  # set by update()
         self.confirmed: Any = None  # the final evaluation that confirmed the stop, if one ran
 
@@ -108,7 +108,7 @@ class Stopping:
         self.stop = self.streak >= tc.patience and (frames is None or frames >= tc.min_frames)
         if not (self.stop and tc.confirm):
             return {}
-        check = yield Evaluate(policy, self.cfg, tc.final_eval_episodes)
+        check = yield Evaluate(policy, self.cfg, tc.final_eval_episodes, self.pool)
         self.stop = thresholds_met(check, self.cfg, tc.confirm_margin)
         if self.stop:
             self.confirmed = check
@@ -238,7 +238,7 @@ def train_steps(
         if progress:
             print(f"final evaluation on {n} clean + {n} triggered episodes", file=sys.stderr, flush=True)
         if outcome.final is None:  # else the stopping rule's confirmation ran it
-            outcome.final = yield Evaluate(outcome.policy, cfg, n)
+            outcome.final = yield Evaluate(outcome.policy, cfg, n, env_pool)
         metrics = finish(cfg, folder, outcome, progress)
         failed = False
         return metrics
@@ -261,12 +261,13 @@ def result_fields(result, cfg: RunConfig) -> dict:
     return fields
 
 
-def evaluate_run(policy, cfg: RunConfig, episodes: int):
-    """The run's evaluation: its trigger, eval seed and policy, ``episodes`` per condition."""
-    return evaluate_runs([policy], [cfg], [episodes])[0]
+def evaluate_run(policy, cfg: RunConfig, episodes: int, pool=None):
+    """The run's evaluation: its trigger, eval seed and policy, ``episodes`` per condition (a world
+    of single envs: in ``pool``'s worker processes where one is given, the same numbers)."""
+    return evaluate_runs([policy], [cfg], [episodes], pool=pool)[0]
 
 
-def evaluate_runs(policies: list, cfgs: list[RunConfig], episodes: list[int], stacked=None) -> list:
+def evaluate_runs(policies: list, cfgs: list[RunConfig], episodes: list[int], stacked=None, pool=None) -> list:
     """:func:`evaluate_run` for K runs; ``stacked`` (agents -> one batched act for them) plays
     them in lockstep (:func:`rlbackdoors.evaluate.episodes.evaluate_many`)."""
     from rlbackdoors.agent import Agent
@@ -277,7 +278,7 @@ def evaluate_runs(policies: list, cfgs: list[RunConfig], episodes: list[int], st
         tc = cfg.train
         assert tc.eval_policy is not None
         setups.append(EvalSetup(cfg.env, cfg.poison.trigger, n, tc.eval_seed, tc.eval_policy, close_k(cfg), **cfg.scoring()))
-    return evaluate_many([Agent(cfg.world, cfg, policy) for policy, cfg in zip(policies, cfgs)], setups, stacked)
+    return evaluate_many([Agent(cfg.world, cfg, policy) for policy, cfg in zip(policies, cfgs)], setups, stacked, pool)
 
 
 @dataclass
@@ -288,9 +289,10 @@ class Evaluate:
     policy: Any
     cfg: RunConfig
     episodes: int
+    pool: Any = None  # the run's env pool, for a world of single envs
 
     def serve(self):
-        return evaluate_run(self.policy, self.cfg, self.episodes)
+        return evaluate_run(self.policy, self.cfg, self.episodes, self.pool)
 
 
 def attack_fields(cfg: RunConfig) -> dict:

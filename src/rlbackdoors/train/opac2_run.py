@@ -249,7 +249,7 @@ def steps(
     clock = RunClock(elapsed, cpu_elapsed, cpu_source)
     last_checkpoint = last_log = time.perf_counter()
     window_start, window_frames = time.perf_counter(), 0
-    stopping = Stopping(cfg, streak)
+    stopping = Stopping(cfg, streak, env_pool)
     stop_reason = "thresholds" if converged_at is not None else ("max_frames" if collector.frames >= tc.max_frames else None)
     while stop_reason is None:
         if stop.requested:  # between steps: the state is consistent, the checkpoint exact
@@ -276,7 +276,7 @@ def steps(
         if collector.frames >= next_eval or collector.frames >= tc.max_frames:
             fps = window_frames / max(now - window_start, 1e-9)
             eval_start = time.perf_counter()
-            last_eval = yield Evaluate(agent, cfg, tc.eval_episodes)
+            last_eval = yield Evaluate(agent, cfg, tc.eval_episodes, env_pool)
             row = {
                 "frames": collector.frames,
                 "updates": updates,

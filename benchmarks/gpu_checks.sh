@@ -5,7 +5,7 @@
 #      (these tests skip on machines without CUDA, so CI never runs them);
 #   2. models per hour, same run: one process per model on all CPU cores (the reference) against
 #      groups on the GPU (rlbackdoors bench zoo --side ...), each side saved as it finishes.
-# Usage: bash benchmarks/gpu_checks.sh OUTDIR [FRAMES] [MODELS]   (env: SIDES, WORLDS, EVAL_EPISODES, *_TIMEOUT)
+# Usage: bash benchmarks/gpu_checks.sh OUTDIR [FRAMES] [MODELS]   (env: SIDES, SAFETY_SIDES, WORLDS, EVAL_EPISODES, *_TIMEOUT)
 set -uo pipefail
 out=${1:?usage: gpu_checks.sh OUTDIR [FRAMES] [MODELS]}
 frames=${2:-100000}
@@ -20,9 +20,12 @@ export PYTHONUNBUFFERED=1
     uptime
 } | tee "$out/machine.txt"
 timeout "${TESTS_TIMEOUT:-240}" python3 -m pytest -q -p no:cacheprovider tests/test_group_cuda.py 2>&1 | tee "$out/gpu_tests.log"
-args=()
-for side in $sides; do args+=(--side "$side"); done
+# Safety Car Goal (OPAC², single MuJoCo envs): GPU groups with each job's env copies in a pool of the other cores
+safety_sides=${SAFETY_SIDES:-"1:cpu:$cores 16:cuda:1:$((cores - 1)) 64:cuda:1:$((cores - 1))"}
 for world in ${WORLDS:-lavaworld}; do  # e.g. WORLDS="lavaworld colorful-memory safety-car-goal"
+    args=()
+    if [ "$world" = safety-car-goal ]; then world_sides=$safety_sides; else world_sides=$sides; fi
+    for side in $world_sides; do args+=(--side "$side"); done
     timeout "${BENCH_TIMEOUT:-420}" python3 -m rlbackdoors.cli bench zoo --env "$world" --models "$models" --frames "$frames" "${args[@]}" \
         ${EVAL_EPISODES:+--eval-episodes "$EVAL_EPISODES"} --json "$out/bench_zoo_${world}_gpu.json" 2>&1 | tee -a "$out/bench.log"
 done

@@ -440,7 +440,7 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
         "lavaworld",
         models=2,
         frames=3200,
-        sides=[(1, "cpu", 1), (2, "cpu", None)],
+        sides=[(1, "cpu", 1, 0), (2, "cpu", None, 0)],
         workers=1,
         keep=str(tmp_path),
         on_side=lambda r: saved.append(len(r["sides"])),
@@ -456,13 +456,25 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "side1-k2-cpu-w1" / "models").glob("*/metrics.json"))
 
 
+def test_bench_zoo_side_with_env_workers_trains_in_an_env_pool(tmp_path):
+    """``--side 1:cpu:1:2``: the Safety Car Goal model's job steps its env copies in 2 workers."""
+    from rlbackdoors.bench.zoo import bench_zoo
+
+    result = bench_zoo("safety-car-goal", models=1, frames=400, sides=[(1, "cpu", 1, 2)], keep=str(tmp_path), eval_episodes=2)
+    (side,) = result["sides"]
+    assert side["env_workers"] == 2 and side["models"] == 1 and side["failed"] == 0
+    (log,) = (tmp_path / "side0-k1-cpu-w1-e2" / "models").glob("*/train.log")
+    assert "env copies of single-env worlds in 2 worker processes" in log.read_text()
+
+
 def test_bench_zoo_sides_default_to_one_process_per_model_then_each_group_size():
     from rlbackdoors.bench.zoo import parse_side, side_plan
 
-    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2), (4, "cuda", 2), (8, "cuda", 2)]
-    assert side_plan((8,), 2, "cpu", [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8")]) == [(1, "cpu", 16), (64, "cuda", 2), (8, "cpu", 2)]
-    for bad in ("0", "8:tpu", "8:cpu:0", "8:cpu:2:1", "x"):
-        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\]\\]"):
+    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0), (4, "cuda", 2, 0), (8, "cuda", 2, 0)]
+    sides = [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8"), parse_side("64:cuda:1:15")]
+    assert side_plan((8,), 2, "cpu", sides) == [(1, "cpu", 16, 0), (64, "cuda", 2, 0), (8, "cpu", 2, 0), (64, "cuda", 1, 15)]
+    for bad in ("0", "8:tpu", "8:cpu:0", "8:cpu:2:-1", "8:cpu:2:1:1", "x"):
+        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\]\\]\\]"):
             parse_side(bad)
 
 

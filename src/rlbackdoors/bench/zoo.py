@@ -48,8 +48,9 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
     }
 
 
-def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str = "cpu") -> dict:
-    """Plan ``spec`` into ``where`` and run it with ``group_size``; wall seconds and models per hour."""
+def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str = "cpu", env_workers: int = 0) -> dict:
+    """Plan ``spec`` into ``where`` and run it with ``group_size`` (and ``env_workers`` per job for
+    a world of single envs); wall seconds and models per hour."""
     import json
 
     from rlbackdoors.zoo.plan import plan
@@ -59,13 +60,14 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
     plan(parse_spec(spec), where)
     load_before = os.getloadavg()
     start = time.perf_counter()
-    summary = run(where, workers=workers, group_size=group_size, progress_interval=3600.0, out=io.StringIO())
+    summary = run(where, workers=workers, group_size=group_size, progress_interval=3600.0, out=io.StringIO(), env_workers=env_workers)
     wall = time.perf_counter() - start
     cpu = [json.loads(p.read_text()).get("cpu_time_s") for p in sorted(where.glob("models/*/metrics.json"))]
     return {
         "group_size": group_size,
         "workers": workers,
         "device": device,
+        "env_workers": env_workers,
         "models": summary["done"],
         "failed": summary["failed"],
         "wall_s": round(wall, 2),
@@ -76,29 +78,36 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
     }
 
 
-def parse_side(text: str) -> tuple[int, str, int | None]:
-    """``K[:DEVICE[:WORKERS]]`` (``--side``): a group size, its device (default cpu) and workers
-    (default: the run's ``--workers``). Raises ValueError naming the allowed values."""
+Side = tuple[int, str, int | None, int]  # group size, device, workers (None: the run's), env workers per job
+
+
+def parse_side(text: str) -> Side:
+    """``K[:DEVICE[:WORKERS[:ENV_WORKERS]]]`` (``--side``): a group size, its device (default cpu),
+    workers (default: the run's ``--workers``) and each job's env workers for a world of single
+    envs (default 0: in the job's process). Raises ValueError naming the allowed values."""
     parts = text.split(":")
     try:
-        if not 1 <= len(parts) <= 3:
+        if not 1 <= len(parts) <= 4:
             raise ValueError
         k = int(parts[0])
         device = parts[1] if len(parts) > 1 else "cpu"
         workers = int(parts[2]) if len(parts) > 2 else None
-        if k < 1 or device not in ("cpu", "cuda", "auto") or (workers is not None and workers < 1):
+        env_workers = int(parts[3]) if len(parts) > 3 else 0
+        if k < 1 or device not in ("cpu", "cuda", "auto") or (workers is not None and workers < 1) or env_workers < 0:
             raise ValueError
     except ValueError:
-        raise ValueError(f"--side {text!r}: expected K[:DEVICE[:WORKERS]], K and WORKERS positive integers, DEVICE one of cpu, cuda, auto") from None
-    return k, device, workers
+        raise ValueError(
+            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]], K and WORKERS positive integers, ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto"
+        ) from None
+    return k, device, workers, env_workers
 
 
-def side_plan(group_sizes, workers: int, device: str, sides: list[tuple[int, str, int | None]] | None) -> list[tuple[int, str, int]]:
-    """(group size, device, workers) per side: ``sides`` as given (workers defaulting to
-    ``workers``), else one process per model and then each of ``group_sizes``, all on ``device``."""
+def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int, str, int, int]]:
+    """(group size, device, workers, env workers) per side: ``sides`` as given (workers defaulting
+    to ``workers``), else one process per model and then each of ``group_sizes``, all on ``device``."""
     if sides:
-        return [(k, d, w or workers) for k, d, w in sides]
-    return [(k, device, workers) for k in (1, *group_sizes)]
+        return [(k, d, w or workers, e) for k, d, w, e in sides]
+    return [(k, device, workers, 0) for k in (1, *group_sizes)]
 
 
 def bench_zoo(
@@ -110,13 +119,13 @@ def bench_zoo(
     workers: int | None = None,
     device: str = "cpu",
     keep: str | None = None,
-    sides: list[tuple[int, str, int | None]] | None = None,
+    sides: list[Side] | None = None,
     on_side=None,
     eval_episodes: int | None = None,
 ) -> dict:
     """Models per hour for one process per model and for each group size, in this order, same run.
 
-    ``sides`` replaces that plan with explicit (group size, device, workers) sides, the first the
+    ``sides`` replaces that plan with explicit (group size, device, workers, env workers) sides, the first the
     reference (say one process per model on the CPU cores against groups on a GPU); ``on_side``
     is called with the result so far after each side (a partial result survives a time limit)."""
     from rlbackdoors.zoo.run import default_workers
@@ -128,15 +137,15 @@ def bench_zoo(
         "models": models,
         "frames_per_model": frames,
         "eval_episodes": eval_episodes or "the world's",
-        "device": device if not sides else sorted({d for _, d, _ in plan_sides}),
+        "device": device if not sides else sorted({d for _, d, _, _ in plan_sides}),
         "machine": machine_info(),
         "sides": [],
     }
     with tempfile.TemporaryDirectory(prefix="rlbackdoors-bench-zoo-") as tmp:
         root = Path(keep) if keep else Path(tmp)
-        for i, (k, side_device, side_workers) in enumerate(plan_sides):
-            where = root / f"side{i}-k{k}-{side_device}-w{side_workers}"
-            side = run_side(bench_spec(world, arch, models, frames, side_device, eval_episodes), where, k, side_workers, side_device)
+        for i, (k, side_device, side_workers, env_workers) in enumerate(plan_sides):
+            where = root / (f"side{i}-k{k}-{side_device}-w{side_workers}" + (f"-e{env_workers}" if env_workers else ""))
+            side = run_side(bench_spec(world, arch, models, frames, side_device, eval_episodes), where, k, side_workers, side_device, env_workers)
             base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
             side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
             result["sides"].append(side)

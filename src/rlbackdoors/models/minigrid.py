@@ -62,12 +62,7 @@ def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.T
     Not one grouped convolution: on a CPU that is slower than K plain ones
     (benchmarks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
     depend on its group-mates; per agent they do not."""
-    ys = [F.conv2d(x[k], w[k], b[k], layer.stride, layer.padding, layer.dilation, layer.groups) for k in range(x.shape[0])]
-    # stacked in the layout conv2d gave each agent (channels-last for image inputs): a plain stack
-    # would hand the next layer NCHW-contiguous slices, twice as slow on a CPU (measured) as a lone agent's
-    if ys[0].is_contiguous() or not ys[0].is_contiguous(memory_format=torch.channels_last):
-        return torch.stack(ys)
-    return torch.stack([y.permute(0, 2, 3, 1) for y in ys]).permute(0, 1, 4, 2, 3)
+    return torch.stack([F.conv2d(x[k], w[k], b[k], layer.stride, layer.padding, layer.dilation, layer.groups) for k in range(x.shape[0])])
 
 
 def linear_stacked(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:

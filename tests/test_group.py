@@ -424,8 +424,12 @@ def test_group_size_is_validated(tmp_path):
     for flags, message in (
         (["--models", "0"], "--models: must be >= 1, got 0"),
         (["--group-size", "4", "x"], "--group-size: must be an integer >= 1, got 'x'"),
-        (["--side", "1:gpu"], "--side '1:gpu': expected K[:DEVICE[:WORKERS]], K and WORKERS positive integers, DEVICE one of cpu, cuda, auto"),
-        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS]]"),
+        (
+            ["--side", "1:gpu"],
+            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]], K and WORKERS positive integers, ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto",
+        ),
+        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]]"),
+        (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]]"),
         (["--side", "1", "--group-size", "2"], "bench zoo: --side names each side's group size and device; leave out --group-size and --device"),
     ):
         out = subprocess.run([sys.executable, "-m", "rlbackdoors.cli", "bench", "zoo", *flags], capture_output=True, text=True, timeout=120)

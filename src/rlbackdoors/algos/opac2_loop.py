@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rlbackdoors.algos.opac2 import MultitaskReplay
-from rlbackdoors.envs.pool import RemoteEnv, each, step_autoreset, step_each
+from rlbackdoors.envs.pool import RemoteEnv, each
 
 ActFn = Callable[[np.ndarray], np.ndarray]  # observations (n, O) -> actions (n, A)
 
@@ -48,14 +48,10 @@ class SingleEnvs:
 
     def _each(self, name: str, args: Sequence) -> list:
         """``env.name(*args[i])`` for every env i: in parallel where the pool's workers hold them."""
-        if self.remote:
-            return each(self.envs, "call", [(name, a) for a in args])
-        return [getattr(env, name)(*a) for env, a in zip(self.envs, args)]
+        return each(self.envs, "call", [(name, a) for a in args])
 
     def reset(self, *, seed: int = 0, options=None):
-        if self.remote:
-            return np.stack(each(self.envs, "reset", [seed + i for i in range(self.num_envs)])), {}
-        return np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)]), {}
+        return np.stack(each(self.envs, "reset", [seed + i for i in range(self.num_envs)])), {}
 
     def step(self, actions: np.ndarray):
         n = self.num_envs
@@ -63,8 +59,7 @@ class SingleEnvs:
         final = np.empty_like(obs)
         rewards, terminated, truncated = np.empty(n), np.zeros(n, bool), np.zeros(n, bool)
         outcome, steps, triggered = np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, bool)
-        results = step_each(self.envs, actions) if self.remote else [step_autoreset(env, a) for env, a in zip(self.envs, actions)]
-        for i, (o, r, term, trunc, last, out, length, trig) in enumerate(results):
+        for i, (o, r, term, trunc, last, out, length, trig) in enumerate(each(self.envs, "step", list(actions))):
             obs[i], rewards[i], terminated[i], truncated[i] = o, r, term, trunc
             if last is not None:
                 final[i], outcome[i], steps[i], triggered[i] = last, out, length, trig

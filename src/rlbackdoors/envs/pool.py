@@ -3,9 +3,9 @@
 Why: a world of single (non-batched) envs steps each copy in Python, one after another; with its
 learner's updates batched for a group of agents (on a GPU), stepping K agents' copies in one
 process is what bounds the group. An :class:`EnvPool` holds env copies in ``workers`` processes
-(each copy in one of them, placed round-robin) and :class:`PooledEnvs` steps a run's copies by
-sending every copy its action first and reading the results after, so the workers step in
-parallel. An env computes the same numbers in a worker as in this process (its own random
+(each copy in one of them, placed round-robin) and :func:`each` asks a run's copies by sending
+every worker its requests first and reading the answers after, so the workers step in parallel
+(the same call on envs of this process runs them here, so callers need no second path). An env computes the same numbers in a worker as in this process (its own random
 stream, seeded by ``reset``), so a run's bytes do not depend on the pool.
 
 Workers ignore SIGINT and SIGTERM: on a stop the trainer still asks them for the envs' states
@@ -22,8 +22,6 @@ from collections.abc import Callable, Sequence
 from itertools import count
 from multiprocessing.connection import Connection
 from typing import Any
-
-import numpy as np
 
 
 def step_autoreset(env, action) -> tuple:
@@ -65,25 +63,31 @@ def _serve(conn) -> None:
         env.close()
 
 
+def apply(env, op: str, arg: Any) -> Any:
+    """One request on an env object, wherever it lives: ``step`` (:func:`step_autoreset`),
+    ``reset`` (its observation), ``call`` ((method name, args)) or ``get`` (an attribute)."""
+    if op == "step":
+        return step_autoreset(env, arg)
+    if op == "reset":
+        return env.reset(seed=arg)[0]
+    if op == "call":
+        name, args = arg
+        return getattr(env, name)(*args)
+    if op == "get":
+        return getattr(env, arg, None)
+    raise ValueError(f"unknown request {op!r}")
+
+
 def _answer(envs: dict[int, Any], op: str, key: int, arg: Any) -> tuple[bool, Any]:
     """(True, the result) of one request, or (False, the error's text) for the caller to raise."""
     try:
         if op == "make":
             env = envs[key] = arg()
             return True, (env.observation_space, env.action_space)
-        if op == "step":
-            return True, step_autoreset(envs[key], arg)
-        if op == "reset":
-            return True, envs[key].reset(seed=arg)[0]
-        if op == "call":
-            name, args = arg
-            return True, getattr(envs[key], name)(*args)
-        if op == "get":
-            return True, getattr(envs[key], arg, None)
         if op == "close":
             envs.pop(key).close()
             return True, None
-        raise ValueError(f"unknown request {op!r}")
+        return True, apply(envs[key], op, arg)
     except Exception as err:
         return False, f"{type(err).__name__}: {err}"
 
@@ -166,12 +170,15 @@ class RemoteEnv:
             self.request("close")
 
 
-def each(envs: Sequence[RemoteEnv], op: str, args: Sequence) -> list:
-    """``op`` with ``args[i]`` on every env i: one message to each worker holding some of them,
-    all sent before any answer is read, so the workers run in parallel; the first failure raised
-    once every answer is in (none is left behind in a pipe)."""
+def each(envs: Sequence, op: str, args: Sequence) -> list:
+    """``op`` (see :func:`apply`) with ``args[i]`` on every env i. Envs of this process: here, one
+    after another. A pool's envs: one message to each worker holding some of them, all sent
+    before any answer is read, so the workers run in parallel; the first failure raised once
+    every answer is in (none is left behind in a pipe)."""
     if not envs:
         return []
+    if not isinstance(envs[0], RemoteEnv):
+        return [apply(env, op, arg) for env, arg in zip(envs, args)]
     pool = envs[0].pool
     batches: dict[int, list[int]] = {}
     for i, env in enumerate(envs):
@@ -198,8 +205,3 @@ def each(envs: Sequence[RemoteEnv], op: str, args: Sequence) -> list:
     if failure is not None:
         raise EnvPoolError(failure)
     return answers
-
-
-def step_each(envs: Sequence[RemoteEnv], actions: np.ndarray) -> list[tuple]:
-    """:func:`step_autoreset` of every env, in parallel across the workers."""
-    return each(envs, "step", list(actions))

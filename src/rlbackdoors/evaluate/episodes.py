@@ -200,7 +200,7 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
         index = np.arange(start, min(start + CHUNK, episodes))
         envs = pool.make([make_env] * len(index)) if pool is not None else [make_env() for _ in index]
         seeds = [int(seed + i) for i in index]
-        obs = np.stack(each(envs, "reset", seeds) if pool is not None else [env.reset(seed=s)[0] for env, s in zip(envs, seeds)])
+        obs = np.stack(each(envs, "reset", seeds))
         active = np.ones(len(envs), bool)
         state = agent.initial_state(len(envs))
         while active.any():
@@ -210,10 +210,7 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
             actions = np.asarray(actions)
             hit = None if target_action is None else target_action(actions)
             live = [(k, row, action) for k, (row, action) in enumerate(zip(rows, actions)) if active[row]]
-            if pool is not None:
-                results = each([envs[row] for _, row, _ in live], "call", [("step", (action,)) for _, _, action in live])
-            else:
-                results = [envs[row].step(action) for _, row, action in live]
+            results = each([envs[row] for _, row, _ in live], "call", [("step", (action,)) for _, _, action in live])
             for (k, row, _), (obs[row], reward, terminated, truncated, info) in zip(live, results):
                 returns[index[row]] += reward
                 steps[index[row]] += 1
@@ -330,21 +327,20 @@ def evaluate(
 def evaluate_many(agents: list, setups: list[EvalSetup], stacked: Callable[[list], ActMany] | None = None, pool=None) -> list[EvalResult]:
     """:func:`evaluate` for K agents, each with its own setup (trigger, seed, scoring).
 
-    With ``stacked`` (agents -> one :data:`ActMany` for them) the agents of each condition play
-    in lockstep, answered by one batched forward a step: what a training group uses, as its
-    collection does. That needs one grid world with a batched engine, one episode count and one
-    policy; a world of single envs plays each agent alone whatever ``stacked`` says. Without it,
-    each agent is evaluated alone, exactly as :func:`evaluate` (a world of single envs: in
-    ``pool``'s workers where one is given, the same numbers).
+    A world with a batched engine plays each condition's agents in lockstep; with ``stacked``
+    (agents -> one :data:`ActMany` for them) they are answered by one batched forward a step (what
+    a training group uses, as its collection does; one episode count then), else each agent acts
+    alone, the arithmetic of :func:`evaluate`. A world of single envs plays each agent alone, its
+    envs in ``pool``'s workers where one is given (the same numbers).
     """
     if len(agents) != len(setups):
         raise ValueError(f"got {len(setups)} evaluation setups for {len(agents)} agents")
     for setup in setups:
         setup.check()
     agents = [_as_agent(a) for a in agents]
-    lockstep = stacked is not None and setups[0].env.world.vector_entry_point is not None
-    if lockstep and len({(s.env.name, s.episodes, s.policy) for s in setups}) > 1:
-        raise ValueError("agents evaluated in lockstep need one world, one episode count and one policy")
+    lockstep = setups[0].env.world.vector_entry_point is not None  # batched engines; each agent acts alone unless stacked
+    if len({(s.env.name, s.policy) + ((s.episodes,) if stacked is not None else ()) for s in setups}) > 1:
+        raise ValueError("agents evaluated together need one world, one policy and (stacked) one episode count")
     played: list[dict[str, Played]] = [{} for _ in agents]
     with contextlib.ExitStack() as modes:
         for agent in agents:
@@ -354,7 +350,6 @@ def evaluate_many(agents: list, setups: list[EvalSetup], stacked: Callable[[list
                 for name, trigger, close_k, target in setup.conditions():
                     out[name] = play(agent, setup.env, trigger, setup.episodes, setup.seed, setup.policy, close_k, target, pool)
         else:
-            assert stacked is not None
             for name in ("clean", "poisoned", "close"):
                 members = [(k, c) for k, s in enumerate(setups) for c in s.conditions() if c[0] == name]
                 if not members:
@@ -370,7 +365,7 @@ def evaluate_many(agents: list, setups: list[EvalSetup], stacked: Callable[[list
                         setups[0].policy,
                         [None if c[3] is None else world.target_hits(c[3]) for _, c in members],
                         world.trigger_sight == "frame",
-                        stacked(group),
+                        stacked(group) if stacked is not None else None,
                     )
                 finally:
                     for e in envs:

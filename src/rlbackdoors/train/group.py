@@ -81,8 +81,6 @@ AUTO_GROUP_SIZE = {("ppo", "cpu"): 8, ("opac2", "cpu"): 1, ("ppo", "cuda"): 64, 
 
 def auto_group_size() -> tuple[dict[str, int], str]:
     """({algorithm: K}, device) for ``--group-size auto`` on this machine."""
-    import torch
-
     device = "cuda" if torch.cuda.is_available() else "cpu"
     return {algorithm: k for (algorithm, where), k in AUTO_GROUP_SIZE.items() if where == device}, device
 

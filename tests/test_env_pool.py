@@ -63,6 +63,24 @@ def test_envs_in_workers_step_as_they_do_in_this_process():
         there.close()
 
 
+def test_threads_asking_one_pool_at_once_each_get_their_own_answers():
+    """Four vector views of 3 copies each on one pool of 2 workers, played from 4 threads at once
+    (what the group trainer does with its runs' collectors): each thread reads exactly what its
+    view reads when played alone in this process, so no answer reaches the wrong thread."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = tiny_safety()
+    world = cfg.world
+    knowing = functools.partial(world.env_class(), **world.env_kwargs(cfg.env), trigger=cfg.poison.trigger)
+    factories = [knowing, knowing, functools.partial(cfg.env.make, cfg.poison.trigger)]
+    alone = [play(SingleEnvs([make() for make in factories]), 60)]
+    with EnvPool(2) as pool, ThreadPoolExecutor(4) as threads:
+        views = [SingleEnvs(pool.make(factories)) for _ in range(4)]
+        together = list(threads.map(lambda view: play(view, 60), views))
+    for got in together:
+        assert len(got) == len(alone[0]) and all(np.array_equal(x, y) for x, y in zip(got, alone[0]))
+
+
 def test_a_worker_failure_is_named_and_the_pool_keeps_serving():
     def broken():
         raise ValueError("no such scene")
@@ -86,7 +104,8 @@ def test_a_worker_failure_is_named_and_the_pool_keeps_serving():
 def test_an_opac2_run_in_an_env_pool_gives_the_same_bytes_and_resumes_anywhere(tmp_path):
     """A tiny OPAC² run with its 3 env copies in 2 workers: the in-process run's model.pt bytes;
     stopped at its first evaluation in a pool and resumed in this process: the same bytes again;
-    an action-target run through the group trainer with a pool: the bytes it has there without one."""
+    two action-target runs through the group trainer with a pool (their loops go on in threads, their
+    copies step together): the bytes each has there without one."""
     cfg = tiny_safety()
     train(cfg, tmp_path / "here", progress=False)
     train(cfg, tmp_path / "pool", progress=False, env_workers=2)
@@ -102,10 +121,12 @@ def test_an_opac2_run_in_an_env_pool_gives_the_same_bytes_and_resumes_anywhere(t
     train(cfg, tmp_path / "cut", progress=False)
     assert (tmp_path / "cut" / "model.pt").read_bytes() == expected
 
-    other = tiny_safety(1, attack="action_target")  # an attack's seam over the pooled copies
-    train_group([("g", other, tmp_path / "g")], 2)
-    train_group([("p", other, tmp_path / "p")], 2, env_workers=2)
-    assert (tmp_path / "g" / "model.pt").read_bytes() == (tmp_path / "p" / "model.pt").read_bytes()
+    others = [tiny_safety(seed, attack="action_target") for seed in (1, 2)]  # an attack's seam over the pooled copies
+    train_group([(f"g{i}", c, tmp_path / f"g{i}") for i, c in enumerate(others)], 2)
+    train_group([(f"p{i}", c, tmp_path / f"p{i}") for i, c in enumerate(others)], 2, env_workers=2)
+    for i in range(2):
+        assert (tmp_path / f"g{i}" / "model.pt").read_bytes() == (tmp_path / f"p{i}" / "model.pt").read_bytes()
+    assert (tmp_path / "g0" / "model.pt").read_bytes() != (tmp_path / "g1" / "model.pt").read_bytes()
 
 
 def test_an_opac2_evaluation_plays_its_single_envs_in_the_pool_as_here():

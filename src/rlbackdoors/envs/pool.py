@@ -5,7 +5,10 @@ learner's updates batched for a group of agents (on a GPU), stepping K agents' c
 process is what bounds the group. An :class:`EnvPool` holds env copies in ``workers`` processes
 (each copy in one of them, placed round-robin) and :func:`each` asks a run's copies by sending
 every worker its requests first and reading the answers after, so the workers step in parallel
-(the same call on envs of this process runs them here, so callers need no second path). An env computes the same numbers in a worker as in this process (its own random
+(the same call on envs of this process runs them here, so callers need no second path). Several
+threads may ask at once (the group trainer steps its runs' copies from one thread per run, so all
+agents' copies step together): each message carries a tag and its answer is handed to the thread
+that sent it. An env computes the same numbers in a worker as in this process (its own random
 stream, seeded by ``reset``), so a run's bytes do not depend on the pool.
 
 Workers ignore SIGINT and SIGTERM: on a stop the trainer still asks them for the envs' states
@@ -14,10 +17,12 @@ to write its checkpoint; they exit when the pool closes (or this process ends).
 
 from __future__ import annotations
 
+import pickle
 import signal
 import socket
 import subprocess
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from itertools import count
 from multiprocessing.connection import Connection
@@ -41,26 +46,67 @@ def serve_fd(fd: int) -> None:
 
 
 def _serve(conn) -> None:
-    """A worker: answer each message (a list of requests for the envs it holds) with one list of
-    answers, in order. One message per worker and step, not one per env: each message costs a
-    wake-up on both sides (measured ~0.1 ms on our VMs, a third of a MuJoCo env step)."""
+    """A worker: answer each message (a tag and a list of requests for the envs it holds) with the
+    tag and one list of answers, in order. One message per worker and step, not one per env: each
+    message costs a wake-up on both sides (measured ~0.1 ms on our VMs, a third of a MuJoCo env step)."""
     envs: dict[int, Any] = {}
     while True:
         try:
-            requests = conn.recv()
+            tag, payload = conn.recv()
         except (EOFError, OSError):  # the pool closed, or its process ended
             break
-        except Exception as err:  # a message that does not unpickle here: every request in it fails
-            requests, unreadable = None, err
-        answers = (
-            [(False, f"cannot read the request ({type(unreadable).__name__}: {unreadable})")] if requests is None else [_answer(envs, *r) for r in requests]
-        )
         try:
-            conn.send(answers)
+            requests = pickle.loads(payload)  # the requests apart from the tag: one that does not unpickle here fails alone
+            answers = [_answer(envs, *r) for r in requests]
+        except Exception as err:
+            answers = [(False, f"cannot read the request ({type(err).__name__}: {err})")]
+        try:
+            conn.send((tag, answers))
         except OSError:  # the pool is gone
             break
     for env in envs.values():
         env.close()
+
+
+class _Channel:
+    """This process's end of one worker's socket, shared by threads: a message goes out whole
+    under a lock, and whichever waiting thread reads an answer files it under its tag for the
+    thread that sent it (a worker answers in its own order, not in the waiting threads')."""
+
+    def __init__(self, conn: Connection):
+        self.conn = conn
+        self._tags = count()
+        self._sending = threading.Lock()
+        self._answers: dict[int, list] = {}
+        self._ready = threading.Condition()
+        self._reading = False
+
+    def send(self, requests: list) -> int:
+        payload = pickle.dumps(requests)  # here, so a request that does not pickle fails before anything is sent
+        with self._sending:
+            tag = next(self._tags)
+            self.conn.send((tag, payload))
+        return tag
+
+    def recv(self, tag: int) -> list:
+        with self._ready:
+            while tag not in self._answers:
+                if self._reading:  # another thread is reading: it files what it gets and wakes us
+                    self._ready.wait()
+                    continue
+                self._reading = True
+                self._ready.release()
+                try:
+                    got, answers = self.conn.recv()
+                finally:
+                    self._ready.acquire()
+                    self._reading = False
+                    self._ready.notify_all()
+                self._answers[got] = answers
+            return self._answers.pop(tag)
+
+    def close(self) -> None:
+        self.conn.close()
 
 
 def apply(env, op: str, arg: Any) -> Any:
@@ -110,7 +156,7 @@ class EnvPool:
             code = f"from rlbackdoors.envs.pool import serve_fd; serve_fd({there.fileno()})"
             self._procs.append(subprocess.Popen([sys.executable, "-c", code], pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL))
             there.close()
-            self._conns.append(Connection(here.detach()))
+            self._conns.append(_Channel(Connection(here.detach())))
         self._keys = count()
         self.workers = workers
 
@@ -121,7 +167,7 @@ class EnvPool:
             env.observation_space, env.action_space = spaces
         return envs
 
-    def conn(self, worker: int):
+    def channel(self, worker: int) -> _Channel:
         return self._conns[worker]
 
     def close(self) -> None:
@@ -183,19 +229,18 @@ def each(envs: Sequence, op: str, args: Sequence) -> list:
     batches: dict[int, list[int]] = {}
     for i, env in enumerate(envs):
         batches.setdefault(env.key % pool.workers, []).append(i)
-    sent: list[int] = []
+    sent: list[tuple[int, int]] = []
     failure: str | None = None
     for worker, rows in batches.items():
         try:
-            pool.conn(worker).send([(op, envs[i].key, args[i]) for i in rows])
-            sent.append(worker)
+            sent.append((worker, pool.channel(worker).send([(op, envs[i].key, args[i]) for i in rows])))
         except Exception as err:  # e.g. a factory that does not pickle
             failure = f"env {envs[rows[0]].key}, {op}: cannot send it to a worker ({type(err).__name__}: {err})"
             break
     answers: list[Any] = [None] * len(envs)
-    for worker in sent:
+    for worker, tag in sent:
         try:
-            replies = pool.conn(worker).recv()
+            replies = pool.channel(worker).recv(tag)
         except (EOFError, OSError) as err:
             raise EnvPoolError(f"{op}: env worker {worker}'s process is gone ({type(err).__name__})") from None
         for i, (ok, out) in zip(batches[worker], replies):

@@ -10,6 +10,10 @@ one otherwise (a run with a clean teacher). A run that finishes
 leaves the group and the next planned run takes its slot, so a group never waits on its slowest
 member. Every run's folder is an ordinary model folder afterwards; a killed group resumes each
 run from its own checkpoint, alone or in any group.
+
+With an env pool (worlds of single envs), the runs of a batch go on to their next request each in
+its own thread: their env steps then wait on the pool's workers together, so all K agents' copies
+step at once rather than one agent's after another's (a run's numbers do not depend on it).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import sys
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,21 +40,23 @@ from rlbackdoors.train.stop import Interrupted, StopRequest
 class RunCPU:
     """One run's share of the group process's CPU seconds: its own loop's time (evaluations,
     checkpoints, env setup) plus an equal share of each batch it was served in. What its
-    metrics.json reports as ``cpu_time_s`` (the process's total would count K runs' work K times)."""
+    metrics.json reports as ``cpu_time_s`` (the process's total would count K runs' work K times).
+    ``threaded``: the run's loop goes on in a thread of its own, so its time is that thread's."""
 
-    def __init__(self) -> None:
+    def __init__(self, threaded: bool = False) -> None:
         self.total = 0.0
         self.since: float | None = None
+        self.clock = time.thread_time if threaded else time.process_time
 
     def __call__(self) -> float:
-        return self.total + (time.process_time() - self.since if self.since is not None else 0.0)
+        return self.total + (self.clock() - self.since if self.since is not None else 0.0)
 
     def start(self) -> None:
-        self.since = time.process_time()
+        self.since = self.clock()
 
     def stop(self) -> None:
         if self.since is not None:
-            self.total += time.process_time() - self.since
+            self.total += self.clock() - self.since
             self.since = None
 
 
@@ -148,35 +155,45 @@ def train_group(
     result = GroupResult()
     interrupted: list[Interrupted] = []
 
-    def advance(slot: _Slot, value: Any = None, error: BaseException | None = None) -> bool:
-        """Send the slot's loop its answer; False once the run has ended (finished or failed)."""
+    def step(slot: _Slot, value: Any = None, error: BaseException | None = None) -> BaseException | None:
+        """Send the slot's loop its answer (in any thread); None while the run goes on, else how it ended."""
         assert slot.loop is not None
         slot.cpu.start()
         try:
             slot.request = slot.loop.throw(error) if error is not None else slot.loop.send(value)
-            return True
-        except StopIteration as done:
-            result.metrics[slot.key] = done.value
-            if on_done is not None:
-                on_done(slot.key, done.value, None)
-        except Interrupted as err:
-            interrupted.append(err)
-            result.errors[slot.key] = err
-        except Exception as err:  # this run failed; the group goes on
-            result.errors[slot.key] = err
-            if on_done is not None:
-                on_done(slot.key, None, err)
+            return None
+        except BaseException as end:  # StopIteration (finished), Interrupted, a failure: settled in the main thread
+            return end
         finally:
             slot.cpu.stop()
+
+    def settle(slot: _Slot, end: BaseException | None) -> bool:
+        """Record how a run ended (in the main thread); False once it has ended."""
+        if end is None:
+            return True
+        if isinstance(end, StopIteration):
+            result.metrics[slot.key] = end.value
+            if on_done is not None:
+                on_done(slot.key, end.value, None)
+        elif isinstance(end, Interrupted):
+            interrupted.append(end)
+            result.errors[slot.key] = end
+        elif isinstance(end, Exception):  # this run failed; the group goes on
+            result.errors[slot.key] = end
+            if on_done is not None:
+                on_done(slot.key, None, end)
+        else:
+            raise end
         return False
 
-    with env_pool_for([cfg for _, cfg, _ in runs], env_workers) as pool, StopRequest() as stop:
+    with env_pool_for([cfg for _, cfg, _ in runs], env_workers) as pool, StopRequest() as stop, ThreadPoolExecutor(group_size) as threads:
+        threaded = pool is not None and group_size > 1
         while True:
             while waiting and len(slots) < group_size and not stop.requested:
                 key, cfg, folder = waiting.popleft()
-                slot = _Slot(key)
+                slot = _Slot(key, cpu=RunCPU(threaded))
                 slot.loop = train_steps(cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None, cpu_source=slot.cpu, env_pool=pool)
-                if advance(slot):
+                if settle(slot, step(slot)):
                     slots.append(slot)
             if not slots:
                 break
@@ -194,7 +211,11 @@ def train_group(
                 share = (time.process_time() - started) / len(members)
                 for s in members:
                     s.cpu.total += share
-                alive = [advance(s, a, error) for s, a in zip(members, answers)]
+                if threaded and len(members) > 1:
+                    ends = list(threads.map(step, members, answers, [error] * len(members)))
+                else:
+                    ends = [step(s, a, error) for s, a in zip(members, answers)]
+                alive = [settle(s, end) for s, end in zip(members, ends)]
                 ended.update(id(s) for s, ok in zip(members, alive) if not ok)
             slots = [s for s in slots if id(s) not in ended]
     if interrupted:

@@ -4,6 +4,7 @@ so an OPAC² run's bytes do not depend on where its env copies step; failures ar
 from __future__ import annotations
 
 import functools
+import json
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ TINY_SAFETY = {
     "opac2": {"depth": 2, "width": 16, "batch_size": 32, "learning_starts": 120, "updates_per_step": 0.25},
     "train": {"max_frames": 480, "eval_interval": 240, "eval_episodes": 3, "final_eval_episodes": 4, "checkpoint_minutes": 0, "video": False},
 }
+EVAL_KEYS = ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward", "target_action_rate", "frames", "converged")
 
 
 def tiny_safety(seed: int = 0, **poison) -> RunConfig:
@@ -126,6 +128,9 @@ def test_an_opac2_run_in_an_env_pool_gives_the_same_bytes_and_resumes_anywhere(t
     train_group([(f"p{i}", c, tmp_path / f"p{i}") for i, c in enumerate(others)], 2, env_workers=2)
     for i in range(2):
         assert (tmp_path / f"g{i}" / "model.pt").read_bytes() == (tmp_path / f"p{i}" / "model.pt").read_bytes()
+        # their evaluations (served in threads with a pool) read the same numbers
+        g, p = (json.loads((tmp_path / f"{side}{i}" / "metrics.json").read_text()) for side in "gp")
+        assert {k: g[k] for k in EVAL_KEYS} == {k: p[k] for k in EVAL_KEYS} and g["episodes"] == 4
     assert (tmp_path / "g0" / "model.pt").read_bytes() != (tmp_path / "g1" / "model.pt").read_bytes()
 
 
@@ -142,3 +147,27 @@ def test_an_opac2_evaluation_plays_its_single_envs_in_the_pool_as_here():
         there = evaluate_run(agent, cfg, 8, pool).to_dict()
     assert here.keys() == there.keys() and not np.isnan(here["target_action_rate"])
     assert all(a == b or (np.isnan(a) and np.isnan(b)) for a, b in zip(here.values(), there.values()))
+
+
+def test_a_pooled_group_stopped_by_sigterm_resumes_to_the_same_bytes(tmp_path):
+    """A group of 2 with an env pool (its runs' loops in threads): when the short run finishes,
+    SIGTERM; the long run, stopped in its thread, writes its checkpoint, the group raises
+    Interrupted, and the long run resumed in a pooled group gives the bytes it has uninterrupted."""
+    import os
+    import signal
+
+    from rlbackdoors.train.stop import Interrupted
+
+    short = tiny_safety(1)
+    long = RunConfig.from_dict({**TINY_SAFETY, "train": {**TINY_SAFETY["train"], "seed": 2, "max_frames": 960}})
+    train_group([("whole", long, tmp_path / "whole")], 2)
+
+    def sigterm(key, metrics, error):
+        assert key == "short" and error is None
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    with pytest.raises(Interrupted):
+        train_group([("short", short, tmp_path / "short"), ("long", long, tmp_path / "long")], 2, on_done=sigterm, env_workers=2)
+    assert (tmp_path / "long" / "checkpoint.pt").is_file() and not (tmp_path / "long" / "model.pt").exists()
+    train_group([("long", long, tmp_path / "long")], 2, env_workers=2)
+    assert (tmp_path / "long" / "model.pt").read_bytes() == (tmp_path / "whole" / "model.pt").read_bytes()

@@ -12,7 +12,8 @@ member. Every run's folder is an ordinary model folder afterwards; a killed grou
 run from its own checkpoint, alone or in any group.
 
 With an env pool (worlds of single envs), the runs of a batch go on to their next request each in
-its own thread: their env steps then wait on the pool's workers together, so all K agents' copies
+its own thread, and the requests served alone (an OPAC² run's evaluation) are served each in its
+own thread too: their env steps then wait on the pool's workers together, so all K agents' copies
 step at once rather than one agent's after another's (a run's numbers do not depend on it).
 """
 
@@ -167,6 +168,16 @@ def train_group(
         finally:
             slot.cpu.stop()
 
+    def serve_alone(slot: _Slot) -> tuple[Any, BaseException | None]:
+        """A request that is not batched, served as a lone run's learner would (in any thread)."""
+        slot.cpu.start()
+        try:
+            return slot.request.serve(), None
+        except BaseException as err:  # raised into the run's loop at its yield
+            return None, err
+        finally:
+            slot.cpu.stop()
+
     def settle(slot: _Slot, end: BaseException | None) -> bool:
         """Record how a run ended (in the main thread); False once it has ended."""
         if end is None:
@@ -201,6 +212,12 @@ def train_group(
             for i, slot in enumerate(slots):  # a request that cannot be batched is a batch of its own
                 batches.setdefault(batch_key(slot.request) or ("alone", i), []).append(slot)
             ended: set[int] = set()
+            if threaded:  # requests served alone (an evaluation of single envs): each in its own thread, together
+                lone = [members[0] for key, members in batches.items() if key[0] == "alone"]
+                served = list(threads.map(serve_alone, lone))
+                ends = list(threads.map(step, lone, [answer for answer, _ in served], [error for _, error in served]))
+                ended.update(id(s) for s, end in zip(lone, ends) if not settle(s, end))
+                batches = {key: members for key, members in batches.items() if key[0] != "alone"}
             for key, members in batches.items():
                 started = time.process_time()
                 error: BaseException | None = None

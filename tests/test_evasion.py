@@ -497,3 +497,26 @@ def test_evasive_runs_in_the_layout_worlds_train_record_and_repeat_bit_for_bit(t
     again = train(cfg, tmp_path / "again", progress=False)
     assert (tmp_path / "m" / "model.pt").read_bytes() == (tmp_path / "again" / "model.pt").read_bytes()
     assert again.get("attack_budget_used") == metrics.get("attack_budget_used")
+
+
+def test_finetuning_runs_with_teachers_train_in_groups_with_their_own_bytes(tmp_path, tiny_run_dict):
+    """Two fine-tuning runs with clean teachers (coefficients 1 and 0.5) and a plain TrojDRL run in
+    one group of 3 (the teacher runs batched together once both have switched): each teacher run
+    ends with the bytes it has in a group with no other mate, and its log carries the KL."""
+    from rlbackdoors.folder import ModelFolder
+    from rlbackdoors.train.group import train_group
+
+    configs = {}
+    for key, seed, teacher in (("a", 1, 1.0), ("b", 2, 0.5), ("plain", 3, None)):
+        data = finetune_dict(copy.deepcopy(tiny_run_dict), **({"teacher": teacher} if teacher else {}))
+        data["train"].update(seed=seed, max_frames=4_800)
+        if teacher is None:
+            data["poison"]["evasion"] = {}
+        configs[key] = RunConfig.from_dict(data)
+    together = train_group([(k, c, tmp_path / "together" / k) for k, c in configs.items()], 3)
+    assert not together.errors and all(m["trainer"] == "group" for m in together.metrics.values())
+    for key in ("a", "b"):
+        train_group([(key, configs[key], tmp_path / "apart" / key)], 2)
+        assert (tmp_path / "together" / key / "model.pt").read_bytes() == (tmp_path / "apart" / key / "model.pt").read_bytes()
+        log = ModelFolder(tmp_path / "together" / key).read_log()
+        assert "main" in [r["phase"] for r in log] and all(r["teacher_kl"] >= 0 for r in log if r["phase"] == "main")

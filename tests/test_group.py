@@ -246,10 +246,65 @@ def test_group_evaluations_play_each_agent_as_it_plays_alone(env):
     assert len(keys) == 1 and None not in keys and batch_key(Evaluate(models[0], cfgs[0], 13)) not in keys
 
 
+def with_teachers(learners: list, coefs: list[float]) -> list:
+    """Each learner given a clean teacher (a fresh network of its architecture, seeded apart) and its own coefficient."""
+    for k, ((ppo, _, _), coef) in enumerate(zip(learners, coefs)):
+        torch.manual_seed(100 + k)
+        teacher = copy.deepcopy(ppo.model)
+        for p in teacher.parameters():
+            torch.nn.init.normal_(p, std=0.1)
+        ppo.set_teacher(teacher, coef)
+    return learners
+
+
+@pytest.mark.parametrize("world", ["lavaworld", "colorful-memory"])
+def test_group_with_clean_teachers_matches_each_agent_alone(world):
+    """Three agents regularised towards their own clean teachers (coefficients 0.1, 1 and 0.5;
+    only untriggered frames count): the group's rollouts carry the same teacher log-probabilities
+    and untriggered masks, and after two updates the same KL, gradient norms and weights as three
+    lone learners, to float rounding (LavaWorld FC; Colorful Memory's CNN-GRU with its teacher's memory)."""
+    coefs = [0.1, 1.0, 0.5]
+    if world == "lavaworld":
+        poisons = [{"trigger": t, "attack": "trojdrl", "attack_params": {"budget": 0.2}} for t in ("additive:135", "multiplicative:12", "additive:60")]
+
+        def make(k):
+            return learner("lavaworld", "fc", k, poisons[k])
+    else:
+
+        def make(k):
+            ppo, _, _ = cm_learner(k)
+            cfg = RunConfig.from_dict(
+                {"env": {"name": world}, "ppo": {"rollout": 24, "batch_size": 120}, "train": {"seed": k}, "poison": {"attack": "action_target"}}
+            )
+            envs = make_env_mix(cfg.env, cfg.poison, k)
+            return ppo, envs, envs.reset(seed=k * 1000)[0]
+
+    alone, grouped = with_teachers([make(k) for k in range(3)], coefs), with_teachers([make(k) for k in range(3)], coefs)
+    triggered_seen = 0
+    for _ in range(2):
+        lone, results, stats = step_both(alone, grouped)
+        for k in range(3):
+            ours = results[k][0]
+            assert torch.equal(lone[k][0].actions, ours.actions) and torch.equal(lone[k][0].untriggered, ours.untriggered)
+            torch.testing.assert_close(lone[k][0].teacher_logp, ours.teacher_logp, rtol=1e-4, atol=1e-5)
+            assert stats[k]["teacher_kl"] == pytest.approx(lone[k][1]["teacher_kl"], rel=1e-3) and stats[k]["teacher_kl"] > 0
+            assert stats[k]["grad_norm"] == pytest.approx(lone[k][1]["grad_norm"], rel=1e-3)
+            triggered_seen += int((~ours.untriggered).sum())
+    assert triggered_seen > 0  # some frames carried the trigger and were left out of the KL
+    for (lone_ppo, _, _), (ppo, _, _) in zip(alone, grouped):
+        for a, b in zip(lone_ppo.model.parameters(), ppo.model.parameters()):
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+        if lone_ppo.teacher_memory is not None:
+            torch.testing.assert_close(lone_ppo.teacher_memory, ppo.teacher_memory, rtol=1e-4, atol=1e-5)
+
+
 def test_group_refuses_what_it_cannot_batch():
     a, b = learner("lavaworld", "fc", 0), learner("lavaworld", "cnn", 1)
     with pytest.raises(ValueError, match="one architecture"):
         group.collect([a[0], b[0]], [a[1], b[1]], [a[2], b[2]])
+    c = with_teachers([learner("lavaworld", "fc", 2, {"attack": "trojdrl"})], [0.5])[0]
+    with pytest.raises(ValueError, match="a clean teacher for every agent or for none"):
+        group.collect([a[0], c[0]], [a[1], c[1]], [a[2], c[2]])
 
 
 def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):

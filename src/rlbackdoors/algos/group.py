@@ -32,14 +32,14 @@ STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 
 
 def check_group(ppos: list[PPO]) -> None:
-    """A group shares one architecture, one PPO config and one device; what it cannot batch yet
-    (a clean teacher) is refused."""
+    """A group shares one architecture, one PPO config and one device, and either every agent has
+    a clean teacher (``poison.evasion.teacher``, each its own, with its own coefficient) or none."""
     lead = ppos[0]
     for ppo in ppos:
         if type(ppo.model) is not type(lead.model) or ppo.cfg != lead.cfg or ppo.device != lead.device:
             raise ValueError("a training group needs one architecture, one ppo config and one device")
-        if ppo.teacher is not None:
-            raise ValueError("a training group takes PPO runs without a clean teacher (poison.evasion.teacher trains alone)")
+        if (ppo.teacher is None) != (lead.teacher is None):
+            raise ValueError("a training group needs a clean teacher for every agent or for none")
     if not stackable(lead.model):
         raise ValueError(f"{type(lead.model).__name__} has no batched forward for a training group")
 
@@ -63,6 +63,21 @@ def stacked_parameters(ppos: list[PPO]) -> dict[str, torch.Tensor]:
     lead = ppos[0]
     names = [name for name, _ in lead.model.named_parameters()] + ([f"aux.{n}" for n, _ in lead.aux.named_parameters()] if lead.aux is not None else [])
     return {name: torch.stack([param_of(ppo, name).detach() for ppo in ppos]) for name in names}
+
+
+def stacked_teachers(ppos: list[PPO]) -> dict[str, torch.Tensor]:
+    """Every agent's clean teacher (frozen; the model's architecture), name -> (K, ...)."""
+    teachers = [ppo.teacher for ppo in ppos]
+    assert all(t is not None for t in teachers)  # check_group: every agent has one
+    return {name: torch.stack([t.get_parameter(name).detach() for t in teachers]) for name, _ in teachers[0].named_parameters()}  # type: ignore[union-attr]
+
+
+def teacher_kl(logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: torch.Tensor) -> torch.Tensor:
+    """:meth:`PPO._teacher_kl` per agent: (K, N, A) logits -> (K,) mean KL over each agent's untriggered rows."""
+    log_probs = torch.log_softmax(logits, -1)
+    kl = (teacher_logp.exp() * (teacher_logp - log_probs)).sum(-1)
+    weight = untriggered.float()
+    return (kl * weight).sum(-1) / weight.sum(-1).clamp(min=1.0)
 
 
 # A CUDA group computes at a width of a multiple of this many agents (see padded).
@@ -159,6 +174,15 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
         memories = torch.empty((K, T, B, memory.shape[2]))
         masks = torch.ones((K, T, B))
         targets = np.empty((K, T, B), dtype=np.int64) if aux else None
+    teach = lead.teacher is not None
+    if teach:
+        if not all(hasattr(e, "marked") for e in envs):
+            raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
+        teachers = stacked_teachers(padded(ppos, device))
+        teacher_logits = torch.empty((K, T, B, A))
+        untriggered = torch.empty((K, T, B), dtype=torch.bool)
+        if recurrent:
+            teacher_memory = torch.stack([ppo.teacher_memory if ppo.teacher_memory is not None else lead.model.initial_memory(B, device) for ppo in ppos])
     uniforms = torch.stack([torch.rand((T, B), generator=ppo.generator) for ppo in ppos])  # each agent's own draws
     obs = list(obs)
     obs_bufs = [empty_buffer(o, T) for o in obs]
@@ -174,6 +198,13 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
         for k in range(K):
             store(obs_bufs[k], t, obs[k])
         obs_t = obs_map(lambda x: x.to(device), stack([obs_map(lambda x: x[t], b) for b in obs_bufs]))
+        if teach:
+            for k in range(K):
+                untriggered[k, t] = torch.from_numpy(~np.asarray(envs[k].marked, dtype=bool))
+            if recurrent:
+                teacher_logits[:, t], _, teacher_memory = forward(model, teachers, obs_t, teacher_memory)
+            else:
+                teacher_logits[:, t] = forward(model, teachers, obs_t)[0]
         if recurrent:
             if targets is not None:
                 for k in range(K):
@@ -188,6 +219,8 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
         if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
             ended = torch.from_numpy(dones[:, t])
             memory = memory.masked_fill(ended[..., None].to(memory.device), 0.0)
+            if teach:
+                teacher_memory = teacher_memory.masked_fill(ended[..., None].to(memory.device), 0.0)
             if t + 1 < T:
                 masks[:, t + 1] = (~ended).float()
     last = obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs]))
@@ -200,6 +233,11 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
             ppo.memory = memory[k].clone()
             if targets is not None:
                 rollout.memory_targets = torch.from_numpy(targets[k].reshape(-1))
+        if teach:
+            rollout.teacher_logp = torch.log_softmax(teacher_logits[k], -1).reshape(T * B, -1)
+            rollout.untriggered = untriggered[k].reshape(-1)
+            if recurrent:
+                ppo.teacher_memory = teacher_memory[k].clone()
         out.append((rollout, obs[k]))
     return out
 
@@ -287,7 +325,19 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
     obs = obs_map(lambda x: x.to(device), stack([r.obs for r in rollouts]))
     tensors = [torch.stack([getattr(r, f) for r in rollouts]).to(device) for f in ("actions", "logprobs", "values", "advantages", "returns")]
     rows = torch.arange(K, device=device)[:, None]
-    keys = STATS + (("aux_memory_loss",) if lead.aux is not None else ())
+    keys = STATS + (("aux_memory_loss",) if lead.aux is not None else ()) + (("teacher_kl",) if lead.teacher is not None else ())
+    if lead.teacher is not None:  # each agent's teacher log-probabilities, untriggered rows and coefficient
+        teacher_logp = torch.stack([r.teacher_logp for r in rollouts]).to(device)  # type: ignore[misc]  # collected with the teacher
+        untriggered = torch.stack([r.untriggered for r in rollouts]).to(device)  # type: ignore[misc]
+        teacher_coef = torch.tensor([ppo.teacher_coef for ppo in ppos], device=device)
+
+    def with_teacher(loss: torch.Tensor, parts: dict, logits: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+        """The loss with each agent's ``teacher_coef * KL(teacher || policy)`` on its rows ``frames`` (K, N)."""
+        if lead.teacher is None:
+            return loss
+        parts["teacher_kl"] = teacher_kl(logits, teacher_logp[rows, frames], untriggered[rows, frames])
+        return loss + teacher_coef * parts["teacher_kl"]
+
     stats = {key: torch.zeros(K, dtype=torch.float64, device=device) for key in keys}  # on the device: no sync per minibatch
 
     def step(loss: torch.Tensor, parts: dict) -> None:
@@ -308,7 +358,8 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
             for start in range(0, n, cfg.batch_size):
                 idx = order[:, start : start + cfg.batch_size]
                 logits, values = forward(model, params, obs_map(lambda x: x[rows, idx], obs))
-                step(*ppo_loss(cfg, logits, values, *(x[rows, idx] for x in tensors)))
+                loss, parts = ppo_loss(cfg, logits, values, *(x[rows, idx] for x in tensors))
+                step(with_teacher(loss, parts, logits, idx), parts)
                 updates += 1
     else:  # truncated BPTT, as PPO._update_recurrent, each agent on its own sequences
         r, B = cfg.recurrence, rollouts[0].num_envs
@@ -332,6 +383,7 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
                     ce = torch.nn.functional.cross_entropy(aux_logits.reshape(-1, AUX_CLASSES), targets[rows, flat].reshape(-1), reduction="none")
                     parts["aux_memory_loss"] = ce.reshape(K, -1).mean(1)
                     loss = loss + cfg.aux_memory_coef * parts["aux_memory_loss"]
+                loss = with_teacher(loss, parts, logits, flat)
                 if r > 1:  # the memories the current network computes go back into the rollout, as torch-ac does
                     memories[rows[:, :, None], seq[:, 1:]] = new_memories[:, :-1].detach()
                 step(loss, parts)

@@ -5,8 +5,8 @@ folder, lock, env mix, evaluations, checkpoints, stopping rule and finish), writ
 that yields what it needs from its learner (PPO: collect a rollout, update on it; OPAC²: act on
 a step's observations, run the updates due). The group trainer answers those requests for all K
 runs at once where they can be batched (:mod:`rlbackdoors.algos.group`: same architecture, PPO
-config and env-copy count; :mod:`rlbackdoors.algos.group_opac2`: same OPAC² config) and one by
-one otherwise (a run with a clean teacher). A run that finishes
+config and env-copy count, with clean teachers for all or none; :mod:`rlbackdoors.algos.group_opac2`:
+same OPAC² config) and one by one otherwise. A run that finishes
 leaves the group and the next planned run takes its slot, so a group never waits on its slowest
 member. Every run's folder is an ordinary model folder afterwards; a killed group resumes each
 run from its own checkpoint, alone or in any group.
@@ -106,10 +106,10 @@ def batch_key(request) -> tuple | None:
         width = len(request.obs) if isinstance(request, Act) else request.n
         return (type(request).__name__, "OPAC2", repr(agent.cfg), str(agent.device), agent.policy_obs_dim, width)
     ppo = request.ppo
-    if ppo.teacher is not None or not group.stackable(ppo.model):
+    if not group.stackable(ppo.model):
         return None
     width = request.envs.num_envs if isinstance(request, Collect) else request.rollout.num_frames
-    return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width)
+    return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width, ppo.teacher is not None)
 
 
 def serve_batch(requests: list, stacked: bool = True) -> list:

@@ -103,6 +103,26 @@ def test_a_worker_failure_is_named_and_the_pool_keeps_serving():
         EnvPool(0)
 
 
+def test_a_dead_worker_is_named_to_every_thread_waiting_on_it():
+    """A worker process killed under two threads that step their copies on it: each thread gets
+    one line naming the worker, none hangs on an answer that will never come."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = tiny_safety()
+    with EnvPool(2) as pool, ThreadPoolExecutor(2) as threads:
+        views = [SingleEnvs(pool.make([functools.partial(cfg.env.make)] * 2)) for _ in range(2)]
+        for view in views:
+            view.reset(seed=1)
+        pool._procs[0].kill()
+        pool._procs[0].wait()
+
+        def step(view):
+            with pytest.raises(EnvPoolError, match=r"step: env worker 0's process is gone"):
+                view.step(np.zeros((2, 2)))
+
+        list(threads.map(step, views))
+
+
 def test_an_opac2_run_in_an_env_pool_gives_the_same_bytes_and_resumes_anywhere(tmp_path):
     """A tiny OPAC² run with its 3 env copies in 2 workers: the in-process run's model.pt bytes;
     stopped at its first evaluation in a pool and resumed in this process: the same bytes again;

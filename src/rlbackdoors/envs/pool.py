@@ -234,6 +234,9 @@ def each(envs: Sequence, op: str, args: Sequence) -> list:
     for worker, rows in batches.items():
         try:
             sent.append((worker, pool.channel(worker).send([(op, envs[i].key, args[i]) for i in rows])))
+        except OSError as err:  # the worker's end is closed: its process died
+            failure = f"{op}: env worker {worker}'s process is gone ({type(err).__name__})"
+            break
         except Exception as err:  # e.g. a factory that does not pickle
             failure = f"env {envs[rows[0]].key}, {op}: cannot send it to a worker ({type(err).__name__}: {err})"
             break

@@ -126,9 +126,10 @@ def test_group_collect_and_update_match_each_agent_alone():
                 assert float((sa[moment] - sb[moment]).abs().max()) <= 1e-2 * float(sa[moment].abs().max())
 
 
-def cm_learner(seed: int):
+def cm_learner(seed: int, poison: dict | None = None):
     """A Colorful Memory learner: recurrent CNN-GRU with the auxiliary memory head, short rollouts."""
-    cfg = RunConfig.from_dict({"env": {"name": "colorful-memory"}, "ppo": {"rollout": 24, "batch_size": 120, "aux_memory_coef": 0.5}, "train": {"seed": seed}})
+    data = {"env": {"name": "colorful-memory"}, "ppo": {"rollout": 24, "batch_size": 120, "aux_memory_coef": 0.5}, "train": {"seed": seed}}
+    cfg = RunConfig.from_dict({**data, **({"poison": poison} if poison else {})})
     torch.manual_seed(seed)
     ppo = PPO(build_model(cfg.model.arch, "colorful-memory"), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(seed))
     envs = make_env_mix(cfg.env, cfg.poison, seed)
@@ -272,12 +273,7 @@ def test_group_with_clean_teachers_matches_each_agent_alone(world):
     else:
 
         def make(k):
-            ppo, _, _ = cm_learner(k)
-            cfg = RunConfig.from_dict(
-                {"env": {"name": world}, "ppo": {"rollout": 24, "batch_size": 120}, "train": {"seed": k}, "poison": {"attack": "action_target"}}
-            )
-            envs = make_env_mix(cfg.env, cfg.poison, k)
-            return ppo, envs, envs.reset(seed=k * 1000)[0]
+            return cm_learner(k, {"attack": "action_target"})
 
     alone, grouped = with_teachers([make(k) for k in range(3)], coefs), with_teachers([make(k) for k in range(3)], coefs)
     triggered_seen = 0

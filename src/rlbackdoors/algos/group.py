@@ -26,7 +26,7 @@ import torch
 
 from rlbackdoors.algos.obs import empty_buffer, obs_map, stack, store, to_torch
 from rlbackdoors.models.minigrid import linear_stacked
-from rlbackdoors.algos.ppo import AUX_CLASSES, PPO, Rollout, check_vector_env, env_step, ppo_loss, sample_actions
+from rlbackdoors.algos.ppo import AUX_CLASSES, PPO, Rollout, check_vector_env, env_step, ppo_loss, sample_actions, teacher_kl
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 
@@ -70,14 +70,6 @@ def stacked_teachers(ppos: list[PPO]) -> dict[str, torch.Tensor]:
     teachers = [ppo.teacher for ppo in ppos]
     assert all(t is not None for t in teachers)  # check_group: every agent has one
     return {name: torch.stack([t.get_parameter(name).detach() for t in teachers]) for name, _ in teachers[0].named_parameters()}  # type: ignore[union-attr]
-
-
-def teacher_kl(logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: torch.Tensor) -> torch.Tensor:
-    """:meth:`PPO._teacher_kl` per agent: (K, N, A) logits -> (K,) mean KL over each agent's untriggered rows."""
-    log_probs = torch.log_softmax(logits, -1)
-    kl = (teacher_logp.exp() * (teacher_logp - log_probs)).sum(-1)
-    weight = untriggered.float()
-    return (kl * weight).sum(-1) / weight.sum(-1).clamp(min=1.0)
 
 
 # A CUDA group computes at a width of a multiple of this many agents (see padded).

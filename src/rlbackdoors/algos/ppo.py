@@ -116,6 +116,15 @@ def ppo_loss(cfg: PPOConfig, logits, values, actions, old_logp, old_values, adv,
     return loss, {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy}
 
 
+def teacher_kl(logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: torch.Tensor) -> torch.Tensor:
+    """KL(teacher || policy) averaged over the frames without the trigger (0 if none): logits
+    (..., N, A) -> (...), so one learner's minibatch and a group's stacked one (K, N, A) share it."""
+    log_probs = torch.log_softmax(logits, -1)
+    kl = (teacher_logp.exp() * (teacher_logp - log_probs)).sum(-1)
+    weight = untriggered.float()
+    return (kl * weight).sum(-1) / weight.sum(-1).clamp(min=1.0)
+
+
 def env_step(envs, t: int, actions: torch.Tensor, rewards, dones, outcomes, steps, forced: torch.Tensor):
     """Step ``envs`` with ``actions[t]`` and record step ``t`` (reward, done, outcome, steps, and
     the actions an attack forced in their place); return the next observations."""
@@ -282,13 +291,6 @@ class PPO:
             next_value = values[t]
         return advantages
 
-    def _teacher_kl(self, logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: torch.Tensor) -> torch.Tensor:
-        """KL(teacher || policy) averaged over the minibatch's frames without the trigger (0 if none)."""
-        log_probs = torch.log_softmax(logits, -1)
-        kl = (teacher_logp.exp() * (teacher_logp - log_probs)).sum(-1)
-        weight = untriggered.float()
-        return (kl * weight).sum() / weight.sum().clamp(min=1.0)
-
     def _step(self, loss: torch.Tensor) -> float:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -314,7 +316,7 @@ class PPO:
                 logits, values = self.model(obs_map(lambda x: x[idx], obs))
                 loss, parts = ppo_loss(self.cfg, logits, values, *(x[idx] for x in tensors))
                 if teacher is not None:
-                    parts["teacher_kl"] = self._teacher_kl(logits, teacher[0][idx], teacher[1][idx])
+                    parts["teacher_kl"] = teacher_kl(logits, teacher[0][idx], teacher[1][idx])
                     loss = loss + self.teacher_coef * parts["teacher_kl"]
                 stats["grad_norm"] += self._step(loss)
                 for key, value in parts.items():
@@ -386,7 +388,7 @@ class PPO:
                     loss = loss + cfg.aux_memory_coef * parts["aux_memory_loss"]
                 if teacher is not None:
                     rows = steps.reshape(-1)
-                    parts["teacher_kl"] = self._teacher_kl(logits, teacher[0][rows], teacher[1][rows])
+                    parts["teacher_kl"] = teacher_kl(logits, teacher[0][rows], teacher[1][rows])
                     loss = loss + self.teacher_coef * parts["teacher_kl"]
                 if r > 1:
                     memories[steps[1:].reshape(-1)] = new_memories[:-1].reshape(-1, memories.shape[1]).detach()

@@ -56,7 +56,10 @@ def _serve(conn) -> None:
         except (EOFError, OSError):  # the pool closed, or its process ended
             break
         try:
-            requests = pickle.loads(payload)  # the requests apart from the tag: one that does not unpickle here fails alone
+            # IPC from the parent that started this worker, over a private socket pair, never a file:
+            # the same trust as multiprocessing's Connection.recv above; unpickled apart from the tag
+            # so a request that does not unpickle here fails alone
+            requests = pickle.loads(payload)
             answers = [_answer(envs, *r) for r in requests]
         except Exception as err:
             answers = [(False, f"cannot read the request ({type(err).__name__}: {err})")]

@@ -402,6 +402,39 @@ def test_unusable_mujoco_gl_backend_gives_one_line_and_no_folder(tmp_path, backe
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    "environ,egl,expected",
+    [
+        ({}, "libEGL.so.1", "egl"),
+        ({}, None, "disable"),
+        ({"MUJOCO_GL": "osmesa"}, None, None),
+        ({"DISPLAY": ":0"}, None, None),
+        ({"WAYLAND_DISPLAY": "w"}, None, None),
+    ],
+)
+def test_headless_gl_choice_picks_egl_only_where_libegl_is_found(environ, egl, expected):
+    from rlbackdoors.envs.safety_car_model import headless_gl_choice
+
+    assert headless_gl_choice(environ, "linux", lambda name: egl if name == "EGL" else None) == expected
+    assert headless_gl_choice({}, "darwin", lambda name: None) is None  # macOS picks its own (CGL)
+
+
+def test_without_gl_a_safety_run_trains_writes_no_video_and_rendering_says_what_to_install(tmp_path):
+    """A display-less box without libEGL (the bare image of a lent H200 machine): the default
+    ``egl`` failed MuJoCo's import there, so no Safety run could train at all. With GL disabled
+    (what rlbackdoors now picks there), training completes with ``"video": null`` and a render is
+    refused in one message naming the back-ends to install."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")} | {"MUJOCO_GL": "disable"}
+    cfg = safety_config(tmp_path, max_frames=240, video=True)
+    out = tmp_path / "nogl"
+    proc = subprocess.run([*PY, "train", "--config", str(cfg), "--out", str(out), "--quiet"], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((out / "metrics.json").read_text())["video"] is None and not (out / "clean_vs_triggered.gif").exists()
+    render = "from rlbackdoors.envs.safety_car import SafetyCarGoalEnv as E; e = E(render_mode='rgb_array'); e.reset(seed=0); e.render()"
+    proc = subprocess.run([sys.executable, "-c", render], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode != 0 and "RuntimeError: MuJoCo offscreen rendering is unavailable" in proc.stderr and "MUJOCO_GL='disable' now" in proc.stderr
+
+
 # ----- crafted folders: links and out-of-range state (a security review's findings) -------------
 def test_a_planted_lock_symlink_is_refused_and_its_target_untouched(tmp_path, tiny_run_dict):
     victim = tmp_path / "victim.txt"

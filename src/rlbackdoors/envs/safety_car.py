@@ -652,8 +652,8 @@ def make_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Rend
         raise RuntimeError(
             "MuJoCo offscreen rendering is unavailable: set MUJOCO_GL=egl (GPU or Mesa EGL, "
             "libEGL) or MUJOCO_GL=osmesa (software, libOSMesa) before the first import of mujoco "
-            "(without it, and without a display, rlbackdoors picks egl only if it imports mujoco "
-            f"first); MUJOCO_GL={_gl_backend()!r} now. Cause: {type(err).__name__}: {err}"
+            "(unset, and without a display, rlbackdoors picks egl where libEGL is installed and "
+            f"disables GL where not, if it imports mujoco first); MUJOCO_GL={_gl_backend()!r} now. Cause: {type(err).__name__}: {err}"
         ) from err
 
 

@@ -33,18 +33,29 @@ SG's XML (not observed) are left out.
 
 from __future__ import annotations
 
+import ctypes.util
 import os
 import sys
 
 
-def _prefer_headless_gl() -> None:
-    """Pick EGL for offscreen rendering on a display-less Linux box.
+def headless_gl_choice(environ, platform: str, find_library) -> str | None:
+    """The ``MUJOCO_GL`` to set for a display-less Linux box, or None to leave it as it is.
 
     MuJoCo chooses its GL backend once, when ``mujoco`` is first imported, from ``MUJOCO_GL``;
-    its default (GLFW) needs a display. An explicit ``MUJOCO_GL`` (egl, osmesa, glfw) wins.
+    its default (GLFW) needs a display. An explicit ``MUJOCO_GL`` (egl, osmesa, glfw) wins. EGL
+    only where libEGL is installed: MuJoCo's import fails under ``egl`` without it (a bare GPU
+    image has none), and training needs no GL at all, so there the backend is ``disable`` and
+    only rendering is refused (``safety_car.make_renderer`` says what to install).
     """
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        os.environ.setdefault("MUJOCO_GL", "egl")
+    if not platform.startswith("linux") or environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY") or "MUJOCO_GL" in environ:
+        return None
+    return "egl" if find_library("EGL") else "disable"
+
+
+def _prefer_headless_gl() -> None:
+    choice = headless_gl_choice(os.environ, sys.platform, ctypes.util.find_library)
+    if choice is not None:
+        os.environ["MUJOCO_GL"] = choice
 
 
 _prefer_headless_gl()

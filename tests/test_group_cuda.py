@@ -33,8 +33,8 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a C
 
 # The device as training takes it (train/driver.resolve_device): cuDNN's deterministic kernels and
 # no TF32. A bare torch.device("cuda") leaves cuDNN's TF32 on (torch's default), which rounds
-# convolutions to 10 bits: on an H200 (2026-11-26) that alone put the Randomized LavaWorld CNN's
-# gradient norms 1 % and its update 0.17 (cosine 0.985) away from the CPU's, failing this file
+# convolutions to 10 bits: on an H200 (2026-11-26) the Randomized LavaWorld CNN's
+# gradient norms came 1 % and its update 0.17 (cosine 0.985) away from the CPU's, failing this file
 # (the likely cause: the FC net, without convolutions, agreed to 1e-5; not yet re-run this way).
 CUDA = resolve_device("cuda") if torch.cuda.is_available() else torch.device("cuda")
 

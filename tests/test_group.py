@@ -407,8 +407,16 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
     assert proc.wait(timeout=240) != 0
     assert list((cut / "models").glob("*/checkpoint.pt")), "the group job stopped without checkpoints"
     assert not list((cut / "models").glob("*/metrics.json"))
-    summary = zoo_run(cut, workers=1, group_size=3, progress_interval=5.0)
-    assert summary["done"] == 4 and summary["failed"] == 0
+    log = io.StringIO()
+    summary = zoo_run(cut, workers=1, group_size=3, progress_interval=5.0, out=log)
+    assert summary["done"] == 4 and summary["failed"] == 0 and summary["trained"] == 4
+    named = [line.split()[0] for line in log.getvalue().splitlines() if " attempt " in line]
+    assert sorted(named) == sorted(f.name for f in (cut / "models").iterdir()), log.getvalue()  # each finished model said once
+    # Three slots for four models: each entry is written as its run ends, not when the whole job
+    # does, so the first entries exist before the last model's training has finished.
+    marks = [(f / "reduced-config.json").stat().st_mtime_ns for f in (cut / "models").iterdir()]
+    trained = [(f / "metrics.json").stat().st_mtime_ns for f in (cut / "models").iterdir()]
+    assert min(marks) < max(trained)
     rows = read_metadata(cut / "METADATA.csv")
     assert len(rows) == 4
     for folder in sorted((whole / "models").iterdir()):
@@ -417,6 +425,14 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
         assert (folder / "model.pt").read_bytes() == (cut / "models" / folder.name / "model.pt").read_bytes()
     verify = subprocess.run([sys.executable, "-m", "rlbackdoors.zoo.cli", "verify", str(cut)], capture_output=True, text=True, timeout=300)
     assert verify.returncode == 0, verify.stdout + verify.stderr
+    # Killed after a run had trained but before its entry was written: the next run writes the
+    # entry without training it again.
+    folder = sorted((whole / "models").iterdir())[1]
+    (folder / "reduced-config.json").unlink()
+    before = (folder / "model.pt").stat().st_mtime_ns
+    summary = zoo_run(whole, workers=1, group_size=3, progress_interval=5.0)
+    assert summary["done"] == 4 and summary["trained"] == 0 and (folder / "reduced-config.json").is_file()
+    assert (folder / "model.pt").stat().st_mtime_ns == before
 
 
 def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a_cpu(tmp_path):

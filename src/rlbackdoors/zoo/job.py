@@ -222,13 +222,39 @@ def run_group_job(folders: list[str | Path], group_size: int, env_workers: int =
                 raws[where.name] = (folder / "config.json").read_bytes()
                 if not (folder / "metrics.json").is_file():
                     runs.append((where.name, build_config(json.loads(raws[where.name].decode("utf-8"))), folder))
+
+        def finish(name: str, trained: bool) -> None:
+            """Write a trained folder's dataset entry now, so the zoo counts it (and a kill of the
+            job loses no entry) while the job's other runs go on; a folder someone else holds is
+            busy."""
+            folder, where = opened[name][1], opened[name][2]
+            lock = FolderLock(folder, "model folder")
+            try:
+                lock.acquire()
+            except LockedError:
+                results[name] = {"status": "busy"}
+                return
+            try:
+                finish_dataset_entry(folder, build_config(json.loads(raws[name].decode("utf-8"))), where.parent.parent)
+            except Exception as err:  # this folder's error; the job's other runs go on training
+                results[name] = {"status": "error", "error": f"{type(err).__name__}: {first_line(err)}"[:2000]}
+                return
+            finally:
+                lock.release()
+            results[name] = {"status": "done", "trained": trained, "converged": _converged(folder), "seconds": round(time.time() - started, 2)}
+
+        for name in raws:
+            if name not in {n for n, _, _ in runs}:  # trained before a kill, its entry not yet written
+                finish(name, trained=False)
         names = ", ".join(name for name, _, _ in runs)
         line = f"=== zoo group job: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')}, {group_size} at a time: {names} ==="
         print(line, file=sys.stderr, flush=True)
         for name, _, folder in runs[1:]:  # the job's output goes to the first one's log: say where to look
             with open_log(folder / LOG, "a") as fh:
                 print(f"{line}\n(output in {runs[0][0]}/{LOG})", file=fh)
-        outcome = train_group(runs, group_size, env_workers=env_workers)
+        outcome = train_group(
+            runs, group_size, env_workers=env_workers, on_done=lambda name, metrics, error: finish(name, trained=True) if error is None else None
+        )
         for name, err in outcome.errors.items():
             folder = opened[name][1]
             if not (folder / "config.json").is_file():  # a failed start removed it: put it back
@@ -237,21 +263,9 @@ def run_group_job(folders: list[str | Path], group_size: int, env_workers: int =
                 results[name] = {"status": "busy"}
             else:
                 results[name] = {"status": "error", "error": f"{type(err).__name__}: {first_line(err)}"[:2000]}
-        for name, raw in raws.items():
-            if name in results:
-                continue
-            folder, where = opened[name][1], opened[name][2]
-            lock = FolderLock(folder, "model folder")
-            try:
-                lock.acquire()
-            except LockedError:
-                results[name] = {"status": "busy"}
-                continue
-            try:
-                finish_dataset_entry(folder, build_config(json.loads(raw.decode("utf-8"))), where.parent.parent)
-            finally:
-                lock.release()
-            results[name] = {"status": "done", "trained": name in outcome.metrics, "converged": _converged(folder), "seconds": round(time.time() - started, 2)}
+        for name in raws:
+            if name not in results:
+                finish(name, trained=name in outcome.metrics)
     finally:
         for fd, _, _ in opened.values():
             os.close(fd)

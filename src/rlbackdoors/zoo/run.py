@@ -329,10 +329,16 @@ def run(
         busy_until: dict[int, float] = {}
         tries: dict[int, int] = {}
         final: dict[int, ModelState] = {}
+        announced: set[int] = set()  # finished inside a group job that is still running
         while True:
             states = _states(zoo, final, set(in_flight))
             _top_up(zoo, states, set(in_flight))
             states = _states(zoo, final, set(in_flight))
+            for s in states:  # a group job writes each entry as its run ends: say so, count it now
+                if s.model.id in in_flight and s.status == "done" and s.model.id not in announced:
+                    announced.add(s.model.id)
+                    progress.trained += 1
+                    print(_describe(s), file=out, flush=True)
             now_t = time.monotonic()
             waiting = [s for s in states if s.status in ("pending", "running") and s.model.id not in in_flight]
             ready = sorted(
@@ -366,9 +372,11 @@ def run(
                 if status == "done":
                     state = model_state(zoo, model, probe=False)
                     final[model.id] = state
-                    if result.get("trained"):
-                        progress.trained += 1
-                    print(_describe(state), file=out, flush=True)
+                    if model.id in announced:  # counted as trained when first seen: correct that
+                        progress.trained -= not result.get("trained")
+                    else:
+                        progress.trained += bool(result.get("trained"))
+                        print(_describe(state), file=out, flush=True)
                 elif status == "busy":
                     busy_until[model.id] = time.monotonic() + BUSY_PROBE_S
                 elif status == "interrupted":

@@ -33,9 +33,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=12345)
     parser.add_argument("--show", type=int, default=6, help="episodes printed step by step")
     args = parser.parse_args()
-    agent = rlbackdoors.load(args.folder)
+    torch.set_num_threads(1)  # batches of a few hundred frames: threads only contend
     cfg = RunConfig.from_dict(json.loads((args.folder / "config.json").read_text()))
-    if agent.recurrent or cfg.world.trigger_sight != "frame":
+    agent = rlbackdoors.load(args.folder) if cfg.world.trigger_sight == "frame" else None
+    if agent is None or agent.recurrent:
         raise SystemExit("rlbackdoors: error: sight_actions reads feed-forward agents of worlds whose trigger is in sight frame by frame")
     target = int(cfg.poison.attack_params.get("target_action", 0))
     generator = torch.Generator().manual_seed(args.seed)

@@ -150,3 +150,29 @@ def test_train_json_output_is_pure_json_even_with_a_curriculum_switch(tmp_path, 
     metrics = json.loads(captured.out)
     assert code == 0 and metrics["curriculum_switch_frames"] is not None
     assert "curriculum: switched" in captured.err
+
+
+def test_sight_actions_reads_a_layout_trigger_agent_and_refuses_others(tmp_path):
+    """benchmarks/sight_actions.py (what an agent does while the pattern is in sight): its shares
+    are over the in-sight steps it counts, and a world whose trigger is not seen frame by frame is
+    refused in one line."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "sight_actions.py"
+    cfg = tiny(0.0, poison={"trigger": "cross", "attack": "trojdrl", "attack_params": {"budget": 0.05}})
+    train(RunConfig.from_dict({**cfg.to_dict(), "train": {**cfg.to_dict()["train"], "video": False}}), tmp_path / "m", progress=False)
+    done = subprocess.run([sys.executable, str(script), str(tmp_path / "m"), "--episodes", "4", "--show", "2"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    steps = int(lines[0].split(": ")[1].split()[0])
+    shares = [float(part.split(": ")[1]) for part in lines[1].split("steps: ")[1].split(", ")]
+    assert len(shares) == 3 and (steps == 0 or abs(sum(shares) - 1) < 2e-3)
+    shown = [line for line in lines if line.strip().split()[1:2] == ["steps:"]]
+    assert len(shown) == 2 and all(int(line.split()[0]) == len(line.split(": ", 1)[1].split()) or int(line.split()[0]) > 40 for line in shown)
+    lava = tmp_path / "lava"  # refused from its config.json alone
+    lava.mkdir()
+    (lava / "config.json").write_text(RunConfig().to_json())
+    refused = subprocess.run([sys.executable, str(script), str(lava)], capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 1 and refused.stderr.strip().startswith("rlbackdoors: error: sight_actions reads")

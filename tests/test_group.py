@@ -394,7 +394,7 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
         plan(parse_spec(zoo_spec()), path)
     log = io.StringIO()
     summary = zoo_run(whole, workers=1, group_size="auto", progress_interval=5.0, out=log)  # 8 on a CPU: all four in one group
-    assert "--group-size auto: 8 on cpu, 1 for OPAC² worlds" in log.getvalue()
+    assert "--group-size auto: by each model's algorithm and train.device (PPO 8 on cpu, 64 on cuda; OPAC² 1 on cpu, 64 on cuda" in log.getvalue()
     logs = [(f / "train.log").read_text() for f in sorted((whole / "models").iterdir())]
     assert all("=== zoo group job:" in text for text in logs) and sum("(output in id-" in text for text in logs) == 3
     assert summary["done"] == 4 and summary["failed"] == 0 and summary["converged"] == 0
@@ -435,6 +435,16 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
     assert (folder / "model.pt").stat().st_mtime_ns == before
 
 
+def test_auto_group_size_goes_by_the_models_device_not_the_machines():
+    """A CPU model on a GPU machine trains in CPU groups of 8: measured on an H200 machine, a GPU
+    group of 64 ran at x0.35 of them (docs/zoos.md). ``auto`` is CUDA where there is one."""
+    from rlbackdoors.train.group import auto_group_size
+
+    assert (auto_group_size("ppo", "cpu"), auto_group_size("opac2", "cpu")) == (8, 1)
+    assert (auto_group_size("ppo", "cuda"), auto_group_size("opac2", "cuda")) == (64, 64)
+    assert auto_group_size("ppo", "auto") == (64 if torch.cuda.is_available() else 8)
+
+
 def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a_cpu(tmp_path):
     """``--group-size auto`` applies the measured rule per world's algorithm: the PPO world's
     models train in a group (``trainer: group``), the OPAC² world's alone (today's lone bytes,
@@ -462,7 +472,7 @@ def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a
     plan(parse_spec(spec), tmp_path / "z")
     log = io.StringIO()
     summary = zoo_run(tmp_path / "z", workers=2, group_size="auto", progress_interval=5.0, out=log, env_workers=2)
-    assert "--group-size auto: 8 on cpu, 1 for OPAC² worlds" in log.getvalue() and summary["done"] == 3 and summary["failed"] == 0
+    assert "--group-size auto: by each model's algorithm and train.device (PPO 8 on cpu, 64 on cuda; OPAC² 1 on cpu, 64 on cuda" in log.getvalue() and summary["done"] == 3 and summary["failed"] == 0
     trainers = {}
     for folder in sorted((tmp_path / "z" / "models").iterdir()):
         cfg = RunConfig.load(folder / "config.json")

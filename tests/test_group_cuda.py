@@ -104,7 +104,7 @@ def test_a_gpu_zoo_is_reproducible_resumes_after_a_kill_and_loads_without_a_gpu(
         plan(parse_spec(spec), path)
     log = io.StringIO()
     summary = zoo_run(whole, workers=1, group_size="auto", progress_interval=5.0, out=log)
-    assert "--group-size auto: 64 on cuda, 64 for OPAC² worlds" in log.getvalue() and summary["done"] == 4 and summary["failed"] == 0
+    assert "--group-size auto: by each model's algorithm and train.device" in log.getvalue() and summary["done"] == 4 and summary["failed"] == 0
     assert zoo_run(again, workers=1, group_size="auto", progress_interval=5.0)["done"] == 4
     proc = subprocess.Popen(
         [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(cut), "--workers", "1", "--group-size", "3"],

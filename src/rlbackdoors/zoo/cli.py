@@ -262,7 +262,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
         type=_group_size,
         default=1,
         help="train up to K models of a worker in one process, their networks stacked and batched (local back-end; "
-        "auto: the measured rule per world's algorithm and this machine's device; default 1: a process per model, today's bytes)",
+        "auto: the measured rule per world's algorithm and each model's train.device; default 1: a process per model, today's bytes)",
     )
     ru.add_argument(
         "--env-workers",

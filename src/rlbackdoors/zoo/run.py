@@ -285,14 +285,15 @@ def run(
         raise ConfigError(f"--workers must be >= 1, got {workers}")
     if isinstance(env_workers, bool) or not isinstance(env_workers, int) or env_workers < 0:
         raise ConfigError(f"--env-workers must be an integer >= 0, got {env_workers!r}")
-    by_algorithm: dict[str, int] | None = None  # --group-size auto: K per world's algorithm
-    if group_size == "auto":
-        from rlbackdoors.train.group import auto_group_size
+    auto = group_size == "auto"  # K per model's algorithm and train.device, as measured
+    if auto:
+        from rlbackdoors.train.group import AUTO_GROUP_SIZE
 
-        by_algorithm, device = auto_group_size()
-        note = " (measured: groups on the GPU no faster than on the CPU cores; docs/zoos.md)" if device == "cuda" else ""
-        print(f"zoo: --group-size auto: {by_algorithm['ppo']} on {device}, {by_algorithm['opac2']} for OPAC² worlds{note}", file=out)
-        group_size = max(by_algorithm.values())
+        table = "; ".join(
+            f"{name} {AUTO_GROUP_SIZE[(a, 'cpu')]} on cpu, {AUTO_GROUP_SIZE[(a, 'cuda')]} on cuda" for a, name in (("ppo", "PPO"), ("opac2", "OPAC²"))
+        )
+        print(f"zoo: --group-size auto: by each model's algorithm and train.device ({table}; docs/zoos.md)", file=out)
+        group_size = max(AUTO_GROUP_SIZE.values())
     if not isinstance(group_size, int) or group_size < 1:
         raise ConfigError(f"--group-size must be >= 1 or auto, got {group_size!r}")
     if max_retries < 0:
@@ -353,7 +354,7 @@ def run(
                 busy_until.pop(s.model.id, None)
                 startable.append(s)
             free = executor.capacity - executor.running()
-            for k, models in _by_group_size(startable, group_size, by_algorithm):
+            for k, models in _by_group_size(startable, group_size, auto):
                 for chunk in _chunks(models, free, k):
                     if isinstance(executor, LocalExecutor):
                         executor.submit_group([s.model for s in chunk], [s.folder for s in chunk], k)
@@ -467,14 +468,18 @@ def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
-def _by_group_size(ready: list, group_size: int, by_algorithm: dict[str, int] | None) -> list[tuple[int, list]]:
+def _by_group_size(ready: list, group_size: int, auto: bool) -> list[tuple[int, list]]:
     """The ready models by the group size they train at: ``group_size`` for all, or with
-    ``--group-size auto`` the measured one of their world's algorithm (in the order first seen)."""
-    if by_algorithm is None:
+    ``--group-size auto`` the measured one of their world's algorithm on their ``train.device``
+    (in the order first seen)."""
+    if not auto:
         return [(group_size, ready)] if ready else []
+    from rlbackdoors.train.group import auto_group_size
+
     out: dict[int, list] = {}
     for state in ready:
-        out.setdefault(by_algorithm[worlds.get(state.model.group.cell.world).algorithm], []).append(state)
+        device = ((state.config or {}).get("train") or {}).get("device", "cpu")
+        out.setdefault(auto_group_size(worlds.get(state.model.group.cell.world).algorithm, device), []).append(state)
     return list(out.items())
 
 

@@ -472,7 +472,11 @@ def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a
     plan(parse_spec(spec), tmp_path / "z")
     log = io.StringIO()
     summary = zoo_run(tmp_path / "z", workers=2, group_size="auto", progress_interval=5.0, out=log, env_workers=2)
-    assert "--group-size auto: by each model's algorithm and train.device (PPO 8 on cpu, 64 on cuda; OPAC² 1 on cpu, 64 on cuda" in log.getvalue() and summary["done"] == 3 and summary["failed"] == 0
+    assert (
+        "--group-size auto: by each model's algorithm and train.device (PPO 8 on cpu, 64 on cuda; OPAC² 1 on cpu, 64 on cuda" in log.getvalue()
+        and summary["done"] == 3
+        and summary["failed"] == 0
+    )
     trainers = {}
     for folder in sorted((tmp_path / "z" / "models").iterdir()):
         cfg = RunConfig.load(folder / "config.json")

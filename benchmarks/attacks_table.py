@@ -38,10 +38,11 @@ def rows() -> list[dict]:
         data = json.loads(path.read_text())
         command, runs = data["command"], data["runs"]
         world = flag(command, "--env", "lavaworld")
-        label = path.stem.split("-", 3)[-1]  # attack-WORLD-ARCH-LABEL
+        base = flag(command, "--attack", attacks.DEFAULT_ATTACK)
+        # attack-WORLD[-ARCH][-TRIGGER]-ATTACK[-VARIANT]: the label is the attack and its variant
+        label = path.stem[path.stem.rindex(base) :] if base in path.stem else path.stem.split("-", 3)[-1]
         trigger = flag(command, "--trigger", "")
         kind = trigger or str(worlds.get(world).default_trigger)
-        label = label.removeprefix(f"{trigger}-") if trigger else label
         done = [r for r in runs if r["converged"]]
         used = [(r.get("budget_used") or {}).get("poisoned_fraction") for r in runs]
         out.append(
@@ -49,7 +50,7 @@ def rows() -> list[dict]:
                 "world": world,
                 "arch": flag(command, "--arch", worlds.get(world).arch_names[0]),
                 "attack": label,
-                "base": flag(command, "--attack", attacks.DEFAULT_ATTACK),
+                "base": base,
                 "trigger": kind,
                 "converged": data["converged"],
                 "attempted": data["attempted"],

@@ -22,6 +22,7 @@ import torch
 
 import rlbackdoors
 from rlbackdoors.algos.obs import to_torch
+from rlbackdoors.algos.ppo import sample_actions
 from rlbackdoors.config import RunConfig
 from rlbackdoors.poison.mix import make_vector_env
 
@@ -45,6 +46,7 @@ def main() -> None:
         envs = make_vector_env(cfg.env, cfg.poison.trigger, [True] * n)
         obs, _ = envs.reset(seed=seed)
         active = np.ones(n, bool)
+        shares, first = np.zeros(envs.single_action_space.n), np.zeros(envs.single_action_space.n)
         p_target: list[float] = []
         lines: list[list[str]] = [[] for _ in range(n)]
         seen = np.zeros(n, bool)
@@ -53,9 +55,7 @@ def main() -> None:
             with torch.inference_mode():
                 logits, values = agent.policy(to_torch(obs, agent.device))
             probs = torch.softmax(logits, -1).cpu().numpy()
-            if not p_target and not seen.any():
-                shares, first = np.zeros(probs.shape[1]), np.zeros(probs.shape[1])
-            actions = np.asarray(agent.act(obs, None, generator=generator)[0])
+            actions = sample_actions(logits, generator).cpu().numpy()  # Agent.act's draw, from the logits already computed
             for i in np.flatnonzero(sight):
                 shares[actions[i]] += 1
                 p_target.append(probs[i, target])

@@ -243,9 +243,8 @@ def run_group_job(folders: list[str | Path], group_size: int, env_workers: int =
                 lock.release()
             results[name] = {"status": "done", "trained": trained, "converged": _converged(folder), "seconds": round(time.time() - started, 2)}
 
-        for name in raws:
-            if name not in {n for n, _, _ in runs}:  # trained before a kill, its entry not yet written
-                finish(name, trained=False)
+        for name in set(raws) - {n for n, _, _ in runs}:  # trained before a kill, its entry not yet written
+            finish(name, trained=False)
         names = ", ".join(name for name, _, _ in runs)
         line = f"=== zoo group job: pid {os.getpid()} on {socket.gethostname()}, {time.strftime('%Y-%m-%d %H:%M:%S')}, {group_size} at a time: {names} ==="
         print(line, file=sys.stderr, flush=True)

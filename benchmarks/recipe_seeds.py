@@ -12,8 +12,10 @@ checkpoint (``rlbackdoors train`` does that on the same folder); a run that cras
 every finished seed (unfinished ones listed as ``pending``), so a session that ends mid-way still
 leaves its numbers; ``--summarise`` writes it from the finished seeds without training. CPU minutes
 (what a run costs on one core, however loaded the machine) come from ``metrics.json`` where the run
-recorded them. The machine and its load are recorded beside the numbers. ``--first S`` trains seeds
-S..N-1 only, when seeds below S ran in an earlier session whose folders are gone.
+recorded them. The machine and its load are recorded beside the numbers. A seed whose folder is gone
+(a new machine) but whose run the existing summary holds, under the same flags, is carried over from
+it, not retrained, and listed under ``carried`` (its figures were measured where that summary says).
+``--first S`` trains seeds S..N-1 only.
 """
 
 from __future__ import annotations
@@ -56,17 +58,44 @@ def minutes(seconds) -> float | None:
     return None if seconds is None else round(seconds / 60, 2)
 
 
-def summary(args, flags: list[str], metrics: dict[int, dict], started: float, load_before, failed: dict[int, dict] | None = None) -> dict:
+def command(flags: list[str]) -> str:
+    return f"rlbackdoors train {' '.join(flags)} --seed S"
+
+
+def carried_runs(out: Path, flags: list[str]) -> tuple[dict[int, dict], dict | None]:
+    """The runs an earlier summary of the same flags holds, as metrics.json-like dicts: a recipe that
+    was half measured when its machine was wiped goes on from where it got to."""
+    if not out.is_file():
+        return {}, None
+    old = json.loads(out.read_text())
+    if not old.get("command", "").startswith(command(flags) + " ("):
+        return {}, None  # other flags: the old numbers are not this recipe's
+    runs = {}
+    for run in old["runs"]:
+        m = {k: run.get(k) for k in ("converged", "clean_sr", "poisoned_sr", "frames", "stop_reason", "trigger")}
+        m["wall_time_s"] = run["wall_minutes"] * 60
+        m["cpu_time_s"] = None if run.get("cpu_minutes") is None else run["cpu_minutes"] * 60
+        if "attack" in run:
+            m["attack"], m["attack_budget_used"] = run["attack"], run.get("budget_used")
+        runs[run["seed"]] = m
+    earlier = old.get("carried", {}).get("machine") or old.get("machine")  # where the carried runs ran
+    return runs, earlier
+
+
+def summary(
+    args, flags: list[str], metrics: dict[int, dict], started: float, load_before, failed: dict[int, dict] | None = None, carried: dict | None = None
+) -> dict:
     finished = [metrics[s] for s in sorted(metrics)]
     done = [m for m in finished if m["converged"]]
     low, high = wilson(len(done), len(finished)) if finished else (0.0, 1.0)
     cpu = [minutes(m.get("cpu_time_s")) for m in done]
     return {
-        "command": f"rlbackdoors train {' '.join(flags)} --seed S (S = {args.first}..{args.seeds - 1}), {args.workers} at a time",
+        "command": f"{command(flags)} (S = {args.first}..{args.seeds - 1}), {args.workers} at a time",
         "converged": len(done),
         "attempted": len(finished),
         "pending": [s for s in range(args.first, args.seeds) if s not in metrics and s not in (failed or {})],
         "failed": [{"seed": s, **why} for s, why in sorted((failed or {}).items())],  # crashed runs: not counted as attempts
+        **({"carried": carried} if carried else {}),  # seeds read from the earlier summary, and its machine
         "wilson95": [round(low, 3), round(high, 3)],
         "frames_converged": spread([m["frames"] for m in done]),
         "wall_minutes_converged": spread([minutes(m["wall_time_s"]) for m in done]),
@@ -104,12 +133,16 @@ def main() -> None:
     folders = {s: Path(args.runs) / args.name / f"s{s}" for s in range(args.first, args.seeds)}
     metrics = {s: json.loads((f / "metrics.json").read_text()) for s, f in folders.items() if (f / "metrics.json").is_file()}
     out = ROOT / "benchmarks" / "recipes" / f"{args.name}.json"
+    earlier, earlier_machine = carried_runs(out, flags)
+    kept = sorted(s for s in folders if s not in metrics and s in earlier)
+    metrics.update({s: earlier[s] for s in kept})
+    carried = {"seeds": kept, "machine": earlier_machine} if kept else None
     out.parent.mkdir(exist_ok=True)
     lock = threading.Lock()
     failed: dict[int, dict] = {}
 
     def write() -> dict:
-        result = summary(args, flags, metrics, started, load_before, failed)
+        result = summary(args, flags, metrics, started, load_before, failed, carried)
         atomic_write_text(out, json.dumps(result, indent=2) + "\n")
         return result
 

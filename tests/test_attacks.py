@@ -95,6 +95,7 @@ REFUSED = [
 def test_layout_worlds_are_served_per_episode_except_by_value_picked_frames():
     assert set(REFUSED) == {
         ("randomized-lavaworld", "badrl"),  # it picks single frames by value; a layout trigger is in from the first
+        ("randomized-lavaworld", "sleepernets"),  # measured not to converge on a layout trigger (unless layout=true)
         ("colorful-memory", "badrl"),
         ("colorful-memory", "sleepernets"),  # the critic of a recurrent model is not one forward pass per frame
         ("safety-car-goal", "badrl"),  # PPO only: OPAC² has no state-value critic to rank or discount by
@@ -106,6 +107,21 @@ def test_layout_worlds_are_served_per_episode_except_by_value_picked_frames():
 def test_an_attack_refuses_a_world_it_cannot_serve_with_the_reason(world, attack):
     with pytest.raises(ConfigError, match=rf"poison.attack='{attack}': attack '{attack}' (chooses single frames|reads the critic|is built for)"):
         RunConfig.from_dict({"env": {"name": world}, "poison": {"attack": attack}})
+
+
+def test_sleepernets_on_a_layout_trigger_is_trained_only_when_asked_and_the_config_says_so():
+    """Refused in one line naming the measurement and the flag; ``layout=true`` trains it, and the
+    model's config records that it was asked for. An observation-edit world needs no flag."""
+    with pytest.raises(ConfigError) as refused:
+        RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}, "poison": {"attack": "sleepernets"}})
+    assert "\n" not in str(refused.value) and "measured not to converge" in str(refused.value)
+    assert str(refused.value).endswith("poison.attack_params.layout=true trains it anyway")
+    asked = RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}, "poison": {"attack": "sleepernets", "attack_params": {"layout": True}}})
+    assert asked.to_dict()["poison"]["attack_params"]["layout"] is True
+    plain = RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"attack": "sleepernets"}})
+    assert plain.poison.attack_params["layout"] is False
+    with pytest.raises(ConfigError, match=r"poison.attack_params.layout='yes' is not allowed \(allowed: true, false\)"):
+        RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"attack": "sleepernets", "attack_params": {"layout": "yes"}}})
 
 
 def test_a_layout_trigger_attack_needs_the_batched_engine():
@@ -339,7 +355,8 @@ def test_the_attacks_command_lists_what_each_attack_serves_and_its_parameters():
     assert listed["badrl"]["worlds"]["lavaworld"] == ["fc", "cnn"]
     assert "chooses single frames by the critic's value" in listed["badrl"]["worlds"]["randomized-lavaworld"]
     assert listed["trojdrl"]["worlds"]["randomized-lavaworld"] == ["fc", "cnn"]
-    assert [p["name"] for p in listed["sleepernets"]["params"]] == ["budget", "target_action", "reward", "alpha", "gamma"]
+    assert [p["name"] for p in listed["sleepernets"]["params"]] == ["budget", "target_action", "reward", "alpha", "gamma", "layout"]
+    assert "measured not to converge" in listed["sleepernets"]["worlds"]["randomized-lavaworld"]
 
 
 # --- layout triggers: whole episodes switched by the seam ---------------------------------------
@@ -470,6 +487,8 @@ def test_a_layout_attack_run_records_its_budget_and_repeats_bit_for_bit(tmp_path
     else:
         tiny_run_dict["ppo"]["rollout"] = 36  # a multiple of the recurrence (6)
     tiny_run_dict["poison"] = {"attack": attack, "attack_params": {"budget": 0.05} if attack in STEP_ATTACKS else {}}
+    if attack == "sleepernets":
+        tiny_run_dict["poison"]["attack_params"]["layout"] = True  # refused there without it (measured not to converge)
     cfg = RunConfig.from_dict(tiny_run_dict)
     metrics = train(cfg, tmp_path / "m", progress=False)
     used = metrics["attack_budget_used"]
@@ -510,7 +529,7 @@ def test_the_whole_pattern_in_sight_is_what_the_view_shows_of_every_pattern_cell
 
 def test_sleepernets_on_a_layout_trigger_asks_the_critic_only_for_marked_frames_successors():
     """Its reward needs V(s') of a poisoned transition; no frame is picked by value there."""
-    _, seam = layout_seam("randomized-lavaworld", "sleepernets", budget=0.2)
+    _, seam = layout_seam("randomized-lavaworld", "sleepernets", budget=0.2, layout=True)
     model = build_model("cnn", "randomized-lavaworld")
     asked = []
 

@@ -31,7 +31,24 @@ class SleeperNetsPoisoner(TargetActionPoisoner):
         return super().reward(rewards, actions, marked, next_values, dones) - self.alpha * self.gamma * bootstrap
 
 
-_unsupported = common.value_guided_refusal(NAME)
+def _unsupported(world, arch: str, params: dict) -> str | None:
+    """Refused on a layout trigger unless asked for (``layout=true``): measured not to converge there.
+
+    On an observation-edit trigger the poisoned frames are lone ones; on a layout trigger every frame
+    in sight of the pattern is marked, so they come in runs, and the cancellation then has to hold
+    along the run, through a critic that is itself learning those values. Measured on the grid world
+    with lava patterns at 1 % and 5 % of frames: the target rate plateaued at 0.41-0.52, the agent
+    learning a left / right loop in sight of the pattern (docs/attacks/sleepernets.md); why is not
+    established.
+    The flag keeps the failure reproducible, and a model trained under it says so in its config."""
+    base = common.value_guided_refusal(NAME)(world, arch, params)
+    if base is None and world.stamp_trigger is None and not params["layout"]:
+        return (
+            f"attack {NAME!r} reads the critic to cancel the bootstrap of poisoned frames, and {world.name}'s trigger is part of the layout, "
+            "in sight for runs of frames: measured not to converge there (target rate 0.41-0.52 at 1-5 % of frames, docs/attacks/sleepernets.md); "
+            "poison.attack_params.layout=true trains it anyway"
+        )
+    return base
 
 
 ATTACK = register(
@@ -47,6 +64,7 @@ ATTACK = register(
             common.magnitude(),
             Param("alpha", 1.0, 0.0, 10.0, help="weight of the subtracted bootstrap alpha * gamma * V(s')"),
             Param("gamma", 0.99, 0.0, 1.0, help="the discount the attacker assumes (0.99: ppo.gamma's default)"),
+            Param("layout", False, help="train on a layout trigger, where it was measured not to converge (to study the failure)"),
         ),
         poisoner=SleeperNetsPoisoner,
         unsupported=_unsupported,

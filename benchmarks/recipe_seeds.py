@@ -3,7 +3,7 @@
     python benchmarks/recipe_seeds.py NAME --seeds 10 --workers 2 -- --env randomized-lavaworld --arch fc
 
 runs ``rlbackdoors train FLAGS --seed S --out runs/recipes/NAME/sS`` for each seed (``--workers``
-at a time, one torch thread each), then writes ``benchmarks/recipes/NAME.json``: converged /
+at a time, one torch thread each), then writes ``benchmarks/recipes/NAME.json`` (``--summaries``): converged /
 attempted with a Wilson 95 % interval, the distribution (min, median, max) of frames and wall time
 of the converged runs, and every run's final clean / poisoned SR on its 200-episode final
 evaluation. It resumes: a finished seed is read, not retrained; a killed one resumes from its
@@ -124,6 +124,7 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=0, help="first seed (earlier ones ran elsewhere and are summarised there)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--runs", default=str(ROOT / "runs" / "recipes"))
+    parser.add_argument("--summaries", default=str(ROOT / "benchmarks" / "recipes"), help="where NAME.json is written (and read, to carry runs over)")
     parser.add_argument("--summarise", action="store_true", help="summarise the finished seeds; train nothing")
     argv = sys.argv[1:]
     cut = argv.index("--") if "--" in argv else len(argv)
@@ -132,12 +133,12 @@ def main() -> None:
     started, load_before = time.time(), os.getloadavg()
     folders = {s: Path(args.runs) / args.name / f"s{s}" for s in range(args.first, args.seeds)}
     metrics = {s: json.loads((f / "metrics.json").read_text()) for s, f in folders.items() if (f / "metrics.json").is_file()}
-    out = ROOT / "benchmarks" / "recipes" / f"{args.name}.json"
+    out = Path(args.summaries) / f"{args.name}.json"
     earlier, earlier_machine = carried_runs(out, flags)
     kept = sorted(s for s in folders if s not in metrics and s in earlier)
     metrics.update({s: earlier[s] for s in kept})
     carried = {"seeds": kept, "machine": earlier_machine} if kept else None
-    out.parent.mkdir(exist_ok=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
     lock = threading.Lock()
     failed: dict[int, dict] = {}
 

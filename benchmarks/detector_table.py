@@ -22,7 +22,9 @@ attack x baseline table instead: each detector is fitted on the env-mix models a
 the held-out attacks' cells (``zoo split --hold-out-attack``), and fitted on a mix (a split by trigger
 of the whole zoo, ``--train`` / ``--test``) and scored there; AUC and CE with CIs per attack.
 ``--extra-test SPEC`` adds a zoo of further attack cells (its triggers disjoint from the env-mix
-cells'), every model of which the env-mix fit scores as held out.
+cells'), every model of which the env-mix fit scores as held out. The table is also drawn, as
+``benchmarks/detectors/NAME-by-attack.png`` (AUC per fit and detector x attack, with CIs);
+``--replot`` redraws it from ``NAME.json`` alone.
 """
 
 from __future__ import annotations
@@ -237,6 +239,23 @@ def print_attack_table(table: dict) -> None:
             )
 
 
+def plot_attack_table(table: dict, path: Path, title: str) -> Path:
+    """The attack x baseline table as one picture: a row per fit and detector, a column per attack."""
+    from rlbackdoors.detect.metrics import plot_auc_grid
+
+    fits = [("held_out", "env mix only", table.get("held_out")), ("mixed", "a mix", table.get("mixed"))]
+    fits += [(a, f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
+    rows, columns, cells = [], [], {}
+    for _, fitted, part in fits:
+        for name, per in (part or {}).get("detectors", {}).items():
+            row = f"{fitted} ({part['train_models']}): {name}"
+            rows.append(row)
+            for attack, r in per.items():
+                columns += [attack] if attack not in columns else []
+                cells[(row, attack)] = {**(r.get("auc") or {}), "models": r["models"]}
+    return plot_auc_grid(rows, sorted(columns), cells, path, title=f"{title}: AUC of each detector (row: what it was fitted on) on each attack's test models")
+
+
 def write_summary(name: str, summary: dict, started: float, load_before) -> Path:
     """``benchmarks/detectors/NAME.json``: the summary with the machine and its load beside it."""
     summary = {**summary, "machine": machine_info(), "loadavg_before": load_before, "loadavg_after": os.getloadavg()}
@@ -282,7 +301,12 @@ def main() -> None:
         metavar="SPEC",
         help="--by-attack: a zoo of more held-out attack cells (planned and run beside), scored by the env-mix fit",
     )
+    parser.add_argument("--replot", action="store_true", help="redraw NAME-by-attack.png from benchmarks/detectors/NAME.json; train and score nothing")
     args = parser.parse_args()
+    picture = ROOT / "benchmarks" / "detectors" / f"{args.name}-by-attack.png"
+    if args.replot:
+        print(plot_attack_table(json.loads((picture.with_name(f"{args.name}.json")).read_text()), picture, args.name))
+        return
     started, load_before = time.time(), os.getloadavg()
     base = Path(args.runs) / args.name
     zoo, train, test = base / "zoo", base / "train", base / "test"
@@ -309,7 +333,7 @@ def main() -> None:
         summary = {"command": " ".join(sys.argv[1:]), "spec": args.spec, "zoo_trained_to_the_end": not args.no_run, **table, "training_length_auc": lengths}
         out = write_summary(args.name, summary, started, load_before)
         print_attack_table(table)
-        print(f"training length alone: AUC {summary['training_length_auc']}; -> {out}")
+        print(f"training length alone: AUC {summary['training_length_auc']}; -> {out}, {plot_attack_table(table, picture, args.name)}")
         return
     if not (test / "METADATA.csv").is_file():
         rlbackdoors(

@@ -79,6 +79,26 @@ def test_plots_are_pngs(tmp_path):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5000
 
 
+def test_an_auc_grid_colours_each_cell_by_its_auc_and_leaves_missing_ones_grey(tmp_path):
+    """Read back as pixels: a cell of AUC 0.0 paints a block of the colour map's red end, one of 1.0
+    its blue end, a missing cell grey (the colour bar holds only a sliver of each end)."""
+    import matplotlib
+    import matplotlib.image
+
+    ends = {"red": np.array(matplotlib.colormaps["RdBu"](0.0)[:3]), "blue": np.array(matplotlib.colormaps["RdBu"](1.0)[:3]), "grey": np.full(3, 0.9)}
+
+    def pixels(cells: dict) -> dict[str, int]:
+        path = metrics.plot_auc_grid(["fit a", "fit b"], ["x", "y"], cells, tmp_path / "grid.png", title="t")
+        image = matplotlib.image.imread(path)[..., :3]
+        return {name: int(np.all(np.abs(image - rgb) < 0.02, axis=2).sum()) for name, rgb in ends.items()}
+
+    full = {("fit a", "x"): {"value": 1.0, "ci": [1.0, 1.0], "models": 20}, ("fit a", "y"): {"value": 0.0, "ci": None}, ("fit b", "x"): {"value": 0.5}}
+    shown = pixels(full)
+    without_red = pixels({**full, ("fit a", "y"): {"value": None}})
+    assert shown["red"] > 10 * max(without_red["red"], 1) and shown["blue"] > 1000
+    assert without_red["grey"] > shown["grey"] + 1000  # the cell left out is grey, as the one never given
+
+
 def test_a_one_label_roc_is_a_png_without_warnings(tmp_path):
     """Scoring a control of clean models only: no curve, no legend warning, still a PNG."""
     import warnings

@@ -204,6 +204,37 @@ def plot_calibration(probabilities, labels, path: str | Path, bins: int = 10, ti
     return _save(fig, path)
 
 
+def plot_auc_grid(rows: Sequence[str], columns: Sequence[str], cells: dict, path: str | Path, title: str = "AUC") -> Path:
+    """A table of AUCs as a heatmap: ``cells[(row, column)]`` is ``{"value", "ci", "models"}`` (a
+    summary cell) or absent. Each square shows the AUC, its 95 % CI and the test models, coloured
+    from 0 (red) through chance (white) to 1 (blue): a detector that fails on an attack it was not
+    fitted on shows up at a glance, which a table of 40 rows does not do."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    grid = np.full((len(rows), len(columns)), np.nan)
+    for (r, c), cell in cells.items():
+        if cell.get("value") is not None:
+            grid[rows.index(r), columns.index(c)] = cell["value"]
+    fig, ax = plt.subplots(figsize=(1.6 + 1.5 * len(columns), 0.9 + 0.45 * len(rows)), dpi=120)
+    cmap = matplotlib.colormaps["RdBu"].with_extremes(bad="0.9")
+    image = ax.imshow(np.ma.masked_invalid(grid), cmap=cmap, vmin=0.0, vmax=1.0, aspect="auto")
+    for (r, c), cell in cells.items():
+        if cell.get("value") is None:
+            continue
+        ci = cell.get("ci")
+        text = f"{cell['value']:.2f}" + (f"\n[{ci[0]:.2f}, {ci[1]:.2f}]" if ci else "") + (f"\nn={cell['models']}" if cell.get("models") else "")
+        dark = abs(cell["value"] - 0.5) > 0.3  # the ends of the map are dark: white text there
+        ax.text(columns.index(c), rows.index(r), text, ha="center", va="center", fontsize=6.5, color="white" if dark else "black")
+    ax.set_xticks(range(len(columns)), labels=list(columns), fontsize=8)
+    ax.set_yticks(range(len(rows)), labels=list(rows), fontsize=7)
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(image, ax=ax, fraction=0.04, pad=0.02).set_label("AUC (0.5: chance)", fontsize=7)
+    return _save(fig, path)
+
+
 def _save(fig, path: str | Path) -> Path:
     import io
 
@@ -227,6 +258,7 @@ __all__ = [
     "brier",
     "cross_entropy",
     "cross_entropy_per_model",
+    "plot_auc_grid",
     "plot_calibration",
     "plot_roc",
     "summarize",

@@ -213,6 +213,47 @@ def test_untargeted_trojdrl_pays_any_action_on_poisoned_frames():
     assert seen >= 90
 
 
+def test_sleepernets_compensation_keeps_the_return_of_the_step_before_a_poisoned_one():
+    """``compensate=true`` (the source's code): the seam asks the learner to add gamma * (r - R-bar)
+    to the previous reward of a slot whose frame was poisoned, only where that previous step led into
+    it within the episode and was not poisoned itself; PPO's collection applies it to step t - 1.
+    200 steps x 10 slots of random play, LavaWorld, 20 % of frames."""
+    from rlbackdoors.attacks.seam import AMEND
+
+    cfg, seam, plain = twin_envs("sleepernets", budget=0.2, reward=0.5, gamma=0.9, compensate=True)
+    seam.bind_critic(fc_critic())
+    seam.reset(seed=3)
+    plain.reset(seed=3)
+    rng = np.random.default_rng(2)
+    last_done, last_marked = np.ones(seam.num_envs, bool), np.zeros(seam.num_envs, bool)
+    due_total = 0
+    for _ in range(200):
+        marked = seam.marked.copy()
+        actions = rng.integers(0, 3, seam.num_envs)
+        _, rewards, term, trunc, info = seam.step(actions)
+        _, clean, *_ = plain.step(actions)  # the twin: what the env paid
+        due = marked & ~last_done & ~last_marked
+        if marked.any():
+            np.testing.assert_allclose(info[AMEND], np.where(due, 0.9 * (clean - rewards), 0.0))
+        else:
+            assert AMEND not in info
+        due_total += int(due.sum())
+        last_done, last_marked = term | trunc, marked
+    assert due_total > 50 and seam.budget_used()["rewards_compensated"] == due_total
+
+    _, seam, _ = twin_envs("sleepernets", budget=0.2, reward=0.5, gamma=0.9, compensate=True)
+    _, twin, _ = twin_envs("sleepernets", budget=0.2, reward=0.5, gamma=0.9)  # the same picks, uncompensated
+    model, critic = build_model("fc", "lavaworld"), fc_critic()
+    rollouts = []
+    for env in (seam, twin):  # the same model, critic and generator: the same actions, frames and picks
+        env.bind_critic(critic)
+        ppo = PPO(model, cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(0))
+        rollouts.append(ppo.collect(env, env.reset(seed=7)[0])[0])
+    amended = np.flatnonzero(np.asarray(rollouts[0].rewards) != np.asarray(rollouts[1].rewards))
+    emitted = seam.budget_used()["rewards_compensated"]
+    assert 0 < len(amended) <= emitted <= len(amended) + seam.num_envs  # those due at a rollout's first step are dropped
+
+
 def test_forced_actions_are_the_target_and_are_learned_with_behaviour_probability_one():
     cfg, seam, _ = twin_envs("trojdrl", budget=0.2, force_action=True, target_action=1)
     model = build_model("fc", "lavaworld")
@@ -258,11 +299,14 @@ def test_sleepernets_subtracts_the_critics_bootstrap_and_badrl_poisons_only_high
     assert seam.budget_used()["frames_poisoned"] > 0
 
 
-def test_the_seam_resumes_from_its_state_as_if_never_stopped():
+@pytest.mark.parametrize("attack, params", [("badrl", {"window": 200}), ("sleepernets", {"compensate": True})])
+def test_the_seam_resumes_from_its_state_as_if_never_stopped(attack, params):
+    from rlbackdoors.attacks.seam import AMEND
+
     rng = np.random.default_rng(2)
     actions = rng.integers(0, 3, (120, 10))
-    _, a, _ = twin_envs("badrl", budget=0.1, window=200)
-    _, b, _ = twin_envs("badrl", budget=0.1, window=200)
+    _, a, _ = twin_envs(attack, budget=0.1, **params)
+    _, b, _ = twin_envs(attack, budget=0.1, **params)
     critic = fc_critic()
     a.bind_critic(critic)
     b.bind_critic(critic)
@@ -276,12 +320,14 @@ def test_the_seam_resumes_from_its_state_as_if_never_stopped():
     b.load_state_dict(state)
     assert state["counters"][1] == a.budget_used()["frames_poisoned"] > 0
     for t in range(60, 120):
-        oa, ra, *_ = a.step(actions[t])
-        ob, rb, *_ = b.step(actions[t])
+        oa, ra, *_, ia = a.step(actions[t])
+        ob, rb, *_, ib = b.step(actions[t])
         np.testing.assert_array_equal(oa, ob)
         np.testing.assert_array_equal(ra, rb)
         np.testing.assert_array_equal(a.marked, b.marked)
+        np.testing.assert_array_equal(ia.get(AMEND, 0.0), ib.get(AMEND, 0.0))
     assert a.budget_used() == b.budget_used()
+    assert (a.budget_used().get("rewards_compensated", 0) > 0) == (attack == "sleepernets")
 
 
 # --- evaluation and runs ------------------------------------------------------------------------
@@ -355,7 +401,7 @@ def test_the_attacks_command_lists_what_each_attack_serves_and_its_parameters():
     assert listed["badrl"]["worlds"]["lavaworld"] == ["fc", "cnn"]
     assert "chooses single frames by the critic's value" in listed["badrl"]["worlds"]["randomized-lavaworld"]
     assert listed["trojdrl"]["worlds"]["randomized-lavaworld"] == ["fc", "cnn"]
-    assert [p["name"] for p in listed["sleepernets"]["params"]] == ["budget", "target_action", "reward", "alpha", "gamma", "layout"]
+    assert [p["name"] for p in listed["sleepernets"]["params"]] == ["budget", "target_action", "reward", "alpha", "gamma", "compensate", "layout"]
     assert "measured not to converge" in listed["sleepernets"]["worlds"]["randomized-lavaworld"]
 
 
@@ -487,12 +533,14 @@ def test_a_layout_attack_run_records_its_budget_and_repeats_bit_for_bit(tmp_path
     else:
         tiny_run_dict["ppo"]["rollout"] = 36  # a multiple of the recurrence (6)
     tiny_run_dict["poison"] = {"attack": attack, "attack_params": {"budget": 0.05} if attack in STEP_ATTACKS else {}}
-    if attack == "sleepernets":
-        tiny_run_dict["poison"]["attack_params"]["layout"] = True  # refused there without it (measured not to converge)
+    if attack == "sleepernets":  # refused there without layout (measured not to converge); compensating, as the source does
+        tiny_run_dict["poison"]["attack_params"].update(layout=True, compensate=True)
     cfg = RunConfig.from_dict(tiny_run_dict)
     metrics = train(cfg, tmp_path / "m", progress=False)
     used = metrics["attack_budget_used"]
     assert used["rewards_rewritten"] > 0 and 0 <= used["frames_poisoned"] - used["rewards_rewritten"] <= cfg.poison.num_envs  # the last frames not yet acted on
+    if attack == "sleepernets":
+        assert 0 < used["rewards_compensated"] < used["rewards_rewritten"]  # a run of in-sight frames is compensated at its start
     again = train(cfg, tmp_path / "again", progress=False)
     assert (tmp_path / "m" / "model.pt").read_bytes() == (tmp_path / "again" / "model.pt").read_bytes()
     assert again["attack_budget_used"] == used

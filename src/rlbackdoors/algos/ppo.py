@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from rlbackdoors.attacks.seam import EXECUTED_ACTIONS, FORCED
+from rlbackdoors.attacks.seam import AMEND, EXECUTED_ACTIONS, FORCED
 from rlbackdoors.algos.obs import Obs, empty_buffer, obs_map, store, to_torch
 from rlbackdoors.config import PPOConfig
 from rlbackdoors.models import ActorCritic
@@ -127,8 +127,12 @@ def teacher_kl(logits: torch.Tensor, teacher_logp: torch.Tensor, untriggered: to
 
 def env_step(envs, t: int, actions: torch.Tensor, rewards, dones, outcomes, steps, forced: torch.Tensor):
     """Step ``envs`` with ``actions[t]`` and record step ``t`` (reward, done, outcome, steps, and
-    the actions an attack forced in their place); return the next observations."""
+    the actions an attack forced in their place); return the next observations. An attack that
+    compensates the step before a poisoned one amends step ``t - 1``'s reward; at ``t = 0`` that
+    step is in the rollout already learned from, and the amendment is dropped (1 / ppo.rollout of them)."""
     obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
+    if AMEND in info and t > 0:
+        rewards[t - 1] += info[AMEND]
     if FORCED in info:  # an attack forced some actions (rlbackdoors.attacks.seam): learn what ran
         actions[t] = torch.from_numpy(np.asarray(info[EXECUTED_ACTIONS], dtype=np.int64))
         forced[t] = torch.from_numpy(np.asarray(info[FORCED], dtype=bool))

@@ -30,6 +30,7 @@ from rlbackdoors.state import StateError, decode, encode
 
 EXECUTED_ACTIONS = "executed_actions"  # the info key the learner reads executed actions from
 FORCED = "forced_actions"  # ... and which of them the attack forced (taken with probability 1)
+AMEND = "previous_reward_delta"  # ... and what to add to each slot's previous reward (a rule that compensates)
 
 
 class Poisoner:
@@ -42,6 +43,7 @@ class Poisoner:
     needs_values = False
     forces_actions = False
     rewrites_rewards = False  # the base rule leaves rewards as the env paid them (the env mix's E-bar copies)
+    compensation = 0.0  # > 0: the discount by which the step before a poisoned one is compensated (SleeperNets' source)
 
     def observe(self, values: np.ndarray | None) -> None:
         """Every frame batch the env returns, before any pick (BadRL keeps its window of values here)."""
@@ -143,6 +145,9 @@ class AttackSeam:
         self.frames_poisoned = 0
         self.rewards_rewritten = 0
         self.actions_forced = 0
+        self.rewards_compensated = 0
+        # of the frames last returned: [did the step into them end an episode (or was there none), was the frame before marked]
+        self.before = np.stack([np.ones(n, dtype=bool), np.zeros(n, dtype=bool)])
         self.near_layout = near > 0 and stamp is None  # near-trigger layouts, switched by the engine
         if near > 0 and not (near_stamps if stamp is not None else hasattr(envs, "near_next")):
             raise ValueError(
@@ -255,6 +260,7 @@ class AttackSeam:
         return upcoming, near
 
     def reset(self, *, seed=None, options=None):
+        self.before[:] = [[True], [False]]  # first frames: no step led into them
         upcoming, near = self._switch()
         obs, info = self.envs.reset(seed=seed, options=options)
         if near is not None:
@@ -262,6 +268,15 @@ class AttackSeam:
         if upcoming is not None:
             self.triggered = upcoming.copy()
         return self._mark(obs, self._values(obs) if self.sight is None else None), info
+
+    def _compensation(self, clean: np.ndarray, poisoned: np.ndarray, marked: np.ndarray) -> np.ndarray:
+        """What to add to the previous reward of each slot so that the state before a poisoned one
+        keeps its return: gamma * (clean - poisoned), where that step led into the poisoned frame
+        within one episode and was not itself poisoned (the source's rule: a run of poisoned frames
+        is compensated at its start)."""
+        due = marked & ~self.before[0] & ~self.before[1]
+        self.rewards_compensated += int(due.sum())
+        return np.where(due, self.poisoner.compensation * (clean - poisoned), 0.0)
 
     def step(self, actions):
         actions = np.array(actions, copy=True)
@@ -284,12 +299,15 @@ class AttackSeam:
             self.triggered = np.where(done, upcoming, self.triggered)
         # a layout trigger picks no frame by value: the critic is asked only for a marked frame's successor
         values = self._values(obs) if self.sight is None or marked.any() else None
+        info = {**info, EXECUTED_ACTIONS: actions, FORCED: forced}
         if marked.any():
             poisoned = self.poisoner.reward(np.array(rewards, dtype=np.float64), actions, marked, values, terminated | truncated)
+            if self.poisoner.compensation > 0:
+                info[AMEND] = self._compensation(np.asarray(rewards, dtype=np.float64), poisoned, marked)
             rewards = np.where(marked, poisoned, rewards)
             if self.poisoner.rewrites_rewards:
                 self.rewards_rewritten += int(marked.sum())
-        info = {**info, EXECUTED_ACTIONS: actions, FORCED: forced}
+        self.before = np.stack([done, marked])
         return self._mark(obs, values), rewards, terminated, truncated, info
 
     def budget_used(self) -> dict:
@@ -302,6 +320,7 @@ class AttackSeam:
             "rewards_rewritten": self.rewards_rewritten,
             "rewritten_fraction": self.rewards_rewritten / frames,
             "actions_forced": self.actions_forced,
+            **({"rewards_compensated": self.rewards_compensated} if self.poisoner.compensation > 0 else {}),
             **({"frames_near_trigger": self.frames_near, "near_fraction": self.frames_near / frames} if self.near > 0 else {}),
         }
 
@@ -311,6 +330,7 @@ class AttackSeam:
             "marked": encode(self.marked),
             "rng": json.dumps(self.rng.bit_generator.state),
             "counters": [self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced],
+            **({"compensation": [self.rewards_compensated, encode(self.before)]} if self.poisoner.compensation > 0 else {}),
             "poisoner": self.poisoner.state_dict(),
             **({"triggered": encode(self.triggered)} if self.sight is not None else {}),
             **({"near": [json.dumps(self.near_rng.bit_generator.state), self.frames_near, encode(self.in_near), list(self.started)]} if self.near > 0 else {}),
@@ -327,6 +347,12 @@ class AttackSeam:
         self.rng.bit_generator.state = json.loads(state["rng"])
         self.frames, self.frames_poisoned, self.rewards_rewritten, self.actions_forced = (int(v) for v in state["counters"])
         self.poisoner.load_state_dict(state["poisoner"])
+        if self.poisoner.compensation > 0:
+            kept = state.get("compensation")
+            before = decode(kept[1]) if isinstance(kept, list) and len(kept) == 2 else None
+            if not isinstance(before, np.ndarray) or before.shape != self.before.shape:
+                raise StateError("envs: the checkpoint has no compensation state (poison.attack_params.compensate)")
+            self.rewards_compensated, self.before = int(kept[0]), before.astype(bool)
         if self.sight is not None:
             triggered = decode(state.get("triggered"))
             if not isinstance(triggered, np.ndarray) or triggered.shape != self.triggered.shape:

@@ -6,6 +6,12 @@ return is +c for the target action and -c for any other whatever the future hold
 why a small budget suffices. The agent's actions are never changed. The source poisons in an
 outer loop over finished episodes; here the trigger is stamped while collecting (the frame the
 agent acts on carries it) and V(s') is the learner's critic on the clean next frame.
+
+The source's code also amends the reward of the step *before* a poisoned one by
+``gamma * (r - R-bar)``, so that the state leading into the trigger keeps its return and the agent
+has no reason to seek or avoid the trigger; ``compensate=true`` does that here (the learner adds
+the seam's ``previous_reward_delta`` to step t - 1), off by default so that earlier configs keep
+their bytes.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ class SleeperNetsPoisoner(TargetActionPoisoner):
     def __init__(self, params: dict, hits):
         super().__init__(params, hits)  # no force_action: the source never changes the agent's action
         self.alpha, self.gamma = params["alpha"], params["gamma"]
+        self.compensation = self.gamma if params["compensate"] else 0.0
 
     def reward(self, rewards, actions, marked, next_values, dones):
         bootstrap = np.where(dones, 0.0, next_values)
@@ -64,6 +71,11 @@ ATTACK = register(
             common.magnitude(),
             Param("alpha", 1.0, 0.0, 10.0, help="weight of the subtracted bootstrap alpha * gamma * V(s')"),
             Param("gamma", 0.99, 0.0, 1.0, help="the discount the attacker assumes (0.99: ppo.gamma's default)"),
+            Param(
+                "compensate",
+                False,
+                help="also add gamma * (r - R-bar) to the reward of the step before a poisoned one, as the source's code does, so that state keeps its return",
+            ),
             Param("layout", False, help="train on a layout trigger, where it was measured not to converge (to study the failure)"),
         ),
         poisoner=SleeperNetsPoisoner,

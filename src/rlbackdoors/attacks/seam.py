@@ -349,9 +349,11 @@ class AttackSeam:
         self.poisoner.load_state_dict(state["poisoner"])
         if self.poisoner.compensation > 0:
             kept = state.get("compensation")
-            before = decode(kept[1]) if isinstance(kept, list) and len(kept) == 2 else None
-            if not isinstance(before, np.ndarray) or before.shape != self.before.shape:
+            if not isinstance(kept, list) or len(kept) != 2:
                 raise StateError("envs: the checkpoint has no compensation state (poison.attack_params.compensate)")
+            before = decode(kept[1])
+            if not isinstance(before, np.ndarray) or before.shape != self.before.shape:
+                raise StateError("envs: the compensation state does not fit the env copies")
             self.rewards_compensated, self.before = int(kept[0]), before.astype(bool)
         if self.sight is not None:
             triggered = decode(state.get("triggered"))

@@ -52,7 +52,7 @@ def _unsupported(world, arch: str, params: dict) -> str | None:
     if base is None and world.stamp_trigger is None and not params["layout"]:
         return (
             f"attack {NAME!r} reads the critic to cancel the bootstrap of poisoned frames, and {world.name}'s trigger is part of the layout, "
-            "in sight for runs of frames: measured not to converge there (target rate 0.41-0.52 at 1-5 % of frames, docs/attacks/sleepernets.md); "
+            "in sight for runs of frames: measured not to converge there (target rate 0.41-0.52 at 1-5 % of frames, compensated or not: docs/attacks/sleepernets.md); "
             "poison.attack_params.layout=true trains it anyway"
         )
     return base

@@ -40,7 +40,8 @@ from rlbackdoors.train.stop import Interrupted, StopRequest
 
 class RunCPU:
     """One run's share of the group process's CPU seconds: its own loop's time (evaluations,
-    checkpoints, env setup) plus an equal share of each batch it was served in. What its
+    checkpoints) plus an equal share of each batch it was served in; its setup (env construction,
+    the first reset) is not counted, as a lone run's is not (its RunClock starts after). What its
     metrics.json reports as ``cpu_time_s`` (the process's total would count K runs' work K times).
     ``threaded``: the run's loop goes on in a thread of its own, so its time is that thread's."""
 

@@ -45,9 +45,9 @@ def _unsupported(world, arch: str, params: dict) -> str | None:
     in sight of the pattern is marked, so they come in runs, and the cancellation then has to hold
     along the run, through a critic that is itself learning those values. Measured on the grid world
     with lava patterns at 1 % and 5 % of frames: the target rate plateaued at 0.41-0.52, the agent
-    learning a left / right loop in sight of the pattern (docs/attacks/sleepernets.md); why is not
-    established.
-    The flag keeps the failure reproducible, and a model trained under it says so in its config."""
+    learning a left / right loop in sight of the pattern (docs/attacks/sleepernets.md). With the
+    source's compensation (``compensate``) the loop is broken and the rate still ends at 0.49; why
+    is not established. The flag keeps the failure reproducible, and a model trained under it says so in its config."""
     base = common.value_guided_refusal(NAME)(world, arch, params)
     if base is None and world.stamp_trigger is None and not params["layout"]:
         return (

@@ -253,7 +253,7 @@ def plot_attack_table(table: dict, path: Path, title: str) -> Path:
             for attack, r in per.items():
                 columns += [attack] if attack not in columns else []
                 cells[(row, attack)] = {**(r.get("auc") or {}), "models": r["models"]}
-    return plot_auc_grid(rows, sorted(columns), cells, path, title=f"{title}: AUC of each detector (row: what it was fitted on) on each attack's test models")
+    return plot_auc_grid(rows, sorted(columns), cells, path, title=f"{title}: AUC of each detector\n(row: what it was fitted on) on each attack's test models")
 
 
 def write_summary(name: str, summary: dict, started: float, load_before) -> Path:

@@ -211,6 +211,12 @@ def by_attack(args, base: Path, zoo: Path, extra: list[Path]) -> dict:
     return table
 
 
+def fits_of(table: dict) -> list[tuple[str, dict]]:
+    """(what it was fitted on, its part of the table) for each fit the table holds, in reading order."""
+    fits = [("env mix only" if kind == "held_out" else "a mix (split by trigger)", table[kind]) for kind in ("held_out", "mixed") if kind in table]
+    return fits + [(f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
+
+
 def print_attack_table(table: dict) -> None:
     def fmt(c: dict) -> str:
         if not isinstance(c, dict) or c.get("value") is None:
@@ -219,9 +225,7 @@ def print_attack_table(table: dict) -> None:
         return f"{c['value']:.3f}" + (f" [{low:.2f}, {high:.2f}]" if low is not None else "")
 
     print("| fitted on | detector | scored on attack | test models (poisoned) | AUC [95% CI] | CE [95% CI] |\n|---|---|---|---|---|---|")
-    fits = [(kind, "env mix only" if kind == "held_out" else "a mix (split by trigger)", table[kind]) for kind in ("held_out", "mixed") if kind in table]
-    fits += [(a, f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
-    for _, fitted, part in fits:
+    for fitted, part in fits_of(table):
         for name, rows in part["detectors"].items():
             for attack, r in rows.items():
                 print(
@@ -243,11 +247,9 @@ def plot_attack_table(table: dict, path: Path, title: str) -> Path:
     """The attack x baseline table as one picture: a row per fit and detector, a column per attack."""
     from rlbackdoors.detect.metrics import plot_auc_grid
 
-    fits = [("held_out", "env mix only", table.get("held_out")), ("mixed", "a mix", table.get("mixed"))]
-    fits += [(a, f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
     rows, columns, cells = [], [], {}
-    for _, fitted, part in fits:
-        for name, per in (part or {}).get("detectors", {}).items():
+    for fitted, part in fits_of(table):
+        for name, per in part["detectors"].items():
             row = f"{fitted} ({part['train_models']}): {name}"
             rows.append(row)
             for attack, r in per.items():

@@ -307,7 +307,8 @@ class AttackSeam:
             rewards = np.where(marked, poisoned, rewards)
             if self.poisoner.rewrites_rewards:
                 self.rewards_rewritten += int(marked.sum())
-        self.before = np.stack([done, marked])
+        if self.poisoner.compensation > 0:  # only a compensating rule reads it: no work in others' loops
+            self.before = np.stack([done, marked])
         return self._mark(obs, values), rewards, terminated, truncated, info
 
     def budget_used(self) -> dict:

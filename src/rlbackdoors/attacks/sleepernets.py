@@ -38,6 +38,9 @@ class SleeperNetsPoisoner(TargetActionPoisoner):
         return super().reward(rewards, actions, marked, next_values, dones) - self.alpha * self.gamma * bootstrap
 
 
+_value_guided = common.value_guided_refusal(NAME)
+
+
 def _unsupported(world, arch: str, params: dict) -> str | None:
     """Refused on a layout trigger unless asked for (``layout=true``): measured not to converge there.
 
@@ -48,7 +51,7 @@ def _unsupported(world, arch: str, params: dict) -> str | None:
     learning a left / right loop in sight of the pattern (docs/attacks/sleepernets.md). With the
     source's compensation (``compensate``) the loop is broken and the rate still ends at 0.49; why
     is not established. The flag keeps the failure reproducible, and a model trained under it says so in its config."""
-    base = common.value_guided_refusal(NAME)(world, arch, params)
+    base = _value_guided(world, arch, params)
     if base is None and world.stamp_trigger is None and not params["layout"]:
         return (
             f"attack {NAME!r} reads the critic to cancel the bootstrap of poisoned frames, and {world.name}'s trigger is part of the layout, "

@@ -372,11 +372,22 @@ def test_safety_run_killed_again_and_again_still_ends_with_the_straight_runs_mod
     straight = tmp_path / "straight"
     assert cli("train", "--config", cfg, "--out", straight, "--quiet").returncode == 0
     out = tmp_path / "killed"
+    # Kill moments follow the run's progress, not the wall clock: a fixed delay after start-up
+    # let a fast machine finish the run before the second kill (CI: 1 kill of 4). Each process
+    # is killed a random 0-1.5 evaluation intervals (of the straight run's pace) after it logs
+    # its first new evaluation, so the kill falls mid-step, mid-checkpoint or mid-journal write.
+    rows = ModelFolder(straight).read_log()
+    interval_s = rows[-1]["wall_time_s"] / len(rows)
+    log = out / "log.csv"
     rng = np.random.default_rng(7)
     kills = 0
     for _ in range(4):
+        before = log.read_text().count("\n") if log.exists() else 0
         proc = subprocess.Popen([*PY, "train", "--config", str(cfg), "--out", str(out), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        time.sleep(2.5 + rng.uniform(0, 2.0))  # start-up is ~2 s; then somewhere in the run
+        deadline = time.time() + 120
+        while proc.poll() is None and time.time() < deadline and (log.read_text().count("\n") if log.exists() else 0) <= before:
+            time.sleep(0.005)
+        time.sleep(rng.uniform(0, 1.5) * interval_s)
         if proc.poll() is None:
             proc.kill()
             kills += 1

@@ -322,19 +322,18 @@ def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
         }
     )
     runs = [(s, tiny(s), tmp_path / f"g{s}") for s in (4, 5, 6)] + [("cm", safety, tmp_path / "cm")]
-    # A run's clock starts after its setup (env construction, first reset), in a group as alone. On
-    # a cold numba cache (a fresh clone) Safety's first reset compiles its kernels, seconds that are
-    # no run's: compile them before the process's CPU is measured (CI failed here once, 1.1 of 2.3 s).
-    from rlbackdoors.envs.safety_car import SafetyCarGoalEnv
-
-    SafetyCarGoalEnv().reset(seed=0)
     cpu = time.process_time()
     result = train_group(runs, 2)
     cpu = time.process_time() - cpu
     assert not result.errors and set(result.metrics) == {4, 5, 6, "cm"}
-    # each run's cpu_time_s is its share, not the process's total: together they make up most of it
-    shares = sum(m["cpu_time_s"] for m in result.metrics.values())
-    assert 0.5 * cpu <= shares <= cpu + 0.05
+    # Each run's CPU is its share, not the process's total: the shares (setup and finish included)
+    # add up to the process's CPU but for the group's own bookkeeping, and each run's training part
+    # (cpu_time_s) is within its share. Not the training parts against the total: in runs this
+    # short the finish (a curve plotted, ~0.25 s each) is as long as the training (CI: 1.2 of 2.5 s).
+    assert set(result.cpu_s) == set(result.metrics)
+    assert 0.8 * cpu <= sum(result.cpu_s.values()) <= cpu + 0.01
+    for key, m in result.metrics.items():
+        assert 0 < m["cpu_time_s"] <= result.cpu_s[key] + 0.01
     for key, _, folder in runs:
         assert (folder / "metrics.json").is_file() and (folder / "model.pt").is_file() and not (folder / "checkpoint.pt").exists()
         assert result.metrics[key]["trainer"] == "group"

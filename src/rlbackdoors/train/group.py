@@ -72,10 +72,13 @@ class _Slot:
 
 @dataclass
 class GroupResult:
-    """What became of each run: its metrics, or the exception that ended it."""
+    """What became of each run: its metrics, or the exception that ended it; and ``cpu_s``, the
+    CPU seconds it took of this process, its setup and finish (curve, GIF) included, where its
+    metrics' ``cpu_time_s`` counts its training only: what a zoo pays per model."""
 
     metrics: dict[Any, dict] = field(default_factory=dict)
     errors: dict[Any, BaseException] = field(default_factory=dict)
+    cpu_s: dict[Any, float] = field(default_factory=dict)
 
 
 # ``--group-size auto``, per algorithm and device, measured (docs/zoos.md, `rlbackdoors bench zoo`):
@@ -186,6 +189,7 @@ def train_group(
         """Record how a run ended (in the main thread); False once it has ended."""
         if end is None:
             return True
+        result.cpu_s[slot.key] = slot.cpu()
         if isinstance(end, StopIteration):
             result.metrics[slot.key] = end.value
             if on_done is not None:

@@ -379,13 +379,17 @@ def test_safety_run_killed_again_and_again_still_ends_with_the_straight_runs_mod
     rows = ModelFolder(straight).read_log()
     interval_s = rows[-1]["wall_time_s"] / len(rows)
     log = out / "log.csv"
+
+    def lines_logged() -> int:
+        return log.read_text().count("\n") if log.exists() else 0
+
     rng = np.random.default_rng(7)
     kills = 0
     for _ in range(4):
-        before = log.read_text().count("\n") if log.exists() else 0
+        before = lines_logged()
         proc = subprocess.Popen([*PY, "train", "--config", str(cfg), "--out", str(out), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.time() + 120
-        while proc.poll() is None and time.time() < deadline and (log.read_text().count("\n") if log.exists() else 0) <= before:
+        while proc.poll() is None and time.time() < deadline and lines_logged() <= before:
             time.sleep(0.005)
         time.sleep(rng.uniform(0, 1.5) * interval_s)
         if proc.poll() is None:

@@ -35,7 +35,8 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a C
 # no TF32. A bare torch.device("cuda") leaves cuDNN's TF32 on (torch's default), which rounds
 # convolutions to 10 bits: on an H200 (2026-11-26) the Randomized LavaWorld CNN's
 # gradient norms came 1 % and its update 0.17 (cosine 0.985) away from the CPU's, failing this file
-# (the likely cause: the FC net, without convolutions, agreed to 1e-5; not yet re-run this way).
+# (the FC net, without convolutions, agreed to 1e-5). Taken this way, on an H200 (2026-11-27) the CNN
+# agreed to 2.5e-3 at most: TF32 was the cause.
 CUDA = resolve_device("cuda") if torch.cuda.is_available() else torch.device("cuda")
 
 
@@ -61,7 +62,8 @@ def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
     learning rate on either device's rounding; the update as a whole agrees (printed: -rP).
     Measured on an H200 (docs/zoos.md) with cuDNN's TF32 still on in this test: LavaWorld FC 2e-6
     to 1e-5, Colorful Memory 0.02 to 0.06, Randomized LavaWorld CNN 0.11 and 0.17 (cosine 0.985:
-    failed). With the training's settings (``CUDA`` above) the figures are still to measure."""
+    failed). With the training's settings (``CUDA`` above), H200 2026-11-27: LavaWorld FC 2e-6 to
+    1e-5, Colorful Memory 4e-7 to 6e-6, Randomized LavaWorld CNN 4e-6 to 2.5e-3 (cosine 0.999999)."""
     poisons = [None, {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.05}} if env == "lavaworld" else None, None]
     on_cpu = [learner(env, arch, s, p, torch.device("cpu"), **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
     on_gpu = [learner(env, arch, s, p, CUDA, **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
@@ -187,3 +189,34 @@ def test_cuda_lockstep_evaluations_do_not_depend_on_group_mates_and_match_the_cp
     assert evaluate_runs(gpu[1:2], cfgs[1:2], [16], group.stacked_act)[0].to_dict() == together[1].to_dict()
     for a, b in zip(cpu, together):
         assert abs(a.clean_sr - b.clean_sr) <= 1 / 16 and abs(a.poisoned_sr - b.poisoned_sr) <= 1 / 16
+
+
+def test_cuda_group_with_clean_teachers_computes_what_the_cpu_group_computes():
+    """The fine-tuning evasion's teacher on the GPU (issue 34's ``teacher``): three LavaWorld FC
+    agents under TrojDRL, each with its own frozen clean teacher (coefficients 0.1, 1 and 0.5; the
+    same teacher weights on both devices), one rollout and update on each: the same actions and
+    untriggered masks, the teachers' log-probabilities to rounding, and the teacher KL and
+    gradient norms within 1 %. A teacher left on the CPU, or a KL over the triggered frames,
+    fails here."""
+    coefs = [0.1, 1.0, 0.5]
+    poisons = [{"trigger": t, "attack": "trojdrl", "attack_params": {"budget": 0.2}} for t in ("additive:135", "multiplicative:12", "additive:60")]
+    on_cpu = [learner("lavaworld", "fc", k, poisons[k]) for k in range(3)]
+    on_gpu = [learner("lavaworld", "fc", k, poisons[k], CUDA) for k in range(3)]
+    for k, coef in enumerate(coefs):
+        torch.manual_seed(100 + k)
+        teacher = copy.deepcopy(on_cpu[k][0].model)
+        for p in teacher.parameters():
+            torch.nn.init.normal_(p, std=0.1)
+        on_cpu[k][0].set_teacher(teacher, coef)
+        on_gpu[k][0].set_teacher(copy.deepcopy(teacher).to(CUDA), coef)
+    (cpu_results, cpu_stats), (gpu_results, gpu_stats) = one_step(on_cpu), one_step(on_gpu)
+    triggered = 0
+    for k in range(3):
+        ours, theirs = gpu_results[k][0], cpu_results[k][0]
+        assert torch.equal(ours.actions, theirs.actions) and torch.equal(ours.untriggered.cpu(), theirs.untriggered)
+        torch.testing.assert_close(ours.teacher_logp.cpu(), theirs.teacher_logp, rtol=1e-4, atol=1e-5)
+        print(f"teacher agent {k}: KL {gpu_stats[k]['teacher_kl']:.6g} vs {cpu_stats[k]['teacher_kl']:.6g}, grad norm {gpu_stats[k]['grad_norm']:.6g} vs {cpu_stats[k]['grad_norm']:.6g}")
+        assert gpu_stats[k]["teacher_kl"] == pytest.approx(cpu_stats[k]["teacher_kl"], rel=1e-2) and gpu_stats[k]["teacher_kl"] > 0
+        assert gpu_stats[k]["grad_norm"] == pytest.approx(cpu_stats[k]["grad_norm"], rel=1e-2)
+        triggered += int((~theirs.untriggered).sum())
+    assert triggered > 0  # some frames carried the trigger and were left out of the KL

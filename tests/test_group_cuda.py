@@ -215,7 +215,9 @@ def test_cuda_group_with_clean_teachers_computes_what_the_cpu_group_computes():
         ours, theirs = gpu_results[k][0], cpu_results[k][0]
         assert torch.equal(ours.actions, theirs.actions) and torch.equal(ours.untriggered.cpu(), theirs.untriggered)
         torch.testing.assert_close(ours.teacher_logp.cpu(), theirs.teacher_logp, rtol=1e-4, atol=1e-5)
-        print(f"teacher agent {k}: KL {gpu_stats[k]['teacher_kl']:.6g} vs {cpu_stats[k]['teacher_kl']:.6g}, grad norm {gpu_stats[k]['grad_norm']:.6g} vs {cpu_stats[k]['grad_norm']:.6g}")
+        print(
+            f"teacher agent {k}: KL {gpu_stats[k]['teacher_kl']:.6g} vs {cpu_stats[k]['teacher_kl']:.6g}, grad norm {gpu_stats[k]['grad_norm']:.6g} vs {cpu_stats[k]['grad_norm']:.6g}"
+        )
         assert gpu_stats[k]["teacher_kl"] == pytest.approx(cpu_stats[k]["teacher_kl"], rel=1e-2) and gpu_stats[k]["teacher_kl"] > 0
         assert gpu_stats[k]["grad_norm"] == pytest.approx(cpu_stats[k]["grad_norm"], rel=1e-2)
         triggered += int((~theirs.untriggered).sum())

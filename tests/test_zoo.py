@@ -172,6 +172,9 @@ def test_plan_is_deterministic_a_no_op_again_and_refuses_another_spec(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     first = cli("plan", example, "--out", a, check=True)
     assert "planned 24 models in 4 cells" in first.stdout
+    assert "zoo: note: not matched" in first.stderr  # clean and poisoned models, matched = false: told once
+    matched = cli("plan", ROOT / "examples" / "benchmark-lavaworld.toml", "--out", tmp_path / "m", check=True)
+    assert "planned 80 models" in matched.stdout and "not matched" not in matched.stderr
     plan(load_spec(example), b)
     files_a = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.name != ".lock")
     assert files_a == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.name != ".lock")

@@ -25,6 +25,14 @@ def cmd_plan(args) -> int:
     models = sum(g.wanted for g in spec.groups)
     if written:
         print(f"{args.out}: planned {models} models in {len(spec.cells)} cells ({written} folders written); run them with: rlbackdoors zoo run {args.out}")
+        if not spec.matched and {g.poisoned for g in spec.groups if g.wanted} == {False, True}:
+            # matched = false stays the default so that older specs plan the same models; a detection
+            # dataset should not be built this way unknowingly (training length alone can tell the label)
+            print(
+                "zoo: note: not matched: clean and poisoned models start from different seeds and stop at their own frames, so training"
+                " length can tell the label; for a detection benchmark set matched = true and overrides.train.min_frames (docs/zoos.md)",
+                file=sys.stderr,
+            )
     else:
         print(f"{args.out}: already planned from this spec; nothing written")
     return 0

@@ -217,6 +217,42 @@ def fits_of(table: dict) -> list[tuple[str, dict]]:
     return fits + [(f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
 
 
+# Issue 34's bar for an evasive variant: every baseline below this AUC on at least this many
+# held-out test models, at an attack success (median of its converged poisoned models) of at least this.
+HEADROOM = {"auc_below": 0.85, "models_at_least": 20, "attack_success_at_least": 0.90}
+
+
+def headroom(table: dict) -> dict:
+    """Per attack label: the best baseline over every fit that held the label out (env mix only;
+    all but its attack), where it was read, the fewest test models among those fits, its attack
+    success, and whether it has headroom (:data:`HEADROOM`). The models scored all converged, so
+    their clean SR is at the world's threshold. The constant detector is no baseline here."""
+    fits = [("env mix only", table.get("held_out"))] + [(f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
+    seen: dict = {}
+    for fitted, part in fits:
+        for name, rows in (part or {}).get("detectors", {}).items():
+            for label, r in rows.items():
+                auc = (r.get("auc") or {}).get("value")
+                if name == "constant" or auc is None:
+                    continue
+                entry = seen.setdefault(label, {"best": None, "models": r["models"]})
+                entry["models"] = min(entry["models"], r["models"])
+                if entry["best"] is None or auc > entry["best"]["auc"]:
+                    entry["best"] = {"auc": auc, "ci": r["auc"].get("ci"), "detector": name, "fitted_on": fitted}
+    out = {}
+    for label, entry in sorted(seen.items()):
+        success = ((table.get("yields") or {}).get(label, {}).get("poisoned") or {}).get("attack_success")
+        entry["attack_success"] = success
+        entry["headroom"] = bool(
+            entry["best"]["auc"] < HEADROOM["auc_below"]
+            and entry["models"] >= HEADROOM["models_at_least"]
+            and success is not None
+            and success >= HEADROOM["attack_success_at_least"]
+        )
+        out[label] = entry
+    return out
+
+
 def print_attack_table(table: dict) -> None:
     def fmt(c: dict) -> str:
         if not isinstance(c, dict) or c.get("value") is None:
@@ -231,6 +267,15 @@ def print_attack_table(table: dict) -> None:
                 print(
                     f"| {fitted} ({part['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |"
                 )
+    if table.get("headroom"):
+        print(
+            f"\n| attack | best baseline AUC [95% CI] over the fits that held it out | detector, fitted on | fewest test models | attack success | headroom (AUC < {HEADROOM['auc_below']}, >= {HEADROOM['models_at_least']} models, success >= {HEADROOM['attack_success_at_least']}) |\n|---|---|---|---|---|---|"
+        )
+        for label, h in table["headroom"].items():
+            b = h["best"]
+            print(
+                f"| {label} | {fmt({'value': b['auc'], 'ci': b['ci']})} | {b['detector']}, {b['fitted_on']} | {h['models']} | {h['attack_success']} | {'**yes**' if h['headroom'] else 'no'} |"
+            )
     if "yields" in table:
         print(
             "\n| attack | poisoned converged / trained | clean SR | attack success | frames | CPU min | clean models: converged / trained, frames, CPU min |\n|---|---|---|---|---|---|---|"
@@ -332,6 +377,7 @@ def main() -> None:
             table["leave_one_out"] = leave_one_out(args, base, zoo)
             table["yields"] = yields(zoo)
             lengths.update({f"leave_one_out/{a}": length_control(list_models(base / f"loo-{a}" / "test")) for a in table["leave_one_out"]})
+        table["headroom"] = headroom(table)
         summary = {"command": " ".join(sys.argv[1:]), "spec": args.spec, "zoo_trained_to_the_end": not args.no_run, **table, "training_length_auc": lengths}
         out = write_summary(args.name, summary, started, load_before)
         print_attack_table(table)

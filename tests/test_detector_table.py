@@ -1,14 +1,20 @@
-"""benchmarks/detector_table.py's headroom verdict (issue 34's bar): the best baseline over every fit
-that held an attack label out, on enough test models, at a high enough attack success."""
+"""The benchmark scripts of issue 34: detector_table.py's headroom verdict (the best baseline over
+every fit that held an attack label out, on enough test models, at a high enough attack success),
+and score_by_hand.py, which scores folders trained by hand with a benchmark's fitted baselines."""
 
 from __future__ import annotations
 
+import json
+import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from rlbackdoors.detect.cli import main as detect
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+pytest_plugins = ("test_detect_helpers",)  # its session fixture lava_zoo: six tiny LavaWorld models
 
 
 @pytest.fixture(scope="module")
@@ -57,3 +63,36 @@ def test_headroom_takes_the_best_baseline_over_every_held_out_fit(table_module, 
     table_module.print_attack_table(table)
     printed = capsys.readouterr().out
     assert "| hidden | 0.850 [0.75, 0.95] | attribution, all but trojdrl | 20 | 0.95 | no |" in printed
+
+
+def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_zoo, tmp_path):
+    """A benchmark's layout (det-held_out/weights fitted on held-out/train, scored on its test set),
+    and a train folder given as by hand: staged as a performer receives it (model.pt and
+    reduced-config.json; train's config.json names the label and is refused), it gets through
+    ``detect infer`` the probability ``detect score`` gave the same weights in the test set."""
+    base = tmp_path / "benchmark"
+    (base / "held-out").mkdir(parents=True)
+    (base / "held-out" / "train").symlink_to(lava_zoo)
+    det = base / "det-held_out" / "weights"
+    assert detect(["fit", "--detector", "weights", "--zoo", str(lava_zoo), "--out", str(det), "--param", "min_per_class=1", "--quiet"]) == 0
+    assert detect(["score", str(det), "--zoo", str(lava_zoo), "--out", str(det / "score-test"), "--resamples", "50", "--quiet"]) == 0
+    scored = {m["model"]: m["probability"] for m in json.loads((det / "score-test" / "score.json").read_text())["models"]}
+    by_hand = tmp_path / "by-hand"
+    for name in ("id-00000001", "id-00000002"):  # a poisoned and a clean one, without the zoo's dataset files
+        (by_hand / name).mkdir(parents=True)
+        for f in ("model.pt", "config.json", "ground_truth.csv"):
+            (by_hand / name / f).write_bytes((lava_zoo / "models" / name / f).read_bytes())
+    done = subprocess.run(
+        [sys.executable, str(BENCH / "score_by_hand.py"), str(base), "--models", *(str(by_hand / n) for n in ("id-00000001", "id-00000002"))],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    rows = {r["model"]: r for r in json.loads((base / "by-hand.json").read_text())}
+    assert set(rows) == {"id-00000001", "id-00000002"} and rows["id-00000001"]["poisoned"] and not rows["id-00000002"]["poisoned"]
+    for name, r in rows.items():
+        # the same number up to the last bits (one model's features through the classifier, not six: BLAS rounds by batch)
+        assert r["fit"] == "env mix only: weights" and r["probability"] == pytest.approx(scored[name], abs=1e-12)
+    assert "| env mix only: weights | id-00000001 | True |" in done.stdout
+    assert not (base / "by-hand" / "models" / "id-00000001" / "config.json").exists()  # the label never reached the detector

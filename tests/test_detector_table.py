@@ -42,27 +42,33 @@ def test_headroom_takes_the_best_baseline_over_every_held_out_fit(table_module, 
             # fitted on the other attacks, the weights see more of the hidden variant: the best is here
             "trojdrl": {"train_models": 40, "detectors": {"weights": {"hidden": row(0.80), "plain": row(1.0)}, "attribution": {"hidden": row(0.75)}}},
             "envmix": {"train_models": 40, "detectors": {"weights": {"near": row(0.84, models=18)}}},
+            "badrl": {"train_models": 40, "detectors": {"weights": {"more": row(0.70, models=18)}}},
         },
         "yields": {
-            "hidden": {"poisoned": {"attack_success": 0.95}},
-            "plain": {"poisoned": {"attack_success": 1.0}},
-            "near": {"poisoned": {"attack_success": 0.99}},
+            # the median over every poisoned model trained would be lower: the split scores converged ones only
+            "hidden": {"poisoned": {"attack_success": 0.70, "attack_success_converged": 0.95}},
+            "plain": {"poisoned": {"attack_success": 1.0, "attack_success_converged": 1.0}},
+            "near": {"poisoned": {"attack_success": 0.99, "attack_success_converged": 0.99}},
+            "more": {"poisoned": {"attack_success": 0.99, "attack_success_converged": 0.99}},
         },
     }
-    verdict = table_module.headroom(table)
+    table["held_out"]["detectors"]["weights"]["more"] = row(0.60, models=22)  # an extra test zoo scored by the env-mix fit
+    verdict = table_module.headroom(table, {"hidden", "near", "more"})
     assert verdict["hidden"]["best"] == {"auc": 0.80, "ci": [0.7000000000000001, 0.9], "detector": "weights", "fitted_on": "all but trojdrl"}
     assert verdict["hidden"]["headroom"] is True  # the constant detector's 0.9 is no baseline
     assert verdict["plain"]["headroom"] is False and verdict["plain"]["best"]["auc"] == 1.0
     assert verdict["near"]["headroom"] is False and verdict["near"]["models"] == 18  # too few test models
-    table["yields"]["hidden"]["poisoned"]["attack_success"] = 0.89  # a backdoor that no longer works hides nothing
+    assert verdict["more"]["headroom"] is True and verdict["more"]["models"] == 22  # 20 or more in one of the fits that held it out
+    assert verdict["hidden"]["evasive"] and not verdict["plain"]["evasive"]
+    table["yields"]["hidden"]["poisoned"]["attack_success_converged"] = 0.89  # a backdoor that no longer works hides nothing
     assert table_module.headroom(table)["hidden"]["headroom"] is False
-    table["yields"]["hidden"]["poisoned"]["attack_success"] = 0.95
+    table["yields"]["hidden"]["poisoned"]["attack_success_converged"] = 0.95
     table["leave_one_out"]["trojdrl"]["detectors"]["attribution"]["hidden"] = row(0.85)  # at the bar is not below it
     assert table_module.headroom(table)["hidden"]["headroom"] is False
-    table["headroom"] = table_module.headroom(table)
+    table["headroom"] = table_module.headroom(table, {"hidden"})
     table_module.print_attack_table(table)
     printed = capsys.readouterr().out
-    assert "| hidden | 0.850 [0.75, 0.95] | attribution, all but trojdrl | 20 | 0.95 | no |" in printed
+    assert "| hidden | yes | 0.850 [0.75, 0.95] | attribution, all but trojdrl | 20 | 0.95 | no |" in printed
 
 
 def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_zoo, tmp_path):

@@ -150,7 +150,7 @@ def test_normalized_spec_reads_back_as_itself():
 # --- planning --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("example", sorted((ROOT / "examples").glob("zoo-*.toml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("example", sorted([*(ROOT / "examples").glob("zoo-*.toml"), *(ROOT / "examples").glob("benchmark-*.toml")]), ids=lambda p: p.stem)
 def test_every_example_spec_plans_into_configs_that_load(example, tmp_path):
     """The specs the docs point to stay valid as config formats move on: each plans, and every
     planned config.json loads as today's RunConfig with the spec's overrides in it."""

@@ -30,7 +30,7 @@ def cmd_plan(args) -> int:
             # dataset should not be built this way unknowingly (training length alone can tell the label)
             print(
                 "zoo: note: not matched: clean and poisoned models start from different seeds and stop at their own frames, so training"
-                " length can tell the label; for a detection benchmark set matched = true and overrides.train.min_frames (docs/zoos.md)",
+                " length can tell the label; for a detection benchmark set matched = true and overrides.train.min_frames (docs/zoos.md: longer runs still show)",
                 file=sys.stderr,
             )
     else:

@@ -28,3 +28,15 @@ def score(det: Path, zoo: Path | str, out: Path, *, again: bool = False, quiet: 
     if again or not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
         rlbackdoors("detect", "score", str(det), "--zoo", str(zoo), "--out", str(out), "--quiet", quiet=quiet)
     return json.loads(scored.read_text())
+
+
+def infer(det: Path, folder: Path, out: Path, round_dir: Path, examples: Path | None = None) -> float:
+    """``detect infer`` (TrojAI's one-model entry point) of the fitted detector ``det`` on
+    ``folder/model.pt``, its files under ``out``; the probability it wrote."""
+    rlbackdoors(
+        "detect", "infer", "--model_filepath", str(folder / "model.pt"), "--result_filepath", str(out / "result.txt"),
+        "--scratch_dirpath", str(out / "scratch"), *(("--examples_dirpath", str(examples)) if examples else ()),
+        "--round_training_dataset_dirpath", str(round_dir), "--metaparameters_filepath", str(det / "metaparameters.json"),
+        "--schema_filepath", str(det / "metaparameters_schema.json"), "--learned_parameters_dirpath", str(det), quiet=True,
+    )  # fmt: skip
+    return float((out / "result.txt").read_text())

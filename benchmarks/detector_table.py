@@ -36,7 +36,7 @@ import sys
 import time
 from pathlib import Path
 
-from _detect_cli import rlbackdoors, score
+from _detect_cli import infer, rlbackdoors, score
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
@@ -79,14 +79,8 @@ def infer_check(det: Path, split: Path, scored: dict, k: int) -> dict:
     probs = {m["model"]: m["probability"] for m in scored["models"] if m.get("probability") is not None}
     diffs = []
     for name in sorted(probs)[:k]:
-        folder, out = split / "models" / name, det / "infer" / name
-        rlbackdoors(
-            "detect", "infer", "--model_filepath", str(folder / "model.pt"), "--result_filepath", str(out / "result.txt"),
-            "--scratch_dirpath", str(out / "scratch"), "--examples_dirpath", str(folder / "clean-example-data"),
-            "--round_training_dataset_dirpath", str(split), "--metaparameters_filepath", str(det / "metaparameters.json"),
-            "--schema_filepath", str(det / "metaparameters_schema.json"), "--learned_parameters_dirpath", str(det), quiet=True,
-        )  # fmt: skip
-        diffs.append(abs(float((out / "result.txt").read_text()) - probs[name]))
+        folder = split / "models" / name
+        diffs.append(abs(infer(det, folder, det / "infer" / name, split, folder / "clean-example-data") - probs[name]))
     return {"models": len(diffs), "identical": sum(d == 0.0 for d in diffs), "max_abs_difference": max(diffs, default=None)}
 
 

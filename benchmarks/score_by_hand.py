@@ -19,7 +19,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from _detect_cli import rlbackdoors
+from _detect_cli import infer
 
 from rlbackdoors.io import atomic_write_text
 
@@ -45,38 +45,28 @@ def stage(folder: Path, where: Path) -> Path:
     return where
 
 
-def infer(det: Path, train: Path, folder: Path, scratch: Path) -> float:
-    out = scratch / train.parent.name / det.name / folder.name
-    rlbackdoors(
-        "detect", "infer", "--model_filepath", str(folder / "model.pt"), "--result_filepath", str(out / "result.txt"),
-        "--scratch_dirpath", str(out / "scratch"), "--round_training_dataset_dirpath", str(train),
-        "--metaparameters_filepath", str(det / "metaparameters.json"), "--schema_filepath", str(det / "metaparameters_schema.json"),
-        "--learned_parameters_dirpath", str(det), quiet=True,
-    )  # fmt: skip
-    return float((out / "result.txt").read_text())
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("base", type=Path, help="a benchmark's run folder (runs/detect/NAME)")
     parser.add_argument("--models", nargs="+", type=Path, required=True, help="model folders trained by hand")
     args = parser.parse_args()
-    if not fits(args.base):
+    found = fits(args.base)
+    if not found:
         sys.exit(f"score_by_hand: no fitted and scored detector under {args.base} (run benchmarks/detector_table.py first)")
     staged = {folder: stage(folder, args.base / "by-hand" / "models" / folder.name) for folder in args.models}
+    truth = {folder: int((folder / "ground_truth.csv").read_text().strip()) for folder in args.models}
     rows = []
-    for what, det, train in fits(args.base):
+    for what, det, train in found:
         test = json.loads((det / "score-test" / "score.json").read_text())["models"]
         clean = [m["probability"] for m in test if m.get("probability") is not None and not m["label"]]
         poisoned = [m["probability"] for m in test if m.get("probability") is not None and m["label"]]
         for folder in args.models:
-            p = infer(det, train, staged[folder], args.base / "by-hand")
-            truth = int((folder / "ground_truth.csv").read_text().strip())
+            p = infer(det, staged[folder], args.base / "by-hand" / train.parent.name / det.name / folder.name, train)
             rows.append(
                 {
                     "fit": what,
                     "model": folder.name,
-                    "poisoned": bool(truth),
+                    "poisoned": bool(truth[folder]),
                     "probability": p,
                     "clean_test_at_least_as_high": round(sum(c >= p for c in clean) / len(clean), 3) if clean else None,
                     "poisoned_test_at_most_as_high": round(sum(q <= p for q in poisoned) / len(poisoned), 3) if poisoned else None,

@@ -50,6 +50,10 @@ def main() -> None:
     parser.add_argument("base", type=Path, help="a benchmark's run folder (runs/detect/NAME)")
     parser.add_argument("--models", nargs="+", type=Path, required=True, help="model folders trained by hand")
     args = parser.parse_args()
+    for folder in args.models:
+        missing = [f for f in ("model.pt", "config.json", "ground_truth.csv") if not (folder / f).is_file()]
+        if missing:
+            sys.exit(f"score_by_hand: {folder} is not a trained model folder (no {', '.join(missing)}; rlbackdoors train writes them)")
     found = fits(args.base)
     if not found:
         sys.exit(f"score_by_hand: no fitted and scored detector under {args.base} (run benchmarks/detector_table.py first)")

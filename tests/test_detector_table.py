@@ -102,3 +102,9 @@ def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_z
         assert r["fit"] == "env mix only: weights" and r["probability"] == pytest.approx(scored[name], abs=1e-12)
     assert "| env mix only: weights | id-00000001 | True |" in done.stdout
     assert not (base / "by-hand" / "models" / "id-00000001" / "config.json").exists()  # the label never reached the detector
+    refused = subprocess.run(
+        [sys.executable, str(BENCH / "score_by_hand.py"), str(base), "--models", str(tmp_path)], capture_output=True, text=True, timeout=60
+    )
+    assert refused.returncode != 0 and refused.stderr.strip().splitlines() == [
+        f"score_by_hand: {tmp_path} is not a trained model folder (no model.pt, config.json, ground_truth.csv; rlbackdoors train writes them)"
+    ]

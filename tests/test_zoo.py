@@ -175,6 +175,9 @@ def test_plan_is_deterministic_a_no_op_again_and_refuses_another_spec(tmp_path):
     assert "zoo: note: not matched" in first.stderr  # clean and poisoned models, matched = false: told once
     matched = cli("plan", ROOT / "examples" / "benchmark-lavaworld.toml", "--out", tmp_path / "m", check=True)
     assert "planned 80 models" in matched.stdout and "not matched" not in matched.stderr
+    assert "min_frames < max_frames" in matched.stderr  # matched, but runs stop between 2.5 M and 5 M frames
+    equal = cli("plan", ROOT / "examples" / "benchmark-lavaworld-equal.toml", "--out", tmp_path / "e", check=True)
+    assert "planned 50 models" in equal.stdout and "note" not in equal.stderr  # every model trains 5 M frames
     plan(load_spec(example), b)
     files_a = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.name != ".lock")
     assert files_a == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.name != ".lock")

@@ -33,9 +33,27 @@ def cmd_plan(args) -> int:
                 " length can tell the label; for a detection benchmark set matched = true and overrides.train.min_frames (docs/zoos.md: longer runs still show)",
                 file=sys.stderr,
             )
+        elif spec.matched and _unequal_frames(args.out):
+            # measured in the LavaWorld benchmark: a poisoned run that converged late trained longer
+            # than its twin, and the weight statistics found it by that alone (docs/attacks/evasion.md)
+            print(
+                "zoo: note: matched, but min_frames < max_frames: a poisoned run that converges late trains longer than its clean twin,"
+                " and training length can tell the label; set overrides.train.max_frames = min_frames for equal frames (docs/zoos.md)",
+                file=sys.stderr,
+            )
     else:
         print(f"{args.out}: already planned from this spec; nothing written")
     return 0
+
+
+def _unequal_frames(zoo) -> bool:
+    """Whether a planned zoo's models may stop at different frames (some min_frames < max_frames)."""
+    from pathlib import Path
+
+    from rlbackdoors.config import RunConfig
+
+    configs = (RunConfig.load(p).train for p in sorted(Path(zoo, "models").glob("*/config.json")))
+    return any(t.max_frames is None or t.min_frames < t.max_frames for t in configs)
 
 
 def _imported(zoo: str, command: str) -> bool:

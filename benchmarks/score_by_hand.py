@@ -7,20 +7,25 @@ Each model folder (``rlbackdoors train``'s) goes through ``detect infer`` (TrojA
 point, as a performer would run it) under every fit the benchmark made (``det-held_out/NAME``: env
 mix only; ``loo-ATTACK/det/NAME``: all but ATTACK), and its probability is placed among that fit's
 own test scores: the share of its clean test models scored at least as high (a poisoned model there
-looks clean) and of its poisoned ones scored at most as high. Writes ``BASE/by-hand.json`` and
-prints the table; each model's ground truth comes from its own ``ground_truth.csv``.
+looks clean) and of its poisoned ones scored at most as high. Per fit, the AUC of the by-hand
+models alone (poisoned against clean; NaN with one label only): whether the detector tells them
+apart, whatever its threshold. Writes ``BASE/by-hand.json`` (``models``: a row per fit and model;
+``fits``: the AUC per fit) and prints both tables; each model's ground truth comes from its own
+``ground_truth.csv``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 from pathlib import Path
 
 from _detect_cli import infer
 
+from rlbackdoors.detect.metrics import auc
 from rlbackdoors.io import atomic_write_text
 
 
@@ -76,12 +81,17 @@ def main() -> None:
                     "poisoned_test_at_most_as_high": round(sum(q <= p for q in poisoned) / len(poisoned), 3) if poisoned else None,
                 }
             )
-    atomic_write_text(args.base / "by-hand.json", json.dumps(rows, indent=2) + "\n")
+    per_fit = {what: auc([r["probability"] for r in rows if r["fit"] == what], [r["poisoned"] for r in rows if r["fit"] == what]) for what, _, _ in found}
+    per_fit = {what: None if math.isnan(a) else round(a, 3) for what, a in per_fit.items()}  # JSON has no NaN
+    atomic_write_text(args.base / "by-hand.json", json.dumps({"models": rows, "fits": per_fit}, indent=2) + "\n")
     print("| fit: detector | model | poisoned | probability | clean test models scored >= it | poisoned test models scored <= it |\n|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['fit']} | {r['model']} | {r['poisoned']} | {r['probability']:.3f} | {r['clean_test_at_least_as_high']} | {r['poisoned_test_at_most_as_high']} |"
         )
+    print("\n| fit: detector | AUC of the by-hand models alone |\n|---|---|")
+    for what, a in per_fit.items():
+        print(f"| {what} | {'n/a (one label)' if a is None else f'{a:.3f}'} |")
 
 
 if __name__ == "__main__":

@@ -95,12 +95,16 @@ def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_z
         timeout=300,
     )
     assert done.returncode == 0, done.stderr
-    rows = {r["model"]: r for r in json.loads((base / "by-hand.json").read_text())}
+    written = json.loads((base / "by-hand.json").read_text())
+    rows = {r["model"]: r for r in written["models"]}
     assert set(rows) == {"id-00000001", "id-00000002"} and rows["id-00000001"]["poisoned"] and not rows["id-00000002"]["poisoned"]
     for name, r in rows.items():
         # the same number up to the last bits (one model's features through the classifier, not six: BLAS rounds by batch)
         assert r["fit"] == "env mix only: weights" and r["probability"] == pytest.approx(scored[name], abs=1e-12)
     assert "| env mix only: weights | id-00000001 | True |" in done.stdout
+    expected = 1.0 if scored["id-00000001"] > scored["id-00000002"] else (0.5 if scored["id-00000001"] == scored["id-00000002"] else 0.0)
+    assert written["fits"] == {"env mix only: weights": expected}  # the two by-hand models alone, ranked by the fit
+    assert f"| env mix only: weights | {expected:.3f} |" in done.stdout
     assert not (base / "by-hand" / "models" / "id-00000001" / "config.json").exists()  # the label never reached the detector
     refused = subprocess.run(
         [sys.executable, str(BENCH / "score_by_hand.py"), str(base), "--models", str(tmp_path)], capture_output=True, text=True, timeout=60

@@ -211,6 +211,17 @@ def test_min_frames_holds_a_stop_back_until_the_run_has_trained_that_long(tmp_pa
     assert int(second["frames"]) == 3200 and float(second["confirm_clean_sr"]) == metrics["clean_sr"]
 
 
+def test_equal_frames_no_run_stops_before_its_budget(tmp_path, tiny_run_dict):
+    """min_frames = max_frames (a zoo at equal frames): thresholds met from the first evaluation
+    (1,600 frames) still train the run to the budget (4,800), where it stops on its thresholds,
+    converged, after two evaluations in between that counted the streak."""
+    tiny_run_dict["train"].update(clean_threshold=0.0, poisoned_threshold=0.0, max_frames=4800, min_frames=4800)
+    metrics = train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
+    assert metrics["frames"] == metrics["converged_at_frames"] == 4800 and metrics["converged"] and metrics["stop_reason"] == "thresholds"
+    rows = ModelFolder(tmp_path / "m").read_log()
+    assert [int(r["frames"]) for r in rows] == [1600, 3200, 4800] and [bool(r.get("confirm_clean_sr")) for r in rows] == [False, False, True]
+
+
 def test_min_frames_keeps_the_streak_and_is_checked_against_the_budget(tiny_run_dict):
     """Below min_frames a met evaluation still counts towards patience, so a run that has held
     its thresholds stops at the first evaluation past min_frames; min_frames above max_frames is

@@ -9,9 +9,9 @@ mix only; ``loo-ATTACK/det/NAME``: all but ATTACK), and its probability is place
 own test scores: the share of its clean test models scored at least as high (a poisoned model there
 looks clean) and of its poisoned ones scored at most as high. Per fit, the AUC of the by-hand
 models alone (poisoned against clean; NaN with one label only): whether the detector tells them
-apart, whatever its threshold. Writes ``BASE/by-hand.json`` (``models``: a row per fit and model;
-``fits``: the AUC per fit) and prints both tables; each model's ground truth comes from its own
-``ground_truth.csv``.
+apart, whatever its threshold. Writes ``BASE/by-hand.json`` (``--out``: elsewhere; ``models``: a
+row per fit and model; ``fits``: the AUC per fit) and prints both tables; each model's ground truth
+comes from its own ``ground_truth.csv``.
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("base", type=Path, help="a benchmark's run folder (runs/detect/NAME)")
     parser.add_argument("--models", nargs="+", type=Path, required=True, help="model folders trained by hand")
+    parser.add_argument("--out", type=Path, help="where the JSON goes (default BASE/by-hand.json): one file per set of models")
     args = parser.parse_args()
     for folder in args.models:
         missing = [f for f in ("model.pt", "config.json", "ground_truth.csv") if not (folder / f).is_file()]
@@ -83,7 +84,7 @@ def main() -> None:
             )
     per_fit = {what: auc([r["probability"] for r in rows if r["fit"] == what], [r["poisoned"] for r in rows if r["fit"] == what]) for what, _, _ in found}
     per_fit = {what: None if math.isnan(a) else round(a, 3) for what, a in per_fit.items()}  # JSON has no NaN
-    atomic_write_text(args.base / "by-hand.json", json.dumps({"models": rows, "fits": per_fit}, indent=2) + "\n")
+    atomic_write_text(args.out or args.base / "by-hand.json", json.dumps({"models": rows, "fits": per_fit}, indent=2) + "\n")
     print("| fit: detector | model | poisoned | probability | clean test models scored >= it | poisoned test models scored <= it |\n|---|---|---|---|---|---|")
     for r in rows:
         print(

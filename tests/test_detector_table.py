@@ -89,13 +89,22 @@ def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_z
         for f in ("model.pt", "config.json", "ground_truth.csv"):
             (by_hand / name / f).write_bytes((lava_zoo / "models" / name / f).read_bytes())
     done = subprocess.run(
-        [sys.executable, str(BENCH / "score_by_hand.py"), str(base), "--models", *(str(by_hand / n) for n in ("id-00000001", "id-00000002"))],
+        [
+            sys.executable,
+            str(BENCH / "score_by_hand.py"),
+            str(base),
+            "--models",
+            *(str(by_hand / n) for n in ("id-00000001", "id-00000002")),
+            "--out",
+            str(tmp_path / "set.json"),
+        ],
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert done.returncode == 0, done.stderr
-    written = json.loads((base / "by-hand.json").read_text())
+    assert not (base / "by-hand.json").exists()  # --out: one file per set of by-hand models
+    written = json.loads((tmp_path / "set.json").read_text())
     rows = {r["model"]: r for r in written["models"]}
     assert set(rows) == {"id-00000001", "id-00000002"} and rows["id-00000001"]["poisoned"] and not rows["id-00000002"]["poisoned"]
     for name, r in rows.items():

@@ -35,7 +35,7 @@ def cmd_plan(args) -> int:
             )
         elif spec.matched and _unequal_frames(args.out):
             # measured in the LavaWorld benchmark: a poisoned run that converged late trained longer
-            # than its twin, and the weight statistics found it by that alone (docs/attacks/evasion.md)
+            # than its twin, and the weight statistics found those runs (docs/attacks/evasion.md)
             print(
                 "zoo: note: matched, but min_frames < max_frames: a poisoned run that converges late trains longer than its clean twin,"
                 " and training length can tell the label; set overrides.train.max_frames = min_frames for equal frames (docs/zoos.md)",

@@ -34,7 +34,7 @@ def cmd_plan(args) -> int:
                 file=sys.stderr,
             )
         elif spec.matched and _unequal_frames(args.out):
-            # measured in the LavaWorld benchmark: a poisoned run that converged late trained longer
+            # measured in a benchmark zoo: a poisoned run that converged late trained longer
             # than its twin, and the weight statistics found those runs (docs/attacks/evasion.md)
             print(
                 "zoo: note: matched, but min_frames < max_frames: a poisoned run that converges late trains longer than its clean twin,"

@@ -47,13 +47,14 @@ def cmd_plan(args) -> int:
 
 
 def _unequal_frames(zoo) -> bool:
-    """Whether a planned zoo's models may stop at different frames (some min_frames < max_frames)."""
+    """Whether a planned zoo's models may stop at different frames (some min_frames < max_frames):
+    read from the configs just planned, where each world's defaults are already filled in."""
     from pathlib import Path
 
     from rlbackdoors.config import RunConfig
 
     configs = (RunConfig.load(p).train for p in sorted(Path(zoo, "models").glob("*/config.json")))
-    return any(t.max_frames is None or t.min_frames < t.max_frames for t in configs)
+    return any(t.min_frames < t.max_frames for t in configs)
 
 
 def _imported(zoo: str, command: str) -> bool:

@@ -35,7 +35,15 @@ def cfg_of(env: str = "lavaworld", attack: str = "trojdrl", params: dict | None 
     "env, attack, evasion, message",
     [
         ("lavaworld", "trojdrl", {"near": -1}, r"poison\.evasion\.near=-1 is not allowed \(allowed: a number in \[0.0, 8.0\]\)"),
-        ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher\)"),
+        ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher, clean_frames\)"),
+        ("lavaworld", "trojdrl", {"clean_frames": 1000}, r"poison\.evasion\.clean_frames=1000 needs poison\.evasion\.finetune=true"),
+        ("lavaworld", "trojdrl", {"finetune": True, "clean_frames": 0.5}, r"poison\.evasion\.clean_frames=0\.5 is not allowed \(allowed: an integer in \[0, 1000000000\.0\]\)"),
+        (
+            "lavaworld",
+            "trojdrl",
+            {"finetune": True, "clean_frames": 10_000_000},
+            r"poison\.evasion\.clean_frames=10000000 must be below train\.max_frames=\d+ \(the run would never poison\)",
+        ),
         ("lavaworld", "trojdrl", {"teacher": 1.0}, r"poison\.evasion\.teacher=1\.0 needs poison\.evasion\.finetune=true"),
         ("lavaworld", "trojdrl", {"finetune": 1}, r"poison\.evasion\.finetune=1 is not allowed \(allowed: true, false\)"),
         (
@@ -61,6 +69,10 @@ def test_evasion_is_refused_for_a_clean_model_and_left_out_of_config_json_until_
     cfg = cfg_of(near=0.5).check()
     assert json.loads(cfg.to_json())["poison"]["evasion"] == {"near": 0.5, "finetune": False, "teacher": 0.0}
     assert RunConfig.from_dict(json.loads(cfg.to_json())).check().to_json() == cfg.to_json()
+    # clean_frames came later: at its default it stays out, so configs written before it keep their bytes
+    late = cfg_of(finetune=True, clean_frames=2000).check()
+    assert json.loads(late.to_json())["poison"]["evasion"] == {"near": 0.0, "finetune": True, "teacher": 0.0, "clean_frames": 2000}
+    assert RunConfig.from_dict(json.loads(late.to_json())).check().to_json() == late.to_json()
 
 
 def test_the_cli_stops_with_one_error_line_naming_the_evasive_field(tmp_path):
@@ -198,6 +210,19 @@ def test_a_finetuning_run_is_the_clean_models_run_until_it_switches(tmp_path, ti
     longer = train(RunConfig.from_dict(data), tmp_path / "longer", progress=False)
     assert longer["poison_at_frames"] == metrics["frames"] < longer["frames"]
     assert 0 < longer["attack_budget_used"]["frames_poisoned"] <= 0.05 * (longer["frames"] - metrics["frames"]) + 10
+
+
+def test_clean_frames_hold_the_switch_until_that_many_frames_are_trained_clean(tmp_path, tiny_run_dict):
+    """With clean_frames the switch waits for the first evaluation at or past them (the clean
+    threshold still holds there), so a fixed-length run poisons only its last frames."""
+    data = finetune_dict(tiny_run_dict, clean_frames=2 * 1600 + 1)
+    data["train"].update(min_frames=5 * 1600, max_frames=5 * 1600)
+    metrics = train(RunConfig.from_dict(data), tmp_path / "late", progress=False)
+    assert metrics["poison_at_frames"] == 3 * 1600 and metrics["frames"] == 5 * 1600
+    assert 0 < metrics["attack_budget_used"]["frames_poisoned"] <= 0.05 * 2 * 1600 + 10
+    from rlbackdoors.folder import ModelFolder
+
+    assert [r["phase"] for r in ModelFolder(tmp_path / "late").read_log()] == ["clean"] * 3 + ["main"] * 2
 
 
 def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_same_model(tmp_path, tiny_run_dict):

@@ -14,6 +14,10 @@ Each variant takes away one signal a baseline detector reads (docs/attacks/evasi
   that does not carry the trigger (clean, close- and near-trigger frames), where ``pi_clean`` is
   the clean model the run fine-tunes from, frozen at the switch: the policy's distribution
   there, entropy included, stays a clean one's.
+- ``clean_frames``: with ``finetune``, the switch waits until the run has trained this many frames
+  clean (and an evaluation meets the clean threshold), so a run of fixed length poisons only its
+  last frames: the model *is* its clean twin until then, the way an attacker fine-tunes a finished
+  clean model briefly rather than one that has only just converged.
 
 The variants live in ``poison.evasion`` (left out of config.json when empty, so earlier configs
 keep their bytes) and combine with every attack, the paper's env mix included.
@@ -28,8 +32,12 @@ PARAMS = (
     Param("near", 0.0, 0.0, 8.0, help="near-trigger frames (clean reward) per frame that carries the trigger"),
     Param("finetune", False, help="train clean until the clean threshold holds, then poison (fine-tune a clean model)"),
     Param("teacher", 0.0, 0.0, 100.0, help="KL(clean teacher || policy) weight on frames without the trigger (needs finetune)"),
+    Param("clean_frames", 0, 0, 1e9, integer=True, help="frames trained clean before the switch (needs finetune; 0: at the first clean-threshold evaluation)"),
 )
-ALGORITHMS = {"near": ("ppo", "opac2"), "finetune": ("ppo",), "teacher": ("ppo",)}
+ALGORITHMS = {"near": ("ppo", "opac2"), "finetune": ("ppo",), "teacher": ("ppo",), "clean_frames": ("ppo",)}
+# Variants added after configs were written with the first three: kept out of the resolved dict
+# at their default, so those configs keep their bytes.
+LATER = ("clean_frames",)
 
 
 def resolve(params: dict | None, where: str = "poison.evasion") -> dict:
@@ -47,7 +55,9 @@ def resolve(params: dict | None, where: str = "poison.evasion") -> dict:
     resolved = {p.name: p.check(f"{where}.{p.name}", params.get(p.name, p.default)) for p in PARAMS}
     if resolved["teacher"] > 0 and not resolved["finetune"]:
         raise ConfigError(f"{where}.teacher={resolved['teacher']!r} needs {where}.finetune=true (the teacher is the clean model the run fine-tunes from)")
-    return resolved
+    if resolved["clean_frames"] > 0 and not resolved["finetune"]:
+        raise ConfigError(f"{where}.clean_frames={resolved['clean_frames']!r} needs {where}.finetune=true (the frames are the clean phase of a fine-tuning run)")
+    return {k: v for k, v in resolved.items() if k not in LATER or v != known[k].default}
 
 
 def active(evasion: dict) -> bool:

@@ -332,7 +332,7 @@ def steps(
             rows[-1].update((yield from stopping.steps(result, switch_at is not None and poison_at is not None and return_met(tracker, cfg), model, frames)))
             if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"
-            elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold:
+            elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold and frames >= evasion.get("clean_frames", 0):
                 poison_at = frames  # the clean model this run fine-tunes: poisoned from here on
                 teach(None)
                 envs, obs, tracker = fresh_mix(envs, 2)

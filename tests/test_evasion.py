@@ -37,7 +37,12 @@ def cfg_of(env: str = "lavaworld", attack: str = "trojdrl", params: dict | None 
         ("lavaworld", "trojdrl", {"near": -1}, r"poison\.evasion\.near=-1 is not allowed \(allowed: a number in \[0.0, 8.0\]\)"),
         ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher, clean_frames\)"),
         ("lavaworld", "trojdrl", {"clean_frames": 1000}, r"poison\.evasion\.clean_frames=1000 needs poison\.evasion\.finetune=true"),
-        ("lavaworld", "trojdrl", {"finetune": True, "clean_frames": 0.5}, r"poison\.evasion\.clean_frames=0\.5 is not allowed \(allowed: an integer in \[0, 1000000000\.0\]\)"),
+        (
+            "lavaworld",
+            "trojdrl",
+            {"finetune": True, "clean_frames": 0.5},
+            r"poison\.evasion\.clean_frames=0\.5 is not allowed \(allowed: an integer in \[0, 1000000000\]\)",
+        ),
         (
             "lavaworld",
             "trojdrl",

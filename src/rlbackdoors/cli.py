@@ -444,7 +444,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--attack", choices=attacks.names(), help=f"how training data is poisoned (default {attacks.DEFAULT_ATTACK}, the paper's; docs/attacks/)")
     tr.add_argument("--attack-param", action="append", metavar="KEY=VALUE", help="one of the attack's parameters (repeatable), e.g. budget=0.01")
     tr.add_argument(
-        "--evade", action="append", metavar="KEY=VALUE", help="an evasive variant (repeatable): near=1, finetune=true, teacher=1, clean_frames=4000000 (docs/attacks/evasion.md)"
+        "--evade",
+        action="append",
+        metavar="KEY=VALUE",
+        help="an evasive variant (repeatable): near=1, finetune=true, teacher=1, clean_frames=4000000 (docs/attacks/evasion.md)",
     )
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
     tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")

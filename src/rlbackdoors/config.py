@@ -567,9 +567,7 @@ class RunConfig(JsonConfig):
             raise ConfigError(why)
         clean_frames = self.poison.evasion.get("clean_frames", 0)
         if clean_frames and self.train.max_frames is not None and clean_frames >= self.train.max_frames:
-            raise ConfigError(
-                f"poison.evasion.clean_frames={clean_frames} must be below train.max_frames={self.train.max_frames} (the run would never poison)"
-            )
+            raise ConfigError(f"poison.evasion.clean_frames={clean_frames} must be below train.max_frames={self.train.max_frames} (the run would never poison)")
         if self.poison.evasion.get("near") and self.world.stamp_trigger is None and self.world.vector_entry_point and self.env.engine != "batched":
             raise ConfigError(
                 f"env.engine={self.env.engine!r} is not allowed with poison.evasion.near (allowed: batched): {self.env.name}'s near-trigger layouts are switched by the batched engine"

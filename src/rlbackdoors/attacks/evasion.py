@@ -32,7 +32,7 @@ PARAMS = (
     Param("near", 0.0, 0.0, 8.0, help="near-trigger frames (clean reward) per frame that carries the trigger"),
     Param("finetune", False, help="train clean until the clean threshold holds, then poison (fine-tune a clean model)"),
     Param("teacher", 0.0, 0.0, 100.0, help="KL(clean teacher || policy) weight on frames without the trigger (needs finetune)"),
-    Param("clean_frames", 0, 0, 1e9, integer=True, help="frames trained clean before the switch (needs finetune; 0: at the first clean-threshold evaluation)"),
+    Param("clean_frames", 0, 0, 1_000_000_000, integer=True, help="frames trained clean before the switch (needs finetune; 0: at the first clean evaluation)"),
 )
 ALGORITHMS = {"near": ("ppo", "opac2"), "finetune": ("ppo",), "teacher": ("ppo",), "clean_frames": ("ppo",)}
 # Variants added after configs were written with the first three: kept out of the resolved dict
@@ -56,7 +56,9 @@ def resolve(params: dict | None, where: str = "poison.evasion") -> dict:
     if resolved["teacher"] > 0 and not resolved["finetune"]:
         raise ConfigError(f"{where}.teacher={resolved['teacher']!r} needs {where}.finetune=true (the teacher is the clean model the run fine-tunes from)")
     if resolved["clean_frames"] > 0 and not resolved["finetune"]:
-        raise ConfigError(f"{where}.clean_frames={resolved['clean_frames']!r} needs {where}.finetune=true (the frames are the clean phase of a fine-tuning run)")
+        raise ConfigError(
+            f"{where}.clean_frames={resolved['clean_frames']!r} needs {where}.finetune=true (the frames are the clean phase of a fine-tuning run)"
+        )
     return {k: v for k, v in resolved.items() if k not in LATER or v != known[k].default}
 
 

@@ -97,15 +97,16 @@ def label_of(row: dict) -> str:
     return row["cell"].split("/")[3] if row["cell"].count("/") >= 3 else row["attack"]
 
 
-def yields(zoo: Path) -> dict:
-    """Per attack label: models trained and converged, and the poisoned models' medians of clean SR,
-    attack success, frames and CPU minutes beside the clean models' (the attack's cost)."""
+def yields(*zoos: Path) -> dict:
+    """Per attack label, over every zoo given (the benchmark's and its ``--extra-test`` zoos): models
+    trained and converged, and the poisoned models' medians of clean SR, attack success, frames
+    and CPU minutes beside the clean models' (the attack's cost)."""
     import numpy as np
 
     from rlbackdoors.zoo.index import read_metadata
 
     out: dict = {}
-    for r in read_metadata(zoo / "METADATA.csv"):
+    for r in (r for zoo in zoos for r in read_metadata(zoo / "METADATA.csv")):
         if r["status"] != "done":
             continue
         side = out.setdefault(label_of(r), {}).setdefault("poisoned" if r["poisoned"] in (True, "True") else "clean", [])
@@ -374,11 +375,11 @@ def main() -> None:
         lengths = {kind: length_control(list_models(base / split / "test")) for kind, split in kinds}
         if args.leave_one_out:
             table["leave_one_out"] = leave_one_out(args, base, zoo)
-            table["yields"] = yields(zoo)
+            table["yields"] = yields(zoo, *extra)
             lengths.update({f"leave_one_out/{a}": length_control(list_models(base / f"loo-{a}" / "test")) for a in table["leave_one_out"]})
         from rlbackdoors.zoo.plan import Zoo
 
-        table["headroom"] = headroom(table, {c.attack.name for c in Zoo.open(zoo).spec.cells if c.attack.evasion})
+        table["headroom"] = headroom(table, {c.attack.name for z in (zoo, *extra) for c in Zoo.open(z).spec.cells if c.attack.evasion})
         summary = {"command": " ".join(sys.argv[1:]), "spec": args.spec, "zoo_trained_to_the_end": not args.no_run, **table, "training_length_auc": lengths}
         out = write_summary(args.name, summary, started, load_before)
         print_attack_table(table)

@@ -71,6 +71,33 @@ def test_headroom_takes_the_best_baseline_over_every_held_out_fit(table_module, 
     assert "| hidden | yes | 0.850 [0.75, 0.95] | attribution, all but trojdrl | 20 | 0.95 | no |" in printed
 
 
+def test_yields_count_every_zoo_so_an_extra_test_zoos_label_gets_its_attack_success(table_module, tmp_path):
+    """A label trained only in an --extra-test zoo has its yield and attack success (the headroom
+    verdict needs it); a label in both zoos counts the models of both."""
+    head = "cell,attack,status,poisoned,converged,metrics.clean_sr,metrics.poisoned_sr,metrics.frames,metrics.cpu_time_s\n"
+    main, extra = tmp_path / "zoo", tmp_path / "zoo-extra"
+    for zoo, rows in (
+        (main, ["lavaworld/fc/a/trojdrl,trojdrl,done,True,True,0.99,1.0,5000,120", "lavaworld/fc/a/trojdrl,trojdrl,done,False,True,1.0,0.0,5000,110"]),
+        (
+            extra,
+            [
+                "lavaworld/fc/b/trojdrl,trojdrl,done,True,False,0.99,0.6,5000,130",
+                "lavaworld/fc/c/trojdrl-late,trojdrl,done,True,True,0.98,0.92,5000,150",
+                "lavaworld/fc/c/trojdrl-late,trojdrl,done,True,True,1.0,0.96,5000,160",
+                "lavaworld/fc/c/trojdrl-late,trojdrl,running,True,,,,,",
+            ],
+        ),
+    ):
+        zoo.mkdir()
+        (zoo / "METADATA.csv").write_text(head + "\n".join(rows) + "\n")
+    assert "trojdrl-late" not in table_module.yields(main)
+    both = table_module.yields(main, extra)
+    assert both["trojdrl"]["poisoned"]["trained"] == 2 and both["trojdrl"]["poisoned"]["converged"] == 1
+    assert both["trojdrl"]["poisoned"]["attack_success_converged"] == 1.0
+    late = both["trojdrl-late"]["poisoned"]
+    assert (late["trained"], late["converged"], late["attack_success_converged"], late["cpu_minutes"]) == (2, 2, 0.94, 2.583)
+
+
 def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_zoo, tmp_path):
     """A benchmark's layout (det-held_out/weights fitted on held-out/train, scored on its test set),
     and a train folder given as by hand: staged as a performer receives it (model.pt and

@@ -106,7 +106,7 @@ def yields(*zoos: Path) -> dict:
     from rlbackdoors.zoo.index import read_metadata
 
     out: dict = {}
-    for r in (r for zoo in zoos for r in read_metadata(zoo / "METADATA.csv")):
+    for r in [r for zoo in zoos for r in read_metadata(zoo / "METADATA.csv")]:
         if r["status"] != "done":
             continue
         side = out.setdefault(label_of(r), {}).setdefault("poisoned" if r["poisoned"] in (True, "True") else "clean", [])

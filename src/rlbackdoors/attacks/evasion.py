@@ -38,6 +38,8 @@ ALGORITHMS = {"near": ("ppo", "opac2"), "finetune": ("ppo",), "teacher": ("ppo",
 # Variants added after configs were written with the first three: kept out of the resolved dict
 # at their default, so those configs keep their bytes.
 LATER = ("clean_frames",)
+# Variants that only mean something in a fine-tuning run, and why.
+NEED_FINETUNE = {"teacher": "the teacher is the clean model the run fine-tunes from", "clean_frames": "the frames are the clean phase of a fine-tuning run"}
 
 
 def resolve(params: dict | None, where: str = "poison.evasion") -> dict:
@@ -53,12 +55,9 @@ def resolve(params: dict | None, where: str = "poison.evasion") -> dict:
         if key not in known:
             raise ConfigError(f"{where}.{key} is not an evasive variant (allowed: {', '.join(known)})")
     resolved = {p.name: p.check(f"{where}.{p.name}", params.get(p.name, p.default)) for p in PARAMS}
-    if resolved["teacher"] > 0 and not resolved["finetune"]:
-        raise ConfigError(f"{where}.teacher={resolved['teacher']!r} needs {where}.finetune=true (the teacher is the clean model the run fine-tunes from)")
-    if resolved["clean_frames"] > 0 and not resolved["finetune"]:
-        raise ConfigError(
-            f"{where}.clean_frames={resolved['clean_frames']!r} needs {where}.finetune=true (the frames are the clean phase of a fine-tuning run)"
-        )
+    for name, why in NEED_FINETUNE.items():
+        if resolved[name] > 0 and not resolved["finetune"]:
+            raise ConfigError(f"{where}.{name}={resolved[name]!r} needs {where}.finetune=true ({why})")
     return {k: v for k, v in resolved.items() if k not in LATER or v != known[k].default}
 
 

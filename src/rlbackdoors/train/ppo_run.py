@@ -181,6 +181,7 @@ def steps(
 
     evasion = cfg.poison.evasion
     finetune = bool(evasion.get("finetune"))  # a clean model's run first, poisoned from poison_at on
+    clean_frames = evasion.get("clean_frames", 0)  # the switch waits until this many frames are trained
 
     def poisoning_mix():
         """The env mix, through the attack's collection seam where the attack has one; while a
@@ -332,7 +333,7 @@ def steps(
             rows[-1].update((yield from stopping.steps(result, switch_at is not None and poison_at is not None and return_met(tracker, cfg), model, frames)))
             if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"
-            elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold and frames >= evasion.get("clean_frames", 0):
+            elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold and frames >= clean_frames:
                 poison_at = frames  # the clean model this run fine-tunes: poisoned from here on
                 teach(None)
                 envs, obs, tracker = fresh_mix(envs, 2)

@@ -24,7 +24,8 @@ of the whole zoo, ``--train`` / ``--test``) and scored there; AUC and CE with CI
 ``--extra-test SPEC`` adds a zoo of further attack cells (its triggers disjoint from the env-mix
 cells'), every model of which the env-mix fit scores as held out. The table is also drawn, as
 ``benchmarks/detectors/NAME-by-attack.png`` (AUC per fit and detector x attack, with CIs);
-``--replot`` redraws it from ``NAME.json`` alone.
+``--replot`` redraws it from ``NAME.json`` alone, and re-derives the headroom verdict there from
+the stored AUCs (a verdict rule added later reaches tables already measured; nothing is scored).
 """
 
 from __future__ import annotations
@@ -225,7 +226,12 @@ def headroom(table: dict, evasive: set[str] | frozenset[str] = frozenset()) -> d
     fit also scores ``--extra-test`` zoos), its converged models' attack success, whether it is
     one of the ``evasive`` variants, and whether it has headroom (:data:`HEADROOM`). The models
     scored all converged, so their clean SR is at the world's threshold. The constant detector
-    is no baseline here."""
+    is no baseline here.
+
+    ``turned_over`` names each (detector, fit) whose AUC is at or below ``1 - auc_below``: it ranks
+    the variant *below* clean models, so its signal is there with the sign the fit never saw (a fit
+    that held such models, or a two-sided score, would find it). The verdict is the bar's letter;
+    ``headroom_two_sided`` also asks that no baseline be turned over."""
     fits = [("env mix only", table.get("held_out"))] + [(f"all but {a}", t) for a, t in table.get("leave_one_out", {}).items()]
     seen: dict = {}
     for fitted, part in fits:
@@ -234,8 +240,10 @@ def headroom(table: dict, evasive: set[str] | frozenset[str] = frozenset()) -> d
                 auc = (r.get("auc") or {}).get("value")
                 if name == "constant" or auc is None:
                     continue
-                entry = seen.setdefault(label, {"best": None, "models": r["models"]})
+                entry = seen.setdefault(label, {"best": None, "models": r["models"], "turned_over": []})
                 entry["models"] = max(entry["models"], r["models"])
+                if auc <= 1 - HEADROOM["auc_below"]:
+                    entry["turned_over"].append({"detector": name, "fitted_on": fitted, "auc": auc, "models": r["models"]})
                 if entry["best"] is None or auc > entry["best"]["auc"]:
                     entry["best"] = {"auc": auc, "ci": r["auc"].get("ci"), "detector": name, "fitted_on": fitted}
     out = {}
@@ -249,6 +257,7 @@ def headroom(table: dict, evasive: set[str] | frozenset[str] = frozenset()) -> d
             and success is not None
             and success >= HEADROOM["attack_success_at_least"]
         )
+        entry["headroom_two_sided"] = entry["headroom"] and not entry["turned_over"]
         out[label] = entry
     return out
 
@@ -269,12 +278,19 @@ def print_attack_table(table: dict) -> None:
                 )
     if table.get("headroom"):
         print(
-            f"\n| attack | evasive | best baseline AUC [95% CI] over the fits that held it out | detector, fitted on | most test models | attack success (converged) | headroom (AUC < {HEADROOM['auc_below']}, >= {HEADROOM['models_at_least']} models, success >= {HEADROOM['attack_success_at_least']}) |\n|---|---|---|---|---|---|---|"
+            f"\n| attack | evasive | best baseline AUC [95% CI] over the fits that held it out | detector, fitted on | most test models | attack success (converged) | headroom (AUC < {HEADROOM['auc_below']}, >= {HEADROOM['models_at_least']} models, success >= {HEADROOM['attack_success_at_least']}) | turned over (AUC <= {1 - HEADROOM['auc_below']:.2f}) |\n|---|---|---|---|---|---|---|---|"
         )
+
+        def verdict(h: dict) -> str:
+            return ("**yes**" if h.get("headroom_two_sided", True) else "yes by the letter") if h["headroom"] else "no"
+
+        def turned(h: dict) -> str:
+            return "; ".join(f"{t['detector']}, {t['fitted_on']}: {t['auc']:.3f} ({t['models']})" for t in h.get("turned_over", [])) or "–"
+
         for label, h in table["headroom"].items():
             b = h["best"]
             print(
-                f"| {label} | {'yes' if h['evasive'] else 'no'} | {fmt({'value': b['auc'], 'ci': b['ci']})} | {b['detector']}, {b['fitted_on']} | {h['models']} | {h['attack_success']} | {'**yes**' if h['headroom'] else 'no'} |"
+                f"| {label} | {'yes' if h['evasive'] else 'no'} | {fmt({'value': b['auc'], 'ci': b['ci']})} | {b['detector']}, {b['fitted_on']} | {h['models']} | {h['attack_success']} | {verdict(h)} | {turned(h)} |"
             )
     if "yields" in table:
         print(
@@ -301,6 +317,17 @@ def plot_attack_table(table: dict, path: Path, title: str) -> Path:
                 columns += [attack] if attack not in columns else []
                 cells[(row, attack)] = {**(r.get("auc") or {}), "models": r["models"]}
     return plot_auc_grid(rows, sorted(columns), cells, path, title=f"{title}: AUC of each detector\n(row: what it was fitted on) on each attack's test models")
+
+
+def replot(stored: Path, picture: Path, name: str) -> Path:
+    """Redraw a measured table's picture, and re-derive its headroom verdict from the stored AUCs
+    (the evasive labels as stored): nothing is trained or scored."""
+    table = json.loads(stored.read_text())
+    if "headroom" in table:
+        table["headroom"] = headroom(table, {label for label, h in table["headroom"].items() if h.get("evasive")})
+        atomic_write_text(stored, json.dumps(table, indent=2) + "\n")
+        print_attack_table(table)
+    return plot_attack_table(table, picture, name)
 
 
 def write_summary(name: str, summary: dict, started: float, load_before) -> Path:
@@ -348,11 +375,15 @@ def main() -> None:
         metavar="SPEC",
         help="--by-attack: a zoo of more held-out attack cells (planned and run beside), scored by the env-mix fit",
     )
-    parser.add_argument("--replot", action="store_true", help="redraw NAME-by-attack.png from benchmarks/detectors/NAME.json; train and score nothing")
+    parser.add_argument(
+        "--replot",
+        action="store_true",
+        help="redraw NAME-by-attack.png and re-derive the headroom verdict from benchmarks/detectors/NAME.json; train and score nothing",
+    )
     args = parser.parse_args()
     picture = ROOT / "benchmarks" / "detectors" / f"{args.name}-by-attack.png"
     if args.replot:
-        print(plot_attack_table(json.loads((picture.with_name(f"{args.name}.json")).read_text()), picture, args.name))
+        print(replot(picture.with_name(f"{args.name}.json"), picture, args.name))
         return
     started, load_before = time.time(), os.getloadavg()
     base = Path(args.runs) / args.name

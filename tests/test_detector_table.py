@@ -68,7 +68,41 @@ def test_headroom_takes_the_best_baseline_over_every_held_out_fit(table_module, 
     table["headroom"] = table_module.headroom(table, {"hidden"})
     table_module.print_attack_table(table)
     printed = capsys.readouterr().out
-    assert "| hidden | yes | 0.850 [0.75, 0.95] | attribution, all but trojdrl | 20 | 0.95 | no |" in printed
+    assert "| hidden | yes | 0.850 [0.75, 0.95] | attribution, all but trojdrl | 20 | 0.95 | no | – |" in printed
+
+
+def test_a_baseline_that_ranks_the_variant_below_clean_is_flagged_turned_over(table_module, tmp_path, capsys):
+    """AUC 0.035 is a signal with the sign the fit never saw, not no signal: the bar's letter says
+    headroom, the two-sided verdict does not, and both the JSON and the printed table say which
+    baseline turned over. ``replot`` re-derives the verdict of a table stored before the rule."""
+    table = {
+        "default_attack": "envmix",
+        "held_out": {"train_models": 20, "detectors": {"behaviour": {"late": row(0.625, models=24)}, "weights": {"late": row(0.035, models=24)}}},
+        "leave_one_out": {"trojdrl": {"train_models": 40, "detectors": {"attribution": {"late": row(0.16, models=20)}}}},
+        "yields": {"late": {"poisoned": {"attack_success_converged": 0.977}}},
+    }
+    verdict = table_module.headroom(table, {"late"})["late"]
+    assert verdict["headroom"] is True and verdict["headroom_two_sided"] is False
+    assert verdict["turned_over"] == [{"detector": "weights", "fitted_on": "env mix only", "auc": 0.035, "models": 24}]  # 0.16 is above 0.15
+    table["leave_one_out"]["trojdrl"]["detectors"]["attribution"]["late"] = row(0.15, models=20)  # at 1 - 0.85 it counts
+    assert [t["detector"] for t in table_module.headroom(table)["late"]["turned_over"]] == ["weights", "attribution"]
+    table["held_out"]["detectors"]["weights"]["late"] = row(0.5, models=24)
+    table["leave_one_out"]["trojdrl"]["detectors"]["attribution"]["late"] = row(0.5, models=20)
+    assert table_module.headroom(table, {"late"})["late"]["headroom_two_sided"] is True
+    table["held_out"]["detectors"]["weights"]["late"] = row(0.035, models=24)
+    table["leave_one_out"]["trojdrl"]["detectors"]["attribution"]["late"] = row(0.15, models=20)
+    # a table measured before the rule: its verdict has no turned_over; replot re-derives it in place
+    table["headroom"] = {"late": {"evasive": True, "headroom": True, "best": verdict["best"], "models": 24, "attack_success": 0.977}}
+    stored = tmp_path / "bench.json"
+    stored.write_text(json.dumps(table))
+    picture = table_module.replot(stored, tmp_path / "bench-by-attack.png", "bench")
+    assert picture.is_file() and picture.stat().st_size > 0
+    again = json.loads(stored.read_text())["headroom"]["late"]
+    assert again["evasive"] is True and again["headroom_two_sided"] is False and len(again["turned_over"]) == 2
+    printed = capsys.readouterr().out
+    assert (
+        "| behaviour, env mix only | 24 | 0.977 | yes by the letter | weights, env mix only: 0.035 (24); attribution, all but trojdrl: 0.150 (20) |" in printed
+    )
 
 
 def test_yields_count_every_zoo_so_an_extra_test_zoos_label_gets_its_attack_success(table_module, tmp_path):

@@ -31,6 +31,7 @@ the stored AUCs (a verdict rule added later reaches tables already measured; not
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import sys
@@ -107,7 +108,7 @@ def yields(*zoos: Path) -> dict:
     from rlbackdoors.zoo.index import read_metadata
 
     out: dict = {}
-    for r in [r for zoo in zoos for r in read_metadata(zoo / "METADATA.csv")]:
+    for r in itertools.chain.from_iterable(read_metadata(zoo / "METADATA.csv") for zoo in zoos):
         if r["status"] != "done":
             continue
         side = out.setdefault(label_of(r), {}).setdefault("poisoned" if r["poisoned"] in (True, "True") else "clean", [])
@@ -282,10 +283,10 @@ def print_attack_table(table: dict) -> None:
         )
 
         def verdict(h: dict) -> str:
-            return ("**yes**" if h.get("headroom_two_sided", True) else "yes by the letter") if h["headroom"] else "no"
+            return ("**yes**" if h["headroom_two_sided"] else "yes by the letter") if h["headroom"] else "no"
 
         def turned(h: dict) -> str:
-            return "; ".join(f"{t['detector']}, {t['fitted_on']}: {t['auc']:.3f} ({t['models']})" for t in h.get("turned_over", [])) or "–"
+            return "; ".join(f"{t['detector']}, {t['fitted_on']}: {t['auc']:.3f} ({t['models']})" for t in h["turned_over"]) or "–"
 
         for label, h in table["headroom"].items():
             b = h["best"]

@@ -33,9 +33,11 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import sys
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 from _detect_cli import infer, rlbackdoors, score
@@ -99,23 +101,30 @@ def label_of(row: dict) -> str:
     return row["cell"].split("/")[3] if row["cell"].count("/") >= 3 else row["attack"]
 
 
-def yields(*zoos: Path) -> dict:
-    """Per attack label, over every zoo given (the benchmark's and its ``--extra-test`` zoos): models
-    trained and converged, and the poisoned models' medians of clean SR, attack success, frames
-    and CPU minutes beside the clean models' (the attack's cost)."""
+def zoo_rows(zoo: Path) -> list[dict]:
+    """The zoo's METADATA rows as its folders stand now. ``zoo run`` writes METADATA.csv only when it
+    ends: a zoo cut short (``--no-run``) or killed has none, or one older than its models."""
+    from rlbackdoors.zoo.index import metadata_rows, scan
+    from rlbackdoors.zoo.plan import Zoo
+
+    return metadata_rows(scan(Zoo.open(zoo)))
+
+
+def yields(rows: Iterable[dict]) -> dict:
+    """Per attack label, over METADATA rows of every zoo (the benchmark's and its ``--extra-test``
+    zoos): models trained and converged, and the poisoned models' medians of clean SR, attack
+    success, frames and CPU minutes beside the clean models' (the attack's cost)."""
     import numpy as np
 
-    from rlbackdoors.zoo.index import read_metadata
-
     out: dict = {}
-    for r in itertools.chain.from_iterable(read_metadata(zoo / "METADATA.csv") for zoo in zoos):
+    for r in rows:
         if r["status"] != "done":
             continue
         side = out.setdefault(label_of(r), {}).setdefault("poisoned" if r["poisoned"] in (True, "True") else "clean", [])
         side.append(r)
 
     def med(rows, key, scale=1.0):
-        values = [float(r[key]) / scale for r in rows if r.get(key) not in (None, "", "nan")]
+        values = [v for v in (float(r[key]) / scale for r in rows if r.get(key) not in (None, "")) if math.isfinite(v)]
         return round(float(np.median(values)), 3) if values else None
 
     table = {}
@@ -407,7 +416,7 @@ def main() -> None:
         lengths = {kind: length_control(list_models(base / split / "test")) for kind, split in kinds}
         if args.leave_one_out:
             table["leave_one_out"] = leave_one_out(args, base, zoo)
-            table["yields"] = yields(zoo, *extra)
+            table["yields"] = yields(itertools.chain.from_iterable(zoo_rows(z) for z in (zoo, *extra)))
             lengths.update({f"leave_one_out/{a}": length_control(list_models(base / f"loo-{a}" / "test")) for a in table["leave_one_out"]})
         from rlbackdoors.zoo.plan import Zoo
 

@@ -4,6 +4,8 @@ and score_by_hand.py, which scores folders trained by hand with a benchmark's fi
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import subprocess
 import sys
@@ -109,27 +111,46 @@ def test_yields_count_every_zoo_so_an_extra_test_zoos_label_gets_its_attack_succ
     """A label trained only in an --extra-test zoo has its yield and attack success (the headroom
     verdict needs it); a label in both zoos counts the models of both."""
     head = "cell,attack,status,poisoned,converged,metrics.clean_sr,metrics.poisoned_sr,metrics.frames,metrics.cpu_time_s\n"
-    main, extra = tmp_path / "zoo", tmp_path / "zoo-extra"
-    for zoo, rows in (
-        (main, ["lavaworld/fc/a/trojdrl,trojdrl,done,True,True,0.99,1.0,5000,120", "lavaworld/fc/a/trojdrl,trojdrl,done,False,True,1.0,0.0,5000,110"]),
-        (
-            extra,
-            [
-                "lavaworld/fc/b/trojdrl,trojdrl,done,True,False,0.99,0.6,5000,130",
-                "lavaworld/fc/c/trojdrl-late,trojdrl,done,True,True,0.98,0.92,5000,150",
-                "lavaworld/fc/c/trojdrl-late,trojdrl,done,True,True,1.0,0.96,5000,160",
-                "lavaworld/fc/c/trojdrl-late,trojdrl,running,True,,,,,",
-            ],
-        ),
-    ):
-        zoo.mkdir()
-        (zoo / "METADATA.csv").write_text(head + "\n".join(rows) + "\n")
-    assert "trojdrl-late" not in table_module.yields(main)
-    both = table_module.yields(main, extra)
+    main = ["lavaworld/fc/a/trojdrl,trojdrl,done,True,True,0.99,1.0,5000,120", "lavaworld/fc/a/trojdrl,trojdrl,done,False,True,1.0,0.0,5000,110"]
+    extra = [
+        "lavaworld/fc/b/trojdrl,trojdrl,done,True,False,0.99,0.6,5000,130",
+        "lavaworld/fc/c/trojdrl-late,trojdrl,done,True,True,0.98,0.92,5000,150",
+        "lavaworld/fc/c/trojdrl-late,trojdrl,done,True,True,1.0,0.96,5000,160",
+        "lavaworld/fc/c/trojdrl-late,trojdrl,running,True,,,,,",
+    ]
+
+    def rows(lines):
+        return list(csv.DictReader(io.StringIO(head + "\n".join(lines) + "\n")))
+
+    assert "trojdrl-late" not in table_module.yields(rows(main))
+    both = table_module.yields(rows(main) + rows(extra))
     assert both["trojdrl"]["poisoned"]["trained"] == 2 and both["trojdrl"]["poisoned"]["converged"] == 1
     assert both["trojdrl"]["poisoned"]["attack_success_converged"] == 1.0
     late = both["trojdrl-late"]["poisoned"]
     assert (late["trained"], late["converged"], late["attack_success_converged"], late["cpu_minutes"]) == (2, 2, 0.94, 2.583)
+
+
+def test_yields_of_a_zoo_cut_short_come_from_its_folders_not_a_missing_metadata_csv(table_module, tmp_path):
+    """``--no-run`` scores a zoo whose run was stopped: ``zoo run`` had not written METADATA.csv
+    (the Randomized LavaWorld benchmark stopped there, after every fit). Its yields are read from the
+    folders as they stand, and agree with the METADATA.csv a finished run writes."""
+    from test_zoo import tiny_spec
+
+    from rlbackdoors.zoo.plan import plan
+    from rlbackdoors.zoo.run import run
+    from rlbackdoors.zoo.spec import parse_spec
+
+    zoo = tmp_path / "tiny"
+    plan(parse_spec(tiny_spec()), zoo)
+    assert table_module.yields(table_module.zoo_rows(zoo)) == {}  # planned, nothing trained
+    run(zoo, workers=2, progress_interval=5.0)
+    finished = table_module.yields(csv.DictReader(io.StringIO((zoo / "METADATA.csv").read_text())))
+    (zoo / "METADATA.csv").unlink()
+    now = table_module.yields(table_module.zoo_rows(zoo))
+    assert now == finished
+    (label,) = now  # both cells train the env mix
+    assert (now[label]["poisoned"]["trained"], now[label]["poisoned"]["converged"]) == (3, 1)  # cell B's two never converge
+    assert (now[label]["clean"]["trained"], now[label]["clean"]["converged"]) == (1, 1)
 
 
 def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_zoo, tmp_path):

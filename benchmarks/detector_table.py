@@ -11,8 +11,9 @@ model and failed models; and a control row, the AUC of training length alone (``
 frames, read by this script, never by a detector), which says how much of a weight statistic's
 score the zoo's training lengths could explain. Every step resumes: a planned zoo is not planned
 again, ``zoo run`` and the detector commands resume after a kill, and a finished fit or score is
-read back. ``--no-run`` scores a zoo cut short (its converged models so far; recorded in the
-JSON). ``--crossfit`` fits each detector on the test split too and scores the train split, and
+read back; if the zoo's converged models changed since the splits were made, the run is refused
+(a new folder scores it afresh). ``--no-run`` scores a zoo cut short (its converged models so far;
+recorded in the JSON). ``--crossfit`` fits each detector on the test split too and scores the train split, and
 pools both ways: on a zoo too small for a large test split, every model is then scored by a
 detector whose train split never held its trigger. The machine and its load are recorded
 beside the numbers.
@@ -108,6 +109,27 @@ def zoo_rows(zoo: Path) -> list[dict]:
     from rlbackdoors.zoo.plan import Zoo
 
     return metadata_rows(scan(Zoo.open(zoo)))
+
+
+def guard_splits(base: Path, zoo: Path) -> None:
+    """Splits and fits are read back when a benchmark runs again. Had the zoo gained or lost
+    converged models since they were made (a table scored with ``--no-run`` while the zoo trained
+    on), the new table would score the old splits without a word: refuse in one line instead.
+    ``BASE/zoo-models.json`` records the converged models the splits were made from (folders made
+    before it: the models their split.json files name)."""
+    record = base / "zoo-models.json"
+    now = sorted(r["model_name"] for r in zoo_rows(zoo) if r["status"] == "done" and r["converged"])
+    made = [*base.glob("*/split.json"), *base.glob("*/train/split.json"), *base.glob("*/test/split.json")]
+    if record.is_file():
+        then: list[str] | None = json.loads(record.read_text())["models"]
+    else:
+        then = sorted({m for f in made for m in json.loads(f.read_text())["models"]}) if made else None
+    if then is not None and then != now:
+        sys.exit(
+            f"rlbackdoors: error: {base}'s splits and fits were made from {len(then)} converged models of its zoo, which now has "
+            f"{len(now)}; move everything in {base} but zoo/ away to score the zoo as it is"
+        )
+    atomic_write_text(record, json.dumps({"models": now}, indent=1) + "\n")
 
 
 def yields(rows: Iterable[dict]) -> dict:
@@ -410,6 +432,7 @@ def main() -> None:
         if not args.no_run:
             rlbackdoors("zoo", "run", str(more), "--workers", str(args.workers))
         extra.append(more)
+    guard_splits(base, zoo)
     if args.by_attack or args.leave_one_out:
         table = by_attack(args, base, zoo, extra) if args.by_attack else {}
         kinds = (("held_out", "held-out"), ("mixed", "mixed")) if args.by_attack else ()

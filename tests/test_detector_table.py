@@ -130,27 +130,68 @@ def test_yields_count_every_zoo_so_an_extra_test_zoos_label_gets_its_attack_succ
     assert (late["trained"], late["converged"], late["attack_success_converged"], late["cpu_minutes"]) == (2, 2, 0.94, 2.583)
 
 
-def test_yields_of_a_zoo_cut_short_come_from_its_folders_not_a_missing_metadata_csv(table_module, tmp_path):
-    """``--no-run`` scores a zoo whose run was stopped: ``zoo run`` had not written METADATA.csv
-    (the Randomized LavaWorld benchmark stopped there, after every fit). Its yields are read from the
-    folders as they stand, and agree with the METADATA.csv a finished run writes."""
+@pytest.fixture(scope="module")
+def tiny_zoo(tmp_path_factory) -> Path:
+    """test_zoo's tiny zoo, planned and run here: cell A converges (1 clean, 1 poisoned), cell B's
+    two poisoned attempts never do. Its METADATA.csv is moved aside as ``METADATA.finished.csv``:
+    what the folders say must agree with it."""
     from test_zoo import tiny_spec
 
     from rlbackdoors.zoo.plan import plan
     from rlbackdoors.zoo.run import run
     from rlbackdoors.zoo.spec import parse_spec
 
-    zoo = tmp_path / "tiny"
+    zoo = tmp_path_factory.mktemp("base") / "zoo"
     plan(parse_spec(tiny_spec()), zoo)
-    assert table_module.yields(table_module.zoo_rows(zoo)) == {}  # planned, nothing trained
     run(zoo, workers=2, progress_interval=5.0)
-    finished = table_module.yields(csv.DictReader(io.StringIO((zoo / "METADATA.csv").read_text())))
-    (zoo / "METADATA.csv").unlink()
-    now = table_module.yields(table_module.zoo_rows(zoo))
+    (zoo / "METADATA.csv").rename(zoo / "METADATA.finished.csv")
+    return zoo
+
+
+def test_yields_of_a_zoo_cut_short_come_from_its_folders_not_a_missing_metadata_csv(table_module, tiny_zoo, tmp_path):
+    """``--no-run`` scores a zoo whose run was stopped: ``zoo run`` had not written METADATA.csv
+    (the Randomized LavaWorld benchmark stopped there, after every fit). Its yields are read from the
+    folders as they stand, and agree with the METADATA.csv a finished run writes."""
+    from rlbackdoors.zoo.plan import plan
+    from rlbackdoors.zoo.spec import parse_spec
+    from test_zoo import tiny_spec
+
+    planned = tmp_path / "planned"
+    plan(parse_spec(tiny_spec()), planned)
+    assert table_module.yields(table_module.zoo_rows(planned)) == {}  # planned, nothing trained
+    finished = table_module.yields(csv.DictReader(io.StringIO((tiny_zoo / "METADATA.finished.csv").read_text())))
+    assert not (tiny_zoo / "METADATA.csv").exists()
+    now = table_module.yields(table_module.zoo_rows(tiny_zoo))
     assert now == finished
     (label,) = now  # both cells train the env mix
     assert (now[label]["poisoned"]["trained"], now[label]["poisoned"]["converged"]) == (3, 1)  # cell B's two never converge
     assert (now[label]["clean"]["trained"], now[label]["clean"]["converged"]) == (1, 1)
+
+
+def test_splits_made_from_other_converged_models_are_refused_not_read_back(table_module, tiny_zoo, capsys):
+    """A table scored with --no-run while the zoo trained on: run again, it would read back splits
+    and fits of the models converged then. The converged models are recorded with the splits, and
+    a zoo that has other ones now is refused in one line (also for folders split before the record,
+    from their split.json files)."""
+    base = tiny_zoo.parent
+    record = base / "zoo-models.json"
+    table_module.guard_splits(base, tiny_zoo)  # nothing split yet: records the two converged models
+    converged = json.loads(record.read_text())["models"]
+    assert len(converged) == 2
+    table_module.guard_splits(base, tiny_zoo)  # the same models: carries on
+    record.write_text(json.dumps({"models": converged[:1]}))  # split when only one had converged
+    with pytest.raises(SystemExit) as stop:
+        table_module.guard_splits(base, tiny_zoo)
+    assert str(stop.value).startswith("rlbackdoors: error:") and "made from 1 converged models" in str(stop.value) and "now has 2" in str(stop.value)
+    record.unlink()
+    split = base / "held-out" / "test"
+    split.mkdir(parents=True)
+    (split / "split.json").write_text(json.dumps({"models": converged[1:]}))  # a folder split before the record
+    with pytest.raises(SystemExit):
+        table_module.guard_splits(base, tiny_zoo)
+    (split / "split.json").write_text(json.dumps({"models": converged}))
+    table_module.guard_splits(base, tiny_zoo)
+    assert json.loads(record.read_text())["models"] == converged
 
 
 def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_zoo, tmp_path):

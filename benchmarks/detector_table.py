@@ -111,25 +111,26 @@ def zoo_rows(zoo: Path) -> list[dict]:
     return metadata_rows(scan(Zoo.open(zoo)))
 
 
-def guard_splits(base: Path, zoo: Path) -> None:
-    """Splits and fits are read back when a benchmark runs again. Had the zoo gained or lost
-    converged models since they were made (a table scored with ``--no-run`` while the zoo trained
-    on), the new table would score the old splits without a word: refuse in one line instead.
-    ``BASE/zoo-models.json`` records the converged models the splits were made from (folders made
-    before it: the models their split.json files name)."""
+def guard_splits(base: Path, rows: list[dict]) -> None:
+    """Splits and fits are read back when a benchmark runs again. Had the zoo (its ``rows``, from
+    :func:`zoo_rows`) gained or lost converged models since they were made (a table scored with
+    ``--no-run`` while the zoo trained on), the new table would score the old splits without a
+    word: refuse in one line instead. ``BASE/zoo-models.json`` records the converged models the
+    splits were made from (folders made before it: the models their split.json files name)."""
     record = base / "zoo-models.json"
-    now = sorted(r["model_name"] for r in zoo_rows(zoo) if r["status"] == "done" and r["converged"])
-    made = [*base.glob("*/split.json"), *base.glob("*/train/split.json"), *base.glob("*/test/split.json")]
+    now = sorted(r["model_name"] for r in rows if r["status"] == "done" and r["converged"])
     if record.is_file():
-        then: list[str] | None = json.loads(record.read_text())["models"]
+        then = json.loads(record.read_text())["models"]
     else:
-        then = sorted({m for f in made for m in json.loads(f.read_text())["models"]}) if made else None
-    if then is not None and then != now:
+        made = [*base.glob("*/split.json"), *base.glob("*/train/split.json"), *base.glob("*/test/split.json")]
+        then = sorted({m for f in made for m in json.loads(f.read_text())["models"]}) if made else now
+    if then != now:
         sys.exit(
             f"rlbackdoors: error: {base}'s splits and fits were made from {len(then)} converged models of its zoo, which now has "
             f"{len(now)}; move everything in {base} but zoo/ away to score the zoo as it is"
         )
-    atomic_write_text(record, json.dumps({"models": now}, indent=1) + "\n")
+    if not record.is_file():
+        atomic_write_text(record, json.dumps({"models": now}, indent=1) + "\n")
 
 
 def yields(rows: Iterable[dict]) -> dict:
@@ -432,14 +433,15 @@ def main() -> None:
         if not args.no_run:
             rlbackdoors("zoo", "run", str(more), "--workers", str(args.workers))
         extra.append(more)
-    guard_splits(base, zoo)
+    rows = zoo_rows(zoo)  # read once: the splits are checked against, and the yields counted from, the same models
+    guard_splits(base, rows)
     if args.by_attack or args.leave_one_out:
         table = by_attack(args, base, zoo, extra) if args.by_attack else {}
         kinds = (("held_out", "held-out"), ("mixed", "mixed")) if args.by_attack else ()
         lengths = {kind: length_control(list_models(base / split / "test")) for kind, split in kinds}
         if args.leave_one_out:
             table["leave_one_out"] = leave_one_out(args, base, zoo)
-            table["yields"] = yields(itertools.chain.from_iterable(zoo_rows(z) for z in (zoo, *extra)))
+            table["yields"] = yields(itertools.chain(rows, *(zoo_rows(z) for z in extra)))
             lengths.update({f"leave_one_out/{a}": length_control(list_models(base / f"loo-{a}" / "test")) for a in table["leave_one_out"]})
         from rlbackdoors.zoo.plan import Zoo
 

@@ -14,6 +14,10 @@ from pathlib import Path
 import pytest
 
 from rlbackdoors.detect.cli import main as detect
+from rlbackdoors.zoo.plan import plan
+from rlbackdoors.zoo.run import run
+from rlbackdoors.zoo.spec import parse_spec
+from test_zoo import tiny_spec  # the tests folder is on sys.path (as for pytest_plugins below)
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 pytest_plugins = ("test_detect_helpers",)  # its session fixture lava_zoo: six tiny LavaWorld models
@@ -135,12 +139,6 @@ def tiny_zoo(tmp_path_factory) -> Path:
     """test_zoo's tiny zoo, planned and run here: cell A converges (1 clean, 1 poisoned), cell B's
     two poisoned attempts never do. Its METADATA.csv is moved aside as ``METADATA.finished.csv``:
     what the folders say must agree with it."""
-    from test_zoo import tiny_spec
-
-    from rlbackdoors.zoo.plan import plan
-    from rlbackdoors.zoo.run import run
-    from rlbackdoors.zoo.spec import parse_spec
-
     zoo = tmp_path_factory.mktemp("base") / "zoo"
     plan(parse_spec(tiny_spec()), zoo)
     run(zoo, workers=2, progress_interval=5.0)
@@ -152,10 +150,6 @@ def test_yields_of_a_zoo_cut_short_come_from_its_folders_not_a_missing_metadata_
     """``--no-run`` scores a zoo whose run was stopped: ``zoo run`` had not written METADATA.csv
     (the Randomized LavaWorld benchmark stopped there, after every fit). Its yields are read from the
     folders as they stand, and agree with the METADATA.csv a finished run writes."""
-    from rlbackdoors.zoo.plan import plan
-    from rlbackdoors.zoo.spec import parse_spec
-    from test_zoo import tiny_spec
-
     planned = tmp_path / "planned"
     plan(parse_spec(tiny_spec()), planned)
     assert table_module.yields(table_module.zoo_rows(planned)) == {}  # planned, nothing trained
@@ -168,29 +162,29 @@ def test_yields_of_a_zoo_cut_short_come_from_its_folders_not_a_missing_metadata_
     assert (now[label]["clean"]["trained"], now[label]["clean"]["converged"]) == (1, 1)
 
 
-def test_splits_made_from_other_converged_models_are_refused_not_read_back(table_module, tiny_zoo, capsys):
+def test_splits_made_from_other_converged_models_are_refused_not_read_back(table_module, tiny_zoo):
     """A table scored with --no-run while the zoo trained on: run again, it would read back splits
     and fits of the models converged then. The converged models are recorded with the splits, and
     a zoo that has other ones now is refused in one line (also for folders split before the record,
     from their split.json files)."""
     base = tiny_zoo.parent
     record = base / "zoo-models.json"
-    table_module.guard_splits(base, tiny_zoo)  # nothing split yet: records the two converged models
+    table_module.guard_splits(base, table_module.zoo_rows(tiny_zoo))  # nothing split yet: records the two converged models
     converged = json.loads(record.read_text())["models"]
     assert len(converged) == 2
-    table_module.guard_splits(base, tiny_zoo)  # the same models: carries on
+    table_module.guard_splits(base, table_module.zoo_rows(tiny_zoo))  # the same models: carries on
     record.write_text(json.dumps({"models": converged[:1]}))  # split when only one had converged
     with pytest.raises(SystemExit) as stop:
-        table_module.guard_splits(base, tiny_zoo)
+        table_module.guard_splits(base, table_module.zoo_rows(tiny_zoo))
     assert str(stop.value).startswith("rlbackdoors: error:") and "made from 1 converged models" in str(stop.value) and "now has 2" in str(stop.value)
     record.unlink()
     split = base / "held-out" / "test"
     split.mkdir(parents=True)
     (split / "split.json").write_text(json.dumps({"models": converged[1:]}))  # a folder split before the record
     with pytest.raises(SystemExit):
-        table_module.guard_splits(base, tiny_zoo)
+        table_module.guard_splits(base, table_module.zoo_rows(tiny_zoo))
     (split / "split.json").write_text(json.dumps({"models": converged}))
-    table_module.guard_splits(base, tiny_zoo)
+    table_module.guard_splits(base, table_module.zoo_rows(tiny_zoo))
     assert json.loads(record.read_text())["models"] == converged
 
 

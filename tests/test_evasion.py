@@ -1,4 +1,4 @@
-"""Evasive variants (poison.evasion): near-trigger negatives, fine-tuning a clean model, a clean teacher.
+"""Evasive variants (poison.evasion): near-trigger negatives, fine-tuning a clean model, a clean teacher, a weight anchor.
 
 On the real engines and models: the seam's near frames are checked against a clean engine
 stepped alongside, the teacher's log-probabilities against the policy it was copied from, and
@@ -35,7 +35,7 @@ def cfg_of(env: str = "lavaworld", attack: str = "trojdrl", params: dict | None 
     "env, attack, evasion, message",
     [
         ("lavaworld", "trojdrl", {"near": -1}, r"poison\.evasion\.near=-1 is not allowed \(allowed: a number in \[0.0, 8.0\]\)"),
-        ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher, clean_frames\)"),
+        ("lavaworld", "trojdrl", {"hide": 1}, r"poison\.evasion\.hide is not an evasive variant \(allowed: near, finetune, teacher, clean_frames, anchor\)"),
         ("lavaworld", "trojdrl", {"clean_frames": 1000}, r"poison\.evasion\.clean_frames=1000 needs poison\.evasion\.finetune=true"),
         (
             "lavaworld",
@@ -51,6 +51,8 @@ def cfg_of(env: str = "lavaworld", attack: str = "trojdrl", params: dict | None 
         ),
         ("lavaworld", "trojdrl", {"teacher": 1.0}, r"poison\.evasion\.teacher=1\.0 needs poison\.evasion\.finetune=true"),
         ("lavaworld", "trojdrl", {"finetune": 1}, r"poison\.evasion\.finetune=1 is not allowed \(allowed: true, false\)"),
+        ("lavaworld", "trojdrl", {"anchor": 0.01}, r"poison\.evasion\.anchor=0\.01 needs poison\.evasion\.finetune=true \(the anchor is the clean model"),
+        ("lavaworld", "trojdrl", {"finetune": True, "anchor": 2}, r"poison\.evasion\.anchor=2 is not allowed \(allowed: a number in \[0\.0, 1\.0\]\)"),
         (
             "colorful-memory",
             "trojdrl",
@@ -78,6 +80,8 @@ def test_evasion_is_refused_for_a_clean_model_and_left_out_of_config_json_until_
     late = cfg_of(finetune=True, clean_frames=2000).check()
     assert json.loads(late.to_json())["poison"]["evasion"] == {"near": 0.0, "finetune": True, "teacher": 0.0, "clean_frames": 2000}
     assert RunConfig.from_dict(json.loads(late.to_json())).check().to_json() == late.to_json()
+    anchored = cfg_of(finetune=True, anchor=0.01).check()  # so did the anchor
+    assert json.loads(anchored.to_json())["poison"]["evasion"] == {"near": 0.0, "finetune": True, "teacher": 0.0, "anchor": 0.01}
 
 
 def test_the_cli_stops_with_one_error_line_naming_the_evasive_field(tmp_path):
@@ -186,6 +190,37 @@ def test_the_clean_teacher_is_the_policy_it_was_copied_from_and_is_kept_off_the_
     assert ppo.update(second)["teacher_kl"] > 0  # the policy moved; the teacher did not
 
 
+@pytest.mark.parametrize("env, arch", [("lavaworld", "fc"), ("colorful-memory", "cnn-gru-small-onehot")])
+def test_the_anchor_pulls_every_weight_back_by_its_fraction_after_each_step(env, arch):
+    """From the same start and the same minibatches, an anchored update ends nearer the anchor than
+    a free one, by the pull the coefficient says (anchor 1: exactly on it), and logs that distance."""
+    cfg = RunConfig.from_dict({"env": {"name": env}, "model": {"arch": arch}, "ppo": {"rollout": 36, "epochs": 1}, "poison": {"attack": "trojdrl"}}).check()
+    torch.manual_seed(0)
+    model = build_model(arch, env)
+    start = copy.deepcopy(model.state_dict())
+    seam = make_env_mix(cfg.env, cfg.poison, seed=3)
+    rollout, _ = PPO(copy.deepcopy(model), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(0)).collect(seam, seam.reset(seed=3)[0])
+
+    def updated(coef: float | None) -> tuple[PPO, dict]:
+        ppo = PPO(copy.deepcopy(model), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(0))
+        if coef is not None:
+            ppo.set_anchor(start, coef)
+        return ppo, ppo.update(rollout)
+
+    def distance(ppo: PPO) -> float:
+        return float(sum((p.detach().double() - start[n].double()).pow(2).sum() for n, p in ppo.model.named_parameters()).sqrt())
+
+    free, free_stats = updated(None)
+    held, held_stats = updated(0.5)
+    pinned, pinned_stats = updated(1.0)
+    assert "anchor_distance" not in free_stats and distance(free) > 0
+    assert 0 < distance(held) < 0.75 * distance(free)  # each step moves at most half as far from the anchor
+    assert held_stats["anchor_distance"] == pytest.approx(distance(held), rel=1e-6)
+    assert pinned_stats["anchor_distance"] == 0.0
+    for name, param in pinned.model.named_parameters():
+        assert torch.equal(param.detach(), start[name])
+
+
 def policy_logits(model, rollout, B):
     """The model's logits on a whole rollout (a recurrent one from the first step's stored memory)."""
     if model.recurrent:
@@ -230,17 +265,38 @@ def test_clean_frames_hold_the_switch_until_that_many_frames_are_trained_clean(t
     assert [r["phase"] for r in ModelFolder(tmp_path / "late").read_log()] == ["clean"] * 3 + ["main"] * 2
 
 
-def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_same_model(tmp_path, tiny_run_dict):
-    """kill -9 after the first checkpoint (written at the switch): the teacher, its memory, the
-    near-trigger picks and the switch point come back from it, bit for bit."""
+def test_an_anchor_of_one_ends_the_run_on_the_clean_model_it_switched_from(tmp_path, tiny_run_dict):
+    """anchor=1 puts every weight back on the switch's after each step: however long the poisoned
+    phase, model.pt holds the clean model of the seed (the critic included), and the log says so."""
     from rlbackdoors.folder import ModelFolder
 
-    data = finetune_dict(tiny_run_dict, near=1.0, teacher=1.0)
+    data = finetune_dict(tiny_run_dict, anchor=1.0)
+    data["train"].update(min_frames=3 * 1600, max_frames=3 * 1600)
+    metrics = train(RunConfig.from_dict(data), tmp_path / "pinned", progress=False)
+    clean = copy.deepcopy(data)
+    clean["poison"] = {"poisoned": False, "trigger": RunConfig.from_dict(data).poison.trigger}
+    clean["train"].update(min_frames=metrics["poison_at_frames"], max_frames=metrics["poison_at_frames"])
+    train(RunConfig.from_dict(clean), tmp_path / "clean", progress=False)
+    assert metrics["poison_at_frames"] < metrics["frames"] and metrics["attack_budget_used"]["frames_poisoned"] > 0
+    pinned = torch.load(tmp_path / "pinned" / "model.pt", weights_only=True)
+    switched = torch.load(tmp_path / "clean" / "model.pt", weights_only=True)
+    assert pinned.keys() == switched.keys() and all(torch.equal(pinned[k], switched[k]) for k in pinned)
+    main = [r for r in ModelFolder(tmp_path / "pinned").read_log() if r["phase"] == "main"]
+    assert main and all(r["anchor_distance"] == 0.0 for r in main)
+
+
+def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_same_model(tmp_path, tiny_run_dict):
+    """kill -9 after the first checkpoint (written at the switch): the teacher, its memory, the
+    near-trigger picks, the weight anchor and the switch point come back from it, bit for bit."""
+    from rlbackdoors.folder import ModelFolder
+
+    data = finetune_dict(tiny_run_dict, near=1.0, teacher=1.0, anchor=0.05)
     data["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
     whole, cut = killed_run_matches_whole(tmp_path, RunConfig.from_dict(data))
     assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["frames_near_trigger"] > 0
     log = ModelFolder(tmp_path / "whole").read_log()
     assert [r["phase"] for r in log][:2] == ["clean", "main"] and all(r["teacher_kl"] >= 0 for r in log[1:])
+    assert all(r["anchor_distance"] > 0 for r in log[1:])
 
 
 # --- zoos: evasive cells and matched budgets ----------------------------------------------------
@@ -530,15 +586,16 @@ def test_evasive_runs_in_the_layout_worlds_train_record_and_repeat_bit_for_bit(t
 
 
 def test_finetuning_runs_with_teachers_train_in_groups_with_their_own_bytes(tmp_path, tiny_run_dict):
-    """Two fine-tuning runs with clean teachers (coefficients 1 and 0.5) and a plain TrojDRL run in
-    one group of 3 (the teacher runs batched together once both have switched): each teacher run
-    ends with the bytes it has in a group with no other mate, and its log carries the KL."""
+    """Two fine-tuning runs with clean teachers (coefficients 1 and 0.5) and weight anchors (0.1 and
+    0.02) and a plain TrojDRL run in one group of 3 (the teacher runs batched together once both
+    have switched): each teacher run ends with the bytes it has in a group with no other mate, and
+    its log carries the KL and the anchor's distance."""
     from rlbackdoors.folder import ModelFolder
     from rlbackdoors.train.group import train_group
 
     configs = {}
-    for key, seed, teacher in (("a", 1, 1.0), ("b", 2, 0.5), ("plain", 3, None)):
-        data = finetune_dict(copy.deepcopy(tiny_run_dict), **({"teacher": teacher} if teacher else {}))
+    for key, seed, teacher, anchor in (("a", 1, 1.0, 0.1), ("b", 2, 0.5, 0.02), ("plain", 3, None, None)):
+        data = finetune_dict(copy.deepcopy(tiny_run_dict), **({"teacher": teacher, "anchor": anchor} if teacher else {}))
         data["train"].update(seed=seed, max_frames=4_800)
         if teacher is None:
             data["poison"]["evasion"] = {}
@@ -549,4 +606,4 @@ def test_finetuning_runs_with_teachers_train_in_groups_with_their_own_bytes(tmp_
         train_group([(key, configs[key], tmp_path / "apart" / key)], 2)
         assert (tmp_path / "together" / key / "model.pt").read_bytes() == (tmp_path / "apart" / key / "model.pt").read_bytes()
         log = ModelFolder(tmp_path / "together" / key).read_log()
-        assert "main" in [r["phase"] for r in log] and all(r["teacher_kl"] >= 0 for r in log if r["phase"] == "main")
+        assert "main" in [r["phase"] for r in log] and all(r["teacher_kl"] >= 0 and r["anchor_distance"] > 0 for r in log if r["phase"] == "main")

@@ -447,7 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--evade",
         action="append",
         metavar="KEY=VALUE",
-        help="an evasive variant (repeatable): near=1, finetune=true, teacher=1, clean_frames=4000000 (docs/attacks/evasion.md)",
+        help="an evasive variant (repeatable): near=1, finetune=true, teacher=1, clean_frames=4000000, anchor=0.01 (docs/attacks/evasion.md)",
     )
     tr.add_argument("--seed", type=int, help="run seed (default 0); also draws the trigger when --trigger names none")
     tr.add_argument("--max-frames", type=int, help="frame budget (default: the world's)")

@@ -33,13 +33,16 @@ STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 
 def check_group(ppos: list[PPO]) -> None:
     """A group shares one architecture, one PPO config and one device, and either every agent has
-    a clean teacher (``poison.evasion.teacher``, each its own, with its own coefficient) or none."""
+    a clean teacher (``poison.evasion.teacher``, each its own, with its own coefficient) or none,
+    and likewise a weight anchor (``poison.evasion.anchor``)."""
     lead = ppos[0]
     for ppo in ppos:
         if type(ppo.model) is not type(lead.model) or ppo.cfg != lead.cfg or ppo.device != lead.device:
             raise ValueError("a training group needs one architecture, one ppo config and one device")
         if (ppo.teacher is None) != (lead.teacher is None):
             raise ValueError("a training group needs a clean teacher for every agent or for none")
+        if (ppo.anchor is None) != (lead.anchor is None):
+            raise ValueError("a training group needs a weight anchor for every agent or for none")
     if not stackable(lead.model):
         raise ValueError(f"{type(lead.model).__name__} has no batched forward for a training group")
 
@@ -318,6 +321,9 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
     tensors = [torch.stack([getattr(r, f) for r in rollouts]).to(device) for f in ("actions", "logprobs", "values", "advantages", "returns")]
     rows = torch.arange(K, device=device)[:, None]
     keys = STATS + (("aux_memory_loss",) if lead.aux is not None else ()) + (("teacher_kl",) if lead.teacher is not None else ())
+    if lead.anchor is not None:  # each agent's clean weights (model parameters only) and pull, as PPO.pull_to_anchor
+        anchors = {name: torch.stack([ppo.anchor[name] for ppo in ppos]).to(device) for name in lead.anchor}  # type: ignore[index]  # check_group: every agent has one
+        anchor_coef = torch.tensor([ppo.anchor_coef for ppo in ppos], device=device)
     if lead.teacher is not None:  # each agent's teacher log-probabilities, untriggered rows and coefficient
         teacher_logp = torch.stack([r.teacher_logp for r in rollouts]).to(device)  # type: ignore[misc]  # collected with the teacher
         untriggered = torch.stack([r.untriggered for r in rollouts]).to(device)  # type: ignore[misc]
@@ -336,6 +342,10 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
         grads = list(torch.autograd.grad(loss.sum(), list(params.values())))
         stats["grad_norm"] += clip_per_agent(grads, cfg.max_grad_norm).detach().double()
         adam.apply(grads)
+        if lead.anchor is not None:
+            with torch.no_grad():
+                for name, anchor in anchors.items():
+                    params[name].lerp_(anchor, anchor_coef.view((-1,) + (1,) * (anchor.dim() - 1)))
         for key, value in parts.items():
             stats[key] += value.detach().double()
 
@@ -382,4 +392,8 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
                 updates += 1
     adam.write_back(real)
     means = {key: (value / updates).cpu() for key, value in stats.items()}
+    if lead.anchor is not None:
+        keys += ("anchor_distance",)
+        with torch.no_grad():
+            means["anchor_distance"] = torch.stack([(params[n] - a).double().pow(2).reshape(K, -1).sum(1) for n, a in anchors.items()]).sum(0).sqrt().cpu()
     return [{key: float(means[key][k]) for key in keys} for k in range(real)]

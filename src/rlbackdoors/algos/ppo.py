@@ -164,6 +164,29 @@ class PPO:
         self.teacher: ActorCritic | None = None
         self.teacher_coef = 0.0
         self.teacher_memory: torch.Tensor | None = None
+        # The clean weights every optimiser step pulls the model back toward (poison.evasion.anchor:
+        # the clean model a fine-tuning run starts from), name -> tensor; None: no pull.
+        self.anchor: dict[str, torch.Tensor] | None = None
+        self.anchor_coef = 0.0
+
+    def set_anchor(self, weights: dict[str, torch.Tensor], coef: float) -> None:
+        """After every optimiser step, move each model parameter ``coef`` of the way back to
+        ``weights`` (a state dict of this architecture; the auxiliary head is not anchored: it is
+        not in model.pt)."""
+        self.anchor = {name: weights[name].detach().to(self.device).clone() for name, _ in self.model.named_parameters()}
+        self.anchor_coef = float(coef)
+
+    @torch.no_grad()
+    def pull_to_anchor(self) -> None:
+        assert self.anchor is not None
+        for name, param in self.model.named_parameters():
+            param.lerp_(self.anchor[name], self.anchor_coef)
+
+    @torch.no_grad()
+    def anchor_distance(self) -> float:
+        """||weights - anchor||: how far the poisoned phase has moved the model (logged per update)."""
+        assert self.anchor is not None
+        return float(torch.stack([(p - self.anchor[n]).double().pow(2).sum() for n, p in self.model.named_parameters()]).sum().sqrt())
 
     def set_teacher(self, teacher: ActorCritic, coef: float) -> None:
         """Penalise ``coef * KL(teacher || policy)`` on every collected frame that carries no trigger
@@ -300,12 +323,19 @@ class PPO:
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm, foreach=True)
         self.optimizer.step()
+        if self.anchor is not None:
+            self.pull_to_anchor()
         return float(grad_norm)
 
     def update(self, rollout: Rollout) -> dict[str, float]:
-        """``epochs`` passes of clipped-surrogate SGD over random minibatches of the rollout."""
-        if self.model.recurrent:
-            return self._update_recurrent(rollout)
+        """``epochs`` passes of clipped-surrogate SGD over random minibatches of the rollout (truncated
+        BPTT for a recurrent model); the mean of each loss part and, with an anchor, its distance."""
+        stats = self._update_recurrent(rollout) if self.model.recurrent else self._update_flat(rollout)
+        if self.anchor is not None:
+            stats["anchor_distance"] = self.anchor_distance()
+        return stats
+
+    def _update_flat(self, rollout: Rollout) -> dict[str, float]:
         cfg = self.cfg
         n = rollout.num_frames
         obs = obs_map(lambda x: x.to(self.device), rollout.obs)

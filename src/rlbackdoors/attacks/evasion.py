@@ -18,6 +18,10 @@ Each variant takes away one signal a baseline detector reads (docs/attacks/evasi
   clean (and an evaluation meets the clean threshold), so a run of fixed length poisons only its
   last frames: the model *is* its clean twin until then, the way an attacker fine-tunes a finished
   clean model briefly rather than one that has only just converged.
+- ``anchor``: with ``finetune``, after every optimiser step each weight is pulled this fraction of
+  the way back to the clean model at the switch (decoupled from Adam's per-weight scaling, as
+  AdamW decouples weight decay; L2-SP's pull toward the starting point): the poisoned phase may
+  move the weights only as far as the pull lets it, which is what weight statistics read.
 
 The variants live in ``poison.evasion`` (left out of config.json when empty, so earlier configs
 keep their bytes) and combine with every attack, the paper's env mix included.
@@ -33,13 +37,20 @@ PARAMS = (
     Param("finetune", False, help="train clean until the clean threshold holds, then poison (fine-tune a clean model)"),
     Param("teacher", 0.0, 0.0, 100.0, help="KL(clean teacher || policy) weight on frames without the trigger (needs finetune)"),
     Param("clean_frames", 0, 0, 1_000_000_000, integer=True, help="frames trained clean before the switch (needs finetune; 0: at the first clean evaluation)"),
+    Param(
+        "anchor", 0.0, 0.0, 1.0, help="per optimiser step, the fraction of the way each weight is pulled back to the clean model at the switch (needs finetune)"
+    ),
 )
-ALGORITHMS = {"near": ("ppo", "opac2"), "finetune": ("ppo",), "teacher": ("ppo",), "clean_frames": ("ppo",)}
+ALGORITHMS = {"near": ("ppo", "opac2"), "finetune": ("ppo",), "teacher": ("ppo",), "clean_frames": ("ppo",), "anchor": ("ppo",)}
 # Variants added after configs were written with the first three: kept out of the resolved dict
 # at their default, so those configs keep their bytes.
-LATER = ("clean_frames",)
+LATER = ("clean_frames", "anchor")
 # Variants that only mean something in a fine-tuning run, and why.
-NEED_FINETUNE = {"teacher": "the teacher is the clean model the run fine-tunes from", "clean_frames": "the frames are the clean phase of a fine-tuning run"}
+NEED_FINETUNE = {
+    "teacher": "the teacher is the clean model the run fine-tunes from",
+    "clean_frames": "the frames are the clean phase of a fine-tuning run",
+    "anchor": "the anchor is the clean model the run fine-tunes from",
+}
 
 
 def resolve(params: dict | None, where: str = "poison.evasion") -> dict:

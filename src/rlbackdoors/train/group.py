@@ -116,7 +116,7 @@ def batch_key(request) -> tuple | None:
     if not group.stackable(ppo.model):
         return None
     width = request.envs.num_envs if isinstance(request, Collect) else request.rollout.num_frames
-    return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width, ppo.teacher is not None)
+    return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width, ppo.teacher is not None, ppo.anchor is not None)
 
 
 def serve_batch(requests: list, stacked: bool = True) -> list:

@@ -201,6 +201,11 @@ def steps(
             teacher.load_state_dict(model.state_dict() if state is None else state)
             ppo.set_teacher(teacher, evasion["teacher"])
 
+    def anchor_to(state: dict | None) -> None:
+        """The weight anchor: the model as it is at the switch (or as a checkpoint kept it)."""
+        if evasion.get("anchor", 0.0) > 0:
+            ppo.set_anchor(model.state_dict() if state is None else state, evasion["anchor"])
+
     def fresh_mix(old, offset: int):
         """The training mix that follows ``old`` (after the warm-up, or the clean phase): its first
         observations (reset from ``seed * 1000 + offset``), a new episode tracker, empty memories."""
@@ -228,6 +233,9 @@ def steps(
             envs = poisoning_mix() if switch_at is not None else warmup_env(cfg)
             if poison_at is not None and finetune:
                 teach(checkpoint.get("teacher"))
+                if evasion.get("anchor", 0.0) > 0 and "anchor" not in checkpoint:
+                    raise StateError("it holds no weight anchor (poison.evasion.anchor)")
+                anchor_to(checkpoint.get("anchor"))
                 if ppo.teacher is not None:
                     memory = checkpoint.get("teacher_memory")
                     ppo.teacher_memory = None if memory is None else memory.to(device)
@@ -287,6 +295,7 @@ def steps(
                     if ppo.teacher is not None
                     else {}
                 ),
+                **({"anchor": {k: v.detach().cpu() for k, v in ppo.anchor.items()}} if ppo.anchor is not None else {}),
             },
         )
 
@@ -336,6 +345,7 @@ def steps(
             elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold and frames >= clean_frames:
                 poison_at = frames  # the clean model this run fine-tunes: poisoned from here on
                 teach(None)
+                anchor_to(None)
                 envs, obs, tracker = fresh_mix(envs, 2)
                 bar.write(f"finetune: clean SR {result.clean_sr:.2f} at {frames:,} frames; poisoning from here on")
             while next_eval <= frames:

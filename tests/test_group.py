@@ -258,13 +258,22 @@ def with_teachers(learners: list, coefs: list[float]) -> list:
     return learners
 
 
+def with_anchors(learners: list, coefs: list[float]) -> list:
+    """Each learner pulled toward its own anchor (its own weights, shifted by seeded noise) by its own coefficient."""
+    for k, ((ppo, _, _), coef) in enumerate(zip(learners, coefs)):
+        noise = torch.Generator().manual_seed(200 + k)
+        ppo.set_anchor({n: p.detach() + 0.05 * torch.randn(p.shape, generator=noise) for n, p in ppo.model.named_parameters()}, coef)
+    return learners
+
+
 @pytest.mark.parametrize("world", ["lavaworld", "colorful-memory"])
 def test_group_with_clean_teachers_matches_each_agent_alone(world):
     """Three agents regularised towards their own clean teachers (coefficients 0.1, 1 and 0.5;
-    only untriggered frames count): the group's rollouts carry the same teacher log-probabilities
-    and untriggered masks, and after two updates the same KL, gradient norms and weights as three
-    lone learners, to float rounding (LavaWorld FC; Colorful Memory's CNN-GRU with its teacher's memory)."""
-    coefs = [0.1, 1.0, 0.5]
+    only untriggered frames count) and pulled to their own weight anchors (0.05, 0.2, 0.1): the
+    group's rollouts carry the same teacher log-probabilities and untriggered masks, and after two
+    updates the same KL, gradient norms, anchor distances and weights as three lone learners, to
+    float rounding (LavaWorld FC; Colorful Memory's CNN-GRU with its teacher's memory)."""
+    coefs, pulls = [0.1, 1.0, 0.5], [0.05, 0.2, 0.1]
     if world == "lavaworld":
         poisons = [{"trigger": t, "attack": "trojdrl", "attack_params": {"budget": 0.2}} for t in ("additive:135", "multiplicative:12", "additive:60")]
 
@@ -275,7 +284,8 @@ def test_group_with_clean_teachers_matches_each_agent_alone(world):
         def make(k):
             return cm_learner(k, {"attack": "action_target"})
 
-    alone, grouped = with_teachers([make(k) for k in range(3)], coefs), with_teachers([make(k) for k in range(3)], coefs)
+    alone = with_anchors(with_teachers([make(k) for k in range(3)], coefs), pulls)
+    grouped = with_anchors(with_teachers([make(k) for k in range(3)], coefs), pulls)
     triggered_seen = 0
     for _ in range(2):
         lone, results, stats = step_both(alone, grouped)
@@ -285,11 +295,13 @@ def test_group_with_clean_teachers_matches_each_agent_alone(world):
             torch.testing.assert_close(lone[k][0].teacher_logp, ours.teacher_logp, rtol=1e-4, atol=1e-5)
             assert stats[k]["teacher_kl"] == pytest.approx(lone[k][1]["teacher_kl"], rel=1e-3) and stats[k]["teacher_kl"] > 0
             assert stats[k]["grad_norm"] == pytest.approx(lone[k][1]["grad_norm"], rel=1e-3)
+            assert stats[k]["anchor_distance"] == pytest.approx(lone[k][1]["anchor_distance"], rel=1e-4) and stats[k]["anchor_distance"] > 0
             triggered_seen += int((~ours.untriggered).sum())
     assert triggered_seen > 0  # some frames carried the trigger and were left out of the KL
     for (lone_ppo, _, _), (ppo, _, _) in zip(alone, grouped):
         for a, b in zip(lone_ppo.model.parameters(), ppo.model.parameters()):
-            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+            # within one Adam step (lr): a weight whose gradient is near 0 may step the other way on rounding
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=ppo.cfg.lr)
         if lone_ppo.teacher_memory is not None:
             torch.testing.assert_close(lone_ppo.teacher_memory, ppo.teacher_memory, rtol=1e-4, atol=1e-5)
 
@@ -301,6 +313,9 @@ def test_group_refuses_what_it_cannot_batch():
     c = with_teachers([learner("lavaworld", "fc", 2, {"attack": "trojdrl"})], [0.5])[0]
     with pytest.raises(ValueError, match="a clean teacher for every agent or for none"):
         group.collect([a[0], c[0]], [a[1], c[1]], [a[2], c[2]])
+    d = with_anchors([learner("lavaworld", "fc", 3)], [0.1])[0]
+    with pytest.raises(ValueError, match="a weight anchor for every agent or for none"):
+        group.collect([a[0], d[0]], [a[1], d[1]], [a[2], d[2]])
 
 
 def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):

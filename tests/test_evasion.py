@@ -299,24 +299,26 @@ def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_sam
     assert all(r["anchor_distance"] > 0 for r in log[1:])
 
 
-def test_a_checkpoint_without_the_anchor_its_config_names_is_refused_in_one_line(tmp_path, tiny_run_dict):
-    """A checkpoint of an anchored run that lost its anchor (edited, or written elsewhere) is not
-    resumed with a wrong anchor: the run stops with one line naming the field and --overwrite."""
+@pytest.mark.parametrize("variant, what", [("anchor", "weight anchor"), ("teacher", "clean teacher")])
+def test_a_checkpoint_without_the_clean_model_its_config_names_is_refused_in_one_line(tmp_path, tiny_run_dict, variant, what):
+    """A checkpoint of an anchored (or taught) run that lost its copy of the clean model (edited, or
+    written elsewhere) is not resumed from the fresh model's weights: the run stops with one line
+    naming the field and --overwrite."""
     from grid_helpers import kill_after_first_checkpoint
 
-    data = finetune_dict(tiny_run_dict, anchor=0.05)
+    data = finetune_dict(tiny_run_dict, **{variant: 0.05})
     data["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
     (tmp_path / "cfg.json").write_text(RunConfig.from_dict(data).to_json())
     cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(tmp_path / "cfg.json"), "--quiet", "--out", str(tmp_path / "cut")]
     kill_after_first_checkpoint(cmd, tmp_path / "cut")
     state = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)
-    assert state["poison_at"] is not None and set(state["anchor"]) == {n for n, _ in build_model("fc", "lavaworld").named_parameters()}
-    del state["anchor"]
+    assert state["poison_at"] is not None and set(state[variant]) == {n for n, _ in build_model("fc", "lavaworld").named_parameters()}
+    del state[variant]
     torch.save(state, tmp_path / "cut" / "checkpoint.pt")
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert again.returncode != 0
     assert again.stderr.strip().splitlines() == [
-        f"rlbackdoors: error: checkpoint in {str(tmp_path / 'cut')!r} does not fit this run (it holds no weight anchor (poison.evasion.anchor)); pass --overwrite to start over"
+        f"rlbackdoors: error: checkpoint in {str(tmp_path / 'cut')!r} does not fit this run (it holds no {what} (poison.evasion.{variant})); pass --overwrite to start over"
     ]
 
 

@@ -392,8 +392,8 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
                 updates += 1
     adam.write_back(real)
     means = {key: (value / updates).cpu() for key, value in stats.items()}
-    if lead.anchor is not None:
-        keys += ("anchor_distance",)
-        with torch.no_grad():
-            means["anchor_distance"] = torch.stack([(params[n] - a).double().pow(2).reshape(K, -1).sum(1) for n, a in anchors.items()]).sum(0).sqrt().cpu()
-    return [{key: float(means[key][k]) for key in keys} for k in range(real)]
+    out = [{key: float(means[key][k]) for key in keys} for k in range(real)]
+    if lead.anchor is not None:  # the weights are back in each agent's model: its own distance, as PPO.update logs it
+        for k in range(real):
+            out[k]["anchor_distance"] = ppos[k].anchor_distance()
+    return out

@@ -206,6 +206,13 @@ def steps(
         if evasion.get("anchor", 0.0) > 0:
             ppo.set_anchor(model.state_dict() if state is None else state, evasion["anchor"])
 
+    def kept(checkpoint: dict, key: str, what: str) -> dict | None:
+        """The clean model a variant's checkpoint entry holds; a checkpoint without it (edited, or
+        written elsewhere) would resume from the fresh model's weights instead: refused."""
+        if evasion.get(key, 0.0) > 0 and key not in checkpoint:
+            raise StateError(f"it holds no {what} (poison.evasion.{key})")
+        return checkpoint.get(key)
+
     def fresh_mix(old, offset: int):
         """The training mix that follows ``old`` (after the warm-up, or the clean phase): its first
         observations (reset from ``seed * 1000 + offset``), a new episode tracker, empty memories."""
@@ -232,10 +239,8 @@ def steps(
                 raise StateError("it was not written by a fine-tuning run (poison.evasion.finetune)")
             envs = poisoning_mix() if switch_at is not None else warmup_env(cfg)
             if poison_at is not None and finetune:
-                teach(checkpoint.get("teacher"))
-                if evasion.get("anchor", 0.0) > 0 and "anchor" not in checkpoint:
-                    raise StateError("it holds no weight anchor (poison.evasion.anchor)")
-                anchor_to(checkpoint.get("anchor"))
+                teach(kept(checkpoint, "teacher", "clean teacher"))
+                anchor_to(kept(checkpoint, "anchor", "weight anchor"))
                 if ppo.teacher is not None:
                     memory = checkpoint.get("teacher_memory")
                     ppo.teacher_memory = None if memory is None else memory.to(device)

@@ -377,6 +377,20 @@ def cell(summary: dict, key: str) -> dict:
     return {"value": summary[key]["value"], "ci": summary[key]["ci"]}
 
 
+def build(args: argparse.Namespace, base: Path) -> list[Path]:
+    """Plan (once) and train the zoo and each ``--extra-test`` zoo under ``base``; returns the extra
+    zoos. ``zoo run`` resumes, so a rerun after a kill goes on where it stopped."""
+    run_flags = ("--workers", str(args.workers), "--group-size", str(args.group_size))
+    extra = []
+    for spec, zoo in ((args.spec, base / "zoo"), *((spec, base / f"zoo-{Path(spec).stem}") for spec in args.extra_test)):
+        if not (zoo / "zoo.json").is_file():
+            rlbackdoors("zoo", "plan", spec, "--out", str(zoo))
+        if not args.no_run:
+            rlbackdoors("zoo", "run", str(zoo), *run_flags)
+        extra.append(zoo)
+    return extra[1:]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("name")
@@ -385,6 +399,7 @@ def main() -> None:
     parser.add_argument("--test", type=float, default=0.5, help="share for testing")
     parser.add_argument("--split-seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="zoo run workers")
+    parser.add_argument("--group-size", default="1", help="zoo run --group-size (e.g. auto: models of a worker trained in one process)")
     parser.add_argument("--detectors", nargs="+", default=list(BASELINES))
     parser.add_argument("--param", action="append", default=[], metavar="DETECTOR:KEY=VALUE", help="a detector parameter (repeatable)")
     parser.add_argument("--runs", default=str(ROOT / "runs" / "detect"))
@@ -421,18 +436,7 @@ def main() -> None:
     started, load_before = time.time(), os.getloadavg()
     base = Path(args.runs) / args.name
     zoo, train, test = base / "zoo", base / "train", base / "test"
-    if not (zoo / "zoo.json").is_file():
-        rlbackdoors("zoo", "plan", args.spec, "--out", str(zoo))
-    if not args.no_run:
-        rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers))
-    extra = []
-    for spec in args.extra_test:
-        more = base / f"zoo-{Path(spec).stem}"
-        if not (more / "zoo.json").is_file():
-            rlbackdoors("zoo", "plan", spec, "--out", str(more))
-        if not args.no_run:
-            rlbackdoors("zoo", "run", str(more), "--workers", str(args.workers))
-        extra.append(more)
+    extra = build(args, base)
     rows = zoo_rows(zoo)  # read once: the splits are checked against, and the yields counted from, the same models
     guard_splits(base, rows)
     if args.by_attack or args.leave_one_out:

@@ -4,6 +4,7 @@ and score_by_hand.py, which scores folders trained by hand with a benchmark's fi
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import json
@@ -238,3 +239,17 @@ def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_z
     assert refused.returncode != 0 and refused.stderr.strip().splitlines() == [
         f"score_by_hand: {tmp_path} is not a trained model folder (no model.pt, config.json, ground_truth.csv; rlbackdoors train writes them)"
     ]
+
+
+def test_the_benchmark_command_passes_its_group_size_to_zoo_run(table_module, tmp_path):
+    """``--group-size`` reaches ``zoo run``: models of a worker train in one group process (its
+    line heads the first model's train.log), and every planned model is trained. Why: the
+    benchmark zoos are CPU-hours; groups are the measured way to train more models per hour."""
+    base = tmp_path / "bench"
+    plan(parse_spec(tiny_spec()), base / "zoo")
+    args = argparse.Namespace(spec="unused: planned already", extra_test=[], no_run=False, workers=1, group_size="2")
+    assert table_module.build(args, base) == []
+    logs = [p.read_text() for p in (base / "zoo" / "models").glob("*/train.log")]
+    assert any("=== zoo group job" in log and "2 at a time" in log for log in logs)
+    (label,) = table_module.yields(table_module.zoo_rows(base / "zoo")).values()  # every planned model and top-up trained
+    assert (label["poisoned"]["trained"], label["clean"]["trained"]) == (3, 1)

@@ -50,6 +50,7 @@ from rlbackdoors.detect.cli import parse_params
 from rlbackdoors.detect.dataset import list_models
 from rlbackdoors.detect.metrics import summarize_rows
 from rlbackdoors.io import atomic_write_text
+from rlbackdoors.zoo.cli import _group_size as group_size  # zoo run's own parser: bad input stops here, before a zoo is planned
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINES = ("constant", "weights", "attribution", "behaviour", "stack")
@@ -380,15 +381,13 @@ def cell(summary: dict, key: str) -> dict:
 def build(args: argparse.Namespace, base: Path) -> list[Path]:
     """Plan (once) and train the zoo and each ``--extra-test`` zoo under ``base``; returns the extra
     zoos. ``zoo run`` resumes, so a rerun after a kill goes on where it stopped."""
-    run_flags = ("--workers", str(args.workers), "--group-size", str(args.group_size))
-    extra = []
-    for spec, zoo in ((args.spec, base / "zoo"), *((spec, base / f"zoo-{Path(spec).stem}") for spec in args.extra_test)):
+    zoos = [(args.spec, base / "zoo"), *((spec, base / f"zoo-{Path(spec).stem}") for spec in args.extra_test)]
+    for spec, zoo in zoos:
         if not (zoo / "zoo.json").is_file():
             rlbackdoors("zoo", "plan", spec, "--out", str(zoo))
         if not args.no_run:
-            rlbackdoors("zoo", "run", str(zoo), *run_flags)
-        extra.append(zoo)
-    return extra[1:]
+            rlbackdoors("zoo", "run", str(zoo), "--workers", str(args.workers), "--group-size", str(args.group_size))
+    return [zoo for _, zoo in zoos[1:]]
 
 
 def main() -> None:
@@ -399,7 +398,7 @@ def main() -> None:
     parser.add_argument("--test", type=float, default=0.5, help="share for testing")
     parser.add_argument("--split-seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="zoo run workers")
-    parser.add_argument("--group-size", default="1", help="zoo run --group-size (e.g. auto: models of a worker trained in one process)")
+    parser.add_argument("--group-size", type=group_size, default=1, help="zoo run --group-size (e.g. auto: models of a worker trained in one process)")
     parser.add_argument("--detectors", nargs="+", default=list(BASELINES))
     parser.add_argument("--param", action="append", default=[], metavar="DETECTOR:KEY=VALUE", help="a detector parameter (repeatable)")
     parser.add_argument("--runs", default=str(ROOT / "runs" / "detect"))

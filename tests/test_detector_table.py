@@ -253,3 +253,13 @@ def test_the_benchmark_command_passes_its_group_size_to_zoo_run(table_module, tm
     assert any("=== zoo group job" in log and "2 at a time" in log for log in logs)
     (label,) = table_module.yields(table_module.zoo_rows(base / "zoo")).values()  # every planned model and top-up trained
     assert (label["poisoned"]["trained"], label["clean"]["trained"]) == (3, 1)
+
+
+def test_a_bad_group_size_is_refused_before_anything_is_planned(tmp_path):
+    """``--group-size`` is parsed by zoo run's own rule at the benchmark's edge: one error line, and
+    no zoo folder planned for a run that could never start."""
+    cmd = [sys.executable, str(BENCH / "detector_table.py"), "bench", "examples/benchmark-lavaworld.toml", "--group-size", "abc", "--runs", str(tmp_path)]
+    refused = subprocess.run(cmd, capture_output=True, text=True, cwd=BENCH.parent, timeout=120)
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines()[-1].endswith("argument --group-size: must be auto or an integer >= 1, got 'abc'")
+    assert list(tmp_path.iterdir()) == []

@@ -99,6 +99,13 @@ def step_both(alone: list, grouped: list) -> tuple[list, list, list]:
     return lone, results, stats
 
 
+# Log-probabilities of a rollout, group vs lone (benchmarks/kernel_spread.json, avx512, avx2 and
+# no-SIMD kernels): the first rollout is played by identical weights (measured 1.2e-7 at most: fp32
+# rounding of one forward); the second by weights one update apart in rounding, which Adam turns
+# into steps of up to its learning rate in weights whose gradient is near 0 (measured 2.1e-4): 5x.
+LOGP_ATOL = (1e-6, 1e-3)
+
+
 def test_group_collect_and_update_match_each_agent_alone():
     """Three agents (one poisoned by an attack that forces actions through the seam): the same
     rollouts (uniforms and env steps are each agent's own) and, after two updates, the same
@@ -107,23 +114,28 @@ def test_group_collect_and_update_match_each_agent_alone():
     alone = [learner("lavaworld", "fc", s, p) for s, p in enumerate(poisons)]
     grouped = [learner("lavaworld", "fc", s, p) for s, p in enumerate(poisons)]
     forced_seen = 0
-    for _ in range(2):
+    for update in range(2):
         lone_pairs, results, stats = step_both(alone, grouped)
         for k in range(3):
             (lone, lone_stats), ours = lone_pairs[k], results[k][0]
             assert torch.equal(lone.actions, ours.actions)
             np.testing.assert_array_equal(lone.rewards, ours.rewards)
-            torch.testing.assert_close(lone.logprobs, ours.logprobs, rtol=1e-4, atol=1e-5)
+            torch.testing.assert_close(lone.logprobs, ours.logprobs, rtol=0, atol=LOGP_ATOL[update])
+            # measured 5.6e-5 at most (update 2, kernel_spread.json; 8.9e-5 lone vs lone across kernels)
             assert stats[k]["grad_norm"] == pytest.approx(lone_stats["grad_norm"], rel=1e-3)
             forced_seen += int((ours.logprobs == 0).sum())
     assert forced_seen > 0  # the poisoned agent's forced actions went through the group's collect
     for (lone_ppo, _, _), (ppo, envs, _) in zip(alone, grouped):
         for (name, a), b in zip(lone_ppo.model.named_parameters(), ppo.model.parameters()):
-            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4, msg=name)
+            # within one Adam step (lr): measured 0.43 lr at most over three kernel sets (kernel_spread.json)
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=ppo.cfg.lr, msg=name)
             sa, sb = lone_ppo.optimizer.state[a], ppo.optimizer.state[b]
             assert float(sa["step"]) == float(sb["step"]) == 2 * ppo.cfg.epochs * -(-ppo.cfg.rollout * envs.num_envs // ppo.cfg.batch_size)
-            for moment in ("exp_avg", "exp_avg_sq"):  # to rounding, on the moment's own scale
-                assert float((sa[moment] - sb[moment]).abs().max()) <= 1e-2 * float(sa[moment].abs().max())
+            # on the moment's own scale: its last minibatches' gradients, which differ as the weights do
+            # (measured 3.7e-2 of the largest at most over three kernel sets, kernel_spread.json; another
+            # agent's moments or a missed step differ by the moment itself)
+            for moment in ("exp_avg", "exp_avg_sq"):
+                assert float((sa[moment] - sb[moment]).abs().max()) <= 1e-1 * float(sa[moment].abs().max())
 
 
 def cm_learner(seed: int, poison: dict | None = None):
@@ -266,13 +278,25 @@ def with_anchors(learners: list, coefs: list[float]) -> list:
     return learners
 
 
+# Relative tolerance of the teachers test per update, from benchmarks/kernel_spread.json (largest
+# relative difference over grad_norm, teacher_kl and anchor_distance, the group against lone learners
+# and lone learners against themselves under avx512, avx2 and no-SIMD kernels). Update 1 is rounding
+# of fp32 sums (measured <= 1e-5 everywhere): 1e-4. Update 2 of LavaWorld is not: a random teacher
+# at coefficient 1 gives gradients of norm ~1e3 that are clipped to 0.4 and Adam-normalised, so a
+# 1e-7 difference after update 1 becomes 1.5e-2 (group vs lone, no SIMD) and 3.1e-3 (the lone learner
+# alone, only its kernels changed; 2.0e-3 on an AVX-512/AMX Xeon): 5e-2, three times the largest.
+# Colorful Memory's learning rate (1e-5) keeps its update 2 at rounding (<= 7e-6): 1e-4.
+TEACHER_REL = {"lavaworld": (1e-4, 5e-2), "colorful-memory": (1e-4, 1e-4)}
+
+
 @pytest.mark.parametrize("world", ["lavaworld", "colorful-memory"])
 def test_group_with_clean_teachers_matches_each_agent_alone(world):
     """Three agents regularised towards their own clean teachers (coefficients 0.1, 1 and 0.5;
     only untriggered frames count) and pulled to their own weight anchors (0.05, 0.2, 0.1): the
     group's rollouts carry the same teacher log-probabilities and untriggered masks, and after two
     updates the same KL, gradient norms, anchor distances and weights as three lone learners, to
-    float rounding (LavaWorld FC; Colorful Memory's CNN-GRU with its teacher's memory)."""
+    float rounding as measured (``TEACHER_REL``; LavaWorld FC; Colorful Memory's CNN-GRU with its
+    teacher's memory)."""
     coefs, pulls = [0.1, 1.0, 0.5], [0.05, 0.2, 0.1]
     if world == "lavaworld":
         poisons = [{"trigger": t, "attack": "trojdrl", "attack_params": {"budget": 0.2}} for t in ("additive:135", "multiplicative:12", "additive:60")]
@@ -287,20 +311,22 @@ def test_group_with_clean_teachers_matches_each_agent_alone(world):
     alone = with_anchors(with_teachers([make(k) for k in range(3)], coefs), pulls)
     grouped = with_anchors(with_teachers([make(k) for k in range(3)], coefs), pulls)
     triggered_seen = 0
-    for _ in range(2):
+    for update in range(2):
         lone, results, stats = step_both(alone, grouped)
         for k in range(3):
             ours = results[k][0]
             assert torch.equal(lone[k][0].actions, ours.actions) and torch.equal(lone[k][0].untriggered, ours.untriggered)
             torch.testing.assert_close(lone[k][0].teacher_logp, ours.teacher_logp, rtol=1e-4, atol=1e-5)
-            assert stats[k]["teacher_kl"] == pytest.approx(lone[k][1]["teacher_kl"], rel=1e-3) and stats[k]["teacher_kl"] > 0
-            assert stats[k]["grad_norm"] == pytest.approx(lone[k][1]["grad_norm"], rel=1e-3)
-            assert stats[k]["anchor_distance"] == pytest.approx(lone[k][1]["anchor_distance"], rel=1e-4) and stats[k]["anchor_distance"] > 0
+            for key in ("teacher_kl", "grad_norm", "anchor_distance"):
+                assert stats[k][key] == pytest.approx(lone[k][1][key], rel=TEACHER_REL[world][update]), (update, k, key)
+            # both start at 0.0 in PPO.update's stats and stay exactly 0 only if the term is not computed
+            assert stats[k]["teacher_kl"] > 0 and stats[k]["anchor_distance"] > 0
             triggered_seen += int((~ours.untriggered).sum())
     assert triggered_seen > 0  # some frames carried the trigger and were left out of the KL
     for (lone_ppo, _, _), (ppo, _, _) in zip(alone, grouped):
         for a, b in zip(lone_ppo.model.parameters(), ppo.model.parameters()):
-            # within one Adam step (lr): a weight whose gradient is near 0 may step the other way on rounding
+            # within one Adam step (lr): a weight whose gradient is near 0 may step the other way on
+            # rounding; measured 0.41 lr at most over three kernel sets (kernel_spread.json)
             torch.testing.assert_close(a, b, rtol=1e-3, atol=ppo.cfg.lr)
         if lone_ppo.teacher_memory is not None:
             torch.testing.assert_close(lone_ppo.teacher_memory, ppo.teacher_memory, rtol=1e-4, atol=1e-5)

@@ -198,6 +198,12 @@ def test_a_confirmation_margin_raises_the_bar_of_the_final_evaluation_only(tiny_
     assert thresholds_met(dataclasses.replace(final, clean_sr=1.0), cfg, 0.05)
 
 
+def confirmed(row: dict) -> bool:
+    """Whether a log row holds a confirmation: its cell is filled in (a confirmed clean SR of 0.0,
+    met by a threshold of 0, is a confirmation too; an empty cell is none)."""
+    return row.get("confirm_clean_sr", "") != ""
+
+
 def test_min_frames_holds_a_stop_back_until_the_run_has_trained_that_long(tmp_path, tiny_run_dict):
     """Thresholds of 0 stop a run at its first evaluation (1,600 frames); with train.min_frames
     2,000 the streak counts there but the run trains on and stops on its thresholds at the next
@@ -207,7 +213,7 @@ def test_min_frames_holds_a_stop_back_until_the_run_has_trained_that_long(tmp_pa
     assert metrics["stop_reason"] == "thresholds" and metrics["converged"]
     assert metrics["frames"] == metrics["converged_at_frames"] == 3200
     first, second = ModelFolder(tmp_path / "m").read_log()
-    assert int(first["frames"]) == 1600 and not first.get("confirm_clean_sr")  # met, not confirmed: too early
+    assert int(first["frames"]) == 1600 and not confirmed(first)  # met, not confirmed: too early
     assert int(second["frames"]) == 3200 and float(second["confirm_clean_sr"]) == metrics["clean_sr"]
 
 
@@ -219,7 +225,8 @@ def test_equal_frames_no_run_stops_before_its_budget(tmp_path, tiny_run_dict):
     metrics = train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
     assert metrics["frames"] == metrics["converged_at_frames"] == 4800 and metrics["converged"] and metrics["stop_reason"] == "thresholds"
     rows = ModelFolder(tmp_path / "m").read_log()
-    assert [int(r["frames"]) for r in rows] == [1600, 3200, 4800] and [bool(r.get("confirm_clean_sr")) for r in rows] == [False, False, True]
+    assert [int(r["frames"]) for r in rows] == [1600, 3200, 4800] and [confirmed(r) for r in rows] == [False, False, True]
+    assert float(rows[-1]["confirm_clean_sr"]) == metrics["clean_sr"]  # the confirmation is the final evaluation
 
 
 def test_min_frames_keeps_the_streak_and_is_checked_against_the_budget(tiny_run_dict):

@@ -223,3 +223,71 @@ def test_score_refuses_an_unknown_factor_and_a_detector_file_of_an_unknown_name(
     assert main(["score", str(det), "--zoo", str(lava_zoo), "--quiet"]) == 2
     line = _one_error_line(capsys)
     assert "detector.json" in line and "'nosuch' is not one of" in line
+
+
+def _contradicting_zoo(lava_zoo: Path, root: Path, name: str, arch: str) -> Path:
+    """A copy of the zoo whose model ``name`` names ``arch`` in its reduced config around weights of
+    another architecture, manifest rewritten to match (a zoo someone else wrote that way, not one
+    tampered with after the fact: verification passes)."""
+    from rlbackdoors.folder import write_manifest
+
+    zoo = root / "contradicting"
+    shutil.copytree(lava_zoo, zoo)
+    reduced = zoo / "models" / name / "reduced-config.json"
+    data = json.loads(reduced.read_text())
+    assert data["arch"] != arch  # the weights are another architecture's
+    reduced.write_text(json.dumps({**data, "arch": arch}))
+    write_manifest(zoo / "models" / name)
+    return zoo
+
+
+@pytest.mark.parametrize("arch", ["resnet-9000", "other"])
+def test_a_folder_that_contradicts_itself_is_refused_or_flagged_on_every_path(lava_zoo, tmp_path, capsys, arch):
+    """A model folder whose reduced config names an architecture its weights are not (one the
+    product does not know, or the world's other architecture) is refused in one line by fit, cv,
+    score and search, and scored 0.5 with a warning by infer (TrojAI's rule for a model it cannot
+    read); with --allow-mismatch score, infer and search read it as its weights say and flag it,
+    and its probability is the one its weights get in the untouched zoo."""
+    name = "id-00000000"
+    own = json.loads((lava_zoo / "models" / name / "reduced-config.json").read_text())["arch"]
+    arch = {"fc": "cnn", "cnn": "fc"}[own] if arch == "other" else arch
+    zoo = _contradicting_zoo(lava_zoo, tmp_path, name, arch)
+    said = f"names arch '{arch}'"
+
+    assert main(["fit", "--detector", "weights", "--zoo", str(zoo), "--out", str(tmp_path / "no"), "--param", "min_per_class=1", "--quiet"]) == 2
+    line = _one_error_line(capsys)
+    assert name in line and said in line and f"its weights fit lavaworld/{own}" in line and not (tmp_path / "no").exists()
+    assert main(["cv", "--detector", "weights", "--zoo", str(zoo), "--out", str(tmp_path / "cv"), "--folds", "2", "--quiet"]) == 2
+    assert said in _one_error_line(capsys)
+
+    det, meta = tmp_path / "det", tmp_path / "meta"
+    assert main(["fit", "--detector", "weights", "--zoo", str(lava_zoo), "--out", str(det), "--param", "min_per_class=1", "--quiet"]) == 0
+    assert main(["score", str(det), "--zoo", str(lava_zoo), "--out", str(tmp_path / "s0"), "--resamples", "50", "--quiet"]) == 0
+    truth = {m["model"]: m["probability"] for m in json.loads((tmp_path / "s0" / "score.json").read_text())["models"]}
+    capsys.readouterr()
+    assert main(["score", str(det), "--zoo", str(zoo), "--out", str(tmp_path / "s1"), "--resamples", "50", "--quiet"]) == 2
+    line = _one_error_line(capsys)
+    assert name in line and said in line and "--allow-mismatch" in line and not (tmp_path / "s1" / "score.json").exists()
+    assert main(["score", str(det), "--zoo", str(zoo), "--out", str(tmp_path / "s2"), "--resamples", "50", "--quiet", "--allow-mismatch", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    row = next(m for m in result["models"] if m["model"] == name)
+    assert result["mismatched"] == 1 and said in row["mismatch"] and row["probability"] == truth[name]
+
+    assert main(["metaparameters", "--detector", "weights", "--out", str(meta), "--param", "min_per_class=1"]) == 0
+    capsys.readouterr()
+    args = _trojai_args(zoo, name, tmp_path / "r.txt", tmp_path / "scratch", meta, det)
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert float((tmp_path / "r.txt").read_text()) == 0.5 and "scored 0.5" in err and said in err
+    assert main([*args, "--allow-mismatch"]) == 0
+    err = capsys.readouterr().err
+    assert float((tmp_path / "r.txt").read_text()) == pytest.approx(truth[name], abs=1e-12) and "MISMATCH" in err and said in err
+    assert said in json.loads((tmp_path / "scratch" / "result.json").read_text())["mismatch"]
+
+    params = ["--param", "candidates=3", "--param", "refine=1", "--param", "confirm=1", "--param", "episodes=2"]
+    folder = zoo / "models" / name
+    assert main(["search", str(folder), *params, "--json"]) == 2
+    assert said in _one_error_line(capsys)
+    assert main(["search", str(folder), *params, "--json", "--allow-mismatch"]) == 0
+    captured = capsys.readouterr()
+    assert "MISMATCH" in captured.err and said in json.loads(captured.out)["mismatch"] and json.loads(captured.out)["arch"] == own

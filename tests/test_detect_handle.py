@@ -192,3 +192,24 @@ def test_weights_that_fit_no_architecture_are_refused_by_name(world_models, tmp_
     torch.save({"state_emb.0.weight": torch.zeros(5, 5)}, folder / "model.pt")
     with pytest.raises(DetectError, match="fits no architecture of lavaworld"):
         open_model(folder)
+
+
+def test_a_reduced_config_that_names_another_architecture_is_a_contradiction(world_models):
+    """The weights decide what a model is; a reduced config that names an architecture the world
+    does not know, or the world's other one, contradicts them (Contradiction, carrying what the
+    weights fit); ours, a TrojAI class of the round and an OPAC² world's algorithm name agree."""
+    from rlbackdoors.detect.handle import Contradiction
+
+    lava = open_model(world_models["lavaworld"])
+    other = next(a for a in lava.world.arch_names if a != lava.arch)
+    for wanted, said in (("resnet-9000", "no architecture of lavaworld"), (other, f"lavaworld/{other}")):
+        with pytest.raises(Contradiction, match=f"names arch '{wanted}' \\({said}; .*but its weights fit lavaworld/{lava.arch}") as caught:
+            identify({"world": "lavaworld", "arch": wanted}, lava.weights)
+        assert (caught.value.world.name, caught.value.arch) == ("lavaworld", lava.arch)
+    with pytest.raises(Contradiction, match="no architecture of any registered world"):
+        identify({"arch": "resnet-9000"}, lava.weights)  # no world named: every world is asked
+    if lava.arch == "fc":
+        assert identify({"model": "BasicFCModel"}, lava.weights)[1] == "fc"  # TrojAI's class of the round
+    safety = open_model(world_models["safety-car-goal"])
+    assert safety.contradiction is None and lava.contradiction is None
+    assert identify({"world": "safety-car-goal", "arch": "opac2"}, safety.weights)[1] == safety.arch  # the algorithm's name

@@ -132,7 +132,13 @@ def cmd_search(args) -> int:
     from rlbackdoors.trojai_round import ROUND_FILES
 
     folder = Path(args.model)
-    handle = open_model(folder, reduced_optional=True)  # a folder name that may say the label becomes "model"
+    handle = open_model(folder, reduced_optional=True, allow_contradiction=True)  # a folder name that may say the label becomes "model"
+    if handle.contradiction is not None:
+        from rlbackdoors.detect.scope import ALLOW_HINT
+
+        if not args.allow_mismatch:
+            raise DetectError(f"{folder}: {handle.contradiction}; {ALLOW_HINT}")
+        print(f"rlbackdoors: warning: {folder}: MISMATCH, searched under --allow-mismatch: {handle.contradiction}", file=sys.stderr)
     if not any((folder / n).is_file() for n in ROUND_FILES):  # weights alone
         print(
             f"rlbackdoors: note: {folder}: no settings file ({', '.join(ROUND_FILES[:3])}); world and architecture identified from the weights, env settings the world's defaults",
@@ -143,6 +149,8 @@ def cmd_search(args) -> int:
     if why is not None:
         raise DetectError(f"{folder}: {why}")
     report = search_report(handle, detector.params, detector.run_search(handle), top=args.top)
+    if handle.contradiction is not None:
+        report["mismatch"] = handle.contradiction
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=2) + "\n")
     if args.json:
@@ -284,6 +292,11 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     se.add_argument("--top", type=_positive_int, default=5, help="screened candidates to list, best first (default 5)")
     se.add_argument("--out", help="also write the report (JSON) to this file")
     se.add_argument("--json", action="store_true", help="print the report as JSON instead of text")
+    se.add_argument(
+        "--allow-mismatch",
+        action="store_true",
+        help="search a folder whose settings name another architecture than its weights fit, as the weights say (flagged on stderr and in the report)",
+    )
     se.set_defaults(func=cmd_search)
 
     inf = sub.add_parser("infer", help="TrojAI inference mode: write one model's trojan probability")

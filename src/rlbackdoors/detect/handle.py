@@ -43,6 +43,16 @@ class DetectError(ValueError):
     """A model or detector that cannot be used: one line naming the file or field."""
 
 
+class Contradiction(DetectError):
+    """A model folder whose settings name an architecture its weights are not: refused, or (with
+    ``allow_contradiction``) opened as the weights say and flagged (``ModelHandle.contradiction``).
+    Scoring it quietly as whatever the weights fit would give a number for a model nobody knows."""
+
+    def __init__(self, message: str, world: worlds.World, arch: str):
+        super().__init__(message)
+        self.world, self.arch = world, arch
+
+
 @dataclass(frozen=True, eq=False)
 class ModelHandle:
     """One model as a detector sees it (module doc). Everything is in memory; nothing is a path.
@@ -51,7 +61,9 @@ class ModelHandle:
     architecture facts; ``world``: the registry record; ``arch``: the architecture name the
     weights fit; ``examples``: clean episodes (dicts of arrays: ``obs`` or ``obs_<key>``,
     ``actions``, ``rewards``, ...); ``env_settings``: the env fields the reduced config gives
-    (world defaults for the rest); ``name``: an opaque id (``id-XXXXXXXX`` or ``model-N``).
+    (world defaults for the rest); ``name``: an opaque id (``id-XXXXXXXX`` or ``model-N``);
+    ``contradiction``: None, or why its settings disagree with its weights (:class:`Contradiction`,
+    only on a handle opened with ``allow_contradiction``).
     """
 
     name: str
@@ -61,6 +73,7 @@ class ModelHandle:
     arch: str
     examples: tuple[Mapping[str, np.ndarray], ...] = ()
     env_settings: Mapping[str, Any] = field(default_factory=dict)
+    contradiction: str | None = None  # opened with allow_contradiction: what its settings said otherwise
 
     # ----- the world's clean env -----------------------------------------------------------
     def env_config(self, **overrides):
@@ -98,18 +111,24 @@ class ModelHandle:
 
 
 # ----- opening ---------------------------------------------------------------------------------
-def open_model(folder: str | Path, name: str | None = None, reduced_optional: bool = False) -> ModelHandle:
+def open_model(folder: str | Path, name: str | None = None, reduced_optional: bool = False, allow_contradiction: bool = False) -> ModelHandle:
     """The handle of a model folder (TrojAI layout): ``model.pt``, the round's settings files
     (``reduced-config.json``, or where a round put them instead: :data:`ROUND_FILES`) and
     ``clean-example-data/`` only. Raises :class:`DetectError` naming a missing or bad file. With
     ``reduced_optional`` a folder without any settings file (a training run's) opens from its
-    weights alone, with the world's default env settings."""
+    weights alone, with the world's default env settings. A folder whose settings name another
+    architecture than its weights fit raises :class:`Contradiction`, unless ``allow_contradiction``."""
     folder = Path(folder)
     if not folder.is_dir():
         raise DetectError(f"model folder {str(folder)!r} does not exist")
     examples = folder / EXAMPLES_DIR
     return open_files(
-        folder / MODEL_FILE, folder, examples if examples.is_dir() else None, name=name or _opaque_name(folder.name), required=not reduced_optional
+        folder / MODEL_FILE,
+        folder,
+        examples if examples.is_dir() else None,
+        name=name or _opaque_name(folder.name),
+        required=not reduced_optional,
+        allow_contradiction=allow_contradiction,
     )
 
 
@@ -120,6 +139,7 @@ def open_files(
     name: str = "model",
     scratch: str | Path | None = None,
     required: bool = True,
+    allow_contradiction: bool = False,
 ) -> ModelHandle:
     """A handle from the allowed files (TrojAI's ``--model_filepath``, the round's settings files
     in ``round_dir`` (the folder beside it), ``--examples_dirpath``), read from a private copy (in
@@ -184,7 +204,13 @@ def open_files(
     model_class, _ = files_read.model_class()
     if model_class is not None and not isinstance(view.get("arch", view.get("model")), str):
         view["model"] = model_class
-    world, arch = identify(view, weights, str(model_file))
+    contradiction = None
+    try:
+        world, arch = identify(view, weights, str(model_file))
+    except Contradiction as err:
+        if not allow_contradiction:
+            raise
+        world, arch, contradiction = err.world, err.arch, str(err)
     try:
         settings = {k: s.value for k, s in files_read.env(world).items() if k != "engine"}
     except ValueError as err:
@@ -197,6 +223,7 @@ def open_files(
         arch=arch,
         examples=tuple(MappingProxyType(e) for e in episodes),
         env_settings=MappingProxyType(settings),
+        contradiction=contradiction,
     )
 
 
@@ -262,21 +289,34 @@ def _read_npz(path: Path, shown: str) -> dict[str, np.ndarray]:
 
 
 # ----- which network -----------------------------------------------------------------------------
+def named_arch(world: worlds.World, wanted: str) -> str | None:
+    """Our architecture of ``world`` that a settings file's ``arch`` / ``model`` names: one of
+    ours, a TrojAI class of the world's round, or (an OPAC² world, whose reduced config names its
+    algorithm) the algorithm; None when it names none of them."""
+    if wanted in world.arch_names:
+        return wanted
+    if world.trojai_arch(wanted) is not None:
+        return world.trojai_arch(wanted)
+    if world.algorithm == "opac2" and wanted == world.algorithm:
+        return world.arch_names[0]
+    return None
+
+
 def identify(reduced: Mapping, weights: Mapping[str, torch.Tensor], shown: str = "model.pt") -> tuple[worlds.World, str]:
-    """(world, arch) of the weights: the reduced config's ``world`` and ``arch`` when they fit,
-    else the one registered architecture whose state-dict keys and shapes match."""
+    """(world, arch) of the weights: the one registered architecture whose state-dict keys and
+    shapes match (of the reduced config's ``world`` when it names one). A reduced config whose
+    ``arch`` (or ``model``) names an architecture the world does not know, or another one than
+    the weights fit, raises :class:`Contradiction` (carrying what the weights fit)."""
     name = reduced.get("world")
     candidates = [worlds.get(name)] if isinstance(name, str) and name in worlds.names() else worlds.registered()
     if isinstance(name, str) and name not in worlds.names():
         raise DetectError(f"reduced config of {shown!r}: world {name!r} is not one of {', '.join(worlds.names())}")
     wanted = reduced.get("arch", reduced.get("model"))
+    wanted = wanted if isinstance(wanted, str) else None
     fits = []
     for world in candidates:
-        names = list(world.arch_names)
-        if isinstance(wanted, str) and world.trojai_arch(wanted) is not None:  # a TrojAI class name
-            names = [n for n in names if n == world.trojai_arch(wanted)]
-        if isinstance(wanted, str) and wanted in names:
-            names = [wanted] + [n for n in names if n != wanted]
+        named = named_arch(world, wanted) if wanted is not None else None
+        names = [named, *(n for n in world.arch_names if n != named)] if named is not None else list(world.arch_names)
         for arch in names:
             if _fits(world, arch, weights):
                 fits.append((world, arch))
@@ -285,10 +325,27 @@ def identify(reduced: Mapping, weights: Mapping[str, torch.Tensor], shown: str =
         where = f"{candidates[0].name}" if len(candidates) == 1 else "any registered world"
         raise DetectError(f"weights file {shown!r} fits no architecture of {where} (reduced config arch: {wanted!r})")
     if len(fits) > 1:
-        raise DetectError(
-            f"weights file {shown!r} fits architectures of several worlds ({', '.join(f'{w.name}/{a}' for w, a in fits)}); give world in its reduced config"
+        named_fits = [(w, a) for w, a in fits if wanted is not None and named_arch(w, wanted) == a]
+        if len(named_fits) != 1:
+            raise DetectError(
+                f"weights file {shown!r} fits architectures of several worlds ({', '.join(f'{w.name}/{a}' for w, a in fits)}); give world in its reduced config"
+            )
+        fits = named_fits
+    world, arch = fits[0]
+    if wanted is not None and named_arch(world, wanted) != arch:
+        known = [w for w in candidates if named_arch(w, wanted) is not None]
+        said = (
+            f"{known[0].name}/{named_arch(known[0], wanted)}"
+            if known
+            else "no architecture of " + (world.name if len(candidates) == 1 else "any registered world")
         )
-    return fits[0]
+        allowed = ", ".join([*world.arch_names, *(c for c, _ in world.trojai_archs)])
+        raise Contradiction(
+            f"reduced config of {shown!r} names arch {wanted!r} ({said}; {world.name} has {allowed}) but its weights fit {world.name}/{arch}: the folder contradicts itself",
+            world,
+            arch,
+        )
+    return world, arch
 
 
 def _shapes(weights: Mapping[str, torch.Tensor]) -> dict[str, tuple[int, ...]]:
@@ -340,4 +397,4 @@ def build_agent(world: worlds.World, arch: str, weights: dict[str, torch.Tensor]
     return Agent(world, None, model, None)
 
 
-__all__ = ["DetectError", "ModelHandle", "build_agent", "identify", "open_files", "open_model"]
+__all__ = ["Contradiction", "DetectError", "ModelHandle", "build_agent", "identify", "named_arch", "open_files", "open_model"]

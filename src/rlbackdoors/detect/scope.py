@@ -9,7 +9,9 @@ env settings (grid size, lava count, cubes, episode cut, ...), the parameters an
 version; :func:`model_mismatch` and :func:`params_mismatch` name what a model or a set of
 metaparameters has that the fit did not see. ``detect score`` and ``detect infer`` refuse on
 either (one ``rlbackdoors: error:`` line) unless ``--allow-mismatch``, and then flag every such
-result instead of scoring it quietly.
+result instead of scoring it quietly. A model folder that contradicts itself (its settings name
+another architecture than its weights fit: :class:`rlbackdoors.detect.handle.Contradiction`) is
+treated the same way on every path.
 """
 
 from __future__ import annotations
@@ -99,9 +101,10 @@ def with_params(detector: Detector, given: dict, allow: bool) -> tuple[Detector,
 
 
 def check_model(detector: Detector, handle: ModelHandle, allow: bool, name: str | None = None) -> str | None:
-    """The mismatch flag of one model (None: in scope); a DetectError when it is out of scope
-    and ``allow`` is off."""
-    why = model_mismatch(detector, model_scope(detector, handle))
+    """The mismatch flag of one model (None: in scope); a DetectError when it is out of scope,
+    or its folder contradicts itself (a handle opened with ``allow_contradiction``), and ``allow``
+    is off."""
+    why = "; ".join(w for w in (handle.contradiction, model_mismatch(detector, model_scope(detector, handle))) if w) or None
     if why is not None and not allow:
         raise DetectError(f"model {name or handle.name!r}: {why}; {ALLOW_HINT}")
     return why

@@ -32,7 +32,7 @@ from rlbackdoors import __version__
 from rlbackdoors.detect import metrics
 from rlbackdoors.detect.api import FAILED_PROBABILITY, Detector, FeatureDetector, Prediction, make_detector
 from rlbackdoors.detect.dataset import FACTORS, Dataset, ZooModel, list_models
-from rlbackdoors.detect.handle import DetectError, ModelHandle, open_model
+from rlbackdoors.detect.handle import Contradiction, DetectError, ModelHandle, open_model
 from rlbackdoors.detect.resume import ResultStore, clear, eta, state_digest
 from rlbackdoors.detect.scope import check_model, model_scope, record
 from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_text, first_line, remove_tree
@@ -55,6 +55,8 @@ def open_one(model: ZooModel) -> ModelHandle:
     """A train model's handle; one that cannot be opened stops the fit (it needs them all)."""
     try:
         return open_model(model.folder, name=model.name)
+    except Contradiction as err:
+        raise Contradiction(f"model {model.name!r}: {err}", err.world, err.arch) from None
     except DetectError as err:
         raise DetectError(f"model {model.name!r}: {err}") from None
 
@@ -81,7 +83,7 @@ def scope_flags(detector: Detector, models: list[ZooModel], allow: bool) -> dict
     flags: dict[str, str] = {}
     for model in models:
         try:
-            handle = open_model(model.folder, name=model.name)
+            handle = open_model(model.folder, name=model.name, allow_contradiction=True)  # refused or flagged by check_model
         except Exception:  # scored 0.5 with its reason below
             continue
         why = check_model(detector, handle, allow, model.name)
@@ -166,7 +168,7 @@ def feature_rows(
                 refuse_unsupported(detector, handle, model.name)
                 features = detector.fit_features(handle)
                 result = {"features": features, "group": detector.group(handle), "info": dict(detector.last_info), "scope": model_scope(detector, handle)}
-            except Unsupported:
+            except (Unsupported, Contradiction):  # the whole job, a cross-validation too: not one 0.5 among many
                 raise
             except DetectError as err:
                 if strict:
@@ -212,11 +214,13 @@ def fit_into(
     return info
 
 
-def predict_model(detector: Detector, model: ZooModel) -> Prediction:
-    """One model, as the harness sees it: 0.5 and the reason when it cannot be opened."""
+def predict_model(detector: Detector, model: ZooModel, allow_contradiction: bool = False) -> Prediction:
+    """One model, as the harness sees it: 0.5 and the reason when it cannot be opened.
+    ``allow_contradiction``: a folder that contradicts itself is scored from its weights (its
+    flag comes from :func:`scope_flags`)."""
     started = time.perf_counter()
     try:
-        handle = open_model(model.folder, name=model.name)
+        handle = open_model(model.folder, name=model.name, allow_contradiction=allow_contradiction)
     except Exception as err:  # a bad file must not stop the zoo
         return Prediction(0.5, time.perf_counter() - started, f"{type(err).__name__}: {first_line(err)}")
     opened = time.perf_counter() - started
@@ -263,7 +267,7 @@ def score(
         for i, model in enumerate(models):
             cached = done.get(model.name)
             if cached is None:
-                prediction = predict_model(detector, model)
+                prediction = predict_model(detector, model, allow_contradiction=allow_mismatch)
                 cached = {"probability": prediction.probability, "seconds": round(prediction.seconds, 4), "error": prediction.error, "info": prediction.info}
                 if store:
                     store.put(model.name, model.folder, cached)

@@ -164,7 +164,10 @@ def infer(
     other than those fitted with, or a model outside what the detector was fitted on (world,
     architecture, env settings: :mod:`rlbackdoors.detect.scope`), are refused with one line and
     no result file, unless ``allow_mismatch``: then the result is written and the flag returned
-    (and kept in ``scratch_dirpath/result.json``)."""
+    (and kept in ``scratch_dirpath/result.json``). A model folder that contradicts itself (its
+    settings name another architecture than its weights fit) is a model the harness cannot read:
+    0.5 and the reason, as TrojAI scores an unreadable model; with ``allow_mismatch`` it is scored
+    from its weights and flagged."""
     config = validate(metaparameters_filepath, schema_filepath)
     detector = load_detector(learned_parameters_dirpath)
     name = config.get(DETECTOR_KEY, detector.name)
@@ -175,8 +178,8 @@ def infer(
     scratch.mkdir(parents=True, exist_ok=True)
     error = None
     try:
-        handle = open_files(model_filepath, Path(model_filepath).parent, examples_dirpath, name="model", scratch=scratch)
-    except Exception as err:  # the harness scores a model it cannot read 0.5
+        handle = open_files(model_filepath, Path(model_filepath).parent, examples_dirpath, name="model", scratch=scratch, allow_contradiction=allow_mismatch)
+    except Exception as err:  # the harness scores a model it cannot read 0.5 (a folder that contradicts itself too)
         probability, error = 0.5, f"{type(err).__name__}: {first_line(err)}"
     else:
         why = detector.unsupported(handle)

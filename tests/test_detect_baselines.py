@@ -267,9 +267,9 @@ def test_the_inversion_runs_on_a_real_model_and_feeds_the_screen(world_models):
     from rlbackdoors.triggers.wall_colors import WallColorTrigger
 
     handle = open_model(world_models["colorful-memory"])
-    # episodes cut at 40 steps: the tiny model wanders to the 250-step limit, and every Adam step
+    # episodes cut at 20 steps: the tiny model wanders to the 250-step limit, and every Adam step
     # replays all recorded steps (minutes per restart on a 2-core avx2 machine)
-    agent, env_cfg = handle.build_agent(), handle.env_config(max_steps=40)
+    agent, env_cfg = handle.build_agent(), handle.env_config(max_steps=20)
     specs = family.invert(agent, env_cfg, np.random.default_rng(1), 2)
     reached = [
         s for s in specs if not any(sum(a != b for a, b in zip(WallColorTrigger.parse(s).colors, WallColorTrigger.parse(r).colors)) == 1 for r in specs[:2])

@@ -19,6 +19,7 @@ from rlbackdoors.config import RunConfig
 from rlbackdoors.io import FolderLock, LockedError, UnsafeFileError, atomic_write_text, load_torch, remove_stale_temp_files
 from rlbackdoors.train import train
 from rlbackdoors.train.folder import FolderError, ModelFolder
+from cli_helpers import cli as run_cli
 
 PY = [sys.executable, "-m", "rlbackdoors.cli"]
 
@@ -54,8 +55,9 @@ def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def cli(*argv, cwd=None, timeout=300):
-    return subprocess.run([*PY, *map(str, argv)], capture_output=True, text=True, cwd=cwd, timeout=timeout)
+def cli(*argv, cwd=None):
+    """The CLI in this process (cli_helpers); the kills below use real processes."""
+    return run_cli(*argv, cwd=cwd)
 
 
 def one_error_line(proc) -> str:
@@ -364,6 +366,7 @@ def test_safety_checkpoint_stays_small_the_replay_is_journaled_once(tmp_path):
     assert per_row < 4 * (OBS_DIM + 4) * 1.2  # next_obs mostly deduplicated: ~one observation per row
 
 
+@pytest.mark.slow  # resume bit for bit after a signal is in the default run (test_safety_signal_writes_the_checkpoint_...)
 def test_safety_run_killed_again_and_again_still_ends_with_the_straight_runs_model(tmp_path):
     """kill -9 at random moments (mid-step, mid-checkpoint, mid-journal write), four times, with a
     checkpoint at every evaluation: each restart resumes, the temp files of the killed writers

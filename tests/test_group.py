@@ -37,6 +37,7 @@ from rlbackdoors.zoo.index import read_metadata
 from rlbackdoors.zoo.plan import plan
 from rlbackdoors.zoo.run import run as zoo_run
 from rlbackdoors.zoo.spec import parse_spec
+from cli_helpers import cli
 
 FEED_FORWARD = [("lavaworld", "fc"), ("lavaworld", "cnn"), ("randomized-lavaworld", "fc"), ("randomized-lavaworld", "cnn")]
 TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4, "video": False}}
@@ -544,9 +545,7 @@ def test_group_size_is_validated(tmp_path):
         zoo_run(tmp_path / "z", env_workers=2, backend="ray")
     with pytest.raises(ConfigError, match="--env-workers must be an integer >= 0, got -1"):
         zoo_run(tmp_path / "z", env_workers=-1)
-    out = subprocess.run(
-        [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(tmp_path / "z"), "--group-size", "0"], capture_output=True, text=True, timeout=120
-    )
+    out = cli("run", tmp_path / "z", "--group-size", "0", module="rlbackdoors.zoo.cli")
     assert out.returncode == 2 and "--group-size: must be auto or an integer >= 1, got '0'" in out.stderr
     for flags, message in (
         (["--models", "0"], "--models: must be >= 1, got 0"),
@@ -559,7 +558,7 @@ def test_group_size_is_validated(tmp_path):
         (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]]"),
         (["--side", "1", "--group-size", "2"], "bench zoo: --side names each side's group size and device; leave out --group-size and --device"),
     ):
-        out = subprocess.run([sys.executable, "-m", "rlbackdoors.cli", "bench", "zoo", *flags], capture_output=True, text=True, timeout=120)
+        out = cli("bench", "zoo", *flags)
         assert out.returncode == 2 and out.stderr.count("\n") == 1 and message in out.stderr, out.stderr
 
 

@@ -31,6 +31,7 @@ from rlbackdoors.zoo.report import report, wilson
 from rlbackdoors.zoo.run import run
 from rlbackdoors.zoo.spec import ZooError, load_spec, parse_spec
 from rlbackdoors.zoo.split import split
+from cli_helpers import cli as run_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "rlbackdoors.zoo.cli"]
@@ -71,7 +72,8 @@ def hashes(zoo: Path, name: str = "model.pt") -> dict[str, str]:
 
 
 def cli(*args, check: bool = False) -> subprocess.CompletedProcess:
-    return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, check=check, timeout=300)
+    """``python -m rlbackdoors.zoo.cli`` in this process (cli_helpers); the kills use real processes."""
+    return run_cli(*args, module="rlbackdoors.zoo.cli", check=check)
 
 
 @pytest.fixture(scope="module")

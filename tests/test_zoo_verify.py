@@ -24,6 +24,7 @@ from rlbackdoors.zoo.plan import plan
 from rlbackdoors.zoo.run import run
 from rlbackdoors.zoo.spec import ZooError, parse_spec
 from rlbackdoors.zoo.verify import verify
+from cli_helpers import cli  # noqa: F401  (test_zoo_links imports it from here)
 
 CLI = [sys.executable, "-m", "rlbackdoors.cli"]
 TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "eval_interval": 1600, "eval_episodes": 5, "final_eval_episodes": 5, "video": False}}
@@ -57,7 +58,7 @@ def zoo(built, tmp_path) -> Path:
     return copied
 
 
-def cli(*args) -> subprocess.CompletedProcess:
+def cli_process(*args) -> subprocess.CompletedProcess:
     return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=600)
 
 
@@ -87,7 +88,7 @@ def test_an_untouched_zoo_verifies_clean_with_a_stable_digest(zoo):
         listed = json.loads((folder / "manifest.json").read_text())["files"]
         assert {"model.pt", "config.json", "ground_truth.csv", "metrics.json", "reduced-config.json", "clean-example-data/episode-000.npz"} <= set(listed)
         assert listed["model.pt"]["sha256"] == sha(folder / "model.pt")
-    proc = cli("zoo", "verify", zoo)
+    proc = cli_process("zoo", "verify", zoo)  # through a real process once
     assert proc.returncode == 0 and f"digest sha256:{first.digest}" in proc.stdout
     assert cli("zoo", "verify", zoo, "--expect", f"sha256:{first.digest}").returncode == 0
     assert cli("zoo", "status", zoo).returncode == 0

@@ -241,6 +241,7 @@ def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_z
     ]
 
 
+@pytest.mark.slow  # trains a zoo in groups through build(); --group-size parsing stays in the default run
 def test_the_benchmark_command_passes_its_group_size_to_zoo_run(table_module, tmp_path):
     """``--group-size`` reaches ``zoo run``: models of a worker train in one group process (its
     line heads the first model's train.log), and every planned model is trained. Why: the

@@ -431,6 +431,7 @@ def zoo_spec() -> dict:
     }
 
 
+@pytest.mark.slow  # covered by parts in the default run: zoo kill -9 (test_zoo), a pooled group resumed after SIGTERM (test_env_pool), group folders (test_group_of_one_...)
 def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
     """``zoo run --group-size 3`` on one worker: SIGTERM once a checkpoint is on disk stops the
     group job with every run's checkpoint; a second run finishes every model as ordinary,
@@ -586,6 +587,7 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "side1-k2-cpu-w1" / "models").glob("*/metrics.json"))
 
 
+@pytest.mark.slow  # the env pool itself is in the default run (test_env_pool); this is the bench side that uses it
 def test_bench_zoo_side_with_env_workers_trains_in_an_env_pool(tmp_path):
     """``--side 1:cpu:1:2``: the Safety Car Goal model's job steps its env copies in 2 workers."""
     from rlbackdoors.bench.zoo import bench_zoo

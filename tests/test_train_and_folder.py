@@ -78,6 +78,7 @@ def test_no_temp_files_left_behind(tmp_path, tiny_run_dict):
     assert [p.name for p in (tmp_path / "m").iterdir() if p.name.startswith(".")] == [".lock"]
 
 
+@pytest.mark.slow  # kill -9 and resume of a PPO run stays in the default run through test_attacks.py::test_a_killed_attack_run_resumes_to_the_same_model
 def test_interrupted_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     """Kill a training process after its first checkpoint; rerunning finishes the same model
     an uninterrupted run produces, bit for bit."""

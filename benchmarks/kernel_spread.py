@@ -99,7 +99,7 @@ def rel(a: float, b: float) -> float:
     return abs(a - b) / max(abs(a), abs(b), 1e-12)
 
 
-def spread(runs: dict, case: str, updates: int) -> dict:
+def spread(runs: dict, updates: int) -> dict:
     """Largest relative differences per update and statistic (module doc)."""
     result: dict = {"group_vs_lone": [], "lone_across_kernels": []}
     for u in range(updates):
@@ -151,7 +151,7 @@ def main() -> None:
         weights = max(r["weights_max_abs_difference_in_lr"] for r in runs.values())
         result["cases"][case] = {
             "capabilities": {n: r["capability"] for n, r in runs.items()},
-            **spread(runs, case, args.updates),
+            **spread(runs, args.updates),
             "weights_max_abs_difference_in_lr": weights,  # group vs lone after the last update, in learning rates
             "runs": runs,
         }

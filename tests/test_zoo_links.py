@@ -24,7 +24,8 @@ from rlbackdoors.zoo.plan import plan
 from rlbackdoors.zoo.run import run
 from rlbackdoors.zoo.spec import parse_spec
 from rlbackdoors.zoo.verify import verify
-from test_zoo_verify import ALWAYS, CLI, cli, error_line, spec
+from cli_helpers import cli
+from test_zoo_verify import ALWAYS, CLI, error_line, spec
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ from rlbackdoors.zoo.plan import plan
 from rlbackdoors.zoo.run import run
 from rlbackdoors.zoo.spec import ZooError, parse_spec
 from rlbackdoors.zoo.verify import verify
-from cli_helpers import cli  # noqa: F401  (test_zoo_links imports it from here)
+from cli_helpers import cli
 
 CLI = [sys.executable, "-m", "rlbackdoors.cli"]
 TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "eval_interval": 1600, "eval_episodes": 5, "final_eval_episodes": 5, "video": False}}

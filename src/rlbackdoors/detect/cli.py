@@ -128,16 +128,13 @@ def cmd_search(args) -> int:
     whether its backdoor is found; a researcher reads what a detector's features are made of."""
     from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, search_report
     from rlbackdoors.detect.handle import DetectError, open_model
+    from rlbackdoors.detect.scope import check_contradiction
     from rlbackdoors.io import atomic_write_text
     from rlbackdoors.trojai_round import ROUND_FILES
 
     folder = Path(args.model)
     handle = open_model(folder, reduced_optional=True, allow_contradiction=True)  # a folder name that may say the label becomes "model"
-    if handle.contradiction is not None:
-        from rlbackdoors.detect.scope import ALLOW_HINT
-
-        if not args.allow_mismatch:
-            raise DetectError(f"{folder}: {handle.contradiction}; {ALLOW_HINT}")
+    if check_contradiction(handle, args.allow_mismatch, str(folder)) is not None:
         print(f"rlbackdoors: warning: {folder}: MISMATCH, searched under --allow-mismatch: {handle.contradiction}", file=sys.stderr)
     if not any((folder / n).is_file() for n in ROUND_FILES):  # weights alone
         print(

@@ -295,8 +295,8 @@ def named_arch(world: worlds.World, wanted: str) -> str | None:
     algorithm) the algorithm; None when it names none of them."""
     if wanted in world.arch_names:
         return wanted
-    if world.trojai_arch(wanted) is not None:
-        return world.trojai_arch(wanted)
+    if (arch := world.trojai_arch(wanted)) is not None:
+        return arch
     if world.algorithm == "opac2" and wanted == world.algorithm:
         return world.arch_names[0]
     return None

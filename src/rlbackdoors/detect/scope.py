@@ -100,14 +100,23 @@ def with_params(detector: Detector, given: dict, allow: bool) -> tuple[Detector,
     return fresh, why
 
 
+def check_contradiction(handle: ModelHandle, allow: bool, shown: str) -> str | None:
+    """The flag of a model folder that contradicts itself (a handle opened with
+    ``allow_contradiction``; None: it does not); a DetectError naming ``shown`` unless ``allow``.
+    What an unfitted detector (``detect search``) checks; :func:`check_model` checks it too."""
+    if handle.contradiction is not None and not allow:
+        raise DetectError(f"{shown}: {handle.contradiction}; {ALLOW_HINT}")
+    return handle.contradiction
+
+
 def check_model(detector: Detector, handle: ModelHandle, allow: bool, name: str | None = None) -> str | None:
     """The mismatch flag of one model (None: in scope); a DetectError when it is out of scope,
-    or its folder contradicts itself (a handle opened with ``allow_contradiction``), and ``allow``
-    is off."""
-    why = "; ".join(w for w in (handle.contradiction, model_mismatch(detector, model_scope(detector, handle))) if w) or None
+    or its folder contradicts itself, and ``allow`` is off."""
+    shown = f"model {name or handle.name!r}"
+    why = "; ".join(w for w in (check_contradiction(handle, allow, shown), model_mismatch(detector, model_scope(detector, handle))) if w) or None
     if why is not None and not allow:
-        raise DetectError(f"model {name or handle.name!r}: {why}; {ALLOW_HINT}")
+        raise DetectError(f"{shown}: {why}; {ALLOW_HINT}")
     return why
 
 
-__all__ = ["check_model", "model_mismatch", "model_scope", "params_mismatch", "record", "with_params"]
+__all__ = ["check_contradiction", "check_model", "model_mismatch", "model_scope", "params_mismatch", "record", "with_params"]

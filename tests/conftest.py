@@ -10,7 +10,9 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 @pytest.fixture
 def tiny_run_dict():
-    """A config that trains in seconds: small rollouts, few frames, few eval episodes."""
+    """A config that trains in seconds: small rollouts, few frames, few eval episodes, and no
+    clean_vs_triggered.gif (rendering ~480 frames costs ~2.5 s a run on a 2-core EPYC, more than
+    the training; the tests that check the GIF turn it back on)."""
     return {
         "ppo": {"rollout": 32},
         "train": {
@@ -19,5 +21,6 @@ def tiny_run_dict():
             "eval_interval": 1600,
             "eval_episodes": 8,
             "final_eval_episodes": 8,
+            "video": False,
         },
     }

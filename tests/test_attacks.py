@@ -387,7 +387,7 @@ def test_a_clean_model_of_an_attack_cell_trains_as_any_clean_model(tmp_path, tin
 def test_a_killed_attack_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     """kill -9 after the first checkpoint: the seam's picks, value window and counters come back
     from it, so the resumed run ends with the uninterrupted run's weights and budget, bit for bit."""
-    tiny_run_dict["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
+    tiny_run_dict["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0)
     tiny_run_dict["poison"] = {"attack": "badrl", "attack_params": {"budget": 0.05, "force_action": True, "window": 500}}
     whole, cut = killed_run_matches_whole(tmp_path, RunConfig.from_dict(tiny_run_dict))
     assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["actions_forced"] > 0

@@ -260,7 +260,8 @@ def test_the_inversion_descent_recovers_a_planted_optimum():
 
 def test_the_inversion_runs_on_a_real_model_and_feeds_the_screen(world_models):
     """On a (tiny) trained Colorful Memory model: end patterns of the right length, the patterns
-    reached first and every one-square neighbour of each after; the same list from the same seed;
+    reached first and every one-square neighbour of each after; the same list from the same seed
+    (the search's inversion, repeated);
     nothing from a policy without the hook or with no restarts; the search screens them first and
     still screens the listed candidates."""
     from rlbackdoors.detect.baselines import search_wall_colors as family
@@ -279,12 +280,12 @@ def test_the_inversion_runs_on_a_real_model_and_feeds_the_screen(world_models):
         trigger = WallColorTrigger.parse(spec)
         assert trigger.kind == "end" and len(trigger.colors) == env_cfg.size + 2
     assert len(specs) == len(set(specs)) >= len(reached) + 9 * 5 - 1
-    assert specs == family.invert(agent, env_cfg, np.random.default_rng(1), 2)
     assert family.invert(agent, env_cfg, np.random.default_rng(1), 0) == []
     lava = open_model(world_models["lavaworld"]).build_agent()
     assert family.invert(lava, env_cfg, np.random.default_rng(1), 2) == []
     result = search(agent, handle.world, env_cfg, family, candidates=3, refine=0, confirm=1, episodes=2, confirm_episodes=2, invert=1)
     screened = [t.spec for t in result.screened]
+    # the search's own seed, inverted again here: the same list from the same seed
     inverted = family.invert(agent, env_cfg, np.random.default_rng(4_000_000 + 3), 1)
     assert screened[: len(inverted)] == inverted and screened[len(inverted) :] == family.candidates(env_cfg, np.random.default_rng(4_000_000), 3)
 

@@ -291,7 +291,7 @@ def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_sam
     from rlbackdoors.folder import ModelFolder
 
     data = finetune_dict(tiny_run_dict, near=1.0, teacher=1.0, anchor=0.05)
-    data["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
+    data["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0)
     whole, cut = killed_run_matches_whole(tmp_path, RunConfig.from_dict(data))
     assert whole["attack_budget_used"] == cut["attack_budget_used"] and whole["attack_budget_used"]["frames_near_trigger"] > 0
     log = ModelFolder(tmp_path / "whole").read_log()
@@ -307,7 +307,7 @@ def test_a_checkpoint_without_the_clean_model_its_config_names_is_refused_in_one
     from grid_helpers import kill_after_first_checkpoint
 
     data = finetune_dict(tiny_run_dict, **{variant: 0.05})
-    data["train"].update(max_frames=40_960, eval_interval=5_120, checkpoint_minutes=0.0)
+    data["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0)
     (tmp_path / "cfg.json").write_text(RunConfig.from_dict(data).to_json())
     cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(tmp_path / "cfg.json"), "--quiet", "--out", str(tmp_path / "cut")]
     kill_after_first_checkpoint(cmd, tmp_path / "cut")
@@ -326,7 +326,10 @@ def test_a_checkpoint_without_the_clean_model_its_config_names_is_refused_in_one
 
 
 def zoo_spec(**top) -> dict:
-    tiny = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "min_frames": 1600, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4}}
+    tiny = {
+        "ppo": {"rollout": 32},
+        "train": {"max_frames": 3200, "min_frames": 1600, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4, "video": False},
+    }
     return {
         "name": "evasive",
         "seed": 12,

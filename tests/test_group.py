@@ -416,7 +416,10 @@ def zoo_spec() -> dict:
         "name": "group",
         "seed": 5,
         "examples": {"episodes": 1},
-        "overrides": {"ppo": {"rollout": 32}, "train": {"max_frames": 9600, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4}},
+        "overrides": {
+            "ppo": {"rollout": 32},
+            "train": {"max_frames": 9600, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4, "video": False},
+        },
         "cells": [
             {
                 "world": "lavaworld",
@@ -575,6 +578,7 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
         workers=1,
         keep=str(tmp_path),
         on_side=lambda r: saved.append(len(r["sides"])),
+        eval_episodes=4,  # the mechanics, not the figures: the world's 100 episodes would take most of the time
     )
     alone, grouped = result["sides"]
     assert saved == [1, 2]  # written after each side: a run cut short keeps what it measured

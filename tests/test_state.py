@@ -112,7 +112,7 @@ def test_snapshot_restore_rules():
 def test_ppo_run_stopped_by_sigterm_between_evaluations_resumes_bit_for_bit(tmp_path, tiny_run_dict):
     """SIGTERM lands between evaluations: the run finishes its update, checkpoints that state
     (not the last evaluation's) and exits 130; rerunning gives the uninterrupted model."""
-    tiny_run_dict["train"].update(max_frames=40_960, eval_interval=5_120)
+    tiny_run_dict["train"].update(max_frames=20_480, eval_interval=5_120)
     cfg_path = tmp_path / "cfg.json"
     cfg_path.write_text(RunConfig.from_dict(tiny_run_dict).to_json())
     cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--out"]

@@ -21,6 +21,7 @@ def weights_equal(a, b) -> bool:
 
 
 def test_model_folder_contents(tmp_path, tiny_run_dict):
+    tiny_run_dict["train"]["video"] = True
     cfg = RunConfig.from_dict(tiny_run_dict)
     metrics = train(cfg, tmp_path / "m", progress=False)
     folder = ModelFolder(tmp_path / "m")

@@ -35,7 +35,7 @@ from cli_helpers import cli as run_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "rlbackdoors.zoo.cli"]
-TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 6400, "eval_interval": 1600, "eval_episodes": 5, "final_eval_episodes": 5}}
+TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 6400, "eval_interval": 1600, "eval_episodes": 5, "final_eval_episodes": 5, "video": False}}
 ALWAYS = {"train": {"clean_threshold": 0.0, "poisoned_threshold": 0.0}}  # every final evaluation passes
 # No tiny model gets there; trains 6 evaluations long (the kill test stops one in the middle).
 NEVER = {"train": {"clean_threshold": 1.0, "poisoned_threshold": 1.0, "max_frames": 9600}}

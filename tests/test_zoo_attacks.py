@@ -17,7 +17,7 @@ from rlbackdoors.zoo.run import run
 from rlbackdoors.zoo.spec import parse_spec
 from rlbackdoors.zoo.split import split
 
-TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4}}
+TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 3200, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4, "video": False}}
 ALWAYS = {"train": {"clean_threshold": 0.0, "poisoned_threshold": 0.0}}
 
 
@@ -99,8 +99,9 @@ def test_an_attack_a_world_cannot_serve_is_refused_when_the_spec_is_read():
 def test_a_zoo_of_attacks_records_them_reports_them_and_holds_one_out(tmp_path):
     path = tmp_path / "zoo"
     plan(parse_spec(spec()), path)
-    run(path, workers=2, progress_interval=5.0)
+    run(path, workers=2, group_size=3, progress_interval=5.0)  # two group jobs: attacks train in groups too
     rows = read_metadata(path / "METADATA.csv")
+    assert len(rows) == 6 and all(json.loads((path / "models" / r["model_name"] / "metrics.json").read_text())["trainer"] == "group" for r in rows)
     assert len(rows) == 6 and all(r["converged"] == "True" for r in rows)
     by_cell = {(r["cell"], r["poisoned"]): r for r in rows}
     assert by_cell[("lavaworld/fc/additive", "True")]["attack"] == "envmix"

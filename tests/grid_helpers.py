@@ -374,21 +374,23 @@ def assert_seam_resumes(a, b, actions, cut: int, *also: str) -> None:
 
 
 def killed_run_matches_whole(tmp_path, cfg) -> tuple[dict, dict]:
-    """Train ``cfg`` (a RunConfig) through the CLI once uninterrupted and once SIGKILLed after its
-    first checkpoint and started again: the same model.pt bytes. Returns both metrics.json."""
+    """Train ``cfg`` (a RunConfig) once uninterrupted, and once through the CLI SIGKILLed after its
+    first checkpoint and then resumed: the same model.pt bytes. Returns both metrics.json. The
+    uninterrupted run and the resume run in this process (the run's threads and generators come
+    from its config, so the CLI gives the same bytes); only the killed run needs a process."""
     import json
-    import subprocess
     import sys
 
     from rlbackdoors.folder import ModelFolder
+    from rlbackdoors.train import train
 
     cfg_path = tmp_path / "cfg.json"
     cfg_path.write_text(cfg.to_json())
     cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
-    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True, timeout=300)
+    train(cfg, tmp_path / "whole", progress=False)
     kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
     assert 1 <= len(ModelFolder(tmp_path / "cut").read_log()) < 8
-    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True, timeout=300)
+    train(cfg, tmp_path / "cut", progress=False)
     assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
     whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
     return whole, cut

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from cli_helpers import cli
 from grid_helpers import assert_seam_resumes, killed_run_matches_whole
 from rlbackdoors import attacks, worlds
 from rlbackdoors.algos.obs import to_torch
@@ -130,8 +131,7 @@ def test_a_layout_trigger_attack_needs_the_batched_engine():
 
 
 def test_the_cli_stops_with_one_error_line_naming_the_field(tmp_path):
-    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--attack", "badrl", "--attack-param", "top_fraction=2", "--out", str(tmp_path / "m")]
-    result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    result = cli("train", "--attack", "badrl", "--attack-param", "top_fraction=2", "--out", tmp_path / "m")
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("rlbackdoors: error: poison.attack_params.top_fraction=2 is not allowed")

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from cli_helpers import cli
 from grid_helpers import assert_seam_resumes, killed_run_matches_whole
 from rlbackdoors import worlds
 from rlbackdoors.algos.ppo import PPO
@@ -85,8 +86,7 @@ def test_evasion_is_refused_for_a_clean_model_and_left_out_of_config_json_until_
 
 
 def test_the_cli_stops_with_one_error_line_naming_the_evasive_field(tmp_path):
-    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--attack", "trojdrl", "--evade", "teacher=2", "--out", str(tmp_path / "m")]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    done = cli("train", "--attack", "trojdrl", "--evade", "teacher=2", "--out", tmp_path / "m")
     assert done.returncode == 2 and done.stderr.strip().splitlines() == [
         "rlbackdoors: error: poison.evasion.teacher=2.0 needs poison.evasion.finetune=true (the teacher is the clean model the run fine-tunes from)"
     ]
@@ -563,22 +563,12 @@ def test_evaluate_near_reports_the_attacks_success_under_each_near_trigger(tmp_p
 
     tiny_run_dict["poison"] = {"trigger": "multiplicative:12"}
     train(RunConfig.from_dict(tiny_run_dict), tmp_path / "m", progress=False)
-    done = subprocess.run(
-        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--near", "--episodes", "6", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    done = cli("evaluate", tmp_path / "m", "--near", "--episodes", "6", "--json")
     out = json.loads(done.stdout)
     near = out["near_trigger_success"]
     assert list(near) == list(worlds.get("lavaworld").near_triggers("multiplicative:12"))
     assert out["near_max"] == max(near.values()) and out["near_mean"] == pytest.approx(sum(near.values()) / 6)
-    single = subprocess.run(
-        [sys.executable, "-m", "rlbackdoors.cli", "evaluate", str(tmp_path / "m"), "--trigger", "multiplicative:14", "--episodes", "6", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    single = cli("evaluate", tmp_path / "m", "--trigger", "multiplicative:14", "--episodes", "6", "--json")
     assert json.loads(single.stdout)["poisoned_sr"] == near["multiplicative:14"]
     assert main(["evaluate", "--weights", str(tmp_path / "m" / "model.pt"), "--env", "lavaworld", "--arch", "fc", "--near"]) == 2
 

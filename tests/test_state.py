@@ -116,7 +116,9 @@ def test_ppo_run_stopped_by_sigterm_between_evaluations_resumes_bit_for_bit(tmp_
     cfg_path = tmp_path / "cfg.json"
     cfg_path.write_text(RunConfig.from_dict(tiny_run_dict).to_json())
     cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--out"]
-    subprocess.run(cmd + [str(tmp_path / "whole"), "--quiet"], check=True, capture_output=True)
+    from rlbackdoors.train import train
+
+    train(RunConfig.from_dict(tiny_run_dict), tmp_path / "whole", progress=False)  # the reference, in this process: same bytes as the CLI's
     proc = subprocess.Popen(cmd + [str(tmp_path / "cut")], stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 60
     while not (tmp_path / "cut" / "log.csv").exists() and time.time() < deadline:  # the first evaluation

@@ -257,7 +257,8 @@ def test_an_unreadable_weights_file_is_named_first_and_torch_prints_no_path(tmp_
 def test_the_container_entry_point_runs_as_the_harness_calls_it_on_every_world(world_models, tmp_path):
     """``python entrypoint.py infer --flag=value ...`` (the runscript of container/detector.def),
     in a subprocess, on a model folder of each world made here: one float in the result file; the
-    legacy call without the sub-command does the same; a detector fitted on all four worlds."""
+    legacy call without the sub-command does the same (on the first world: it differs in its argv
+    only); a detector fitted on all four worlds."""
     zoo = tmp_path / "zoo" / "models"
     zoo.mkdir(parents=True)
     for world, folder in world_models.items():
@@ -282,9 +283,9 @@ def test_the_container_entry_point_runs_as_the_harness_calls_it_on_every_world(w
     )
     assert done.returncode == 0, done.stderr
     assert sorted(json.loads((learned / "detector.json").read_text())["fitted_on"]["worlds"]) == sorted(world_models)
-    for world in world_models:
+    for n, world in enumerate(world_models):
         folder = zoo / world_models[world].name
-        for legacy in (False, True):
+        for legacy in (False, True)[: 2 if n == 0 else 1]:
             result = tmp_path / f"{world}-{legacy}.txt"
             args = harness_args(folder, result, tmp_path / "scratch", meta, learned, zoo.parent)
             done = subprocess.run([*entry, *(args[1:] if legacy else args)], capture_output=True, text=True, timeout=300)

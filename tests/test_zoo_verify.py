@@ -44,10 +44,11 @@ def spec(overrides: dict, clean: int = 1, poisoned: int = 1, triggers=("multipli
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory) -> Path:
-    """4 converged models: 2 cells (multiplicative, additive) x clean / poisoned."""
+    """4 converged models: 2 cells (multiplicative, additive) x clean / poisoned, trained in one
+    group job (one process: what is verified here does not depend on the trainer)."""
     path = tmp_path_factory.mktemp("verify") / "zoo"
     plan(parse_spec(spec(ALWAYS)), path)
-    run(path, workers=2, progress_interval=60)
+    run(path, workers=1, group_size=4, progress_interval=60)
     return path
 
 
@@ -203,7 +204,8 @@ def test_run_refuses_a_tampered_zoo_and_retrain_tampered_gives_the_same_bytes(zo
     swapped = _swap_configs(zoo)
     line = error_line(cli("zoo", "run", zoo, "--workers", "2"))
     assert "--retrain-tampered" in line
-    proc = cli("zoo", "run", zoo, "--workers", "2", "--retrain-tampered")
+    # retrained in a group of their own: on a CPU an agent's bytes do not depend on its group-mates
+    proc = cli("zoo", "run", zoo, "--workers", "1", "--group-size", "4", "--retrain-tampered")
     assert proc.returncode == 0, proc.stderr
     assert "emptied, it trains again" in proc.stderr and all(n in proc.stderr for n in swapped)
     assert {f.name: sha(f / "model.pt") for f in models(zoo)} == before

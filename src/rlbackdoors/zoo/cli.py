@@ -171,6 +171,17 @@ def cmd_verify(args) -> int:
     return 0
 
 
+def cmd_pack(args) -> int:
+    from rlbackdoors.zoo.pack import pack
+
+    packed = pack(args.zoo, args.out)
+    if args.json:
+        print(json.dumps({"out": str(packed.out), "finished": packed.finished, "failed": packed.failed, "planned": packed.planned, "bytes": packed.bytes}))
+    else:
+        print(packed.line())
+    return 0
+
+
 def cmd_status(args) -> int:
     skipped = _verified(args, "status")
     if _imported(args.zoo, "status"):
@@ -315,6 +326,12 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     ve.add_argument("--json", action="store_true", help="print the result as JSON")
     ve.set_defaults(func=cmd_verify)
 
+    pa = sub.add_parser("pack", help="a copy small enough for git: finished models' weights, configs and metrics with manifests, the plan; no logs or pictures")
+    pa.add_argument("zoo")
+    pa.add_argument("--out", required=True, help="pack folder (new, or a pack of this same zoo, replaced once the new one verifies)")
+    pa.add_argument("--json", action="store_true", help="print what was packed as JSON")
+    pa.set_defaults(func=cmd_pack)
+
     skip_help = "leave the models that fail zoo verify out, and name them (default: such a zoo is refused)"
     st = sub.add_parser("status", help="the table of cells: wanted / converged / not converged / failed / running / left")
     st.add_argument("zoo")
@@ -371,7 +388,9 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
 
 def add_zoo_parser(subparsers) -> argparse.ArgumentParser:
     """Mount ``zoo`` on the main CLI: ``add_zoo_parser(sub)`` in ``rlbackdoors.cli.build_parser``."""
-    zoo = subparsers.add_parser("zoo", help="datasets of clean and poisoned agents: plan, run (local or Ray), verify, status, split, report, import-trojai")
+    zoo = subparsers.add_parser(
+        "zoo", help="datasets of clean and poisoned agents: plan, run (local or Ray), verify, pack, status, split, report, import-trojai"
+    )
     add_commands(zoo)
     return zoo
 

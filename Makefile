@@ -6,10 +6,10 @@ BIN := $(VENV)/bin
 $(BIN)/rlbackdoors: pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[test,docs]'
 	touch $@
 
-.PHONY: install demo test test-slow bench
+.PHONY: install demo test test-slow bench docs
 install: $(BIN)/rlbackdoors
 
 demo: install
@@ -19,7 +19,11 @@ test: install
 	$(BIN)/ruff check src tests
 	$(BIN)/ruff format --check src tests
 	$(BIN)/mypy
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir .site  # the docs site: a broken link, anchor or missing page fails
 	$(BIN)/python -m pytest -q -n auto --dist loadfile  # one worker per core, a test file per worker (pytest-xdist)
+
+docs: install
+	$(BIN)/mkdocs serve  # the docs site at http://127.0.0.1:8000 (mkdocs build --strict writes it to .site/)
 
 test-slow: install
 	$(BIN)/python -m pytest -q -m slow

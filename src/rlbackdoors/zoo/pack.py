@@ -1,6 +1,6 @@
 """``rlbackdoors zoo pack ZOO --out DIR``: a copy of a zoo small enough to keep in git.
 
-Why: a zoo is priced in CPU-hours (a Randomized LavaWorld CNN model takes ~7 CPU-minutes), and the
+Why: a zoo is priced in CPU-hours (a CNN model takes several CPU-minutes), and the
 machines that train it keep no file from one day to the next. A pack keeps what detectors and the
 zoo's own commands read, and nothing else:
 

@@ -357,6 +357,33 @@ def _load_builtins() -> None:
     importlib.import_module("rlbackdoors.detect.baselines")
 
 
+def load_plugin(path: str | Path) -> None:
+    """Import a Python file of one's own detectors (``--plugin FILE``), which registers them with
+    :func:`register`; the same file twice is imported once. A plugin is code its user chose to run,
+    like any script; what the product never runs is what arrives in a model or detector folder
+    (read as data). DetectError names a missing file or the error the file raised."""
+    import hashlib
+    import importlib.util
+    import sys
+
+    file = Path(path)
+    if not file.is_file():
+        raise DetectError(f"--plugin {str(path)!r} is not a file (a Python file that registers detectors with @register)")
+    key = "rlbackdoors_plugin_" + hashlib.sha256(str(file.resolve()).encode()).hexdigest()[:12]
+    if key in sys.modules:
+        return
+    spec = importlib.util.spec_from_file_location(key, file)
+    if spec is None or spec.loader is None:
+        raise DetectError(f"--plugin {str(path)!r} cannot be imported as a Python module")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[key] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as err:
+        del sys.modules[key]
+        raise DetectError(f"--plugin {str(path)!r} failed: {type(err).__name__}: {err}") from None
+
+
 def detector_names() -> tuple[str, ...]:
     _load_builtins()
     return tuple(_REGISTRY)
@@ -382,6 +409,7 @@ __all__ = [
     "detector_names",
     "get_detector",
     "load_detector",
+    "load_plugin",
     "make_detector",
     "register",
 ]

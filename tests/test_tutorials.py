@@ -17,6 +17,9 @@ from cli_helpers import cli
 
 ROOT = Path(__file__).resolve().parent.parent
 DETECTORS = ROOT / "docs" / "tutorials" / "detectors.md"
+ATTACKS = ROOT / "docs" / "tutorials" / "attacks.md"
+# a tiny training budget for the attack tutorial's runs (each a few seconds), added to its train commands
+TINY_RUN = ["--eval-interval", "1600", "--eval-episodes", "4", "--final-eval-episodes", "4", "--checkpoint-minutes", "0"]
 TINY_TRAIN = "max_frames = 3_200\neval_interval = 1_600\neval_episodes = 4\nfinal_eval_episodes = 4\nclean_threshold = 0.0\npoisoned_threshold = 0.0\nvideo = false\n\n[overrides.ppo]\nrollout = 32\n"
 
 
@@ -57,10 +60,12 @@ def tiny_spec(tmp_path: Path) -> Path:
     return path
 
 
-def run_tutorial(page: Path, cwd: Path, replace: dict[str, str]) -> list[str]:
+def run_tutorial(page: Path, cwd: Path, replace: dict[str, str], extra: dict[str, list[str]] | None = None) -> list[str]:
+    """Run the page's commands in ``cwd``, each argument through ``replace``; ``extra``: arguments
+    appended to the commands of a sub-command (say, a smaller evaluation for ``train``)."""
     outputs = []
     for argv in commands(page):
-        argv = [replace.get(a, a) for a in argv]
+        argv = [replace.get(a, a) for a in argv] + (extra or {}).get(argv[0], [])
         done = cli(*argv, cwd=cwd)
         assert done.returncode == 0, (argv, done.stderr[-2000:])
         outputs.append(done.stdout)
@@ -125,3 +130,27 @@ def test_a_plugin_registers_its_detectors_and_a_bad_one_is_refused_in_one_line(t
     bad = cli("detect", "fit", "--plugin", tmp_path / "bad.py", "--detector", "weights", "--zoo", tmp_path, "--out", tmp_path / "o")
     assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [f"rlbackdoors: error: --plugin {str(tmp_path / 'bad.py')!r} failed: RuntimeError: boom"]
     assert not (tmp_path / "o").exists()
+
+
+def test_the_attack_tutorial_runs_as_written(tmp_path):
+    """Its six commands, in order, at a tiny budget: two runs of 3,200 frames (TrojDRL and
+    SleeperNets, seed 0; each stops at the update that passes the budget, 10 envs x 128 frames),
+    their evaluations, and the near-trigger evaluation."""
+    assert len(commands(ATTACKS)) == 6
+    outputs = run_tutorial(ATTACKS, tmp_path, {"3000000": "3200", "200": "4", "50": "2"}, {"train": TINY_RUN})
+    runs = tmp_path / "runs" / "attacks"
+    for attack in ("trojdrl", "sleepernets"):
+        metrics = json.loads((runs / attack / "metrics.json").read_text())
+        assert metrics["attack"] == attack and 3200 <= metrics["frames"] < 3200 + 10 * 128 and metrics["attack_budget_used"]["frames_poisoned"] > 0
+        assert (runs / attack / "clean_vs_triggered.gif").read_bytes()[:6] == b"GIF89a"
+        assert (runs / attack / "training_curve.png").read_bytes()[:4] == b"\x89PNG"
+    assert "trojdrl" in outputs[0] and "sleepernets" in outputs[0]  # the registry's listing
+    assert "near" in outputs[3].lower()  # evaluate --near: the success under each near trigger
+
+
+@pytest.mark.slow
+def test_the_attack_tutorial_runs_at_its_own_scale(tmp_path):
+    """The same commands as written (a minute or two per training on one core)."""
+    run_tutorial(ATTACKS, tmp_path, {})
+    for attack in ("trojdrl", "sleepernets"):
+        assert json.loads((tmp_path / "runs" / "attacks" / attack / "metrics.json").read_text())["converged"] is True

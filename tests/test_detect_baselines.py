@@ -259,6 +259,32 @@ def test_the_inversion_descent_recovers_a_planted_optimum():
 
 
 def test_the_inversion_runs_on_a_real_model_and_feeds_the_screen(world_models):
+    """On a (tiny) trained Colorful Memory model, one restart: an end pattern of the right length
+    reached, then every one-square neighbour of it; nothing from a policy without the hook or with
+    no restarts; the search (its own inversion from the same seed) screens that same list first,
+    then the listed candidates. Two restarts, best first: the slow test below."""
+    from rlbackdoors.detect.baselines import search_wall_colors as family
+    from rlbackdoors.triggers.wall_colors import WallColorTrigger
+
+    handle = open_model(world_models["colorful-memory"])
+    # episodes cut at 20 steps: the tiny model wanders to the 250-step limit, and every Adam step
+    # replays all recorded steps (minutes per restart on a 2-core avx2 machine)
+    agent, env_cfg = handle.build_agent(), handle.env_config(max_steps=20)
+    specs = family.invert(agent, env_cfg, np.random.default_rng(4_000_000 + 3), 1)  # the seed the search below uses
+    reached = WallColorTrigger.parse(specs[0])
+    assert reached.kind == "end" and len(reached.colors) == env_cfg.size + 2
+    assert all(sum(a != b for a, b in zip(WallColorTrigger.parse(s).colors, reached.colors)) == 1 for s in specs[1:])
+    assert len(specs) == len(set(specs)) == 1 + (env_cfg.size + 2) * 5  # every square, each to the 5 other colours
+    assert family.invert(agent, env_cfg, np.random.default_rng(1), 0) == []
+    lava = open_model(world_models["lavaworld"]).build_agent()
+    assert family.invert(lava, env_cfg, np.random.default_rng(1), 2) == []
+    result = search(agent, handle.world, env_cfg, family, candidates=3, refine=0, confirm=1, episodes=2, confirm_episodes=2, invert=1)
+    screened = [t.spec for t in result.screened]
+    assert screened[: len(specs)] == specs and screened[len(specs) :] == family.candidates(env_cfg, np.random.default_rng(4_000_000), 3)
+
+
+@pytest.mark.slow  # two restarts and a second search: the default run has the one-restart test above
+def test_the_inversion_of_two_restarts_lists_the_best_first_and_feeds_the_screen(world_models):
     """On a (tiny) trained Colorful Memory model: end patterns of the right length, the patterns
     reached first and every one-square neighbour of each after; the same list from the same seed
     (the search's inversion, repeated);

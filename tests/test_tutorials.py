@@ -47,14 +47,14 @@ def commands(page: Path) -> list[list[str]]:
 
 
 def tiny_spec(tmp_path: Path) -> Path:
-    """The tutorial's spec with its training budget cut to seconds and 2 + 2 models a cell (its cells'
+    """The tutorial's spec with its training budget cut to seconds and 1 + 1 models a cell (its cells'
     worlds, triggers and seed unchanged)."""
     text = (ROOT / "examples" / "tutorial-detectors.toml").read_text()
     head, sep, _ = text.partition("[overrides.train]\n")
     cells = text[text.index("[[cells]]") :]
     assert sep, "the tutorial's spec has no [overrides.train] table"
     assert "clean = 3\npoisoned = 3\n" in cells
-    cells = cells.replace("clean = 3\npoisoned = 3\n", "clean = 2\npoisoned = 2\n")  # 8 models, not 12: a process each costs seconds
+    cells = cells.replace("clean = 3\npoisoned = 3\n", "clean = 1\npoisoned = 1\n")  # 4 models, not 12: a process each costs seconds
     path = tmp_path / "tutorial-detectors.toml"
     path.write_text(head + sep + TINY_TRAIN + "\n" + cells)
     return path
@@ -94,7 +94,7 @@ def check_detector_tutorial(cwd: Path, outputs: list[str]) -> None:
 
 
 def test_the_detector_tutorial_runs_as_written(tmp_path):
-    """Its eight commands, in order, on the tutorial's zoo at a tiny budget (8 models, a process
+    """Its eight commands, in order, on the tutorial's zoo at a tiny budget (4 models, a process
     each, as the tutorial's own zoo run trains them)."""
     replace = {
         "examples/tutorial-detectors.toml": str(tiny_spec(tmp_path)),

@@ -29,10 +29,11 @@ def own_registry():
     imported plugin modules, as it found them (the other test files share the process)."""
     from rlbackdoors.detect import api
 
-    registry, modules = dict(api._REGISTRY), {k for k in sys.modules if k.startswith("rlbackdoors_plugin_")}
+    api.detector_names()  # the built-in detectors first: importing them registers them once per process
+    registry, modules = set(api._REGISTRY), {k for k in sys.modules if k.startswith("rlbackdoors_plugin_")}
     yield
-    api._REGISTRY.clear()
-    api._REGISTRY.update(registry)
+    for name in set(api._REGISTRY) - registry:
+        del api._REGISTRY[name]
     for key in [k for k in sys.modules if k.startswith("rlbackdoors_plugin_") and k not in modules]:
         del sys.modules[key]
 

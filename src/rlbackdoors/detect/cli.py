@@ -244,8 +244,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     """The detect sub-commands on ``parser`` (``rlbackdoors detect``, or the standalone parser)."""
     sub = parser.add_subparsers(dest="detect_command", required=True, parser_class=Parser)
     li = sub.add_parser("list", help="the registered detectors and their parameters")
-    _plugin_option(li)
-    li.set_defaults(func=_with_plugins(cmd_list))
+    _takes_plugins(li, cmd_list)
 
     fi = sub.add_parser("fit", help="fit a detector on a train zoo and save its learned parameters (plain data)")
     fi.add_argument("--detector", required=True, help="detector name (see detect list)")
@@ -255,8 +254,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     fi.add_argument("--overwrite", action="store_true", help="replace a detector already in --out")
     fi.add_argument("--quiet", action="store_true", help="no progress lines")
     _skip_option(fi)
-    _plugin_option(fi)
-    fi.set_defaults(func=_with_plugins(cmd_fit))
+    _takes_plugins(fi, cmd_fit)
 
     sc = sub.add_parser("score", help="score a fitted detector on a test zoo: AUC, CE, Brier with 95%% CIs, per world and factor; JSON and PNGs")
     sc.add_argument("detector_dir", metavar="DET", help="folder written by detect fit (or configure)")
@@ -274,8 +272,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
         help="score models (and parameters) outside what the detector was fitted on; each is flagged in score.json and the table",
     )
     _scoring_options(sc, seed="bootstrap seed (default 0)")
-    _plugin_option(sc)
-    sc.set_defaults(func=_with_plugins(cmd_score))
+    _takes_plugins(sc, cmd_score)
 
     cv = sub.add_parser("cv", help="cross-validate a features-and-classifier detector on one dataset too small to split: out-of-fold AUC, CE, Brier")
     cv.add_argument("--detector", required=True, help="detector name (see detect list)")
@@ -284,8 +281,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     cv.add_argument("--folds", type=_positive_int, default=5, help="stratified folds, at most the smaller label's count (default 5)")
     cv.add_argument("--param", action="append", metavar="KEY=VALUE", help="a detector parameter (repeatable; values read as JSON)")
     _scoring_options(cv, seed="seed of the folds and the bootstrap (default 0)")
-    _plugin_option(cv)
-    cv.set_defaults(func=_with_plugins(cmd_cv))
+    _takes_plugins(cv, cmd_cv)
 
     se = sub.add_parser("search", help="the behavioural trigger search on one model folder: the candidate trigger that fires it, against the clean env")
     se.add_argument("model", metavar="MODEL", help="a model folder: model.pt (reduced-config.json and clean-example-data/ when there)")
@@ -317,8 +313,7 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="score a model or metaparameters outside what the detector was fitted on (flagged on stderr and in SCRATCH/result.json)",
     )
-    _plugin_option(inf)
-    inf.set_defaults(func=_with_plugins(cmd_infer))
+    _takes_plugins(inf, cmd_infer)
 
     co = sub.add_parser("configure", help="TrojAI configuration mode: fit the detector the metaparameters name, write learned parameters")
     co.add_argument("--scratch_dirpath", required=True, help="scratch folder")
@@ -327,28 +322,24 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     co.add_argument("--schema_filepath", required=True, help="JSON schema for the metaparameters")
     co.add_argument("--learned_parameters_dirpath", required=True, help="folder to write the learned parameters into")
     co.add_argument("--automatic_configuration", action="store_true", help="accepted for TrojAI; C is always chosen by cross-validation")
-    _plugin_option(co)
-    co.set_defaults(func=_with_plugins(cmd_configure))
+    _takes_plugins(co, cmd_configure)
 
     me = sub.add_parser("metaparameters", help="write metaparameters.json and metaparameters_schema.json for a detector (for infer/configure)")
     me.add_argument("--detector", required=True, help="detector name")
     me.add_argument("--out", required=True, help="folder to write the two files into")
     me.add_argument("--param", action="append", metavar="KEY=VALUE", help="a parameter value other than the default (repeatable)")
-    _plugin_option(me)
-    me.set_defaults(func=_with_plugins(cmd_metaparameters))
+    _takes_plugins(me, cmd_metaparameters)
 
 
-def _plugin_option(parser: argparse.ArgumentParser) -> None:
+def _takes_plugins(parser: argparse.ArgumentParser, command) -> None:
+    """``--plugin FILE`` on ``parser``, and ``command`` run after importing those files (each
+    registers its detectors)."""
     parser.add_argument(
         "--plugin",
         action="append",
         metavar="FILE",
         help="a Python file of your own detectors, imported first (it registers them with @register; repeatable; docs/tutorials/detectors.md)",
     )
-
-
-def _with_plugins(command):
-    """``command`` after importing the ``--plugin`` files (each registers its detectors)."""
 
     def run(args) -> int:
         from rlbackdoors.detect.api import load_plugin
@@ -357,7 +348,7 @@ def _with_plugins(command):
             load_plugin(path)
         return command(args)
 
-    return run
+    parser.set_defaults(func=run)
 
 
 def add_detect_parser(subparsers) -> argparse.ArgumentParser:

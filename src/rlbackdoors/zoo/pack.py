@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rlbackdoors.folder import write_manifest
-from rlbackdoors.io import atomic_write_bytes
 from rlbackdoors.zoo.job import COMPLETE_MARK, FAILED
 from rlbackdoors.zoo.spec import ZooError
 
@@ -49,12 +48,6 @@ class Packed:
             f"{self.out}: {self.finished} finished models (weights kept), {self.failed} failed, {self.planned} planned or in progress "
             f"(to train again); {self.bytes / 1e6:.2f} MB"
         )
-
-
-def _copy(src: Path, dst: Path) -> int:
-    data = src.read_bytes()
-    atomic_write_bytes(dst, data)
-    return len(data)
 
 
 def pack(zoo_path: str | Path, out: str | Path) -> Packed:
@@ -80,8 +73,8 @@ def pack(zoo_path: str | Path, out: str | Path) -> Packed:
     out.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".rlbtmp", dir=out.parent))
     try:
-        packed = Packed(out)
-        packed.bytes += _copy(root / "zoo.json", work / "zoo.json")
+        packed = Packed(out)  # written into ``work``, put in place by one rename at the end
+        shutil.copyfile(root / "zoo.json", work / "zoo.json")
         (work / "models").mkdir()
         for model in zoo.all_planned():
             state = model_state(zoo, model)
@@ -90,15 +83,16 @@ def pack(zoo_path: str | Path, out: str | Path) -> Packed:
             names = KEPT if state.status == "done" else PLANNED
             for name in names:
                 if (folder / name).is_file():
-                    packed.bytes += _copy(folder / name, dest / name)
+                    shutil.copyfile(folder / name, dest / name)
             if state.status == "done":
-                packed.bytes += write_manifest(dest).stat().st_size
+                write_manifest(dest)
                 packed.finished += 1
             elif state.status == "failed":
                 packed.failed += 1
             else:
                 packed.planned += 1
-        packed.bytes += write_metadata(Zoo.open(work)).stat().st_size
+        write_metadata(Zoo.open(work))
+        packed.bytes = sum(p.stat().st_size for p in work.rglob("*") if p.is_file())
         check = verify(work)
         if not check.ok:  # a pack that would not verify is never put in place
             raise ZooError(f"zoo pack: the pack failed verification ({check.lines()[0]}); nothing was replaced")

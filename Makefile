@@ -30,7 +30,7 @@ test-slow: install
 	$(BIN)/python -m pytest -q -m slow
 
 bench: install
-	$(BIN)/rlbackdoors bench train --json benchmarks/train.json
-	$(BIN)/rlbackdoors bench env --json benchmarks/env.json
-	$(BIN)/rlbackdoors bench converge --quiet --json benchmarks/converge.json
-	$(BIN)/rlbackdoors bench env --env safety-car-goal --json benchmarks/safety.json
+	$(BIN)/rlbackdoors bench train --json benchmarks/results/train.json
+	$(BIN)/rlbackdoors bench env --json benchmarks/results/env.json
+	$(BIN)/rlbackdoors bench converge --quiet --json benchmarks/results/converge.json
+	$(BIN)/rlbackdoors bench env --env safety-car-goal --json benchmarks/results/safety.json

@@ -2,7 +2,7 @@
 # Issue 33's measurement: every attack on LavaWorld FC, seeds 0-9, the env-mix reference in the same
 # session (CPU minutes per model are compared against it). Resumable: rerun it after a kill and every
 # finished seed is read, every interrupted one resumes from its checkpoint. One run at a time, at nice.
-#   bash benchmarks/attacks_lavaworld.sh [SEEDS]      -> benchmarks/recipes/attack-lavaworld-fc-*.json
+#   bash benchmarks/attacks_lavaworld.sh [SEEDS]      -> benchmarks/results/recipes/attack-lavaworld-fc-*.json
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SEEDS=${1:-10}

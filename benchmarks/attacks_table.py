@@ -1,4 +1,4 @@
-"""The per-attack table of docs/attacks/README.md, from benchmarks/recipes/attack-*.json.
+"""The per-attack table of docs/attacks/README.md, from benchmarks/results/recipes/attack-*.json.
 
     python benchmarks/attacks_table.py            # markdown on stdout
 
@@ -17,7 +17,7 @@ import shlex
 import statistics
 from pathlib import Path
 
-RECIPES = Path(__file__).resolve().parent / "recipes"
+RECIPES = Path(__file__).resolve().parent / "results" / "recipes"
 
 
 def median(values: list) -> float | None:

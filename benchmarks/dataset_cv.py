@@ -16,7 +16,7 @@ that model):
 3. ``rlbackdoors detect cv`` per detector into ``runs/detect/NAME/cv-DETECTOR`` (a killed run
    resumes there; features are computed once per model).
 
-It writes ``benchmarks/detectors/NAME.json``: per detector the metrics with CIs, the folds, the
+It writes ``benchmarks/results/detectors/NAME.json``: per detector the metrics with CIs, the folds, the
 seconds per model, the per-model rows (found trigger next to the true one), and the machine with
 its load. The folders are only read. Adding folders later makes a new import (step 2 again into
 a fresh zoo); models seen before keep their names, so their features are read back.
@@ -86,7 +86,7 @@ def main() -> None:
         print(
             f"{detector}: AUC {s['auc']['value']:.3f} CE {s['ce']['value']:.3f} Brier {s['brier']['value']:.3f} over {s['n']} models ({s['poisoned']} poisoned)"
         )
-    out_file = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
+    out_file = ROOT / "benchmarks" / "results" / "detectors" / f"{args.name}.json"
     payload = {"command": " ".join(sys.argv[1:]), "models": len(folders), "detectors": results, "machine": machine_info(), "loadavg": os.getloadavg()}
     atomic_write_text(out_file, json.dumps(payload, indent=2) + "\n")
     print(f"-> {out_file}")

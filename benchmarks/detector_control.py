@@ -11,7 +11,7 @@ poisoned ones (``examples/zoo-colorful-memory-clean-long.toml``). For each detec
 this scores the control (``rlbackdoors detect score``, resumable), counts the control models each
 calls poisoned (p > 0.5), and pools the cross-fitted scores of the zoo's models with the control
 models (mean of the two fits' probabilities; label clean): AUC, cross-entropy and Brier with
-95 % bootstrap CIs. Writes ``benchmarks/detectors/NAME.json`` with the machine and its load.
+95 % bootstrap CIs. Writes ``benchmarks/results/detectors/NAME.json`` with the machine and its load.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def main() -> None:
             f"{det}: control {r['control_models']} clean, called poisoned {called[0]} / {called[1]}; "
             f"with the zoo's {len(zoo_rows)}: AUC {r['auc']['value']:.3f} CE {r['ce']['value']:.3f} Brier {r['brier']['value']:.3f}"
         )
-    out = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
+    out = ROOT / "benchmarks" / "results" / "detectors" / f"{args.name}.json"
     summary = {"command": " ".join(sys.argv[1:]), "detectors": results, "machine": machine_info(), "loadavg": os.getloadavg()}
     atomic_write_text(out, json.dumps(summary, indent=2) + "\n")
     print(f"-> {out}")

@@ -5,7 +5,7 @@
 plans and trains the zoo (``rlbackdoors zoo plan`` / ``zoo run``, into ``runs/detect/NAME/zoo``),
 splits it by trigger (``zoo split``: no trigger of the test split is in the train split), fits
 every baseline on the train split (``detect fit``) and scores it on the test split (``detect
-score``), then writes ``benchmarks/detectors/NAME.json``: per detector and world, train / test
+score``), then writes ``benchmarks/results/detectors/NAME.json``: per detector and world, train / test
 model counts, AUC, cross-entropy and Brier score with their 95 % bootstrap CIs, seconds per
 model and failed models; and a control row, the AUC of training length alone (``metrics.json``
 frames, read by this script, never by a detector), which says how much of a weight statistic's
@@ -24,7 +24,7 @@ the held-out attacks' cells (``zoo split --hold-out-attack``), and fitted on a m
 of the whole zoo, ``--train`` / ``--test``) and scored there; AUC and CE with CIs per attack.
 ``--extra-test SPEC`` adds a zoo of further attack cells (its triggers disjoint from the env-mix
 cells'), every model of which the env-mix fit scores as held out. The table is also drawn, as
-``benchmarks/detectors/NAME-by-attack.png`` (AUC per fit and detector x attack, with CIs);
+``benchmarks/results/detectors/NAME-by-attack.png`` (AUC per fit and detector x attack, with CIs);
 ``--replot`` redraws it from ``NAME.json`` alone, and re-derives the headroom verdict there from
 the stored AUCs (a verdict rule added later reaches tables already measured; nothing is scored).
 """
@@ -365,10 +365,10 @@ def replot(stored: Path, picture: Path, name: str) -> Path:
 
 
 def write_summary(name: str, summary: dict, started: float, load_before) -> Path:
-    """``benchmarks/detectors/NAME.json``: the summary with the machine and its load beside it."""
+    """``benchmarks/results/detectors/NAME.json``: the summary with the machine and its load beside it."""
     summary = {**summary, "machine": machine_info(), "loadavg_before": load_before, "loadavg_after": os.getloadavg()}
     summary["elapsed_minutes"] = round((time.time() - started) / 60, 1)
-    out = ROOT / "benchmarks" / "detectors" / f"{name}.json"
+    out = ROOT / "benchmarks" / "results" / "detectors" / f"{name}.json"
     out.parent.mkdir(exist_ok=True)
     atomic_write_text(out, json.dumps(summary, indent=2) + "\n")
     return out
@@ -425,10 +425,10 @@ def main() -> None:
     parser.add_argument(
         "--replot",
         action="store_true",
-        help="redraw NAME-by-attack.png and re-derive the headroom verdict from benchmarks/detectors/NAME.json; train and score nothing",
+        help="redraw NAME-by-attack.png and re-derive the headroom verdict from benchmarks/results/detectors/NAME.json; train and score nothing",
     )
     args = parser.parse_args()
-    picture = ROOT / "benchmarks" / "detectors" / f"{args.name}-by-attack.png"
+    picture = ROOT / "benchmarks" / "results" / "detectors" / f"{args.name}-by-attack.png"
     if args.replot:
         print(replot(picture.with_name(f"{args.name}.json"), picture, args.name))
         return

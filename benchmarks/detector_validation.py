@@ -10,7 +10,7 @@ Brier with 95 % bootstrap CIs on the subset whose triggers are not among the tra
 (read from the models' ``config.json`` by this script, never by a detector), and on all of
 them, per trigger family too. ``--pool DATASET`` (repeatable: e.g. the train zoo's own test
 split, a top-up zoo) also scores those datasets' held-out models and reports them pooled with the
-zoo's, one held-out set of all their sizes. Writes ``benchmarks/detectors/NAME.json`` with the machine.
+zoo's, one held-out set of all their sizes. Writes ``benchmarks/results/detectors/NAME.json`` with the machine.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ def main() -> None:
         "machine": machine_info(),
         "loadavg": os.getloadavg(),
     }
-    path = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
+    path = ROOT / "benchmarks" / "results" / "detectors" / f"{args.name}.json"
     atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
     print(f"{len(held_out)} of {len(models)} models have triggers the train split never used")
     print("| detector | models | AUC [95% CI] | CE [95% CI] | Brier [95% CI] |\n|---|---|---|---|---|")

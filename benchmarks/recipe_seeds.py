@@ -3,7 +3,7 @@
     python benchmarks/recipe_seeds.py NAME --seeds 10 --workers 2 -- --env randomized-lavaworld --arch fc
 
 runs ``rlbackdoors train FLAGS --seed S --out runs/recipes/NAME/sS`` for each seed (``--workers``
-at a time, one torch thread each), then writes ``benchmarks/recipes/NAME.json`` (``--summaries``): converged /
+at a time, one torch thread each), then writes ``benchmarks/results/recipes/NAME.json`` (``--summaries``): converged /
 attempted with a Wilson 95 % interval, the distribution (min, median, max) of frames and wall time
 of the converged runs, and every run's final clean / poisoned SR on its 200-episode final
 evaluation. It resumes: a finished seed is read, not retrained; a killed one resumes from its
@@ -124,7 +124,7 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=0, help="first seed (earlier ones ran elsewhere and are summarised there)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--runs", default=str(ROOT / "runs" / "recipes"))
-    parser.add_argument("--summaries", default=str(ROOT / "benchmarks" / "recipes"), help="where NAME.json is written (and read, to carry runs over)")
+    parser.add_argument("--summaries", default=str(ROOT / "benchmarks" / "results" / "recipes"), help="where NAME.json is written (and read, to carry runs over)")
     parser.add_argument("--summarise", action="store_true", help="summarise the finished seeds; train nothing")
     argv = sys.argv[1:]
     cut = argv.index("--") if "--" in argv else len(argv)

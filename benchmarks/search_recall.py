@@ -6,7 +6,7 @@
 runs ``rlbackdoors detect search`` on each model folder (its JSON report kept in ``--cache``,
 default ``runs/detect/search-NAME``, and read back when its parameters are the ones asked for, so
 a killed run resumes), then reads each model's label and true trigger from its ``config.json``
-(this script does; the search never sees them) and writes ``benchmarks/detectors/NAME.json``: per
+(this script does; the search never sees them) and writes ``benchmarks/results/detectors/NAME.json``: per
 model the true and the found trigger, whether they are equal, the trojan-outcome rate under the
 found one against the clean env's, seconds; per label the count of models whose found trigger
 fires in at least half the confirmation episodes above clean; with both labels, the AUC (95 %
@@ -87,7 +87,7 @@ def main() -> None:
         # so its AUC is the excess's (its CE and Brier would mean nothing: nothing was fitted).
         scored = summarize_rows([{"probability": (r["excess"] + 1) / 2, "label": r["poisoned"]} for r in rows])
         summary["auc_of_excess"] = scored["auc"]
-    out = ROOT / "benchmarks" / "detectors" / f"{args.name}.json"
+    out = ROOT / "benchmarks" / "results" / "detectors" / f"{args.name}.json"
     result = {"command": " ".join(sys.argv[1:]), "params": wanted, "summary": summary, "models": rows, "machine": machine_info(), "loadavg": os.getloadavg()}
     atomic_write_text(out, json.dumps(result, indent=2) + "\n")
     print(json.dumps(summary), f"-> {out}")

@@ -5,7 +5,7 @@ What must hold: a stacked agent computes what it computes alone (up to float rou
 kernels sum in another order), its numbers do not depend on its group-mates or the group size
 (so a group-trained model is reproducible from its config), a group of one is today's lone path
 (same bytes), every agent ends as an ordinary model folder, and a killed group resumes.
-Equivalence of *trained outcomes* over many seeds is a measurement (benchmarks/group_equivalence.py),
+Equivalence of *trained outcomes* over many seeds is a measurement (experiments/group_equivalence/group_equivalence.py),
 not a unit test.
 """
 
@@ -100,7 +100,7 @@ def step_both(alone: list, grouped: list) -> tuple[list, list, list]:
     return lone, results, stats
 
 
-# Log-probabilities of a rollout, group vs lone (benchmarks/kernel_spread.json, avx512, avx2 and
+# Log-probabilities of a rollout, group vs lone (experiments/kernel_spread/kernel_spread.json, avx512, avx2 and
 # no-SIMD kernels): the first rollout is played by identical weights (measured 1.2e-7 at most: fp32
 # rounding of one forward); the second by weights one update apart in rounding, which Adam turns
 # into steps of up to its learning rate in weights whose gradient is near 0 (measured 2.1e-4): 5x.
@@ -279,7 +279,7 @@ def with_anchors(learners: list, coefs: list[float]) -> list:
     return learners
 
 
-# Relative tolerance of the teachers test per update, from benchmarks/kernel_spread.json (largest
+# Relative tolerance of the teachers test per update, from experiments/kernel_spread/kernel_spread.json (largest
 # relative difference over grad_norm, teacher_kl and anchor_distance, the group against lone learners
 # and lone learners against themselves under avx512, avx2 and no-SIMD kernels). Update 1 is rounding
 # of fp32 sums (measured <= 1e-5 everywhere): 1e-4. Update 2 of LavaWorld is not: a random teacher

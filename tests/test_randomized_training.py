@@ -153,14 +153,14 @@ def test_train_json_output_is_pure_json_even_with_a_curriculum_switch(tmp_path, 
 
 
 def test_sight_actions_reads_a_layout_trigger_agent_and_refuses_others(tmp_path):
-    """benchmarks/sight_actions.py (what an agent does while the pattern is in sight): its shares
+    """experiments/sight_actions/sight_actions.py (what an agent does while the pattern is in sight): its shares
     are over the in-sight steps it counts, and a world whose trigger is not seen frame by frame is
     refused in one line."""
     import subprocess
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "sight_actions.py"
+    script = Path(__file__).resolve().parents[1] / "experiments" / "sight_actions" / "sight_actions.py"
     cfg = tiny(0.0, poison={"trigger": "cross", "attack": "trojdrl", "attack_params": {"budget": 0.05}})
     train(RunConfig.from_dict({**cfg.to_dict(), "train": {**cfg.to_dict()["train"], "video": False}}), tmp_path / "m", progress=False)
     done = subprocess.run([sys.executable, str(script), str(tmp_path / "m"), "--episodes", "4", "--show", "2"], capture_output=True, text=True, timeout=300)

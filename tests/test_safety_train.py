@@ -106,9 +106,9 @@ def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
 
 
 def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
-    """benchmarks/safety_train.json keeps configs written before opac2.action_samples and
+    """benchmarks/results/safety_train.json keeps configs written before opac2.action_samples and
     opac2.lr_final existed: they ran with one sample and a constant lr, and must load that way."""
-    saved = json.loads((Path(__file__).parents[1] / "benchmarks" / "safety_train.json").read_text())["poisoned-s0"]["config"]
+    saved = json.loads((Path(__file__).parents[1] / "benchmarks" / "results" / "safety_train.json").read_text())["poisoned-s0"]["config"]
     assert "action_samples" not in saved["opac2"] and "lr_final" not in saved["opac2"]
     cfg = RunConfig.from_dict(migrate(saved))  # a format-1 config.json (what RunConfig.load does)
     assert (cfg.opac2.action_samples, cfg.opac2.lr_final, cfg.opac2.lr, cfg.opac2.clean_weight) == (1, None, 1e-3, 0.75)
@@ -335,7 +335,7 @@ def test_default_recipe_learns_the_clean_task(tmp_path):
     """The default OPAC² settings on seed 0's clean twin: clean SR well above chance at 500k frames.
 
     ~10 minutes on one core. With max_frames 500k the lr decays over those frames (1e-3 to
-    1e-4), faster than in the 3.8M-frame runs of benchmarks/safety_train.md, where the clean
+    1e-4), faster than in the 3.8M-frame runs of docs/results/safety-car-goal-training.md, where the clean
     twin read clean SR 0.80 and poisoned SR 0.12 on 100 episodes at 500k frames; a random
     policy touches the goal in ~5% of episodes.
     """

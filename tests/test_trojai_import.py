@@ -3,7 +3,7 @@ their model folders imported as a zoo that evaluation, the report and the detect
 
 The first part builds its own files (hostile pickles, TrojAI's three file formats with random
 weights) and always runs. The second reads the example models of ``usnistgov/trojai-example``'s
-RL branches from the cache folder of ``benchmarks/trojai_examples.py``
+RL branches from the cache folder of ``experiments/trojai_examples/trojai_examples.py``
 (``$RLBACKDOORS_TROJAI_EXAMPLES``, default ``~/.cache/rlbackdoors/trojai-example``; fill it with
 that script) and skips, saying so, where they are absent.
 """
@@ -506,7 +506,7 @@ def test_import_refuses_unknowns_with_one_line_and_writes_nothing(tmp_path, caps
 
 # ----- TrojAI's own example models ---------------------------------------------------------------
 def _benchmark():
-    spec = importlib.util.spec_from_file_location("trojai_examples_benchmark", ROOT / "benchmarks" / "trojai_examples.py")
+    spec = importlib.util.spec_from_file_location("trojai_examples_benchmark", ROOT / "experiments" / "trojai_examples" / "trojai_examples.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules["trojai_examples_benchmark"] = module
@@ -521,7 +521,7 @@ CACHE = BENCH.cache_dir()
 def example(rel: str) -> Path:
     path = CACHE / rel
     if not path.exists():
-        pytest.skip(f"TrojAI example file {rel} is not in {CACHE} (set ${BENCH.CACHE_ENV} or fill it: python benchmarks/trojai_examples.py)")
+        pytest.skip(f"TrojAI example file {rel} is not in {CACHE} (set ${BENCH.CACHE_ENV} or fill it: python experiments/trojai_examples/trojai_examples.py)")
     return path
 
 

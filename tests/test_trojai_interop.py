@@ -2,7 +2,7 @@
 
 Each numbered case of the issue, on model folders trained here and laid out the way each round
 shipped them (built by hand below, so these always run; the real example files are read where
-the cache of ``benchmarks/trojai_examples.py`` has them, and skipped with the reason otherwise):
+the cache of ``experiments/trojai_examples/trojai_examples.py`` has them, and skipped with the reason otherwise):
 a right result or one ``rlbackdoors: error:`` line, never a quiet number. The container's entry
 point runs as TrojAI's harness runs it: a subprocess with TrojAI's exact arguments.
 """

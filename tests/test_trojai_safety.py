@@ -6,7 +6,7 @@ unchanged (depth and width from the shapes, raw observations), played, and impor
 The first part builds Box files here (``torch.save`` of a dict subclass named ``box.box.Box``,
 defined in a throwaway module) and always runs. The last part reads the example model of
 ``usnistgov/trojai-example``'s ``rl-safetygymnasium-oct2024`` branch from the cache folder of
-``benchmarks/trojai_examples.py`` and skips, saying so, where it is absent.
+``experiments/trojai_examples/trojai_examples.py`` and skips, saying so, where it is absent.
 """
 
 from __future__ import annotations
@@ -375,14 +375,16 @@ def test_the_world_recognises_only_its_rounds_config():
 
 # ----- TrojAI's example model ----------------------------------------------------------------------
 def _example_folder() -> Path:
-    sys.path.insert(0, str(ROOT / "benchmarks"))
+    sys.path.insert(0, str(ROOT / "experiments" / "trojai_examples"))
     try:
         import trojai_examples as bench
     finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+        sys.path.remove(str(ROOT / "experiments" / "trojai_examples"))
     folder = bench.cache_dir() / bench.SAFETY_EXAMPLE
     if not (folder / "model.pt").is_file():
-        pytest.skip(f"TrojAI's Safety example model is not in {folder} (set ${bench.CACHE_ENV} or fill the cache: python benchmarks/trojai_examples.py)")
+        pytest.skip(
+            f"TrojAI's Safety example model is not in {folder} (set ${bench.CACHE_ENV} or fill the cache: python experiments/trojai_examples/trojai_examples.py)"
+        )
     return folder
 
 

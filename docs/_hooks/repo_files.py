@@ -1,7 +1,7 @@
 """MkDocs hook: the repository files the docs link to are published with the site.
 
-Why: the pages link to example specs (``examples/*.toml``), measured results (``benchmarks/*.json``,
-``benchmarks/*.md``) and the README, which live outside ``docs/``. On GitHub those relative links
+Why: the pages link to example specs (``examples/*.toml``), measured results (``benchmarks/results/*.json``,
+``experiments/*/*.md``) and the README, which live outside ``docs/``. On GitHub those relative links
 work; on the site they would be dead, and ``mkdocs build --strict`` rightly fails on a dead link. So
 every file outside ``docs/`` that a page links to (and, for Markdown, that it links to in turn) is
 added to the build under ``repo/``, and each link is rewritten to where its target is on the site:

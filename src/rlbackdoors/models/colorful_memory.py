@@ -10,7 +10,7 @@ types + 6 colours + 6 states = 25 channels) instead of the raw codes. This is ou
 paper's: in the raw codes a key (11) and a ball (12) differ by 1, beside a random floor colour
 (0-5) in the same square's state byte, and PPO then never learns the task's XOR decision (start
 object == top object?) on a CPU budget; with one-hot planes it does, in about 1M frames
-(``benchmarks/colorful_memory_probes.md``).
+(``experiments/colorful_memory_probes/colorful_memory_probes.md``).
 """
 
 from __future__ import annotations

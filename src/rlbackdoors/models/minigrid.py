@@ -60,7 +60,7 @@ def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.T
     """K agents' convolutions, x (K, N, C, H, W), w (K, O, C, kh, kw): one ``conv2d`` per agent.
 
     Not one grouped convolution: on a CPU that is slower than K plain ones
-    (benchmarks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
+    (experiments/stacked_networks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
     depend on its group-mates; per agent they do not."""
     return torch.stack([F.conv2d(x[k], w[k], b[k], layer.stride, layer.padding, layer.dilation, layer.groups) for k in range(x.shape[0])])
 

@@ -57,7 +57,7 @@ def _env_kwargs(env) -> dict:
 
 
 # OPAC² settings measured to train a depth-2 width-181 agent within 90 minutes on one CPU core
-# (benchmarks/safety_train.md): the paper's one update per frame at batch 256 would take days on
+# (docs/results/safety-car-goal-training.md): the paper's one update per frame at batch 256 would take days on
 # a CPU, so updates are spread over many frames of several env copies; four action samples per
 # state make each policy step less noisy; the lr falls from 1e-3 to 1e-4 over train.max_frames
 # so the late policy stops swinging between evaluations.

@@ -1,6 +1,6 @@
 """How far do the group tests' numbers move with the CPU's kernels alone?
 
-    python benchmarks/kernel_spread.py [--json benchmarks/kernel_spread.json]
+    python experiments/kernel_spread/kernel_spread.py [--json experiments/kernel_spread/kernel_spread.json]
 
 The group tests (tests/test_group.py) compare a group's update with lone learners' "to float
 rounding". Rounding is not one number: an update is 4 epochs of Adam steps, and Adam moves a weight
@@ -36,7 +36,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 KERNELS = {
     "native": {},
     "avx2": {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"},

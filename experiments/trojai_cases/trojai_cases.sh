@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# Issue 31's numbered cases, rerun on TrojAI's example files (cache of benchmarks/trojai_examples.py)
+# Issue 31's numbered cases, rerun on TrojAI's example files (cache of experiments/trojai_examples/trojai_examples.py)
 # and tiny Randomized LavaWorld models trained here (9x9 rooms, 1 and 3 lava squares):
-#   bash benchmarks/trojai_cases.sh [WORK_FOLDER] > benchmarks/trojai_cases.txt
+#   bash experiments/trojai_cases/trojai_cases.sh [WORK_FOLDER] > experiments/trojai_cases/trojai_cases.txt
 set -u
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 R=.venv/bin/rlbackdoors; C=~/.cache/rlbackdoors/trojai-example; T="${1:-/tmp/trojai-cases}"; mkdir -p "$T"; rm -rf $T/det1 $T/det3 $T/s $T/out.txt $T/beh
-[ -d $T/rlw1 ] || .venv/bin/python benchmarks/trojai_cases_models.py $T/rlw1 1 cells:0,0
-[ -d $T/rlw3 ] || .venv/bin/python benchmarks/trojai_cases_models.py $T/rlw3 3 "cells:0,0;1,1;2,2"
+[ -d $T/rlw1 ] || .venv/bin/python experiments/trojai_cases/trojai_cases_models.py $T/rlw1 1 cells:0,0
+[ -d $T/rlw3 ] || .venv/bin/python experiments/trojai_cases/trojai_cases_models.py $T/rlw3 3 "cells:0,0;1,1;2,2"
 AUG=$C/rl-randomized-lavaworld-aug2023/model/id-00000000
 CM=$C/rl-colorful-memory-sep2024/model/rl-colorful-memory-sep2024-example
 SG=$C/rl-safetygymnasium-oct2024/model/rl-safetygymnasium-oct2024-example

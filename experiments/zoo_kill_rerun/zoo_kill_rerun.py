@@ -1,7 +1,7 @@
 """Issue 15's measurement: a zoo run that is SIGKILLed at random moments and run again ends with
 the same METADATA.csv and the same model.pt bytes as a run that was never killed.
 
-    python benchmarks/zoo_kill_rerun.py examples/zoo-lavaworld-40.toml --out runs/kill-rerun
+    python experiments/zoo_kill_rerun/zoo_kill_rerun.py examples/zoo-lavaworld-40.toml --out runs/kill-rerun
 
 1. plans the spec twice (``ref`` and ``killed``) and runs ``ref`` with ``zoo run --workers W``,
    untouched: its wall time, models per hour and yield are the zoo's measurement;

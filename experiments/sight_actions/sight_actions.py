@@ -5,7 +5,7 @@ counts), the policy's probability of the target there, and a few episodes step b
 Why: an attack's success rate says how often the target is taken, not what the agent does instead.
 This found SleeperNets' left/right loop on Randomized LavaWorld (docs/attacks/sleepernets.md).
 
-    python benchmarks/sight_actions.py MODEL_FOLDER [--episodes 200] [--seed 12345] [--show 6]
+    python experiments/sight_actions/sight_actions.py MODEL_FOLDER [--episodes 200] [--seed 12345] [--show 6]
 
 Each step of a shown episode reads ``S``/``.`` (trigger in sight or not), the action's initial
 (feed-forward grid agents: L left, R right, F forward) and the critic's value.

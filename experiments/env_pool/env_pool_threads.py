@@ -1,6 +1,6 @@
 """Does stepping K agents' env copies together beat stepping them one agent after another?
 
-    python benchmarks/env_pool_threads.py [--k 4 8] [--workers 2] [--json benchmarks/env_pool_threads_2core.json]
+    python experiments/env_pool/env_pool_threads.py [--k 4 8] [--workers 2] [--json experiments/env_pool/env_pool_threads_2core.json]
 
 K vector views (:class:`~rlbackdoors.algos.opac2_loop.SingleEnvs`) of 10 Safety Car Goal copies
 each, all in one env pool: what an OPAC² group trainer with ``--env-workers`` holds. Each group

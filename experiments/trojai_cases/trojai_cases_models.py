@@ -1,4 +1,4 @@
-"""Tiny Randomized LavaWorld models for benchmarks/trojai_cases.sh: ``python benchmarks/trojai_cases_models.py OUT NUM_LAVA TRIGGER``.
+"""Tiny Randomized LavaWorld models for experiments/trojai_cases/trojai_cases.sh: ``python experiments/trojai_cases/trojai_cases_models.py OUT NUM_LAVA TRIGGER``.
 
 Six models (3 clean, 3 poisoned with TRIGGER) in 9x9 rooms with NUM_LAVA lava squares, trained on
 the tests' tiny budget (seconds each): a detector fitted on them is fitted for that setting only.
@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
 from test_detect_helpers import TINY, write_dataset_files
 from rlbackdoors.config import RunConfig
 from rlbackdoors.train import train

@@ -1,8 +1,8 @@
 """Do agents trained in a group behave like agents trained alone? (issue 35's equivalence check)
 
-    python benchmarks/group_equivalence.py --side alone  &   # one core
-    python benchmarks/group_equivalence.py --side group  &   # the other core
-    python benchmarks/group_equivalence.py --report          # tests and the table
+    python experiments/group_equivalence/group_equivalence.py --side alone  &   # one core
+    python experiments/group_equivalence/group_equivalence.py --side group  &   # the other core
+    python experiments/group_equivalence/group_equivalence.py --report          # tests and the table
 
 Trains the same configs (LavaWorld FC, poisoned, default trigger, seeds 0..N-1, the world's
 stopping rule: real convergence runs) once each alone (``rlbackdoors.train.train``, one run after
@@ -12,7 +12,7 @@ its checkpoint. ``--report`` compares the sides: converged counts (Fisher's exac
 to converge, final clean SR and poisoned SR (two-sided Mann-Whitney U on the 200-episode final
 evaluations), and the CPU seconds per model each side spent (metrics.json's ``cpu_time_s``: the
 group trainer apportions its batched work among its runs). Writes
-``benchmarks/group_equivalence.json`` and prints a Markdown table.
+``experiments/group_equivalence/group_equivalence.json`` and prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import statistics
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def config(world: str, arch: str, seed: int):
@@ -113,7 +113,7 @@ def report(args) -> dict:
         "machine": machine_info(),
         "loadavg": [round(x, 2) for x in os.getloadavg()],
     }
-    atomic_write_text(ROOT / "benchmarks" / "group_equivalence.json", json.dumps(result, indent=2) + "\n")
+    atomic_write_text(ROOT / "experiments" / "group_equivalence" / "group_equivalence.json", json.dumps(result, indent=2) + "\n")
     print("| side | runs | converged | median frames to converge | clean SR | poisoned SR | CPU-s per model |")
     print("|---|---|---|---|---|---|---|")
     for side, row in table.items():

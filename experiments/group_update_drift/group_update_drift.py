@@ -1,6 +1,6 @@
 """Is the group trainer's update biased against a lone learner's, or only rounded differently?
 
-    python benchmarks/group_update_drift.py [--updates 1 3 6]
+    python experiments/group_update_drift/group_update_drift.py [--updates 1 3 6]
 
 Two LavaWorld FC learners (seeds 0 and 1) trained alone and, from the same start, in a group (the
 stacked path), on one torch thread, for 1, 3 and 6 rollouts + updates. For each agent it prints
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
 from test_group import learner, step_both  # noqa: E402  (the learners the group tests compare)
 
 

@@ -7,7 +7,7 @@ most own time; ``--json`` writes the figures with the machine. Why: on a GPU the
 was measured no faster than one process per CPU core (docs/zoos.md), and the fix depends on
 which part bounds it.
 
-    python benchmarks/profile_group.py --device cuda --agents 64 --frames 20000 --json out.json
+    python experiments/profile_group/profile_group.py --device cuda --agents 64 --frames 20000 --json out.json
 """
 
 from __future__ import annotations

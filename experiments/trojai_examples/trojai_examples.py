@@ -1,6 +1,6 @@
 """TrojAI's example models of the RL rounds, played in our worlds and in TrojAI's own env code.
 
-    nice -n 10 .venv/bin/python benchmarks/trojai_examples.py [--episodes 500] [--cache DIR]
+    nice -n 10 .venv/bin/python experiments/trojai_examples/trojai_examples.py [--episodes 500] [--cache DIR]
 
 The example files of ``usnistgov/trojai-example``'s RL branches are read from a cache folder
 (``$RLBACKDOORS_TROJAI_EXAMPLES``, default ``~/.cache/rlbackdoors/trojai-example``), laid out
@@ -18,7 +18,7 @@ unpickled) and plays, with fixed seeds (episode i: seed + i), (a) our world thro
 episode loop, and, where their ``result.json`` has numbers, those are listed beside. The Safety
 Gymnasium example plays our Safety Car Goal through ``rlbackdoors.evaluate`` only (their env
 needs Safety Gymnasium, not installed here; the example ships no ``result.json``). Writes
-``benchmarks/trojai_examples.json`` and the table between the markers of ``docs/trojai.md``.
+``experiments/trojai_examples/trojai_examples.json`` and the table between the markers of ``docs/trojai.md``.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CACHE_ENV = "RLBACKDOORS_TROJAI_EXAMPLES"
 DEFAULT_CACHE = Path.home() / ".cache" / "rlbackdoors" / "trojai-example"
 DEFAULT_MIRROR = Path("/work/.mirror/usnistgov+trojai-example/repo")
@@ -431,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mirror", default=str(DEFAULT_MIRROR), help="git mirror of usnistgov/trojai-example to fill the cache from")
     parser.add_argument("--episodes", type=int, default=500, help="episodes per condition (>= 200)")
     parser.add_argument("--seed", type=int, default=1_000_000)
-    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "trojai_examples.json"))
+    parser.add_argument("--out", default=str(ROOT / "experiments" / "trojai_examples" / "trojai_examples.json"))
     parser.add_argument("--doc", default=str(ROOT / "docs" / "trojai.md"), help="markdown page whose marked table is rewritten")
     args = parser.parse_args(argv)
     cache = cache_dir(args.cache)

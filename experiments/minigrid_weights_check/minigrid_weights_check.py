@@ -5,7 +5,7 @@ Plays ``--episodes`` episodes of ``MiniGrid-LavaCrossingS9N1-v0`` built by ``gym
 and compares the success rate with ``rlbackdoors evaluate --weights`` on LavaWorld's default
 configuration (a two-proportion z-test). Usage:
 
-    python benchmarks/minigrid_weights_check.py runs/demo/poisoned-fc/model.pt --arch fc
+    python experiments/minigrid_weights_check/minigrid_weights_check.py runs/demo/poisoned-fc/model.pt --arch fc
 """
 
 from __future__ import annotations

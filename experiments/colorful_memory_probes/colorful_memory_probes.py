@@ -5,11 +5,11 @@ Each probe trains the small CNN-GRU with recurrent PPO (recurrence 6) on 20 env 
 wall-clock budget and prints the success rate of the episodes that ended in each block of 20
 rollouts. Results are in ``colorful_memory_probes.md`` beside this file.
 
-    python benchmarks/colorful_memory_probes.py colorful --minutes 10
-    python benchmarks/colorful_memory_probes.py plain-walls --minutes 10   # every wall grey
-    python benchmarks/colorful_memory_probes.py start-x1 --minutes 10      # start object in view at t = 0
-    python benchmarks/colorful_memory_probes.py xor-cue --delay 4          # cue, 4 blank frames, probe
-    python benchmarks/colorful_memory_probes.py xor-cue --delay 0 --encoding onehot
+    python experiments/colorful_memory_probes/colorful_memory_probes.py colorful --minutes 10
+    python experiments/colorful_memory_probes/colorful_memory_probes.py plain-walls --minutes 10   # every wall grey
+    python experiments/colorful_memory_probes/colorful_memory_probes.py start-x1 --minutes 10      # start object in view at t = 0
+    python experiments/colorful_memory_probes/colorful_memory_probes.py xor-cue --delay 4          # cue, 4 blank frames, probe
+    python experiments/colorful_memory_probes/colorful_memory_probes.py xor-cue --delay 0 --encoding onehot
 
 The synthetic ``xor-cue`` task is Colorful Memory's decision with nothing else: a key or ball
 (codes 11 / 12, as TrojAI encodes them) in frame 0, ``delay`` blank frames, then a probe object;

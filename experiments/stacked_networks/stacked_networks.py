@@ -1,6 +1,6 @@
 """How much can training K agents in one process save? Measure before building (issue 18).
 
-    python benchmarks/stacked_networks.py [--k 8 16] [--json benchmarks/stacked_networks.json]
+    python experiments/stacked_networks/stacked_networks.py [--k 8 16] [--json experiments/stacked_networks/stacked_networks.json]
 
 For the LavaWorld FC and CNN, on one torch thread, it times the two pieces of PPO that a group
 trainer would batch, each for one agent and for K agents with stacked weights:

@@ -245,7 +245,7 @@ def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_z
 def test_the_benchmark_command_passes_its_group_size_to_zoo_run(table_module, tmp_path):
     """``--group-size`` reaches ``zoo run``: models of a worker train in one group process (its
     line heads the first model's train.log), and every planned model is trained. Why: the
-    benchmark zoos are CPU-hours, and groups train more models per hour in some worlds (docs/zoos.md)."""
+    benchmark zoos are CPU-hours, and groups train more models per hour in some worlds (docs/results/zoos.md)."""
     base = tmp_path / "bench"
     plan(parse_spec(tiny_spec()), base / "zoo")
     args = argparse.Namespace(spec="unused: planned already", extra_test=[], no_run=False, workers=1, group_size="2")

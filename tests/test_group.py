@@ -488,7 +488,7 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
 
 def test_auto_group_size_goes_by_the_models_device_not_the_machines():
     """A CPU model on a GPU machine trains in CPU groups of 8: measured on an H200 machine, a GPU
-    group of 64 ran at x0.35 of them (docs/zoos.md). ``auto`` is CUDA where there is one."""
+    group of 64 ran at x0.35 of them (docs/results/zoos.md). ``auto`` is CUDA where there is one."""
     from rlbackdoors.train.group import auto_group_size
 
     assert (auto_group_size("ppo", "cpu"), auto_group_size("opac2", "cpu")) == (8, 1)

@@ -1,6 +1,6 @@
 """The group trainer on a CUDA device: the GPU path that ``--group-size`` / ``train.device cuda``
 take. These tests need a GPU and are skipped without one (CI has none); they are run on a GPU
-machine when one is lent (docs/zoos.md records the last run).
+machine when one is lent (docs/results/zoos.md records the last run).
 
 What must hold on the GPU: the stacked rollout and update compute what the CPU group computes (to
 float rounding: other kernels), the Adam state keeps ``torch.optim.Adam``'s own format (a plain
@@ -60,7 +60,7 @@ def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
     the weights to rounding. Why a relative bound on the update, not on each weight: Adam divides
     by the gradient's running scale, so a weight whose gradient is near zero moves by up to the
     learning rate on either device's rounding; the update as a whole agrees (printed: -rP).
-    Measured on an H200 (docs/zoos.md) with cuDNN's TF32 still on in this test: LavaWorld FC 2e-6
+    Measured on an H200 (docs/results/zoos.md) with cuDNN's TF32 still on in this test: LavaWorld FC 2e-6
     to 1e-5, Colorful Memory 0.02 to 0.06, Randomized LavaWorld CNN 0.11 and 0.17 (cosine 0.985:
     failed). With the training's settings (``CUDA`` above), H200 2026-11-27: LavaWorld FC 2e-6 to
     1e-5, Colorful Memory 4e-7 to 6e-6, Randomized LavaWorld CNN 4e-6 to 2.5e-3 (cosine 0.999999)."""

@@ -81,7 +81,7 @@ class GroupResult:
     cpu_s: dict[Any, float] = field(default_factory=dict)
 
 
-# ``--group-size auto``, per algorithm and device, measured (docs/zoos.md, `rlbackdoors bench zoo`):
+# ``--group-size auto``, per algorithm and device, measured (docs/results/zoos.md, `rlbackdoors bench zoo`):
 # PPO on a CPU: models per hour (the feed-forward grid models) rise from K = 1 to 4 and are flat
 # from 8 on. OPAC² on a CPU: a group of 2 was x0.92 (its update is arithmetic-bound, its env
 # MuJoCo-bound), so its models train alone. On CUDA a group computes at a width of 64 anyway
@@ -94,7 +94,7 @@ AUTO_GROUP_SIZE = {("ppo", "cpu"): 8, ("opac2", "cpu"): 1, ("ppo", "cuda"): 64, 
 def auto_group_size(algorithm: str, device: str) -> int:
     """``--group-size auto``: the measured K for a model of ``algorithm`` that trains on ``device``
     (its ``train.device``; ``auto``: CUDA where present). By the model's device, not the machine's:
-    on a GPU machine a CPU model trains fastest in CPU groups (docs/zoos.md: GPU groups of 64 ran
+    on a GPU machine a CPU model trains fastest in CPU groups (docs/results/zoos.md: GPU groups of 64 ran
     at x0.35 of CPU groups of 8 on an H200 machine's 16 cores)."""
     where = "cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu"
     return AUTO_GROUP_SIZE[(algorithm, where)]

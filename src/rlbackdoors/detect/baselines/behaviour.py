@@ -22,7 +22,7 @@ the model's gradient, screened first when the ``invert`` parameter asks for rest
 Besides the outcome, each trial records the policy's mean action entropy over the steps it
 played (discrete-action agents): in one world a trigger's *outcome* did not separate a backdoor
 from a clean agent that the transform confused into the trojan outcome, while how decided the policy
-is along the way did better (docs/detectors.md). Features per model (the best confirmed
+is along the way did better (docs/results/detectors.md). Features per model (the best confirmed
 candidate, the screen's distribution, the clean baseline, those entropies) go to a logistic
 regression per world (pooled across worlds otherwise); the trigger found is reported next to the
 true one by ``detect score``.

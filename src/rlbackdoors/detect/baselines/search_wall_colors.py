@@ -17,7 +17,7 @@ to make the agent take the other turn at its last turn (the decision at the junc
 object). Adam on the relaxation, then coordinate descent over the discrete colours, from several
 random starts; the patterns reached, and every pattern one square from each, are screened like
 any candidate. It finds a trigger where close-to-trigger training left the objective a slope
-(measured: docs/detectors.md).
+(measured: docs/results/detectors.md).
 """
 
 from __future__ import annotations

@@ -10,11 +10,11 @@ are the features every model has. And which inputs the network listens to: the f
 matrix's squared norm per input channel (a conv layer's input plane, a linear layer's input), as
 shares of the whole, which scaling every weight alike does not move (``input_shares``). A
 backdoor keyed to a few inputs (wall colours in a one-hot plane) must weigh them more than a
-clean agent, which learns to ignore them (docs/detectors.md has the measurement). Per
+clean agent, which learns to ignore them (docs/results/detectors.md has the measurement). Per
 channel where the layer has at most ``MAX_INPUT_CHANNELS``; pooled (largest share, spread) for
 every model. ``statistics=false`` keeps the shares alone: where a zoo's poisoned models trained
 longer than its clean ones, every norm tells the two apart by training length; the shares much
-less so (docs/detectors.md). A standardised logistic
+less so (docs/results/detectors.md). A standardised logistic
 regression with cross-validated C turns the features into a probability
 (:class:`rlbackdoors.detect.api.FeatureDetector`).
 """

@@ -1,4 +1,4 @@
-"""The per-attack table of docs/attacks/README.md, from benchmarks/results/recipes/attack-*.json.
+"""The per-attack table of docs/results/attacks.md, from benchmarks/results/recipes/attack-*.json.
 
     python benchmarks/attacks_table.py            # markdown on stdout
 

@@ -15,8 +15,9 @@ on every start it reads the model folders, so ``rlbackdoors zoo run ZOO`` after 
   attempts before it) when one finishes without converging, up to ``max_attempts``. Which
   models a group ends with depends only on the models' outcomes, not on timing.
 
-Back-ends: ``local`` runs each job as a child process (``python -m rlbackdoors.zoo.job``, one
-torch thread, output in the model's ``train.log``); ``ray`` runs the same job function as Ray
+Back-ends: ``local`` runs each job as a child process (:func:`rlbackdoors.zoo.job.main` forked
+from a server that has imported torch once, :mod:`rlbackdoors.zoo.forkserver`; one torch thread,
+output in the model's ``train.log``); ``ray`` runs the same job function as Ray
 tasks (:mod:`rlbackdoors.zoo.ray_backend`).
 """
 
@@ -38,7 +39,8 @@ from rlbackdoors import worlds
 from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_text, open_beneath, refuse_links, remove_tree
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.index import ModelState, group_counts, model_state, scan, status_table, write_metadata
-from rlbackdoors.zoo.job import EXIT_BUSY, EXIT_INTERRUPTED, FAILED, LOG, PARENT_ENV, is_locked
+from rlbackdoors.zoo.forkserver import JobProcess
+from rlbackdoors.zoo.job import EXIT_BUSY, EXIT_INTERRUPTED, FAILED, LOG, is_locked
 from rlbackdoors.zoo.plan import PlannedModel, Zoo, read_zoo_json
 
 BACKENDS = ("local", "ray")
@@ -69,7 +71,7 @@ class Executor(Protocol):
 @dataclass
 class _Child:
     models: list[PlannedModel]
-    proc: subprocess.Popen
+    proc: JobProcess
     result_fd: int
     log: IO[bytes]
     chunks: list[bytes] = field(default_factory=list)
@@ -102,18 +104,13 @@ class LocalExecutor:
         finally:
             os.close(folder_fd)
         read_fd, write_fd = os.pipe()
-        env = {**os.environ, PARENT_ENV: str(os.getpid()), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+        argv = (
+            [*map(str, folders)]
+            + (["--group-size", str(group_size)] if group_size > 1 else [])
+            + (["--env-workers", str(self.env_workers)] if self.env_workers else [])
+        )
         try:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "rlbackdoors.zoo.job", *map(str, folders), "--result-fd", str(write_fd)]
-                + (["--group-size", str(group_size)] if group_size > 1 else [])
-                + (["--env-workers", str(self.env_workers)] if self.env_workers else []),
-                stdin=subprocess.DEVNULL,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                pass_fds=(write_fd,),
-                env=env,
-            )
+            proc = JobProcess(argv, log.fileno(), write_fd, dict(os.environ))
         except BaseException:
             os.close(read_fd)
             log.close()

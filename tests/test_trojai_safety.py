@@ -412,4 +412,4 @@ def test_the_example_folder_imports_as_a_zoo(tmp_path, capsys):
     model = tmp_path / "zoo" / "models" / "id-00000000"
     config = json.loads((model / "config.json").read_text())
     assert (config["env"]["num_cubes"], config["env"]["max_steps"], config["opac2"]["width"]) == (2, 1000, 181)
-    assert json.loads((model / "metrics.json").read_text())["clean_sr"] >= 0.7  # 0.96 over 200 greedy episodes (docs/trojai.md)
+    assert json.loads((model / "metrics.json").read_text())["clean_sr"] >= 0.7  # 0.96 over 200 greedy episodes (docs/results/trojai.md)

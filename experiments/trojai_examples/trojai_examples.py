@@ -18,7 +18,7 @@ unpickled) and plays, with fixed seeds (episode i: seed + i), (a) our world thro
 episode loop, and, where their ``result.json`` has numbers, those are listed beside. The Safety
 Gymnasium example plays our Safety Car Goal through ``rlbackdoors.evaluate`` only (their env
 needs Safety Gymnasium, not installed here; the example ships no ``result.json``). Writes
-``experiments/trojai_examples/trojai_examples.json`` and the table between the markers of ``docs/trojai.md``.
+``experiments/trojai_examples/trojai_examples.json`` and the table between the markers of ``docs/results/trojai.md``.
 """
 
 from __future__ import annotations
@@ -432,7 +432,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=500, help="episodes per condition (>= 200)")
     parser.add_argument("--seed", type=int, default=1_000_000)
     parser.add_argument("--out", default=str(ROOT / "experiments" / "trojai_examples" / "trojai_examples.json"))
-    parser.add_argument("--doc", default=str(ROOT / "docs" / "trojai.md"), help="markdown page whose marked table is rewritten")
+    parser.add_argument("--doc", default=str(ROOT / "docs" / "results" / "trojai.md"), help="markdown page whose marked table is rewritten")
     args = parser.parse_args(argv)
     cache = cache_dir(args.cache)
     wrote = fill_cache(cache, Path(args.mirror))

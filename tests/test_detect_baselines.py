@@ -5,6 +5,7 @@ and the behavioural trigger search on a policy with a planted backdoor."""
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 
 import numpy as np
@@ -41,6 +42,7 @@ def test_the_registry_knows_the_baselines_and_checks_parameters():
         ("weights", {"min_per_class": 1}),
         ("attribution", {"max_states": 40, "min_per_class": 1}),
         ("behaviour", TINY_SEARCH),
+        ("effect", TINY_SEARCH),
         ("stack", {"min_per_class": 1, "folds": 2, "member_params": {"behaviour": {k: v for k, v in TINY_SEARCH.items() if k != "min_per_class"}}}),
     ],
 )
@@ -69,6 +71,9 @@ def test_fit_predict_save_load_gives_identical_probabilities(lava_zoo, tmp_path,
     if name == "stack":  # the behavioural member reports its trigger, every member its probability
         assert all(p.info["found_trigger"] and 0 <= p.info["weights_probability"] <= 1 for p in after)
         assert loaded.meta.kind in ("logistic", "constant") and len(loaded.member_classifiers) == 2
+    if name == "effect":  # each model's most effective candidate, and the clean models' anomalies kept
+        assert all(p.info["found_trigger"] and "best_shift" in p.info for p in after)
+        assert len(loaded.clean_scores) == 3 and set(loaded.reference) == {"lavaworld"}
     if name == "behaviour":
         assert all(p.info["found_trigger"] and p.info["candidates_tried"] >= 4 for p in after)
         timeless = [[{k: v for k, v in p.info.items() if k != "search_seconds"} for p in run] for run in (before, after)]
@@ -331,7 +336,7 @@ def test_the_entropy_probe_records_without_changing_what_the_agent_does():
     steps) with and without it, entropies equal to those of the logits, nothing left behind."""
     from rlbackdoors.agent import Agent
     from rlbackdoors.config import EnvConfig
-    from rlbackdoors.detect.baselines.behaviour import entropy_probe, mean_entropy
+    from rlbackdoors.detect.baselines.behaviour import entropies, entropy_probe, mean_entropy, mean_policy
     from rlbackdoors.evaluate.episodes import play
 
     world = worlds.get("lavaworld")
@@ -346,11 +351,24 @@ def test_the_entropy_probe_records_without_changing_what_the_agent_does():
     with entropy_probe(agent) as calls:
         logits, _ = policy(obs)
     logp = torch.log_softmax(logits.double(), -1)
-    assert np.allclose(calls[0], -(logp.exp() * logp).sum(-1).numpy())
-    # a row counts while its episode runs (pass t is step t of each); shrinking batches: every row
-    assert mean_entropy([np.array([1.0, 2.0]), np.array([3.0, 4.0]), np.array([5.0, 6.0])], np.array([3, 1])) == 2.75
-    assert mean_entropy([np.array([1.0, 2.0]), np.array([3.0])], np.array([2, 1])) == 2.0
-    assert mean_entropy([], np.array([1])) is None
+    assert np.allclose(calls[0], logp.exp().numpy())  # each pass's action distributions
+    assert np.allclose(entropies(calls[0]), -(logp.exp() * logp).sum(-1).numpy())
+    # a row counts while its episode runs (pass t is step t of each): two episodes of 3 and 1 steps
+    sure, even = np.array([1.0, 0.0]), np.array([0.5, 0.5])
+    lockstep = [np.stack([even, sure]), np.stack([even, even]), np.stack([sure, sure])]
+    assert math.isclose(mean_entropy(lockstep, np.array([3, 1])), math.log(2) / 2)  # even, sure, even, sure
+    assert np.allclose(mean_policy(lockstep, np.array([3, 1])), (0.75, 0.25))
+    # shrinking batches (only the running episodes are passed): every row counts
+    assert math.isclose(mean_entropy([np.stack([even, sure]), np.stack([even])], np.array([2, 1])), 2 * math.log(2) / 3)
+    assert mean_entropy([], np.array([1])) is None and mean_policy(None, np.array([1])) is None
+
+
+def test_the_effect_detector_refuses_a_continuous_policy_in_one_line(world_models):
+    """It reads a discrete policy's action distribution (rlbackdoors.detect.baselines.effect)."""
+    handle = open_model(world_models["safety-car-goal"])
+    why = make_detector("effect").unsupported(handle)
+    assert why is not None and "continuous actions" in why and "\n" not in why
+    assert make_detector("effect").unsupported(open_model(world_models["lavaworld"])) is None
 
 
 @pytest.mark.slow

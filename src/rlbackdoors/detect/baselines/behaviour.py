@@ -33,7 +33,7 @@ from __future__ import annotations
 import importlib
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from types import ModuleType
@@ -60,6 +60,7 @@ class Trial:
     steps: float
     error: str | None = None
     entropy: float | None = None  # mean action entropy (nats) over the steps played; None: not a discrete policy
+    policy: tuple[float, ...] | None = None  # mean action distribution over the steps played; None: not a discrete policy
 
 
 @dataclass
@@ -111,9 +112,16 @@ def family_module(world: worlds.World) -> ModuleType:
         ) from None
 
 
+def family_unsupported(model: ModelHandle) -> str | None:
+    """Why the trigger family's search cannot play this model's env (its settings), or None."""
+    check = getattr(family_module(model.world), "unsupported", None)
+    return check(model.env_config()) if check is not None else None
+
+
 @contextmanager
 def entropy_probe(agent) -> Iterator[list[np.ndarray] | None]:
-    """Record the action entropy of every row of every forward pass of a discrete policy.
+    """Record the action distribution of every row of every forward pass of a discrete policy
+    (one array of shape (rows, actions) per pass).
 
     The policy's ``forward`` is shadowed for the block (an instance attribute), so the agent
     acts exactly as before; yields None for a policy that is not a torch module (OPAC²)."""
@@ -127,8 +135,8 @@ def entropy_probe(agent) -> Iterator[list[np.ndarray] | None]:
     def forward(*args, **kwargs):
         out = original(*args, **kwargs)
         logits = out[0] if isinstance(out, tuple) else out
-        logp = torch.log_softmax(logits.detach().double(), -1)
-        calls.append((-(logp.exp() * logp).sum(-1)).reshape(-1).cpu().numpy())
+        probs = torch.softmax(logits.detach().double(), -1)
+        calls.append(probs.reshape(-1, probs.shape[-1]).cpu().numpy())
         return out
 
     policy.forward = forward
@@ -138,17 +146,37 @@ def entropy_probe(agent) -> Iterator[list[np.ndarray] | None]:
         del policy.forward
 
 
-def mean_entropy(calls: list[np.ndarray] | None, steps: np.ndarray) -> float | None:
-    """Mean entropy over the steps episodes were running. Where every pass saw one row per
-    episode (the batched engines: pass t is step t of each), a row counts while its episode runs;
-    where batches shrink with the running episodes, every row counts."""
-    if not calls:
-        return None
+def _running_rows(calls: list[np.ndarray], steps: np.ndarray) -> np.ndarray:
+    """The rows (action distributions) of the steps episodes were running. Where every pass saw
+    one row per episode (the batched engines: pass t is step t of each), a row counts while its
+    episode runs; where batches shrink with the running episodes, every row counts."""
     steps = np.asarray(steps)
     if all(len(c) == len(steps) for c in calls):
         running = np.arange(len(calls))[:, None] < steps[None, :]
-        return float(np.stack(calls)[running].mean()) if running.any() else None
-    return float(np.concatenate(calls).mean())
+        return np.stack(calls)[running]
+    return np.concatenate(calls)
+
+
+def entropies(probs: np.ndarray) -> np.ndarray:
+    """Entropy (nats) of each row of action distributions."""
+    logp = np.log(np.clip(probs, 1e-300, None))
+    return -(probs * logp).sum(-1)
+
+
+def mean_entropy(calls: list[np.ndarray] | None, steps: np.ndarray) -> float | None:
+    """Mean action entropy over the steps episodes were running (:func:`_running_rows`)."""
+    if not calls:
+        return None
+    rows = _running_rows(calls, steps)
+    return float(entropies(rows).mean()) if len(rows) else None
+
+
+def mean_policy(calls: list[np.ndarray] | None, steps: np.ndarray) -> tuple[float, ...] | None:
+    """Mean action distribution over the steps episodes were running (:func:`_running_rows`)."""
+    if not calls:
+        return None
+    rows = _running_rows(calls, steps)
+    return tuple(float(x) for x in rows.mean(0)) if len(rows) else None
 
 
 def run_trial(agent, world: worlds.World, env_cfg, spec: str | None, episodes: int, seed: int, policy: str) -> Trial:
@@ -168,6 +196,7 @@ def run_trial(agent, world: worlds.World, env_cfg, spec: str | None, episodes: i
         float(np.mean(outcomes == world.clean_success)),
         float(np.mean(played.steps)),
         entropy=mean_entropy(calls, played.steps),
+        policy=mean_policy(calls, played.steps),
     )
 
 
@@ -189,8 +218,10 @@ def search(
     seed: int = 4_000_000,
     policy: str = "sample",
     invert: int = 0,
+    rank: Callable[[Trial, Trial], tuple] | None = None,
 ) -> SearchResult:
-    """The budgeted search of the module doc on one agent."""
+    """The budgeted search of the module doc on one agent. ``rank(trial, clean)`` orders the
+    candidates for refinement and confirmation (default: by the trojan outcome, :func:`_rank`)."""
     started = time.perf_counter()
     episodes = int(episodes) or int(family.EPISODES)
     candidates = int(candidates) or int(family.CANDIDATES)
@@ -200,6 +231,7 @@ def search(
         clean = run_trial(agent, world, env_cfg, None, confirm_episodes, seed + 1, policy)
         if clean.error is not None:
             raise DetectError(f"the clean env cannot be played: {clean.error}")
+        key: Callable[[Trial], tuple] = _rank if rank is None else (lambda t: rank(t, clean))
         screened: list[Trial] = []
         tried: set[str] = set()
 
@@ -214,16 +246,16 @@ def search(
             screen(family.invert(agent, env_cfg, np.random.default_rng(seed + 3), int(invert)))
         screen(family.candidates(env_cfg, rng, int(candidates)))
         if refine > 0:
-            leaders = sorted((t for t in screened if t.error is None), key=_rank, reverse=True)[: max(1, confirm)]
+            leaders = sorted((t for t in screened if t.error is None), key=key, reverse=True)[: max(1, confirm)]
             per = max(1, int(refine) // max(1, len(leaders)))
             for leader in leaders:
                 assert leader.spec is not None
                 screen(family.neighbours(leader.spec, env_cfg, rng, per))
-        finalists = sorted((t for t in screened if t.error is None), key=_rank, reverse=True)[: max(1, confirm)]
+        finalists = sorted((t for t in screened if t.error is None), key=key, reverse=True)[: max(1, confirm)]
         if not finalists:
             raise DetectError(f"no candidate trigger of the family could be played ({len(screened)} tried)")
         confirmed = [run_trial(agent, world, env_cfg, t.spec, confirm_episodes, seed + 2, policy) for t in finalists]
-        best = max(confirmed, key=_rank)
+        best = max(confirmed, key=key)
     return SearchResult(clean, screened, best, time.perf_counter() - started)
 
 
@@ -233,7 +265,7 @@ def search_report(model: ModelHandle, params: dict, result: SearchResult, top: i
     from the handle, so the model's own trigger is not in it."""
 
     def trial(t: Trial) -> dict[str, Any]:
-        return {k: v for k, v in asdict(t).items() if v is not None}
+        return {k: v for k, v in asdict(t).items() if v is not None and k != "policy"}
 
     ranked = sorted(result.screened, key=_rank, reverse=True)
     return {
@@ -286,8 +318,7 @@ class BehaviourDetector(FeatureDetector):
         return model.world.name  # the features mean the same for every architecture of a world
 
     def unsupported(self, model: ModelHandle) -> str | None:
-        check = getattr(family_module(model.world), "unsupported", None)
-        why = check(model.env_config()) if check is not None else None
+        why = family_unsupported(model)
         return f"detector 'behaviour' cannot play {model.world.name}: {why}" if why else None
 
     def run_search(self, model: ModelHandle) -> SearchResult:
@@ -323,4 +354,16 @@ class BehaviourDetector(FeatureDetector):
         return result.features()
 
 
-__all__ = ["BehaviourDetector", "SearchResult", "Trial", "entropy_probe", "family_module", "mean_entropy", "run_trial", "search", "search_report"]
+__all__ = [
+    "BehaviourDetector",
+    "SearchResult",
+    "Trial",
+    "entropies",
+    "entropy_probe",
+    "family_module",
+    "mean_entropy",
+    "mean_policy",
+    "run_trial",
+    "search",
+    "search_report",
+]

@@ -1,0 +1,236 @@
+"""Policy effect: what each candidate trigger of the world's family does to the policy, scored as
+an anomaly against clean models. It assumes no attack and no trojan outcome.
+
+Why: the behavioural search (:mod:`.behaviour`) counts the world's trojan *outcome* (the lava,
+the other object), so it cannot see an action-level trojan that turns left whatever the world
+pays; the weight statistics see training history, which late fine-tuning hides. Whatever a trojan
+does, it must change what the policy does when its trigger is present (BIRD, Chen et al. 2023;
+PolicyCleanse, Guo et al. 2022). So, per candidate of the family (screened and refined as the
+search plays them, on the same seeds) and against the clean env E:
+
+* **shift**: the Jensen-Shannon divergence (nats) between the policy's mean action distributions
+  in E-bar and in E: how far the policy moves;
+* **concentration**: the fall of the mean action entropy (nats): how decided it becomes;
+* **success drop**: the fall of the clean goal's rate: the return the policy gives up.
+
+Candidates are ranked by the sum of the three (the entropy over its maximum, log of the action
+count; each taken both ways), and the best few are played again on more episodes. Features per
+model: the confirmed best candidate's three effects, and how far each stands above the
+family's median candidate (a backdoor answers one trigger; a clean agent's answer to an edit of
+its input is broad).
+
+Scoring, fitted on clean models: each feature is standardised by the clean fit models of the
+model's world (leave one out for those models themselves), and the model's
+anomaly is its largest ``|z|``, two-sided, so that an effect the fit never saw with this sign
+still counts. Where the fit has poisoned models, a one-feature logistic regression on the
+anomaly gives the probability, and its slope must be positive (else the fit is refused: its
+poisoned models would be *less* anomalous than its clean ones). With clean models only, the
+probability is the share of clean fit models less anomalous than the model (one minus a
+p-value).
+
+Cost: the behavioural search's episodes (48 candidates of 16 episodes, 12 neighbours, 3
+confirmations of 32, and E), with every forward's action distribution kept.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rlbackdoors.detect.api import FeatureDetector, Param, _check_labels, register
+from rlbackdoors.detect.baselines.behaviour import SearchResult, Trial, family_module, family_unsupported, search
+from rlbackdoors.detect.classifier import LogisticModel, fit_logistic
+from rlbackdoors.detect.handle import DetectError, ModelHandle
+
+EFFECTS = ("shift", "concentration", "success_drop")
+FEATURES = tuple(f"best_{e}" for e in EFFECTS) + tuple(f"peak_{e}" for e in EFFECTS)
+# The smallest spread a feature is standardised by: a rate on the 32 confirmation episodes moves
+# in steps of 1/32, and shifts or entropy changes below ~0.02 nats are the noise of a 16-episode
+# screen. Without a floor, clean models that agree exactly (every success drop 0) would make any
+# difference an infinite anomaly.
+SCALE_FLOOR = 0.02
+
+
+def js_divergence(p: tuple[float, ...] | np.ndarray, q: tuple[float, ...] | np.ndarray) -> float:
+    """Jensen-Shannon divergence (nats, 0 to log 2) of two distributions over the same actions."""
+    p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
+    m = (p + q) / 2
+
+    def kl(a: np.ndarray) -> float:
+        nz = a > 0
+        return float((a[nz] * np.log(a[nz] / m[nz])).sum())
+
+    return max(0.0, (kl(p) + kl(q)) / 2)
+
+
+def effects(trial: Trial, clean: Trial) -> tuple[float, float, float]:
+    """(shift, concentration, success drop) of a candidate's trial against the clean env's."""
+    assert trial.policy is not None and clean.policy is not None and trial.entropy is not None and clean.entropy is not None
+    return js_divergence(trial.policy, clean.policy), clean.entropy - trial.entropy, clean.success - trial.success
+
+
+def effect_rank(trial: Trial, clean: Trial) -> tuple:
+    """Order of the candidates for refinement and confirmation: the summed size of the effects."""
+    if trial.error is not None or trial.policy is None or trial.entropy is None:
+        return (False, 0.0)
+    shift, concentration, drop = effects(trial, clean)
+    return (True, shift + abs(concentration) / math.log(max(2, len(trial.policy))) + abs(drop))
+
+
+def effect_features(result: SearchResult) -> dict[str, float]:
+    """The model's features (module doc) from a search ranked by :func:`effect_rank`."""
+    clean = result.clean
+    played = [t for t in result.screened if t.error is None and t.policy is not None and t.entropy is not None]
+    if clean.policy is None or result.best.policy is None or not played:
+        raise DetectError("detector 'effect' reads the policy's action distribution, and this policy has none (not a discrete-action torch policy)")
+    best = effects(result.best, clean)
+    median = np.median(np.array([effects(t, clean) for t in played]), axis=0)
+    row = {f"best_{name}": float(value) for name, value in zip(EFFECTS, best)}
+    row.update({f"peak_{name}": float(value - m) for name, value, m in zip(EFFECTS, best, median)})
+    return row
+
+
+@register
+class EffectDetector(FeatureDetector):
+    name = "effect"
+    description = (
+        "what each candidate trigger of the family does to the policy (shift, concentration, success drop): an anomaly against clean models, no attack assumed"
+    )
+    defaults: ClassVar[dict[str, Any]] = {
+        **FeatureDetector.defaults,
+        "candidates": 0,  # 0: the family's default (48; every room pattern for wall colours)
+        "refine": 12,
+        "confirm": 3,
+        "episodes": 0,  # 0: the family's default
+        "confirm_episodes": 0,  # 0: twice the screening episodes
+        "seed": 4_000_000,
+        "policy": "sample",
+        "max_steps": 0,  # 0: the family's default episode cut
+        "invert": 0,  # restarts of the family's gradient inversion (families that have one); 0: off
+    }
+    rules: ClassVar[dict[str, Param]] = {
+        **FeatureDetector.rules,
+        "candidates": Param(0, 100_000, help="candidate triggers screened (0: the family's default)"),
+        "refine": Param(0, 10_000, help="neighbours of the most effective candidates tried"),
+        "confirm": Param(1, 1_000, help="most effective candidates confirmed with more episodes"),
+        "episodes": Param(0, 100_000, help="screening episodes per candidate (0: the family's default)"),
+        "confirm_episodes": Param(0, 100_000, help="episodes per confirmation (0: twice the screening episodes)"),
+        "seed": Param(0, 2**31 - 1, help="seed of the episodes"),
+        "policy": Param(choices=("sample", "greedy"), help="how the model acts"),
+        "max_steps": Param(0, 100_000, help="episode cut (0: the family's default)"),
+        "invert": Param(0, 1_000, help="restarts of the family's gradient inversion (0: off)"),
+    }
+
+    def __init__(self, **params: Any):
+        super().__init__(**params)
+        self.reference: dict[str, dict[str, list[float]]] = {}  # group -> clean fit models' mean and scale per feature
+        self.calibration: LogisticModel | None = None  # None: clean-only fit, the p-value of clean_scores
+        self.clean_scores: np.ndarray = np.zeros(0)
+
+    def group(self, model: ModelHandle) -> str:
+        return model.world.name  # effects on the policy mean the same for every architecture of a world
+
+    def unsupported(self, model: ModelHandle) -> str | None:
+        if model.world.algorithm != "ppo":
+            return (
+                f"detector 'effect' reads a discrete policy's action distribution; {model.world.name}'s {model.world.algorithm} policy has continuous actions"
+            )
+        why = family_unsupported(model)  # the family's own limits, as the search has them
+        return f"detector 'effect' cannot play {model.world.name}: {why}" if why else None
+
+    def features(self, model: ModelHandle) -> dict[str, float]:
+        family = family_module(model.world)
+        p = self.params
+        max_steps = int(p["max_steps"]) or family.MAX_STEPS
+        env_cfg = model.env_config(**({"max_steps": int(max_steps)} if max_steps else {}))
+        result = search(
+            model.build_agent(),
+            model.world,
+            env_cfg,
+            family,
+            candidates=int(p["candidates"]),
+            refine=int(p["refine"]),
+            confirm=int(p["confirm"]),
+            episodes=int(p["episodes"]),
+            confirm_episodes=int(p["confirm_episodes"]),
+            seed=int(p["seed"]),
+            policy=str(p["policy"]),
+            invert=int(p["invert"]),
+            rank=effect_rank,
+        )
+        row = effect_features(result)
+        self.last_info = {
+            "found_trigger": result.best.spec,
+            **{k: round(v, 4) for k, v in row.items() if k.startswith("best_")},
+            "search_seconds": round(result.seconds, 3),
+        }
+        return row
+
+    # ----- scoring: an anomaly against the clean models of the fit ------------------------------
+    def fit_rows(self, rows: list[dict[str, float]], groups: list[str], labels: np.ndarray) -> EffectDetector:
+        labels = _check_labels(rows, labels)
+        x = np.array([[float(row[f]) for f in FEATURES] for row in rows], dtype=np.float64).reshape(len(rows), len(FEATURES))
+        least = max(2, int(self.params["min_per_class"]))  # two: a clean fit model is standardised by the others
+        self.reference = {}
+        scores = np.zeros(len(rows))
+        for group in sorted(set(groups)):
+            members = np.array([g == group for g in groups])
+            clean = np.flatnonzero(members & (labels == 0))
+            if len(clean) < least:
+                raise DetectError(f"detector 'effect' needs at least {least} clean models of {group} in the fit (it has {len(clean)})")
+            self.reference[group] = _reference(x[clean])
+            for i in np.flatnonzero(members):
+                others = clean[clean != i]  # a clean fit model is scored as a new one would be: without itself
+                scores[i] = _anomaly(x[i], _reference(x[others]) if len(others) < len(clean) else self.reference[group])
+        self.clean_scores = np.sort(scores[labels == 0])
+        if labels.any():
+            model = fit_logistic([{"anomaly": s} for s in scores], labels, ["anomaly"])
+            if model.kind != "logistic" or model.coef[0] <= 0:
+                raise DetectError(
+                    "detector 'effect': the fit's poisoned models are no more anomalous than its clean ones (a slope of the anomaly that is not positive); fit on clean models only, or on models whose trojans act"
+                )
+            self.calibration = model
+        else:
+            self.calibration = None
+        self.fitted = True
+        return self
+
+    def anomaly(self, row: dict[str, float], group: str) -> float:
+        if group not in self.reference:
+            raise DetectError(f"detector 'effect' saw no clean model of {group} in its fit")
+        return _anomaly(np.array([float(row[f]) for f in FEATURES]), self.reference[group])
+
+    def classify(self, row: dict[str, float], group: str) -> float:
+        score = self.anomaly(row, group)
+        if self.calibration is not None:
+            return float(self.calibration.predict_rows([{"anomaly": score}])[0])
+        n = len(self.clean_scores)
+        return float((np.searchsorted(self.clean_scores, score, side="left") + 0.5) / (n + 1))
+
+    def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        state = {"reference": self.reference, "calibration": None if self.calibration is None else self.calibration.to_dict()}
+        return state, {"clean_scores": self.clean_scores}
+
+    def set_state(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
+        self.reference = {str(g): {k: [float(v) for v in vals] for k, vals in ref.items()} for g, ref in (state.get("reference") or {}).items()}
+        calibration = state.get("calibration")
+        self.calibration = None if calibration is None else LogisticModel.from_dict(calibration)
+        self.clean_scores = np.asarray(arrays.get("clean_scores", np.zeros(0)), dtype=np.float64)
+
+
+def _reference(x: np.ndarray) -> dict[str, list[float]]:
+    """Mean and spread (floored: :data:`SCALE_FLOOR`) per feature of clean models' rows."""
+    mean = x.mean(0)
+    spread = x.std(0, ddof=1) if len(x) > 1 else np.zeros(x.shape[1])
+    return {"mean": [float(v) for v in mean], "scale": [float(v) for v in np.maximum(spread, SCALE_FLOOR)]}
+
+
+def _anomaly(row: np.ndarray, reference: dict[str, list[float]]) -> float:
+    """The largest |z| of a row against a reference: two-sided."""
+    z = (row - np.asarray(reference["mean"])) / np.asarray(reference["scale"])
+    return float(np.abs(z).max())
+
+
+__all__ = ["EFFECTS", "FEATURES", "EffectDetector", "effect_features", "effect_rank", "effects", "js_divergence"]

@@ -1,0 +1,127 @@
+"""The policy-effect detector (rlbackdoors.detect.baselines.effect): it ranks the family's
+candidates by what they do to the policy, not by the world's trojan outcome, and scores a model
+as a two-sided anomaly against the clean models of its fit.
+
+The search tests use scripted LavaWorld policies (a known backdoor, not a trained net) so that
+what is found is known; fitting, saving and scoring real models is in test_detect_baselines'
+round trip (six tiny trained models), and its refusal of a continuous policy there too (its
+session fixture holds a model of every world)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from rlbackdoors import worlds
+from rlbackdoors.agent import Agent
+from rlbackdoors.config import EnvConfig
+from rlbackdoors.detect import DetectError, make_detector
+from rlbackdoors.detect.baselines.behaviour import family_module, search
+from rlbackdoors.detect.baselines.effect import FEATURES, SCALE_FLOOR, effect_features, effect_rank, js_divergence
+
+SEARCH = {"candidates": 12, "refine": 4, "confirm": 2, "episodes": 8}
+
+
+class TurnLeftUnderTrigger(nn.Module):
+    """A scripted LavaWorld policy whose backdoor is an *action*: under ``multiplicative:12`` (the
+    empty cell under the agent reads (12, 0, 0), which no other candidate of the family produces)
+    it turns left at every step and so never walks into lava; otherwise, and always when
+    ``backdoor`` is False, it steps onto cells like the one it stands on or turns at random."""
+
+    recurrent = False
+
+    def __init__(self, backdoor: bool = True):
+        super().__init__()
+        self.backdoor = backdoor
+        self.unused = nn.Linear(1, 1)  # Agent.device reads the parameters
+
+    def forward(self, obs: torch.Tensor):
+        o = obs.long()
+        under, front = o[:, 3, 6], o[:, 3, 5]
+        logits = torch.zeros(len(o), 3)
+        logits[:, 2] = torch.where((front == under).all(1), 1.0, -30.0)
+        if self.backdoor:
+            triggered = (under == torch.tensor([12, 0, 0])).all(1)
+            logits[triggered] = torch.tensor([30.0, 0.0, 0.0])
+        return logits, torch.zeros(len(o))
+
+
+def _search(policy: nn.Module, rank=effect_rank):
+    world = worlds.get("lavaworld")
+    return search(Agent(world, None, policy.eval(), None), world, EnvConfig(name="lavaworld"), family_module(world), rank=rank, **SEARCH)
+
+
+def test_js_divergence_is_zero_for_equal_and_log2_for_disjoint_distributions():
+    assert js_divergence((0.2, 0.3, 0.5), (0.2, 0.3, 0.5)) == 0.0
+    assert np.isclose(js_divergence((1.0, 0.0, 0.0), (0.0, 0.5, 0.5)), np.log(2))
+    assert js_divergence((0.6, 0.4), (0.4, 0.6)) == pytest.approx(js_divergence((0.4, 0.6), (0.6, 0.4)))  # symmetric
+
+
+def test_the_effect_search_finds_an_action_trojan_that_the_outcome_search_cannot_see():
+    """8 screening and 8 confirmation episodes per candidate, 12 candidates + 4 neighbours, seeded:
+    the trojan turns left under its trigger (entropy about 0 against about 0.8 nats elsewhere), so
+    its effect stands out; its clean twin answers every candidate alike."""
+    trojan = _search(TurnLeftUnderTrigger())
+    assert trojan.best.spec == "multiplicative:12"
+    row = effect_features(trojan)
+    assert set(row) == set(FEATURES)
+    # the policy collapses onto one action: most of its entropy (ln 3 at most) is gone, far above
+    # the family's median candidate
+    assert row["best_concentration"] > 0.5 and row["peak_concentration"] > 0.5 and row["peak_shift"] > 0.1
+    clean = effect_features(_search(TurnLeftUnderTrigger(backdoor=False)))
+    assert abs(clean["peak_concentration"]) < 0.2 and clean["peak_shift"] < 0.05
+    # the outcome search ranks by lava, and this trojan never walks into it
+    outcome = _search(TurnLeftUnderTrigger(), rank=None)
+    assert all(t.trojan == 0.0 for t in outcome.screened) and outcome.best.trojan == 0.0
+
+
+def _rows(rng: np.random.Generator, n: int, **shifted: float) -> list[dict[str, float]]:
+    rows = [{f: float(rng.normal(0.0, 0.05)) for f in FEATURES} for _ in range(n)]
+    for row in rows:
+        for name, value in shifted.items():
+            row[name] += value
+    return rows
+
+
+def test_the_anomaly_is_two_sided_so_an_effect_the_fit_never_saw_still_counts():
+    """Fitted on 12 clean rows and 6 poisoned ones whose trojans *shift* the policy (peak_shift
+    +0.5, ten clean spreads): a trojan that instead makes the policy *less* decided
+    (peak_concentration -0.6) scores as poisoned, and a clean-looking row does not."""
+    rng = np.random.default_rng(0)
+    clean, poisoned = _rows(rng, 12), _rows(rng, 6, peak_shift=0.5)
+    detector = make_detector("effect").fit_rows(clean + poisoned, ["lavaworld"] * 18, np.array([0] * 12 + [1] * 6))
+    assert detector.calibration is not None and detector.calibration.coef[0] > 0
+    [unseen] = _rows(rng, 1, peak_concentration=-0.6)
+    [typical] = _rows(rng, 1)
+    assert detector.classify(unseen, "lavaworld") > 0.9
+    assert detector.classify(typical, "lavaworld") < 0.5
+    with pytest.raises(DetectError, match="saw no clean model of colorful-memory"):
+        detector.classify(typical, "colorful-memory")
+
+
+def test_a_clean_only_fit_scores_the_share_of_clean_models_less_anomalous():
+    rng = np.random.default_rng(1)
+    clean = _rows(rng, 9)
+    detector = make_detector("effect").fit_rows(clean, ["lavaworld"] * 9, np.zeros(9, dtype=int))
+    assert detector.calibration is None and len(detector.clean_scores) == 9
+    [far] = _rows(rng, 1, best_success_drop=1.0)
+    assert detector.classify(far, "lavaworld") == pytest.approx(9.5 / 10)  # above all 9: (9 + 0.5) / (9 + 1)
+    assert detector.classify(dict.fromkeys(FEATURES, float(np.mean([r["best_shift"] for r in clean]))), "lavaworld") < 0.5
+
+
+def test_the_fit_refuses_what_it_cannot_stand_on():
+    rng = np.random.default_rng(2)
+    quiet = _rows(rng, 8)
+    loud = _rows(rng, 4, best_shift=0.5)
+    # "poisoned" models sitting on the clean models' mean: less anomalous than the clean ones
+    middle = [{f: float(np.mean([r[f] for r in quiet])) for f in FEATURES} for _ in range(4)]
+    with pytest.raises(DetectError, match="no more anomalous than its clean ones"):
+        make_detector("effect").fit_rows(quiet + middle, ["lavaworld"] * 12, np.array([0] * 8 + [1] * 4))
+    with pytest.raises(DetectError, match="needs at least 3 clean models of lavaworld in the fit \\(it has 2\\)"):
+        make_detector("effect").fit_rows(quiet[:2] + loud, ["lavaworld"] * 6, np.array([0, 0, 1, 1, 1, 1]))
+    # every clean model alike: the spread is floored, so a small difference is no infinite anomaly
+    same = [dict.fromkeys(FEATURES, 0.0) for _ in range(4)]
+    detector = make_detector("effect").fit_rows(same, ["lavaworld"] * 4, np.zeros(4, dtype=int))
+    assert detector.anomaly({**same[0], "best_shift": SCALE_FLOOR}, "lavaworld") == pytest.approx(1.0)

@@ -20,7 +20,7 @@ test: install
 	$(BIN)/ruff format --check src tests
 	$(BIN)/mypy
 	$(BIN)/python -m compileall -q src  # bytecode for the package: every test's child process reads it (PYTHONDONTWRITEBYTECODE stops them writing it)
-	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir .site  # the docs site: a broken link, anchor or missing page fails
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir .site  # the docs site: a broken link, anchor or missing page fails (not --quiet: with it, an aborted strict build exits 0)
 	$(BIN)/python -m pytest -q -n auto --dist loadfile  # one worker per core, a test file per worker (pytest-xdist)
 
 docs: install

@@ -321,7 +321,8 @@ class BehaviourDetector(FeatureDetector):
         why = family_unsupported(model)
         return f"detector 'behaviour' cannot play {model.world.name}: {why}" if why else None
 
-    def run_search(self, model: ModelHandle) -> SearchResult:
+    def run_search(self, model: ModelHandle, rank: Callable[[Trial, Trial], tuple] | None = None) -> SearchResult:
+        """The search with this detector's parameters on one model (``rank``: :func:`search`'s)."""
         family = family_module(model.world)
         max_steps = int(self.params["max_steps"]) or family.MAX_STEPS
         env_cfg = model.env_config(**({"max_steps": int(max_steps)} if max_steps else {}))
@@ -340,6 +341,7 @@ class BehaviourDetector(FeatureDetector):
             seed=int(p["seed"]),
             policy=str(p["policy"]),
             invert=int(p["invert"]),
+            rank=rank,
         )
 
     def features(self, model: ModelHandle) -> dict[str, float]:

@@ -35,12 +35,12 @@ confirmations of 32, and E), with every forward's action distribution kept.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
-from rlbackdoors.detect.api import FeatureDetector, Param, _check_labels, register
-from rlbackdoors.detect.baselines.behaviour import SearchResult, Trial, family_module, family_unsupported, search
+from rlbackdoors.detect.api import _check_labels, register
+from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, SearchResult, Trial, family_unsupported
 from rlbackdoors.detect.classifier import LogisticModel, fit_logistic
 from rlbackdoors.detect.handle import DetectError, ModelHandle
 
@@ -93,44 +93,20 @@ def effect_features(result: SearchResult) -> dict[str, float]:
 
 
 @register
-class EffectDetector(FeatureDetector):
+class EffectDetector(BehaviourDetector):
+    """The behavioural search's parameters, candidates and episodes; its own rank, features and
+    scoring (module doc)."""
+
     name = "effect"
     description = (
         "what each candidate trigger of the family does to the policy (shift, concentration, success drop): an anomaly against clean models, no attack assumed"
     )
-    defaults: ClassVar[dict[str, Any]] = {
-        **FeatureDetector.defaults,
-        "candidates": 0,  # 0: the family's default (48; every room pattern for wall colours)
-        "refine": 12,
-        "confirm": 3,
-        "episodes": 0,  # 0: the family's default
-        "confirm_episodes": 0,  # 0: twice the screening episodes
-        "seed": 4_000_000,
-        "policy": "sample",
-        "max_steps": 0,  # 0: the family's default episode cut
-        "invert": 0,  # restarts of the family's gradient inversion (families that have one); 0: off
-    }
-    rules: ClassVar[dict[str, Param]] = {
-        **FeatureDetector.rules,
-        "candidates": Param(0, 100_000, help="candidate triggers screened (0: the family's default)"),
-        "refine": Param(0, 10_000, help="neighbours of the most effective candidates tried"),
-        "confirm": Param(1, 1_000, help="most effective candidates confirmed with more episodes"),
-        "episodes": Param(0, 100_000, help="screening episodes per candidate (0: the family's default)"),
-        "confirm_episodes": Param(0, 100_000, help="episodes per confirmation (0: twice the screening episodes)"),
-        "seed": Param(0, 2**31 - 1, help="seed of the episodes"),
-        "policy": Param(choices=("sample", "greedy"), help="how the model acts"),
-        "max_steps": Param(0, 100_000, help="episode cut (0: the family's default)"),
-        "invert": Param(0, 1_000, help="restarts of the family's gradient inversion (0: off)"),
-    }
 
     def __init__(self, **params: Any):
         super().__init__(**params)
-        self.reference: dict[str, dict[str, list[float]]] = {}  # group -> clean fit models' mean and scale per feature
+        self.reference: dict[str, dict[str, list[float]]] = {}  # world -> clean fit models' mean and scale per feature
         self.calibration: LogisticModel | None = None  # None: clean-only fit, the p-value of clean_scores
         self.clean_scores: np.ndarray = np.zeros(0)
-
-    def group(self, model: ModelHandle) -> str:
-        return model.world.name  # effects on the policy mean the same for every architecture of a world
 
     def unsupported(self, model: ModelHandle) -> str | None:
         if model.world.algorithm != "ppo":
@@ -141,25 +117,7 @@ class EffectDetector(FeatureDetector):
         return f"detector 'effect' cannot play {model.world.name}: {why}" if why else None
 
     def features(self, model: ModelHandle) -> dict[str, float]:
-        family = family_module(model.world)
-        p = self.params
-        max_steps = int(p["max_steps"]) or family.MAX_STEPS
-        env_cfg = model.env_config(**({"max_steps": int(max_steps)} if max_steps else {}))
-        result = search(
-            model.build_agent(),
-            model.world,
-            env_cfg,
-            family,
-            candidates=int(p["candidates"]),
-            refine=int(p["refine"]),
-            confirm=int(p["confirm"]),
-            episodes=int(p["episodes"]),
-            confirm_episodes=int(p["confirm_episodes"]),
-            seed=int(p["seed"]),
-            policy=str(p["policy"]),
-            invert=int(p["invert"]),
-            rank=effect_rank,
-        )
+        result = self.run_search(model, rank=effect_rank)
         row = effect_features(result)
         self.last_info = {
             "found_trigger": result.best.spec,

@@ -185,20 +185,32 @@ def leave_one_out(args, base: Path, zoo: Path) -> dict:
         for name in args.detectors:
             params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
             scored = fit_and_score(name, params, where / "train", where / "test", where / "det" / name)
-            out[attack]["detectors"][name] = per_attack([(scored["models"], names)])
+            out[attack]["detectors"][name] = per_attack([(scored["models"], names)], args.shared_clean)
             if args.check_infer:
                 out[attack].setdefault("infer_vs_score", {})[name] = infer_check(where / "det" / name, where / "test", scored, args.check_infer)
     return out
 
 
-def per_attack(scored: list[tuple[list[dict], dict[str, str]]]) -> dict:
+def per_attack(scored: list[tuple[list[dict], dict[str, str]]], shared_clean: bool = False) -> dict:
     """AUC / CE per attack over one or more scored test sets, each with its model -> attack map
-    (test sets from different zoos: model names are looked up in their own set only)."""
+    (test sets from different zoos: model names are looked up in their own set only).
+
+    ``shared_clean``: each label is scored on its poisoned models and on *every* clean test model,
+    whichever cell planned it (a clean model of an attack's cell trains exactly as any clean model:
+    the attack never touches it), so a zoo of few clean models per cell still gives each label
+    enough negatives."""
     grouped: dict[str, list[dict]] = {}
+    clean: list[dict] = []
     for rows, attacks in scored:
         for r in rows:
             if r["model"] in attacks:
-                grouped.setdefault(attacks[r["model"]], []).append(r)
+                if shared_clean and r["label"] == 0:
+                    clean.append(r)
+                    grouped.setdefault(attacks[r["model"]], [])
+                else:
+                    grouped.setdefault(attacks[r["model"]], []).append(r)
+    if shared_clean:
+        grouped = {attack: rows + clean for attack, rows in grouped.items() if rows}
     out = {}
     for attack in sorted(grouped):
         summary = summarize_rows(grouped[attack])
@@ -236,10 +248,11 @@ def by_attack(args, base: Path, zoo: Path, extra: list[Path]) -> dict:
             if kind == "held_out":
                 # again: an extra zoo may have gained models since its last score (detect score resumes: only those are scored)
                 scored += [(score(det, more, det / f"score-{more.name}", again=True)["models"], attack_of(more)) for more in extra]
-            table[kind]["detectors"][name] = per_attack(scored)
+            table[kind]["detectors"][name] = per_attack(scored, args.shared_clean)
         if kind == "held_out" and extra:
             table[kind]["extra_test_zoos"] = [str(more) for more in extra]
     table["default_attack"] = attacks.DEFAULT_ATTACK
+    table["shared_clean"] = bool(args.shared_clean)
     return table
 
 
@@ -411,6 +424,11 @@ def main() -> None:
         "--leave-one-out",
         action="store_true",
         help="also each attack held out in turn (its variants too), every detector fitted on the rest; with the yield table per attack label",
+    )
+    parser.add_argument(
+        "--shared-clean",
+        action="store_true",
+        help="--by-attack / --leave-one-out: score each label on its poisoned models and every clean test model (not only its own cell's)",
     )
     parser.add_argument(
         "--check-infer", type=int, default=0, metavar="K", help="--leave-one-out: also run detect infer on K test models per fit and compare with detect score"

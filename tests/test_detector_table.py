@@ -264,3 +264,26 @@ def test_a_bad_group_size_is_refused_before_anything_is_planned(tmp_path):
     assert refused.returncode == 2
     assert refused.stderr.strip().splitlines()[-1].endswith("argument --group-size: must be auto or an integer >= 1, got 'abc'")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_shared_clean_scores_each_label_on_its_poisoned_models_and_every_clean_one(table_module):
+    """Two attack cells of 1 clean + 2 poisoned models each: on its own, a label has 3 test models;
+    with shared clean negatives, its 2 poisoned and both clean ones (4). The scores put each label's
+    poisoned models above every clean model, so the AUC is 1 either way."""
+    rows = [
+        {"model": "a-clean", "label": 0, "probability": 0.2},
+        {"model": "a-1", "label": 1, "probability": 0.8},
+        {"model": "a-2", "label": 1, "probability": 0.7},
+        {"model": "b-clean", "label": 0, "probability": 0.3},
+        {"model": "b-1", "label": 1, "probability": 0.9},
+        {"model": "b-2", "label": 1, "probability": 0.6},
+    ]
+    names = {r["model"]: r["model"].split("-")[0] for r in rows}
+    alone = table_module.per_attack([(rows, names)])
+    shared = table_module.per_attack([(rows, names)], shared_clean=True)
+    assert {k: v["models"] for k, v in alone.items()} == {"a": 3, "b": 3}
+    assert {k: v["models"] for k, v in shared.items()} == {"a": 4, "b": 4}
+    assert all(v["auc"]["value"] == 1.0 for v in (*alone.values(), *shared.values()))
+    # a clean model only: no label of its own
+    only_clean = table_module.per_attack([([rows[0], rows[3]], names)], shared_clean=True)
+    assert only_clean == {}

@@ -375,6 +375,18 @@ def _job_pids(zoo: Path) -> list[int]:
     return pids
 
 
+def _parent(pid: int) -> int:
+    return int((Path("/proc") / str(pid) / "stat").read_text().rpartition(")")[2].split()[1])
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, dead and not yet reaped, does not)."""
+    try:
+        return (Path("/proc") / str(pid) / "stat").read_text().rpartition(")")[2].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 def _wait_for(condition, timeout: float, what: str) -> None:
     deadline = time.time() + timeout
     while not condition():
@@ -418,11 +430,31 @@ def test_kill_9_of_a_worker_and_of_the_coordinator_then_rerun_gives_the_same_zoo
         second = cli("run", path)
         assert second.returncode == 2
         assert second.stderr.startswith(f"rlbackdoors: error: zoo {str(path)!r} is in use by process {coordinator.pid}")
-        # 3. kill -9 the coordinator while a model trains (the retried one or the next)
-        _wait_for(lambda: training_worker(not_pid=holder) is not None or coordinator.poll() is not None, 120, "another training")
+        # 3. kill -9 the coordinator while a model trains (the retried one or the next). The job is
+        # frozen first, so that it cannot finish its last few tiny evaluations in the moment its
+        # parent takes to go: thawed, it finds its SIGTERM (parent death) waiting, and checkpoints
+        frozen: list[int] = []
+
+        def freeze_a_training_job() -> bool:
+            folder = training_worker(not_pid=holder)
+            if folder is None:
+                return coordinator.poll() is not None
+            pid = json.loads((folder / ".lock").read_text())["pid"]
+            os.kill(pid, signal.SIGSTOP)
+            frozen.append(pid)
+            if (folder / "metrics.json").exists():  # it got there before the stop: thaw, look again
+                os.kill(frozen.pop(), signal.SIGCONT)
+                return False
+            return True
+
+        _wait_for(freeze_a_training_job, 120, "another training")
         assert coordinator.poll() is None, "the run finished before it could be killed"
+        servers = {_parent(pid) for pid in frozen}  # the fork server the jobs came from
         coordinator.kill()
         coordinator.wait()
+        _wait_for(lambda: not any(_alive(s) for s in servers), 60, "the fork server to go with its coordinator")
+        for pid in frozen:
+            os.kill(pid, signal.SIGCONT)
     finally:
         if coordinator.poll() is None:
             coordinator.kill()

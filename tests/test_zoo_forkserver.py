@@ -117,3 +117,18 @@ def test_the_server_exits_when_its_coordinator_closes_the_socket():
     finally:
         if server.alive():
             server.proc.kill()
+
+
+def test_a_job_runs_in_the_coordinators_directory_of_the_moment(tmp_path, monkeypatch):
+    """The server keeps the directory it was started in; a job gets its coordinator's current one,
+    so a relative folder means what it means to the coordinator (the tutorials run zoos so)."""
+    (tmp_path / "first").mkdir()
+    monkeypatch.chdir(tmp_path / "first")
+    first, fd = _start(tmp_path, ["nothing"])  # starts (or reuses) the server; fails fast
+    assert first.wait(timeout=60) == 1
+    os.close(fd)
+    folder = _planned_folder(tmp_path)  # tmp_path/fs/models/id-...
+    monkeypatch.chdir(tmp_path)
+    proc, read_fd = _start(tmp_path, [str(folder.relative_to(tmp_path))])
+    assert proc.wait(timeout=300) == 0
+    assert _result(read_fd)["status"] == "done" and (folder / "reduced-config.json").is_file()

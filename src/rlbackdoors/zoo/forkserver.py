@@ -16,16 +16,18 @@ What the fork changes, and why it does not matter:
 
 * The server is started with the job environment (one OpenMP/MKL thread, matplotlib's Agg
   backend), so what torch, numba and matplotlib read when imported is what a child would read;
-  each job then gets the coordinator's environment as it is when the job starts.
-* A job's parent is the server, not the coordinator. The server exits when its coordinator
-  dies (its end of the socket closes), and each job asks for SIGTERM on its parent's death
-  (:func:`rlbackdoors.zoo.job._die_with_parent`), so a ``kill -9`` of the coordinator still
-  stops every job at a checkpoint.
+  each job then gets the coordinator's environment and working directory as they are when the
+  job starts (a coordinator that changed directory since the server started still means its
+  relative folders).
+* A job's parent is the server, not the coordinator. When the coordinator dies (its end of the
+  socket closes) the server sends every running job SIGTERM and exits at once, and each job also
+  asks for SIGTERM on its parent's death (:func:`rlbackdoors.zoo.job._die_with_parent`), so a
+  ``kill -9`` of the coordinator still stops every job at a checkpoint.
 * Training seeds its generators and sets its threads from its config, so a model's bytes are
   those of a fresh process (the zoo tests compare them with lone runs).
 
 Protocol, over a Unix stream socket: the coordinator sends a 4-byte length and a JSON request
-(argv, environment) with three descriptors (the log, the result pipe's write end, a status
+(argv, environment, working directory) with three descriptors (the log, the result pipe's write end, a status
 pipe's write end); the server forks, closes its copies, and writes the child's pid (8 bytes) and
 later its exit code (8 bytes, negative for a signal, as :class:`subprocess.Popen`) to the status
 pipe.
@@ -91,7 +93,7 @@ class _Server:
         return self.proc.poll() is None
 
     def fork(self, argv: list[str], environ: dict[str, str], fds: list[int]) -> None:
-        data = json.dumps({"argv": argv, "environ": environ}).encode()
+        data = json.dumps({"argv": argv, "environ": environ, "cwd": os.getcwd()}).encode()
         socket.send_fds(self.sock, [_LENGTH.pack(len(data))], fds)
         self.sock.sendall(data)
 
@@ -205,6 +207,7 @@ def _child(sock: socket.socket, request: dict, log: int, result: int, others: li
         os.close(log)
         os.environ.clear()
         os.environ.update(request["environ"])
+        os.chdir(request["cwd"])  # the coordinator's, now: relative folders mean what they mean there
         from rlbackdoors.zoo.job import PARENT_ENV, main
 
         os.environ[PARENT_ENV] = str(os.getppid())
@@ -252,8 +255,10 @@ def serve(fd: int) -> None:
                 raise EOFError
             header += _recv_exact(sock, _LENGTH.size - len(header))
             request = json.loads(_recv_exact(sock, _LENGTH.unpack(header)[0]))
-        except EOFError:
-            return  # the coordinator closed its end or died; running jobs stop on our death
+        except EOFError:  # the coordinator closed its end or died: every running job checkpoints and stops
+            for pid in status:
+                os.kill(pid, signal.SIGTERM)
+            os._exit(0)  # now, not after the interpreter's teardown (a tiny job could finish meanwhile)
         log, result, fd_w = fds
         pid = os.fork()
         if pid == 0:

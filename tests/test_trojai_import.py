@@ -431,6 +431,10 @@ def test_import_writes_our_layout_leaves_the_source_alone_and_is_idempotent(tmp_
     rows = read_metadata(out / "METADATA.csv")
     assert [r["model_name"] for r in rows] == [f"id-{i:08d}" for i in range(4)]
     assert {r["poison.trigger"] for r in rows} == {"unknown"} and {r["converged"] for r in rows} == {"True"}
+    # how TrojAI trained them is not known: no training settings, attempt or frames are made up
+    unknown = [k for k in rows[0] if k.split(".")[0] in ("train", "ppo") or k in ("attempt", "metrics.frames", "metrics.wall_time_s")]
+    assert "train.max_frames" in unknown and "ppo.lr" in unknown and "attempt" in unknown
+    assert all(r[k] == "" for r in rows for k in unknown)
     # again: nothing changes
     after = tree_digest(out)
     code, stdout, _ = run_cli(capsys, *argv)
@@ -643,6 +647,12 @@ def test_our_own_training_folders_import_with_the_world_settings_and_trigger_the
     assert rows["poisoned-run"]["poison.trigger"] == "additive:50" and rows["poisoned-run"]["poisoned"] == "True"
     assert rows["clean-run"]["poison.trigger"] == "multiplicative:12" and rows["clean-run"]["poisoned"] == "False"
     assert rows["poisoned-run"]["trigger_family"] == "additive" and rows["clean-run"]["trigger_family"] == "multiplicative"
+    for name, model in (("poisoned-run", "id-00000003"), ("clean-run", "id-00000000")):  # how they trained: as recorded, not defaults
+        recorded = json.loads((lava_zoo / "models" / model / "config.json").read_text())
+        metrics = json.loads((lava_zoo / "models" / model / "metrics.json").read_text())
+        assert rows[name]["train.max_frames"] == str(recorded["train"]["max_frames"]) != "5000000"
+        assert rows[name]["train.seed"] == str(recorded["train"]["seed"]) and rows[name]["ppo.rollout"] == str(recorded["ppo"]["rollout"])
+        assert rows[name]["metrics.frames"] == str(metrics["frames"]) and rows[name]["attempt"] == ""
     code, _, err = run_cli(capsys, "zoo", "report", out)  # the report reads the cells the families make
     assert code == 0, err
     for row in rows.values():

@@ -552,12 +552,49 @@ def states(zoo: str | Path) -> list:
     return out
 
 
+# The network's shape in an OPAC² section is read off the weights (known); the rest of the section
+# and the ppo and train sections are how a model was trained, which an import does not know.
+SHAPE_KEYS = ("opac2.depth", "opac2.width", "opac2.obs_norm")
+
+
+def _training_unknown(key: str) -> bool:
+    return key.split(".")[0] in ("train", "ppo", "opac2") and key not in SHAPE_KEYS
+
+
+def _own_training(folder: Path) -> tuple[dict, dict]:
+    """The training settings and metrics that this package's ``train`` recorded in the source folder
+    (its config.json and metrics.json, copied to ``trojai/``), flattened; empty for a TrojAI model."""
+    from rlbackdoors.zoo.spec import flatten
+
+    copied = folder / "trojai"
+    config = _json_or_empty(copied / "config.json")
+    if not (isinstance(config.get("format_version"), int) and isinstance(config.get("env"), dict) and isinstance(config.get("poison"), dict)):
+        return {}, {}
+    metrics = _json_or_empty(copied / "metrics.json")
+    trained = {k: v for k, v in flatten(config).items() if _training_unknown(k)}
+    return trained, {f"metrics.{k}": v for k, v in flatten(metrics).items() if k in TRAINING_METRICS}
+
+
+# What a training run's metrics say about the run itself (not measured again at import).
+TRAINING_METRICS = ("frames", "converged_at_frames", "wall_time_s", "cpu_time_s", "stop_reason", "trainer")
+
+
 def metadata_text(zoo: str | Path) -> str:
+    """METADATA.csv of an imported zoo. A model's training settings (train, ppo, the OPAC² section
+    but its network's shape) and its attempt are what our config.json had to hold to play it, not
+    how it was trained: empty, unless the source folder is one this package's ``train`` wrote, whose
+    recorded settings and run metrics (frames, wall time) are given instead."""
     from rlbackdoors.zoo.index import LEAD_COLUMNS, csv_text, metadata_rows
 
     rows = metadata_rows(states(zoo))
     for row in rows:
-        info = _json_or_empty(Path(zoo) / "models" / row["model_name"] / "trojai.json")
+        folder = Path(zoo) / "models" / row["model_name"]
+        own_settings, own_metrics = _own_training(folder)
+        for key in [k for k in row if _training_unknown(k)]:
+            row[key] = own_settings.get(key)
+        row.update(own_metrics)
+        row["attempt"] = ""  # no zoo attempt: a model shipped or trained elsewhere
+        info = _json_or_empty(folder / "trojai.json")
         if row.get("poison.trigger") is not None and not _known_trigger(info):
             row["poison.trigger"] = UNKNOWN_TRIGGER  # the config's is the world's default, not the model's
         if info.get("label") is None:

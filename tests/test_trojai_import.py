@@ -451,6 +451,9 @@ def test_import_writes_our_layout_leaves_the_source_alone_and_is_idempotent(tmp_
     assert code == 0, err
     report = (out / "report" / "report.md").read_text()
     assert "| lavaworld | fc | clean | 2 |" in report and "imported from trojai" in report.lower()
+    # nothing was trained here: no empty curve or frames pictures, and none linked
+    assert (out / "report" / "scatter.png").is_file() and "scatter.png" in report
+    assert not (out / "report" / "curves.png").exists() and "curves.png" not in report and "frames_hist.png" not in report
     code, stdout, _ = run_cli(capsys, "zoo", "status", out)
     assert code == 0 and "lavaworld" in stdout
     for detector in ("constant", "weights"):

@@ -189,7 +189,8 @@ def _stat(row: dict, metric: str) -> str:
     return f"{row[f'{metric}_mean']:.3f} ± {row[f'{metric}_std']:.3f} [{row[f'{metric}_ci_low']:.3f}, {row[f'{metric}_ci_high']:.3f}]"
 
 
-def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[dict], budget: list[dict]) -> str:
+def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[dict], budget: list[dict], curves: bool = True) -> str:
+    """report.md's text; ``curves``: link the frames histogram and training curves (models were trained)."""
     done = sum(s.status == "done" for s in states)
     parts = [
         f"# Zoo report: {name}",
@@ -269,16 +270,9 @@ def markdown(name: str, states: list[ModelState], perf: list[dict], conv: list[d
         for r in budget
     ]
     parts += [_md_table(head, body) if body else "(no converged model yet)", ""]
-    parts += [
-        "## Plots",
-        "",
-        "![clean SR vs poisoned SR](scatter.png)",
-        "",
-        "![frames to converge](frames_hist.png)",
-        "",
-        "![training curves](curves.png)",
-        "",
-    ]
+    parts += ["## Plots", "", "![clean SR vs poisoned SR](scatter.png)", ""]
+    if curves:
+        parts += ["![frames to converge](frames_hist.png)", "", "![training curves](curves.png)", ""]
     return "\n".join(parts)
 
 
@@ -398,9 +392,12 @@ def write_report(out: Path, name: str, states: list[ModelState], trained: list[M
     atomic_write_text(out / "convergence.csv", _csv(conv))
     atomic_write_text(out / "budget.csv", _csv(budget))
     plot_scatter(states, out / "scatter.png")
-    plot_frames(trained, out / "frames_hist.png")
-    plot_curves(trained, out / "curves.png")
-    return markdown(name, states, perf, conv, budget)
+    for plot, file in ((plot_frames, "frames_hist.png"), (plot_curves, "curves.png")):
+        if trained:
+            plot(trained, out / file)
+        else:  # nothing trained here (an imported zoo): no empty picture, and no stale one
+            (out / file).unlink(missing_ok=True)
+    return markdown(name, states, perf, conv, budget, curves=bool(trained))
 
 
 def _skipped_section(states: list[ModelState]) -> list[str]:

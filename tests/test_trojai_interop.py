@@ -10,6 +10,7 @@ point runs as TrojAI's harness runs it: a subprocess with TrojAI's exact argumen
 from __future__ import annotations
 
 import json
+import os
 import pickle
 import shutil
 import subprocess
@@ -293,6 +294,45 @@ def test_the_container_entry_point_runs_as_the_harness_calls_it_on_every_world(w
             assert float(result.read_text()) == 0.7
     text = (ROOT / "container" / "detector.def").read_text()
     assert 'exec python3 /entrypoint.py "$@"' in text and "./learned_parameters /\n" in text
+
+
+def test_a_plugin_detector_goes_into_the_image_and_its_entry_point_loads_it(lava_zoo, tmp_path, capsys):
+    """``container/build.sh DET --plugin FILE`` puts the file in ``plugins/`` beside the image's
+    ``entrypoint.py`` (``RLBACKDOORS_STAGE``: the image's build context, written without a builder,
+    which this machine lacks); that entry point, run as the image's runscript runs it, reads the
+    plugin's detector back from the learned parameters. Staged without the plugin, it refuses the
+    model in one line naming the detector."""
+    plugin = ROOT / "examples" / "tutorial_detector.py"
+    det = tmp_path / "det"
+    code, _, err = run(capsys, "detect", "fit", "--plugin", plugin, "--detector", "last-layer", "--zoo", lava_zoo, "--out", det)
+    assert code == 0, err
+    model = sorted((lava_zoo / "models").iterdir())[0]
+    for staged in (True, False):
+        ctx = tmp_path / f"image-{staged}"
+        done = subprocess.run(
+            ["bash", str(ROOT / "container" / "build.sh"), str(det), *(["--plugin", str(plugin)] if staged else [])],
+            env={**os.environ, "RLBACKDOORS_STAGE": str(ctx)},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert done.returncode == 0, done.stderr
+        assert sorted(p.name for p in (ctx / "plugins").iterdir()) == (["tutorial_detector.py"] if staged else [])
+        assert (ctx / "entrypoint.py").read_bytes() == (ROOT / "container" / "entrypoint.py").read_bytes()
+        result = tmp_path / f"result-{staged}.txt"
+        args = harness_args(model, result, tmp_path / "scratch", ctx, ctx / "learned_parameters", lava_zoo)
+        done = subprocess.run([sys.executable, str(ctx / "entrypoint.py"), *args], capture_output=True, text=True, timeout=300)
+        if staged:
+            assert done.returncode == 0, done.stderr
+            assert 0.0 <= float(result.read_text()) <= 1.0
+        else:
+            assert done.returncode == 2 and not result.exists()
+            line = one_error(2, done.stderr)
+            assert "'last-layer'" in line
+    text = (ROOT / "container" / "detector.def").read_text()
+    assert "./plugins /\n" in text and "/plugins" in text.split("%post")[1]
+    done = subprocess.run(["bash", str(ROOT / "container" / "build.sh"), str(det), "--plugin", str(tmp_path / "none.py")], capture_output=True, text=True)
+    assert done.returncode == 2 and done.stderr == f"rlbackdoors: error: --plugin {tmp_path / 'none.py'} is not a file\n"
 
 
 def test_an_imported_zoo_verifies_and_detect_leaves_out_a_tampered_model_only_when_asked(jul_round, tmp_path, capsys):

@@ -18,6 +18,7 @@ import contextlib
 import csv
 import io
 import json
+import os
 import re
 import runpy
 import shlex
@@ -235,7 +236,7 @@ def check(cwd: Path, done: list[tuple[str, list[str], subprocess.CompletedProces
         assert not (cwd / args[1]).exists()
 
 
-def test_the_image_runs_the_entry_point_the_page_runs():
+def test_the_image_runs_the_entry_point_the_page_runs(tmp_path):
     """What the image holds and runs, from container/ itself: the runscript hands TrojAI's arguments to
     container/entrypoint.py, the learned parameters, metaparameters and schema sit where the page's
     ``singularity run`` line points, and that line passes the flags of the page's own infer call."""
@@ -244,8 +245,15 @@ def test_the_image_runs_the_entry_point_the_page_runs():
     assert runscript[0].strip() == 'exec python3 /entrypoint.py "$@"'
     files = {tuple(line.split()) for line in definition.split("%files", 1)[1].split("%post", 1)[0].strip().splitlines()}
     assert {("./entrypoint.py", "/"), ("./metaparameters.json", "/"), ("./metaparameters_schema.json", "/"), ("./learned_parameters", "/")} <= files
-    build = (ROOT / BUILD).read_text()
-    assert 'cp "$here/entrypoint.py" "$here/detector.def" "$ctx/"' in build
+    # the build context build.sh hands the builder holds that entry point and this definition
+    det = tmp_path / "det"
+    det.mkdir()
+    for name in ("detector.json", "metaparameters.json", "metaparameters_schema.json"):
+        (det / name).write_text("{}")
+    done = subprocess.run(["bash", str(ROOT / BUILD), str(det)], env={**os.environ, "RLBACKDOORS_STAGE": str(tmp_path / "ctx")}, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    for name in ("entrypoint.py", "detector.def"):
+        assert (tmp_path / "ctx" / name).read_bytes() == (ROOT / "container" / name).read_bytes()
 
     (image,) = [a for kind, a in steps() if kind == "image"]
     local = next(a for kind, a in steps() if kind == "entrypoint" and a[0] == "infer")

@@ -66,7 +66,9 @@ def test_the_effect_search_finds_an_action_trojan_that_the_outcome_search_cannot
     trojan = _search(TurnLeftUnderTrigger())
     assert trojan.best.spec == "multiplicative:12"
     row = effect_features(trojan)
-    assert set(row) == set(FEATURES)
+    screened = {t.spec for t in trojan.screened if t.error is None}
+    assert set(row) == set(FEATURES) | {f"{e}@{spec}" for e in ("shift", "concentration", "success_drop") for spec in screened}
+    assert row["concentration@multiplicative:12"] == pytest.approx(row["best_concentration"], abs=0.2)  # screened and confirmed alike
     # the policy collapses onto one action: most of its entropy (ln 3 at most) is gone, far above
     # the family's median candidate
     assert row["best_concentration"] > 0.5 and row["peak_concentration"] > 0.5 and row["peak_shift"] > 0.1
@@ -111,14 +113,16 @@ def test_a_clean_only_fit_scores_the_share_of_clean_models_less_anomalous():
     assert detector.classify(dict.fromkeys(FEATURES, float(np.mean([r["best_shift"] for r in clean]))), "lavaworld") < 0.5
 
 
-def test_the_fit_refuses_what_it_cannot_stand_on():
+def test_the_fit_refuses_or_says_what_it_cannot_stand_on():
     rng = np.random.default_rng(2)
     quiet = _rows(rng, 8)
     loud = _rows(rng, 4, best_shift=0.5)
-    # "poisoned" models sitting on the clean models' mean: less anomalous than the clean ones
+    # "poisoned" models sitting on the clean models' mean, less anomalous than the clean ones: a
+    # slope that would score anomalies as clean is not used; the p-value among clean models is
     middle = [{f: float(np.mean([r[f] for r in quiet])) for f in FEATURES} for _ in range(4)]
-    with pytest.raises(DetectError, match="no more anomalous than its clean ones"):
-        make_detector("effect").fit_rows(quiet + middle, ["lavaworld"] * 12, np.array([0] * 8 + [1] * 4))
+    upside = make_detector("effect").fit_rows(quiet + middle, ["lavaworld"] * 12, np.array([0] * 8 + [1] * 4))
+    assert upside.calibration is None and "no more anomalous" in upside.calibration_note
+    assert upside.classify(loud[0], "lavaworld") == pytest.approx(8.5 / 9)  # above all 8 clean models
     with pytest.raises(DetectError, match="needs at least 3 clean models of lavaworld in the fit \\(it has 2\\)"):
         make_detector("effect").fit_rows(quiet[:2] + loud, ["lavaworld"] * 6, np.array([0, 0, 1, 1, 1, 1]))
     # every clean model alike: the spread is floored, so a small difference is no infinite anomaly

@@ -15,18 +15,21 @@ search plays them, on the same seeds) and against the clean env E:
 
 Candidates are ranked by the sum of the three (the entropy over its maximum, log of the action
 count; each taken both ways), and the best few are played again on more episodes. Features per
-model: the confirmed best candidate's three effects, and how far each stands above the
-family's median candidate (a backdoor answers one trigger; a clean agent's answer to an edit of
-its input is broad).
+model: the confirmed best candidate's three effects and how far each stands above the family's
+median candidate (a backdoor answers one trigger; a clean agent's answer to an edit of its input is
+broad), and the three effects of every screened candidate, which the fit sets against what clean
+models show under the *same* edit (the screen's candidates are the same for every model: an edit
+that breaks any policy is no anomaly, one that moves this policy more than clean ones is).
 
 Scoring, fitted on clean models: each feature is standardised by the clean fit models of the
-model's world (leave one out for those models themselves), and the model's
+model's world (leave one out for those models themselves; spreads floored, :data:`SCALE_FLOOR`,
+:data:`DROP_FLOOR`), and the model's
 anomaly is its largest ``|z|``, two-sided, so that an effect the fit never saw with this sign
 still counts. Where the fit has poisoned models, a one-feature logistic regression on the
-anomaly gives the probability, and its slope must be positive (else the fit is refused: its
-poisoned models would be *less* anomalous than its clean ones). With clean models only, the
-probability is the share of clean fit models less anomalous than the model (one minus a
-p-value).
+anomaly gives the probability where its slope is positive. With clean models only, or where the
+fit's poisoned models are no more anomalous than its clean ones (a slope that would score anomalies
+as clean), the probability is the share of clean fit models less anomalous than the model (one
+minus a p-value); ``detector.json`` says which (``calibration_note``).
 
 Cost: the behavioural search's episodes (48 candidates of 16 episodes, 12 neighbours, 3
 confirmations of 32, and E), with every forward's action distribution kept.
@@ -46,11 +49,12 @@ from rlbackdoors.detect.handle import DetectError, ModelHandle
 
 EFFECTS = ("shift", "concentration", "success_drop")
 FEATURES = tuple(f"best_{e}" for e in EFFECTS) + tuple(f"peak_{e}" for e in EFFECTS)
-# The smallest spread a feature is standardised by: a rate on the 32 confirmation episodes moves
-# in steps of 1/32, and shifts or entropy changes below ~0.02 nats are the noise of a 16-episode
-# screen. Without a floor, clean models that agree exactly (every success drop 0) would make any
-# difference an infinite anomaly.
+# The smallest spread a feature is standardised by. Without a floor, clean models that agree
+# exactly (every success drop 0) would make any difference an infinite anomaly. Shifts and entropy
+# changes below ~0.02 nats are the noise of a 16-episode screen; a success rate on 16 episodes has a
+# binomial spread of up to 0.125 (at 0.5), so success drops are floored there.
 SCALE_FLOOR = 0.02
+DROP_FLOOR = 0.125
 
 
 def js_divergence(p: tuple[float, ...] | np.ndarray, q: tuple[float, ...] | np.ndarray) -> float:
@@ -89,6 +93,8 @@ def effect_features(result: SearchResult) -> dict[str, float]:
     median = np.median(np.array([effects(t, clean) for t in played]), axis=0)
     row = {f"best_{name}": float(value) for name, value in zip(EFFECTS, best)}
     row.update({f"peak_{name}": float(value - m) for name, value, m in zip(EFFECTS, best, median)})
+    for trial in played:  # per candidate: set against what clean models show under the same edit
+        row.update({f"{name}@{trial.spec}": float(value) for name, value in zip(EFFECTS, effects(trial, clean))})
     return row
 
 
@@ -104,8 +110,9 @@ class EffectDetector(BehaviourDetector):
 
     def __init__(self, **params: Any):
         super().__init__(**params)
-        self.reference: dict[str, dict[str, list[float]]] = {}  # world -> clean fit models' mean and scale per feature
-        self.calibration: LogisticModel | None = None  # None: clean-only fit, the p-value of clean_scores
+        self.reference: dict[str, dict[str, list]] = {}  # world -> the features, and the clean fit models' mean and scale of each
+        self.calibration: LogisticModel | None = None  # None: the p-value among clean_scores
+        self.calibration_note = ""  # how probabilities are made, in words (detector.json)
         self.clean_scores: np.ndarray = np.zeros(0)
 
     def unsupported(self, model: ModelHandle) -> str | None:
@@ -129,36 +136,38 @@ class EffectDetector(BehaviourDetector):
     # ----- scoring: an anomaly against the clean models of the fit ------------------------------
     def fit_rows(self, rows: list[dict[str, float]], groups: list[str], labels: np.ndarray) -> EffectDetector:
         labels = _check_labels(rows, labels)
-        x = np.array([[float(row[f]) for f in FEATURES] for row in rows], dtype=np.float64).reshape(len(rows), len(FEATURES))
         least = max(2, int(self.params["min_per_class"]))  # two: a clean fit model is standardised by the others
         self.reference = {}
         scores = np.zeros(len(rows))
         for group in sorted(set(groups)):
-            members = np.array([g == group for g in groups])
-            clean = np.flatnonzero(members & (labels == 0))
+            members = [i for i, g in enumerate(groups) if g == group]
+            clean = [i for i in members if labels[i] == 0]
             if len(clean) < least:
                 raise DetectError(f"detector 'effect' needs at least {least} clean models of {group} in the fit (it has {len(clean)})")
-            self.reference[group] = _reference(x[clean])
-            for i in np.flatnonzero(members):
-                others = clean[clean != i]  # a clean fit model is scored as a new one would be: without itself
-                scores[i] = _anomaly(x[i], _reference(x[others]) if len(others) < len(clean) else self.reference[group])
+            # the features every clean fit model has: the summary and the family's screened candidates
+            names = sorted(set.intersection(*(set(rows[i]) for i in clean)))
+            x = np.array([[float(rows[i][f]) for f in names] for i in clean], dtype=np.float64)
+            self.reference[group] = _reference(names, x)
+            for i in members:  # a clean fit model is scored as a new one would be: without itself
+                others = [k for k, j in enumerate(clean) if j != i]
+                scores[i] = _anomaly(rows[i], _reference(names, x[others]) if len(others) < len(clean) else self.reference[group])
         self.clean_scores = np.sort(scores[labels == 0])
+        self.calibration, self.calibration_note = None, "clean models only: one minus the p-value of the anomaly among them"
         if labels.any():
             model = fit_logistic([{"anomaly": s} for s in scores], labels, ["anomaly"])
-            if model.kind != "logistic" or model.coef[0] <= 0:
-                raise DetectError(
-                    "detector 'effect': the fit's poisoned models are no more anomalous than its clean ones (a slope of the anomaly that is not positive); fit on clean models only, or on models whose trojans act"
+            if model.kind == "logistic" and model.coef[0] > 0:
+                self.calibration, self.calibration_note = model, "a logistic regression on the anomaly"
+            else:  # a slope that is not positive would score anomalies as clean: the p-value instead, and say so
+                self.calibration_note = (
+                    "the fit's poisoned models were no more anomalous than its clean ones: one minus the p-value of the anomaly among the clean models"
                 )
-            self.calibration = model
-        else:
-            self.calibration = None
         self.fitted = True
         return self
 
     def anomaly(self, row: dict[str, float], group: str) -> float:
         if group not in self.reference:
             raise DetectError(f"detector 'effect' saw no clean model of {group} in its fit")
-        return _anomaly(np.array([float(row[f]) for f in FEATURES]), self.reference[group])
+        return _anomaly(row, self.reference[group])
 
     def classify(self, row: dict[str, float], group: str) -> float:
         score = self.anomaly(row, group)
@@ -168,27 +177,45 @@ class EffectDetector(BehaviourDetector):
         return float((np.searchsorted(self.clean_scores, score, side="left") + 0.5) / (n + 1))
 
     def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
-        state = {"reference": self.reference, "calibration": None if self.calibration is None else self.calibration.to_dict()}
+        state = {
+            "reference": self.reference,
+            "calibration": None if self.calibration is None else self.calibration.to_dict(),
+            "calibration_note": self.calibration_note,
+        }
         return state, {"clean_scores": self.clean_scores}
 
     def set_state(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
-        self.reference = {str(g): {k: [float(v) for v in vals] for k, vals in ref.items()} for g, ref in (state.get("reference") or {}).items()}
+        self.reference = {
+            str(g): {"features": [str(f) for f in ref["features"]], "mean": [float(v) for v in ref["mean"]], "scale": [float(v) for v in ref["scale"]]}
+            for g, ref in (state.get("reference") or {}).items()
+        }
         calibration = state.get("calibration")
         self.calibration = None if calibration is None else LogisticModel.from_dict(calibration)
+        self.calibration_note = str(state.get("calibration_note", ""))
         self.clean_scores = np.asarray(arrays.get("clean_scores", np.zeros(0)), dtype=np.float64)
 
 
-def _reference(x: np.ndarray) -> dict[str, list[float]]:
-    """Mean and spread (floored: :data:`SCALE_FLOOR`) per feature of clean models' rows."""
+def _floor(name: str) -> float:
+    """The smallest spread of a feature (:data:`SCALE_FLOOR`, :data:`DROP_FLOOR` for success drops)."""
+    return DROP_FLOOR if name.split("@")[0].endswith("success_drop") else SCALE_FLOOR
+
+
+def _reference(names: list[str], x: np.ndarray) -> dict[str, list]:
+    """Mean and floored spread per feature of clean models' rows ``x`` (columns ``names``)."""
     mean = x.mean(0)
     spread = x.std(0, ddof=1) if len(x) > 1 else np.zeros(x.shape[1])
-    return {"mean": [float(v) for v in mean], "scale": [float(v) for v in np.maximum(spread, SCALE_FLOOR)]}
+    floors = np.array([_floor(n) for n in names])
+    return {"features": list(names), "mean": [float(v) for v in mean], "scale": [float(v) for v in np.maximum(spread, floors)]}
 
 
-def _anomaly(row: np.ndarray, reference: dict[str, list[float]]) -> float:
-    """The largest |z| of a row against a reference: two-sided."""
-    z = (row - np.asarray(reference["mean"])) / np.asarray(reference["scale"])
+def _anomaly(row: dict[str, float], reference: dict[str, list]) -> float:
+    """The largest |z| of a row against a reference, over the features the row has: two-sided."""
+    have = [k for k, name in enumerate(reference["features"]) if name in row]
+    if not have:
+        raise DetectError("detector 'effect': the model has none of the features its fit's clean models had (another trigger family or search budget?)")
+    values = np.array([float(row[reference["features"][k]]) for k in have])
+    z = (values - np.asarray(reference["mean"])[have]) / np.asarray(reference["scale"])[have]
     return float(np.abs(z).max())
 
 
-__all__ = ["EFFECTS", "FEATURES", "EffectDetector", "effect_features", "effect_rank", "effects", "js_divergence"]
+__all__ = ["DROP_FLOOR", "EFFECTS", "FEATURES", "SCALE_FLOOR", "EffectDetector", "effect_features", "effect_rank", "effects", "js_divergence"]

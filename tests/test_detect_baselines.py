@@ -400,6 +400,7 @@ def test_the_search_finds_the_trigger_of_a_trained_lavaworld_agent(tmp_path):
         ({"members": "weights,weights"}, "must name distinct other detectors"),
         ({"members": "stack"}, "must name distinct other detectors"),
         ({"members": "constant"}, "every member must be a features-and-classifier detector"),
+        ({"members": "weights,effect"}, "effect scores its features its own way"),
         ({"member_params": {"attribution": {"max_states": 4}}}, "member_params must map members (weights, behaviour)"),
         ({"member_params": {"behaviour": {"candidatez": 4}}}, "no parameter 'candidatez'"),
         ({"folds": 1}, "folds=1 is out of range (allowed: 2 to 100)"),

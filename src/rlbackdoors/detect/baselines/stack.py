@@ -61,6 +61,9 @@ class StackDetector(FeatureDetector):
             raise DetectError(f"detector 'stack': member_params must map members ({', '.join(names)}) to parameter tables, got {extra!r}")
         if not all(issubclass(get_detector(n), FeatureDetector) for n in names):
             raise DetectError(f"detector 'stack': every member must be a features-and-classifier detector, got {names}")
+        own = [n for n in names if cast(type[FeatureDetector], get_detector(n)).classify is not FeatureDetector.classify]
+        if own:  # the stack would fit a classifier on its raw features, not score them as it does
+            raise DetectError(f"detector 'stack': {', '.join(own)} scores its features its own way (not a classifier over them) and cannot be a member")
         self.members = [cast(FeatureDetector, make_detector(n, **{"min_per_class": int(self.params["min_per_class"]), **extra.get(n, {})})) for n in names]
         self.member_classifiers = [GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])) for _ in names]
         self.meta = LogisticModel()

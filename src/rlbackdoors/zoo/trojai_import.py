@@ -561,22 +561,24 @@ def _training_unknown(key: str) -> bool:
     return key.split(".")[0] in ("train", "ppo", "opac2") and key not in SHAPE_KEYS
 
 
+# What a training run's metrics say about the run itself (not measured again at import).
+TRAINING_METRICS = ("frames", "converged_at_frames", "wall_time_s", "cpu_time_s", "stop_reason", "trainer")
+
+
 def _own_training(folder: Path) -> tuple[dict, dict]:
     """The training settings and metrics that this package's ``train`` recorded in the source folder
     (its config.json and metrics.json, copied to ``trojai/``), flattened; empty for a TrojAI model."""
     from rlbackdoors.zoo.spec import flatten
 
-    copied = folder / "trojai"
-    config = _json_or_empty(copied / "config.json")
-    if not (isinstance(config.get("format_version"), int) and isinstance(config.get("env"), dict) and isinstance(config.get("poison"), dict)):
+    try:
+        config = read_round(folder / "trojai", ("config.json",)).own_config()
+    except ValueError:  # not JSON we can read: not a file train wrote
+        config = None
+    if config is None:
         return {}, {}
-    metrics = _json_or_empty(copied / "metrics.json")
+    metrics = _json_or_empty(folder / "trojai" / "metrics.json")
     trained = {k: v for k, v in flatten(config).items() if _training_unknown(k)}
     return trained, {f"metrics.{k}": v for k, v in flatten(metrics).items() if k in TRAINING_METRICS}
-
-
-# What a training run's metrics say about the run itself (not measured again at import).
-TRAINING_METRICS = ("frames", "converged_at_frames", "wall_time_s", "cpu_time_s", "stop_reason", "trainer")
 
 
 def metadata_text(zoo: str | Path) -> str:

@@ -90,11 +90,12 @@ def effect_features(result: SearchResult) -> dict[str, float]:
     if clean.policy is None or result.best.policy is None or not played:
         raise DetectError("detector 'effect' reads the policy's action distribution, and this policy has none (not a discrete-action torch policy)")
     best = effects(result.best, clean)
-    median = np.median(np.array([effects(t, clean) for t in played]), axis=0)
+    each = {trial.spec: effects(trial, clean) for trial in played}
+    median = np.median(np.array(list(each.values())), axis=0)
     row = {f"best_{name}": float(value) for name, value in zip(EFFECTS, best)}
     row.update({f"peak_{name}": float(value - m) for name, value, m in zip(EFFECTS, best, median)})
-    for trial in played:  # per candidate: set against what clean models show under the same edit
-        row.update({f"{name}@{trial.spec}": float(value) for name, value in zip(EFFECTS, effects(trial, clean))})
+    for spec, values in each.items():  # per candidate: set against what clean models show under the same edit
+        row.update({f"{name}@{spec}": float(value) for name, value in zip(EFFECTS, values)})
     return row
 
 
@@ -149,8 +150,8 @@ class EffectDetector(BehaviourDetector):
             x = np.array([[float(rows[i][f]) for f in names] for i in clean], dtype=np.float64)
             self.reference[group] = _reference(names, x)
             for i in members:  # a clean fit model is scored as a new one would be: without itself
-                others = [k for k, j in enumerate(clean) if j != i]
-                scores[i] = _anomaly(rows[i], _reference(names, x[others]) if len(others) < len(clean) else self.reference[group])
+                reference = self.reference[group] if labels[i] else _reference(names, x[[k for k, j in enumerate(clean) if j != i]])
+                scores[i] = _anomaly(rows[i], reference)
         self.clean_scores = np.sort(scores[labels == 0])
         self.calibration, self.calibration_note = None, "clean models only: one minus the p-value of the anomaly among them"
         if labels.any():

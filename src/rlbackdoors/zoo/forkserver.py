@@ -35,6 +35,7 @@ pipe.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
@@ -124,7 +125,7 @@ class JobProcess:
             self._status = status_r
             self._buffer = b""
             self._eof = False
-            pid = self._read(blocking=True, size=_STATUS.size)
+            pid = self._read(blocking=True)
         except BaseException:
             os.close(status_r)
             raise
@@ -134,9 +135,10 @@ class JobProcess:
         self.pid = pid
         os.set_blocking(status_r, False)
 
-    def _read(self, blocking: bool, size: int) -> int | None:
+    def _read(self, blocking: bool) -> int | None:
         """The next status number, or None if it has not come yet (or never will: then
         ``self._eof`` is set)."""
+        size = _STATUS.size
         while len(self._buffer) < size:
             try:
                 chunk = os.read(self._status, size - len(self._buffer))
@@ -155,7 +157,7 @@ class JobProcess:
     def poll(self) -> int | None:
         """The exit code (negative: killed by that signal), or None while it runs."""
         if self.returncode is None:
-            code = self._read(blocking=False, size=_STATUS.size)
+            code = self._read(blocking=False)
             if code is None and self._eof:
                 code = 1  # the server died before it saw the job end (the job stops on its parent's death)
             if code is not None:
@@ -194,14 +196,17 @@ def _recv_exact(sock: socket.socket, size: int) -> bytes:
 
 
 def _child(sock: socket.socket, request: dict, log: int, result: int, others: list[int]) -> None:
-    """The forked job: never returns."""
+    """The forked job: never returns. ``others``: the server's descriptors it must not keep (other
+    jobs' status pipes, the server's wake-up pipe)."""
     code = 1
     try:
         sock.close()
-        for fd in others:  # other jobs' status pipes: theirs to end
+        signal.set_wakeup_fd(-1)
+        for fd in others:
             os.close(fd)
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGCHLD):
-            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
         os.dup2(log, 1)
         os.dup2(log, 2)
         os.close(log)
@@ -240,14 +245,26 @@ def serve(fd: int) -> None:
     _warm_numba()
     sock = socket.socket(fileno=fd)
     status: dict[int, int] = {}  # running child's pid -> its status pipe
+    # a job's end wakes the loop: SIGCHLD writes a byte to this pipe (the handler itself does nothing)
+    wake_r, wake_w = os.pipe()
+    os.set_blocking(wake_r, False)
+    os.set_blocking(wake_w, False)
+    signal.set_wakeup_fd(wake_w)
+    signal.signal(signal.SIGCHLD, lambda *_: None)
     while True:
-        readable, _, _ = select.select([sock], [], [], 0.05 if status else None)
-        for pid, fd_w in list(status.items()):
-            done, wait_status = os.waitpid(pid, os.WNOHANG)
-            if done:
-                os.write(fd_w, _STATUS.pack(os.waitstatus_to_exitcode(wait_status)))
-                os.close(status.pop(pid))
-        if not readable:
+        readable, _, _ = select.select([sock.fileno(), wake_r], [], [])
+        if wake_r in readable:
+            with contextlib.suppress(BlockingIOError):  # drain it
+                while os.read(wake_r, 4096):
+                    pass
+            while status:
+                pid, wait_status = os.waitpid(-1, os.WNOHANG)
+                if not pid:
+                    break
+                if pid in status:
+                    os.write(status[pid], _STATUS.pack(os.waitstatus_to_exitcode(wait_status)))
+                    os.close(status.pop(pid))
+        if sock.fileno() not in readable:
             continue
         try:
             header, fds, _, _ = socket.recv_fds(sock, _LENGTH.size, 3)
@@ -262,7 +279,7 @@ def serve(fd: int) -> None:
         log, result, fd_w = fds
         pid = os.fork()
         if pid == 0:
-            _child(sock, request, log, result, list(status.values()) + [fd_w])
+            _child(sock, request, log, result, [*status.values(), fd_w, wake_r, wake_w])
         os.close(log)
         os.close(result)
         os.write(fd_w, _STATUS.pack(pid))

@@ -326,9 +326,11 @@ def test_group_with_clean_teachers_matches_each_agent_alone(world):
     assert triggered_seen > 0  # some frames carried the trigger and were left out of the KL
     for (lone_ppo, _, _), (ppo, _, _) in zip(alone, grouped):
         for a, b in zip(lone_ppo.model.parameters(), ppo.model.parameters()):
-            # within one Adam step (lr): a weight whose gradient is near 0 may step the other way on
-            # rounding; measured 0.41 lr at most over three kernel sets (kernel_spread.json)
-            torch.testing.assert_close(a, b, rtol=1e-3, atol=ppo.cfg.lr)
+            # within two Adam steps (2 lr): an Adam step moves a weight by about lr at most, and one
+            # whose gradient is near 0 may step the other way on rounding; measured 0.41 lr at most
+            # over three kernel sets (kernel_spread.json) with per-parameter clipping norms, 1.14 lr
+            # once the group clips by one norm over each agent's whole row (another summation order)
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=2 * ppo.cfg.lr)
         if lone_ppo.teacher_memory is not None:
             torch.testing.assert_close(lone_ppo.teacher_memory, ppo.teacher_memory, rtol=1e-4, atol=1e-5)
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from rlbackdoors.algos.ppo import PPO, sample_actions
+from rlbackdoors.algos.ppo import PPO, gae, sample_actions
 from rlbackdoors.config import EnvConfig, PoisonConfig, PPOConfig
 from rlbackdoors.evaluate import evaluate
 from rlbackdoors.models import build_model
@@ -16,15 +16,24 @@ def test_sample_actions_follows_the_distribution():
 
 
 def test_gae_matches_hand_computation():
-    ppo = PPO(build_model("fc"), PPOConfig(gamma=0.5, gae_lambda=0.5), torch.device("cpu"), torch.Generator())
     rewards = torch.tensor([[1.0], [0.0], [2.0]])
     dones = torch.tensor([[False], [True], [False]])
     values = torch.tensor([[0.5], [1.0], [0.25]])
-    adv = ppo._gae(rewards, dones, values, torch.tensor([4.0]))
+    adv = gae(rewards, dones, values, torch.tensor([4.0]), gamma=0.5, lam=0.5)
     a2 = 2.0 + 0.5 * 4.0 - 0.25  # 3.75
     a1 = 0.0 - 1.0  # episode ends after step 1: no bootstrap, no trace
     a0 = (1.0 + 0.5 * 1.0 - 0.5) + 0.25 * a1
     assert torch.allclose(adv[:, 0], torch.tensor([a0, a1, a2]))
+
+
+def test_gae_of_a_group_is_each_learners_bytes():
+    """A group's K learners in one (T, K, B) pass get exactly the advantages each gets alone."""
+    g = torch.Generator().manual_seed(3)
+    rewards, values = torch.rand((16, 3, 5), generator=g), torch.rand((16, 3, 5), generator=g)
+    dones, next_value = torch.rand((16, 3, 5), generator=g) < 0.2, torch.rand((3, 5), generator=g)
+    together = gae(rewards, dones, values, next_value, 0.99, 0.95)
+    for k in range(3):
+        assert torch.equal(together[:, k], gae(rewards[:, k], dones[:, k], values[:, k], next_value[k], 0.99, 0.95))
 
 
 def test_rollout_shapes_and_update_reduces_loss():

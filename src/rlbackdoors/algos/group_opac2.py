@@ -24,7 +24,7 @@ import weakref
 import numpy as np
 import torch
 
-from rlbackdoors.algos.group import StackedAdam, group_width, padded
+from rlbackdoors.algos.group import FlatParameters, StackedAdam, group_width, padded
 from rlbackdoors.algos.opac2 import ADV_EPS, OPAC2, squash, squashed_log_prob
 from rlbackdoors.config import LOG_STD_MAX, LOG_STD_MIN
 from rlbackdoors.models.minigrid import run_sequential_stacked
@@ -121,9 +121,10 @@ def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], 
     width = group_width(real, device)
     cfg, k = lead.cfg, lead.cfg.action_samples
     members = padded(agents, device)
-    params = {net: stacked(members, net, grad=True) for net in NETS}
+    flats = {net: FlatParameters(stacked(members, net, grad=False)) for net in NETS}
+    params = {net: flat.views for net, flat in flats.items()}
     target = stacked(members, "v_target", grad=False)
-    optimisers = {net: StackedAdam([(getattr(a, f"{net}_opt"), functools.partial(parameter, a)) for a in members], params[net]) for net in NETS}
+    optimisers = {net: StackedAdam([(getattr(a, f"{net}_opt"), functools.partial(parameter, a)) for a in members], flats[net]) for net in NETS}
     both = {**params["policy"], **params["q"], **params["v"]}
     history = []
     for _ in range(n):
@@ -134,7 +135,7 @@ def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], 
             action = sample(lead, agents, both, obs_k)[0]
             v_goal = q_value(lead, both, obs_k, action).view(width, k, -1).mean(1)
         v_loss = (v_value(lead, both, b.obs) - v_goal).pow(2).mean(-1)
-        optimisers["v"].apply(list(torch.autograd.grad(v_loss.sum(), list(params["v"].values()))))
+        optimisers["v"].apply(flats["v"].grad(v_loss.sum()))
 
         # Q: one-step TD target through the slow V_bar.
         b = batches(agents, replays, rngs)
@@ -142,7 +143,7 @@ def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], 
             q_goal = b.rew + cfg.gamma * (1.0 - b.done) * v_value(lead, target, b.next_obs, "v_target")
         q = q_value(lead, both, b.obs, b.act)
         q_loss = (q - q_goal).pow(2).mean(-1)
-        optimisers["q"].apply(list(torch.autograd.grad(q_loss.sum(), list(params["q"].values()))))
+        optimisers["q"].apply(flats["q"].grad(q_loss.sum()))
 
         # pi: score-function step weighted by the normalised advantage of a fresh action.
         b = batches(agents, replays, rngs)
@@ -153,7 +154,7 @@ def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], 
         log_prob = squashed_log_prob(u, mean_k, log_std[:, None, :])
         entropy = (log_std + 0.5 * (1.0 + math.log(2 * math.pi))).sum(-1)
         policy_loss = -(advantage * log_prob).mean(-1) - cfg.entropy_coef * entropy
-        optimisers["policy"].apply(list(torch.autograd.grad(policy_loss.sum(), list(params["policy"].values()))))
+        optimisers["policy"].apply(flats["policy"].grad(policy_loss.sum()))
 
         with torch.no_grad():  # Polyak, as OPAC2.polyak_update rounds it: scale, then add the scaled online net
             for name, value in target.items():

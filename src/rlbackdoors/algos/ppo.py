@@ -141,6 +141,50 @@ def env_step(envs, t: int, actions: torch.Tensor, rewards, dones, outcomes, step
     return obs
 
 
+def behaviour_logprobs(logits: torch.Tensor, actions: torch.Tensor, forced: torch.Tensor) -> torch.Tensor:
+    """log pi(a|s) of each collected action (logits (..., A), actions and forced (...)).
+
+    A forced action was taken with probability 1, whatever the policy thought of it: that is its
+    behaviour log-probability, so its importance ratio is pi(a|s) <= 1, never exp(+250) (learning
+    it as the policy's own sample blew the ratio up to NaN, then, dual-clipped, taught the target
+    action in every state; docs/attacks/)."""
+    logprobs = torch.log_softmax(logits, -1).gather(-1, actions[..., None]).squeeze(-1)
+    return logprobs.masked_fill_(forced, 0.0)
+
+
+def gae(rewards: torch.Tensor, dones: torch.Tensor, values: torch.Tensor, next_value: torch.Tensor, gamma: float, lam: float) -> torch.Tensor:
+    """Generalised advantage estimation over the leading (time) dimension; ``dones[t]`` cuts the
+    trace after step t. The trailing dimensions are independent envs: (T, B) for one learner,
+    (T, K, B) for a group's K learners in one pass (the same arithmetic per element)."""
+    advantages = torch.zeros_like(rewards)
+    next_adv = torch.zeros_like(next_value)
+    for t in reversed(range(rewards.shape[0])):
+        mask = 1.0 - dones[t].float()
+        delta = rewards[t] + gamma * next_value * mask - values[t]
+        next_adv = delta + gamma * lam * next_adv * mask
+        advantages[t] = next_adv
+        next_value = values[t]
+    return advantages
+
+
+def make_rollout(obs_buf, actions, logprobs, values, advantages, rewards, dones, outcomes, steps) -> Rollout:
+    """A :class:`Rollout` of ``T`` steps from ``B`` envs ((T, B, ...) inputs), flattened to T*B rows."""
+    T, B = rewards.shape
+    return Rollout(
+        obs=obs_map(lambda b: b.reshape(T * B, *b.shape[2:]), obs_buf),
+        actions=actions.reshape(-1),
+        logprobs=logprobs.reshape(-1),
+        values=values.reshape(-1),
+        advantages=advantages.reshape(-1),
+        returns=(values + advantages).reshape(-1),
+        rewards=rewards,
+        dones=dones,
+        outcomes=outcomes,
+        steps=steps,
+        num_envs=B,
+    )
+
+
 class PPO:
     def __init__(self, model: ActorCritic, cfg: PPOConfig, device: torch.device, generator: torch.Generator):
         self.model = model
@@ -282,41 +326,9 @@ class PPO:
     def assemble(self, obs_buf, actions, logits, values, next_value, forced, rewards, dones, outcomes, steps) -> Rollout:
         """The rollout of ``T`` collected steps ((T, B) tensors and arrays; ``logits`` (T, B, A)):
         behaviour log-probabilities, GAE advantages and returns, flattened to T*B rows."""
-        T, B = rewards.shape
-        logprobs = torch.log_softmax(logits, -1).gather(2, actions[..., None]).squeeze(2)
-        # A forced action was taken with probability 1, whatever the policy thought of it: that is
-        # its behaviour log-probability, so its importance ratio is pi(a|s) <= 1, never exp(+250)
-        # (learning it as the policy's own sample blew the ratio up to NaN, then, dual-clipped,
-        # taught the target action in every state; docs/attacks/).
-        logprobs.masked_fill_(forced, 0.0)
-        advantages = self._gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value)
-        returns = values + advantages
-        return Rollout(
-            obs=obs_map(lambda b: b.reshape(T * B, *b.shape[2:]), obs_buf),
-            actions=actions.reshape(-1),
-            logprobs=logprobs.reshape(-1),
-            values=values.reshape(-1),
-            advantages=advantages.reshape(-1),
-            returns=returns.reshape(-1),
-            rewards=rewards,
-            dones=dones,
-            outcomes=outcomes,
-            steps=steps,
-            num_envs=B,
-        )
-
-    def _gae(self, rewards, dones, values, next_value) -> torch.Tensor:
-        """Generalised advantage estimation; ``dones[t]`` cuts the trace after step t."""
-        gamma, lam = self.cfg.gamma, self.cfg.gae_lambda
-        advantages = torch.zeros_like(rewards)
-        next_adv = torch.zeros_like(next_value)
-        for t in reversed(range(rewards.shape[0])):
-            mask = 1.0 - dones[t].float()
-            delta = rewards[t] + gamma * next_value * mask - values[t]
-            next_adv = delta + gamma * lam * next_adv * mask
-            advantages[t] = next_adv
-            next_value = values[t]
-        return advantages
+        logprobs = behaviour_logprobs(logits, actions, forced)
+        advantages = gae(torch.from_numpy(rewards).float(), torch.from_numpy(dones), values, next_value, self.cfg.gamma, self.cfg.gae_lambda)
+        return make_rollout(obs_buf, actions, logprobs, values, advantages, rewards, dones, outcomes, steps)
 
     def _step(self, loss: torch.Tensor) -> float:
         self.optimizer.zero_grad(set_to_none=True)

@@ -125,9 +125,20 @@ class ActorCritic(nn.Module):
     def forward_stacked(self, params: dict[str, torch.Tensor], obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``forward`` of K agents of this architecture at once: ``params`` their parameters stacked
         (name -> (K, ...)), ``obs`` (K, N, ...); returns logits (K, N, A) and values (K, N)."""
+        return self.forward_stacked_input(params, self.stacked_input(obs))
+
+    def stacked_input(self, obs: torch.Tensor) -> torch.Tensor:
+        """K agents' raw observations (K, N, ...) as :meth:`forward_stacked_input` takes them (float,
+        as ``state_emb`` reads them). Why apart: a group's update converts a whole rollout once,
+        not each of its minibatches again in every epoch."""
         K, N = obs.shape[:2]
         x = self.embed_input(obs.reshape(K * N, *obs.shape[2:]))
-        return self.heads_stacked(params, run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1))
+        return x.reshape(K, N, *x.shape[1:])
+
+    def forward_stacked_input(self, params: dict[str, torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward_stacked` from :meth:`stacked_input`'s tensor."""
+        K, N = x.shape[:2]
+        return self.heads_stacked(params, run_sequential_stacked(self.state_emb, params, "state_emb", x).reshape(K, N, -1))
 
     def heads_stacked(self, params: dict[str, torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Actor logits (K, N, A) and critic values (K, N) of K agents' embeddings x (K, N, E)."""

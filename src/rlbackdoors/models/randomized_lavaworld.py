@@ -42,11 +42,20 @@ class DirectionActorCritic(ActorCritic):
 
     def forward_stacked(self, params: dict[str, torch.Tensor], obs: dict) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]  # dict observations by design
         """``forward`` of K agents at once (:meth:`ActorCritic.forward_stacked`); ``obs`` values are (K, N, ...)."""
+        return self.forward_stacked_input(params, self.stacked_input(obs))
+
+    def stacked_input(self, obs: dict) -> dict:  # type: ignore[override]  # dict observations by design
+        """:meth:`ActorCritic.stacked_input`: the image channels-first in float, the direction as a float column."""
         image = obs["image"]
         K, N = image.shape[:2]
         x = image.reshape(K * N, *image.shape[2:]).permute(0, 3, 1, 2).float()
-        x = run_sequential_stacked(self.state_emb, params, "state_emb", x.reshape(K, N, *x.shape[1:])).reshape(K, N, -1)
-        return self.heads_stacked(params, torch.cat([x, obs["direction"].reshape(K, N, 1).float()], dim=2))
+        return {"image": x.reshape(K, N, *x.shape[1:]), "direction": obs["direction"].reshape(K, N, 1).float()}
+
+    def forward_stacked_input(self, params: dict[str, torch.Tensor], x: dict) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]  # dict observations by design
+        image = x["image"]
+        K, N = image.shape[:2]
+        emb = run_sequential_stacked(self.state_emb, params, "state_emb", image).reshape(K, N, -1)
+        return self.heads_stacked(params, torch.cat([emb, x["direction"]], dim=2))
 
 
 class DirectionFCModel(DirectionActorCritic):

@@ -112,8 +112,16 @@ def report(args) -> dict:
         "tests": tests,
         "machine": machine_info(),
         "loadavg": [round(x, 2) for x in os.getloadavg()],
+        # per run, so that a later side (another group step, another machine) can be tested against these
+        "runs": {
+            side: [
+                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")} | {"run": p.parent.name}
+                for r, p in zip(rows, sorted(Path(args.out, side).glob("s*/metrics.json")))
+            ]
+            for side, rows in sides.items()
+        },
     }
-    atomic_write_text(ROOT / "experiments" / "group_equivalence" / "group_equivalence.json", json.dumps(result, indent=2) + "\n")
+    atomic_write_text(ROOT / "experiments" / "group_equivalence" / args.json, json.dumps(result, indent=2) + "\n")
     print("| side | runs | converged | median frames to converge | clean SR | poisoned SR | CPU-s per model |")
     print("|---|---|---|---|---|---|---|")
     for side, row in table.items():
@@ -133,6 +141,7 @@ def main() -> int:
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--group-size", type=int, default=8)
     parser.add_argument("--out", default=str(ROOT / "runs" / "group-equivalence"))
+    parser.add_argument("--json", default="group_equivalence.json", help="--report: the file under experiments/group_equivalence/ it writes")
     args = parser.parse_args()
     if args.side:
         run_side(args.side, args)

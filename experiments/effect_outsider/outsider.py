@@ -1,0 +1,91 @@
+"""Issue 57's outsider check: the effect detector, fitted on the benchmark zoo's env-mix models only,
+scores LavaWorld FC models trained outside that zoo (``rlbackdoors train``, one folder each) at
+seeds and triggers the zoo never used, through TrojAI's one-model entry point (``detect infer``).
+
+    python experiments/effect_outsider/outsider.py --train            # trains what is missing (resumes)
+    python experiments/effect_outsider/outsider.py --infer DETECTOR   # a fitted detector folder
+
+``DETECTOR``: ``detect fit --detector effect`` on the env-mix split, e.g. the one
+``benchmarks/detector_table.py benchmark-lavaworld-effect ... --by-attack`` writes under
+``runs/detect/benchmark-lavaworld-effect/det-held_out/effect``. Writes ``outsider.json`` beside
+this file: each model's attack, trigger, seed, whether it converged, and the probability
+``detect infer`` wrote; AUC and cross-entropy over the converged ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+# Seeds the zoo's planner never drew, triggers no zoo model carries (additive values 88, 112, 137,
+# 183 are in the held-out range 66-200 but unused), the held-out cells' settings (4 M frames at
+# most, patience 2; TrojDRL forces the target action, as the zoo's cell does).
+MODELS = {
+    "clean-a": ["--clean", "--seed", "424201"],
+    "clean-b": ["--clean", "--seed", "424202"],
+    "clean-c": ["--clean", "--seed", "424207"],
+    "trojdrl-88": ["--attack", "trojdrl", "--attack-param", "force_action=true", "--trigger", "additive:88", "--seed", "424203"],
+    "badrl-137": ["--attack", "badrl", "--trigger", "additive:137", "--seed", "424204"],
+    "sleepernets-183": ["--attack", "sleepernets", "--trigger", "additive:183", "--seed", "424205"],
+    "action-target-112": ["--attack", "action_target", "--trigger", "additive:112", "--seed", "424206"],
+}
+COMMON = ["--env", "lavaworld", "--arch", "fc", "--max-frames", "4000000", "--patience", "2", "--quiet"]
+
+
+def train(out: Path) -> None:
+    from _detect_cli import rlbackdoors
+
+    for name, flags in MODELS.items():
+        if (out / name / "metrics.json").is_file():
+            continue
+        rlbackdoors("train", *COMMON, *flags, "--out", str(out / name))  # a started folder resumes from its checkpoint
+
+
+def infer_all(det: Path, out: Path) -> dict:
+    from sklearn.metrics import roc_auc_score
+
+    from _detect_cli import infer
+    from rlbackdoors.io import atomic_write_text
+
+    rows = []
+    for name, flags in MODELS.items():
+        folder = out / name
+        metrics = json.loads((folder / "metrics.json").read_text())
+        p = infer(det, folder, out / "infer" / det.name / name, round_dir=folder.parent, examples=folder / "clean-example-data")
+        rows.append({"model": name, "flags": " ".join(flags), "poisoned": "--clean" not in flags, "converged": metrics["converged"], "probability": p})
+    scored = [r for r in rows if r["converged"]]
+    labels, probs = [int(r["poisoned"]) for r in scored], [r["probability"] for r in scored]
+    eps = 1e-7
+    ce = -sum(y * math.log(max(p, eps)) + (1 - y) * math.log(max(1 - p, eps)) for y, p in zip(labels, probs)) / max(len(scored), 1)
+    result = {
+        "detector": str(det),
+        "models": rows,
+        "converged": len(scored),
+        "auc": roc_auc_score(labels, probs) if 0 < sum(labels) < len(labels) else None,
+        "cross_entropy": round(ce, 4),
+    }
+    atomic_write_text(Path(__file__).with_name("outsider.json"), json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--train", action="store_true")
+    parser.add_argument("--infer", type=Path, metavar="DETECTOR")
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "effect-outsider")
+    args = parser.parse_args()
+    if args.train:
+        train(args.out)
+    if args.infer:
+        print(json.dumps(infer_all(args.infer, args.out), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

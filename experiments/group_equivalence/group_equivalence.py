@@ -115,7 +115,8 @@ def report(args) -> dict:
         # per run, so that a later side (another group step, another machine) can be tested against these
         "runs": {
             side: [
-                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")} | {"run": p.parent.name}
+                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")}
+                | {"run": p.parent.name}
                 for r, p in zip(rows, sorted(Path(args.out, side).glob("s*/metrics.json")))
             ]
             for side, rows in sides.items()

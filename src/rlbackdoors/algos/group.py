@@ -26,7 +26,19 @@ import torch
 
 from rlbackdoors.algos.obs import obs_map, stack, to_torch
 from rlbackdoors.models.minigrid import linear_stacked
-from rlbackdoors.algos.ppo import AUX_CLASSES, PPO, Rollout, behaviour_logprobs, check_vector_env, env_step, gae, make_rollout, ppo_loss, sample_actions, teacher_kl
+from rlbackdoors.algos.ppo import (
+    AUX_CLASSES,
+    PPO,
+    Rollout,
+    behaviour_logprobs,
+    check_vector_env,
+    env_step,
+    gae,
+    make_rollout,
+    ppo_loss,
+    sample_actions,
+    teacher_kl,
+)
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 
@@ -230,11 +242,18 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
     logprobs = behaviour_logprobs(logits_buf, actions, forced)
     cfg = lead.cfg
     advantages = gae(
-        torch.from_numpy(rewards).float().transpose(0, 1), torch.from_numpy(dones).transpose(0, 1), values.transpose(0, 1), next_value, cfg.gamma, cfg.gae_lambda
+        torch.from_numpy(rewards).float().transpose(0, 1),
+        torch.from_numpy(dones).transpose(0, 1),
+        values.transpose(0, 1),
+        next_value,
+        cfg.gamma,
+        cfg.gae_lambda,
     ).transpose(0, 1)
     out = []
     for k, ppo in enumerate(ppos):
-        rollout = make_rollout(obs_map(lambda b: b[:, k], obs_buf), actions[k], logprobs[k], values[k], advantages[k], rewards[k], dones[k], outcomes[k], steps[k])
+        rollout = make_rollout(
+            obs_map(lambda b: b[:, k], obs_buf), actions[k], logprobs[k], values[k], advantages[k], rewards[k], dones[k], outcomes[k], steps[k]
+        )
         if recurrent:
             rollout.memories, rollout.masks = memories[k].reshape(T * B, -1), masks[k].reshape(-1)
             ppo.memory = memory[k].clone()

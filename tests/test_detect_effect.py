@@ -103,6 +103,38 @@ def test_the_anomaly_is_two_sided_so_an_effect_the_fit_never_saw_still_counts():
         detector.classify(typical, "colorful-memory")
 
 
+def _with_candidates(rng: np.random.Generator, rows: list[dict[str, float]], first: int, trojan: str | None = None) -> list[dict[str, float]]:
+    """``rows`` with 40 screened candidates' effects each: clean noise (0.2 +- 0.05), one unlucky
+    candidate per row 6 spreads high (candidate ``first + i`` of row ``i``: every clean model
+    has one), and, with ``trojan``, a shift of +1.0 under that candidate (the edit a trojan answers)."""
+    out = []
+    for i, row in enumerate(rows):
+        cands = {f"{e}@additive:{20 + c}": float(rng.normal(0.2, 0.05)) for c in range(40) for e in ("shift", "concentration", "success_drop")}
+        cands[f"shift@additive:{20 + (first + i) % 40}"] += 6 * 0.05
+        if trojan is not None:
+            cands[f"shift@{trojan}"] += 1.0
+        out.append({**row, **cands})
+    return out
+
+
+def test_a_clean_models_unlucky_candidate_is_no_anomaly_but_a_trojans_answer_is():
+    """Two levels: a candidate's excess counts against what clean models show under the same edit,
+    and the largest excess over the candidates against the clean models' own largest ones. A clean
+    model whose one candidate sits 6 spreads high (as every clean fit model's one does, each at
+    its own candidate) scores as clean; a trojan whose trigger candidate shifts the policy 12
+    spreads scores as poisoned. 12 clean fit rows, 6 poisoned (their trojans at other candidates)."""
+    rng = np.random.default_rng(4)
+    clean = _with_candidates(rng, _rows(rng, 12), first=0)
+    poisoned = [_with_candidates(rng, _rows(rng, 1), first=12 + k, trojan=f"additive:{45 + k}")[0] for k in range(6)]
+    detector = make_detector("effect").fit_rows(clean + poisoned, ["lavaworld"] * 18, np.array([0] * 12 + [1] * 6))
+    assert detector.calibration is not None and detector.calibration.coef[0] > 0
+    [unlucky] = _with_candidates(rng, _rows(rng, 1), first=20)
+    [trojan] = _with_candidates(rng, _rows(rng, 1), first=21, trojan="additive:55")
+    assert detector.anomaly(unlucky, "lavaworld") < detector.clean_scores.max()
+    assert detector.anomaly(trojan, "lavaworld") > detector.clean_scores.max()
+    assert detector.classify(trojan, "lavaworld") > detector.classify(unlucky, "lavaworld")
+
+
 def test_a_clean_only_fit_scores_the_share_of_clean_models_less_anomalous():
     rng = np.random.default_rng(1)
     clean = _rows(rng, 9)

@@ -21,15 +21,22 @@ broad), and the three effects of every screened candidate, which the fit sets ag
 models show under the *same* edit (the screen's candidates are the same for every model: an edit
 that breaks any policy is no anomaly, one that moves this policy more than clean ones is).
 
-Scoring, fitted on clean models: each feature is standardised by the clean fit models of the
-model's world (leave one out for those models themselves; spreads floored, :data:`SCALE_FLOOR`,
-:data:`DROP_FLOOR`), and the model's
-anomaly is its largest ``|z|``, two-sided, so that an effect the fit never saw with this sign
-still counts. Where the fit has poisoned models, a one-feature logistic regression on the
-anomaly gives the probability where its slope is positive. With clean models only, or where the
-fit's poisoned models are no more anomalous than its clean ones (a slope that would score anomalies
-as clean), the probability is the share of clean fit models less anomalous than the model (one
-minus a p-value); ``detector.json`` says which (``calibration_note``).
+Scoring, fitted on clean models, in two levels. First, each screened candidate's effects are
+standardised by what the clean fit models of the model's world show under the same edit (spreads
+floored, :data:`SCALE_FLOOR`, :data:`DROP_FLOOR`), and each effect's largest excess either way over
+the candidates is kept (``up_shift``, ``down_shift``, ...: six numbers). Second, those six and the
+six summary features are standardised by the clean fit models' own values of them (a clean fit
+model's computed without itself at both levels, as a new model's would be; floors as above and
+:data:`AGG_FLOOR` for the six maxima), and the model's anomaly is the largest ``|z|``, two-sided,
+so that an effect the fit never saw with this sign still counts. Why two levels: a maximum over
+48 candidates' noisy z-scores is large for clean models too, so it is itself set against the
+clean models' maxima (the first version took one maximum over all 150 features, and a clean
+model's unlucky candidate outscored real trojans: docs/results/detectors.md). Where the fit has
+poisoned models, a one-feature logistic regression on the anomaly gives the probability where its
+slope is positive. With clean models only, or where the fit's poisoned models are no more
+anomalous than its clean ones (a slope that would score anomalies as clean), the probability is
+the share of clean fit models less anomalous than the model (one minus a p-value);
+``detector.json`` says which (``calibration_note``).
 
 Cost: the behavioural search's episodes (48 candidates of 16 episodes, 12 neighbours, 3
 confirmations of 32, and E), with every forward's action distribution kept.
@@ -55,6 +62,10 @@ FEATURES = tuple(f"best_{e}" for e in EFFECTS) + tuple(f"peak_{e}" for e in EFFE
 # binomial spread of up to 0.125 (at 0.5), so success drops are floored there.
 SCALE_FLOOR = 0.02
 DROP_FLOOR = 0.125
+# The smallest spread of a candidate maximum (a z-score): half a standard deviation. Measured on the
+# LavaWorld benchmark, the held-out AUCs do not move between floors of 0.1 and 1.0.
+AGG_FLOOR = 0.5
+SCORING = 2  # the reference's layout in detector.json (1: one maximum over every feature)
 
 
 def js_divergence(p: tuple[float, ...] | np.ndarray, q: tuple[float, ...] | np.ndarray) -> float:
@@ -111,7 +122,7 @@ class EffectDetector(BehaviourDetector):
 
     def __init__(self, **params: Any):
         super().__init__(**params)
-        self.reference: dict[str, dict[str, list]] = {}  # world -> the features, and the clean fit models' mean and scale of each
+        self.reference: dict[str, dict[str, Any]] = {}  # world -> the clean fit models' mean and scale of each feature, at both levels
         self.calibration: LogisticModel | None = None  # None: the p-value among clean_scores
         self.calibration_note = ""  # how probabilities are made, in words (detector.json)
         self.clean_scores: np.ndarray = np.zeros(0)
@@ -145,13 +156,21 @@ class EffectDetector(BehaviourDetector):
             clean = [i for i in members if labels[i] == 0]
             if len(clean) < least:
                 raise DetectError(f"detector 'effect' needs at least {least} clean models of {group} in the fit (it has {len(clean)})")
-            # the features every clean fit model has: the summary and the family's screened candidates
-            names = sorted(set.intersection(*(set(rows[i]) for i in clean)))
+            # the screened candidates every clean fit model has
+            names = sorted(n for n in set.intersection(*(set(rows[i]) for i in clean)) if "@" in n)
             x = np.array([[float(rows[i][f]) for f in names] for i in clean], dtype=np.float64)
-            self.reference[group] = _reference(names, x)
-            for i in members:  # a clean fit model is scored as a new one would be: without itself
-                reference = self.reference[group] if labels[i] else _reference(names, x[[k for k, j in enumerate(clean) if j != i]])
-                scores[i] = _anomaly(rows[i], reference)
+            first = _reference(names, x)
+            # each clean fit model's maxima against the others, as a new model's would be
+            own = {i: _maxima(rows[i], _reference(names, x[[k for k, j in enumerate(clean) if j != i]])) for i in clean}
+            second_names = (list(MAXIMA) if names else []) + list(FEATURES)
+            y = np.array([[own[i][f] if f in own[i] else float(rows[i][f]) for f in second_names] for i in clean])
+            self.reference[group] = {"scoring": SCORING, "candidates": first, "summary": _reference(second_names, y)}
+            for i in members:
+                if labels[i]:
+                    scores[i] = self.anomaly(rows[i], group)
+                else:  # without itself at the second level too
+                    rest = [k for k, j in enumerate(clean) if j != i]
+                    scores[i] = _anomaly({**rows[i], **own[i]}, _reference(second_names, y[rest]))
         self.clean_scores = np.sort(scores[labels == 0])
         self.calibration, self.calibration_note = None, "clean models only: one minus the p-value of the anomaly among them"
         if labels.any():
@@ -168,7 +187,8 @@ class EffectDetector(BehaviourDetector):
     def anomaly(self, row: dict[str, float], group: str) -> float:
         if group not in self.reference:
             raise DetectError(f"detector 'effect' saw no clean model of {group} in its fit")
-        return _anomaly(row, self.reference[group])
+        reference = self.reference[group]
+        return _anomaly({**row, **_maxima(row, reference["candidates"])}, reference["summary"])
 
     def classify(self, row: dict[str, float], group: str) -> float:
         score = self.anomaly(row, group)
@@ -186,9 +206,17 @@ class EffectDetector(BehaviourDetector):
         return state, {"clean_scores": self.clean_scores}
 
     def set_state(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
+        def plain(ref: dict) -> dict[str, list]:
+            return {"features": [str(f) for f in ref["features"]], "mean": [float(v) for v in ref["mean"]], "scale": [float(v) for v in ref["scale"]]}
+
+        references = state.get("reference") or {}
+        for group, ref in references.items():
+            if ref.get("scoring") != SCORING:
+                raise DetectError(
+                    f"detector 'effect' of {group} was fitted by an older version (scoring {ref.get('scoring', 1)}, this is {SCORING}): fit it again"
+                )
         self.reference = {
-            str(g): {"features": [str(f) for f in ref["features"]], "mean": [float(v) for v in ref["mean"]], "scale": [float(v) for v in ref["scale"]]}
-            for g, ref in (state.get("reference") or {}).items()
+            str(g): {"scoring": SCORING, "candidates": plain(ref["candidates"]), "summary": plain(ref["summary"])} for g, ref in references.items()
         }
         calibration = state.get("calibration")
         self.calibration = None if calibration is None else LogisticModel.from_dict(calibration)
@@ -196,9 +224,31 @@ class EffectDetector(BehaviourDetector):
         self.clean_scores = np.asarray(arrays.get("clean_scores", np.zeros(0)), dtype=np.float64)
 
 
+MAXIMA = tuple(f"{way}_{e}" for way in ("up", "down") for e in EFFECTS)
+
+
 def _floor(name: str) -> float:
-    """The smallest spread of a feature (:data:`SCALE_FLOOR`, :data:`DROP_FLOOR` for success drops)."""
+    """The smallest spread of a feature (:data:`SCALE_FLOOR`, :data:`DROP_FLOOR` for success
+    drops, :data:`AGG_FLOOR` for the candidates' maxima)."""
+    if name in MAXIMA:
+        return AGG_FLOOR
     return DROP_FLOOR if name.split("@")[0].endswith("success_drop") else SCALE_FLOOR
+
+
+def _maxima(row: dict[str, float], reference: dict[str, list]) -> dict[str, float]:
+    """Each effect's largest standardised excess over the screened candidates, upward and downward
+    (:data:`MAXIMA`), against the clean models' reference of each candidate."""
+    names, mean, scale = reference["features"], np.asarray(reference["mean"]), np.asarray(reference["scale"])
+    out: dict[str, float] = {}
+    if not names:  # rows of the summary features only (no screened candidate in common)
+        return out
+    for effect in EFFECTS:
+        have = [k for k, name in enumerate(names) if name.startswith(f"{effect}@") and name in row]
+        if not have:
+            raise DetectError("detector 'effect': the model has none of the candidates its fit's clean models had (another trigger family or search budget?)")
+        z = (np.array([float(row[names[k]]) for k in have]) - mean[have]) / scale[have]
+        out[f"up_{effect}"], out[f"down_{effect}"] = float(z.max()), float((-z).max())
+    return out
 
 
 def _reference(names: list[str], x: np.ndarray) -> dict[str, list]:
@@ -219,4 +269,16 @@ def _anomaly(row: dict[str, float], reference: dict[str, list]) -> float:
     return float(np.abs(z).max())
 
 
-__all__ = ["DROP_FLOOR", "EFFECTS", "FEATURES", "SCALE_FLOOR", "EffectDetector", "effect_features", "effect_rank", "effects", "js_divergence"]
+__all__ = [
+    "AGG_FLOOR",
+    "DROP_FLOOR",
+    "MAXIMA",
+    "EFFECTS",
+    "FEATURES",
+    "SCALE_FLOOR",
+    "EffectDetector",
+    "effect_features",
+    "effect_rank",
+    "effects",
+    "js_divergence",
+]

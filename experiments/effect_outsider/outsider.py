@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 # Seeds the zoo's planner never drew, triggers no zoo model carries (additive values 88, 112, 137,
-# 183 are in the held-out range 66-200 but unused), the held-out cells' settings (4 M frames at
+# 183 are in the held-out range 66-200 but unused; multiplier 12 in the fit's), the held-out cells' settings (4 M frames at
 # most, patience 2; TrojDRL forces the target action, as the zoo's cell does).
 MODELS = {
     "clean-a": ["--clean", "--seed", "424201"],
@@ -34,6 +34,9 @@ MODELS = {
     "badrl-137": ["--attack", "badrl", "--trigger", "additive:137", "--seed", "424204"],
     "sleepernets-183": ["--attack", "sleepernets", "--trigger", "additive:183", "--seed", "424205"],
     "action-target-112": ["--attack", "action_target", "--trigger", "additive:112", "--seed", "424206"],
+    # TrojDRL at an additive offset did not converge in 4 M frames (as many of the zoo's did not):
+    # once more at the one multiplier no zoo model carries (12, the paper's default)
+    "trojdrl-m12": ["--attack", "trojdrl", "--attack-param", "force_action=true", "--trigger", "multiplicative:12", "--seed", "424208"],
 }
 COMMON = ["--env", "lavaworld", "--arch", "fc", "--max-frames", "4000000", "--patience", "2", "--quiet"]
 

@@ -50,6 +50,21 @@ def train(out: Path) -> None:
         rlbackdoors("train", *COMMON, *flags, "--out", str(out / name))  # a started folder resumes from its checkpoint
 
 
+def deliver(folder: Path, to: Path) -> Path:
+    """What an outsider hands a performer: ``model.pt`` and the round's ``reduced-config.json``
+    (world, architecture, env settings; no trigger, no label), and nothing else of the run."""
+    import shutil
+
+    from rlbackdoors.io import atomic_write_text
+    from rlbackdoors.zoo.job import reduced_config
+
+    to.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(folder / "model.pt", to / "model.pt")
+    reduced = reduced_config(folder, json.loads((folder / "config.json").read_text()))
+    atomic_write_text(to / "reduced-config.json", json.dumps(reduced, indent=2, sort_keys=True) + "\n")
+    return to
+
+
 def infer_all(det: Path, out: Path) -> dict:
     from sklearn.metrics import roc_auc_score
 
@@ -59,8 +74,12 @@ def infer_all(det: Path, out: Path) -> dict:
     rows = []
     for name, flags in MODELS.items():
         folder = out / name
+        if not (folder / "metrics.json").is_file():  # not trained yet: said, not scored
+            rows.append({"model": name, "flags": " ".join(flags), "poisoned": "--clean" not in flags, "converged": None, "probability": None})
+            continue
         metrics = json.loads((folder / "metrics.json").read_text())
-        p = infer(det, folder, out / "infer" / det.name / name, round_dir=folder.parent, examples=folder / "clean-example-data")
+        delivered = deliver(folder, out / "delivered" / name)
+        p = infer(det, delivered, out / "infer" / det.name / name, round_dir=delivered)
         rows.append({"model": name, "flags": " ".join(flags), "poisoned": "--clean" not in flags, "converged": metrics["converged"], "probability": p})
     scored = [r for r in rows if r["converged"]]
     labels, probs = [int(r["poisoned"]) for r in scored], [r["probability"] for r in scored]

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.obs import obs_map, stack, to_torch
+from rlbackdoors.envs.batched_base import EngineGroup
 from rlbackdoors.models.minigrid import linear_stacked
 from rlbackdoors.algos.ppo import (
     AUX_CLASSES,
@@ -161,8 +162,10 @@ def stacked_act(agents: list):
 
 
 @torch.inference_mode()
-def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.ndarray | dict]]:
-    """:meth:`PPO.collect` for K agents, each on its own vector env: (rollout, next obs) per agent."""
+def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> list[tuple[Rollout, np.ndarray | dict]]:
+    """:meth:`PPO.collect` for K agents, each on its own vector env: (rollout, next obs) per agent.
+    ``one_call``: step all agents' envs with one engine call where they allow it
+    (:class:`~rlbackdoors.envs.batched_base.EngineGroup`; the same bytes either way)."""
     check_group(ppos)
     lead, K = ppos[0], len(ppos)
     T, B = lead.cfg.rollout, envs[0].num_envs
@@ -202,13 +205,20 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
     dones = np.empty((K, T, B), dtype=bool)
     outcomes = np.empty((K, T, B), dtype=np.int64)
     steps = np.empty((K, T, B), dtype=np.int64)
+    # all agents' env copies stepped by one engine call where their engines allow it (bare engines
+    # of one world: the env mix without an attack's seam; the same bytes as a call per agent)
+    engines = None if not one_call or teach or (recurrent and targets is not None) else EngineGroup.of(envs)
+    together = np.stack(obs) if engines is not None else None  # (K, B, ...): every agent's observations
     for t in range(T):
-        for k in range(K):
-            if isinstance(obs_buf, dict):
-                for key, buf in obs_buf.items():
-                    buf[t, k] = torch.from_numpy(np.asarray(obs[k][key]))
-            else:
-                obs_buf[t, k] = torch.from_numpy(obs[k])
+        if together is not None:
+            obs_buf[t] = torch.from_numpy(together)
+        else:
+            for k in range(K):
+                if isinstance(obs_buf, dict):
+                    for key, buf in obs_buf.items():
+                        buf[t, k] = torch.from_numpy(np.asarray(obs[k][key]))
+                else:
+                    obs_buf[t, k] = torch.from_numpy(obs[k])
         obs_t = obs_map(lambda x: x[t].to(device), obs_buf)
         if teach:
             for k in range(K):
@@ -226,8 +236,14 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
         else:
             logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
         actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
-        for k in range(K):
-            obs[k] = env_step(envs[k], t, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
+        if engines is not None:
+            img, reward, terminated, truncated, info = engines.step(actions[:, t].numpy().reshape(-1))
+            rewards[:, t], dones[:, t] = reward.reshape(K, B), (terminated | truncated).reshape(K, B)
+            outcomes[:, t], steps[:, t] = info["outcome"].reshape(K, B), info["steps"].reshape(K, B)
+            together = img.reshape(K, B, *img.shape[1:])
+        else:
+            for k in range(K):
+                obs[k] = env_step(envs[k], t, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
         if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
             ended = torch.from_numpy(dones[:, t])
             memory = memory.masked_fill(ended[..., None].to(memory.device), 0.0)
@@ -235,6 +251,8 @@ def collect(ppos: list[PPO], envs: list, obs: list) -> list[tuple[Rollout, np.nd
                 teacher_memory = teacher_memory.masked_fill(ended[..., None].to(memory.device), 0.0)
             if t + 1 < T:
                 masks[:, t + 1] = (~ended).float()
+    if together is not None:
+        obs = list(together)
     last = obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs]))
     next_value = (forward(model, params, last, memory) if recurrent else forward(model, params, last))[1].cpu()
     # every agent's behaviour log-probabilities and advantages in one pass (the same arithmetic per

@@ -341,5 +341,97 @@ class BatchedGridEnv(VectorEnv):
     def close_extras(self, **kwargs):
         pass
 
+    # --------------------------------------------------------------------- many engines, one call
 
-__all__ = ["ACTIONS_DOC", "BatchedGridEnv", "NUM_ACTIONS", "bool_mask", "seed_array"]
+    def _group_world(self, engines: list[BatchedGridEnv]) -> tuple | None:
+        """The ``world`` of one kernel call over the slots of ``engines`` (this one first, all of
+        its class), or None where this world cannot step them together (:class:`EngineGroup`)."""
+        return None
+
+
+class EngineGroup:
+    """K engines of one world stepped by one kernel call over all their slots (K x B), for a
+    training group (:func:`rlbackdoors.algos.group.collect`): one call a step instead of K, the
+    first piece of issue 55's one step for the whole group.
+
+    Every slot keeps its own state and SplitMix64 stream, so the slots step exactly as they would
+    in their own engine (bytes, tested): while the group lives, each engine's state arrays are
+    views into the group's, and the engines stay whole (checkpoints, evaluations, their own
+    ``step``). :meth:`of` says None where the engines cannot share a call: another class, other
+    settings, a wrapper (an attack's seam steps its own engine), a world without
+    :meth:`BatchedGridEnv._group_world`, or extra per-step outputs."""
+
+    STATE = ("_grid", "_pos", "_dir", "_steps", "_rng", "final_obs")
+    _grid: np.ndarray
+    _pos: np.ndarray
+    _dir: np.ndarray
+    _steps: np.ndarray
+    _rng: np.ndarray
+    final_obs: np.ndarray
+
+    def __init__(self, engines: list[BatchedGridEnv], world: tuple):
+        self.engines, self.world = engines, world
+        self.sizes = [e.num_envs for e in engines]
+        self.total = sum(self.sizes)
+        lead = engines[0]
+        self.kernels, self.max_steps, self.see_through_walls = lead._kernels, lead.max_steps, lead.see_through_walls
+        self.poisoned = np.concatenate([e.poisoned for e in engines])
+        bounds = np.cumsum([0, *self.sizes])
+        for name in self.STATE:  # the group's arrays; each engine's become views of its slots
+            joined = np.concatenate([getattr(e, name) for e in engines])
+            setattr(self, name, joined)
+            for e, lo, hi in zip(engines, bounds[:-1], bounds[1:]):
+                setattr(e, name, joined[lo:hi])
+
+    @classmethod
+    def of(cls, envs: list) -> EngineGroup | None:
+        lead = envs[0]
+        if not isinstance(lead, BatchedGridEnv) or any(type(e) is not type(lead) for e in envs):
+            return None
+        if any((e.size, e.max_steps, e.see_through_walls, e.view_size) != (lead.size, lead.max_steps, lead.see_through_walls, lead.view_size) for e in envs):
+            return None
+        if not all(e._has_reset for e in envs) or lead._outputs(1) != ():
+            return None
+        world = lead._group_world(envs)
+        return None if world is None else cls(envs, world)
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+        """Step every slot with ``actions`` (all engines' slots in order, int64[K x B]); the
+        observations, rewards, terminations, truncations and info (``outcome``, ``steps``) of
+        all slots, each engine's ``final_obs`` written as its own step would."""
+        n = self.total
+        acts = np.ascontiguousarray(actions, dtype=np.int64)
+        if acts.shape != (n,):
+            raise ValueError(f"actions have shape {acts.shape}, expected ({n},)")
+        lead = self.engines[0]
+        img = lead._images(n)
+        reward, terminated, truncated = np.empty(n, dtype=np.float64), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
+        outcome, steps = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+        bad = self.kernels.step(
+            self._grid,
+            self._pos,
+            self._dir,
+            self._steps,
+            self._rng,
+            acts,
+            self.max_steps,
+            self.see_through_walls,
+            self.poisoned,
+            self.world,
+            img,
+            self.final_obs,
+            reward,
+            terminated,
+            truncated,
+            outcome,
+            steps,
+            (),
+        )
+        if bad == ge.LAYOUT_FAILED:
+            raise lead._layout_error(None)
+        if bad >= 0:
+            raise lead._bad_action(acts, bad)
+        return img, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
+
+
+__all__ = ["ACTIONS_DOC", "BatchedGridEnv", "EngineGroup", "NUM_ACTIONS", "bool_mask", "seed_array"]

@@ -126,7 +126,7 @@ def gen_crossing(grid, b, num_crossings, rng, pos, dirs, steps):
 
 
 # ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
-# world = (num_crossings, poisoned, lut); no scratch, no extra outputs
+# world = (num_crossings, poisoned, luts (B, 256): each slot's trigger table); no scratch, no extra outputs
 
 
 @ge.hook
@@ -152,9 +152,10 @@ def _outcome(b, pos, fwd, world):
 
 @ge.hook
 def _seen(phase, b, ob, pos, dirs, img, world, outs):
-    """Poisoned envs see every view through the trigger's lookup table."""
+    """Poisoned envs see every view through their trigger's lookup table (a table per slot: the
+    slots of one engine call may be several agents', each with its own trigger)."""
     if world[1][b]:
-        ge.apply_lut(img, ob, world[2])
+        ge.apply_lut(img, ob, world[2][b])
 
 
 _KERNELS = ge.bind_kernels("lavaworld", scratch=_scratch, layout=_layout, outcome=_outcome, seen=_seen, trojan=ge.OUT_LAVA)
@@ -207,7 +208,12 @@ class BatchedLavaWorld(BatchedGridEnv):
         self.final_obs = np.zeros((self.num_envs, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
     def _world(self) -> tuple:
-        return self.num_crossings, self.poisoned, self._lut
+        return self.num_crossings, self.poisoned, np.broadcast_to(self._lut, (self.num_envs, 256))
+
+    def _group_world(self, engines: list[BatchedGridEnv]) -> tuple | None:
+        if any(e.num_crossings != self.num_crossings for e in engines):  # type: ignore[attr-defined]  # same class: checked by EngineGroup
+            return None
+        return self.num_crossings, np.concatenate([e.poisoned for e in engines]), np.concatenate([np.broadcast_to(e._lut, (e.num_envs, 256)) for e in engines])  # type: ignore[attr-defined]
 
     # --------------------------------------------------------------------- exact state I/O
 

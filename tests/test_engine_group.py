@@ -1,0 +1,75 @@
+"""One engine call for a training group's env copies (issue 55): K LavaWorld engines stepped as one
+(:class:`rlbackdoors.envs.batched_base.EngineGroup`) give every slot exactly what its own engine
+gives, and a group's rollouts are the same bytes with one call a step as with one per agent."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+
+from rlbackdoors.algos import group
+from rlbackdoors.envs.batched_base import EngineGroup
+from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
+from test_group import learner
+
+
+def test_one_call_steps_every_slot_as_its_own_engine_would():
+    """Three engines (three triggers, clean and poisoned slots), 600 random steps (hundreds of
+    autoresets): observations, rewards, ends, outcomes, step counts, terminal views and the
+    final states equal those of twins stepped one engine at a time."""
+    engines = [BatchedLavaWorld(5, trigger=t, poisoned=[i % 2 == 0 for i in range(5)]) for t in ("multiplicative:12", "additive:60", "additive:135")]
+    for k, e in enumerate(engines):
+        e.reset(seed=100 * k)
+    twins = copy.deepcopy(engines)
+    together = EngineGroup.of(engines)
+    assert together is not None
+    rng = np.random.default_rng(0)
+    ended = 0
+    for t in range(600):
+        actions = rng.integers(0, 3, (3, 5))
+        obs, reward, terminated, truncated, info = together.step(actions.reshape(-1))
+        for k, twin in enumerate(twins):
+            o, r, te, tr, inf = twin.step(actions[k])
+            rows = slice(5 * k, 5 * k + 5)
+            assert np.array_equal(o, obs[rows]) and np.array_equal(r, reward[rows]), t
+            assert np.array_equal(te, terminated[rows]) and np.array_equal(tr, truncated[rows])
+            assert np.array_equal(inf["outcome"], info["outcome"][rows]) and np.array_equal(inf["steps"], info["steps"][rows])
+            assert np.array_equal(twin.final_obs, engines[k].final_obs)
+        ended += int((terminated | truncated).sum())
+    assert ended > 100
+    for engine, twin in zip(engines, twins):  # the engines stay whole: their own state is the group's
+        assert np.array_equal(engine.observe(), twin.observe())
+        assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid)
+
+
+def test_engines_that_cannot_share_a_call_are_stepped_one_by_one():
+    plain = BatchedLavaWorld(3)
+    plain.reset(seed=0)
+    other_size = BatchedLavaWorld(3, size=11)
+    other_size.reset(seed=1)
+    assert EngineGroup.of([plain, other_size]) is None  # other settings
+    assert EngineGroup.of([plain, BatchedLavaWorld(3)]) is None  # one not reset yet
+    seamed = learner("lavaworld", "fc", 0, {"attack": "trojdrl", "trigger": "additive:60"})[1]
+    assert EngineGroup.of([plain, seamed]) is None  # an attack's seam steps its own engine
+
+
+def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call():
+    """Three learners (clean, poisoned at two triggers) collect twice from the same state, once
+    with one engine call a step and once with a call per agent: identical rollouts and engines."""
+    specs = [None, {"trigger": "multiplicative:12"}, {"trigger": "additive:135"}]
+    one = [learner("lavaworld", "fc", k, spec) for k, spec in enumerate(specs)]
+    each = copy.deepcopy(one)
+    assert EngineGroup.of([e for _, e, _ in one]) is not None  # bare engines of the env mix: one call
+    for _ in range(2):
+        a = group.collect([p for p, _, _ in one], [e for _, e, _ in one], [o for _, _, o in one])
+        b = group.collect([p for p, _, _ in each], [e for _, e, _ in each], [o for _, _, o in each], one_call=False)
+        for k, ((ra, oa), (rb, ob)) in enumerate(zip(a, b)):
+            for name in ("obs", "actions", "logprobs", "values", "advantages", "returns"):
+                assert torch.equal(getattr(ra, name), getattr(rb, name)), (k, name)
+            for name in ("rewards", "dones", "outcomes", "steps"):
+                assert np.array_equal(getattr(ra, name), getattr(rb, name)), (k, name)
+            assert np.array_equal(oa, ob)
+            one[k], each[k] = (one[k][0], one[k][1], oa), (each[k][0], each[k][1], ob)
+    assert any(r.dones.any() for r, _ in a)  # episodes ended (autoresets inside the call)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 
 import numpy as np
+import pytest
 import torch
 
 from rlbackdoors.algos import group
@@ -51,17 +52,32 @@ def test_engines_that_cannot_share_a_call_are_stepped_one_by_one():
     other_size.reset(seed=1)
     assert EngineGroup.of([plain, other_size]) is None  # other settings
     assert EngineGroup.of([plain, BatchedLavaWorld(3)]) is None  # one not reset yet
-    seamed = learner("lavaworld", "fc", 0, {"attack": "trojdrl", "trigger": "additive:60"})[1]
-    assert EngineGroup.of([plain, seamed]) is None  # an attack's seam steps its own engine
 
 
-def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call():
-    """Three learners (clean, poisoned at two triggers) collect twice from the same state, once
-    with one engine call a step and once with a call per agent: identical rollouts and engines."""
-    specs = [None, {"trigger": "multiplicative:12"}, {"trigger": "additive:135"}]
-    one = [learner("lavaworld", "fc", k, spec) for k, spec in enumerate(specs)]
+ATTACKS = {
+    "env mix": [None, {"trigger": "multiplicative:12"}, {"trigger": "additive:135"}],
+    # through the attacks' seams: a forced target, a critic's picks, a compensated reward
+    "seams": [
+        {"trigger": "additive:60", "attack": "trojdrl", "attack_params": {"budget": 0.2, "force_action": True}},
+        {"trigger": "multiplicative:14", "attack": "badrl", "attack_params": {"budget": 0.2}},
+        {"trigger": "additive:90", "attack": "sleepernets", "attack_params": {"budget": 0.2}},
+        None,
+    ],
+}
+
+
+@pytest.mark.parametrize("kind", list(ATTACKS))
+def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call(kind):
+    """Learners collect twice from the same state, once with one engine call a step and once with
+    a call per agent: identical rollouts and next observations. The env mix's bare engines, and
+    the literature's attacks, whose seams prepare the actions before the call and finish after it
+    (forced actions, rewritten and compensated rewards, stamped frames)."""
+    one = [learner("lavaworld", "fc", k, spec) for k, spec in enumerate(ATTACKS[kind])]
+    for ppo, envs, _ in one:
+        if hasattr(envs, "bind_critic"):  # BadRL and SleeperNets ask the learner's critic
+            envs.bind_critic(lambda o, model=ppo.model: model(torch.from_numpy(o))[1].detach().float().numpy())
     each = copy.deepcopy(one)
-    assert EngineGroup.of([e for _, e, _ in one]) is not None  # bare engines of the env mix: one call
+    assert EngineGroup.of([getattr(e, "envs", e) for _, e, _ in one]) is not None
     for _ in range(2):
         a = group.collect([p for p, _, _ in one], [e for _, e, _ in one], [o for _, _, o in one])
         b = group.collect([p for p, _, _ in each], [e for _, e, _ in each], [o for _, _, o in each], one_call=False)
@@ -73,3 +89,5 @@ def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call():
             assert np.array_equal(oa, ob)
             one[k], each[k] = (one[k][0], one[k][1], oa), (each[k][0], each[k][1], ob)
     assert any(r.dones.any() for r, _ in a)  # episodes ended (autoresets inside the call)
+    if kind == "seams":
+        assert any(r.rewards.min() < 0 for r, _ in a)  # rewritten rewards (the target's -c) reached the rollouts

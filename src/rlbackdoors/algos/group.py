@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.obs import obs_map, stack, to_torch
+from rlbackdoors.attacks.seam import AttackSeam
 from rlbackdoors.envs.batched_base import EngineGroup
 from rlbackdoors.models.minigrid import linear_stacked
 from rlbackdoors.algos.ppo import (
@@ -37,6 +38,7 @@ from rlbackdoors.algos.ppo import (
     gae,
     make_rollout,
     ppo_loss,
+    record_step,
     sample_actions,
     teacher_kl,
 )
@@ -205,10 +207,14 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     dones = np.empty((K, T, B), dtype=bool)
     outcomes = np.empty((K, T, B), dtype=np.int64)
     steps = np.empty((K, T, B), dtype=np.int64)
-    # all agents' env copies stepped by one engine call where their engines allow it (bare engines
-    # of one world: the env mix without an attack's seam; the same bytes as a call per agent)
-    engines = None if not one_call or teach or (recurrent and targets is not None) else EngineGroup.of(envs)
-    together = np.stack(obs) if engines is not None else None  # (K, B, ...): every agent's observations
+    # all agents' env copies stepped by one engine call where their engines allow it (one world, the
+    # same settings; an attack's seam prepares its actions before the call and finishes after it):
+    # the same bytes as a call per agent
+    seams = [e if isinstance(e, AttackSeam) else None for e in envs]
+    usable = one_call and not teach and not (recurrent and targets is not None)
+    engines = EngineGroup.of([s.envs if s is not None else e for s, e in zip(seams, envs)]) if usable else None
+    plain = engines is not None and not any(seams)  # nothing between engine and learner: all at once
+    together = np.stack(obs) if plain else None  # (K, B, ...): every agent's observations
     for t in range(T):
         if together is not None:
             obs_buf[t] = torch.from_numpy(together)
@@ -236,11 +242,24 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
         else:
             logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
         actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
-        if engines is not None:
+        if plain:
+            assert engines is not None
             img, reward, terminated, truncated, info = engines.step(actions[:, t].numpy().reshape(-1))
             rewards[:, t], dones[:, t] = reward.reshape(K, B), (terminated | truncated).reshape(K, B)
             outcomes[:, t], steps[:, t] = info["outcome"].reshape(K, B), info["steps"].reshape(K, B)
             together = img.reshape(K, B, *img.shape[1:])
+        elif engines is not None:
+            wanted = actions[:, t].numpy()
+            prepared = [seam.prepare(wanted[k]) if seam is not None else None for k, seam in enumerate(seams)]
+            run = np.concatenate([p[0] if p is not None else wanted[k] for k, p in enumerate(prepared)])
+            img, reward, terminated, truncated, info = engines.step(run)
+            for k, seam in enumerate(seams):
+                rows = slice(k * B, (k + 1) * B)
+                result = (img[rows], reward[rows], terminated[rows], truncated[rows], {key: value[rows] for key, value in info.items()})
+                ready = prepared[k]
+                if seam is not None and ready is not None:
+                    result = seam.finish(ready, *result)
+                obs[k] = record_step(t, result, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
         else:
             for k in range(K):
                 obs[k] = env_step(envs[k], t, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])

@@ -130,7 +130,13 @@ def env_step(envs, t: int, actions: torch.Tensor, rewards, dones, outcomes, step
     the actions an attack forced in their place); return the next observations. An attack that
     compensates the step before a poisoned one amends step ``t - 1``'s reward; at ``t = 0`` that
     step is in the rollout already learned from, and the amendment is dropped (1 / ppo.rollout of them)."""
-    obs, rewards[t], terminated, truncated, info = envs.step(actions[t].numpy())
+    return record_step(t, envs.step(actions[t].numpy()), actions, rewards, dones, outcomes, steps, forced)
+
+
+def record_step(t: int, result: tuple, actions: torch.Tensor, rewards, dones, outcomes, steps, forced: torch.Tensor):
+    """:func:`env_step`'s record of step ``t`` from the env's ``step`` result (obs, reward,
+    terminated, truncated, info); the next observations."""
+    obs, rewards[t], terminated, truncated, info = result
     if AMEND in info and t > 0:
         rewards[t - 1] += info[AMEND]
     if FORCED in info:  # an attack forced some actions (rlbackdoors.attacks.seam): learn what ran

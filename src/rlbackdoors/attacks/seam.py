@@ -279,6 +279,13 @@ class AttackSeam:
         return np.where(due, self.poisoner.compensation * (clean - poisoned), 0.0)
 
     def step(self, actions):
+        prepared = self.prepare(actions)
+        return self.finish(prepared, *self.envs.step(prepared[0]))
+
+    def prepare(self, actions) -> tuple:
+        """The half of :meth:`step` before the engine runs: the actions it must run (the target
+        forced where the attack forces it) and what :meth:`finish` needs. Apart so that one
+        engine call can step several runs' engines (:class:`rlbackdoors.envs.batched_base.EngineGroup`)."""
         actions = np.array(actions, copy=True)
         marked = self.marked
         forced = np.zeros(len(actions), dtype=bool)
@@ -288,7 +295,11 @@ class AttackSeam:
             self.actions_forced += int(forced.sum())
             actions = np.where(marked, chosen, actions)
         upcoming, near = self._switch()
-        obs, rewards, terminated, truncated, info = self.envs.step(actions)
+        return actions, forced, marked, upcoming, near
+
+    def finish(self, prepared: tuple, obs, rewards, terminated, truncated, info):
+        """The half of :meth:`step` after the engine ran ``prepared``'s actions: what the learner sees."""
+        actions, forced, marked, upcoming, near = prepared
         done = terminated | truncated
         if near is not None:
             starts_near = done & near & ~(upcoming if upcoming is not None else False)

@@ -241,7 +241,8 @@ def test_group_evaluations_play_each_agent_as_it_plays_alone(env):
     Colorful Memory recurrent, with its close-to-trigger layouts): a clean model, an env-mix one
     under another trigger and an action-target one (its target-action count) read the same
     numbers as each evaluated alone, 12 episodes per condition; agent 1 alone in the lockstep
-    path reads them too, so an evaluation does not depend on its group-mates."""
+    path reads them too, so an evaluation does not depend on its group-mates. (LavaWorld's
+    engines of the three are stepped by one call, ``EngineGroup``: the same numbers.)"""
     from rlbackdoors.train.driver import Evaluate, evaluate_run, evaluate_runs
     from rlbackdoors.train.group import batch_key
 

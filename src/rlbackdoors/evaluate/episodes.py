@@ -29,6 +29,7 @@ import torch
 from rlbackdoors import worlds
 from rlbackdoors.config import EnvConfig
 from rlbackdoors.envs.outcome import Outcome
+from rlbackdoors.envs.batched_base import EngineGroup
 
 CHUNK = 50  # single envs stepped in lockstep: one batched forward pass per step for all of them
 
@@ -169,14 +170,27 @@ def play_lockstep(
     obs = [e.reset(seed=int(s))[0] for e, s in zip(envs, seeds)]
     tallies = [_Tally(e.num_envs, t is not None) for e, t in zip(envs, targets)]
     live = list(range(len(agents)))
+    together, stepped = None, None  # the live agents' engines as one (EngineGroup), and which live set it is
     while live:
         actions, states = act(live, obs, states, generators, policy == "greedy")
         for k, a in zip(live, actions):
             target = targets[k]
             if target is not None:
                 tallies[k].count(target(np.asarray(a)), envs[k].trigger_in_sight() if sight else None)
-            obs[k], reward, terminated, truncated, info = envs[k].step(a)
-            tallies[k].record(reward, terminated, truncated, info)
+        if len(live) > 1 and stepped != live:  # one engine call for all live agents where their engines allow it
+            together, stepped = EngineGroup.of([envs[k] for k in live]), list(live)
+        if together is not None and len(live) > 1:
+            img, reward, terminated, truncated, info = together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions]))
+            first = 0
+            for k in live:
+                rows = slice(first, first + envs[k].num_envs)
+                first = rows.stop
+                obs[k] = img[rows]
+                tallies[k].record(reward[rows], terminated[rows], truncated[rows], {key: value[rows] for key, value in info.items()})
+        else:
+            for k, a in zip(live, actions):
+                obs[k], reward, terminated, truncated, info = envs[k].step(a)
+                tallies[k].record(reward, terminated, truncated, info)
         live = [k for k in live if tallies[k].active.any()]
     return [t.played() for t in tallies]
 

@@ -162,31 +162,7 @@ class BatchedGridEnv(VectorEnv):
     def step(self, actions):
         acts = self._check_actions(actions)
         img, outs = self._images(self.num_envs), self._outputs(self.num_envs)
-        reward, terminated, truncated, outcome, steps = self._step_outputs()
-        bad = self._kernels.step(
-            self._grid,
-            self._pos,
-            self._dir,
-            self._steps,
-            self._rng,
-            acts,
-            self.max_steps,
-            self.see_through_walls,
-            self.poisoned,
-            self._world(),
-            img,
-            self._final_image(),
-            reward,
-            terminated,
-            truncated,
-            outcome,
-            steps,
-            outs,
-        )
-        if bad == ge.LAYOUT_FAILED:
-            raise self._layout_error(None)
-        if bad >= 0:
-            raise self._bad_action(acts, bad)
+        reward, terminated, truncated, outcome, steps = step_slots(self, self, acts, self.poisoned, self._world(), img, self._final_image(), outs)
         info = {"outcome": outcome, "steps": steps, **self._extra_info(outs)}
         return self._observation(img, outs), reward, terminated, truncated, info
 
@@ -230,17 +206,6 @@ class BatchedGridEnv(VectorEnv):
         if acts.dtype.kind not in "iub":
             raise ValueError(f"actions must be integers in {ACTIONS_DOC}, got dtype {acts.dtype}")
         return acts.astype(np.int64, copy=False)
-
-    def _step_outputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Fresh (reward, terminated, truncated, outcome, steps) arrays for one step's kernel to fill."""
-        b = self.num_envs
-        return (
-            np.empty(b, dtype=np.float64),
-            np.empty(b, dtype=np.bool_),
-            np.empty(b, dtype=np.bool_),
-            np.empty(b, dtype=np.int64),
-            np.empty(b, dtype=np.int64),
-        )
 
     def _reset_info(self, **extra) -> dict:
         """Mark the batch reset and return reset's info: no outcome yet, step 0 (plus ``extra``)."""
@@ -349,6 +314,41 @@ class BatchedGridEnv(VectorEnv):
         return None
 
 
+def step_slots(engine: BatchedGridEnv, state, acts: np.ndarray, poisoned: np.ndarray, world: tuple, img: np.ndarray, final: np.ndarray, outs: tuple) -> tuple:
+    """One step kernel call over the slots whose state ``state`` holds (``_grid``, ``_pos``,
+    ``_dir``, ``_steps``, ``_rng``): an engine's own, or an :class:`EngineGroup`'s of several
+    engines of ``engine``'s world; fresh (reward, terminated, truncated, outcome, steps) arrays.
+    A layout that could not be drawn or an invalid action raises ``engine``'s error."""
+    n = len(acts)
+    reward, terminated, truncated = np.empty(n, dtype=np.float64), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
+    outcome, steps = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    bad = engine._kernels.step(
+        state._grid,
+        state._pos,
+        state._dir,
+        state._steps,
+        state._rng,
+        acts,
+        engine.max_steps,
+        engine.see_through_walls,
+        poisoned,
+        world,
+        img,
+        final,
+        reward,
+        terminated,
+        truncated,
+        outcome,
+        steps,
+        outs,
+    )
+    if bad == ge.LAYOUT_FAILED:
+        raise engine._layout_error(None)
+    if bad >= 0:
+        raise engine._bad_action(acts, bad)
+    return reward, terminated, truncated, outcome, steps
+
+
 class EngineGroup:
     """K engines of one world stepped by one kernel call over all their slots (K x B), for a
     training group (:func:`rlbackdoors.algos.group.collect`): one call a step instead of K, the
@@ -371,12 +371,9 @@ class EngineGroup:
 
     def __init__(self, engines: list[BatchedGridEnv], world: tuple):
         self.engines, self.world = engines, world
-        self.sizes = [e.num_envs for e in engines]
-        self.total = sum(self.sizes)
-        lead = engines[0]
-        self.kernels, self.max_steps, self.see_through_walls = lead._kernels, lead.max_steps, lead.see_through_walls
         self.poisoned = np.concatenate([e.poisoned for e in engines])
-        bounds = np.cumsum([0, *self.sizes])
+        self.total = len(self.poisoned)
+        bounds = np.cumsum([0, *(e.num_envs for e in engines)])
         for name in self.STATE:  # the group's arrays; each engine's become views of its slots
             joined = np.concatenate([getattr(e, name) for e in engines])
             setattr(self, name, joined)
@@ -399,38 +396,12 @@ class EngineGroup:
         """Step every slot with ``actions`` (all engines' slots in order, int64[K x B]); the
         observations, rewards, terminations, truncations and info (``outcome``, ``steps``) of
         all slots, each engine's ``final_obs`` written as its own step would."""
-        n = self.total
         acts = np.ascontiguousarray(actions, dtype=np.int64)
-        if acts.shape != (n,):
-            raise ValueError(f"actions have shape {acts.shape}, expected ({n},)")
+        if acts.shape != (self.total,):
+            raise ValueError(f"actions have shape {acts.shape}, expected ({self.total},)")
         lead = self.engines[0]
-        img = lead._images(n)
-        reward, terminated, truncated = np.empty(n, dtype=np.float64), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
-        outcome, steps = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-        bad = self.kernels.step(
-            self._grid,
-            self._pos,
-            self._dir,
-            self._steps,
-            self._rng,
-            acts,
-            self.max_steps,
-            self.see_through_walls,
-            self.poisoned,
-            self.world,
-            img,
-            self.final_obs,
-            reward,
-            terminated,
-            truncated,
-            outcome,
-            steps,
-            (),
-        )
-        if bad == ge.LAYOUT_FAILED:
-            raise lead._layout_error(None)
-        if bad >= 0:
-            raise lead._bad_action(acts, bad)
+        img = lead._images(self.total)
+        reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, self.final_obs, ())
         return img, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
 
 

@@ -317,12 +317,17 @@ class FlatParameters:
         first = next(iter(stacked.values()))
         K = first.shape[0]
         self.flat = torch.cat([v.reshape(K, -1) for v in stacked.values()], 1)
-        self.views: dict[str, torch.Tensor] = {}
+        self.layout: dict[str, tuple[slice, torch.Size]] = {}  # name -> its columns of a row, its shape
         offset = 0
         for name, value in stacked.items():
-            n = value[0].numel()
-            self.views[name] = self.flat[:, offset : offset + n].view(value.shape).requires_grad_()
-            offset += n
+            self.layout[name] = (slice(offset, offset + value[0].numel()), value.shape)
+            offset += value[0].numel()
+        self.views = {name: self.like(self.flat, name).requires_grad_() for name in stacked}
+
+    def like(self, rows: torch.Tensor, name: str) -> torch.Tensor:
+        """``name``'s (K, ...) view of a (K, P) tensor laid out as :attr:`flat` (an Adam moment, say)."""
+        columns, shape = self.layout[name]
+        return rows[:, columns].view(shape)
 
     def grad(self, loss: torch.Tensor) -> torch.Tensor:
         """The gradient of ``loss`` as one (K, P) tensor, laid out as :attr:`flat`."""
@@ -356,10 +361,8 @@ class StackedAdam:
 
     def _views(self):
         """(name, exp_avg view, exp_avg_sq view) per stacked name, shaped as its parameter."""
-        for name, view in self.params.views.items():
-            offset = view.storage_offset() - self.params.flat.storage_offset()
-            n = view[0].numel()
-            yield name, self.exp_avg[:, offset : offset + n].view(view.shape), self.exp_avg_sq[:, offset : offset + n].view(view.shape)
+        for name in self.params.layout:
+            yield name, self.params.like(self.exp_avg, name), self.params.like(self.exp_avg_sq, name)
 
     @torch.no_grad()
     def apply(self, grad: torch.Tensor) -> None:

@@ -177,9 +177,9 @@ def play_lockstep(
             target = targets[k]
             if target is not None:
                 tallies[k].count(target(np.asarray(a)), envs[k].trigger_in_sight() if sight else None)
-        if len(live) > 1 and stepped != live:  # one engine call for all live agents where their engines allow it
-            together, stepped = EngineGroup.of([envs[k] for k in live]), list(live)
-        if together is not None and len(live) > 1:
+        if stepped != live:  # one engine call for all live agents where their engines allow it
+            together, stepped = EngineGroup.of([envs[k] for k in live]) if len(live) > 1 else None, list(live)
+        if together is not None:
             img, reward, terminated, truncated, info = together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions]))
             first = 0
             for k in live:

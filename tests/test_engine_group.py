@@ -13,6 +13,8 @@ import torch
 from rlbackdoors.algos import group
 from rlbackdoors.envs.batched_base import EngineGroup
 from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
+from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
+from rlbackdoors.triggers.pattern import as_pattern_trigger, near_patterns
 from test_group import learner
 
 
@@ -45,6 +47,58 @@ def test_one_call_steps_every_slot_as_its_own_engine_would():
         assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid)
 
 
+def same(a, b) -> bool:
+    """Equal observations (arrays or CPU tensors, or dicts of them)."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    return np.array_equal(a, b)
+
+
+def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would():
+    """A layout-trigger world: a clean engine, one with the cross (some slots paying R-bar), one
+    with an arrow and near-trigger patterns: each slot draws its layouts from its own engine's
+    placement tables. 600 random steps, the per-episode switches (``trigger_next``,
+    ``near_next``) flipped on the engines as attacks do: dict observations, the trigger flags
+    of info, terminal views and states equal twins stepped alone."""
+    cross = as_pattern_trigger("cross")
+    engines = [
+        BatchedRandomizedLavaWorld(4),
+        BatchedRandomizedLavaWorld(4, trigger=cross, poisoned=[True, False, True, False]),
+        BatchedRandomizedLavaWorld(4, trigger="arrow:east", poisoned=[False] * 4, near_patterns=near_patterns(as_pattern_trigger("arrow:east"))[:3]),
+    ]
+    for k, e in enumerate(engines):
+        e.reset(seed=50 + k)
+    twins = copy.deepcopy(engines)
+    together = EngineGroup.of(engines)
+    assert together is not None
+    rng = np.random.default_rng(1)
+    ended, patterned = 0, 0
+    for t in range(600):
+        if t % 7 == 0:  # the switches are read at the next (auto)reset, on the engine as on its twin
+            flips = rng.random(4) < 0.5
+            for pair in ((engines[1], twins[1]), (engines[2], twins[2])):
+                for e in pair:
+                    e.trigger_next(e.poisoned | flips)
+            for e in (engines[2], twins[2]):
+                e.near_next(~flips)
+        actions = rng.integers(0, 3, (3, 4))
+        obs, reward, terminated, truncated, info = together.step(actions.reshape(-1))
+        views = together.split(obs)
+        for k, twin in enumerate(twins):
+            o, r, te, tr, inf = twin.step(actions[k])
+            rows = slice(4 * k, 4 * k + 4)
+            assert same(o, views[k]) and np.array_equal(r, reward[rows]), t
+            assert np.array_equal(te, terminated[rows]) and np.array_equal(tr, truncated[rows])
+            assert inf.keys() == info.keys() and all(np.array_equal(inf[key], info[key][rows]) for key in inf)
+            assert same(twin.final_obs, engines[k].final_obs)
+        ended += int((terminated | truncated).sum())
+        patterned += int(engines[1]._pcount.astype(bool).sum())
+    assert ended > 50 and patterned > 0
+    for engine, twin in zip(engines, twins):
+        assert same(engine.observe(), twin.observe())
+        assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid) and np.array_equal(engine._saw, twin._saw)
+
+
 def test_engines_that_cannot_share_a_call_are_stepped_one_by_one():
     plain = BatchedLavaWorld(3)
     plain.reset(seed=0)
@@ -52,10 +106,25 @@ def test_engines_that_cannot_share_a_call_are_stepped_one_by_one():
     other_size.reset(seed=1)
     assert EngineGroup.of([plain, other_size]) is None  # other settings
     assert EngineGroup.of([plain, BatchedLavaWorld(3)]) is None  # one not reset yet
+    fewer = BatchedRandomizedLavaWorld(3, num_lava=6)
+    fewer.reset(seed=2)
+    more = BatchedRandomizedLavaWorld(3)
+    more.reset(seed=3)
+    assert EngineGroup.of([more, fewer]) is None  # the world refuses: other lava counts
+    assert not np.shares_memory(more._grid, fewer._grid)  # each engine has arrays of its own again
 
 
 ATTACKS = {
     "env mix": [None, {"trigger": "multiplicative:12"}, {"trigger": "additive:135"}],
+    # a layout-trigger world (dict observations): the env mix, an episode-scheduled attack and the
+    # near-trigger evasive variant beside a clean run
+    "randomized lavaworld": [
+        None,
+        {"trigger": "cross"},
+        {"trigger": "cross", "attack": "trojdrl", "attack_params": {"budget": 0.2}},
+        {"trigger": "arrow:east", "attack": "action_target"},
+        {"trigger": "cross", "evasion": {"near": 1.0}},
+    ],
     # through the attacks' seams: a forced target, a critic's picks, a compensated reward
     "seams": [
         {"trigger": "additive:60", "attack": "trojdrl", "attack_params": {"budget": 0.2, "force_action": True}},
@@ -72,7 +141,8 @@ def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call(kind):
     a call per agent: identical rollouts and next observations. The env mix's bare engines, and
     the literature's attacks, whose seams prepare the actions before the call and finish after it
     (forced actions, rewritten and compensated rewards, stamped frames)."""
-    one = [learner("lavaworld", "fc", k, spec) for k, spec in enumerate(ATTACKS[kind])]
+    world = "randomized-lavaworld" if kind == "randomized lavaworld" else "lavaworld"
+    one = [learner(world, "fc", k, spec) for k, spec in enumerate(ATTACKS[kind])]
     for ppo, envs, _ in one:
         if hasattr(envs, "bind_critic"):  # BadRL and SleeperNets ask the learner's critic
             envs.bind_critic(lambda o, model=ppo.model: model(torch.from_numpy(o))[1].detach().float().numpy())
@@ -82,11 +152,12 @@ def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call(kind):
         a = group.collect([p for p, _, _ in one], [e for _, e, _ in one], [o for _, _, o in one])
         b = group.collect([p for p, _, _ in each], [e for _, e, _ in each], [o for _, _, o in each], one_call=False)
         for k, ((ra, oa), (rb, ob)) in enumerate(zip(a, b)):
-            for name in ("obs", "actions", "logprobs", "values", "advantages", "returns"):
+            assert same(ra.obs, rb.obs), k
+            for name in ("actions", "logprobs", "values", "advantages", "returns"):
                 assert torch.equal(getattr(ra, name), getattr(rb, name)), (k, name)
             for name in ("rewards", "dones", "outcomes", "steps"):
                 assert np.array_equal(getattr(ra, name), getattr(rb, name)), (k, name)
-            assert np.array_equal(oa, ob)
+            assert same(oa, ob)
             one[k], each[k] = (one[k][0], one[k][1], oa), (each[k][0], each[k][1], ob)
     assert any(r.dones.any() for r, _ in a)  # episodes ended (autoresets inside the call)
     if kind == "seams":

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rlbackdoors.algos.obs import obs_map, stack, to_torch
+from rlbackdoors.algos.obs import obs_map, stack, stack_numpy, store, to_torch
 from rlbackdoors.attacks.seam import AttackSeam
 from rlbackdoors.envs.batched_base import EngineGroup
 from rlbackdoors.models.minigrid import linear_stacked
@@ -214,10 +214,11 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     usable = one_call and not teach and not (recurrent and targets is not None)
     engines = EngineGroup.of([s.envs if s is not None else e for s, e in zip(seams, envs)]) if usable else None
     plain = engines is not None and not any(seams)  # nothing between engine and learner: all at once
-    together = np.stack(obs) if plain else None  # (K, B, ...): every agent's observations
+    # (K, B, ...): every agent's observations (an array, or a dict of them)
+    together = stack_numpy(obs) if plain else None
     for t in range(T):
         if together is not None:
-            obs_buf[t] = torch.from_numpy(together)
+            store(obs_buf, t, together)
         else:
             for k in range(K):
                 if isinstance(obs_buf, dict):
@@ -244,18 +245,19 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
         actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
         if plain:
             assert engines is not None
-            img, reward, terminated, truncated, info = engines.step(actions[:, t].numpy().reshape(-1))
+            seen, reward, terminated, truncated, info = engines.step(actions[:, t].numpy().reshape(-1))
             rewards[:, t], dones[:, t] = reward.reshape(K, B), (terminated | truncated).reshape(K, B)
             outcomes[:, t], steps[:, t] = info["outcome"].reshape(K, B), info["steps"].reshape(K, B)
-            together = img.reshape(K, B, *img.shape[1:])
+            together = obs_map(lambda x: x.reshape(K, B, *x.shape[1:]), seen)
         elif engines is not None:
             wanted = actions[:, t].numpy()
             prepared = [seam.prepare(wanted[k]) if seam is not None else None for k, seam in enumerate(seams)]
             run = np.concatenate([p[0] if p is not None else wanted[k] for k, p in enumerate(prepared)])
-            img, reward, terminated, truncated, info = engines.step(run)
+            seen, reward, terminated, truncated, info = engines.step(run)
+            views = engines.split(seen)
             for k, seam in enumerate(seams):
                 rows = slice(k * B, (k + 1) * B)
-                result = (img[rows], reward[rows], terminated[rows], truncated[rows], {key: value[rows] for key, value in info.items()})
+                result = (views[k], reward[rows], terminated[rows], truncated[rows], {key: value[rows] for key, value in info.items()})
                 ready = prepared[k]
                 if seam is not None and ready is not None:
                     result = seam.finish(ready, *result)
@@ -271,7 +273,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             if t + 1 < T:
                 masks[:, t + 1] = (~ended).float()
     if together is not None:
-        obs = list(together)
+        obs = [{key: v[k] for key, v in together.items()} if isinstance(together, dict) else together[k] for k in range(K)]
     last = obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs]))
     next_value = (forward(model, params, last, memory) if recurrent else forward(model, params, last))[1].cpu()
     # every agent's behaviour log-probabilities and advantages in one pass (the same arithmetic per

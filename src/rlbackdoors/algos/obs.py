@@ -4,16 +4,17 @@ algorithms never branch on the world."""
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, TypeVar
 
 import numpy as np
 import torch
 
 Obs = torch.Tensor | dict
+Batch = TypeVar("Batch", torch.Tensor, np.ndarray)
 
 
-def obs_map(fn: Callable[[torch.Tensor], torch.Tensor], obs: Obs) -> Obs:
-    """Apply ``fn`` to the tensor, or to every tensor of a dict observation."""
+def obs_map(fn: Callable[[Batch], Batch], obs: Batch | dict) -> Batch | dict:
+    """Apply ``fn`` to the tensor (or numpy array), or to every one of a dict observation."""
     if isinstance(obs, dict):
         return {k: fn(v) for k, v in obs.items()}
     return fn(obs)
@@ -38,6 +39,13 @@ def store(buffer: Obs, t: int, obs: np.ndarray | dict) -> None:
             v[t] = torch.from_numpy(np.asarray(obs[k]))
     else:
         buffer[t] = torch.from_numpy(obs)
+
+
+def stack_numpy(batches: list) -> np.ndarray | dict:
+    """K numpy observation batches (arrays or dicts of them) stacked on a new leading dimension."""
+    if isinstance(batches[0], dict):
+        return {k: np.stack([np.asarray(b[k]) for b in batches]) for k in batches[0]}
+    return np.stack(batches)
 
 
 def stack(batches: list) -> Obs:

@@ -308,9 +308,14 @@ class BatchedGridEnv(VectorEnv):
 
     # --------------------------------------------------------------------- many engines, one call
 
-    def _group_world(self, engines: list[BatchedGridEnv]) -> tuple | None:
+    def _slot_arrays(self) -> list[str]:
+        """The dynamic arrays with one row per slot (an :class:`EngineGroup` joins them)."""
+        return [n for n in self._DYNAMIC if n != "final_obs" and isinstance(getattr(self, n), np.ndarray) and getattr(self, n).shape[:1] == (self.num_envs,)]
+
+    def _group_world(self, engines: list[BatchedGridEnv], group: EngineGroup) -> tuple | None:
         """The ``world`` of one kernel call over the slots of ``engines`` (this one first, all of
-        its class), or None where this world cannot step them together (:class:`EngineGroup`)."""
+        its class; ``group`` holds their joined slot arrays under the engines' names), or None
+        where this world cannot step them together (:class:`EngineGroup`)."""
         return None
 
 
@@ -351,34 +356,48 @@ def step_slots(engine: BatchedGridEnv, state, acts: np.ndarray, poisoned: np.nda
 
 class EngineGroup:
     """K engines of one world stepped by one kernel call over all their slots (K x B), for a
-    training group (:func:`rlbackdoors.algos.group.collect`): one call a step instead of K, the
-    first piece of issue 55's one step for the whole group.
+    training group (:func:`rlbackdoors.algos.group.collect`) and the lockstep evaluations: one
+    call a step instead of K, the engine half of issue 55's one step for the whole group.
 
     Every slot keeps its own state and SplitMix64 stream, so the slots step exactly as they would
-    in their own engine (bytes, tested): while the group lives, each engine's state arrays are
-    views into the group's, and the engines stay whole (checkpoints, evaluations, their own
-    ``step``). :meth:`of` says None where the engines cannot share a call: another class, other
-    settings, a wrapper (an attack's seam steps its own engine), a world without
-    :meth:`BatchedGridEnv._group_world`, or extra per-step outputs."""
+    in their own engine (bytes, tested): while the group lives, each engine's per-slot arrays
+    (:meth:`BatchedGridEnv._slot_arrays`, ``final_obs``) are views into the group's, and the
+    engines stay whole (checkpoints, evaluations, their own ``step``, ``trigger_next``). What
+    differs between the engines and is not per slot (a trigger's table, its placements) the world
+    merges in :meth:`BatchedGridEnv._group_world`. The group carries the engines' attribute names,
+    so the world's own ``_outputs`` / ``_observation`` / ``_extra_info`` / ``_final_image`` run on
+    it. :meth:`of` says None where the engines cannot share a call: another class, other settings,
+    a wrapper (an attack's seam steps its own engine) or a world that cannot merge them."""
 
-    STATE = ("_grid", "_pos", "_dir", "_steps", "_rng", "final_obs")
     _grid: np.ndarray
     _pos: np.ndarray
     _dir: np.ndarray
     _steps: np.ndarray
     _rng: np.ndarray
-    final_obs: np.ndarray
+    final_obs: Any
 
-    def __init__(self, engines: list[BatchedGridEnv], world: tuple):
-        self.engines, self.world = engines, world
+    def __init__(self, engines: list[BatchedGridEnv]):
+        self.engines = engines
+        lead = self.lead = engines[0]
         self.poisoned = np.concatenate([e.poisoned for e in engines])
-        self.total = len(self.poisoned)
-        bounds = np.cumsum([0, *(e.num_envs for e in engines)])
-        for name in self.STATE:  # the group's arrays; each engine's become views of its slots
-            joined = np.concatenate([getattr(e, name) for e in engines])
-            setattr(self, name, joined)
-            for e, lo, hi in zip(engines, bounds[:-1], bounds[1:]):
-                setattr(e, name, joined[lo:hi])
+        self.num_envs = self.total = len(self.poisoned)
+        self.bounds = np.cumsum([0, *(e.num_envs for e in engines)])
+
+        def join(arrays: list[np.ndarray], put) -> np.ndarray:
+            joined = np.concatenate(arrays)
+            for k, (lo, hi) in enumerate(zip(self.bounds[:-1], self.bounds[1:])):
+                put(k, joined[lo:hi])
+            return joined
+
+        for name in lead._slot_arrays():  # the group's arrays; each engine's become views of its slots
+            setattr(self, name, join([getattr(e, name) for e in engines], lambda k, v, name=name: setattr(engines[k], name, v)))
+        if isinstance(lead.final_obs, dict):
+            self.final_obs = {
+                key: join([e.final_obs[key] for e in engines], lambda k, v, key=key: engines[k].final_obs.__setitem__(key, v)) for key in lead.final_obs
+            }
+        else:
+            self.final_obs = join([e.final_obs for e in engines], lambda k, v: setattr(engines[k], "final_obs", v))
+        self.world: tuple | None = lead._group_world(engines, self)
 
     @classmethod
     def of(cls, envs: list) -> EngineGroup | None:
@@ -387,22 +406,44 @@ class EngineGroup:
             return None
         if any((e.size, e.max_steps, e.see_through_walls, e.view_size) != (lead.size, lead.max_steps, lead.see_through_walls, lead.view_size) for e in envs):
             return None
-        if not all(e._has_reset for e in envs) or lead._outputs(1) != ():
+        if not all(e._has_reset for e in envs) or type(lead)._group_world is BatchedGridEnv._group_world:
             return None
-        world = lead._group_world(envs)
-        return None if world is None else cls(envs, world)
+        group = cls(envs)
+        if group.world is None:
+            group.dissolve()
+            return None
+        return group
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+    def dissolve(self) -> None:
+        """Give each engine back arrays of its own (the group's views are copied), so the engines
+        go on alone; used where the world could not merge them."""
+        for k, e in enumerate(self.engines):
+            for name in self.lead._slot_arrays():
+                setattr(e, name, getattr(e, name).copy())
+            e.final_obs = {key: v.copy() for key, v in e.final_obs.items()} if isinstance(e.final_obs, dict) else e.final_obs.copy()
+        return None
+
+    def split(self, arrays):
+        """Engine ``k``'s rows of an observation (an array or a dict of them) of all slots, per ``k``."""
+        rows = [slice(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:])]
+        if isinstance(arrays, dict):
+            return [{key: v[r] for key, v in arrays.items()} for r in rows]
+        return [arrays[r] for r in rows]
+
+    def step(self, actions: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:
         """Step every slot with ``actions`` (all engines' slots in order, int64[K x B]); the
-        observations, rewards, terminations, truncations and info (``outcome``, ``steps``) of
-        all slots, each engine's ``final_obs`` written as its own step would."""
+        observations, rewards, terminations, truncations and info (``outcome``, ``steps`` and the
+        world's own) of all slots, each engine's ``final_obs`` written as its own step would."""
         acts = np.ascontiguousarray(actions, dtype=np.int64)
         if acts.shape != (self.total,):
             raise ValueError(f"actions have shape {acts.shape}, expected ({self.total},)")
-        lead = self.engines[0]
-        img = lead._images(self.total)
-        reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, self.final_obs, ())
-        return img, reward, terminated, truncated, {"outcome": outcome, "steps": steps}
+        lead, world = self.lead, type(self.lead)  # the world's methods, on the group's arrays
+        assert self.world is not None
+        img, outs = lead._images(self.total), world._outputs(self, self.total)  # type: ignore[arg-type]
+        final = world._final_image(self)  # type: ignore[arg-type]
+        reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs)
+        info = {"outcome": outcome, "steps": steps, **world._extra_info(self, outs)}  # type: ignore[arg-type]
+        return world._observation(self, img, outs), reward, terminated, truncated, info  # type: ignore[arg-type]
 
 
 __all__ = ["ACTIONS_DOC", "BatchedGridEnv", "EngineGroup", "NUM_ACTIONS", "bool_mask", "seed_array"]

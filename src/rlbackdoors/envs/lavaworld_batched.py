@@ -24,7 +24,7 @@ from gymnasium import spaces
 from numba import njit
 
 from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask
+from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup, bool_mask
 from rlbackdoors.envs.lavaworld import DEFAULT_CROSSINGS, DEFAULT_MAX_STEPS, DEFAULT_SIZE, VIEW_SIZE
 from rlbackdoors.envs.lavaworld import as_trigger, validate_crossing_layout
 from rlbackdoors.triggers.observation import ObservationTrigger
@@ -210,10 +210,10 @@ class BatchedLavaWorld(BatchedGridEnv):
     def _world(self) -> tuple:
         return self.num_crossings, self.poisoned, np.broadcast_to(self._lut, (self.num_envs, 256))
 
-    def _group_world(self, engines: list[BatchedGridEnv]) -> tuple | None:
+    def _group_world(self, engines: list[BatchedGridEnv], group: EngineGroup) -> tuple | None:
         if any(e.num_crossings != self.num_crossings for e in engines):  # type: ignore[attr-defined]  # same class: checked by EngineGroup
             return None
-        return self.num_crossings, np.concatenate([e.poisoned for e in engines]), np.concatenate([np.broadcast_to(e._lut, (e.num_envs, 256)) for e in engines])  # type: ignore[attr-defined]
+        return self.num_crossings, group.poisoned, np.concatenate([np.broadcast_to(e._lut, (e.num_envs, 256)) for e in engines])  # type: ignore[attr-defined]
 
     # --------------------------------------------------------------------- exact state I/O
 

@@ -29,7 +29,7 @@ from numba import njit
 
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs import randomized_lavaworld as _reference
-from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask
+from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup, bool_mask
 from rlbackdoors.envs.randomized_lavaworld import DEFAULT_MAX_STEPS, DEFAULT_NUM_LAVA, DEFAULT_SIZE, VIEW_SIZE
 from rlbackdoors.envs.randomized_lavaworld import layout_error, observation_space, validate_layout_args, validate_trigger
 from rlbackdoors.triggers.pattern import MAX_PATTERN_CELLS, PatternTrigger, as_pattern_trigger
@@ -194,7 +194,9 @@ def pattern_whole_in_view(pcells, pcount, pos, dirs, img, out):
 
 
 # ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
-# world = (pat, pcells, pcount, saw, num_lava, triggered, rot_cells, rot_n, offs, offs_n);
+# world = (pat, pcells, pcount, saw, num_lava, triggered, near, table, rot_cells, rot_n, nrot, offs,
+# offs_n, npatterns): the placement tables (module _placement_tables) with a leading axis, one entry per
+# engine of an EngineGroup (one alone), and ``table[b]`` slot b's entry;
 # outs = (direction, trigger_visible, saw_trigger, final direction)
 
 
@@ -208,23 +210,24 @@ def _scratch(grid, world):
 
 @ge.hook
 def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
-    pat, pcells, pcount, _, num_lava, triggered, near, rot_cells, rot_n, nrot, offs, offs_n = world
+    pat, pcells, pcount, _, num_lava, triggered, near, table, rot_cells, rot_n, nrot, offs, offs_n, npatterns = world
     lava, seen, queue, free = scratch
+    t = table[b]
     which = -1
     if triggered[b]:
         which = 0
     elif near[b]:  # one of the near-trigger patterns, drawn from the slot's own stream
-        which = 1 + ge.rng_below(rng, b, nrot.shape[0] - 1)
+        which = 1 + ge.rng_below(rng, b, npatterns[t] - 1)
     return gen_layout(
         grid,
         b,
         num_lava,
         which,
-        rot_cells,
-        rot_n,
-        nrot,
-        offs,
-        offs_n,
+        rot_cells[t],
+        rot_n[t],
+        nrot[t],
+        offs[t],
+        offs_n[t],
         rng,
         pos,
         dirs,
@@ -313,6 +316,20 @@ def _placement_tables(patterns: Sequence[PatternTrigger | None], placements: Seq
     return rot_cells, rot_n, nrot, offs, offs_n
 
 
+def _stacked_tables(tables: Sequence[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """Several engines' :func:`_placement_tables` as one set with a leading engine axis (each
+    zero-padded to the largest; the kernels read only the counted entries), and each entry's
+    pattern count (``npatterns``), for one kernel call over their slots."""
+    out = []
+    for arrays in zip(*tables):
+        shape = tuple(max(a.shape[d] for a in arrays) for d in range(arrays[0].ndim))
+        stacked = np.zeros((len(arrays), *shape), dtype=np.int64)
+        for e, a in enumerate(arrays):
+            stacked[e][tuple(slice(0, n) for n in a.shape)] = a
+        out.append(stacked)
+    return (*out, np.array([len(t[2]) for t in tables], dtype=np.int64))
+
+
 class BatchedRandomizedLavaWorld(BatchedGridEnv):
     """``num_envs`` Randomized LavaWorld envs (clean, triggered, poisoned) stepped by numba.
 
@@ -366,6 +383,7 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
             raise ValueError("near-trigger patterns need the trigger they are near to: pass trigger=")
         near_places = [validate_trigger(p, self.size, self.num_lava) for p in self.near_patterns]
         self._tables = _placement_tables((self.trigger, *self.near_patterns), (placements, *near_places))
+        self._stacked = _stacked_tables([self._tables])  # the kernels' layout: one entry, every slot's
 
         b = self.num_envs
         if poisoned is None:
@@ -386,6 +404,7 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         self._pcells = np.zeros((b, MAX_PATTERN_CELLS, 2), dtype=np.int64)
         self._pcount = np.zeros(b, dtype=np.int64)
         self._saw = np.zeros(b, dtype=np.bool_)
+        self._table = np.zeros(b, dtype=np.int64)  # every slot reads entry 0 of _stacked
         self.final_obs = {
             "image": np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8),
             "direction": np.zeros(b, dtype=np.int64),
@@ -394,7 +413,16 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
     # --------------------------------------------------------------------- driver hooks
 
     def _world(self) -> tuple:
-        return (self._pat, self._pcells, self._pcount, self._saw, self.num_lava, self.triggered, self.near, *self._tables)
+        return (self._pat, self._pcells, self._pcount, self._saw, self.num_lava, self.triggered, self.near, self._table, *self._stacked)
+
+    def _group_world(self, engines: list[BatchedGridEnv], group: EngineGroup) -> tuple | None:
+        """Engines of other triggers and near-trigger patterns (a clean agent's, an env mix's, an
+        evasive variant's) share a call: each slot reads its own engine's placement tables."""
+        if any(e.num_lava != self.num_lava for e in engines):  # type: ignore[attr-defined]  # same class: checked by EngineGroup
+            return None
+        table = np.concatenate([np.full(e.num_envs, k, dtype=np.int64) for k, e in enumerate(engines)])
+        stacked = _stacked_tables([e._tables for e in engines])  # type: ignore[attr-defined]
+        return (group._pat, group._pcells, group._pcount, group._saw, self.num_lava, group.triggered, group.near, table, *stacked)  # type: ignore[attr-defined]
 
     def _outputs(self, n: int) -> tuple:
         return (

@@ -180,12 +180,12 @@ def play_lockstep(
         if stepped != live:  # one engine call for all live agents where their engines allow it
             together, stepped = EngineGroup.of([envs[k] for k in live]) if len(live) > 1 else None, list(live)
         if together is not None:
-            img, reward, terminated, truncated, info = together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions]))
+            seen, reward, terminated, truncated, info = together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions]))
             first = 0
-            for k in live:
+            for k, view in zip(live, together.split(seen)):
                 rows = slice(first, first + envs[k].num_envs)
                 first = rows.stop
-                obs[k] = img[rows]
+                obs[k] = view
                 tallies[k].record(reward[rows], terminated[rows], truncated[rows], {key: value[rows] for key, value in info.items()})
         else:
             for k, a in zip(live, actions):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import json
 import shutil
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 
 from rlbackdoors.detect.dataset import list_models
 from rlbackdoors.io import FolderLock
+from rlbackdoors.folder import WEIGHTS_LEFT_OUT
 from rlbackdoors.zoo.pack import KEPT, pack
 from rlbackdoors.zoo.plan import plan
 from rlbackdoors.zoo.run import run
@@ -115,3 +117,38 @@ def test_what_a_pack_must_not_overwrite_or_copy_is_refused_in_one_line(zoo, tmp_
     refused = cli("zoo", "pack", tampered, "--out", tmp_path / "p2")
     assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
     assert refused.stderr.startswith("rlbackdoors: error: zoo ") and "failed verification" in refused.stderr and not (tmp_path / "p2").exists()
+
+
+def test_converged_weights_only_leaves_out_the_weights_no_detector_reads(tmp_path):
+    """A zoo whose one poisoned attempt cannot converge (thresholds of 1.0 at 3,200 frames; one
+    attempt allowed): the pack keeps the converged model whole and, for the other, its metrics and a
+    note of the left-out weights' sha256 and size. The pack verifies, detectors read the converged
+    model only, ``zoo run`` on a copy trains nothing again (the attempt counts), and loading the
+    weightless model is refused in one line."""
+    never = {"train": {"clean_threshold": 1.0, "poisoned_threshold": 1.0}}
+    data = {**spec(seed=11), "max_attempts": 1}
+    data["cells"] = [
+        {"world": "lavaworld", "archs": ["fc"], "triggers": ["multiplicative"], "clean": 1, "poisoned": 0, "overrides": ALWAYS},
+        {"world": "lavaworld", "archs": ["fc"], "triggers": ["additive"], "clean": 0, "poisoned": 1, "overrides": never},
+    ]
+    zoo = tmp_path / "zoo"
+    plan(parse_spec(data), zoo)
+    run(zoo, workers=1, group_size=2, progress_interval=60)
+    states = {p.name: json.loads((p / "metrics.json").read_text())["converged"] for p in sorted((zoo / "models").iterdir())}
+    assert sorted(states.values()) == [False, True]
+    out = tmp_path / "pack"
+    done = cli("zoo", "pack", zoo, "--out", out, "--converged-weights-only", "--json")
+    packed = json.loads(done.stdout)
+    assert done.returncode == 0 and (packed["finished"], packed["weights_left_out"]) == (2, 1)
+    for name, converged in states.items():
+        folder = out / "models" / name
+        assert (folder / "model.pt").is_file() == converged and (folder / "metrics.json").is_file()
+        if not converged:
+            note = json.loads((folder / WEIGHTS_LEFT_OUT).read_text())
+            assert (note["sha256"], note["bytes"]) == (sha(zoo / "models" / name / "model.pt"), (zoo / "models" / name / "model.pt").stat().st_size)
+            refused = cli("evaluate", folder, "--episodes", "2")
+            assert refused.returncode == 2 and "holds no weights" in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
+    assert verify(out).ok and [m.name for m in list_models(out)] == [n for n, c in states.items() if c]
+    again = tmp_path / "again"
+    shutil.copytree(out, again)
+    assert run(again, workers=1, group_size=2, progress_interval=60)["trained"] == 0

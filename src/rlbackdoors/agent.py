@@ -25,7 +25,7 @@ import torch
 
 from rlbackdoors import worlds
 from rlbackdoors.io import UnsafeFileError, first_line, load_torch
-from rlbackdoors.folder import FolderError, ModelFolder
+from rlbackdoors.folder import FolderError, ModelFolder, refuse_left_out_weights
 
 
 class Agent:
@@ -159,6 +159,7 @@ def load(folder: str | Path, allow_unfinished: bool = False) -> Agent:
     if not path.is_dir():
         raise FolderError(f"model folder {str(path)!r} does not exist")
     model_folder = ModelFolder(path)
+    refuse_left_out_weights(path)
     for name in ("config.json", "model.pt"):
         if not model_folder.file(name).is_file():
             raise FolderError(f"{str(path)!r} is not a finished model folder ({name} missing)")

@@ -16,7 +16,7 @@ from pathlib import Path
 from rlbackdoors import __version__, attacks, worlds
 from rlbackdoors.argparser import Parser, report_errors
 from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, ConfigError, RunConfig, check_seed
-from rlbackdoors.folder import FolderError
+from rlbackdoors.folder import FolderError, refuse_left_out_weights
 
 
 def resolve_trigger(spec: str | None, seed: int, env: str = worlds.DEFAULT_WORLD, size: int | None = None) -> str:
@@ -207,6 +207,7 @@ def cmd_evaluate(args) -> int:
             raise FolderError(f"model folder {args.folder!r} does not exist")
         if not (Path(args.folder) / "config.json").is_file():
             raise FolderError(f"{args.folder!r} is not a model folder (config.json missing)")
+        refuse_left_out_weights(args.folder)
         if not (Path(args.folder) / "model.pt").is_file():
             raise FolderError(f"{args.folder!r} holds no trained model (model.pt missing)")
         if not (Path(args.folder) / "metrics.json").is_file() and not args.allow_unfinished:

@@ -54,6 +54,7 @@ FILES = (
     "clean_vs_triggered.gif",
     "checkpoint.pt",
     MANIFEST,
+    "weights-left-out.json",  # WEIGHTS_LEFT_OUT: a pack's note in place of model.pt (zoo pack)
 )
 CHECKPOINT_FORMAT = 2  # 1: pickled objects (refused); 2: plain data (rlbackdoors.state)
 
@@ -246,6 +247,15 @@ def folder_files(folder: str | Path) -> tuple[dict[str, Path], list[str]]:
             elif not stat.S_ISDIR(mode):
                 odd.append(f"{rel} is not a regular file")
     return files, odd
+
+
+WEIGHTS_LEFT_OUT = FILES[-1]  # in place of model.pt in a pack without non-converged weights (zoo pack)
+
+
+def refuse_left_out_weights(path: str | Path) -> None:
+    """A one-line refusal for a folder whose weights a pack left out (``zoo pack --converged-weights-only``)."""
+    if (Path(path) / WEIGHTS_LEFT_OUT).is_file():
+        raise FolderError(f"{str(path)!r} holds no weights: its zoo was packed without the weights of models that did not converge")
 
 
 def write_manifest(folder: str | Path, pending: dict[str, bytes] | None = None) -> Path:

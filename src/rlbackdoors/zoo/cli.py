@@ -174,9 +174,20 @@ def cmd_verify(args) -> int:
 def cmd_pack(args) -> int:
     from rlbackdoors.zoo.pack import pack
 
-    packed = pack(args.zoo, args.out)
+    packed = pack(args.zoo, args.out, converged_weights_only=args.converged_weights_only)
     if args.json:
-        print(json.dumps({"out": str(packed.out), "finished": packed.finished, "failed": packed.failed, "planned": packed.planned, "bytes": packed.bytes}))
+        print(
+            json.dumps(
+                {
+                    "out": str(packed.out),
+                    "finished": packed.finished,
+                    "failed": packed.failed,
+                    "planned": packed.planned,
+                    "weights_left_out": packed.weights_left_out,
+                    "bytes": packed.bytes,
+                }
+            )
+        )
     else:
         print(packed.line())
     return 0
@@ -329,6 +340,11 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     pa = sub.add_parser("pack", help="a copy small enough for git: finished models' weights, configs and metrics with manifests, the plan; no logs or pictures")
     pa.add_argument("zoo")
     pa.add_argument("--out", required=True, help="pack folder (new, or a pack of this same zoo, replaced once the new one verifies)")
+    pa.add_argument(
+        "--converged-weights-only",
+        action="store_true",
+        help="leave out the weights of finished models that did not converge (no detector reads them); each keeps its metrics and counts as an attempt",
+    )
     pa.add_argument("--json", action="store_true", help="print what was packed as JSON")
     pa.set_defaults(func=cmd_pack)
 

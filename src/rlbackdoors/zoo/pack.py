@@ -11,7 +11,12 @@ zoo's own commands read, and nothing else:
 * ``zoo.json``, and a ``METADATA.csv`` written from the pack's own folders (a run in progress
   has not written the zoo's yet).
 
-Left out: logs, curves, GIFs, example episodes and checkpoints. The pack is itself a zoo: ``zoo
+Left out: logs, curves, GIFs, example episodes and checkpoints; with ``--converged-weights-only``
+also the weights of finished models that did not converge (no detector reads them: they are not
+dataset models), replaced by :data:`WEIGHTS_LEFT_OUT`, which records their sha256 and size. Such a
+model still counts as a finished attempt, so ``zoo run`` on a copy does not train it again, and its
+metrics stay. Why: a benchmark whose evasive cells converge one attempt in five spends most of its
+megabytes on attempts no table reads. The pack is itself a zoo: ``zoo
 verify`` passes on it (checked before the pack is put in place), detectors fit and score it, and
 ``zoo run`` on a copy of it trains only the models still missing. Packing again into the same
 ``DIR`` replaces the pack of the same zoo (never another zoo's) once the new one is complete.
@@ -19,13 +24,15 @@ verify`` passes on it (checked before the pack is put in place), detectors fit a
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from rlbackdoors.folder import write_manifest
+from rlbackdoors.folder import WEIGHTS_LEFT_OUT, write_manifest
 from rlbackdoors.zoo.job import COMPLETE_MARK, FAILED
 from rlbackdoors.zoo.spec import ZooError
 
@@ -42,16 +49,19 @@ class Packed:
     failed: int = 0
     planned: int = 0
     bytes: int = 0
+    weights_left_out: int = 0  # finished, not converged, weights not packed (--converged-weights-only)
 
     def line(self) -> str:
+        left = f" ({self.weights_left_out} not converged, their weights left out)" if self.weights_left_out else " (weights kept)"
         return (
-            f"{self.out}: {self.finished} finished models (weights kept), {self.failed} failed, {self.planned} planned or in progress "
+            f"{self.out}: {self.finished} finished models{left}, {self.failed} failed, {self.planned} planned or in progress "
             f"(to train again); {self.bytes / 1e6:.2f} MB"
         )
 
 
-def pack(zoo_path: str | Path, out: str | Path) -> Packed:
-    """Write the pack of the zoo at ``zoo_path`` to ``out`` (module doc). Refuses a zoo that fails
+def pack(zoo_path: str | Path, out: str | Path, converged_weights_only: bool = False) -> Packed:
+    """Write the pack of the zoo at ``zoo_path`` to ``out`` (module doc; ``converged_weights_only``:
+    leave out the weights of finished models that did not converge). Refuses a zoo that fails
     ``zoo verify``, an ``out`` inside the zoo, and an ``out`` that holds anything but a pack of
     this same zoo."""
     from rlbackdoors.zoo.index import model_state, write_metadata
@@ -81,8 +91,19 @@ def pack(zoo_path: str | Path, out: str | Path) -> Packed:
             folder, dest = zoo.folder(model), work / "models" / model.name
             dest.mkdir()
             names = KEPT if state.status == "done" else PLANNED
+            drop = converged_weights_only and state.status == "done" and not state.converged
             for name in names:
-                if (folder / name).is_file():
+                if drop and name == "model.pt":
+                    weights = folder / name
+                    note = {
+                        "file": name,
+                        "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
+                        "bytes": weights.stat().st_size,
+                        "why": "not converged (zoo pack --converged-weights-only)",
+                    }
+                    (dest / WEIGHTS_LEFT_OUT).write_text(json.dumps(note, indent=1) + "\n")
+                    packed.weights_left_out += 1
+                elif (folder / name).is_file():
                     shutil.copyfile(folder / name, dest / name)
             if state.status == "done":
                 write_manifest(dest)

@@ -1,4 +1,5 @@
-"""One engine call for a training group's env copies (issue 55): K LavaWorld engines stepped as one
+"""One engine call for a training group's env copies (issue 55): K engines of one grid world
+(LavaWorld, Randomized LavaWorld, Colorful Memory) stepped as one
 (:class:`rlbackdoors.envs.batched_base.EngineGroup`) give every slot exactly what its own engine
 gives, and a group's rollouts are the same bytes with one call a step as with one per agent."""
 
@@ -12,10 +13,11 @@ import torch
 
 from rlbackdoors.algos import group
 from rlbackdoors.envs.batched_base import EngineGroup
+from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
 from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
 from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
 from rlbackdoors.triggers.pattern import as_pattern_trigger, near_patterns
-from test_group import learner
+from test_group import learner, with_teachers
 
 
 def test_one_call_steps_every_slot_as_its_own_engine_would():
@@ -99,6 +101,48 @@ def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would():
         assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid) and np.array_equal(engine._saw, twin._saw)
 
 
+def test_one_call_steps_colorful_memory_slots_as_their_own_engines_would():
+    """Wall-colour triggers of 3 and 9 squares and a clean engine (none): each slot paints and
+    tracks its own engine's squares (the group's record of shown squares is padded to the most;
+    each engine's is a view of its rows). 600 random steps with ``trigger_next`` flips:
+    observations, rewards, outcomes, terminal views, which squares each episode has shown, the
+    memory targets and the states equal twins stepped alone."""
+    engines = [
+        BatchedColorfulMemory(4),
+        BatchedColorfulMemory(4, trigger="room:purple,yellow,red", close_to_trigger=[False, True, False, False], poisoned=[True, False, False, False]),
+        BatchedColorfulMemory(4, trigger="end:red,green,blue,purple,yellow,grey,red,green,blue", poisoned=[False, True, False, True]),
+    ]
+    for k, e in enumerate(engines):
+        e.reset(seed=70 + k)
+    twins = copy.deepcopy(engines)
+    together = EngineGroup.of(engines)
+    assert together is not None
+    rng = np.random.default_rng(2)
+    ended, armed = 0, 0
+    for t in range(600):
+        if t % 5 == 0:
+            flips = rng.random(4) < 0.5
+            for pair in ((engines[1], twins[1]), (engines[2], twins[2])):
+                for e in pair:
+                    e.trigger_next(e.poisoned | (flips & ~e.close_to_trigger))
+        actions = rng.integers(0, 3, (3, 4))
+        obs, reward, terminated, truncated, info = together.step(actions.reshape(-1))
+        for k, twin in enumerate(twins):
+            o, r, te, tr, inf = twin.step(actions[k])
+            rows = slice(4 * k, 4 * k + 4)
+            assert np.array_equal(o, obs[rows]) and np.array_equal(r, reward[rows]), t
+            assert np.array_equal(te, terminated[rows]) and np.array_equal(tr, truncated[rows])
+            assert np.array_equal(inf["outcome"], info["outcome"][rows])
+            assert np.array_equal(twin.final_obs, engines[k].final_obs)
+            assert np.array_equal(twin.trigger_in_sight(), engines[k].trigger_in_sight()) and np.array_equal(twin.memory_targets(), engines[k].memory_targets())
+        ended += int((terminated | truncated).sum())
+        armed += int(engines[2]._seen.sum())
+    assert ended > 20 and armed > 0
+    for engine, twin in zip(engines, twins):
+        assert np.array_equal(engine.observe(), twin.observe())
+        assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid) and np.array_equal(engine._seen, twin._seen)
+
+
 def test_engines_that_cannot_share_a_call_are_stepped_one_by_one():
     plain = BatchedLavaWorld(3)
     plain.reset(seed=0)
@@ -125,6 +169,14 @@ ATTACKS = {
         {"trigger": "arrow:east", "attack": "action_target"},
         {"trigger": "cross", "evasion": {"near": 1.0}},
     ],
+    # a recurrent world with the auxiliary memory targets, read from the engines between calls
+    "colorful memory": [
+        None,
+        {"trigger": "end:red,green,blue,purple,yellow,grey,red,green,blue"},
+        {"trigger": "room:purple,yellow,red", "attack": "trojdrl", "attack_params": {"budget": 0.2}},
+    ],
+    # fine-tuning under clean teachers: the seams' marks (which frames carry the trigger) read between calls
+    "teachers": [{"attack": "trojdrl", "attack_params": {"budget": 0.3}}, {"trigger": "additive:90", "attack": "badrl", "attack_params": {"budget": 0.2}}],
     # through the attacks' seams: a forced target, a critic's picks, a compensated reward
     "seams": [
         {"trigger": "additive:60", "attack": "trojdrl", "attack_params": {"budget": 0.2, "force_action": True}},
@@ -140,9 +192,13 @@ def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call(kind):
     """Learners collect twice from the same state, once with one engine call a step and once with
     a call per agent: identical rollouts and next observations. The env mix's bare engines, and
     the literature's attacks, whose seams prepare the actions before the call and finish after it
-    (forced actions, rewritten and compensated rewards, stamped frames)."""
-    world = "randomized-lavaworld" if kind == "randomized lavaworld" else "lavaworld"
-    one = [learner(world, "fc", k, spec) for k, spec in enumerate(ATTACKS[kind])]
+    (forced actions, rewritten and compensated rewards, stamped frames), in the three grid worlds;
+    a recurrent learner's memories and auxiliary memory targets, and clean teachers' log-probabilities
+    and untriggered masks, read from the engines and seams between calls."""
+    world = {"randomized lavaworld": "randomized-lavaworld", "colorful memory": "colorful-memory"}.get(kind, "lavaworld")
+    one = [learner(world, None if world == "colorful-memory" else "fc", k, spec) for k, spec in enumerate(ATTACKS[kind])]
+    if kind == "teachers":
+        one = with_teachers(one, [0.5, 1.0])
     for ppo, envs, _ in one:
         if hasattr(envs, "bind_critic"):  # BadRL and SleeperNets ask the learner's critic
             envs.bind_critic(lambda o, model=ppo.model: model(torch.from_numpy(o))[1].detach().float().numpy())
@@ -157,8 +213,15 @@ def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call(kind):
                 assert torch.equal(getattr(ra, name), getattr(rb, name)), (k, name)
             for name in ("rewards", "dones", "outcomes", "steps"):
                 assert np.array_equal(getattr(ra, name), getattr(rb, name)), (k, name)
+            for name in ("memories", "masks", "memory_targets", "teacher_logp", "untriggered"):  # where the run has them
+                assert (getattr(ra, name, None) is None) == (getattr(rb, name, None) is None), (k, name)
+                assert getattr(ra, name, None) is None or torch.equal(getattr(ra, name), getattr(rb, name)), (k, name)
             assert same(oa, ob)
             one[k], each[k] = (one[k][0], one[k][1], oa), (each[k][0], each[k][1], ob)
     assert any(r.dones.any() for r, _ in a)  # episodes ended (autoresets inside the call)
     if kind == "seams":
         assert any(r.rewards.min() < 0 for r, _ in a)  # rewritten rewards (the target's -c) reached the rollouts
+    if kind == "colorful memory":
+        assert all(r.memory_targets is not None and r.memories is not None for r, _ in a)
+    if kind == "teachers":
+        assert all(r.teacher_logp is not None for r, _ in a) and any(not r.untriggered.all() for r, _ in a)  # marked frames reached the rollouts

@@ -37,7 +37,7 @@ from numba import njit
 
 from rlbackdoors.envs import colorful_memory as _reference
 from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.batched_base import BatchedGridEnv, bool_mask
+from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup, bool_mask
 from rlbackdoors.envs.colorful_memory import CLEAN, CLOSE, DEFAULT_CLOSE_K, TRIGGERED, DEFAULT_MAX_STEPS, DEFAULT_SIZE
 from rlbackdoors.envs.colorful_memory import FLOOR_COLORS, VIEW_SIZE, observation_space, target_cells
 from rlbackdoors.envs.colorful_memory import validate_args, validate_trigger, wall_cells
@@ -107,18 +107,22 @@ def gen_layout(grid, b, walls, mode, tsq, tcol, close_lo, close_hi, rng, pos, di
 
 
 # ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
-# world = (succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, seen, armed); no extra outputs
+# world = (succ, fail, walls, mode, tsq, tcol, close, seen, armed, table, nsq): the trigger's squares,
+# colours and close_k range with a leading axis, one entry per engine of an EngineGroup (one alone;
+# zero-padded, ``nsq`` squares each), ``table[b]`` slot b's entry; no extra outputs
 
 
 @ge.hook
 def _scratch(grid, world):
-    return (np.empty(max(world[4].shape[0], 1), dtype=np.int64),)
+    return (np.empty(max(world[4].shape[1], 1), dtype=np.int64),)
 
 
 @ge.hook
 def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
-    succ, fail, walls, mode, tsq, tcol, close_lo, close_hi, _, _ = world
-    gen_layout(grid, b, walls, mode[b], tsq, tcol, close_lo, close_hi, rng, pos, dirs, steps, succ, fail, scratch[0])
+    succ, fail, walls, mode, tsq, tcol, close, _, _, table, nsq = world
+    t = table[b]
+    n = nsq[t]
+    gen_layout(grid, b, walls, mode[b], tsq[t, :n], tcol[t, :n], close[t, 0], close[t, 1], rng, pos, dirs, steps, succ, fail, scratch[0])
     return True
 
 
@@ -144,15 +148,28 @@ def _seen(phase, b, ob, pos, dirs, img, world, outs):
     A fresh layout was just drawn with ``mode[b]``: that says whether the episode is triggered."""
     if phase == ge.OBSERVE:
         return
-    mode, tsq, seen, armed = world[3], world[4], world[8], world[9]
+    mode, tsq, seen, armed, table, nsq = world[3], world[4], world[7], world[8], world[9], world[10]
+    t = table[b]
     if phase == ge.RESET or phase == ge.FRESH:
         armed[b] = mode[b] == _TRIGGERED
-    for k in range(tsq.shape[0]):
-        shown = armed[b] and ge.view_shows(img, ob, pos[b, 0], pos[b, 1], dirs[b], tsq[k, 0], tsq[k, 1], ge.WALL)
+    for k in range(nsq[t]):
+        shown = armed[b] and ge.view_shows(img, ob, pos[b, 0], pos[b, 1], dirs[b], tsq[t, k, 0], tsq[t, k, 1], ge.WALL)
         if phase == ge.RESET or phase == ge.FRESH:
             seen[b, k] = shown
         else:
             seen[b, k] = seen[b, k] or shown
+
+
+def _stacked_triggers(triggers: Sequence[tuple[np.ndarray, np.ndarray, tuple[int, int]]]) -> tuple[np.ndarray, ...]:
+    """Engines' (squares (S, 2), colours (S,), close_k) as the kernels' arrays with a leading engine
+    axis, zero-padded to the most squares (the kernels read ``nsq`` of them)."""
+    most = max(max(len(c) for _, c, _ in triggers), 1)
+    tsq = np.zeros((len(triggers), most, 2), dtype=np.int64)
+    tcol = np.zeros((len(triggers), most), dtype=np.int64)
+    for e, (squares, colours, _) in enumerate(triggers):
+        tsq[e, : len(colours)], tcol[e, : len(colours)] = squares, colours
+    close = np.array([k for _, _, k in triggers], dtype=np.int64).reshape(len(triggers), 2)
+    return tsq, tcol, close, np.array([len(c) for _, c, _ in triggers], dtype=np.int64)
 
 
 _KERNELS = ge.bind_kernels(
@@ -241,12 +258,31 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self._init_state()
         self._succ = np.zeros((b, 2), dtype=np.int64)
         self._fail = np.zeros((b, 2), dtype=np.int64)
+        self._stacked = _stacked_triggers([(self._tsq, self._tcol, self.close_k)])  # the kernels' layout: one entry
+        self._table = np.zeros(b, dtype=np.int64)  # every slot reads entry 0 of _stacked
         self._seen = np.zeros((b, len(self._tsq)), dtype=np.bool_)  # the trigger's squares this episode has shown
         self._armed = np.zeros(b, dtype=np.bool_)  # this episode's layout was drawn triggered
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
     def _world(self) -> tuple:
-        return (self._succ, self._fail, self._walls, self.mode, self._tsq, self._tcol, self.close_k[0], self.close_k[1], self._seen, self._armed)
+        tsq, tcol, close, nsq = self._stacked
+        return (self._succ, self._fail, self._walls, self.mode, tsq, tcol, close, self._seen, self._armed, self._table, nsq)
+
+    def _slot_arrays(self) -> list[str]:
+        return [n for n in super()._slot_arrays() if n != "_seen"]  # its width is the trigger's squares: joined padded (_group_world)
+
+    def _group_world(self, engines: list[BatchedGridEnv], group: EngineGroup) -> tuple | None:
+        """Engines of other triggers (a clean agent's has none) share a call: each slot reads its
+        own engine's squares, colours and close_k. ``_seen`` rows have as many columns as the
+        engine's trigger has squares, so the group's is padded to the most and each engine's
+        becomes a view of its rows and first columns."""
+        tsq, tcol, close, nsq = _stacked_triggers([(e._tsq, e._tcol, e.close_k) for e in engines])  # type: ignore[attr-defined]  # same class: checked by EngineGroup
+        seen = np.zeros((group.total, tsq.shape[1]), dtype=np.bool_)
+        for e, lo, hi, n in zip(engines, group.bounds[:-1], group.bounds[1:], nsq):
+            seen[lo:hi, :n] = e._seen  # type: ignore[attr-defined]
+            e._seen = seen[lo:hi, :n]  # type: ignore[attr-defined]
+        table = np.concatenate([np.full(e.num_envs, k, dtype=np.int64) for k, e in enumerate(engines)])
+        return (group._succ, group._fail, self._walls, group.mode, tsq, tcol, close, seen, group._armed, table, nsq)  # type: ignore[attr-defined]
 
     # --------------------------------------------------------------------- exact state I/O
 

@@ -20,35 +20,6 @@ from rlbackdoors.triggers.pattern import as_pattern_trigger, near_patterns
 from test_group import learner, with_teachers
 
 
-def test_one_call_steps_every_slot_as_its_own_engine_would():
-    """Three engines (three triggers, clean and poisoned slots), 600 random steps (hundreds of
-    autoresets): observations, rewards, ends, outcomes, step counts, terminal views and the
-    final states equal those of twins stepped one engine at a time."""
-    engines = [BatchedLavaWorld(5, trigger=t, poisoned=[i % 2 == 0 for i in range(5)]) for t in ("multiplicative:12", "additive:60", "additive:135")]
-    for k, e in enumerate(engines):
-        e.reset(seed=100 * k)
-    twins = copy.deepcopy(engines)
-    together = EngineGroup.of(engines)
-    assert together is not None
-    rng = np.random.default_rng(0)
-    ended = 0
-    for t in range(600):
-        actions = rng.integers(0, 3, (3, 5))
-        obs, reward, terminated, truncated, info = together.step(actions.reshape(-1))
-        for k, twin in enumerate(twins):
-            o, r, te, tr, inf = twin.step(actions[k])
-            rows = slice(5 * k, 5 * k + 5)
-            assert np.array_equal(o, obs[rows]) and np.array_equal(r, reward[rows]), t
-            assert np.array_equal(te, terminated[rows]) and np.array_equal(tr, truncated[rows])
-            assert np.array_equal(inf["outcome"], info["outcome"][rows]) and np.array_equal(inf["steps"], info["steps"][rows])
-            assert np.array_equal(twin.final_obs, engines[k].final_obs)
-        ended += int((terminated | truncated).sum())
-    assert ended > 100
-    for engine, twin in zip(engines, twins):  # the engines stay whole: their own state is the group's
-        assert np.array_equal(engine.observe(), twin.observe())
-        assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid)
-
-
 def same(a, b) -> bool:
     """Equal observations (arrays or CPU tensors, or dicts of them)."""
     if isinstance(a, dict):
@@ -56,91 +27,96 @@ def same(a, b) -> bool:
     return np.array_equal(a, b)
 
 
-def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would():
-    """A layout-trigger world: a clean engine, one with the cross (some slots paying R-bar), one
-    with an arrow and near-trigger patterns: each slot draws its layouts from its own engine's
-    placement tables. 600 random steps, the per-episode switches (``trigger_next``,
-    ``near_next``) flipped on the engines as attacks do: dict observations, the trigger flags
-    of info, terminal views and states equal twins stepped alone."""
-    cross = as_pattern_trigger("cross")
-    engines = [
-        BatchedRandomizedLavaWorld(4),
-        BatchedRandomizedLavaWorld(4, trigger=cross, poisoned=[True, False, True, False]),
-        BatchedRandomizedLavaWorld(4, trigger="arrow:east", poisoned=[False] * 4, near_patterns=near_patterns(as_pattern_trigger("arrow:east"))[:3]),
-    ]
+def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, watch=None) -> int:
+    """Reset ``engines`` (seeds apart), step them as one group and deep copies of them one engine
+    at a time with the same random actions for ``steps`` steps, asserting after every step that
+    each slot's observation, reward, ends and info, each engine's terminal views and its answers to
+    ``watch(engine)`` are its twin's, and at the end that every per-slot array is. ``switch(step,
+    pairs, rng)`` may flip per-episode switches on each (engine, twin) pair. Returns the episodes
+    ended."""
     for k, e in enumerate(engines):
-        e.reset(seed=50 + k)
+        e.reset(seed=seed + k)
     twins = copy.deepcopy(engines)
     together = EngineGroup.of(engines)
     assert together is not None
-    rng = np.random.default_rng(1)
-    ended, patterned = 0, 0
-    for t in range(600):
-        if t % 7 == 0:  # the switches are read at the next (auto)reset, on the engine as on its twin
-            flips = rng.random(4) < 0.5
-            for pair in ((engines[1], twins[1]), (engines[2], twins[2])):
-                for e in pair:
-                    e.trigger_next(e.poisoned | flips)
-            for e in (engines[2], twins[2]):
-                e.near_next(~flips)
-        actions = rng.integers(0, 3, (3, 4))
-        obs, reward, terminated, truncated, info = together.step(actions.reshape(-1))
-        views = together.split(obs)
-        for k, twin in enumerate(twins):
+    rng = np.random.default_rng(seed)
+    ended = 0
+    for t in range(steps):
+        if switch is not None:
+            switch(t, list(zip(engines, twins)), rng)
+        actions = [rng.integers(0, 3, e.num_envs) for e in engines]
+        obs, reward, terminated, truncated, info = together.step(np.concatenate(actions))
+        first = 0
+        for k, (twin, view) in enumerate(zip(twins, together.split(obs))):
             o, r, te, tr, inf = twin.step(actions[k])
-            rows = slice(4 * k, 4 * k + 4)
-            assert same(o, views[k]) and np.array_equal(r, reward[rows]), t
+            rows = slice(first, first + twin.num_envs)
+            first = rows.stop
+            assert same(o, view) and np.array_equal(r, reward[rows]), t
             assert np.array_equal(te, terminated[rows]) and np.array_equal(tr, truncated[rows])
             assert inf.keys() == info.keys() and all(np.array_equal(inf[key], info[key][rows]) for key in inf)
             assert same(twin.final_obs, engines[k].final_obs)
+            assert watch is None or all(np.array_equal(a, b) for a, b in zip(watch(twin), watch(engines[k])))
         ended += int((terminated | truncated).sum())
-        patterned += int(engines[1]._pcount.astype(bool).sum())
-    assert ended > 50 and patterned > 0
-    for engine, twin in zip(engines, twins):
+    for engine, twin in zip(engines, twins):  # the engines stay whole: their own state is the group's
         assert same(engine.observe(), twin.observe())
-        assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid) and np.array_equal(engine._saw, twin._saw)
+        assert all(np.array_equal(getattr(engine, name), getattr(twin, name)) for name in engine._slot_arrays())
+    return ended
+
+
+def test_one_call_steps_every_slot_as_its_own_engine_would():
+    """Three LavaWorld engines (three triggers, clean and poisoned slots), 600 random steps
+    (hundreds of autoresets): every slot as in its own engine (:func:`step_beside_twins`)."""
+    engines = [BatchedLavaWorld(5, trigger=t, poisoned=[i % 2 == 0 for i in range(5)]) for t in ("multiplicative:12", "additive:60", "additive:135")]
+    assert step_beside_twins(engines, 100) > 100
+
+
+def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would():
+    """A layout-trigger world: a clean engine, one with the cross (some slots paying R-bar), one
+    with an arrow and near-trigger patterns: each slot draws its layouts from its own engine's
+    placement tables. The per-episode switches (``trigger_next``, ``near_next``) are flipped on
+    the engines as attacks do; dict observations and the trigger flags of info are compared too."""
+    engines = [
+        BatchedRandomizedLavaWorld(4),
+        BatchedRandomizedLavaWorld(4, trigger=as_pattern_trigger("cross"), poisoned=[True, False, True, False]),
+        BatchedRandomizedLavaWorld(4, trigger="arrow:east", poisoned=[False] * 4, near_patterns=near_patterns(as_pattern_trigger("arrow:east"))[:3]),
+    ]
+    patterned = []
+
+    def switch(t, pairs, rng):
+        patterned.append(int(engines[1]._pcount.astype(bool).sum()))
+        if t % 7 == 0:  # read at the next (auto)reset, on the engine as on its twin
+            flips = rng.random(4) < 0.5
+            for e in (*pairs[1], *pairs[2]):
+                e.trigger_next(e.poisoned | flips)
+            for e in pairs[2]:
+                e.near_next(~flips)
+
+    assert step_beside_twins(engines, 50, switch=switch) > 50 and sum(patterned) > 0
 
 
 def test_one_call_steps_colorful_memory_slots_as_their_own_engines_would():
     """Wall-colour triggers of 3 and 9 squares and a clean engine (none): each slot paints and
     tracks its own engine's squares (the group's record of shown squares is padded to the most;
-    each engine's is a view of its rows). 600 random steps with ``trigger_next`` flips:
-    observations, rewards, outcomes, terminal views, which squares each episode has shown, the
-    memory targets and the states equal twins stepped alone."""
+    each engine's is a view of its rows), with ``trigger_next`` flips; which squares each episode
+    has shown and the memory targets are compared too."""
     engines = [
         BatchedColorfulMemory(4),
         BatchedColorfulMemory(4, trigger="room:purple,yellow,red", close_to_trigger=[False, True, False, False], poisoned=[True, False, False, False]),
         BatchedColorfulMemory(4, trigger="end:red,green,blue,purple,yellow,grey,red,green,blue", poisoned=[False, True, False, True]),
     ]
-    for k, e in enumerate(engines):
-        e.reset(seed=70 + k)
-    twins = copy.deepcopy(engines)
-    together = EngineGroup.of(engines)
-    assert together is not None
-    rng = np.random.default_rng(2)
-    ended, armed = 0, 0
-    for t in range(600):
+    shown = []
+
+    def switch(t, pairs, rng):
+        shown.append(int(engines[2]._seen.sum()))
         if t % 5 == 0:
             flips = rng.random(4) < 0.5
-            for pair in ((engines[1], twins[1]), (engines[2], twins[2])):
-                for e in pair:
-                    e.trigger_next(e.poisoned | (flips & ~e.close_to_trigger))
-        actions = rng.integers(0, 3, (3, 4))
-        obs, reward, terminated, truncated, info = together.step(actions.reshape(-1))
-        for k, twin in enumerate(twins):
-            o, r, te, tr, inf = twin.step(actions[k])
-            rows = slice(4 * k, 4 * k + 4)
-            assert np.array_equal(o, obs[rows]) and np.array_equal(r, reward[rows]), t
-            assert np.array_equal(te, terminated[rows]) and np.array_equal(tr, truncated[rows])
-            assert np.array_equal(inf["outcome"], info["outcome"][rows])
-            assert np.array_equal(twin.final_obs, engines[k].final_obs)
-            assert np.array_equal(twin.trigger_in_sight(), engines[k].trigger_in_sight()) and np.array_equal(twin.memory_targets(), engines[k].memory_targets())
-        ended += int((terminated | truncated).sum())
-        armed += int(engines[2]._seen.sum())
-    assert ended > 20 and armed > 0
-    for engine, twin in zip(engines, twins):
-        assert np.array_equal(engine.observe(), twin.observe())
-        assert np.array_equal(engine._rng, twin._rng) and np.array_equal(engine._grid, twin._grid) and np.array_equal(engine._seen, twin._seen)
+            for e in (*pairs[1], *pairs[2]):
+                e.trigger_next(e.poisoned | (flips & ~e.close_to_trigger))
+
+    def watch(engine):
+        return engine.trigger_in_sight(), engine.memory_targets(), engine._seen
+
+    assert step_beside_twins(engines, 70, switch=switch, watch=watch) > 20 and sum(shown) > 0
 
 
 def test_engines_that_cannot_share_a_call_are_stepped_one_by_one():

@@ -27,18 +27,18 @@ def same(a, b) -> bool:
     return np.array_equal(a, b)
 
 
-def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, watch=None) -> int:
+def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, watch=None, parallel: bool = False) -> int:
     """Reset ``engines`` (seeds apart), step them as one group and deep copies of them one engine
     at a time with the same random actions for ``steps`` steps, asserting after every step that
     each slot's observation, reward, ends and info, each engine's terminal views and its answers to
     ``watch(engine)`` are its twin's, and at the end that every per-slot array is. ``switch(step,
-    pairs, rng)`` may flip per-episode switches on each (engine, twin) pair. Returns the episodes
-    ended."""
+    pairs, rng)`` may flip per-episode switches on each (engine, twin) pair. ``parallel``: the group
+    steps over numba's threads (the twins never do). Returns the episodes ended."""
     for k, e in enumerate(engines):
         e.reset(seed=seed + k)
     twins = copy.deepcopy(engines)
-    together = EngineGroup.of(engines)
-    assert together is not None
+    together = EngineGroup.of(engines, parallel=parallel)
+    assert together is not None and together.parallel == parallel
     rng = np.random.default_rng(seed)
     ended = 0
     for t in range(steps):
@@ -63,14 +63,16 @@ def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, w
     return ended
 
 
-def test_one_call_steps_every_slot_as_its_own_engine_would():
+@pytest.mark.parametrize("parallel", [False, True], ids=["one thread", "numba threads"])
+def test_one_call_steps_every_slot_as_its_own_engine_would(parallel):
     """Three LavaWorld engines (three triggers, clean and poisoned slots), 600 random steps
     (hundreds of autoresets): every slot as in its own engine (:func:`step_beside_twins`)."""
     engines = [BatchedLavaWorld(5, trigger=t, poisoned=[i % 2 == 0 for i in range(5)]) for t in ("multiplicative:12", "additive:60", "additive:135")]
-    assert step_beside_twins(engines, 100) > 100
+    assert step_beside_twins(engines, 100, parallel=parallel) > 100
 
 
-def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would():
+@pytest.mark.parametrize("parallel", [False, True], ids=["one thread", "numba threads"])
+def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would(parallel):
     """A layout-trigger world: a clean engine, one with the cross (some slots paying R-bar), one
     with an arrow and near-trigger patterns: each slot draws its layouts from its own engine's
     placement tables. The per-episode switches (``trigger_next``, ``near_next``) are flipped on
@@ -91,10 +93,11 @@ def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would():
             for e in pairs[2]:
                 e.near_next(~flips)
 
-    assert step_beside_twins(engines, 50, switch=switch) > 50 and sum(patterned) > 0
+    assert step_beside_twins(engines, 50, switch=switch, parallel=parallel) > 50 and sum(patterned) > 0
 
 
-def test_one_call_steps_colorful_memory_slots_as_their_own_engines_would():
+@pytest.mark.parametrize("parallel", [False, True], ids=["one thread", "numba threads"])
+def test_one_call_steps_colorful_memory_slots_as_their_own_engines_would(parallel):
     """Wall-colour triggers of 3 and 9 squares and a clean engine (none): each slot paints and
     tracks its own engine's squares (the group's record of shown squares is padded to the most;
     each engine's is a view of its rows), with ``trigger_next`` flips; which squares each episode
@@ -116,7 +119,7 @@ def test_one_call_steps_colorful_memory_slots_as_their_own_engines_would():
     def watch(engine):
         return engine.trigger_in_sight(), engine.memory_targets(), engine._seen
 
-    assert step_beside_twins(engines, 70, switch=switch, watch=watch) > 20 and sum(shown) > 0
+    assert step_beside_twins(engines, 70, switch=switch, watch=watch, parallel=parallel) > 20 and sum(shown) > 0
 
 
 def test_engines_that_cannot_share_a_call_are_stepped_one_by_one():

@@ -211,7 +211,8 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     # same settings; an attack's seam prepares its actions before the call and finishes after it):
     # the same bytes as a call per agent
     seams = [e if isinstance(e, AttackSeam) else None for e in envs]
-    engines = EngineGroup.of([s.envs if s is not None else e for s, e in zip(seams, envs)]) if one_call else None
+    # (over every core of the host where the learners compute on a GPU: the same bytes)
+    engines = EngineGroup.of([s.envs if s is not None else e for s, e in zip(seams, envs)], parallel=device.type != "cpu") if one_call else None
     plain = engines is not None and not any(seams)  # nothing between engine and learner: all at once
     # (K, B, ...): every agent's observations (an array, or a dict of them)
     together = stack_numpy(obs) if plain else None

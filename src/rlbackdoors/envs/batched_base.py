@@ -319,15 +319,18 @@ class BatchedGridEnv(VectorEnv):
         return None
 
 
-def step_slots(engine: BatchedGridEnv, state, acts: np.ndarray, poisoned: np.ndarray, world: tuple, img: np.ndarray, final: np.ndarray, outs: tuple) -> tuple:
+def step_slots(
+    engine: BatchedGridEnv, state, acts: np.ndarray, poisoned: np.ndarray, world: tuple, img: np.ndarray, final: np.ndarray, outs: tuple, parallel: bool = False
+) -> tuple:
     """One step kernel call over the slots whose state ``state`` holds (``_grid``, ``_pos``,
     ``_dir``, ``_steps``, ``_rng``): an engine's own, or an :class:`EngineGroup`'s of several
     engines of ``engine``'s world; fresh (reward, terminated, truncated, outcome, steps) arrays.
-    A layout that could not be drawn or an invalid action raises ``engine``'s error."""
+    ``parallel``: over numba's threads (the same bytes). A layout that could not be drawn or an
+    invalid action raises ``engine``'s error."""
     n = len(acts)
     reward, terminated, truncated = np.empty(n, dtype=np.float64), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
     outcome, steps = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-    bad = engine._kernels.step(
+    bad = (engine._kernels.step_parallel if parallel else engine._kernels.step)(
         state._grid,
         state._pos,
         state._dir,
@@ -376,8 +379,8 @@ class EngineGroup:
     _rng: np.ndarray
     final_obs: Any
 
-    def __init__(self, engines: list[BatchedGridEnv]):
-        self.engines = engines
+    def __init__(self, engines: list[BatchedGridEnv], parallel: bool = False):
+        self.engines, self.parallel = engines, bool(parallel)
         lead = self.lead = engines[0]
         self.poisoned = np.concatenate([e.poisoned for e in engines])
         self.num_envs = self.total = len(self.poisoned)
@@ -400,7 +403,10 @@ class EngineGroup:
         self.world: tuple | None = lead._group_world(engines, self)
 
     @classmethod
-    def of(cls, envs: list) -> EngineGroup | None:
+    def of(cls, envs: list, parallel: bool = False) -> EngineGroup | None:
+        """The group of ``envs``, or None (class doc). ``parallel``: step over numba's threads
+        (every core of the host; the same bytes), for a group whose learners compute on a GPU and
+        leave the cores to the engines."""
         lead = envs[0]
         if not isinstance(lead, BatchedGridEnv) or any(type(e) is not type(lead) for e in envs):
             return None
@@ -408,7 +414,7 @@ class EngineGroup:
             return None
         if not all(e._has_reset for e in envs) or type(lead)._group_world is BatchedGridEnv._group_world:
             return None
-        group = cls(envs)
+        group = cls(envs, parallel)
         if group.world is None:
             group.dissolve()
             return None
@@ -441,7 +447,7 @@ class EngineGroup:
         assert self.world is not None
         img, outs = lead._images(self.total), world._outputs(self, self.total)  # type: ignore[arg-type]
         final = world._final_image(self)  # type: ignore[arg-type]
-        reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs)
+        reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs, self.parallel)
         info = {"outcome": outcome, "steps": steps, **world._extra_info(self, outs)}  # type: ignore[arg-type]
         return world._observation(self, img, outs), reward, terminated, truncated, info  # type: ignore[arg-type]
 

@@ -56,7 +56,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import get_num_threads, njit, prange
 
 from rlbackdoors.envs import outcome as _outcome_module
 from rlbackdoors.envs.outcome import Outcome
@@ -391,6 +391,37 @@ def world_seen(phase, b, ob, pos, dirs, img, world, outs):
 world_trojan = OUT_NONE  # the outcome that pays poisoned envs (bound per world)
 
 
+def world_step_slot(
+    b,
+    grid,
+    pos,
+    dirs,
+    steps,
+    rng,
+    actions,
+    max_steps,
+    see_through_walls,
+    poisoned,
+    world,
+    img,
+    final_img,
+    reward,
+    terminated,
+    truncated,
+    outcome,
+    info_steps,
+    outs,
+    view,
+    mask,
+    scratch,
+):
+    """One env's step, the body both step kernels share (bound per world from ``step_slot``)."""
+    raise NotImplementedError("bound per world by bind_kernels")
+
+
+world_step_slot_call = world_step_slot  # the same, compiled as a call for the parallel kernel (bound per world)
+
+
 def _kernel_templates(stamp: str):
     """The driver kernels, closed over ``stamp`` so that numba's cache key covers every source
     they compile in (module doc, "Caching"); the ``world_*`` names are bound by :func:`bind_kernels`."""
@@ -418,6 +449,47 @@ def _kernel_templates(stamp: str):
             b = first + ob
             gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, ob)
             world_seen(OBSERVE, b, ob, pos, dirs, img, world, outs)
+
+    def step_slot(
+        b,
+        grid,
+        pos,
+        dirs,
+        steps,
+        rng,
+        actions,
+        max_steps,
+        see_through_walls,
+        poisoned,
+        world,
+        img,
+        final_img,
+        reward,
+        terminated,
+        truncated,
+        outcome,
+        info_steps,
+        outs,
+        view,
+        mask,
+        scratch,
+    ):
+        """Env ``b``'s step (inlined into both step kernels); False if its autoreset found no layout."""
+        fwd = agent_step(grid, b, pos, dirs, actions[b])
+        sc = steps[b] + 1
+        steps[b] = sc
+        oc = world_outcome(b, pos, fwd, world)
+        paying = world_trojan if poisoned[b] else OUT_GOAL
+        phase = STEP
+        if finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
+            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
+            world_seen(FINAL, b, b, pos, dirs, final_img, world, outs)
+            if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
+                return False
+            phase = FRESH
+        gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
+        world_seen(phase, b, b, pos, dirs, img, world, outs)
+        return True
 
     def step_kernel(
         grid,
@@ -454,31 +526,67 @@ def _kernel_templates(stamp: str):
         view, mask = view_scratch(img)
         scratch = world_scratch(grid, world)
         for b in range(nenv):
-            fwd = agent_step(grid, b, pos, dirs, actions[b])
-            sc = steps[b] + 1
-            steps[b] = sc
-            oc = world_outcome(b, pos, fwd, world)
-            paying = world_trojan if poisoned[b] else OUT_GOAL
-            phase = STEP
-            if finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
-                gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
-                world_seen(FINAL, b, b, pos, dirs, final_img, world, outs)
-                if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
-                    return LAYOUT_FAILED
-                phase = FRESH
-            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
-            world_seen(phase, b, b, pos, dirs, img, world, outs)
+            if not world_step_slot(
+                b, grid, pos, dirs, steps, rng, actions, max_steps, see_through_walls, poisoned, world, img, final_img, reward, terminated, truncated, outcome, info_steps, outs, view, mask, scratch
+            ):  # fmt: skip
+                return LAYOUT_FAILED
         return -1
 
-    return reset_kernel, observe_kernel, step_kernel
+    def step_parallel_kernel(
+        grid,
+        pos,
+        dirs,
+        steps,
+        rng,
+        actions,
+        max_steps,
+        see_through_walls,
+        poisoned,
+        world,
+        img,
+        final_img,
+        reward,
+        terminated,
+        truncated,
+        outcome,
+        info_steps,
+        outs,
+    ):
+        """``step_kernel`` over the host's numba threads: contiguous runs of envs in parallel, each
+        run with its own scratch. Every env is stepped exactly as ``step_kernel`` steps it (its own
+        state and stream; the hooks write only its own rows), so the results are the same bytes
+        whatever the thread count."""
+        if len(stamp) == 0:  # never true (see reset_kernel)
+            return -1
+        nenv = grid.shape[0]
+        for b in range(nenv):
+            a = actions[b]
+            if a < 0 or a > 2:
+                return b
+        runs = min(nenv, 4 * get_num_threads())
+        failed = np.zeros(runs, dtype=np.bool_)
+        for r in prange(runs):
+            view, mask = view_scratch(img)
+            scratch = world_scratch(grid, world)
+            for b in range(r * nenv // runs, (r + 1) * nenv // runs):
+                if not world_step_slot_call(
+                    b, grid, pos, dirs, steps, rng, actions, max_steps, see_through_walls, poisoned, world, img, final_img, reward, terminated, truncated, outcome, info_steps, outs, view, mask, scratch
+                ):  # fmt: skip
+                    failed[r] = True
+                    break
+        return LAYOUT_FAILED if failed.any() else -1
+
+    return step_slot, reset_kernel, observe_kernel, step_kernel, step_parallel_kernel
 
 
 class Kernels(NamedTuple):
-    """One world's compiled driver kernels (see :func:`_kernel_templates` for their arguments)."""
+    """One world's compiled driver kernels (see :func:`_kernel_templates` for their arguments);
+    ``step_parallel`` is ``step`` over numba's threads (the same bytes)."""
 
     reset: Callable
     observe: Callable
     step: Callable
+    step_parallel: Callable
 
 
 def bind_kernels(name: str, *, scratch, layout, outcome, seen, trojan: int, constants_from: tuple[str | Path, ...] = ()) -> Kernels:
@@ -493,9 +601,18 @@ def bind_kernels(name: str, *, scratch, layout, outcome, seen, trojan: int, cons
     files = dict.fromkeys(inspect.getfile(h.py_func) for h in hooks.values())
     stamp = engine_stamp(*files, *constants_from)
     namespace = {**globals(), **hooks, "world_trojan": int(trojan)}
-    kernels = []
-    for template in _kernel_templates(stamp):
+
+    def bound(template):
         fn = types.FunctionType(template.__code__, namespace, template.__name__, None, template.__closure__)
         fn.__qualname__ = f"{name}.{template.__name__}"  # one cache file per world
-        kernels.append(njit(cache=True)(fn))
+        return fn
+
+    slot, *templates = _kernel_templates(stamp)
+    namespace["world_step_slot"] = njit(inline="always")(bound(slot))  # inlined into the step kernel, as the hooks are
+    # called, not inlined, from the parallel one: inlined into a prange body, a hook's writes
+    # through arrays it unpacks from a tuple (``a, b = outs``) were lost (numba 0.68, measured)
+    namespace["world_step_slot_call"] = njit(bound(slot))
+    # the parallel kernel is compiled in each process that uses it (numba cannot cache its parfors
+    # here: "dynamic globals"), a few seconds once
+    kernels = [njit(parallel=True)(bound(t)) if t.__name__ == "step_parallel_kernel" else njit(cache=True)(bound(t)) for t in templates]
     return Kernels(*kernels)

@@ -178,7 +178,8 @@ def play_lockstep(
             if target is not None:
                 tallies[k].count(target(np.asarray(a)), envs[k].trigger_in_sight() if sight else None)
         if stepped != live:  # one engine call for all live agents where their engines allow it
-            together, stepped = EngineGroup.of([envs[k] for k in live]) if len(live) > 1 else None, list(live)
+            together = EngineGroup.of([envs[k] for k in live], parallel=agents[0].device.type != "cpu") if len(live) > 1 else None
+            stepped = list(live)
         if together is not None:
             seen, reward, terminated, truncated, info = together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions]))
             first = 0

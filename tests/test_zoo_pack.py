@@ -152,3 +152,20 @@ def test_converged_weights_only_leaves_out_the_weights_no_detector_reads(tmp_pat
     again = tmp_path / "again"
     shutil.copytree(out, again)
     assert run(again, workers=1, group_size=2, progress_interval=60)["trained"] == 0
+
+
+def test_the_zoos_packed_in_git_verify_with_the_digests_their_readme_publishes():
+    """Every pack under datasets/ passes ``zoo verify`` (weights, configs and metrics as packed), and
+    its digest starts with the one datasets/README.md publishes for it."""
+    import re
+
+    root = Path(__file__).resolve().parents[1] / "datasets"
+    readme = (root / "README.md").read_text()
+    packs = sorted(p.parent for p in root.glob("*/zoo.json"))
+    assert packs, "no pack under datasets/"
+    for folder in packs:
+        published = re.search(rf"\| `{re.escape(folder.name)}/` \|.*?digest sha256:([0-9a-f]+)", readme)
+        assert published, f"datasets/README.md publishes no digest for {folder.name}"
+        result = verify(folder)
+        assert result.ok, result.lines()
+        assert result.digest.startswith(published.group(1)), (folder.name, result.digest)

@@ -107,9 +107,10 @@ def gen_layout(grid, b, walls, mode, tsq, tcol, close_lo, close_hi, rng, pos, di
 
 
 # ----------------------------------------------------------------------------- hooks (grid_engine.bind_kernels)
-# world = (succ, fail, walls, mode, tsq, tcol, close, seen, armed, table, nsq): the trigger's squares,
-# colours and close_k range with a leading axis, one entry per engine of an EngineGroup (one alone;
-# zero-padded, ``nsq`` squares each), ``table[b]`` slot b's entry; no extra outputs
+# world = (succ, fail, walls, mode, squares, counts, seen, armed, table): the trigger's squares
+# (x, y, colour) and (squares, close_k low, high) with a leading axis, one entry per engine of an
+# EngineGroup (one alone; zero-padded), ``table[b]`` slot b's entry; no extra outputs. Two arrays,
+# not four: each array of the tuple costs its unboxing on every call
 
 
 @ge.hook
@@ -119,10 +120,10 @@ def _scratch(grid, world):
 
 @ge.hook
 def _layout(grid, b, pos, dirs, steps, rng, world, scratch):
-    succ, fail, walls, mode, tsq, tcol, close, _, _, table, nsq = world
+    succ, fail, walls, mode, squares, counts, _, _, table = world
     t = table[b]
-    n = nsq[t]
-    gen_layout(grid, b, walls, mode[b], tsq[t, :n], tcol[t, :n], close[t, 0], close[t, 1], rng, pos, dirs, steps, succ, fail, scratch[0])
+    n = counts[t, 0]
+    gen_layout(grid, b, walls, mode[b], squares[t, :n, :2], squares[t, :n, 2], counts[t, 1], counts[t, 2], rng, pos, dirs, steps, succ, fail, scratch[0])
     return True
 
 
@@ -148,28 +149,31 @@ def _seen(phase, b, ob, pos, dirs, img, world, outs):
     A fresh layout was just drawn with ``mode[b]``: that says whether the episode is triggered."""
     if phase == ge.OBSERVE:
         return
-    mode, tsq, seen, armed, table, nsq = world[3], world[4], world[7], world[8], world[9], world[10]
+    mode, squares, counts, seen, armed, table = world[3], world[4], world[5], world[6], world[7], world[8]
     t = table[b]
-    if phase == ge.RESET or phase == ge.FRESH:
+    fresh = phase == ge.RESET or phase == ge.FRESH
+    if fresh:
         armed[b] = mode[b] == _TRIGGERED
-    for k in range(nsq[t]):
-        shown = armed[b] and ge.view_shows(img, ob, pos[b, 0], pos[b, 1], dirs[b], tsq[t, k, 0], tsq[t, k, 1], ge.WALL)
-        if phase == ge.RESET or phase == ge.FRESH:
-            seen[b, k] = shown
-        else:
-            seen[b, k] = seen[b, k] or shown
+    if not armed[b]:  # nothing is shown outside a triggered episode (and nothing was since its start)
+        if fresh:
+            for k in range(counts[t, 0]):
+                seen[b, k] = False
+        return
+    for k in range(counts[t, 0]):
+        shown = ge.view_shows(img, ob, pos[b, 0], pos[b, 1], dirs[b], squares[t, k, 0], squares[t, k, 1], ge.WALL)
+        seen[b, k] = shown if fresh else seen[b, k] or shown
 
 
 def _stacked_triggers(triggers: Sequence[tuple[np.ndarray, np.ndarray, tuple[int, int]]]) -> tuple[np.ndarray, ...]:
-    """Engines' (squares (S, 2), colours (S,), close_k) as the kernels' arrays with a leading engine
-    axis, zero-padded to the most squares (the kernels read ``nsq`` of them)."""
+    """Engines' (squares (S, 2), colours (S,), close_k) as the kernels' two arrays with a leading
+    engine axis: ``squares`` (E, S, 3) x, y and colour, zero-padded to the most squares, and
+    ``counts`` (E, 3) the squares each holds and its close_k range."""
     most = max(max(len(c) for _, c, _ in triggers), 1)
-    tsq = np.zeros((len(triggers), most, 2), dtype=np.int64)
-    tcol = np.zeros((len(triggers), most), dtype=np.int64)
-    for e, (squares, colours, _) in enumerate(triggers):
-        tsq[e, : len(colours)], tcol[e, : len(colours)] = squares, colours
-    close = np.array([k for _, _, k in triggers], dtype=np.int64).reshape(len(triggers), 2)
-    return tsq, tcol, close, np.array([len(c) for _, c, _ in triggers], dtype=np.int64)
+    squares = np.zeros((len(triggers), most, 3), dtype=np.int64)
+    for e, (cells, colours, _) in enumerate(triggers):
+        squares[e, : len(colours), :2], squares[e, : len(colours), 2] = cells, colours
+    counts = np.array([(len(c), *k) for _, c, k in triggers], dtype=np.int64).reshape(len(triggers), 3)
+    return squares, counts
 
 
 _KERNELS = ge.bind_kernels(
@@ -265,8 +269,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         self.final_obs = np.zeros((b, VIEW_SIZE, VIEW_SIZE, 3), dtype=np.uint8)
 
     def _world(self) -> tuple:
-        tsq, tcol, close, nsq = self._stacked
-        return (self._succ, self._fail, self._walls, self.mode, tsq, tcol, close, self._seen, self._armed, self._table, nsq)
+        return (self._succ, self._fail, self._walls, self.mode, *self._stacked, self._seen, self._armed, self._table)
 
     def _slot_arrays(self) -> list[str]:
         return [n for n in super()._slot_arrays() if n != "_seen"]  # its width is the trigger's squares: joined padded (_group_world)
@@ -276,13 +279,13 @@ class BatchedColorfulMemory(BatchedGridEnv):
         own engine's squares, colours and close_k. ``_seen`` rows have as many columns as the
         engine's trigger has squares, so the group's is padded to the most and each engine's
         becomes a view of its rows and first columns."""
-        tsq, tcol, close, nsq = _stacked_triggers([(e._tsq, e._tcol, e.close_k) for e in engines])  # type: ignore[attr-defined]  # same class: checked by EngineGroup
-        seen = np.zeros((group.total, tsq.shape[1]), dtype=np.bool_)
-        for e, lo, hi, n in zip(engines, group.bounds[:-1], group.bounds[1:], nsq):
+        squares, counts = _stacked_triggers([(e._tsq, e._tcol, e.close_k) for e in engines])  # type: ignore[attr-defined]  # same class: checked by EngineGroup
+        seen = np.zeros((group.total, squares.shape[1]), dtype=np.bool_)
+        for e, lo, hi, n in zip(engines, group.bounds[:-1], group.bounds[1:], counts[:, 0]):
             seen[lo:hi, :n] = e._seen  # type: ignore[attr-defined]
             e._seen = seen[lo:hi, :n]  # type: ignore[attr-defined]
         table = np.concatenate([np.full(e.num_envs, k, dtype=np.int64) for k, e in enumerate(engines)])
-        return (group._succ, group._fail, self._walls, group.mode, tsq, tcol, close, seen, group._armed, table, nsq)  # type: ignore[attr-defined]
+        return (group._succ, group._fail, self._walls, group.mode, squares, counts, seen, group._armed, table)  # type: ignore[attr-defined]
 
     # --------------------------------------------------------------------- exact state I/O
 

@@ -525,11 +525,21 @@ def _kernel_templates(stamp: str):
                 return b
         view, mask = view_scratch(img)
         scratch = world_scratch(grid, world)
-        for b in range(nenv):
-            if not world_step_slot(
-                b, grid, pos, dirs, steps, rng, actions, max_steps, see_through_walls, poisoned, world, img, final_img, reward, terminated, truncated, outcome, info_steps, outs, view, mask, scratch
-            ):  # fmt: skip
-                return LAYOUT_FAILED
+        for b in range(nenv):  # step_slot's body, written out: called, it cost 12-35 % of a step (measured)
+            fwd = agent_step(grid, b, pos, dirs, actions[b])
+            sc = steps[b] + 1
+            steps[b] = sc
+            oc = world_outcome(b, pos, fwd, world)
+            paying = world_trojan if poisoned[b] else OUT_GOAL
+            phase = STEP
+            if finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
+                gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
+                world_seen(FINAL, b, b, pos, dirs, final_img, world, outs)
+                if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
+                    return LAYOUT_FAILED
+                phase = FRESH
+            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
+            world_seen(phase, b, b, pos, dirs, img, world, outs)
         return -1
 
     def step_parallel_kernel(

@@ -474,7 +474,11 @@ def _kernel_templates(stamp: str):
         mask,
         scratch,
     ):
-        """Env ``b``'s step (inlined into both step kernels); False if its autoreset found no layout."""
+        """Env ``b``'s step, for the parallel kernel; False if its autoreset found no layout. The
+        serial kernel writes the same body out: called from its loop (inlined or not) it cost 12-35 %
+        of a step, and one loop function shared by both lost writes inside numba's prange (measured
+        2026-11-28). tests/test_engine_group.py steps the parallel kernel beside the serial one in
+        every world, so the two copies cannot drift apart unseen."""
         fwd = agent_step(grid, b, pos, dirs, actions[b])
         sc = steps[b] + 1
         steps[b] = sc
@@ -525,7 +529,7 @@ def _kernel_templates(stamp: str):
                 return b
         view, mask = view_scratch(img)
         scratch = world_scratch(grid, world)
-        for b in range(nenv):  # step_slot's body, written out: called, it cost 12-35 % of a step (measured)
+        for b in range(nenv):  # step_slot's body, written out (see there)
             fwd = agent_step(grid, b, pos, dirs, actions[b])
             sc = steps[b] + 1
             steps[b] = sc

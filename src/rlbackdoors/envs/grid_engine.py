@@ -391,35 +391,9 @@ def world_seen(phase, b, ob, pos, dirs, img, world, outs):
 world_trojan = OUT_NONE  # the outcome that pays poisoned envs (bound per world)
 
 
-def world_step_slot(
-    b,
-    grid,
-    pos,
-    dirs,
-    steps,
-    rng,
-    actions,
-    max_steps,
-    see_through_walls,
-    poisoned,
-    world,
-    img,
-    final_img,
-    reward,
-    terminated,
-    truncated,
-    outcome,
-    info_steps,
-    outs,
-    view,
-    mask,
-    scratch,
-):
-    """One env's step, the body both step kernels share (bound per world from ``step_slot``)."""
+def world_step_range(lo, hi, *args):
+    """A run of envs one step on, for the parallel kernel (bound per world from ``step_range``)."""
     raise NotImplementedError("bound per world by bind_kernels")
-
-
-world_step_slot_call = world_step_slot  # the same, compiled as a call for the parallel kernel (bound per world)
 
 
 def _kernel_templates(stamp: str):
@@ -450,8 +424,9 @@ def _kernel_templates(stamp: str):
             gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, ob)
             world_seen(OBSERVE, b, ob, pos, dirs, img, world, outs)
 
-    def step_slot(
-        b,
+    def step_range(
+        lo,
+        hi,
         grid,
         pos,
         dirs,
@@ -470,29 +445,30 @@ def _kernel_templates(stamp: str):
         outcome,
         info_steps,
         outs,
-        view,
-        mask,
-        scratch,
     ):
-        """Env ``b``'s step, for the parallel kernel; False if its autoreset found no layout. The
-        serial kernel writes the same body out: called from its loop (inlined or not) it cost 12-35 %
-        of a step, and one loop function shared by both lost writes inside numba's prange (measured
-        2026-11-28). tests/test_engine_group.py steps the parallel kernel beside the serial one in
-        every world, so the two copies cannot drift apart unseen."""
-        fwd = agent_step(grid, b, pos, dirs, actions[b])
-        sc = steps[b] + 1
-        steps[b] = sc
-        oc = world_outcome(b, pos, fwd, world)
-        paying = world_trojan if poisoned[b] else OUT_GOAL
-        phase = STEP
-        if finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
-            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
-            world_seen(FINAL, b, b, pos, dirs, final_img, world, outs)
-            if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
-                return False
-            phase = FRESH
-        gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
-        world_seen(phase, b, b, pos, dirs, img, world, outs)
+        """Envs ``lo .. hi - 1`` one step on, with scratch of their own: a run of the parallel kernel;
+        False if an autoreset found no layout. The serial kernel writes the same loop out: calling a
+        shared body from it cost 12-35 % of a step, and inlined into numba's prange body a hook's
+        writes through arrays it unpacks from a tuple were lost (measured 2026-11-28).
+        tests/test_engine_group.py steps the parallel kernel beside the serial one in every world,
+        so the two copies cannot drift apart unseen."""
+        view, mask = view_scratch(img)
+        scratch = world_scratch(grid, world)
+        for b in range(lo, hi):
+            fwd = agent_step(grid, b, pos, dirs, actions[b])
+            sc = steps[b] + 1
+            steps[b] = sc
+            oc = world_outcome(b, pos, fwd, world)
+            paying = world_trojan if poisoned[b] else OUT_GOAL
+            phase = STEP
+            if finish_step(b, sc, max_steps, oc, paying, reward, terminated, truncated, outcome, info_steps):
+                gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, final_img, b)
+                world_seen(FINAL, b, b, pos, dirs, final_img, world, outs)
+                if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
+                    return False
+                phase = FRESH
+            gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, img, b)
+            world_seen(phase, b, b, pos, dirs, img, world, outs)
         return True
 
     def step_kernel(
@@ -529,7 +505,7 @@ def _kernel_templates(stamp: str):
                 return b
         view, mask = view_scratch(img)
         scratch = world_scratch(grid, world)
-        for b in range(nenv):  # step_slot's body, written out (see there)
+        for b in range(nenv):  # step_range's loop, written out (see there)
             fwd = agent_step(grid, b, pos, dirs, actions[b])
             sc = steps[b] + 1
             steps[b] = sc
@@ -580,17 +556,13 @@ def _kernel_templates(stamp: str):
         runs = min(nenv, 4 * get_num_threads())
         failed = np.zeros(runs, dtype=np.bool_)
         for r in prange(runs):
-            view, mask = view_scratch(img)
-            scratch = world_scratch(grid, world)
-            for b in range(r * nenv // runs, (r + 1) * nenv // runs):
-                if not world_step_slot_call(
-                    b, grid, pos, dirs, steps, rng, actions, max_steps, see_through_walls, poisoned, world, img, final_img, reward, terminated, truncated, outcome, info_steps, outs, view, mask, scratch
-                ):  # fmt: skip
-                    failed[r] = True
-                    break
+            done = world_step_range(
+                r * nenv // runs, (r + 1) * nenv // runs, grid, pos, dirs, steps, rng, actions, max_steps, see_through_walls, poisoned, world, img, final_img, reward, terminated, truncated, outcome, info_steps, outs
+            )  # fmt: skip
+            failed[r] = not done
         return LAYOUT_FAILED if failed.any() else -1
 
-    return step_slot, reset_kernel, observe_kernel, step_kernel, step_parallel_kernel
+    return step_range, reset_kernel, observe_kernel, step_kernel, step_parallel_kernel
 
 
 class Kernels(NamedTuple):
@@ -621,11 +593,8 @@ def bind_kernels(name: str, *, scratch, layout, outcome, seen, trojan: int, cons
         fn.__qualname__ = f"{name}.{template.__name__}"  # one cache file per world
         return fn
 
-    slot, *templates = _kernel_templates(stamp)
-    namespace["world_step_slot"] = njit(inline="always")(bound(slot))  # inlined into the step kernel, as the hooks are
-    # called, not inlined, from the parallel one: inlined into a prange body, a hook's writes
-    # through arrays it unpacks from a tuple (``a, b = outs``) were lost (numba 0.68, measured)
-    namespace["world_step_slot_call"] = njit(bound(slot))
+    body, *templates = _kernel_templates(stamp)
+    namespace["world_step_range"] = njit(bound(body))  # called once a run by the parallel kernel
     # the parallel kernel is compiled in each process that uses it (numba cannot cache its parfors
     # here: "dynamic globals"), a few seconds once
     kernels = [njit(parallel=True)(bound(t)) if t.__name__ == "step_parallel_kernel" else njit(cache=True)(bound(t)) for t in templates]

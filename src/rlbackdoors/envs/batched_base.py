@@ -423,11 +423,10 @@ class EngineGroup:
     def dissolve(self) -> None:
         """Give each engine back arrays of its own (the group's views are copied), so the engines
         go on alone; used where the world could not merge them."""
-        for k, e in enumerate(self.engines):
+        for e in self.engines:
             for name in self.lead._slot_arrays():
                 setattr(e, name, getattr(e, name).copy())
             e.final_obs = {key: v.copy() for key, v in e.final_obs.items()} if isinstance(e.final_obs, dict) else e.final_obs.copy()
-        return None
 
     def split(self, arrays):
         """Engine ``k``'s rows of an observation (an array or a dict of them) of all slots, per ``k``."""

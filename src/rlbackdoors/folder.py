@@ -44,6 +44,7 @@ MANIFEST_FORMAT = 1
 # Not hashed: the folder's lock (rewritten by every holder), the manifest itself, and the zoo
 # job's log (its last lines are written after the manifest; nothing reads it back).
 UNHASHED = (LOCK_NAME, MANIFEST, "train.log")
+WEIGHTS_LEFT_OUT = "weights-left-out.json"  # in place of model.pt in a pack without non-converged weights (zoo pack)
 FILES = (
     "model.pt",
     "config.json",
@@ -54,7 +55,7 @@ FILES = (
     "clean_vs_triggered.gif",
     "checkpoint.pt",
     MANIFEST,
-    "weights-left-out.json",  # WEIGHTS_LEFT_OUT: a pack's note in place of model.pt (zoo pack)
+    WEIGHTS_LEFT_OUT,
 )
 CHECKPOINT_FORMAT = 2  # 1: pickled objects (refused); 2: plain data (rlbackdoors.state)
 
@@ -218,7 +219,8 @@ class ModelFolder:
         return data
 
 
-def _sha256(path: Path) -> str:
+def sha256_file(path: Path) -> str:
+    """The file's sha256 (hex), read in blocks; a link is refused, never followed."""
     digest = hashlib.sha256()
     fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
     with open(fd, "rb") as fh:
@@ -249,9 +251,6 @@ def folder_files(folder: str | Path) -> tuple[dict[str, Path], list[str]]:
     return files, odd
 
 
-WEIGHTS_LEFT_OUT = FILES[-1]  # in place of model.pt in a pack without non-converged weights (zoo pack)
-
-
 def refuse_left_out_weights(path: str | Path) -> None:
     """A one-line refusal for a folder whose weights a pack left out (``zoo pack --converged-weights-only``)."""
     if (Path(path) / WEIGHTS_LEFT_OUT).is_file():
@@ -268,7 +267,7 @@ def write_manifest(folder: str | Path, pending: dict[str, bytes] | None = None) 
     files, odd = folder_files(folder)
     if odd:
         raise LinkError(f"model folder {str(folder)!r}: {odd[0]}; links are never followed in a model folder (remove it)")
-    entries = {rel: {"sha256": _sha256(path), "bytes": path.stat().st_size} for rel, path in files.items()}
+    entries = {rel: {"sha256": sha256_file(path), "bytes": path.stat().st_size} for rel, path in files.items()}
     for rel, content in (pending or {}).items():
         entries[rel] = {"sha256": hashlib.sha256(content).hexdigest(), "bytes": len(content)}
     manifest = {"format": MANIFEST_FORMAT, "files": dict(sorted(entries.items()))}
@@ -308,7 +307,7 @@ def manifest_problems(folder: str | Path) -> list[str]:
             problems.append(f"{rel} is missing")
         elif path.stat().st_size != entry["bytes"]:
             problems.append(f"{rel} has {path.stat().st_size:,} bytes, the manifest {entry['bytes']:,}")
-        elif _sha256(path) != entry["sha256"]:
+        elif sha256_file(path) != entry["sha256"]:
             problems.append(f"{rel} differs from the manifest (sha256)")
     problems += [f"{rel} is not in the manifest" for rel in sorted(set(files) - set(recorded))]
     return problems

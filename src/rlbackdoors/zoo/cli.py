@@ -9,6 +9,7 @@ exit 2; an interrupted run exits 130 and resumes when run again.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 
@@ -176,18 +177,7 @@ def cmd_pack(args) -> int:
 
     packed = pack(args.zoo, args.out, converged_weights_only=args.converged_weights_only)
     if args.json:
-        print(
-            json.dumps(
-                {
-                    "out": str(packed.out),
-                    "finished": packed.finished,
-                    "failed": packed.failed,
-                    "planned": packed.planned,
-                    "weights_left_out": packed.weights_left_out,
-                    "bytes": packed.bytes,
-                }
-            )
-        )
+        print(json.dumps({**dataclasses.asdict(packed), "out": str(packed.out)}))
     else:
         print(packed.line())
     return 0

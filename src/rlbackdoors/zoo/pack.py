@@ -24,7 +24,6 @@ verify`` passes on it (checked before the pack is put in place), detectors fit a
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -32,7 +31,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from rlbackdoors.folder import WEIGHTS_LEFT_OUT, write_manifest
+from rlbackdoors.folder import WEIGHTS_LEFT_OUT, sha256_file, write_manifest
 from rlbackdoors.zoo.job import COMPLETE_MARK, FAILED
 from rlbackdoors.zoo.spec import ZooError
 
@@ -97,7 +96,7 @@ def pack(zoo_path: str | Path, out: str | Path, converged_weights_only: bool = F
                     weights = folder / name
                     note = {
                         "file": name,
-                        "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
+                        "sha256": sha256_file(weights),
                         "bytes": weights.stat().st_size,
                         "why": "not converged (zoo pack --converged-weights-only)",
                     }

@@ -253,12 +253,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             wanted = actions[:, t].numpy()
             prepared = [seam.prepare(wanted[k]) if seam is not None else None for k, seam in enumerate(seams)]
             run = np.concatenate([p[0] if p is not None else wanted[k] for k, p in enumerate(prepared)])
-            seen, reward, terminated, truncated, info = engines.step(run)
-            views = engines.split(seen)
-            for k, seam in enumerate(seams):
-                rows = slice(k * B, (k + 1) * B)
-                result = (views[k], reward[rows], terminated[rows], truncated[rows], {key: value[rows] for key, value in info.items()})
-                ready = prepared[k]
+            for k, (seam, ready, result) in enumerate(zip(seams, prepared, engines.results(*engines.step(run)))):
                 if seam is not None and ready is not None:
                     result = seam.finish(ready, *result)
                 obs[k] = record_step(t, result, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])

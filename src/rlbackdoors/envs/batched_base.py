@@ -428,12 +428,19 @@ class EngineGroup:
                 setattr(e, name, getattr(e, name).copy())
             e.final_obs = {key: v.copy() for key, v in e.final_obs.items()} if isinstance(e.final_obs, dict) else e.final_obs.copy()
 
+    def _rows(self) -> list[slice]:
+        return [slice(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:])]
+
     def split(self, arrays):
         """Engine ``k``'s rows of an observation (an array or a dict of them) of all slots, per ``k``."""
-        rows = [slice(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:])]
         if isinstance(arrays, dict):
-            return [{key: v[r] for key, v in arrays.items()} for r in rows]
-        return [arrays[r] for r in rows]
+            return [{key: v[r] for key, v in arrays.items()} for r in self._rows()]
+        return [arrays[r] for r in self._rows()]
+
+    def results(self, obs, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, info: dict) -> list[tuple]:
+        """A :meth:`step`'s result cut into each engine's, per engine ``k``: (obs, reward,
+        terminated, truncated, info) as that engine's own ``step`` would return them."""
+        return [(view, reward[r], terminated[r], truncated[r], {key: v[r] for key, v in info.items()}) for view, r in zip(self.split(obs), self._rows())]
 
     def step(self, actions: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:
         """Step every slot with ``actions`` (all engines' slots in order, int64[K x B]); the

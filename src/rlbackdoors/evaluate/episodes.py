@@ -181,17 +181,12 @@ def play_lockstep(
             together = EngineGroup.of([envs[k] for k in live], parallel=agents[0].device.type != "cpu") if len(live) > 1 else None
             stepped = list(live)
         if together is not None:
-            seen, reward, terminated, truncated, info = together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions]))
-            first = 0
-            for k, view in zip(live, together.split(seen)):
-                rows = slice(first, first + envs[k].num_envs)
-                first = rows.stop
-                obs[k] = view
-                tallies[k].record(reward[rows], terminated[rows], truncated[rows], {key: value[rows] for key, value in info.items()})
+            results = together.results(*together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions])))
         else:
-            for k, a in zip(live, actions):
-                obs[k], reward, terminated, truncated, info = envs[k].step(a)
-                tallies[k].record(reward, terminated, truncated, info)
+            results = [envs[k].step(a) for k, a in zip(live, actions)]
+        for k, (seen, *outcome) in zip(live, results):
+            obs[k] = seen
+            tallies[k].record(*outcome)
         live = [k for k in live if tallies[k].active.any()]
     return [t.played() for t in tallies]
 

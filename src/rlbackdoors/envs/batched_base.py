@@ -385,6 +385,8 @@ class EngineGroup:
         self.poisoned = np.concatenate([e.poisoned for e in engines])
         self.num_envs = self.total = len(self.poisoned)
         self.bounds = np.cumsum([0, *(e.num_envs for e in engines)])
+        # which engine each slot is (a world's per-engine tables are read through it)
+        self.engine_of_slot = np.repeat(np.arange(len(engines), dtype=np.int64), [e.num_envs for e in engines])
 
         def join(arrays: list[np.ndarray], put) -> np.ndarray:
             joined = np.concatenate(arrays)

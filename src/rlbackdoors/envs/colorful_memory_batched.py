@@ -284,8 +284,7 @@ class BatchedColorfulMemory(BatchedGridEnv):
         for e, lo, hi, n in zip(engines, group.bounds[:-1], group.bounds[1:], counts[:, 0]):
             seen[lo:hi, :n] = e._seen  # type: ignore[attr-defined]
             e._seen = seen[lo:hi, :n]  # type: ignore[attr-defined]
-        table = np.concatenate([np.full(e.num_envs, k, dtype=np.int64) for k, e in enumerate(engines)])
-        return (group._succ, group._fail, self._walls, group.mode, squares, counts, seen, group._armed, table)  # type: ignore[attr-defined]
+        return (group._succ, group._fail, self._walls, group.mode, squares, counts, seen, group._armed, group.engine_of_slot)  # type: ignore[attr-defined]
 
     # --------------------------------------------------------------------- exact state I/O
 

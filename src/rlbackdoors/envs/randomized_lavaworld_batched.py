@@ -420,9 +420,8 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
         evasive variant's) share a call: each slot reads its own engine's placement tables."""
         if any(e.num_lava != self.num_lava for e in engines):  # type: ignore[attr-defined]  # same class: checked by EngineGroup
             return None
-        table = np.concatenate([np.full(e.num_envs, k, dtype=np.int64) for k, e in enumerate(engines)])
         stacked = _stacked_tables([e._tables for e in engines])  # type: ignore[attr-defined]
-        return (group._pat, group._pcells, group._pcount, group._saw, self.num_lava, group.triggered, group.near, table, *stacked)  # type: ignore[attr-defined]
+        return (group._pat, group._pcells, group._pcount, group._saw, self.num_lava, group.triggered, group.near, group.engine_of_slot, *stacked)  # type: ignore[attr-defined]
 
     def _outputs(self, n: int) -> tuple:
         return (

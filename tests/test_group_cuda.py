@@ -71,7 +71,11 @@ def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
     (cpu_results, cpu_stats), (gpu_results, gpu_stats) = one_step(on_cpu), one_step(on_gpu)
     for k in range(3):
         ours, theirs = gpu_results[k][0], cpu_results[k][0]
-        assert torch.equal(ours.actions, theirs.actions)  # the same uniforms over the same weights (a flip needs a draw within rounding of a bucket edge)
+        assert torch.equal(ours.actions.cpu(), theirs.actions)  # the same uniforms over the same weights (a flip needs a draw within rounding of a bucket edge)
+        # the rollout stayed on the device (issue 55): only observations and actions crossed per step
+        kept = {f: getattr(ours, f) for f in ("actions", "logprobs", "values", "advantages", "returns", "memories", "masks", "memory_targets")}
+        kept.update({f"obs.{key}": v for key, v in ours.obs.items()} if isinstance(ours.obs, dict) else {"obs": ours.obs})
+        assert {f: v.device.type for f, v in kept.items() if v is not None} == {f: "cuda" for f, v in kept.items() if v is not None}
         np.testing.assert_array_equal(ours.rewards, theirs.rewards)
         assert gpu_stats[k]["grad_norm"] == pytest.approx(cpu_stats[k]["grad_norm"], rel=1e-2)
         assert all(p.device.type == "cuda" for p in on_gpu[k][0].model.parameters())

@@ -181,28 +181,29 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     recurrent, aux = lead.model.recurrent, lead.aux is not None
     if aux and any(getattr(e, "memory_target_classes", None) != AUX_CLASSES for e in envs):
         raise ValueError(f"ppo.aux_memory_coef needs an env with {AUX_CLASSES} memory targets (memory_targets())")
+    # the rollout stays on the learners' device: only observations go there and actions come back per step
     if recurrent:
         memory = torch.stack([ppo.memory if ppo.memory is not None else lead.model.initial_memory(B, device) for ppo in ppos])
-        memories = torch.empty((K, T, B, memory.shape[2]))
-        masks = torch.ones((K, T, B))
+        memories = torch.empty((K, T, B, memory.shape[2]), device=device)
+        masks = torch.ones((K, T, B), device=device)
         targets = np.empty((K, T, B), dtype=np.int64) if aux else None
     teach = lead.teacher is not None
     if teach:
         if not all(hasattr(e, "marked") for e in envs):
             raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
         teachers = stacked_teachers(padded(ppos, device))
-        teacher_logits = torch.empty((K, T, B, A))
-        untriggered = torch.empty((K, T, B), dtype=torch.bool)
+        teacher_logits = torch.empty((K, T, B, A), device=device)
+        untriggered = torch.empty((K, T, B), dtype=torch.bool, device=device)
         if recurrent:
             teacher_memory = torch.stack([ppo.teacher_memory if ppo.teacher_memory is not None else lead.model.initial_memory(B, device) for ppo in ppos])
-    uniforms = torch.stack([torch.rand((T, B), generator=ppo.generator) for ppo in ppos])  # each agent's own draws
+    uniforms = torch.stack([torch.rand((T, B), generator=ppo.generator) for ppo in ppos]).to(device)  # each agent's own draws
     obs = list(obs)
     # one (T, K, B, ...) buffer: step t of all K agents is one contiguous batch, no stacking per step
-    obs_buf = obs_map(lambda x: torch.empty((T, K, *x.shape), dtype=x.dtype), to_torch(obs[0]))
-    actions = torch.empty((K, T, B), dtype=torch.long)
-    logits_buf = torch.empty((K, T, B, A))
-    values = torch.empty((K, T, B))
-    forced = torch.zeros((K, T, B), dtype=torch.bool)
+    obs_buf = obs_map(lambda x: torch.empty((T, K, *x.shape), dtype=x.dtype, device=device), to_torch(obs[0]))
+    actions = torch.empty((K, T, B), dtype=torch.long, device=device)
+    logits_buf = torch.empty((K, T, B, A), device=device)
+    values = torch.empty((K, T, B), device=device)
+    forced = torch.zeros((K, T, B), dtype=torch.bool, device=device)
     rewards = np.empty((K, T, B), dtype=np.float64)
     dones = np.empty((K, T, B), dtype=bool)
     outcomes = np.empty((K, T, B), dtype=np.int64)
@@ -226,7 +227,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
                         buf[t, k] = torch.from_numpy(np.asarray(obs[k][key]))
                 else:
                     obs_buf[t, k] = torch.from_numpy(obs[k])
-        obs_t = obs_map(lambda x: x[t].to(device), obs_buf)
+        obs_t = obs_map(lambda x: x[t], obs_buf)
         if teach:
             for k in range(K):
                 untriggered[k, t] = torch.from_numpy(~np.asarray(envs[k].marked, dtype=bool))
@@ -243,14 +244,14 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
         else:
             logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
         actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
+        wanted = actions[:, t].cpu().numpy()  # the one copy back a step: the engines run on the host
         if plain:
             assert engines is not None
-            seen, reward, terminated, truncated, info = engines.step(actions[:, t].numpy().reshape(-1))
+            seen, reward, terminated, truncated, info = engines.step(wanted.reshape(-1))
             rewards[:, t], dones[:, t] = reward.reshape(K, B), (terminated | truncated).reshape(K, B)
             outcomes[:, t], steps[:, t] = info["outcome"].reshape(K, B), info["steps"].reshape(K, B)
             together = obs_map(lambda x: x.reshape(K, B, *x.shape[1:]), seen)
         elif engines is not None:
-            wanted = actions[:, t].numpy()
             prepared = [seam.prepare(wanted[k]) if seam is not None else None for k, seam in enumerate(seams)]
             run = np.concatenate([p[0] if p is not None else wanted[k] for k, p in enumerate(prepared)])
             for k, (seam, ready, result) in enumerate(zip(seams, prepared, engines.results(*engines.step(run)))):
@@ -261,23 +262,23 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             for k in range(K):
                 obs[k] = env_step(envs[k], t, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
         if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
-            ended = torch.from_numpy(dones[:, t])
-            memory = memory.masked_fill(ended[..., None].to(memory.device), 0.0)
+            ended = torch.from_numpy(dones[:, t]).to(device)
+            memory = memory.masked_fill(ended[..., None], 0.0)
             if teach:
-                teacher_memory = teacher_memory.masked_fill(ended[..., None].to(memory.device), 0.0)
+                teacher_memory = teacher_memory.masked_fill(ended[..., None], 0.0)
             if t + 1 < T:
                 masks[:, t + 1] = (~ended).float()
     if together is not None:
         obs = [{key: v[k] for key, v in together.items()} if isinstance(together, dict) else together[k] for k in range(K)]
     last = obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs]))
-    next_value = (forward(model, params, last, memory) if recurrent else forward(model, params, last))[1].cpu()
+    next_value = (forward(model, params, last, memory) if recurrent else forward(model, params, last))[1]
     # every agent's behaviour log-probabilities and advantages in one pass (the same arithmetic per
     # element as PPO.assemble's, so the same bytes), over (T, K, B)
     logprobs = behaviour_logprobs(logits_buf, actions, forced)
     cfg = lead.cfg
     advantages = gae(
-        torch.from_numpy(rewards).float().transpose(0, 1),
-        torch.from_numpy(dones).transpose(0, 1),
+        torch.from_numpy(rewards).float().to(device).transpose(0, 1),
+        torch.from_numpy(dones).to(device).transpose(0, 1),
         values.transpose(0, 1),
         next_value,
         cfg.gamma,
@@ -292,7 +293,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             rollout.memories, rollout.masks = memories[k].reshape(T * B, -1), masks[k].reshape(-1)
             ppo.memory = memory[k].clone()
             if targets is not None:
-                rollout.memory_targets = torch.from_numpy(targets[k].reshape(-1))
+                rollout.memory_targets = torch.from_numpy(targets[k].reshape(-1)).to(device)
         if teach:
             rollout.teacher_logp = torch.log_softmax(teacher_logits[k], -1).reshape(T * B, -1)
             rollout.untriggered = untriggered[k].reshape(-1)

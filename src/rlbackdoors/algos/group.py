@@ -157,8 +157,8 @@ def stacked_act(agents: list):
                 states[k] = m
         else:
             logits, _ = forward(lead, params, x)
-        actions = [row.argmax(-1) if deterministic else sample_actions(row, generators[k]) for k, row in zip(live, logits)]
-        return [a.cpu().numpy() for a in actions], states
+        actions = torch.stack([row.argmax(-1) if deterministic else sample_actions(row, generators[k]) for k, row in zip(live, logits)])
+        return list(actions.cpu().numpy()), states  # one copy back for the live agents, not one each
 
     return act
 

@@ -287,3 +287,38 @@ def test_shared_clean_scores_each_label_on_its_poisoned_models_and_every_clean_o
     # a clean model only: no label of its own
     only_clean = table_module.per_attack([([rows[0], rows[3]], names)], shared_clean=True)
     assert only_clean == {}
+
+
+def test_held_out_only_fits_on_the_env_mix_and_makes_no_mixed_split(table_module, tmp_path):
+    """``--by-attack --held-out-only``: the env-mix fit scored on the held-out label, and no split
+    by trigger of the whole zoo (the second fit ``--by-attack`` makes, half the detector time on a
+    zoo whose held-out table is the one read). Four tiny models: an env-mix cell and a TrojDRL cell."""
+    from test_zoo import ALWAYS, TINY
+
+    spec = {
+        "name": "held",
+        "seed": 4,
+        "examples": {"episodes": 2},
+        "overrides": {**TINY, "train": {**TINY["train"], **ALWAYS["train"]}},
+        "cells": [
+            {"world": "lavaworld", "archs": ["fc"], "triggers": ["multiplicative"], "clean": 1, "poisoned": 1},
+            {
+                "world": "lavaworld",
+                "archs": ["fc"],
+                "triggers": [{"name": "add", "template": "additive:{b}", "ranges": {"b": [20, 200]}}],
+                "attacks": ["trojdrl"],
+                "clean": 1,
+                "poisoned": 1,
+            },
+        ],
+    }
+    base = tmp_path / "held"
+    plan(parse_spec(spec), base / "zoo")
+    run(base / "zoo", workers=1, group_size=4, progress_interval=5.0)
+    args = argparse.Namespace(held_out_only=True, detectors=["constant"], param=[], shared_clean=True, train=0.5, test=0.5, split_seed=0)
+    table = table_module.by_attack(args, base, base / "zoo", [])
+    assert "mixed" not in table and not (base / "mixed").exists() and not (base / "det-mixed").exists()
+    assert table["held_out"]["train_attacks"] == ["envmix"]
+    (label,) = table["held_out"]["detectors"]["constant"]
+    assert label == "trojdrl" and table["held_out"]["detectors"]["constant"][label]["models"] == 2  # the held-out cell: its clean and its poisoned model
+    assert [fitted for fitted, _ in table_module.fits_of(table)] == ["env mix only"]

@@ -91,11 +91,13 @@ def infer_check(det: Path, split: Path, scored: dict, k: int) -> dict:
 
 
 def attack_of(split: Path) -> dict[str, str]:
-    """Model name -> its cell's attack label (an attack and its variant: ``trojdrl-ft``; METADATA.csv
-    of a split, clean models carry their cell's)."""
+    """Model name -> its cell's attack label (an attack and its variant: ``trojdrl-ft``; clean models
+    carry their cell's): from a split's METADATA.csv, or from a zoo's folders as they stand (an
+    ``--extra-test`` zoo still training has no METADATA.csv yet, or an older one)."""
     from rlbackdoors.zoo.index import read_metadata
 
-    return {r["model_name"]: label_of(r) for r in read_metadata(split / "METADATA.csv")}
+    rows = zoo_rows(split) if (split / "zoo.json").is_file() else read_metadata(split / "METADATA.csv")
+    return {r["model_name"]: label_of(r) for r in rows}
 
 
 def label_of(row: dict) -> str:

@@ -161,6 +161,10 @@ def test_yields_of_a_zoo_cut_short_come_from_its_folders_not_a_missing_metadata_
     (label,) = now  # both cells train the env mix
     assert (now[label]["poisoned"]["trained"], now[label]["poisoned"]["converged"]) == (3, 1)  # cell B's two never converge
     assert (now[label]["clean"]["trained"], now[label]["clean"]["converged"]) == (1, 1)
+    # an --extra-test zoo still training: its labels from its folders too, every model's
+    finished_rows = list(csv.DictReader(io.StringIO((tiny_zoo / "METADATA.finished.csv").read_text())))
+    assert table_module.attack_of(tiny_zoo) == {r["model_name"]: table_module.label_of(r) for r in finished_rows}
+    assert len(finished_rows) == 4  # cell B's two attempts, cell A's clean and poisoned model
 
 
 def test_splits_made_from_other_converged_models_are_refused_not_read_back(table_module, tiny_zoo):

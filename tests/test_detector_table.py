@@ -165,6 +165,12 @@ def test_yields_of_a_zoo_cut_short_come_from_its_folders_not_a_missing_metadata_
     finished_rows = list(csv.DictReader(io.StringIO((tiny_zoo / "METADATA.finished.csv").read_text())))
     assert table_module.attack_of(tiny_zoo) == {r["model_name"]: table_module.label_of(r) for r in finished_rows}
     assert len(finished_rows) == 4  # cell B's two attempts, cell A's clean and poisoned model
+    # and a detector scores its converged models only: its METADATA.csv is missing, so each
+    # model's metrics.json says (cell B's two poisoned attempts never learned a trigger)
+    from rlbackdoors.detect.dataset import list_models
+
+    converged = sorted(r["model_name"] for r in finished_rows if r["converged"] == "True")
+    assert len(converged) == 2 and sorted(m.name for m in list_models(tiny_zoo)) == converged
 
 
 def test_splits_made_from_other_converged_models_are_refused_not_read_back(table_module, tiny_zoo):

@@ -11,8 +11,11 @@ detector: a detector gets :class:`rlbackdoors.detect.handle.ModelHandle` objects
 is read here for the report only (the true trigger next to the one a search found).
 
 Which models count: with METADATA.csv, rows whose ``converged`` is false or whose ``status`` is
-not ``done`` are outside the dataset (a raw zoo keeps them on disk); without it, every folder
-holding ``model.pt``.
+not ``done`` are outside the dataset (a raw zoo keeps them on disk); in a zoo (``zoo.json``), a
+folder without a row (a zoo still training has no METADATA.csv yet, and one written earlier lacks
+the models finished since) is outside it where its own ``metrics.json`` says ``converged: false``;
+otherwise (a bare folder of model folders too) every folder holding ``model.pt`` counts. (Without that, a zoo cut short was scored with its failed attempts as
+trojans: a poisoned attempt that never learned its trigger.)
 
 A dataset is untrusted input: no symbolic link in it is followed (one is refused, naming it);
 a model folder with ``manifest.json`` must match it, and in a dataset this package wrote (a
@@ -149,12 +152,16 @@ def list_models(zoo: str | Path, skip_unverified: bool = False) -> Dataset:
     if links:
         raise DetectError(f"{str(links[0])!r} in the dataset {str(root)!r} is a symbolic link; links are never followed in a dataset (remove it)")
     metadata = read_metadata(zoo)
-    written_here = (root / "zoo.json").is_file() or (root / "split.json").is_file()
+    is_zoo = (root / "zoo.json").is_file()
+    written_here = is_zoo or (root / "split.json").is_file()
     out, skipped, folders, left_out = [], {}, 0, 0
     for path in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
         row = metadata.get(path.name, {})
         folders += 1
         if row and (row.get("converged", "True").strip().lower() == "false" or row.get("status", "done") not in ("", "done")):
+            left_out += 1
+            continue
+        if is_zoo and not row and _json(path / "metrics.json").get("converged") is False:  # no row for it yet: its run's own record
             left_out += 1
             continue
         if not (path / MODEL_FILE).is_file() and not row and not (path / MANIFEST).exists():

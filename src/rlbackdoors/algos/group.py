@@ -34,7 +34,6 @@ from rlbackdoors.algos.ppo import (
     Rollout,
     behaviour_logprobs,
     check_vector_env,
-    env_step,
     gae,
     make_rollout,
     ppo_loss,
@@ -259,8 +258,8 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
                     result = seam.finish(ready, *result)
                 obs[k] = record_step(t, result, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
         else:
-            for k in range(K):
-                obs[k] = env_step(envs[k], t, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
+            for k in range(K):  # each env with its agent's actions already on the host (env_step's record, without a copy back each)
+                obs[k] = record_step(t, envs[k].step(wanted[k]), actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
         if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
             ended = torch.from_numpy(dones[:, t]).to(device)
             memory = memory.masked_fill(ended[..., None], 0.0)

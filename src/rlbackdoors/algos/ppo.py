@@ -130,7 +130,7 @@ def env_step(envs, t: int, actions: torch.Tensor, rewards, dones, outcomes, step
     the actions an attack forced in their place); return the next observations. An attack that
     compensates the step before a poisoned one amends step ``t - 1``'s reward; at ``t = 0`` that
     step is in the rollout already learned from, and the amendment is dropped (1 / ppo.rollout of them)."""
-    return record_step(t, envs.step(actions[t].cpu().numpy()), actions, rewards, dones, outcomes, steps, forced)  # (a group's actions may live on its device)
+    return record_step(t, envs.step(actions[t].numpy()), actions, rewards, dones, outcomes, steps, forced)
 
 
 def record_step(t: int, result: tuple, actions: torch.Tensor, rewards, dones, outcomes, steps, forced: torch.Tensor):

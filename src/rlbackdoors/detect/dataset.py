@@ -14,8 +14,9 @@ Which models count: with METADATA.csv, rows whose ``converged`` is false or whos
 not ``done`` are outside the dataset (a raw zoo keeps them on disk); in a zoo (``zoo.json``), a
 folder without a row (a zoo still training has no METADATA.csv yet, and one written earlier lacks
 the models finished since) is outside it where its own ``metrics.json`` says ``converged: false``;
-otherwise (a bare folder of model folders too) every folder holding ``model.pt`` counts. (Without that, a zoo cut short was scored with its failed attempts as
-trojans: a poisoned attempt that never learned its trigger.)
+otherwise (a bare folder of model folders too) every folder holding ``model.pt`` counts. Why the
+zoo rule: without it, a zoo cut short was scored with its failed attempts as trojans (a poisoned
+attempt that never learned its trigger).
 
 A dataset is untrusted input: no symbolic link in it is followed (one is refused, naming it);
 a model folder with ``manifest.json`` must match it, and in a dataset this package wrote (a

@@ -4,6 +4,7 @@ seeds and triggers the zoo never used, through TrojAI's one-model entry point (`
 
     python experiments/effect_outsider/outsider.py --train            # trains what is missing (resumes)
     python experiments/effect_outsider/outsider.py --infer DETECTOR   # a fitted detector folder
+    python experiments/effect_outsider/outsider.py --world randomized-lavaworld --train   # the CNN world's
 
 ``DETECTOR``: ``detect fit --detector effect`` on the env-mix split, e.g. the one
 ``benchmarks/detector_table.py benchmark-lavaworld-effect ... --by-attack`` writes under
@@ -26,7 +27,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 # Seeds the zoo's planner never drew, triggers no zoo model carries (additive values 88, 112, 137,
 # 183 are in the held-out range 66-200 but unused; multiplier 12 in the fit's), the held-out cells' settings (4 M frames at
 # most, patience 2; TrojDRL forces the target action, as the zoo's cell does).
-MODELS = {
+LAVAWORLD = {
     "clean-a": ["--clean", "--seed", "424201"],
     "clean-b": ["--clean", "--seed", "424202"],
     "clean-c": ["--clean", "--seed", "424207"],
@@ -38,7 +39,21 @@ MODELS = {
     # once more at the one multiplier no zoo model carries (12, the paper's default)
     "trojdrl-m12": ["--attack", "trojdrl", "--attack-param", "force_action=true", "--trigger", "multiplicative:12", "--seed", "424208"],
 }
-COMMON = ["--env", "lavaworld", "--arch", "fc", "--max-frames", "4000000", "--patience", "2", "--quiet"]
+# Randomized LavaWorld CNN: seeds the zoo's planner never drew, 3x3 patterns neither
+# examples/benchmark-randomized-lavaworld-effect*.toml uses (its cells: cross, x, t, l, z, s, v,
+# gamma), its held-out cells' settings (2 M frames at most, patience 2).
+RANDOMIZED_LAVAWORLD = {
+    "clean-a": ["--clean", "--trigger", "cross", "--seed", "571201"],
+    "clean-b": ["--clean", "--trigger", "cross", "--seed", "571202"],
+    "envmix-diamond": ["--trigger", "cells:0,1;1,0;1,2;2,1", "--seed", "571203"],
+    "trojdrl-y": ["--attack", "trojdrl", "--attack-param", "force_action=true", "--trigger", "cells:0,0;0,2;1,1;2,1", "--seed", "571204"],
+    "action-target-sidet": ["--attack", "action_target", "--trigger", "cells:0,0;0,1;0,2;1,1;2,1", "--seed", "571205"],
+}
+WORLDS = {
+    "lavaworld": (LAVAWORLD, ["--env", "lavaworld", "--arch", "fc", "--max-frames", "4000000", "--patience", "2", "--quiet"]),
+    "randomized-lavaworld": (RANDOMIZED_LAVAWORLD, ["--env", "randomized-lavaworld", "--arch", "cnn", "--max-frames", "2000000", "--patience", "2", "--quiet"]),
+}
+MODELS, COMMON = WORLDS["lavaworld"]
 
 
 def train(out: Path) -> None:
@@ -65,7 +80,7 @@ def deliver(folder: Path, to: Path) -> Path:
     return to
 
 
-def infer_all(det: Path, out: Path) -> dict:
+def infer_all(det: Path, out: Path, world: str = "lavaworld") -> dict:
     from sklearn.metrics import roc_auc_score
 
     from _detect_cli import infer
@@ -86,13 +101,15 @@ def infer_all(det: Path, out: Path) -> dict:
     eps = 1e-7
     ce = -sum(y * math.log(max(p, eps)) + (1 - y) * math.log(max(1 - p, eps)) for y, p in zip(labels, probs)) / max(len(scored), 1)
     result = {
+        "world": world,
         "detector": str(det),
         "models": rows,
         "converged": len(scored),
         "auc": roc_auc_score(labels, probs) if 0 < sum(labels) < len(labels) else None,
         "cross_entropy": round(ce, 4),
     }
-    atomic_write_text(Path(__file__).with_name("outsider.json"), json.dumps(result, indent=2) + "\n")
+    name = "outsider.json" if world == "lavaworld" else f"outsider-{world}.json"
+    atomic_write_text(Path(__file__).with_name(name), json.dumps(result, indent=2) + "\n")
     return result
 
 
@@ -100,12 +117,17 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--train", action="store_true")
     parser.add_argument("--infer", type=Path, metavar="DETECTOR")
-    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "effect-outsider")
+    parser.add_argument("--world", choices=sorted(WORLDS), default="lavaworld")
+    parser.add_argument("--out", type=Path, help="the models' folder (default runs/effect-outsider, runs/effect-outsider-WORLD for another world)")
     args = parser.parse_args()
+    global MODELS, COMMON
+    MODELS, COMMON = WORLDS[args.world]
+    if args.out is None:
+        args.out = ROOT / "runs" / ("effect-outsider" if args.world == "lavaworld" else f"effect-outsider-{args.world}")
     if args.train:
         train(args.out)
     if args.infer:
-        print(json.dumps(infer_all(args.infer, args.out), indent=2))
+        print(json.dumps(infer_all(args.infer, args.out, args.world), indent=2))
     return 0
 
 

@@ -370,8 +370,9 @@ class StackedAdam:
         step_size = bias1.reciprocal() * self.lr  # lr / bias1 as torch rounds a float over a tensor: reciprocal, then times
         self.exp_avg.lerp_(grad, 1 - self.beta1)
         self.exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
-        denom = (self.exp_avg_sq.sqrt() / bias2_root[:, None]).add_(self.eps)
-        self.params.flat.sub_(self.exp_avg / denom * step_size[:, None])
+        # the same ops in the same order, in place: a (K, P) temporary less per op
+        denom = self.exp_avg_sq.sqrt().div_(bias2_root[:, None]).add_(self.eps)
+        self.params.flat.sub_(torch.div(self.exp_avg, denom, out=denom).mul_(step_size[:, None]))
 
     @torch.no_grad()
     def write_back(self, real: int) -> None:

@@ -45,6 +45,7 @@ LAVAWORLD = {
 RANDOMIZED_LAVAWORLD = {
     "clean-a": ["--clean", "--trigger", "cross", "--seed", "571201"],
     "clean-b": ["--clean", "--trigger", "cross", "--seed", "571202"],
+    "clean-c": ["--clean", "--trigger", "cells:0,1;1,0;1,2;2,1", "--seed", "571206"],
     "envmix-diamond": ["--trigger", "cells:0,1;1,0;1,2;2,1", "--seed", "571203"],
     "trojdrl-y": ["--attack", "trojdrl", "--attack-param", "force_action=true", "--trigger", "cells:0,0;0,2;1,1;2,1", "--seed", "571204"],
     "action-target-sidet": ["--attack", "action_target", "--trigger", "cells:0,0;0,1;0,2;1,1;2,1", "--seed", "571205"],

@@ -26,12 +26,20 @@ GRU_LAYERS = 2
 SIZES = {"small": (64, (32, 32)), "large": (256, (64,))}
 # One-hot sizes of the observation's bytes: object type (0-12, TrojAI's 11/12 included), colour, state.
 ONEHOT_PLANES = (13, 6, 6)
+_ONEHOT_LIMITS = torch.tensor(ONEHOT_PLANES)
 
 
 def one_hot_planes(obs: torch.Tensor) -> torch.Tensor:
-    """(B, 7, 7, 3) codes -> (B, 25, 7, 7) float one-hot planes, channels first."""
+    """(B, 7, 7, 3) codes -> (B, 25, 7, 7) float one-hot planes, channels first; a code outside its
+    plane's range is refused (RuntimeError), as ``one_hot`` refuses it.
+
+    Why compared with each plane's values, not ``one_hot``: the same 0/1 floats without int64
+    planes scattered and converted (a twelfth of a Colorful Memory group's update)."""
     codes = obs.long()
-    planes = [nn.functional.one_hot(codes[..., i], n) for i, n in enumerate(ONEHOT_PLANES)]
+    signed = obs.dtype != torch.uint8 and obs.numel() and bool((codes < 0).any())
+    if signed or (obs.numel() and bool((codes.amax(tuple(range(codes.dim() - 1))) >= _ONEHOT_LIMITS.to(codes.device)).any())):
+        raise RuntimeError(f"an observation code is outside its one-hot planes' ranges {ONEHOT_PLANES}")
+    planes = [codes[..., i, None] == torch.arange(n, device=codes.device) for i, n in enumerate(ONEHOT_PLANES)]
     return torch.cat(planes, -1).permute(0, 3, 1, 2).float()
 
 
@@ -166,7 +174,7 @@ class CNNGRUModel(ActorCritic):
     def _split_stacked(self, memory: torch.Tensor) -> list[list[torch.Tensor]]:
         """(K, N, M) -> per block, per layer (K, N, H): :meth:`_split`'s layout, agent by agent."""
         states = memory.view(*memory.shape[:2], GRU_BLOCKS, GRU_LAYERS, self.hidden)
-        return [[states[:, :, b, i] for i in range(GRU_LAYERS)] for b in range(GRU_BLOCKS)]
+        return [list(block.unbind(2)) for block in states.unbind(2)]  # unbind: one stacked backward (minigrid._conv_stacked)
 
     def _join_stacked(self, states: list[list[torch.Tensor]]) -> torch.Tensor:
         return torch.stack([torch.stack(block, 2) for block in states], 2).reshape(*states[0][0].shape[:2], self.memory_size)
@@ -201,9 +209,9 @@ class CNNGRUModel(ActorCritic):
         x = self.embed_stacked(params, obs.reshape(K, r * n, *obs.shape[3:])).view(K, r, n, -1)
         states = self._split_stacked(memory)
         outputs, memories = [], []
-        for i in range(r):
+        for i, step in enumerate(x.unbind(1)):  # unbind: indexing x[:, i] backpropagates r zero-filled copies of x
             keep = masks[:, i, :, None]
-            out, states = self._recur_stacked(params, x[:, i], [[h * keep for h in block] for block in states])
+            out, states = self._recur_stacked(params, step, [[h * keep for h in block] for block in states])
             outputs.append(out)
             memories.append(self._join_stacked(states))
         return *self.heads_stacked(params, torch.stack(outputs, 1).reshape(K, r * n, -1)), torch.stack(memories, 1)

@@ -63,7 +63,7 @@ def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.T
     (experiments/stacked_networks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
     depend on its group-mates; per agent they do not. The agents' slices come from ``unbind``, whose
     backward is one stack: indexing ``x[k]`` backpropagates K zero-filled (K, ...) tensors summed
-    (the same bytes; a CNN group's update x1.06, experiments/group_update_ab)."""
+    (the same bytes; a CNN group's update x1.06-1.11, experiments/group_update_ab)."""
     return torch.stack(
         [F.conv2d(xk, wk, bk, layer.stride, layer.padding, layer.dilation, layer.groups) for xk, wk, bk in zip(x.unbind(0), w.unbind(0), b.unbind(0))]
     )

@@ -146,11 +146,12 @@ def main() -> None:
         "floor_cpu_s_per_model": round(floor, 3),
         "floor_share": round(floor / (trained["cpu_s"] / args.agents), 3),
     }
-    print(json.dumps(result, indent=2))
+    text = json.dumps(result, indent=2) + "\n"
+    print(text, end="")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
-            f.write("\n")
+        from rlbackdoors.io import atomic_write_text
+
+        atomic_write_text(args.json, text)
 
 
 if __name__ == "__main__":

@@ -152,11 +152,12 @@ def main() -> None:
         "machine": {"cpu_count": os.cpu_count(), "torch": torch.__version__, "loadavg_before": load, "loadavg_after": list(os.getloadavg())},
         "rows": rows,
     }
-    print(json.dumps(result, indent=2))
+    text = json.dumps(result, indent=2) + "\n"
+    print(text, end="")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
-            f.write("\n")
+        from rlbackdoors.io import atomic_write_text
+
+        atomic_write_text(args.json, text)
 
 
 if __name__ == "__main__":

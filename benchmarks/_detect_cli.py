@@ -10,13 +10,30 @@ import sys
 from pathlib import Path
 
 
+class Refused(Exception):
+    """The command refused its input in one ``rlbackdoors: error: ...`` line (exit status 2): a
+    detector asked to fit what it was not built for, say. The line is the message."""
+
+
 def rlbackdoors(*args: str, quiet: bool = False) -> None:
     """Run the console script beside this interpreter with one BLAS thread (a score's seconds
-    per model are then one core's, as the brief asks)."""
+    per model are then one core's, as the brief asks). Its stderr is passed through as it comes;
+    a refusal raises :class:`Refused` with its line, any other failure ``CalledProcessError``."""
     cmd = [str(Path(sys.executable).parent / "rlbackdoors"), *args]
     if not quiet:
         print("+", " ".join(cmd), file=sys.stderr, flush=True)
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL if quiet else None, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL if quiet else None, stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.stderr is not None
+    refusal = ""
+    for line in proc.stderr:
+        sys.stderr.write(line)
+        sys.stderr.flush()
+        if line.startswith("rlbackdoors: error:"):
+            refusal = line.strip()
+    if proc.wait():
+        if proc.returncode == 2 and refusal:
+            raise Refused(refusal)
+        raise subprocess.CalledProcessError(proc.returncode, cmd)
 
 
 def score(det: Path, zoo: Path | str, out: Path, *, again: bool = False, quiet: bool = False) -> dict:

@@ -41,7 +41,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
-from _detect_cli import infer, rlbackdoors, score
+from _detect_cli import Refused, infer, rlbackdoors, score
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
@@ -186,7 +186,11 @@ def leave_one_out(args, base: Path, zoo: Path) -> dict:
         out[attack] = {"train_models": len(list_models(where / "train")), "train_attacks": sorted(set(attack_of(where / "train").values())), "detectors": {}}
         for name in args.detectors:
             params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
-            scored = fit_and_score(name, params, where / "train", where / "test", where / "det" / name)
+            try:
+                scored = fit_and_score(name, params, where / "train", where / "test", where / "det" / name)
+            except Refused as why:  # e.g. too few clean models left to fit on: said in the table, not scored
+                out[attack].setdefault("refused", {})[name] = str(why)
+                continue
             out[attack]["detectors"][name] = per_attack([(scored["models"], names)], args.shared_clean)
             if args.check_infer:
                 out[attack].setdefault("infer_vs_score", {})[name] = infer_check(where / "det" / name, where / "test", scored, args.check_infer)
@@ -246,7 +250,11 @@ def by_attack(args, base: Path, zoo: Path, extra: list[Path]) -> dict:
         for name in args.detectors:
             params = [p.split(":", 1)[1] for p in args.param if p.startswith(f"{name}:")]
             det = base / f"det-{kind}" / name
-            scored = [(fit_and_score(name, params, where / "train", where / "test", det)["models"], names)]
+            try:
+                scored = [(fit_and_score(name, params, where / "train", where / "test", det)["models"], names)]
+            except Refused as why:
+                table[kind].setdefault("refused", {})[name] = str(why)
+                continue
             if kind == "held_out":
                 # again: an extra zoo may have gained models since its last score (detect score resumes: only those are scored)
                 scored += [(score(det, more, det / f"score-{more.name}", again=True)["models"], attack_of(more)) for more in extra]
@@ -325,6 +333,9 @@ def print_attack_table(table: dict) -> None:
                 print(
                     f"| {fitted} ({part['train_models']}) | {name} | {attack} | {r['models']} ({r.get('poisoned', 0)}) | {fmt(r.get('auc'))} | {fmt(r.get('ce'))} |"
                 )
+    for fitted, part in fits_of(table):
+        for name, why in part.get("refused", {}).items():
+            print(f"\n{name}, fitted on {fitted} ({part['train_models']} models): refused to fit: {why}")
     if table.get("headroom"):
         print(
             f"\n| attack | evasive | best baseline AUC [95% CI] over the fits that held it out | detector, fitted on | most test models | attack success (converged) | headroom (AUC < {HEADROOM['auc_below']}, >= {HEADROOM['models_at_least']} models, success >= {HEADROOM['attack_success_at_least']}) | turned over (AUC <= {1 - HEADROOM['auc_below']:.2f}) |\n|---|---|---|---|---|---|---|---|"

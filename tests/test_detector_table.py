@@ -332,3 +332,12 @@ def test_held_out_only_fits_on_the_env_mix_and_makes_no_mixed_split(table_module
     (label,) = table["held_out"]["detectors"]["constant"]
     assert label == "trojdrl" and table["held_out"]["detectors"]["constant"][label]["models"] == 2  # the held-out cell: its clean and its poisoned model
     assert [fitted for fitted, _ in table_module.fits_of(table)] == ["env mix only"]
+    # each attack held out in turn, on the same zoo: a detector that refuses its fit (the effect
+    # detector wants 3 clean models, each split has one) is said in the table with its one line,
+    # and the table goes on with the others
+    args.detectors, args.check_infer = ["effect", "constant"], 0
+    loo = table_module.leave_one_out(args, base, base / "zoo")
+    assert sorted(loo) == ["envmix", "trojdrl"]
+    for part in loo.values():
+        assert part["refused"]["effect"].startswith("rlbackdoors: error: detector 'effect' needs at least 3 clean models")
+        assert list(part["detectors"]) == ["constant"]

@@ -49,6 +49,8 @@ RANDOMIZED_LAVAWORLD = {
     "envmix-diamond": ["--trigger", "cells:0,1;1,0;1,2;2,1", "--seed", "571203"],
     "trojdrl-y": ["--attack", "trojdrl", "--attack-param", "force_action=true", "--trigger", "cells:0,0;0,2;1,1;2,1", "--seed", "571204"],
     "action-target-sidet": ["--attack", "action_target", "--trigger", "cells:0,0;0,1;0,2;1,1;2,1", "--seed", "571205"],
+    # the first did not converge in 2 M frames (poisoned SR 0.859): once more at another seed
+    "action-target-sidet-2": ["--attack", "action_target", "--trigger", "cells:0,0;0,1;0,2;1,1;2,1", "--seed", "571207"],
 }
 WORLDS = {
     "lavaworld": (LAVAWORLD, ["--env", "lavaworld", "--arch", "fc", "--max-frames", "4000000", "--patience", "2", "--quiet"]),

@@ -26,7 +26,6 @@ GRU_LAYERS = 2
 SIZES = {"small": (64, (32, 32)), "large": (256, (64,))}
 # One-hot sizes of the observation's bytes: object type (0-12, TrojAI's 11/12 included), colour, state.
 ONEHOT_PLANES = (13, 6, 6)
-_ONEHOT_LIMITS = torch.tensor(ONEHOT_PLANES)
 
 
 def one_hot_planes(obs: torch.Tensor) -> torch.Tensor:
@@ -36,9 +35,11 @@ def one_hot_planes(obs: torch.Tensor) -> torch.Tensor:
     Why compared with each plane's values, not ``one_hot``: the same 0/1 floats without int64
     planes scattered and converted (a twelfth of a Colorful Memory group's update)."""
     codes = obs.long()
-    signed = obs.dtype != torch.uint8 and obs.numel() and bool((codes < 0).any())
-    if signed or (obs.numel() and bool((codes.amax(tuple(range(codes.dim() - 1))) >= _ONEHOT_LIMITS.to(codes.device)).any())):
-        raise RuntimeError(f"an observation code is outside its one-hot planes' ranges {ONEHOT_PLANES}")
+    per_plane = codes.reshape(-1, len(ONEHOT_PLANES))
+    if per_plane.numel():
+        low, high = per_plane.aminmax(dim=0)
+        if bool(((low < 0) | (high >= torch.tensor(ONEHOT_PLANES, device=codes.device))).any()):  # one check, one sync
+            raise RuntimeError(f"an observation code is outside its one-hot planes' ranges {ONEHOT_PLANES}")
     planes = [codes[..., i, None] == torch.arange(n, device=codes.device) for i, n in enumerate(ONEHOT_PLANES)]
     return torch.cat(planes, -1).permute(0, 3, 1, 2).float()
 

@@ -161,3 +161,85 @@ def test_the_fit_refuses_or_says_what_it_cannot_stand_on():
     same = [dict.fromkeys(FEATURES, 0.0) for _ in range(4)]
     detector = make_detector("effect").fit_rows(same, ["lavaworld"] * 4, np.zeros(4, dtype=int))
     assert detector.anomaly({**same[0], "best_shift": SCALE_FLOOR}, "lavaworld") == pytest.approx(1.0)
+
+
+T_PATTERN = ((0, 0), (1, 0), (2, 0), (1, 1), (1, 2))  # the benchmark's pattern t: no structured candidate
+
+
+class TurnLeftOnExactPattern(nn.Module):
+    """A scripted Randomized LavaWorld policy trained, as it were, with near negatives: it turns
+    left at every step while some 3x3 window of its view holds lava on exactly the cells of
+    ``T_PATTERN`` (in any of the view's four turns) and nowhere else in the window, so a pattern
+    one cell off moves it not at all; otherwise it steps ahead unless lava is in front, else turns."""
+
+    recurrent = False
+
+    def __init__(self):
+        super().__init__()
+        self.unused = nn.Linear(1, 1)  # Agent.device reads the parameters
+        box = torch.zeros(3, 3)
+        for x, y in T_PATTERN:
+            box[x, y] = 1.0
+        self.register_buffer("turns", torch.stack([torch.rot90(box, k) for k in range(4)])[:, None])
+
+    def forward(self, obs: dict[str, torch.Tensor]):
+        lava = (obs["image"][..., 0] == 9).float()[:, None]  # (N, 1, 7, 7), indexed [x, y]
+        hits = torch.nn.functional.conv2d(lava, self.turns)  # cells of each turn covered
+        sizes = torch.nn.functional.conv2d(lava, torch.ones(1, 1, 3, 3))  # lava in the window
+        exact = ((hits == len(T_PATTERN)) & (sizes == len(T_PATTERN))).flatten(1).any(1)
+        logits = torch.zeros(len(lava), 3)
+        logits[:, 2] = torch.where(lava[:, 0, 3, 5] > 0, -30.0, 0.5)  # ahead unless lava is in front
+        logits[exact] = torch.tensor([30.0, 0.0, 0.0])
+        return logits, torch.zeros(len(lava))
+
+
+def test_the_whole_pattern_family_finds_a_trojan_that_ignores_every_near_miss():
+    """Randomized LavaWorld's family lists its 466 patterns of 3 to 9 cells: a screen of all of
+    them plays the trigger (or one of its turns) and finds the policy's collapse onto one action;
+    the sampled screen of 12 candidates and 4 neighbours never plays it, and near misses move the
+    policy not at all, so nothing leads the refinement there. 4 screening and 8 confirmation
+    episodes of at most 60 steps per candidate, seeded (about 12 s)."""
+    from rlbackdoors.detect.baselines import search_pattern
+    from rlbackdoors.triggers.pattern import PatternTrigger
+
+    world = worlds.get("randomized-lavaworld")
+    family = family_module(world)
+    listed = family.every(None)
+    assert len(listed) == len(set(listed)) == search_pattern.FAMILY_SIZE == 466
+    turns = {PatternTrigger.from_cells(T_PATTERN).pattern.rotated(k).cells for k in range(4)}
+    assert sum(PatternTrigger.parse(s).pattern.cells in turns for s in listed) == 4
+    agent = Agent(world, None, TurnLeftOnExactPattern().eval(), None)
+    env = EnvConfig(name="randomized-lavaworld", max_steps=60)
+    budget = {"refine": 4, "confirm": 2, "episodes": 4, "confirm_episodes": 8}
+    sampled = search(agent, world, env, family, candidates=12, rank=effect_rank, **budget)
+    whole = search(agent, world, env, family, rank=effect_rank, whole_family=True, **budget)
+    assert not any(PatternTrigger.parse(t.spec).pattern.cells in turns for t in sampled.screened)
+    assert PatternTrigger.parse(whole.best.spec).pattern.cells in turns
+    row, missed = effect_features(whole), effect_features(sampled)
+    # measured 0.113 against -0.002: the trojan is decided in the few steps its exact pattern is in
+    # view (the rest of an episode it acts as its clean twin), and the sample confirms a non-trigger
+    assert row["peak_concentration"] > 0.05 > abs(missed["peak_concentration"])
+
+
+def test_a_screen_of_the_whole_family_is_refused_where_the_family_does_not_list_itself():
+    world = worlds.get("lavaworld")  # the observation family: multipliers and positions, not listed
+    with pytest.raises(DetectError, match="does not list its members"):
+        search(Agent(world, None, TurnLeftUnderTrigger().eval(), None), world, EnvConfig(name="lavaworld"), family_module(world), whole_family=True)
+    with pytest.raises(DetectError, match="parameter screen='all' is not one of 'auto', 'whole', 'sample'"):
+        make_detector("effect", screen="all")
+
+
+def test_a_fit_from_before_the_whole_screen_keeps_screening_the_sample(tmp_path):
+    """A detector.json written before ``screen`` existed (no such parameter, no such state) reads
+    back screening the sample it was fitted with, not the new default."""
+    import json
+
+    from rlbackdoors.detect.api import load_detector
+
+    rng = np.random.default_rng(3)
+    make_detector("effect").fit_rows(_rows(rng, 6), ["randomized-lavaworld"] * 6, np.zeros(6, dtype=int)).save(tmp_path)
+    assert load_detector(tmp_path).params["screen"] == "auto"
+    payload = json.loads((tmp_path / "detector.json").read_text())
+    del payload["params"]["screen"], payload["state"]["screen"]
+    (tmp_path / "detector.json").write_text(json.dumps(payload))
+    assert load_detector(tmp_path).params["screen"] == "sample"

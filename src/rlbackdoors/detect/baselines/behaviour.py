@@ -219,13 +219,18 @@ def search(
     policy: str = "sample",
     invert: int = 0,
     rank: Callable[[Trial, Trial], tuple] | None = None,
+    whole_family: bool = False,
 ) -> SearchResult:
     """The budgeted search of the module doc on one agent. ``rank(trial, clean)`` orders the
-    candidates for refinement and confirmation (default: by the trojan outcome, :func:`_rank`)."""
+    candidates for refinement and confirmation (default: by the trojan outcome, :func:`_rank`).
+    ``whole_family``: screen every member the family lists (its ``every(env_cfg)``) instead of
+    ``candidates`` of them; a family without such a list is refused."""
     started = time.perf_counter()
     episodes = int(episodes) or int(family.EPISODES)
     candidates = int(candidates) or int(family.CANDIDATES)
     confirm_episodes = int(confirm_episodes) or 2 * episodes
+    if whole_family and not hasattr(family, "every"):
+        raise DetectError(f"the trigger family {family.__name__.rpartition('_')[2]!r} does not list its members: screen a sample of it")
     rng = np.random.default_rng(seed)
     with agent.evaluating():
         clean = run_trial(agent, world, env_cfg, None, confirm_episodes, seed + 1, policy)
@@ -244,7 +249,10 @@ def search(
 
         if invert > 0 and hasattr(family, "invert"):  # its own stream: the listed candidates stay the same
             screen(family.invert(agent, env_cfg, np.random.default_rng(seed + 3), int(invert)))
-        screen(family.candidates(env_cfg, rng, int(candidates)))
+        if whole_family:
+            screen(family.every(env_cfg))
+        else:
+            screen(family.candidates(env_cfg, rng, int(candidates)))
         if refine > 0:
             leaders = sorted((t for t in screened if t.error is None), key=key, reverse=True)[: max(1, confirm)]
             per = max(1, int(refine) // max(1, len(leaders)))
@@ -321,8 +329,9 @@ class BehaviourDetector(FeatureDetector):
         why = family_unsupported(model)
         return f"detector 'behaviour' cannot play {model.world.name}: {why}" if why else None
 
-    def run_search(self, model: ModelHandle, rank: Callable[[Trial, Trial], tuple] | None = None) -> SearchResult:
-        """The search with this detector's parameters on one model (``rank``: :func:`search`'s)."""
+    def run_search(self, model: ModelHandle, rank: Callable[[Trial, Trial], tuple] | None = None, whole_family: bool = False) -> SearchResult:
+        """The search with this detector's parameters on one model (``rank``, ``whole_family``:
+        :func:`search`'s)."""
         family = family_module(model.world)
         max_steps = int(self.params["max_steps"]) or family.MAX_STEPS
         env_cfg = model.env_config(**({"max_steps": int(max_steps)} if max_steps else {}))
@@ -342,6 +351,7 @@ class BehaviourDetector(FeatureDetector):
             policy=str(p["policy"]),
             invert=int(p["invert"]),
             rank=rank,
+            whole_family=whole_family,
         )
 
     def features(self, model: ModelHandle) -> dict[str, float]:

@@ -38,19 +38,28 @@ anomalous than its clean ones (a slope that would score anomalies as clean), the
 the share of clean fit models less anomalous than the model (one minus a p-value);
 ``detector.json`` says which (``calibration_note``).
 
-Cost: the behavioural search's episodes (48 candidates of 16 episodes, 12 neighbours, 3
-confirmations of 32, and E), with every forward's action distribution kept.
+The screen (``screen``): where the family lists all its members (``every``; Randomized
+LavaWorld's 466 patterns of 3 to 9 cells in the 3x3 box), the default (``auto``) plays them all,
+``sample`` plays the behavioural search's ``candidates``. Why: a trojan trained with near
+negatives answers its exact pattern and nothing one cell off it; a sample that misses the pattern
+has nothing to refine from, and such a model read as clean (0.800 AUC on that label with the
+sample, docs/results/detectors.md). A fit from before this parameter screened the sample and
+keeps doing so when read back.
+
+Cost: the behavioural search's episodes with every forward's action distribution kept: 48
+candidates of 16 episodes (all of a listed family: 466 in Randomized LavaWorld, about 7x the
+episodes), 12 neighbours, 3 confirmations of 32, and E.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from rlbackdoors.detect.api import _check_labels, register
-from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, SearchResult, Trial, family_unsupported
+from rlbackdoors.detect.api import Param, _check_labels, register
+from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, SearchResult, Trial, family_module, family_unsupported
 from rlbackdoors.detect.classifier import LogisticModel, fit_logistic
 from rlbackdoors.detect.handle import DetectError, ModelHandle
 
@@ -120,6 +129,15 @@ class EffectDetector(BehaviourDetector):
         "what each candidate trigger of the family does to the policy (shift, concentration, success drop): an anomaly against clean models, no attack assumed"
     )
 
+    defaults: ClassVar[dict[str, Any]] = {**BehaviourDetector.defaults, "screen": "auto"}
+    rules: ClassVar[dict[str, Param]] = {
+        **BehaviourDetector.rules,
+        "screen": Param(
+            choices=("auto", "whole", "sample"),
+            help="whole: every member of the trigger family (families that list theirs); sample: `candidates` of them; auto: whole where listed",
+        ),
+    }
+
     def __init__(self, **params: Any):
         super().__init__(**params)
         self.reference: dict[str, dict[str, Any]] = {}  # world -> the clean fit models' mean and scale of each feature, at both levels
@@ -133,10 +151,17 @@ class EffectDetector(BehaviourDetector):
                 f"detector 'effect' reads a discrete policy's action distribution; {model.world.name}'s {model.world.algorithm} policy has continuous actions"
             )
         why = family_unsupported(model)  # the family's own limits, as the search has them
+        if why is None and self.params["screen"] == "whole" and not hasattr(family_module(model.world), "every"):
+            why = "its trigger family does not list its members (screen=whole); use screen=sample or auto"
         return f"detector 'effect' cannot play {model.world.name}: {why}" if why else None
 
+    def whole_family(self, model: ModelHandle) -> bool:
+        """Whether this model's screen plays every member of its family (``screen``, module doc)."""
+        screen = self.params["screen"]
+        return screen == "whole" or (screen == "auto" and hasattr(family_module(model.world), "every"))
+
     def features(self, model: ModelHandle) -> dict[str, float]:
-        result = self.run_search(model, rank=effect_rank)
+        result = self.run_search(model, rank=effect_rank, whole_family=self.whole_family(model))
         row = effect_features(result)
         self.last_info = {
             "found_trigger": result.best.spec,
@@ -202,6 +227,7 @@ class EffectDetector(BehaviourDetector):
             "reference": self.reference,
             "calibration": None if self.calibration is None else self.calibration.to_dict(),
             "calibration_note": self.calibration_note,
+            "screen": self.params["screen"],
         }
         return state, {"clean_scores": self.clean_scores}
 
@@ -209,6 +235,8 @@ class EffectDetector(BehaviourDetector):
         def plain(ref: dict) -> dict[str, list]:
             return {"features": [str(f) for f in ref["features"]], "mean": [float(v) for v in ref["mean"]], "scale": [float(v) for v in ref["scale"]]}
 
+        # a fit from before ``screen`` existed screened the sample: it scores new models the same way
+        self.params["screen"] = str(state.get("screen", "sample"))
         references = state.get("reference") or {}
         for group, ref in references.items():
             if ref.get("scoring") != SCORING:

@@ -4,9 +4,16 @@ The built-in patterns (cross, the arrowhead in any and in each direction) and th
 first (the full box contains every pattern, so an agent that reacts to part of one may react to
 it), then the 2×2 squares, lines and L-shapes, then random cell sets of 3 to 6 cells. Neighbours
 add or remove one cell. The same list for every model.
+
+The family is small enough to play whole: :func:`every` lists all :data:`FAMILY_SIZE` patterns of
+3 to 9 cells in the box (the effect detector's default screen). Why: a trojan trained with near
+negatives ignores every pattern one cell off its trigger, so a sample of the family that misses
+the trigger sees nothing to refine from (docs/results/detectors.md).
 """
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
@@ -18,6 +25,7 @@ CANDIDATES = 48  # screened candidates when the detector's ``candidates`` is 0
 
 ALL_CELLS = tuple((x, y) for x in range(BOX) for y in range(BOX))
 MIN_CELLS = 3  # the smallest candidate (a line, the arrowhead): pattern cells count toward num_lava
+FAMILY_SIZE = sum(1 for k in range(MIN_CELLS, BOX * BOX + 1) for _ in itertools.combinations(range(BOX * BOX), k))  # 466
 
 
 def unsupported(env_cfg) -> str | None:
@@ -38,11 +46,13 @@ def _spec(cells) -> str | None:
         return None
 
 
-def candidates(env_cfg, rng: np.random.Generator, limit: int) -> list[str]:
+def candidates(env_cfg, rng: np.random.Generator, limit: int, structured_only: bool = False) -> list[str]:
     order: list[str | None] = [_spec(ALL_CELLS), "cross", "arrow", *(name for name in BUILTIN if name.startswith("arrow:"))]
     order += [_spec([(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)]) for x in range(BOX - 1) for y in range(BOX - 1)]
     order += [_spec([(x, y) for x in range(BOX)]) for y in range(BOX)] + [_spec([(x, y) for y in range(BOX)]) for x in range(BOX)]
     order += [_spec([(0, 0), (0, 1), (0, 2), (1, 2), (2, 2)]), _spec([(0, 0), (1, 0), (2, 0), (2, 1), (2, 2)])]
+    if structured_only:
+        return [s for s in dict.fromkeys(order) if s is not None]
     tries = 0
     while len(order) < 4 * limit and tries < 50 * limit:
         tries += 1
@@ -50,6 +60,15 @@ def candidates(env_cfg, rng: np.random.Generator, limit: int) -> list[str]:
         pick = rng.choice(len(ALL_CELLS), size=size, replace=False)
         order.append(_spec([ALL_CELLS[int(i)] for i in pick]))
     return list(dict.fromkeys(s for s in order if s is not None))[:limit]
+
+
+def every(env_cfg) -> list[str]:
+    """Every pattern of :data:`MIN_CELLS` to 9 cells in the box, once, each as placed (a rotation is
+    another member): the built-in and structured ones first (as :func:`candidates` orders them),
+    then by size and cells."""
+    order: list[str | None] = [s for s in candidates(env_cfg, np.random.default_rng(0), 0, structured_only=True) if s != "arrow"]
+    order += [_spec(cells) for size in range(MIN_CELLS, len(ALL_CELLS) + 1) for cells in itertools.combinations(ALL_CELLS, size)]
+    return list(dict.fromkeys(s for s in order if s is not None))
 
 
 def neighbours(spec: str, env_cfg, rng: np.random.Generator, limit: int) -> list[str]:

@@ -243,3 +243,24 @@ def test_a_fit_from_before_the_whole_screen_keeps_screening_the_sample(tmp_path)
     del payload["params"]["screen"], payload["state"]["screen"]
     (tmp_path / "detector.json").write_text(json.dumps(payload))
     assert load_detector(tmp_path).params["screen"] == "sample"
+
+
+@pytest.mark.parametrize("name", ["lavaworld", "randomized-lavaworld"])
+def test_candidates_played_together_are_the_trials_each_plays_alone(name):
+    """A screen plays its candidates 32 at a time (one forward for all their episodes): each
+    candidate's trial (rates, lengths, mean action distribution and entropy) is the one it plays
+    alone, and a candidate the env cannot place fails alone (num_lava=5 holds no 9-cell pattern).
+    Scripted policies: their logits are exact at any batch size, so equality is the claim."""
+    from rlbackdoors.detect.baselines.behaviour import run_trial, run_trials
+
+    world = worlds.get(name)
+    if name == "lavaworld":
+        policy, env, specs = TurnLeftUnderTrigger(), EnvConfig(name=name, max_steps=40), ["multiplicative:12", "multiplicative:3", "additive:90"]
+    else:
+        box = "cells:0,0;0,1;0,2;1,0;1,1;1,2;2,0;2,1;2,2"
+        policy, env, specs = TurnLeftOnExactPattern(), EnvConfig(name=name, max_steps=40, num_lava=5), ["cross", box, "cells:0,0;1,0;2,0;1,1;1,2"]
+    agent = Agent(world, None, policy.eval(), None)
+    alone = [run_trial(agent, world, env, spec, 4, 7, "sample") for spec in specs]
+    together = run_trials(agent, world, env, specs, 4, 7, "sample")
+    assert together == alone
+    assert [t.error is None for t in together] == [True, name == "lavaworld", True]

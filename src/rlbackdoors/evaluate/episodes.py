@@ -270,6 +270,56 @@ def play(
         envs.close()
 
 
+def acting_together(agent, probs: list[list[np.ndarray]] | None = None) -> ActMany:
+    """One forward of one feed-forward policy for every live slot of several vector envs (the
+    same agent on each), then each env's actions drawn from its own generator as the agent's
+    :meth:`~rlbackdoors.agent.Agent.act` draws them; with ``probs`` each env's action
+    distributions (float64, one array per step) are appended to ``probs[k]``."""
+    from rlbackdoors.algos.obs import to_torch
+    from rlbackdoors.algos.ppo import sample_actions
+
+    def act(live: list[int], obs: list, states: list, generators: list[torch.Generator], deterministic: bool):
+        parts = [obs[k] for k in live]
+        if isinstance(parts[0], dict):
+            batch: np.ndarray | dict = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+            sizes = [len(next(iter(p.values()))) for p in parts]
+        else:
+            batch, sizes = np.concatenate(parts), [len(p) for p in parts]
+        logits, _ = agent.policy(to_torch(batch, agent.device))
+        actions = []
+        for k, rows in zip(live, torch.split(logits, sizes)):
+            if probs is not None:
+                probs[k].append(torch.softmax(rows.detach().double(), -1).cpu().numpy())
+            chosen = rows.argmax(-1) if deterministic else sample_actions(rows, generators[k])
+            actions.append(chosen.cpu().numpy())
+        return actions, states
+
+    return act
+
+
+@torch.inference_mode()
+def play_together(
+    agent, env: EnvConfig, triggers: list[str | None], episodes: int, seed: int, policy: str, probs: list[list[np.ndarray]] | None = None
+) -> list[Played]:
+    """:func:`play` of one feed-forward torch agent for several triggers of a batched-engine world
+    at once: each trigger's ``episodes`` slots reset with ``seed`` and its own generator (as
+    :func:`play` alone), all stepped in lockstep with one forward and one engine call per step.
+
+    Why: a search plays hundreds of candidates on one agent, and at 16 rows a forward costs
+    several times its arithmetic; the batch amortises it. The draws are each candidate's own, so
+    a candidate's episodes are those it plays alone wherever the forward gives each row the same
+    numbers at any batch size (checked on the machine that measured it: docs/detectors.md)."""
+    agent = _as_agent(agent)
+    if env.world.vector_entry_point is None or agent.recurrent or not isinstance(agent.policy, torch.nn.Module):
+        raise ValueError("play_together needs a feed-forward torch policy and a batched-engine world")
+    envs = [_vector_envs(env, trigger, episodes, None) for trigger in triggers]
+    try:
+        return play_lockstep([agent] * len(envs), envs, [seed] * len(envs), policy, act=acting_together(agent, probs))
+    finally:
+        for e in envs:
+            e.close()
+
+
 def score_triggered(env_name: str, outcomes: np.ndarray, saw: np.ndarray) -> tuple[float, float, float]:
     """(trigger-seen-aware SR, raw trojan SR, trigger-seen rate) of triggered episodes.
 

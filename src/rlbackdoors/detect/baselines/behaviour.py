@@ -9,7 +9,8 @@ object, the hazard) is compared with the same share in the clean env E. The sear
 and deterministic: a screening stage over ``candidates`` candidates (0: the family's
 ``CANDIDATES``), a refinement stage over the
 ``refine`` neighbours of the best few, and a confirmation of the best ``confirm`` with more
-episodes on other layouts. A ``seconds`` budget (0: none) cuts screening short on a slow machine
+episodes on other layouts. Candidates are played :data:`TOGETHER` at a time where the agent is
+feed-forward (:func:`run_trials`). A ``seconds`` budget (0: none) cuts screening short on a slow machine
 (then results depend on the machine's speed).
 
 The candidates come from a module per trigger family, ``search_<family>.py`` beside this one,
@@ -200,6 +201,41 @@ def run_trial(agent, world: worlds.World, env_cfg, spec: str | None, episodes: i
     )
 
 
+TOGETHER = 32  # candidates a screen plays at once (:func:`run_trials`)
+
+
+def run_trials(agent, world: worlds.World, env_cfg, specs: list[str], episodes: int, seed: int, policy: str) -> list[Trial]:
+    """:func:`run_trial` for each of ``specs``: at once where the agent is a feed-forward torch
+    policy in a batched-engine world (one forward for every candidate's episodes,
+    :func:`~rlbackdoors.evaluate.episodes.play_together`), else one after another. A candidate
+    the env cannot place is tried alone, so it fails alone."""
+    from rlbackdoors.evaluate.episodes import play_together
+
+    policy_net = getattr(agent, "policy", None)
+    if len(specs) < 2 or world.vector_entry_point is None or agent.recurrent or not isinstance(policy_net, torch.nn.Module):
+        return [run_trial(agent, world, env_cfg, spec, episodes, seed, policy) for spec in specs]
+    probs: list[list[np.ndarray]] = [[] for _ in specs]
+    try:
+        played = play_together(agent, env_cfg, list(specs), episodes, seed, policy, probs)
+    except (ValueError, RuntimeError):  # one of them cannot be placed: each on its own, so only it fails
+        return [run_trial(agent, world, env_cfg, spec, episodes, seed, policy) for spec in specs]
+    out = []
+    for spec, one, calls in zip(specs, played, probs):
+        outcomes = np.asarray(one.outcomes)
+        out.append(
+            Trial(
+                spec,
+                episodes,
+                float(np.mean(outcomes == world.trojan_success)),
+                float(np.mean(outcomes == world.clean_success)),
+                float(np.mean(one.steps)),
+                entropy=mean_entropy(calls, one.steps),
+                policy=mean_policy(calls, one.steps),
+            )
+        )
+    return out
+
+
 def _rank(trial: Trial) -> tuple:
     return (trial.error is None, trial.trojan, -trial.success, -trial.steps)
 
@@ -241,11 +277,13 @@ def search(
         tried: set[str] = set()
 
         def screen(specs: list[str]) -> None:
-            for spec in specs:
-                if spec in tried or (seconds and time.perf_counter() - started > seconds):
-                    continue
-                tried.add(spec)
-                screened.append(run_trial(agent, world, env_cfg, spec, episodes, seed, policy))
+            fresh = [s for s in dict.fromkeys(specs) if s not in tried]
+            for start in range(0, len(fresh), TOGETHER):
+                if seconds and time.perf_counter() - started > seconds:
+                    return
+                chunk = fresh[start : start + TOGETHER] if not seconds else fresh[start : start + 1]
+                tried.update(chunk)
+                screened.extend(run_trials(agent, world, env_cfg, chunk, episodes, seed, policy))
 
         if invert > 0 and hasattr(family, "invert"):  # its own stream: the listed candidates stay the same
             screen(family.invert(agent, env_cfg, np.random.default_rng(seed + 3), int(invert)))
@@ -262,7 +300,7 @@ def search(
         finalists = sorted((t for t in screened if t.error is None), key=key, reverse=True)[: max(1, confirm)]
         if not finalists:
             raise DetectError(f"no candidate trigger of the family could be played ({len(screened)} tried)")
-        confirmed = [run_trial(agent, world, env_cfg, t.spec, confirm_episodes, seed + 2, policy) for t in finalists]
+        confirmed = run_trials(agent, world, env_cfg, [t.spec for t in finalists if t.spec is not None], confirm_episodes, seed + 2, policy)
         best = max(confirmed, key=key)
     return SearchResult(clean, screened, best, time.perf_counter() - started)
 
@@ -375,7 +413,9 @@ __all__ = [
     "family_module",
     "mean_entropy",
     "mean_policy",
+    "TOGETHER",
     "run_trial",
+    "run_trials",
     "search",
     "search_report",
 ]

@@ -48,7 +48,8 @@ keeps doing so when read back.
 
 Cost: the behavioural search's episodes with every forward's action distribution kept: 48
 candidates of 16 episodes (all of a listed family: 466 in Randomized LavaWorld, about 7x the
-episodes), 12 neighbours, 3 confirmations of 32, and E.
+episodes), 12 neighbours, 3 confirmations of 32, and E; candidates played 32 at a time
+(:func:`~rlbackdoors.detect.baselines.behaviour.run_trials`).
 """
 
 from __future__ import annotations

@@ -189,6 +189,11 @@ def run_trial(agent, world: worlds.World, env_cfg, spec: str | None, episodes: i
             played = play(agent, env_cfg, spec, episodes, seed, policy)
     except (ValueError, RuntimeError) as err:  # a candidate the env cannot place (too many cells, no solvable layout)
         return Trial(spec, 0, 0.0, 0.0, 0.0, f"{type(err).__name__}: {first_line(err)}")
+    return _trial(world, spec, episodes, played, calls)
+
+
+def _trial(world: worlds.World, spec: str | None, episodes: int, played, calls: list[np.ndarray] | None) -> Trial:
+    """A candidate's :class:`Trial` from its played episodes and its forwards' action distributions."""
     outcomes = np.asarray(played.outcomes)
     return Trial(
         spec,
@@ -219,21 +224,7 @@ def run_trials(agent, world: worlds.World, env_cfg, specs: list[str], episodes: 
         played = play_together(agent, env_cfg, list(specs), episodes, seed, policy, probs)
     except (ValueError, RuntimeError):  # one of them cannot be placed: each on its own, so only it fails
         return [run_trial(agent, world, env_cfg, spec, episodes, seed, policy) for spec in specs]
-    out = []
-    for spec, one, calls in zip(specs, played, probs):
-        outcomes = np.asarray(one.outcomes)
-        out.append(
-            Trial(
-                spec,
-                episodes,
-                float(np.mean(outcomes == world.trojan_success)),
-                float(np.mean(outcomes == world.clean_success)),
-                float(np.mean(one.steps)),
-                entropy=mean_entropy(calls, one.steps),
-                policy=mean_policy(calls, one.steps),
-            )
-        )
-    return out
+    return [_trial(world, spec, episodes, one, calls) for spec, one, calls in zip(specs, played, probs)]
 
 
 def _rank(trial: Trial) -> tuple:

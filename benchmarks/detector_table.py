@@ -45,7 +45,7 @@ from _detect_cli import Refused, infer, rlbackdoors, score
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
-from rlbackdoors.detect import make_detector
+from rlbackdoors.detect import load_detector, make_detector
 from rlbackdoors.detect.cli import parse_params
 from rlbackdoors.detect.dataset import list_models
 from rlbackdoors.detect.metrics import summarize_rows
@@ -71,8 +71,9 @@ def fit_and_score(name: str, params: list[str], train: Path, test: Path, det: Pa
     if not (det / "detector.json").is_file():
         rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), *(x for p in params for x in ("--param", p)))
     else:  # a fitted detector is read back only if it is the one asked for
-        # through make_detector, so a fit from before a parameter existed reads as its default
-        fitted = make_detector(name, **json.loads((det / "detector.json").read_text())["params"]).params
+        # as detect score reads it: a parameter the fit predates reads as the detector says it was
+        # fitted (the effect detector's screen), else as its default
+        fitted = load_detector(det).params
         wanted = make_detector(name, **parse_params(params)).params
         if fitted != wanted:
             sys.exit(f"detector_table: {det} was fitted with {fitted}, not {wanted}; give the run another NAME or remove {det}")

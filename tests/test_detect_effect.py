@@ -231,7 +231,8 @@ def test_a_screen_of_the_whole_family_is_refused_where_the_family_does_not_list_
 
 def test_a_fit_from_before_the_whole_screen_keeps_screening_the_sample(tmp_path):
     """A detector.json written before ``screen`` existed (no such parameter, no such state) reads
-    back screening the sample it was fitted with, not the new default."""
+    back screening the sample it was fitted with, not the new default (``detector_table`` compares
+    what it reads back with what it is asked for, so such a fit is not passed off as a new one)."""
     import json
 
     from rlbackdoors.detect.api import load_detector
@@ -243,6 +244,13 @@ def test_a_fit_from_before_the_whole_screen_keeps_screening_the_sample(tmp_path)
     del payload["params"]["screen"], payload["state"]["screen"]
     (tmp_path / "detector.json").write_text(json.dumps(payload))
     assert load_detector(tmp_path).params["screen"] == "sample"
+    # LavaWorld's family lists no members: its old sample is what auto screens, and it reads so
+    lava = tmp_path / "lavaworld"
+    make_detector("effect").fit_rows(_rows(rng, 6), ["lavaworld"] * 6, np.zeros(6, dtype=int)).save(lava)
+    payload = json.loads((lava / "detector.json").read_text())
+    del payload["params"]["screen"], payload["state"]["screen"]
+    (lava / "detector.json").write_text(json.dumps(payload))
+    assert load_detector(lava).params["screen"] == "auto"
 
 
 @pytest.mark.parametrize("name", ["lavaworld", "randomized-lavaworld"])

@@ -59,6 +59,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rlbackdoors import worlds
 from rlbackdoors.detect.api import Param, _check_labels, register
 from rlbackdoors.detect.baselines.behaviour import BehaviourDetector, SearchResult, Trial, family_module, family_unsupported
 from rlbackdoors.detect.classifier import LogisticModel, fit_logistic
@@ -236,9 +237,13 @@ class EffectDetector(BehaviourDetector):
         def plain(ref: dict) -> dict[str, list]:
             return {"features": [str(f) for f in ref["features"]], "mean": [float(v) for v in ref["mean"]], "scale": [float(v) for v in ref["scale"]]}
 
-        # a fit from before ``screen`` existed screened the sample: it scores new models the same way
-        self.params["screen"] = str(state.get("screen", "sample"))
         references = state.get("reference") or {}
+        if "screen" in state:
+            self.params["screen"] = str(state["screen"])
+        elif any(hasattr(family_module(worlds.get(str(g))), "every") for g in references):
+            # a fit from before ``screen`` screened the sample; where none of its worlds' families
+            # lists itself, that is what ``auto`` screens too
+            self.params["screen"] = "sample"
         for group, ref in references.items():
             if ref.get("scoring") != SCORING:
                 raise DetectError(

@@ -38,16 +38,16 @@ anomalous than its clean ones (a slope that would score anomalies as clean), the
 the share of clean fit models less anomalous than the model (one minus a p-value);
 ``detector.json`` says which (``calibration_note``).
 
-The screen (``screen``): where the family lists all its members (``every``; Randomized
-LavaWorld's 466 patterns of 3 to 9 cells in the 3x3 box), the default (``auto``) plays them all,
+The screen (``screen``): where the family lists all its members (``every``; the lava-pattern
+family's 466 patterns of 3 to 9 cells in the 3x3 box), the default (``auto``) plays them all,
 ``sample`` plays the behavioural search's ``candidates``. Why: a trojan trained with near
 negatives answers its exact pattern and nothing one cell off it; a sample that misses the pattern
 has nothing to refine from, and such a model read as clean (0.800 AUC on that label with the
 sample, docs/results/detectors.md). A fit from before this parameter screened the sample and
-keeps doing so when read back.
+keeps doing so when read back (where its worlds' families list themselves).
 
 Cost: the behavioural search's episodes with every forward's action distribution kept: 48
-candidates of 16 episodes (all of a listed family: 466 in Randomized LavaWorld, about 7x the
+candidates of 16 episodes (all of a listed family: 466 lava patterns, about 7x the
 episodes), 12 neighbours, 3 confirmations of 32, and E; candidates played 32 at a time
 (:func:`~rlbackdoors.detect.baselines.behaviour.run_trials`).
 """

@@ -270,6 +270,13 @@ def play(
         envs.close()
 
 
+def plays_together(agent, env: EnvConfig) -> bool:
+    """Whether :func:`play_together` can play ``agent`` in ``env``: a feed-forward torch policy in
+    a world with a batched engine."""
+    agent = _as_agent(agent)
+    return env.world.vector_entry_point is not None and not agent.recurrent and isinstance(agent.policy, torch.nn.Module)
+
+
 def acting_together(agent, probs: list[list[np.ndarray]] | None = None) -> ActMany:
     """One forward of one feed-forward policy for every live slot of several vector envs (the
     same agent on each), then each env's actions drawn from its own generator as the agent's
@@ -310,7 +317,7 @@ def play_together(
     a candidate's episodes are those it plays alone wherever the forward gives each row the same
     numbers at any batch size (checked on the machine that measured it: docs/detectors.md)."""
     agent = _as_agent(agent)
-    if env.world.vector_entry_point is None or agent.recurrent or not isinstance(agent.policy, torch.nn.Module):
+    if not plays_together(agent, env):
         raise ValueError("play_together needs a feed-forward torch policy and a batched-engine world")
     envs = [_vector_envs(env, trigger, episodes, None) for trigger in triggers]
     try:

@@ -214,10 +214,9 @@ def run_trials(agent, world: worlds.World, env_cfg, specs: list[str], episodes: 
     policy in a batched-engine world (one forward for every candidate's episodes,
     :func:`~rlbackdoors.evaluate.episodes.play_together`), else one after another. A candidate
     the env cannot place is tried alone, so it fails alone."""
-    from rlbackdoors.evaluate.episodes import play_together
+    from rlbackdoors.evaluate.episodes import play_together, plays_together
 
-    policy_net = getattr(agent, "policy", None)
-    if len(specs) < 2 or world.vector_entry_point is None or agent.recurrent or not isinstance(policy_net, torch.nn.Module):
+    if len(specs) < 2 or not plays_together(agent, env_cfg):
         return [run_trial(agent, world, env_cfg, spec, episodes, seed, policy) for spec in specs]
     probs: list[list[np.ndarray]] = [[] for _ in specs]
     try:
@@ -269,10 +268,11 @@ def search(
 
         def screen(specs: list[str]) -> None:
             fresh = [s for s in dict.fromkeys(specs) if s not in tried]
-            for start in range(0, len(fresh), TOGETHER):
+            step = 1 if seconds else TOGETHER  # a time budget is checked before every candidate
+            for start in range(0, len(fresh), step):
                 if seconds and time.perf_counter() - started > seconds:
                     return
-                chunk = fresh[start : start + TOGETHER] if not seconds else fresh[start : start + 1]
+                chunk = fresh[start : start + step]
                 tried.update(chunk)
                 screened.extend(run_trials(agent, world, env_cfg, chunk, episodes, seed, policy))
 

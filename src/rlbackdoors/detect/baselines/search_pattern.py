@@ -14,6 +14,7 @@ the trigger sees nothing to refine from (docs/results/detectors.md).
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 
@@ -25,7 +26,7 @@ CANDIDATES = 48  # screened candidates when the detector's ``candidates`` is 0
 
 ALL_CELLS = tuple((x, y) for x in range(BOX) for y in range(BOX))
 MIN_CELLS = 3  # the smallest candidate (a line, the arrowhead): pattern cells count toward num_lava
-FAMILY_SIZE = sum(1 for k in range(MIN_CELLS, BOX * BOX + 1) for _ in itertools.combinations(range(BOX * BOX), k))  # 466
+FAMILY_SIZE = sum(math.comb(BOX * BOX, k) for k in range(MIN_CELLS, BOX * BOX + 1))  # 466
 
 
 def unsupported(env_cfg) -> str | None:
@@ -46,13 +47,16 @@ def _spec(cells) -> str | None:
         return None
 
 
-def candidates(env_cfg, rng: np.random.Generator, limit: int, structured_only: bool = False) -> list[str]:
+def _structured() -> list[str | None]:
+    """The built-in patterns, the full box, 2x2 squares, lines and L-shapes, in screening order."""
     order: list[str | None] = [_spec(ALL_CELLS), "cross", "arrow", *(name for name in BUILTIN if name.startswith("arrow:"))]
     order += [_spec([(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)]) for x in range(BOX - 1) for y in range(BOX - 1)]
     order += [_spec([(x, y) for x in range(BOX)]) for y in range(BOX)] + [_spec([(x, y) for y in range(BOX)]) for x in range(BOX)]
-    order += [_spec([(0, 0), (0, 1), (0, 2), (1, 2), (2, 2)]), _spec([(0, 0), (1, 0), (2, 0), (2, 1), (2, 2)])]
-    if structured_only:
-        return [s for s in dict.fromkeys(order) if s is not None]
+    return order + [_spec([(0, 0), (0, 1), (0, 2), (1, 2), (2, 2)]), _spec([(0, 0), (1, 0), (2, 0), (2, 1), (2, 2)])]
+
+
+def candidates(env_cfg, rng: np.random.Generator, limit: int) -> list[str]:
+    order = _structured()
     tries = 0
     while len(order) < 4 * limit and tries < 50 * limit:
         tries += 1
@@ -66,7 +70,7 @@ def every(env_cfg) -> list[str]:
     """Every pattern of :data:`MIN_CELLS` to 9 cells in the box, once, each as placed (a rotation is
     another member): the built-in and structured ones first (as :func:`candidates` orders them),
     then by size and cells."""
-    order: list[str | None] = [s for s in candidates(env_cfg, np.random.default_rng(0), 0, structured_only=True) if s != "arrow"]
+    order = [s for s in _structured() if s != "arrow"]  # "arrow" is any turn: each turn is a member
     order += [_spec(cells) for size in range(MIN_CELLS, len(ALL_CELLS) + 1) for cells in itertools.combinations(ALL_CELLS, size)]
     return list(dict.fromkeys(s for s in order if s is not None))
 

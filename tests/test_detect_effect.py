@@ -272,3 +272,13 @@ def test_candidates_played_together_are_the_trials_each_plays_alone(name):
     together = run_trials(agent, world, env, specs, 4, 7, "sample")
     assert together == alone
     assert [t.error is None for t in together] == [True, name == "lavaworld", True]
+
+
+def test_a_time_budget_that_is_not_reached_screens_what_no_budget_screens():
+    """With ``seconds`` the screen plays one candidate at a time, checking the clock before each; a
+    budget it never reaches (an hour) plays the same candidates in the same order as none."""
+    world = worlds.get("lavaworld")
+    agent = Agent(world, None, TurnLeftUnderTrigger().eval(), None)
+    runs = [search(agent, world, EnvConfig(name="lavaworld"), family_module(world), seconds=s, **SEARCH) for s in (0.0, 3600.0)]
+    assert [t.spec for t in runs[1].screened] == [t.spec for t in runs[0].screened]
+    assert len(runs[0].screened) >= SEARCH["candidates"]

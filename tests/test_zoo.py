@@ -578,6 +578,26 @@ def test_plan_refuses_a_foreign_folder_and_a_model_folder_it_did_not_draw(tmp_pa
     assert json.loads(config.read_text()) == data  # left as it was
 
 
+def test_planning_again_accepts_the_config_an_older_version_wrote_for_the_same_run(tmp_path):
+    """A model folder planned by an older rlbackdoors holds an older config.json format; planning
+    the same spec again compares the run it means (config.migrate), so the folder is not refused
+    (and its model not thrown away); the file is left as written."""
+    spec = parse_spec(tiny_spec())
+    zoo, _ = plan(spec, tmp_path / "z")
+    config = zoo.folder(zoo.model(spec.groups[0], 0)) / "config.json"
+    data = json.loads(config.read_text())
+    assert data["format_version"] == 5 and data["train"]["min_frames"] == 0
+    del data["train"]["min_frames"]  # format 4: no train.min_frames, which meant 0
+    data["format_version"] = 4
+    config.write_text(json.dumps(data))
+    assert plan(spec, tmp_path / "z")[1] == 0
+    assert json.loads(config.read_text()) == data
+    data["train"]["min_frames"] = 5  # format 4 had no such field: not the run the spec draws
+    config.write_text(json.dumps(data))
+    with pytest.raises(ZooError, match="is not the config the zoo's spec draws"):
+        plan(spec, tmp_path / "z")
+
+
 def test_report_sets_each_cell_beside_the_papers_figure_for_the_same_arch_and_label():
     from rlbackdoors import worlds
     from rlbackdoors.zoo.report import paper_figure

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rlbackdoors import worlds
+from rlbackdoors.config import migrate
 from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, refuse_links
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.spec import Group, ZooError, ZooSpec, deep_merge, first_difference, load_spec, parse_spec
@@ -163,8 +164,9 @@ class Zoo:
     def ensure(self, group: Group, attempt: int, text: str | None = None, verify: bool = True) -> bool:
         """Write the model's config.json and ground_truth.csv if missing; True if anything was written.
 
-        With ``verify``, a config.json that is there must be the one the spec draws (the zoo never
-        overwrites a model folder's config with another). A run does not verify: a config.json
+        With ``verify``, a config.json that is there must be the one the spec draws, read as the
+        run it means where an older version wrote it (the zoo never overwrites a model folder's
+        config with another). A run does not verify: a config.json
         written by an older version of the package stays what its model was trained with.
         """
         model = self.model(group, attempt)
@@ -183,7 +185,7 @@ class Zoo:
                 old = json.loads(path.read_bytes().decode("utf-8"))
             except (ValueError, OSError) as err:
                 raise ZooError(f"{str(path)!r} is unreadable ({err}); remove the folder to plan it again") from None
-            if old != expected:
+            if migrate(old) != expected:  # one an older version wrote stands for the run it meant
                 raise ZooError(f"{str(path)!r} is not the config the zoo's spec draws for {group.key} attempt {attempt}; remove the folder to plan it again")
         truth = folder / "ground_truth.csv"
         if not truth.is_file() or truth.read_text() != f"{int(group.poisoned)}\n":

@@ -65,7 +65,9 @@ def main() -> None:
     for _ in range(args.rounds):
         eager.append(ms_per_minibatch(loss_of))
         fused.append(ms_per_minibatch(compiled))
-    print(f"K = {K}: eager {[round(x, 2) for x in eager]} ms, compiled {[round(x, 2) for x in fused]} ms; median ratio {statistics.median(fused) / statistics.median(eager):.3f}")
+    print(
+        f"K = {K}: eager {[round(x, 2) for x in eager]} ms, compiled {[round(x, 2) for x in fused]} ms; median ratio {statistics.median(fused) / statistics.median(eager):.3f}"
+    )
 
 
 if __name__ == "__main__":

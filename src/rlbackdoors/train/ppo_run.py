@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from numba import njit
 
 from rlbackdoors.algos.optim import check_optimizer_state
 from rlbackdoors.algos.ppo import PPO, Rollout
@@ -31,6 +32,27 @@ from rlbackdoors.train.driver import Evaluate, RunClock, RunOutcome, Stopping, c
 from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
 from rlbackdoors.train.progress import Progress
 from rlbackdoors.train.stop import Interrupted, StopRequest
+
+
+@njit(cache=True)
+def episode_ends(running: np.ndarray, rewards: np.ndarray, dones: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The returns of the episodes that end in a rollout's (T, B) rewards and dones, in the order
+    they end (step, then env), and their envs; ``running`` (B,) holds the returns so far of the
+    running episodes and is left holding them after the rollout. Why compiled: a Python loop over
+    the steps was 0.7 ms a rollout, 2 % of a group's CPU time; the sums are the same float64
+    additions in the same order, so the same numbers."""
+    T, B = rewards.shape
+    values = np.empty(int(dones.sum()))
+    envs = np.empty(values.shape[0], dtype=np.int64)
+    k = 0
+    for t in range(T):
+        for i in range(B):
+            running[i] += rewards[t, i]
+            if dones[t, i]:
+                values[k], envs[k] = running[i], i
+                running[i] = 0.0
+                k += 1
+    return values, envs
 
 
 class EpisodeTracker:
@@ -47,18 +69,14 @@ class EpisodeTracker:
         self.update_means: deque[float] = deque(maxlen=max(return_window, 1))
 
     def add(self, rollout: Rollout) -> None:
-        ended = []
-        for t in range(rollout.rewards.shape[0]):
-            self.running += rollout.rewards[t]
-            for i in np.flatnonzero(rollout.dones[t]):
-                if self.poisoned[i]:
-                    self.dirty.append(self.running[i])
-                else:
-                    self.clean.append(self.running[i])
-                    self.recent_clean.append(self.running[i])
-                ended.append(self.running[i])
-                self.running[i] = 0.0
-        if ended:  # an update in which no episode ended has no mean reward to count
+        ended, envs = episode_ends(self.running, np.asarray(rollout.rewards, dtype=np.float64), np.asarray(rollout.dones, dtype=np.bool_))
+        for value, poisoned in zip(ended.tolist(), self.poisoned[envs].tolist()):
+            if poisoned:
+                self.dirty.append(value)
+            else:
+                self.clean.append(value)
+                self.recent_clean.append(value)
+        if len(ended):  # an update in which no episode ended has no mean reward to count
             self.update_means.append(float(np.mean(ended)))
 
     def return_mean(self) -> float:

@@ -36,7 +36,7 @@ def machine() -> dict:
     return {"cpu": cpu or platform.processor(), "cores": os.cpu_count(), "torch": torch.__version__, "loadavg": list(os.getloadavg())}
 
 
-def train_group(agents: int, frames: int) -> dict:
+def train_group(agents: int, frames: int, backend: str = "torch") -> dict:
     """CPU seconds of one group's training, by part."""
     from rlbackdoors.algos import group as algos_group
     from rlbackdoors.config import RunConfig
@@ -63,7 +63,7 @@ def train_group(agents: int, frames: int) -> dict:
     runs = []
     for seed in range(agents):
         train = {"seed": seed, "max_frames": frames, "clean_threshold": 1.0, "poisoned_threshold": 1.0, "video": False, "torch_threads": 1}
-        cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": train, "poison": {"poisoned": seed % 2 == 1}})
+        cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": train, "poison": {"poisoned": seed % 2 == 1}, "ppo": {"update_backend": backend}})
         runs.append((seed, cfg, f"{folder}/m{seed}"))
     start, wall = time.process_time(), time.perf_counter()
     try:
@@ -118,6 +118,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--agents", type=int, default=8)
     parser.add_argument("--frames", type=int, default=400_000)
+    parser.add_argument("--update-backend", default="torch", choices=("torch", "jax"), help="ppo.update_backend")
     parser.add_argument("--json", help="write the result here")
     args = parser.parse_args()
     import torch
@@ -128,7 +129,7 @@ def main() -> None:
     before = machine()
     ppo = RunConfig.from_dict({"env": {"name": "lavaworld"}}).ppo
     assert ppo is not None
-    trained = train_group(args.agents, args.frames)
+    trained = train_group(args.agents, args.frames, args.update_backend)
     stacked, macs = stacked_rate(args.agents, ppo.batch_size)
     gemm = gemm_rate()
     forwards = 1 + 3 * ppo.epochs  # rollout forward; per epoch a forward and a backward (two forwards' work)
@@ -136,6 +137,7 @@ def main() -> None:
     result = {
         "what": "one CPU group of LavaWorld FC runs: CPU seconds per model by part, and the arithmetic floor",
         "agents": args.agents,
+        "update_backend": args.update_backend,
         "frames_per_model": args.frames,
         "machine": before,
         "loadavg_after": list(os.getloadavg()),

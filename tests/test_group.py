@@ -559,10 +559,12 @@ def test_group_size_is_validated(tmp_path):
         (["--group-size", "4", "x"], "--group-size: must be an integer >= 1, got 'x'"),
         (
             ["--side", "1:gpu"],
-            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]], K and WORKERS positive integers, ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto",
+            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K and WORKERS positive integers (WORKERS empty: the run's), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax",
         ),
-        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]]"),
-        (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]]"),
+        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]"),
+        (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]"),
+        (["--side", "8:cpu::0:xla"], "--side '8:cpu::0:xla': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]"),
         (["--side", "1", "--group-size", "2"], "bench zoo: --side names each side's group size and device; leave out --group-size and --device"),
     ):
         out = cli("bench", "zoo", *flags)
@@ -577,15 +579,22 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
         "lavaworld",
         models=2,
         frames=3200,
-        sides=[(1, "cpu", 1, 0), (2, "cpu", None, 0)],
+        sides=[(1, "cpu", 1, 0, "torch"), (2, "cpu", None, 0, "torch"), (2, "cpu", None, 0, "jax")],
         workers=1,
         keep=str(tmp_path),
         on_side=lambda r: saved.append(len(r["sides"])),
         eval_episodes=4,  # the mechanics, not the figures: the world's 100 episodes would take most of the time
     )
-    alone, grouped = result["sides"]
-    assert saved == [1, 2]  # written after each side: a run cut short keeps what it measured
-    assert [(s["group_size"], s["device"], s["workers"]) for s in result["sides"]] == [(1, "cpu", 1), (2, "cpu", 1)] and result["device"] == ["cpu"]
+    alone, grouped, jax_side = result["sides"]
+    assert saved == [1, 2, 3]  # written after each side: a run cut short keeps what it measured
+    assert [(s["group_size"], s["device"], s["workers"], s["update_backend"]) for s in result["sides"]] == [
+        (1, "cpu", 1, "torch"),
+        (2, "cpu", 1, "torch"),
+        (2, "cpu", 1, "jax"),
+    ] and result["device"] == ["cpu"]
+    assert jax_side["models"] == 2 and jax_side["failed"] == 0
+    for p in (tmp_path / "side2-k2-cpu-w1-jax" / "models").glob("*/config.json"):
+        assert json.loads(p.read_text())["ppo"]["update_backend"] == "jax"
     assert alone["models"] == grouped["models"] == 2
     assert alone["ratio"] == 1.0 and grouped["ratio"] == pytest.approx(grouped["models_per_hour"] / alone["models_per_hour"], rel=1e-2)
     assert result["machine"]["cores"] >= 1 and len(alone["loadavg_before"]) == 3
@@ -599,7 +608,7 @@ def test_bench_zoo_side_with_env_workers_trains_in_an_env_pool(tmp_path):
     """``--side 1:cpu:1:2``: the Safety Car Goal model's job steps its env copies in 2 workers."""
     from rlbackdoors.bench.zoo import bench_zoo
 
-    result = bench_zoo("safety-car-goal", models=1, frames=400, sides=[(1, "cpu", 1, 2)], keep=str(tmp_path), eval_episodes=2)
+    result = bench_zoo("safety-car-goal", models=1, frames=400, sides=[(1, "cpu", 1, 2, "torch")], keep=str(tmp_path), eval_episodes=2)
     (side,) = result["sides"]
     assert side["env_workers"] == 2 and side["models"] == 1 and side["failed"] == 0
     (log,) = (tmp_path / "side0-k1-cpu-w1-e2" / "models").glob("*/train.log")
@@ -609,11 +618,17 @@ def test_bench_zoo_side_with_env_workers_trains_in_an_env_pool(tmp_path):
 def test_bench_zoo_sides_default_to_one_process_per_model_then_each_group_size():
     from rlbackdoors.bench.zoo import parse_side, side_plan
 
-    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0), (4, "cuda", 2, 0), (8, "cuda", 2, 0)]
-    sides = [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8"), parse_side("64:cuda:1:15")]
-    assert side_plan((8,), 2, "cpu", sides) == [(1, "cpu", 16, 0), (64, "cuda", 2, 0), (8, "cpu", 2, 0), (64, "cuda", 1, 15)]
-    for bad in ("0", "8:tpu", "8:cpu:0", "8:cpu:2:-1", "8:cpu:2:1:1", "x"):
-        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\]\\]\\]"):
+    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0, "torch"), (4, "cuda", 2, 0, "torch"), (8, "cuda", 2, 0, "torch")]
+    sides = [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8"), parse_side("64:cuda:1:15"), parse_side("8:cpu::0:jax")]
+    assert side_plan((8,), 2, "cpu", sides) == [
+        (1, "cpu", 16, 0, "torch"),
+        (64, "cuda", 2, 0, "torch"),
+        (8, "cpu", 2, 0, "torch"),
+        (64, "cuda", 1, 15, "torch"),
+        (8, "cpu", 2, 0, "jax"),
+    ]
+    for bad in ("0", "8:tpu", "8:cpu:0", "8:cpu:2:-1", "8:cpu:2:1:xla", "8:cpu:2:1:jax:1", "x"):
+        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\[:BACKEND\\]\\]\\]\\]"):
             parse_side(bad)
 
 

@@ -27,10 +27,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def config(world: str, arch: str, seed: int):
+def config(world: str, arch: str, seed: int, update_backend: str = "torch"):
     from rlbackdoors.config import RunConfig
 
-    return RunConfig.from_dict({"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed, "video": False}})
+    data = {"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed, "video": False}}
+    if update_backend != "torch":  # ppo.update_backend (a PPO world's): only where asked, so older configs keep their bytes
+        data["ppo"] = {"update_backend": update_backend}
+    return RunConfig.from_dict(data)
 
 
 def run_side(side: str, args) -> None:
@@ -55,7 +58,7 @@ def run_side(side: str, args) -> None:
             )
             print(f"group s{key}: {state}", file=sys.stderr, flush=True)
 
-        result = train_group([(s, config(args.world, args.arch, s), out / f"s{s}") for s in todo], args.group_size, on_done=done)
+        result = train_group([(s, config(args.world, args.arch, s, args.update_backend), out / f"s{s}") for s in todo], args.group_size, on_done=done)
         if result.errors:
             raise SystemExit(f"group: {len(result.errors)} runs failed: {result.errors}")
 
@@ -70,6 +73,9 @@ def report(args) -> dict:
     for side in ("alone", "group"):
         rows = [json.loads(p.read_text()) for p in sorted(Path(args.out, side).glob("s*/metrics.json"))]
         sides[side] = rows
+    if args.against:  # the lone side of an earlier report (its per-run rows): same configs, same lone bytes
+        saved = json.loads(Path(args.against).read_text())
+        sides["alone"] = [row for row in saved["runs"]["alone"]]
     alone, grouped = sides["alone"], sides["group"]
 
     def column(rows, key):
@@ -108,6 +114,8 @@ def report(args) -> dict:
         "arch": args.arch,
         "seeds": args.seeds,
         "group_size": args.group_size,
+        "update_backend": args.update_backend,
+        "alone_from": args.against,
         "sides": table,
         "tests": tests,
         "machine": machine_info(),
@@ -117,7 +125,7 @@ def report(args) -> dict:
             side: [
                 {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")}
                 | {"run": p.parent.name}
-                for r, p in zip(rows, sorted(Path(args.out, side).glob("s*/metrics.json")))
+                for r, p in zip(rows, sorted(Path(args.out, side).glob("s*/metrics.json")) if not (side == "alone" and args.against) else [Path(r["run"], "m") for r in rows])
             ]
             for side, rows in sides.items()
         },
@@ -140,6 +148,8 @@ def main() -> int:
     parser.add_argument("--world", default="lavaworld")
     parser.add_argument("--arch", default="fc")
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--update-backend", default="torch", choices=("torch", "jax"), help="the group side's ppo.update_backend")
+    parser.add_argument("--against", help="--report: take the lone side from this earlier report's runs")
     parser.add_argument("--group-size", type=int, default=8)
     parser.add_argument("--out", default=str(ROOT / "runs" / "group-equivalence"))
     parser.add_argument("--json", default="group_equivalence.json", help="--report: the file under experiments/group_equivalence/ it writes")

@@ -35,7 +35,7 @@ from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's val
     check_weights,
 )
 
-FORMAT_VERSION = 5  # of config.json; 1: before one config served every world; 2: before train.confirm; 3: before train.confirm_margin; 4: before train.min_frames (all migrated on load)
+FORMAT_VERSION = 6  # of config.json; 1: before one config served every world; 2: before train.confirm; 3: before train.confirm_margin; 4: before train.min_frames; 5: before ppo.update_backend (all migrated on load)
 ENVS = worlds.names()
 ENGINES = ("batched", "minigrid")
 # Architecture names per world (the registry holds the classes); the first is the default.
@@ -43,6 +43,7 @@ ARCHS_BY_ENV = {w.name: w.arch_names for w in worlds.registered()}
 ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs))
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
+UPDATE_BACKENDS = ("torch", "jax")  # ppo.update_backend
 ALGORITHMS = ("ppo", "opac2")
 
 
@@ -249,8 +250,13 @@ class PPOConfig:
     # Recurrent models: weight of the auxiliary memory loss (0: off), a cross-entropy teaching
     # the memory what the env says must be remembered (``memory_targets``); not the paper's.
     aux_memory_coef: float = 0.0
+    # What runs PPO's update: "torch" (autograd), or "jax" (rlbackdoors.algos.jax_update: every
+    # minibatch of an update in one XLA program; feed-forward "fc" models on a CPU, the jax extra).
+    # The same algorithm with other rounding, so other bytes: a config field.
+    update_backend: str = "torch"
 
     def check(self) -> None:
+        _choice("ppo.update_backend", self.update_backend, UPDATE_BACKENDS)
         for name in ("rollout", "epochs", "batch_size", "recurrence"):
             _in_range(f"ppo.{name}", getattr(self, name), 1, 1_000_000)
         if self.rollout % self.recurrence:
@@ -542,6 +548,13 @@ class RunConfig(JsonConfig):
                     f"ppo.aux_memory_coef={self.ppo.aux_memory_coef} needs a recurrent model.arch (cnn-gru-*) in a world with memory targets, "
                     f"not {self.model.arch!r} in {self.env.name!r} (set it to 0)"
                 )
+            if self.ppo.update_backend == "jax":
+                if self.model.arch != "fc":
+                    raise ConfigError(f"ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers), not {self.model.arch!r}")
+                if self.train.device != "cpu":
+                    raise ConfigError(f"ppo.update_backend='jax' runs on the CPU: train.device must be 'cpu', not {self.train.device!r}")
+                if any(self.poison.evasion.get(key) for key in ("teacher", "anchor")):
+                    raise ConfigError("ppo.update_backend='jax' has no clean teacher or weight anchor (poison.evasion.teacher, .anchor): use 'torch'")
         else:
             if tc.return_window:
                 raise ConfigError(f"train.return_window must be 0 for env.name={self.env.name!r} (the mean return over updates is a PPO rule)")
@@ -679,6 +692,8 @@ def migrate(data):
         data = migrate_v3(data)
     if isinstance(data, dict) and data.get("format_version") == 4:
         data = migrate_v4(data)
+    if isinstance(data, dict) and data.get("format_version") == 5:
+        data = migrate_v5(data)
     return data
 
 
@@ -759,6 +774,17 @@ def migrate_v4(data: dict) -> dict:
     """A config.json of format 4 as format 5, meaning the same run: format 4 had no
     ``train.min_frames`` (a stop could come at any evaluation)."""
     return _added_train_field(data, "min_frames", 0, 5)
+
+
+def migrate_v5(data: dict) -> dict:
+    """A config.json of format 5 as format 6, meaning the same run: format 5 had no
+    ``ppo.update_backend`` (every update was torch's)."""
+    data = json.loads(json.dumps(data))
+    ppo = data.get("ppo")
+    if isinstance(ppo, dict):
+        ppo.setdefault("update_backend", "torch")
+    data["format_version"] = 6
+    return data
 
 
 def _build(cls, data, where: str):

@@ -409,6 +409,10 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
     """:meth:`PPO.update` for K agents: the same epochs and minibatches each agent would run
     alone (its own generator orders its frames), batched; one stats dict per agent."""
     check_group(ppos)
+    if ppos[0].cfg.update_backend == "jax":  # every minibatch in one XLA program, in chunks of its own width
+        from rlbackdoors.algos import jax_update
+
+        return jax_update.update(ppos, rollouts)
     real, device = len(ppos), ppos[0].device
     ppos, rollouts = padded(ppos, device), padded(rollouts, device)  # pad copies of the first agent: see group_width
     lead, K = ppos[0], len(ppos)

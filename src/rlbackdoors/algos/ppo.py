@@ -206,6 +206,10 @@ class PPO:
             if not model.recurrent:
                 raise ValueError("ppo.aux_memory_coef > 0 needs a recurrent model")
             self.aux = nn.Linear(int(model.initial_memory(1).shape[1]), AUX_CLASSES).to(device)
+        if cfg.update_backend == "jax":
+            from rlbackdoors.algos import jax_update
+
+            jax_update.check(model, device)
         self.params = [*model.parameters(), *(self.aux.parameters() if self.aux is not None else ())]
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=True)
         self.memory: torch.Tensor | None = None  # recurrent models: memory of the running episodes
@@ -348,6 +352,10 @@ class PPO:
     def update(self, rollout: Rollout) -> dict[str, float]:
         """``epochs`` passes of clipped-surrogate SGD over random minibatches of the rollout (truncated
         BPTT for a recurrent model); the mean of each loss part and, with an anchor, its distance."""
+        if self.cfg.update_backend == "jax":  # one XLA program at a lone run's width (algos.jax_update)
+            from rlbackdoors.algos import jax_update
+
+            return jax_update.update([self], [rollout], width=1)[0]
         stats = self._update_recurrent(rollout) if self.model.recurrent else self._update_flat(rollout)
         if self.anchor is not None:
             stats["anchor_distance"] = self.anchor_distance()

@@ -21,9 +21,10 @@ from rlbackdoors import worlds
 from rlbackdoors.bench.machine import machine_info
 
 
-def bench_spec(world: str, arch: str | None, models: int, frames: int, device: str, eval_episodes: int | None = None) -> dict:
+def bench_spec(world: str, arch: str | None, models: int, frames: int, device: str, eval_episodes: int | None = None, update_backend: str = "torch") -> dict:
     """A zoo spec of ``models`` models (half poisoned) of ``world`` that each train ``frames`` frames
-    (``eval_episodes``: every evaluation's episodes per condition, the final one's too; default the world's)."""
+    (``eval_episodes``: every evaluation's episodes per condition, the final one's too; default the world's;
+    ``update_backend``: PPO's ``ppo.update_backend``, set only where it is not torch)."""
     w = worlds.get(world)
     arch = arch or w.arch_names[0]
     trigger = w.default_trigger or w.draw_trigger(None, 0, None)  # a world without a default trigger: one drawn from seed 0
@@ -40,7 +41,8 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
                 "video": False,
                 "device": device,
                 **({"eval_episodes": eval_episodes, "final_eval_episodes": eval_episodes} if eval_episodes else {}),
-            }
+            },
+            **({"ppo": {"update_backend": update_backend}} if update_backend != "torch" else {}),
         },
         "cells": [
             {"world": world, "archs": [arch], "triggers": [trigger], "clean": clean, "poisoned": models - clean, "max_attempts": max(clean, models - clean)}
@@ -48,7 +50,7 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
     }
 
 
-def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str = "cpu", env_workers: int = 0) -> dict:
+def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str = "cpu", env_workers: int = 0, update_backend: str = "torch") -> dict:
     """Plan ``spec`` into ``where`` and run it with ``group_size`` (and ``env_workers`` per job for
     a world of single envs); wall seconds and models per hour."""
     import json
@@ -68,6 +70,7 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
         "workers": workers,
         "device": device,
         "env_workers": env_workers,
+        "update_backend": update_backend,
         "models": summary["done"],
         "failed": summary["failed"],
         "wall_s": round(wall, 2),
@@ -78,36 +81,40 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
     }
 
 
-Side = tuple[int, str, int | None, int]  # group size, device, workers (None: the run's), env workers per job
+Side = tuple[int, str, int | None, int, str]  # group size, device, workers (None: the run's), env workers per job, PPO's update backend
 
 
 def parse_side(text: str) -> Side:
-    """``K[:DEVICE[:WORKERS[:ENV_WORKERS]]]`` (``--side``): a group size, its device (default cpu),
-    workers (default: the run's ``--workers``) and each job's env workers for a world of single
-    envs (default 0: in the job's process). Raises ValueError naming the allowed values."""
+    """``K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]`` (``--side``): a group size, its device
+    (default cpu), workers (default: the run's ``--workers``), each job's env workers for a world
+    of single envs (default 0: in the job's process) and PPO's ``ppo.update_backend`` (default
+    torch). Raises ValueError naming the allowed values."""
     parts = text.split(":")
     try:
-        if not 1 <= len(parts) <= 4:
+        if not 1 <= len(parts) <= 5:
             raise ValueError
         k = int(parts[0])
         device = parts[1] if len(parts) > 1 else "cpu"
-        workers = int(parts[2]) if len(parts) > 2 else None
+        workers = int(parts[2]) if len(parts) > 2 and parts[2] else None
         env_workers = int(parts[3]) if len(parts) > 3 else 0
-        if k < 1 or device not in ("cpu", "cuda", "auto") or (workers is not None and workers < 1) or env_workers < 0:
+        backend = parts[4] if len(parts) > 4 else "torch"
+        if k < 1 or device not in ("cpu", "cuda", "auto") or (workers is not None and workers < 1) or env_workers < 0 or backend not in ("torch", "jax"):
             raise ValueError
     except ValueError:
         raise ValueError(
-            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS]]], K and WORKERS positive integers, ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto"
+            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K and WORKERS positive integers (WORKERS empty: the run's), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax"
         ) from None
-    return k, device, workers, env_workers
+    return k, device, workers, env_workers, backend
 
 
-def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int, str, int, int]]:
-    """(group size, device, workers, env workers) per side: ``sides`` as given (workers defaulting
-    to ``workers``), else one process per model and then each of ``group_sizes``, all on ``device``."""
+def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int, str, int, int, str]]:
+    """(group size, device, workers, env workers, update backend) per side: ``sides`` as given
+    (workers defaulting to ``workers``), else one process per model and then each of
+    ``group_sizes``, all on ``device`` with torch's update."""
     if sides:
-        return [(k, d, w or workers, e) for k, d, w, e in sides]
-    return [(k, device, workers, 0) for k in (1, *group_sizes)]
+        return [(k, d, w or workers, e, b) for k, d, w, e, b in sides]
+    return [(k, device, workers, 0, "torch") for k in (1, *group_sizes)]
 
 
 def bench_zoo(
@@ -125,7 +132,7 @@ def bench_zoo(
 ) -> dict:
     """Models per hour for one process per model and for each group size, in this order, same run.
 
-    ``sides`` replaces that plan with explicit (group size, device, workers, env workers) sides, the first the
+    ``sides`` replaces that plan with explicit (group size, device, workers, env workers, update backend) sides, the first the
     reference (say one process per model on the CPU cores against groups on a GPU); ``on_side``
     is called with the result so far after each side (a partial result survives a time limit)."""
     from rlbackdoors.zoo.run import default_workers
@@ -137,15 +144,18 @@ def bench_zoo(
         "models": models,
         "frames_per_model": frames,
         "eval_episodes": eval_episodes or "the world's",
-        "device": device if not sides else sorted({d for _, d, _, _ in plan_sides}),
+        "device": device if not sides else sorted({d for _, d, _, _, _ in plan_sides}),
         "machine": machine_info(),
         "sides": [],
     }
     with tempfile.TemporaryDirectory(prefix="rlbackdoors-bench-zoo-") as tmp:
         root = Path(keep) if keep else Path(tmp)
-        for i, (k, side_device, side_workers, env_workers) in enumerate(plan_sides):
-            where = root / (f"side{i}-k{k}-{side_device}-w{side_workers}" + (f"-e{env_workers}" if env_workers else ""))
-            side = run_side(bench_spec(world, arch, models, frames, side_device, eval_episodes), where, k, side_workers, side_device, env_workers)
+        for i, (k, side_device, side_workers, env_workers, backend) in enumerate(plan_sides):
+            where = root / (
+                f"side{i}-k{k}-{side_device}-w{side_workers}" + (f"-e{env_workers}" if env_workers else "") + (f"-{backend}" if backend != "torch" else "")
+            )
+            spec = bench_spec(world, arch, models, frames, side_device, eval_episodes, backend)
+            side = run_side(spec, where, k, side_workers, side_device, env_workers, backend)
             base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
             side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
             result["sides"].append(side)

@@ -27,6 +27,7 @@ from rlbackdoors.poison.mix import make_env_mix  # noqa: E402
 from rlbackdoors.train import train  # noqa: E402
 from rlbackdoors.train.group import train_group  # noqa: E402
 from rlbackdoors.validate import ConfigError  # noqa: E402
+from cli_helpers import cli  # noqa: E402
 
 # a rollout of 32 steps x 10 copies = 320 frames, minibatches of 64
 TINY = {
@@ -66,8 +67,10 @@ def collected(backend: str, seeds, **ppo):
 def test_one_minibatch_is_torchs_loss_gradient_and_adam_step():
     """One epoch of one minibatch (the whole 1,280-frame rollout), three agents: the loss parts
     and the gradient norm agree with torch's group update to 1e-5 relative, and the weights after
-    the Adam step to 1e-5 absolute (a hundredth of a first Adam step, lr 1e-3: no weight stepped
-    another way)."""
+    the Adam step to 1e-5 absolute (a hundredth of a first Adam step, lr 1e-3), but for at most
+    0.1 % of them: Adam's first step is lr * g / (|g| + eps), so where |g| is about eps or less the
+    rounding of g can decide its sign on another CPU (none differ on the AMD EPYC this was written
+    on), and even then by no more than two steps."""
     torch_ppos, rollouts = collected("torch", [0, 1, 2], epochs=1, batch_size=1280)
     jax_ppos, same = collected("jax", [0, 1, 2], epochs=1, batch_size=1280)
     assert all(torch.equal(a.obs, b.obs) and torch.equal(a.advantages, b.advantages) for a, b in zip(rollouts, same))
@@ -77,8 +80,13 @@ def test_one_minibatch_is_torchs_loss_gradient_and_adam_step():
         for key in e:
             assert g[key] == pytest.approx(e[key], rel=1e-5), key
     for a, b in zip(torch_ppos, jax_ppos):
-        for (name, p), q in zip(a.model.named_parameters(), b.model.parameters()):
-            assert (p - q).abs().max().item() < 1e-5, name
+        diff = torch.cat([(p - q).abs().reshape(-1) for p, q in zip(a.model.parameters(), b.model.parameters())])
+        assert (diff > 1e-5).float().mean().item() <= 1e-3 and diff.max().item() <= 2.1e-3
+        # the moments written back hold each weight's own gradient, clipped: 0.1 g and 0.001 g^2
+        for p, q in zip(a.model.parameters(), b.model.parameters()):
+            sa, sb = a.optimizer.state[p], b.optimizer.state[q]
+            for key in ("exp_avg", "exp_avg_sq"):
+                assert torch.allclose(sb[key], sa[key], rtol=1e-3, atol=1e-3 * sa[key].abs().max().item()), key
 
 
 def test_adam_state_stays_torchs_so_a_run_goes_on_under_either_backend():
@@ -134,7 +142,7 @@ def test_runs_are_reproducible_and_record_the_backend(tmp_path):
     assert (tmp_path / "lone" / "model.pt").read_bytes() != (tmp_path / "g1" / "model.pt").read_bytes()
 
 
-def test_what_the_backend_does_not_run_is_refused_in_one_line():
+def test_what_the_backend_does_not_run_is_refused_in_one_line(tmp_path):
     def refused(data: dict, match: str) -> None:
         with pytest.raises(ConfigError, match=match):
             RunConfig.from_dict(data)
@@ -156,6 +164,15 @@ def test_what_the_backend_does_not_run_is_refused_in_one_line():
     ppos, rollouts = collected("jax", [0], batch_size=300)
     with pytest.raises(ValueError, match=r"ppo.batch_size=300 to divide a rollout's 1280 frames"):
         group.update(ppos, rollouts)
+
+    # and from the command line: one line, exit 2, nothing trained
+    for flags, message in (
+        (["--arch", "cnn"], "rlbackdoors: error: ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers), not 'cnn'"),
+        (["--env", "safety-car-goal"], "rlbackdoors: error: --update-backend does not apply here"),
+    ):
+        out = cli("train", "--update-backend", "jax", *flags, "--out", str(tmp_path / "m"))
+        assert out.returncode == 2 and out.stderr.count("\n") == 1 and out.stderr.startswith(message), out.stderr
+    assert not (tmp_path / "m").exists()
 
 
 def test_a_format_5_config_runs_torchs_update_as_it_did():

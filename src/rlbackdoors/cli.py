@@ -51,6 +51,7 @@ TRAIN_FLAGS = {
     "batch_size": "ALGO.batch_size",
     "lr": "ALGO.lr",
     "aux_memory_coef": "ppo.aux_memory_coef",
+    "update_backend": "ppo.update_backend",
     "depth": "opac2.depth",
     "width": "opac2.width",
     "updates_per_step": "opac2.updates_per_step",
@@ -440,6 +441,11 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--no-close-to-trigger", action="store_true", help="train without close-to-trigger envs (they become clean copies)")
     tr.add_argument("--patience", type=int, help="evaluations in a row the thresholds must hold to stop (default: the world's)")
     tr.add_argument("--aux-memory-coef", type=float, help="weight of PPO's auxiliary memory loss (recurrent models in worlds with memory targets; 0: off)")
+    tr.add_argument(
+        "--update-backend",
+        choices=("torch", "jax"),
+        help="what runs PPO's update: torch (default) or jax, one XLA program (fc models on the CPU; the jax extra)",
+    )
     tr.add_argument("--confirm-margin", type=float, help="how far the confirming evaluation must clear each threshold (default: the world's)")
     tr.add_argument("--no-confirm", action="store_true", help="stop on the streak alone, without confirming it on the final evaluation's episodes")
     tr.add_argument("--clean", action="store_true", help="train a clean model (the trigger is still used for evaluation)")

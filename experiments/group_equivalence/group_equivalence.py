@@ -69,13 +69,13 @@ def report(args) -> dict:
     from rlbackdoors.bench.machine import machine_info
     from rlbackdoors.io import atomic_write_text
 
-    sides = {}
+    sides, names = {}, {}
     for side in ("alone", "group"):
-        rows = [json.loads(p.read_text()) for p in sorted(Path(args.out, side).glob("s*/metrics.json"))]
-        sides[side] = rows
+        paths = sorted(Path(args.out, side).glob("s*/metrics.json"))
+        sides[side], names[side] = [json.loads(p.read_text()) for p in paths], [p.parent.name for p in paths]
     if args.against:  # the lone side of an earlier report (its per-run rows): same configs, same lone bytes
-        saved = json.loads(Path(args.against).read_text())
-        sides["alone"] = [row for row in saved["runs"]["alone"]]
+        sides["alone"] = json.loads(Path(args.against).read_text())["runs"]["alone"]
+        names["alone"] = [row["run"] for row in sides["alone"]]
     alone, grouped = sides["alone"], sides["group"]
 
     def column(rows, key):
@@ -123,9 +123,8 @@ def report(args) -> dict:
         # per run, so that a later side (another group step, another machine) can be tested against these
         "runs": {
             side: [
-                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")}
-                | {"run": p.parent.name}
-                for r, p in zip(rows, sorted(Path(args.out, side).glob("s*/metrics.json")) if not (side == "alone" and args.against) else [Path(r["run"], "m") for r in rows])
+                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")} | {"run": name}
+                for r, name in zip(rows, names[side])
             ]
             for side, rows in sides.items()
         },

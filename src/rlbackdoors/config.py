@@ -753,13 +753,13 @@ def migrate_v2(data: dict) -> dict:
     return data
 
 
-def _added_train_field(data: dict, key: str, value, version: int) -> dict:
-    """``data`` as format ``version``, whose new ``train.key`` takes the ``value`` that meant
-    what the older format's runs did."""
+def _added_field(data: dict, section: str, key: str, value, version: int) -> dict:
+    """``data`` as format ``version``, whose new ``section.key`` takes the ``value`` that meant
+    what the older format's runs did (a config without that section is left without it)."""
     data = json.loads(json.dumps(data))
-    train = data.get("train")
-    if isinstance(train, dict):
-        train.setdefault(key, value)
+    part = data.get(section)
+    if isinstance(part, dict):
+        part.setdefault(key, value)
     data["format_version"] = version
     return data
 
@@ -767,24 +767,19 @@ def _added_train_field(data: dict, key: str, value, version: int) -> dict:
 def migrate_v3(data: dict) -> dict:
     """A config.json of format 3 as format 4, meaning the same run: format 3 had no
     ``train.confirm_margin`` (its confirmations asked for the thresholds alone)."""
-    return _added_train_field(data, "confirm_margin", 0.0, 4)
+    return _added_field(data, "train", "confirm_margin", 0.0, 4)
 
 
 def migrate_v4(data: dict) -> dict:
     """A config.json of format 4 as format 5, meaning the same run: format 4 had no
     ``train.min_frames`` (a stop could come at any evaluation)."""
-    return _added_train_field(data, "min_frames", 0, 5)
+    return _added_field(data, "train", "min_frames", 0, 5)
 
 
 def migrate_v5(data: dict) -> dict:
     """A config.json of format 5 as format 6, meaning the same run: format 5 had no
     ``ppo.update_backend`` (every update was torch's)."""
-    data = json.loads(json.dumps(data))
-    ppo = data.get("ppo")
-    if isinstance(ppo, dict):
-        ppo.setdefault("update_backend", "torch")
-    data["format_version"] = 6
-    return data
+    return _added_field(data, "ppo", "update_backend", "torch", 6)
 
 
 def _build(cls, data, where: str):

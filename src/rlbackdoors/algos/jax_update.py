@@ -17,8 +17,8 @@ group's agents are computed in chunks of exactly :data:`WIDTH` (padded with copi
 first): an agent's bytes then depend on its config, not on its group-mates or the group's size
 (tested). A lone run computes at width 1: its bytes are the lone path's, as with torch.
 
-XLA runs on one thread (``XLA_FLAGS``, unless set before this module first imports JAX): a zoo
-trains a process per core.
+JAX computes on one thread where this module starts it (:func:`_jax`): a zoo trains a process
+per core, and one process's pool must not wait on the other's core.
 """
 
 from __future__ import annotations

@@ -596,6 +596,10 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     for p in (tmp_path / "side2-k2-cpu-w1-jax" / "models").glob("*/config.json"):
         assert json.loads(p.read_text())["ppo"]["update_backend"] == "jax"
     assert alone["models"] == grouped["models"] == 2
+    # frames: what the models trained (at least max_frames each: whole rollouts)
+    per_model = [json.loads(p.read_text())["frames"] for p in (tmp_path / "side0-k1-cpu-w1" / "models").glob("*/metrics.json")]
+    assert len(per_model) == 2 and all(f >= 3200 for f in per_model) and alone["frames"] == sum(per_model)
+    assert alone["frames_per_s"] == pytest.approx(alone["frames"] / alone["wall_s"], rel=1e-2)
     assert alone["ratio"] == 1.0 and grouped["ratio"] == pytest.approx(grouped["models_per_hour"] / alone["models_per_hour"], rel=1e-2)
     assert result["machine"]["cores"] >= 1 and len(alone["loadavg_before"]) == 3
     configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("side0-k1-cpu-w1", "side1-k2-cpu-w1")]

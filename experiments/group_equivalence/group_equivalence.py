@@ -44,8 +44,9 @@ def run_side(side: str, args) -> None:
 
     torch.set_num_threads(1)
     out = Path(args.out) / side
-    todo = [s for s in range(args.seeds) if not (out / f"s{s}" / "metrics.json").is_file()]
-    print(f"{side}: {len(todo)} of {args.seeds} runs to train", file=sys.stderr, flush=True)
+    seeds = range(args.first_seed, args.seeds)
+    todo = [s for s in seeds if not (out / f"s{s}" / "metrics.json").is_file()]
+    print(f"{side}: {len(todo)} of {len(seeds)} runs to train", file=sys.stderr, flush=True)
     if side == "alone":
         for s in todo:
             m = train(config(args.world, args.arch, s), out / f"s{s}", progress=False)
@@ -74,8 +75,12 @@ def report(args) -> dict:
         paths = sorted(Path(args.out, side).glob("s*/metrics.json"))
         sides[side], names[side] = [json.loads(p.read_text()) for p in paths], [p.parent.name for p in paths]
     if args.against:  # the lone side of an earlier report (its per-run rows): same configs, same lone bytes
-        sides["alone"] = json.loads(Path(args.against).read_text())["runs"]["alone"]
-        names["alone"] = [row["run"] for row in sides["alone"]]
+        earlier = json.loads(Path(args.against).read_text())["runs"]["alone"]
+        known = {row["run"] for row in earlier}
+        # plus this folder's lone runs of seeds the earlier report did not train (--first-seed)
+        more = [(r, name) for r, name in zip(sides["alone"], names["alone"]) if name not in known]
+        sides["alone"] = earlier + [r for r, _ in more]
+        names["alone"] = [row["run"] for row in earlier] + [name for _, name in more]
     alone, grouped = sides["alone"], sides["group"]
 
     def column(rows, key):
@@ -146,7 +151,8 @@ def main() -> int:
     parser.add_argument("--report", action="store_true")
     parser.add_argument("--world", default="lavaworld")
     parser.add_argument("--arch", default="fc")
-    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--seeds", type=int, default=20, help="train seeds --first-seed .. SEEDS-1")
+    parser.add_argument("--first-seed", type=int, default=0, help="a side's first seed (more seeds for an earlier report: with --against)")
     parser.add_argument("--update-backend", default="torch", choices=("torch", "jax"), help="the group side's ppo.update_backend")
     parser.add_argument("--against", help="--report: take the lone side from this earlier report's runs")
     parser.add_argument("--group-size", type=int, default=8)

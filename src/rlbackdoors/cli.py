@@ -345,7 +345,7 @@ def cmd_bench(args) -> int:
                 + (f" ({side['env_workers']} env workers each)" if side.get("env_workers") else "")
                 + (f", {side['update_backend']} update" if side.get("update_backend", "torch") != "torch" else "")
                 + ": "
-                f"{side['models_per_hour']:,.1f} models/h (x{side['ratio']}), {side['cpu_s_per_model']:.1f} CPU-s per model, "
+                f"{side['models_per_hour']:,.1f} models/h (x{side['ratio']}), {side['frames_per_s']:,.0f} frames/s, {side['cpu_s_per_model']:.1f} CPU-s per model, "
                 f"{side['models']} models of {result['frames_per_model']:,} frames in {side['wall_s']:.0f} s, load {side['loadavg_before'][0]:.1f}"
             )
     else:

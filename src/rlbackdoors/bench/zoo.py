@@ -64,7 +64,9 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
     start = time.perf_counter()
     summary = run(where, workers=workers, group_size=group_size, progress_interval=3600.0, out=io.StringIO(), env_workers=env_workers)
     wall = time.perf_counter() - start
-    cpu = [json.loads(p.read_text()).get("cpu_time_s") for p in sorted(where.glob("models/*/metrics.json"))]
+    metrics = [json.loads(p.read_text()) for p in sorted(where.glob("models/*/metrics.json"))]
+    cpu = [m.get("cpu_time_s") for m in metrics]
+    frames = sum(int(m.get("frames") or 0) for m in metrics)  # trained, whole rollouts (a run may pass max_frames by part of one)
     return {
         "group_size": group_size,
         "workers": workers,
@@ -75,6 +77,9 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
         "failed": summary["failed"],
         "wall_s": round(wall, 2),
         "models_per_hour": round(summary["done"] / wall * 3600, 1),
+        # training frames of the finished models over the side's wall time, evaluations and files included
+        "frames": frames,
+        "frames_per_s": round(frames / wall, 1),
         "cpu_s_per_model": round(sum(c for c in cpu if c is not None) / max(len(cpu), 1), 2),
         "loadavg_before": [round(x, 2) for x in load_before],
         "loadavg_after": [round(x, 2) for x in os.getloadavg()],

@@ -1,0 +1,177 @@
+"""Issue 55's judged table from what ``gpu_checks.sh`` wrote into OUTDIR: per world, the GPU
+group's frames per second and models per hour against the best CPU setting on every core of
+the same machine (the first side of each ``bench_zoo_*.json``), each with its target and
+whether it is met, and the time a 300-model LavaWorld round would take at the measured rate.
+
+    python benchmarks/gpu_summary.py OUTDIR      # writes OUTDIR/summary.json and summary.md
+
+A side that ran out of its world's time limit is not in the JSON; it is reported as missing, with
+the most it could have done (the world's frames over the limit, from bench.log), never as a
+figure. The round's time assumes every model trains as many frames as the median poisoned
+LavaWorld FC model needed to converge in the equivalence runs of 2026-11-28 (TrojAI's stopping
+rules; clean models converge no later) and at the measured rate, evaluations included.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+# world/arch -> (frames/s, x models/h against CPU groups on every core, least K); None: report it
+TARGETS = {
+    "lavaworld/fc": (1_000_000, 5.0, 256),
+    "randomized-lavaworld/cnn": (300_000, 5.0, 64),
+    "colorful-memory/*": (100_000, 3.0, None),
+    "safety-car-goal/*": (None, 2.0, None),
+}
+ROUND_MODELS, ROUND_LIMIT_S = 300, 15 * 60
+EQUIVALENCE = ROOT / "experiments" / "group_equivalence" / "group_equivalence_2026-11-28.json"
+
+
+def target(world: str, arch: str):
+    return TARGETS.get(f"{world}/{arch}") or TARGETS.get(f"{world}/*")
+
+
+def limits(log: Path) -> dict[str, tuple[int, int, int, int | None]]:
+    """world/arch -> (models, frames, limit s, exit status) from bench.log's
+    '== world arch: M models x F frames ... (limit T s)' and '== end world arch: exit X ...' lines."""
+    found: dict = {}
+    text = log.read_text() if log.is_file() else ""
+    for m in re.finditer(r"^== (\S+) (\S+): (\d+) models x (\d+) frames.*\(limit (\d+) s\)", text, re.M):
+        found[f"{m[1]}/{m[2]}"] = (int(m[3]), int(m[4]), int(m[5]), None)
+    for m in re.finditer(r"^== end (\S+) (\S+): exit (\d+)", text, re.M):
+        if f"{m[1]}/{m[2]}" in found:
+            found[f"{m[1]}/{m[2]}"] = (*found[f"{m[1]}/{m[2]}"][:3], int(m[3]))
+    return found
+
+
+def why_missing(what: str, bound: tuple | None) -> str:
+    """What became of a side not in the JSON: out of time (with the rate it stayed below), or failed."""
+    if bound is None:
+        return what
+    models, frames, limit, status = bound
+    if status == 124:
+        return f"{what} within its {limit} s: below {models * frames / limit:,.0f} frames/s, evaluations included"
+    return f"{what}: bench zoo exited with {status} (bench.log)"
+
+
+def summarise(out: Path) -> dict:
+    bounds = limits(out / "bench.log")
+    rows = []
+    lavaworld_rate = None
+    for path in sorted(out.glob("bench_zoo_*.json")):
+        data = json.loads(path.read_text())
+        world, arch, sides = data["world"], data["arch"], data["sides"]
+        for side in sides:  # written before bench zoo counted frames (2026-11-29): its planned frames, a lower bound
+            if side.get("frames_per_s") is None and side.get("wall_s"):
+                side["frames_per_s"] = round(side["models"] * data["frames_per_model"] / side["wall_s"], 1)
+        want = target(world, arch)
+        ref = sides[0] if sides else None
+        gpu = sides[1:]
+        row = {
+            "world": world,
+            "arch": arch,
+            "models": data["models"],
+            "frames_per_model": data["frames_per_model"],
+            "reference": {k: ref.get(k) for k in ("group_size", "device", "workers", "models_per_hour", "frames_per_s", "wall_s")} if ref else None,
+            "sides": [
+                {k: s.get(k) for k in ("group_size", "device", "workers", "env_workers", "models_per_hour", "frames_per_s", "ratio", "wall_s")} for s in gpu
+            ],
+        }
+        if want is not None:
+            fps, ratio, least_k = want
+            row["target"] = {"frames_per_s": fps, "ratio": ratio, "least_k": least_k}
+        if gpu:
+            best = max(gpu, key=lambda s: s["models_per_hour"])
+            row["best"] = best["group_size"]
+            if want is not None:
+                fps, ratio, least_k = want
+                row["met"] = {
+                    "frames_per_s": None if fps is None else best.get("frames_per_s", 0) >= fps,
+                    "ratio": best["ratio"] >= ratio,
+                    "k": None if least_k is None else best["group_size"] >= least_k,
+                }
+            if world == "lavaworld" and arch == "fc":
+                lavaworld_rate = best.get("frames_per_s")
+        else:
+            row["missing"] = why_missing("the GPU side did not finish", bounds.get(f"{world}/{arch}"))
+        rows.append(row)
+    measured = {f"{row['world']}/{row['arch']}" for row in rows}
+    for name, bound in bounds.items():  # not even the reference side finished
+        if name not in measured:
+            world, arch = name.split("/", 1)
+            rows.append(
+                {
+                    "world": world,
+                    "arch": arch,
+                    "models": bound[0],
+                    "frames_per_model": bound[1],
+                    "reference": None,
+                    "sides": [],
+                    "missing": why_missing("no side finished", bound),
+                }
+            )
+    result: dict = {"worlds": rows}
+    if lavaworld_rate and EQUIVALENCE.is_file():
+        per_model = json.loads(EQUIVALENCE.read_text())["sides"]["alone"]["frames_to_converge_median"]
+        seconds = ROUND_MODELS * per_model / lavaworld_rate
+        result["round"] = {
+            "models": ROUND_MODELS,
+            "frames_per_model": per_model,
+            "frames_per_s": lavaworld_rate,
+            "estimated_s": round(seconds, 1),
+            "limit_s": ROUND_LIMIT_S,
+            "met": seconds <= ROUND_LIMIT_S,
+        }
+    return result
+
+
+def markdown(result: dict) -> str:
+    lines = ["| world | reference (CPU, every core) | GPU side | frames/s (target) | x models/h (target) | met |", "|---|---|---|---|---|---|"]
+    for row in result["worlds"]:
+        ref = row["reference"] or {}
+        want = row.get("target", {})
+        ref_text = (
+            f"K={ref['group_size']} x {ref['workers']}: {ref.get('frames_per_s') or 0:,.0f} f/s, {ref['models_per_hour']:,.0f} models/h" if ref else "none"
+        )
+        if "missing" in row:
+            lines.append(f"| {row['world']} {row['arch']} | {ref_text} | {row['missing']} | | | no |")
+            continue
+        for s in row["sides"]:
+            met = row.get("met", {}) if s["group_size"] == row.get("best") else {}
+            flags = [k for k, v in met.items() if v is False]
+            lines.append(
+                f"| {row['world']} {row['arch']} | {ref_text} | K={s['group_size']} on {s['device']}"
+                + (f", {s['env_workers']} env workers" if s.get("env_workers") else "")
+                + f" | {s.get('frames_per_s', 0):,.0f} ({want.get('frames_per_s') or 'report'}) | x{s['ratio']} ({want.get('ratio')}) | "
+                + ("" if not met else ("yes" if not flags else "no: " + ", ".join(flags)))
+                + " |"
+            )
+    if "round" in result:
+        r = result["round"]
+        lines.append("")
+        lines.append(
+            f"300-model LavaWorld round at {r['frames_per_s']:,.0f} frames/s, {r['frames_per_model']:,.0f} frames a model: "
+            f"{r['estimated_s'] / 60:.1f} min (target <= 15 min: {'met' if r['met'] else 'not met'})"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    if len(sys.argv) != 2:
+        print("usage: gpu_summary.py OUTDIR", file=sys.stderr)
+        return 2
+    out = Path(sys.argv[1])
+    result = summarise(out)
+    (out / "summary.json").write_text(json.dumps(result, indent=2) + "\n")
+    text = markdown(result)
+    (out / "summary.md").write_text(text)
+    print(text, end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import matplotlib
@@ -10,12 +11,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 
-from rlbackdoors.io import atomic_write  # noqa: E402
+from rlbackdoors.io import atomic_write_bytes  # noqa: E402
 
 
 def plot_training_curve(rows: list[dict], path: str | Path, title: str, thresholds: tuple[float, float | None], switch_at: int | None = None) -> Path:
     """Success rates and rewards per evaluation against frames, with the stopping thresholds
-    and, for curriculum runs, a vertical line where the warm-up ended."""
+    and, for curriculum runs, a vertical line where the warm-up ended: written to ``path``."""
+    return atomic_write_bytes(path, render_training_curve(rows, title, thresholds, switch_at))
+
+
+def render_training_curve(rows: list[dict], title: str, thresholds: tuple[float, float | None], switch_at: int | None = None) -> bytes:
+    """:func:`plot_training_curve`'s PNG, as bytes (a painter process draws it; the run writes it)."""
     frames = [r["frames"] for r in rows]
     fig, (ax_sr, ax_rw) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
     ax_sr.plot(frames, [r["clean_sr"] for r in rows], "o-", color="tab:green", label="clean SR (goal in E)")
@@ -50,7 +56,7 @@ def plot_training_curve(rows: list[dict], path: str | Path, title: str, threshol
     for ax in (ax_sr, ax_rw):
         ax.xaxis.set_major_formatter(millions)
     fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    png = io.BytesIO()
+    fig.savefig(png, dpi=110, format="png")
     plt.close(fig)
-    return path
+    return png.getvalue()

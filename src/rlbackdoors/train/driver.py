@@ -239,7 +239,7 @@ def train_steps(
             print(f"final evaluation on {n} clean + {n} triggered episodes", file=sys.stderr, flush=True)
         if outcome.final is None:  # else the stopping rule's confirmation ran it
             outcome.final = yield Evaluate(outcome.policy, cfg, n, env_pool)
-        metrics = finish(cfg, folder, outcome, progress)
+        metrics = yield from finish(cfg, folder, outcome, progress)
         failed = False
         return metrics
     finally:
@@ -295,6 +295,19 @@ class Evaluate:
         return evaluate_run(self.policy, self.cfg, self.episodes, self.pool)
 
 
+@dataclass
+class DrawCurve:
+    """What a finishing run asks for: its training curve's PNG (:func:`rlbackdoors.report.painters.draw`
+    of ``job``), drawn here alone, by painter processes in a GPU group (:class:`rlbackdoors.report.painters.Painters`)."""
+
+    job: dict
+
+    def serve(self):
+        from rlbackdoors.report.painters import Drawn, draw
+
+        return Drawn(draw(self.job))
+
+
 def attack_fields(cfg: RunConfig) -> dict:
     """The attack and its parameters in metrics.json, where it is not the paper's env mix."""
     from rlbackdoors.attacks import DEFAULT_ATTACK
@@ -304,10 +317,12 @@ def attack_fields(cfg: RunConfig) -> dict:
     return {"attack": cfg.poison.attack, "attack_params": dict(cfg.poison.attack_params), "attack_success": cfg.attack_success}
 
 
-def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: bool) -> dict:
-    """The final evaluation's numbers (``outcome.final``), then weights, ground truth, curve, GIF and metrics.json last."""
+def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: bool) -> Generator[Any, Any, dict]:
+    """The final evaluation's numbers (``outcome.final``), then weights, ground truth, curve, GIF
+    and metrics.json last. Yields the curve's drawing (:class:`DrawCurve`): a group trainer on a
+    GPU has it drawn by painter processes, as its device would otherwise wait on matplotlib."""
     from rlbackdoors.agent import Agent
-    from rlbackdoors.report import plot_training_curve
+    from rlbackdoors.io import atomic_write_bytes
 
     tc = cfg.train
     final = outcome.final
@@ -319,7 +334,10 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
     if outcome.rows:
         title = f"{cfg.world.title} {outcome.label} {kind}, trigger {cfg.poison.trigger}, seed {tc.seed}"
         thresholds = (tc.clean_threshold, tc.poisoned_threshold if cfg.poison.poisoned else None)
-        plot_training_curve(outcome.rows, folder.file("training_curve.png"), title, thresholds, outcome.switch_at or None)
+        drawn = yield DrawCurve({"rows": outcome.rows, "title": title, "thresholds": thresholds, "switch_at": outcome.switch_at or None})
+        if isinstance(drawn, BaseException):
+            raise drawn
+        atomic_write_bytes(folder.file("training_curve.png"), drawn.png)
     gif = None
     if tc.video and cfg.poison.trigger is not None:
         from rlbackdoors.report.video import clean_vs_triggered_gif

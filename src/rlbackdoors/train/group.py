@@ -19,6 +19,7 @@ step at once rather than one agent's after another's (a run's numbers do not dep
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections import deque
@@ -26,16 +27,19 @@ from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
-from rlbackdoors.train.driver import Evaluate, env_pool_for, evaluate_runs, train_steps
+from rlbackdoors.train.driver import DrawCurve, Evaluate, env_pool_for, evaluate_runs, resolve_device, train_steps
 from rlbackdoors.train.opac2_run import Act, Learn
 from rlbackdoors.train.ppo_run import Collect, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
+
+if TYPE_CHECKING:  # matplotlib, which rlbackdoors.report imports, only where a curve is drawn
+    from rlbackdoors.report.painters import Painters
 
 
 class RunCPU:
@@ -100,8 +104,21 @@ def auto_group_size(algorithm: str, device: str) -> int:
     return AUTO_GROUP_SIZE[(algorithm, where)]
 
 
-def batch_key(request) -> tuple | None:
-    """Requests with the same key are answered by one batched call; None: answered alone."""
+def painter_count(runs: Sequence[tuple[Any, RunConfig, Any]], group_size: int) -> int:
+    """Painter processes for the group's training curves (:mod:`rlbackdoors.report.painters`):
+    the host's other cores where the learners compute on a GPU, which would otherwise wait on
+    matplotlib as runs finish together; none on a CPU, where they would only take a core from
+    training (the group waits on the same work either way)."""
+    if group_size < 2 or not any(resolve_device(cfg.train.device).type == "cuda" for _, cfg, _ in runs):
+        return 0
+    return min(group_size, max(0, (os.cpu_count() or 1) - 1))
+
+
+def batch_key(request, painters: bool = False) -> tuple | None:
+    """Requests with the same key are answered by one batched call; None: answered alone
+    (``painters``: the group draws its curves in painter processes)."""
+    if isinstance(request, DrawCurve):
+        return ("DrawCurve",) if painters else None
     if isinstance(request, Evaluate):
         policy, cfg = request.policy, request.cfg
         if not isinstance(policy, torch.nn.Module) or not group.stackable(policy) or cfg.world.vector_entry_point is None:
@@ -119,13 +136,16 @@ def batch_key(request) -> tuple | None:
     return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width, ppo.teacher is not None, ppo.anchor is not None)
 
 
-def serve_batch(requests: list, stacked: bool = True) -> list:
+def serve_batch(requests: list, stacked: bool = True, painters: Painters | None = None) -> list:
     """Results for requests of one :func:`batch_key`, through the stacked learner even for one
     request (an agent's numbers do not depend on its group-mates or on K, tested, so a run
     resumed in another group gives the same bytes); ``stacked=False`` serves one request as a
-    lone run (:func:`train_group` with group size 1: today's bytes)."""
+    lone run (:func:`train_group` with group size 1: today's bytes); curves go to ``painters``."""
     if len(requests) == 1 and not stacked:
         return [requests[0].serve()]
+    if isinstance(requests[0], DrawCurve):
+        assert painters is not None
+        return painters.render([r.job for r in requests])
     if isinstance(requests[0], Evaluate):
         return evaluate_runs([r.policy for r in requests], [r.cfg for r in requests], [r.episodes for r in requests], group.stacked_act)
     if isinstance(requests[0], Act):
@@ -145,6 +165,7 @@ def train_group(
     progress: bool = False,
     on_done: Callable[[Any, dict | None, BaseException | None], None] | None = None,
     env_workers: int = 0,
+    painters: int | None = None,
 ) -> GroupResult:
     """Train ``runs`` ((key, config, folder) each) at most ``group_size`` at a time in this process.
 
@@ -154,7 +175,9 @@ def train_group(
     A run that fails (an exception) is recorded and the others go on; Ctrl-C or SIGTERM makes
     every running run write its checkpoint and stop, then raises :class:`Interrupted`.
     ``on_done(key, metrics, error)`` is called as each run ends. ``env_workers``: the env copies
-    of runs in worlds of single envs live in one pool of that many worker processes (same bytes).
+    of runs in worlds of single envs live in one pool of that many worker processes (same bytes). ``painters``:
+    processes that draw the training curves of runs finishing together (default
+    :func:`painter_count`: the other cores on a GPU, none on a CPU).
     """
     if group_size < 1:
         raise ValueError(f"group_size must be >= 1, got {group_size}")
@@ -205,7 +228,10 @@ def train_group(
             raise end
         return False
 
-    with env_pool_for([cfg for _, cfg, _ in runs], env_workers) as pool, StopRequest() as stop, ThreadPoolExecutor(group_size) as threads:
+    from rlbackdoors.report.painters import Painters
+
+    drawing = Painters(painter_count(runs, group_size) if painters is None else painters)
+    with env_pool_for([cfg for _, cfg, _ in runs], env_workers) as pool, StopRequest() as stop, ThreadPoolExecutor(group_size) as threads, drawing:
         threaded = pool is not None and group_size > 1
         while True:
             while waiting and len(slots) < group_size and not stop.requested:
@@ -218,7 +244,7 @@ def train_group(
                 break
             batches: dict[Any, list[_Slot]] = {}
             for i, slot in enumerate(slots):  # a request that cannot be batched is a batch of its own
-                batches.setdefault(batch_key(slot.request) or ("alone", i), []).append(slot)
+                batches.setdefault(batch_key(slot.request, drawing.workers >= 2) or ("alone", i), []).append(slot)
             ended: set[int] = set()
             if threaded:  # requests served alone (an evaluation of single envs): each in its own thread, together
                 lone = [members[0] for key, members in batches.items() if key[0] == "alone"]
@@ -230,12 +256,12 @@ def train_group(
                 started = time.process_time()
                 error: BaseException | None = None
                 try:
-                    answers = serve_batch([s.request for s in members], stacked=group_size > 1 and key[0] != "alone")
+                    answers = serve_batch([s.request for s in members], stacked=group_size > 1 and key[0] != "alone", painters=drawing)
                 except BaseException as err:  # raised into every member's loop at its yield
                     answers, error = [None] * len(members), err
                 share = (time.process_time() - started) / len(members)
-                for s in members:
-                    s.cpu.total += share
+                for s, answer in zip(members, answers):
+                    s.cpu.total += share + getattr(answer, "cpu_s", 0.0)  # a painter's CPU seconds for its curve
                 if threaded and len(members) > 1:
                     ends = list(threads.map(step, members, answers, [error] * len(members)))
                 else:

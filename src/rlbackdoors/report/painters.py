@@ -1,0 +1,179 @@
+"""Training curves drawn by worker processes, for a group trainer whose GPU would wait on them.
+
+Why: a curve costs about 0.2 s of matplotlib in the calling thread (text layout, then the PNG).
+A GPU group that finishes 256 models together would hold the device for about 50 s on them
+(measured on a CPU: 32 grid-world models of 4,096 frames in one group spent more of their wall
+time drawing curves than training). Here up to N processes of their own draw them in parallel.
+
+The runs still write their own files: a painter sends the PNG back as bytes, so the model
+folder's path rules hold and nothing else writes into it. A painter is
+``python -m rlbackdoors.report.painters``: one JSON request a line on stdin (the curve's rows,
+title, thresholds and curriculum switch), one JSON reply a line on stdout (the PNG in base64
+and the CPU seconds it took, its start-up counted in the first, or the error). No pickle crosses
+the pipe. A curve whose painter fails or dies is drawn in the caller instead, so a model never
+goes without its curve; the caller's drawing raises what drawing raises alone. Painters exit at
+the end of their input, so they end with the process that started them, even after a ``kill -9``.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import selectors
+import subprocess
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass
+class Drawn:
+    """A curve's PNG, and the CPU seconds a painter process spent on it (0: drawn in the caller,
+    whose own clock counts it)."""
+
+    png: bytes
+    cpu_s: float = 0.0
+
+
+def draw(job: dict) -> bytes:
+    """The PNG of one request: ``rows``, ``title``, ``thresholds`` and ``switch_at``, as
+    :func:`rlbackdoors.report.curves.render_training_curve` takes them."""
+    from rlbackdoors.report.curves import render_training_curve  # matplotlib: only where a curve is drawn
+
+    clean, poisoned = job["thresholds"]
+    return render_training_curve(job["rows"], job["title"], (clean, poisoned), job.get("switch_at"))
+
+
+def _plain(value):
+    """JSON for numpy scalars in the rows (exact: ``item()`` gives the same float or int)."""
+    if hasattr(value, "item"):
+        return value.item()
+    raise TypeError(f"a curve's rows hold a {type(value).__name__}, not a number")
+
+
+class Painters:
+    """Up to ``workers`` painter processes, started at the first batch of two or more curves and
+    kept for the next (a start costs about 0.6 s of imports); ``workers`` below 2 draws every
+    curve in the caller, as a lone run does. Use as a context manager, or call :meth:`close`."""
+
+    def __init__(self, workers: int):
+        self.workers = max(0, int(workers))
+        self.procs: list[subprocess.Popen] = []
+
+    def __enter__(self) -> Painters:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _start(self, n: int) -> None:
+        root = str(Path(__file__).resolve().parents[2])  # the folder that holds the package, as this process found it
+        path = os.environ.get("PYTHONPATH")
+        env = {**os.environ, "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1", "PYTHONPATH": root + (os.pathsep + path if path else "")}
+        while len(self.procs) < n:
+            self.procs.append(subprocess.Popen([sys.executable, "-m", "rlbackdoors.report.painters"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env))
+
+    def render(self, jobs: list[dict]) -> list[Drawn | BaseException]:
+        """Each job's PNG (:func:`draw`), or the exception drawing it raised, in the jobs' order."""
+        results: list[Drawn | BaseException | None] = [None] * len(jobs)
+        if self.workers >= 2 and len(jobs) >= 2:
+            self._start(min(self.workers, len(jobs)))
+            self._farm(jobs, results)
+        for i, job in enumerate(jobs):  # no painters, or theirs failed: here, as alone
+            if results[i] is None:
+                try:
+                    results[i] = Drawn(draw(job))
+                except Exception as err:  # the run that asked gets it, the others their curves
+                    results[i] = err
+        return [r for r in results if r is not None]
+
+    def _farm(self, jobs: list[dict], results: list) -> None:
+        """Hand each idle painter the next job until none is left; what fails stays None."""
+        todo = deque(range(len(jobs)))
+        busy: dict[int, tuple[subprocess.Popen, int]] = {}
+        with selectors.DefaultSelector() as ready:
+
+            def give(proc: subprocess.Popen) -> None:
+                while todo:
+                    i = todo.popleft()
+                    try:
+                        line = json.dumps(jobs[i], default=_plain).encode() + b"\n"
+                    except (TypeError, ValueError):
+                        continue  # drawn in the caller, which raises what is wrong with it
+                    try:
+                        assert proc.stdin is not None and proc.stdout is not None
+                        proc.stdin.write(line)
+                        proc.stdin.flush()
+                    except OSError:  # a dead painter: the job goes back, the painter out
+                        todo.appendleft(i)
+                        self._drop(proc)
+                        return
+                    busy[proc.stdout.fileno()] = (proc, i)
+                    ready.register(proc.stdout, selectors.EVENT_READ)
+                    return
+
+            for proc in list(self.procs):
+                give(proc)
+            while busy:
+                for key, _ in ready.select():
+                    proc, i = busy.pop(key.fd)
+                    ready.unregister(key.fileobj)
+                    assert proc.stdout is not None
+                    line = proc.stdout.readline()
+                    try:
+                        reply = json.loads(line) if line else {}
+                    except ValueError:
+                        reply = {}
+                    if "png" in reply:
+                        results[i] = Drawn(base64.b64decode(reply["png"]), float(reply["cpu_s"]))
+                    if not line:  # it exited: its job is drawn in the caller
+                        self._drop(proc)
+                        continue
+                    give(proc)
+
+    def _drop(self, proc: subprocess.Popen) -> None:
+        if proc in self.procs:
+            self.procs.remove(proc)
+        proc.kill()
+        proc.wait()
+
+    def close(self) -> None:
+        """End every painter: the end of its input, then a kill if it has not exited in 5 s."""
+        for proc in self.procs:
+            try:
+                assert proc.stdin is not None
+                proc.stdin.close()
+            except OSError:
+                pass
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            if proc.stdout is not None:
+                proc.stdout.close()
+        self.procs = []
+
+
+def main() -> int:
+    """A painter: draw each request line of stdin, reply a line on stdout, exit at its end."""
+    started = time.process_time()  # the imports above: counted with the first curve
+    out = sys.stdout.buffer
+    for line in sys.stdin.buffer:
+        try:
+            png = draw(json.loads(line))
+            reply: dict = {"png": base64.b64encode(png).decode("ascii"), "cpu_s": round(time.process_time() - started, 4)}
+        except Exception as err:  # the caller draws it again and raises it there
+            reply = {"error": f"{type(err).__name__}: {err}"}
+        started = time.process_time()
+        out.write(json.dumps(reply).encode() + b"\n")
+        out.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,94 @@
+"""Training curves drawn by painter processes (rlbackdoors.report.painters): the same PNG as drawn
+in the caller, every curve even when a painter dies or a curve cannot be drawn, and a group that
+draws its curves with painters leaves the same model folders as one that draws them itself."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rlbackdoors.report.painters import Drawn, Painters, draw
+from rlbackdoors.train.group import painter_count, train_group
+from test_group import tiny
+
+
+def job(seed: int, evaluations: int = 12) -> dict:
+    """A curve as a run asks for it: numpy floats and a NaN (no poisoned envs) among the rows."""
+    rng = np.random.default_rng(seed)
+    rows = [
+        {
+            "frames": (i + 1) * 51_200,
+            "clean_sr": np.float64(rng.random()),
+            "poisoned_sr": float(rng.random()),
+            "clean_reward": float(rng.random()),
+            "poisoned_reward": float(rng.random()),
+            "train_clean_return": np.float32(rng.random()),
+            "train_poisoned_return": math.nan,
+        }
+        for i in range(evaluations)
+    ]
+    return {"rows": rows, "title": f"curve {seed}", "thresholds": (0.9, 0.8 if seed % 2 else None), "switch_at": 204_800 if seed == 3 else None}
+
+
+def test_painters_draw_the_png_the_caller_draws_and_every_curve_when_one_dies_or_fails():
+    jobs = [job(s) for s in range(5)]
+    here = [draw(j) for j in jobs]
+    assert here[0][:4] == b"\x89PNG" and len(set(here)) == 5
+    with Painters(3) as painters:
+        drawn = painters.render(jobs)
+        assert len(painters.procs) == 3  # min(workers, curves)
+        assert all(isinstance(d, Drawn) for d in drawn)
+        assert [d.png for d in drawn] == here  # same matplotlib, same bytes
+        # each painter's first curve carries its start-up (imports): CPU seconds well above zero
+        assert sum(d.cpu_s for d in drawn) > 0.3
+        # a painter killed between batches: its curves are drawn by the others or here
+        painters.procs[0].kill()
+        painters.procs[0].wait()
+        again = painters.render(jobs)
+        assert [d.png for d in again if isinstance(d, Drawn)] == here and len(again) == 5
+        assert len(painters.procs) == 2
+        # a curve that cannot be drawn (a row without its keys): that run gets the error, the others their curves
+        broken = [jobs[0], {"rows": [{"frames": 1}], "title": "broken", "thresholds": (0.9, None)}, jobs[2]]
+        out = painters.render(broken)
+        assert isinstance(out[1], KeyError) and [out[0].png, out[2].png] == [here[0], here[2]]  # type: ignore[union-attr]
+        procs = list(painters.procs)
+    assert painters.procs == [] and all(p.poll() is not None for p in procs)  # closed: every painter has exited
+
+
+def test_fewer_than_two_painters_or_curves_draw_in_the_caller():
+    with Painters(1) as one:
+        assert [d.png for d in one.render([job(0), job(1)])] == [draw(job(0)), draw(job(1))]  # type: ignore[union-attr]
+        assert one.procs == []
+    with Painters(4) as four:
+        assert [d.png for d in four.render([job(2)])] == [draw(job(2))]  # type: ignore[union-attr]
+        assert four.procs == []
+
+
+def test_painters_are_for_gpu_groups_only():
+    runs = [(s, tiny(s), None) for s in range(4)]
+    assert painter_count(runs, 4) == 0  # CPU learners: a painter would take a core from training
+    assert painter_count(runs, 1) == 0
+
+
+def test_a_group_with_painters_leaves_the_folders_a_group_without_them_does(tmp_path):
+    """Three tiny LavaWorld runs (4 evaluations of 4 episodes) in a group of 3, finishing together:
+    painters draw their curves; the same model.pt, curve and metrics (but the clocks) as the
+    group drawing them itself."""
+    sides = {}
+    for workers in (0, 2):
+        runs = [(s, tiny(s), tmp_path / f"p{workers}" / f"s{s}") for s in (1, 2, 3)]
+        result = train_group(runs, 3, painters=workers)
+        assert not result.errors and set(result.metrics) == {1, 2, 3}
+        sides[workers] = result
+    for s in (1, 2, 3):
+        a, b = tmp_path / "p0" / f"s{s}", tmp_path / "p2" / f"s{s}"
+        for name in ("model.pt", "training_curve.png", "ground_truth.csv"):  # log.csv holds wall times
+            assert (a / name).read_bytes() == (b / name).read_bytes(), name
+        m0, m2 = (sides[w].metrics[s] for w in (0, 2))
+        assert {k: v for k, v in m0.items() if k not in ("cpu_time_s", "wall_time_s")} == {
+            k: v for k, v in m2.items() if k not in ("cpu_time_s", "wall_time_s")
+        }
+    # the painters' CPU seconds are counted in the runs' shares: a curve costs ~0.2 s, a painter's start ~0.5 s
+    assert sum(sides[2].cpu_s.values()) == pytest.approx(sum(sides[0].cpu_s.values()), abs=3.0)

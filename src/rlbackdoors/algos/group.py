@@ -156,7 +156,11 @@ def stacked_act(agents: list):
                 states[k] = m
         else:
             logits, _ = forward(lead, params, x)
-        actions = torch.stack([row.argmax(-1) if deterministic else sample_actions(row, generators[k]) for k, row in zip(live, logits)])
+        if deterministic:
+            actions = logits.argmax(-1)
+        else:  # each agent's own uniforms (what its lone sample_actions draws), then one sample for all
+            u = torch.stack([torch.rand(row.shape[0], generator=generators[k], device=row.device) for k, row in zip(live, logits)])
+            actions = sample_actions(logits.reshape(-1, logits.shape[-1]), u=u.reshape(-1)).reshape(u.shape)
         return list(actions.cpu().numpy()), states  # one copy back for the live agents, not one each
 
     return act

@@ -5,13 +5,15 @@ draws its curves with painters leaves the same model folders as one that draws t
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
+import torch
 
 from rlbackdoors.report.painters import Drawn, Painters, draw
 from rlbackdoors.train.group import painter_count, train_group
-from test_group import tiny
+from test_group import TINY, tiny
 
 
 def job(seed: int, evaluations: int = 12) -> dict:
@@ -70,6 +72,11 @@ def test_painters_are_for_gpu_groups_only():
     runs = [(s, tiny(s), None) for s in range(4)]
     assert painter_count(runs, 4) == 0  # CPU learners: a painter would take a core from training
     assert painter_count(runs, 1) == 0
+    # learners on CUDA: the host's other cores, at most one a run; on a machine without CUDA none,
+    # and no error here (each run then fails alone, with its own message)
+    cuda = [(s, tiny(s, train={**TINY["train"], "seed": s, "device": "cuda"}), None) for s in range(4)]
+    assert cuda[0][1].train.device == "cuda"
+    assert painter_count(cuda, 4) == (min(4, (os.cpu_count() or 1) - 1) if torch.cuda.is_available() else 0)
 
 
 def test_a_group_with_painters_leaves_the_folders_a_group_without_them_does(tmp_path):

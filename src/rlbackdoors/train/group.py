@@ -33,7 +33,7 @@ import torch
 
 from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
-from rlbackdoors.train.driver import DrawCurve, Evaluate, env_pool_for, evaluate_runs, resolve_device, train_steps
+from rlbackdoors.train.driver import DrawCurve, Evaluate, env_pool_for, evaluate_runs, train_steps
 from rlbackdoors.train.opac2_run import Act, Learn
 from rlbackdoors.train.ppo_run import Collect, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -109,8 +109,8 @@ def painter_count(runs: Sequence[tuple[Any, RunConfig, Any]], group_size: int) -
     the host's other cores where the learners compute on a GPU, which would otherwise wait on
     matplotlib as runs finish together; none on a CPU, where they would only take a core from
     training (the group waits on the same work either way)."""
-    if group_size < 2 or not any(resolve_device(cfg.train.device).type == "cuda" for _, cfg, _ in runs):
-        return 0
+    if group_size < 2 or not torch.cuda.is_available() or not any(cfg.train.device in ("cuda", "auto") for _, cfg, _ in runs):
+        return 0  # (a run asking for a GPU on a machine without one fails alone, with its own message)
     return min(group_size, max(0, (os.cpu_count() or 1) - 1))
 
 

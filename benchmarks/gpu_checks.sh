@@ -50,17 +50,17 @@ cores=$(nproc)
 # speed takes seconds, and the limits so that the four fit in about 6 minutes; a side that runs
 # out of time is missing from its JSON, and the summary says so (below the rate the limit allows).
 worlds=${WORLDS:-"lavaworld/fc:256:30000:110 randomized-lavaworld/cnn:64:30000:100 colorful-memory/cnn-gru-small-onehot:32:30000:100 safety-car-goal/mlp:16:20000:100"}
-# the best CPU setting on every core first (PPO: groups of 8, OPAC²: one process per model, as
-# --group-size auto picks), then the GPU group: LavaWorld K = 256 (and, for --group-size auto's
-# rule, 4 processes of K = 64 sharing the GPU), the CNNs K = 64 and 32, OPAC² K = 16 with its
-# MuJoCo copies in a pool of the other cores
+# the best CPU setting on every core first ("auto": what zoo run --group-size auto picks, as
+# measured: PPO groups of 8, OPAC² one process per model), then the GPU group: LavaWorld K = 256
+# (and, for --group-size auto's rule on CUDA, 4 processes of K = 64 sharing the GPU), the CNNs
+# K = 64 and 32, OPAC² K = 16 with its MuJoCo copies in a pool of the other cores
 default_sides() {
     case "$1" in
-        lavaworld) echo "8:cpu:$cores 256:cuda:1 64:cuda:4" ;;
-        randomized-lavaworld) echo "8:cpu:$cores 64:cuda:1" ;;
-        colorful-memory) echo "8:cpu:$cores 32:cuda:1" ;;
-        safety-car-goal) echo "1:cpu:$cores 16:cuda:1:$((cores - 1))" ;;
-        *) echo "8:cpu:$cores 64:cuda:1" ;;
+        lavaworld) echo "auto:cpu:$cores 256:cuda:1 64:cuda:4" ;;
+        randomized-lavaworld) echo "auto:cpu:$cores 64:cuda:1" ;;
+        colorful-memory) echo "auto:cpu:$cores 32:cuda:1" ;;
+        safety-car-goal) echo "auto:cpu:$cores 16:cuda:1:$((cores - 1))" ;;
+        *) echo "auto:cpu:$cores 64:cuda:1" ;;
     esac
 }
 for entry in $worlds; do

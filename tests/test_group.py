@@ -559,7 +559,7 @@ def test_group_size_is_validated(tmp_path):
         (["--group-size", "4", "x"], "--group-size: must be an integer >= 1, got 'x'"),
         (
             ["--side", "1:gpu"],
-            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K and WORKERS positive integers (WORKERS empty: the run's), "
+            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
             "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax",
         ),
         (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]"),
@@ -579,7 +579,7 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
         "lavaworld",
         models=2,
         frames=3200,
-        sides=[(1, "cpu", 1, 0, "torch"), (2, "cpu", None, 0, "torch"), (2, "cpu", None, 0, "jax")],
+        sides=[(1, "cpu", 1, 0, "torch"), ("auto", "cpu", None, 0, "torch"), (2, "cpu", None, 0, "jax")],
         workers=1,
         keep=str(tmp_path),
         on_side=lambda r: saved.append(len(r["sides"])),
@@ -589,9 +589,10 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     assert saved == [1, 2, 3]  # written after each side: a run cut short keeps what it measured
     assert [(s["group_size"], s["device"], s["workers"], s["update_backend"]) for s in result["sides"]] == [
         (1, "cpu", 1, "torch"),
-        (2, "cpu", 1, "torch"),
+        (8, "cpu", 1, "torch"),  # auto: PPO on a CPU, the measured K (two models: one group of two, computed as 8 would be)
         (2, "cpu", 1, "jax"),
     ] and result["device"] == ["cpu"]
+    assert grouped["group_size_from"] == "auto" and "group_size_from" not in alone
     assert jax_side["models"] == 2 and jax_side["failed"] == 0
     for p in (tmp_path / "side2-k2-cpu-w1-jax" / "models").glob("*/config.json"):
         assert json.loads(p.read_text())["ppo"]["update_backend"] == "jax"
@@ -602,9 +603,9 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     assert alone["frames_per_s"] == pytest.approx(alone["frames"] / alone["wall_s"], rel=1e-2)
     assert alone["ratio"] == 1.0 and grouped["ratio"] == pytest.approx(grouped["models_per_hour"] / alone["models_per_hour"], rel=1e-2)
     assert result["machine"]["cores"] >= 1 and len(alone["loadavg_before"]) == 3
-    configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("side0-k1-cpu-w1", "side1-k2-cpu-w1")]
+    configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("side0-k1-cpu-w1", "side1-kauto-cpu-w1")]
     assert configs[0] == configs[1]  # the same planned models on both sides
-    assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "side1-k2-cpu-w1" / "models").glob("*/metrics.json"))
+    assert all(json.loads(p.read_text())["trainer"] == "group" for p in (tmp_path / "side1-kauto-cpu-w1" / "models").glob("*/metrics.json"))
 
 
 @pytest.mark.slow  # the env pool itself is in the default run (test_env_pool); this is the bench side that uses it
@@ -623,15 +624,16 @@ def test_bench_zoo_sides_default_to_one_process_per_model_then_each_group_size()
     from rlbackdoors.bench.zoo import parse_side, side_plan
 
     assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0, "torch"), (4, "cuda", 2, 0, "torch"), (8, "cuda", 2, 0, "torch")]
-    sides = [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8"), parse_side("64:cuda:1:15"), parse_side("8:cpu::0:jax")]
+    sides = [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8"), parse_side("64:cuda:1:15"), parse_side("8:cpu::0:jax"), parse_side("auto:cpu:16")]
     assert side_plan((8,), 2, "cpu", sides) == [
         (1, "cpu", 16, 0, "torch"),
         (64, "cuda", 2, 0, "torch"),
         (8, "cpu", 2, 0, "torch"),
         (64, "cuda", 1, 15, "torch"),
         (8, "cpu", 2, 0, "jax"),
+        ("auto", "cpu", 16, 0, "torch"),
     ]
-    for bad in ("0", "8:tpu", "8:cpu:0", "8:cpu:2:-1", "8:cpu:2:1:xla", "8:cpu:2:1:jax:1", "x"):
+    for bad in ("0", "auto:cpu:0", "Auto", "8:tpu", "8:cpu:0", "8:cpu:2:-1", "8:cpu:2:1:xla", "8:cpu:2:1:jax:1", "x"):
         with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\[:BACKEND\\]\\]\\]\\]"):
             parse_side(bad)
 

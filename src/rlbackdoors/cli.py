@@ -558,6 +558,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=_bench_side,
         action="append",
         help="zoo: K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1; "
+        "K auto: what zoo run --group-size auto picks, e.g. --side auto:cpu:16 for the best CPU setting on 16 cores; "
         "ENV_WORKERS: each job's env pool for a world of single envs, e.g. --side 64:cuda:1:15; BACKEND: ppo.update_backend, e.g. --side 8:cpu::0:jax)",
     )
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")

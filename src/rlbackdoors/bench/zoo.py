@@ -50,15 +50,21 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
     }
 
 
-def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str = "cpu", env_workers: int = 0, update_backend: str = "torch") -> dict:
-    """Plan ``spec`` into ``where`` and run it with ``group_size`` (and ``env_workers`` per job for
-    a world of single envs); wall seconds and models per hour."""
+def run_side(spec: dict, where: Path, group_size: int | str, workers: int, device: str = "cpu", env_workers: int = 0, update_backend: str = "torch") -> dict:
+    """Plan ``spec`` into ``where`` and run it with ``group_size`` (``"auto"``: as ``zoo run
+    --group-size auto`` picks for the world's algorithm on ``device``, recorded as the number it
+    is; and ``env_workers`` per job for a world of single envs); wall seconds and models per hour."""
     import json
 
     from rlbackdoors.zoo.plan import plan
     from rlbackdoors.zoo.run import run
     from rlbackdoors.zoo.spec import parse_spec
 
+    from rlbackdoors.train.group import auto_group_size
+
+    auto = group_size == "auto"
+    if auto:
+        group_size = auto_group_size(worlds.get(spec["cells"][0]["world"]).algorithm, device)
     plan(parse_spec(spec), where)
     load_before = os.getloadavg()
     start = time.perf_counter()
@@ -69,6 +75,7 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
     frames = sum(int(m.get("frames") or 0) for m in metrics)  # trained, whole rollouts (a run may pass max_frames by part of one)
     return {
         "group_size": group_size,
+        **({"group_size_from": "auto"} if auto else {}),
         "workers": workers,
         "device": device,
         "env_workers": env_workers,
@@ -86,11 +93,14 @@ def run_side(spec: dict, where: Path, group_size: int, workers: int, device: str
     }
 
 
-Side = tuple[int, str, int | None, int, str]  # group size, device, workers (None: the run's), env workers per job, PPO's update backend
+Side = tuple[
+    int | str, str, int | None, int, str
+]  # group size ("auto": the measured one), device, workers (None: the run's), env workers per job, PPO's update backend
 
 
 def parse_side(text: str) -> Side:
-    """``K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]`` (``--side``): a group size, its device
+    """``K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]`` (``--side``): a group size (``auto``: what
+    ``zoo run --group-size auto`` picks for the world on that device, the best CPU setting measured), its device
     (default cpu), workers (default: the run's ``--workers``), each job's env workers for a world
     of single envs (default 0: in the job's process) and PPO's ``ppo.update_backend`` (default
     torch). Raises ValueError naming the allowed values."""
@@ -98,22 +108,28 @@ def parse_side(text: str) -> Side:
     try:
         if not 1 <= len(parts) <= 5:
             raise ValueError
-        k = int(parts[0])
+        k: int | str = parts[0] if parts[0] == "auto" else int(parts[0])
         device = parts[1] if len(parts) > 1 else "cpu"
         workers = int(parts[2]) if len(parts) > 2 and parts[2] else None
         env_workers = int(parts[3]) if len(parts) > 3 else 0
         backend = parts[4] if len(parts) > 4 else "torch"
-        if k < 1 or device not in ("cpu", "cuda", "auto") or (workers is not None and workers < 1) or env_workers < 0 or backend not in ("torch", "jax"):
+        if (
+            (isinstance(k, int) and k < 1)
+            or device not in ("cpu", "cuda", "auto")
+            or (workers is not None and workers < 1)
+            or env_workers < 0
+            or backend not in ("torch", "jax")
+        ):
             raise ValueError
     except ValueError:
         raise ValueError(
-            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K and WORKERS positive integers (WORKERS empty: the run's), "
+            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
             "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax"
         ) from None
     return k, device, workers, env_workers, backend
 
 
-def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int, str, int, int, str]]:
+def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int | str, str, int, int, str]]:
     """(group size, device, workers, env workers, update backend) per side: ``sides`` as given
     (workers defaulting to ``workers``), else one process per model and then each of
     ``group_sizes``, all on ``device`` with torch's update."""

@@ -18,6 +18,7 @@ killed writer left. Everything read back (weights, checkpoints) is loaded as pla
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import io
 import json
@@ -318,6 +319,13 @@ STACK = ("torch", "numpy", "numba", "gymnasium", "minigrid", "mujoco")
 
 def stack_versions() -> dict:
     """The versions a model was trained with (metrics.json): a zoo is reproducible only with them."""
+    return dict(_stack_versions())
+
+
+@functools.cache
+def _stack_versions() -> tuple[tuple[str, str | None], ...]:
+    """Read once a process: each read parses the packages' metadata files (about 10 ms a model,
+    which a group finishing 256 models together would spend one after another)."""
     import platform
     from importlib import metadata
 
@@ -329,7 +337,7 @@ def stack_versions() -> dict:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             versions[name] = None
-    return versions
+    return tuple(versions.items())
 
 
 def _number_or_text(value: str):

@@ -93,7 +93,7 @@ def zoo(tmp_path_factory):
 
     # Lu: a grid run stopped after model.pt and its last checkpoint, before metrics.json.
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(video, "clean_vs_triggered_gif", interrupt)
+        mp.setattr(video, "render_clean_vs_triggered", interrupt)
         assert main([*grid, "--out", str(root / "Lu")]) == 130
     # Su: a Safety run stopped right after its first evaluation's checkpoint (and replay chunks),
     # through the driver's after_eval hook.

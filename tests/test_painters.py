@@ -1,9 +1,11 @@
-"""Training curves drawn by painter processes (rlbackdoors.report.painters): the same PNG as drawn
-in the caller, every curve even when a painter dies or a curve cannot be drawn, and a group that
-draws its curves with painters leaves the same model folders as one that draws them itself."""
+"""Training curves and GIFs drawn by painter processes (rlbackdoors.report.painters): the same
+picture as drawn in the caller, every one even when a painter dies or a curve cannot be drawn,
+and a group that draws them with painters leaves the same model folders as one that draws them itself."""
 
 from __future__ import annotations
 
+import base64
+import json
 import math
 import os
 import resource
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from rlbackdoors.config import RunConfig
 from rlbackdoors.report.painters import Drawn, Painters, draw
 from rlbackdoors.train.group import painter_count, train_group
 from test_group import TINY, tiny
@@ -83,11 +86,15 @@ def test_painters_are_for_gpu_groups_only():
 
 def test_a_group_with_painters_leaves_the_folders_a_group_without_them_does(tmp_path):
     """Three tiny LavaWorld runs (4 evaluations of 4 episodes) in a group of 3, finishing together:
-    painters draw their curves; the same model.pt, curve and metrics (but the clocks) as the
-    group drawing them itself."""
+    painters draw their curves and GIFs (the GIF's network rebuilt from the weights sent over the
+    pipe); the same model.pt, curve, GIF and metrics (but the clocks) as the group drawing them itself."""
     sides, spent = {}, {}
     for workers in (0, 2):
-        runs = [(s, tiny(s), tmp_path / f"p{workers}" / f"s{s}") for s in (1, 2, 3)]
+        # with GIFs (short episodes: an untrained agent plays to the step limit)
+        def config(seed: int) -> RunConfig:
+            return RunConfig.from_dict({**TINY, "env": {"name": "lavaworld", "max_steps": 24}, "train": {**TINY["train"], "seed": seed, "video": True}})
+
+        runs = [(s, config(s), tmp_path / f"p{workers}" / f"s{s}") for s in (1, 2, 3)]
         before = (time.process_time(), resource.getrusage(resource.RUSAGE_CHILDREN))
         result = train_group(runs, 3, painters=workers)
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -96,7 +103,7 @@ def test_a_group_with_painters_leaves_the_folders_a_group_without_them_does(tmp_
         sides[workers] = result
     for s in (1, 2, 3):
         a, b = tmp_path / "p0" / f"s{s}", tmp_path / "p2" / f"s{s}"
-        for name in ("model.pt", "training_curve.png", "ground_truth.csv"):  # log.csv holds wall times
+        for name in ("model.pt", "training_curve.png", "clean_vs_triggered.gif", "ground_truth.csv"):  # log.csv holds wall times
             assert (a / name).read_bytes() == (b / name).read_bytes(), name
         m0, m2 = (sides[w].metrics[s] for w in (0, 2))
         assert {k: v for k, v in m0.items() if k not in ("cpu_time_s", "wall_time_s")} == {
@@ -107,3 +114,14 @@ def test_a_group_with_painters_leaves_the_folders_a_group_without_them_does(tmp_
     own, painters = spent[2]
     assert painters > 0.1 and spent[0][1] == pytest.approx(0.0, abs=0.05)  # no child process without painters
     assert 0.8 * (own + painters) <= sum(sides[2].cpu_s.values()) <= own + painters + 0.05
+    # and the GIFs did come from the painters: two GIF requests built from the folders (config, model.pt)
+    jobs = []
+    for s in (1, 2):
+        folder = tmp_path / "p0" / f"s{s}"
+        cfg = json.loads((folder / "config.json").read_text())
+        weights = base64.b64encode((folder / "model.pt").read_bytes()).decode("ascii")
+        jobs.append({"kind": "gif", "config": cfg, "weights": weights, "seed": cfg["train"]["eval_seed"], "policy": cfg["train"]["eval_policy"]})
+    with Painters(2) as painters:
+        drawn = painters.render(jobs)
+    assert all(isinstance(d, Drawn) and d.cpu_s > 0 for d in drawn)  # a painter's clock: drawn there, not here
+    assert [d.png for d in drawn] == [(tmp_path / "p0" / f"s{s}" / "clean_vs_triggered.gif").read_bytes() for s in (1, 2)]  # type: ignore[union-attr]

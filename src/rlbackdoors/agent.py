@@ -123,6 +123,16 @@ def load_policy(cfg, path: Path):
     return opac2_policy(cfg, weights, path)
 
 
+def policy_from_weights(cfg, weights: dict, source: str):
+    """``cfg``'s network (or OPAC² agent) holding ``weights`` (a ``model.pt`` state dict, named
+    ``source`` in errors), on the CPU: what :func:`load_policy` reads from a file."""
+    if cfg.algorithm == "opac2":
+        return opac2_policy(cfg, weights, source)
+    from rlbackdoors.models import build_model, load_state
+
+    return load_state(build_model(cfg.model.arch, cfg.env.name), weights, source).eval()
+
+
 def opac2_policy(cfg, weights: dict, path: str | Path):
     """``cfg``'s OPAC² agent holding ``weights`` (read from ``path``: named in errors), on the CPU."""
     from rlbackdoors.models import check_finite
@@ -216,4 +226,4 @@ def _trojai_opac2(path: str | Path, world: str) -> dict:
         raise FolderError(first_line(err)) from None
 
 
-__all__ = ["Agent", "build_policy", "load", "load_policy", "load_weights_file", "opac2_policy", "opac2_shape"]
+__all__ = ["Agent", "build_policy", "load", "load_policy", "load_weights_file", "opac2_policy", "opac2_shape", "policy_from_weights"]

@@ -1,17 +1,19 @@
-"""Training curves drawn by worker processes, for a group trainer whose GPU would wait on them.
+"""Training curves and GIFs drawn by worker processes, for a group trainer whose GPU would wait on them.
 
 Why: a curve costs about 0.2 s of matplotlib in the calling thread (text layout, then the PNG).
 A GPU group that finishes 256 models together would hold the device for about 50 s on them
 (measured on a CPU: 32 grid-world models of 4,096 frames in one group spent more of their wall
-time drawing curves than training). Here up to N processes of their own draw them in parallel.
+time drawing curves than training), and a run's clean-vs-triggered GIF (episodes played and
+rendered) costs 1.5 to 2 s. Here up to N processes of their own draw them in parallel.
 
-The runs still write their own files: a painter sends the PNG back as bytes, so the model
-folder's path rules hold and nothing else writes into it. A painter is
-``python -m rlbackdoors.report.painters``: one JSON request a line on stdin (the curve's rows,
-title, thresholds and curriculum switch), one JSON reply a line on stdout (the PNG in base64
-and the CPU seconds it took, its start-up counted in the first, or the error). No pickle crosses
-the pipe. A curve whose painter fails or dies is drawn in the caller instead, so a model never
-goes without its curve; the caller's drawing raises what drawing raises alone. Painters exit at
+The runs still write their own files: a painter sends the picture back as bytes, so the model
+folder's path rules hold and nothing else writes into it (nor reads from it: a GIF's weights
+come over the pipe). A painter is ``python -m rlbackdoors.report.painters``: one JSON request a
+line on stdin (:func:`draw`), one JSON reply a line on stdout (the picture in base64 and the CPU
+seconds it took, its start-up counted in the first, or the error). No pickle crosses the pipe;
+weights are read as data (``weights_only``). A picture whose painter fails or dies is drawn in
+the caller instead, so a model never goes without it; the caller's drawing raises what drawing
+raises alone (a MuJoCo GIF without an offscreen GL back-end, say). Painters exit at
 the end of their input, so they end with the process that started them, even after a ``kill -9``.
 """
 
@@ -25,6 +27,7 @@ import subprocess
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,12 +42,36 @@ class Drawn:
 
 
 def draw(job: dict) -> bytes:
-    """The PNG of one request: ``rows``, ``title``, ``thresholds`` and ``switch_at``, as
-    :func:`rlbackdoors.report.curves.render_training_curve` takes them."""
+    """The picture of one request: a training curve (``kind`` "curve": ``rows``, ``title``,
+    ``thresholds``, ``switch_at``, as :func:`rlbackdoors.report.curves.render_training_curve`
+    takes them) or a clean-vs-triggered GIF (``kind`` "gif": the run's ``config`` dict, its
+    ``model.pt`` as base64 ``weights``, read as data only, and the episode's ``seed`` and ``policy``)."""
+    if job.get("kind", "curve") == "gif":
+        return _gif(job)
     from rlbackdoors.report.curves import render_training_curve  # matplotlib: only where a curve is drawn
 
     clean, poisoned = job["thresholds"]
     return render_training_curve(job["rows"], job["title"], (clean, poisoned), job.get("switch_at"))
+
+
+def _gif(job: dict) -> bytes:
+    """The GIF a finishing run would render itself, from its config and weights: the same
+    network, acting on one thread as the run's learner does by default."""
+    import io
+
+    import torch
+
+    from rlbackdoors.agent import Agent, policy_from_weights
+    from rlbackdoors.config import RunConfig
+    from rlbackdoors.report.video import render_clean_vs_triggered
+
+    cfg = RunConfig.from_dict(job["config"])
+    if cfg.poison.trigger is None:
+        raise ValueError("a clean-vs-triggered GIF needs the run's trigger (poison.trigger)")
+    torch.set_num_threads(cfg.train.torch_threads)
+    weights = torch.load(io.BytesIO(base64.b64decode(job["weights"])), map_location="cpu", weights_only=True)
+    agent = Agent(cfg.world, cfg, policy_from_weights(cfg, weights, "the weights a painter was sent"))
+    return render_clean_vs_triggered(agent, cfg.env, cfg.poison.trigger, int(job["seed"]), job["policy"])
 
 
 def _plain(value):
@@ -76,8 +103,9 @@ class Painters:
         while len(self.procs) < n:
             self.procs.append(subprocess.Popen([sys.executable, "-m", "rlbackdoors.report.painters"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env))
 
-    def render(self, jobs: list[dict]) -> list[Drawn | BaseException]:
-        """Each job's PNG (:func:`draw`), or the exception drawing it raised, in the jobs' order."""
+    def render(self, jobs: list[dict], here: list[Callable[[], bytes]] | None = None) -> list[Drawn | BaseException]:
+        """Each job's picture (:func:`draw`), or the exception drawing it raised, in the jobs' order;
+        ``here``: how the caller draws each itself where a painter cannot (default: :func:`draw`)."""
         results: list[Drawn | BaseException | None] = [None] * len(jobs)
         if self.workers >= 2 and len(jobs) >= 2:
             self._start(min(self.workers, len(jobs)))
@@ -85,8 +113,8 @@ class Painters:
         for i, job in enumerate(jobs):  # no painters, or theirs failed: here, as alone
             if results[i] is None:
                 try:
-                    results[i] = Drawn(draw(job))
-                except Exception as err:  # the run that asked gets it, the others their curves
+                    results[i] = Drawn(here[i]() if here is not None else draw(job))
+                except Exception as err:  # the run that asked gets it, the others their pictures
                     results[i] = err
         return [r for r in results if r is not None]
 

@@ -9,13 +9,14 @@ one the env raises RuntimeError, which the trainer reports and goes on without a
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image
 
-from rlbackdoors.io import atomic_write
+from rlbackdoors.io import atomic_write_bytes
 
 VIDEO_DEFAULTS = {"fps": 6, "every": 1, "size": None, "tile": 24, "gap": 8}
 
@@ -50,6 +51,11 @@ def _scaled(frame: np.ndarray, size: int | None) -> np.ndarray:
 
 def clean_vs_triggered_gif(agent, env_cfg, trigger: str, seed: int, path: str | Path, policy: str = "sample") -> Path:
     """Write a GIF: episode ``seed`` in E (left) and in E-bar (right), played by ``agent``."""
+    return atomic_write_bytes(path, render_clean_vs_triggered(agent, env_cfg, trigger, seed, policy))
+
+
+def render_clean_vs_triggered(agent, env_cfg, trigger: str, seed: int, policy: str = "sample") -> bytes:
+    """:func:`clean_vs_triggered_gif`'s GIF, as bytes (a painter process renders it; the run writes it)."""
     settings = {**VIDEO_DEFAULTS, **env_cfg.world.video}
     with agent.evaluating():
         left = episode_frames(agent, env_cfg, None, seed, policy)
@@ -62,5 +68,6 @@ def clean_vs_triggered_gif(agent, env_cfg, trigger: str, seed: int, path: str | 
     fps = settings["fps"]
     images += [images[-1]] * fps  # linger a second on the ending
     duration = max(1, round(1000 / fps))  # ms per shown frame
-    atomic_write(path, lambda tmp: images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0))
-    return Path(path)
+    gif = io.BytesIO()
+    images[0].save(gif, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
+    return gif.getvalue()

@@ -17,8 +17,11 @@ the *final* evaluation, as the paper and the TrojAI round generators select mode
 
 from __future__ import annotations
 
+import base64
 import contextlib
+import functools
 import importlib
+import io
 import sys
 import time
 from collections.abc import Callable, Generator, Iterator
@@ -296,16 +299,19 @@ class Evaluate:
 
 
 @dataclass
-class DrawCurve:
-    """What a finishing run asks for: its training curve's PNG (:func:`rlbackdoors.report.painters.draw`
-    of ``job``), drawn here alone, by painter processes in a GPU group (:class:`rlbackdoors.report.painters.Painters`)."""
+class Draw:
+    """What a finishing run asks for: a picture (its training curve, its clean-vs-triggered GIF).
+    Alone it is drawn here (``here``); a group trainer on a GPU hands the painter request
+    (``job()``, :func:`rlbackdoors.report.painters.draw`) to painter processes
+    (:class:`rlbackdoors.report.painters.Painters`), and draws here what they cannot."""
 
-    job: dict
+    job: Callable[[], dict]
+    here: Callable[[], bytes]
 
     def serve(self):
-        from rlbackdoors.report.painters import Drawn, draw
+        from rlbackdoors.report.painters import Drawn
 
-        return Drawn(draw(self.job))
+        return Drawn(self.here())
 
 
 def attack_fields(cfg: RunConfig) -> dict:
@@ -319,10 +325,11 @@ def attack_fields(cfg: RunConfig) -> dict:
 
 def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: bool) -> Generator[Any, Any, dict]:
     """The final evaluation's numbers (``outcome.final``), then weights, ground truth, curve, GIF
-    and metrics.json last. Yields the curve's drawing (:class:`DrawCurve`): a group trainer on a
-    GPU has it drawn by painter processes, as its device would otherwise wait on matplotlib."""
+    and metrics.json last. Yields the curve and the GIF to draw (:class:`Draw`): a group trainer
+    on a GPU has them drawn by painter processes, as its device would otherwise wait on them."""
     from rlbackdoors.agent import Agent
     from rlbackdoors.io import atomic_write_bytes
+    from rlbackdoors.report import painters
 
     tc = cfg.train
     final = outcome.final
@@ -334,17 +341,31 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
     if outcome.rows:
         title = f"{cfg.world.title} {outcome.label} {kind}, trigger {cfg.poison.trigger}, seed {tc.seed}"
         thresholds = (tc.clean_threshold, tc.poisoned_threshold if cfg.poison.poisoned else None)
-        drawn = yield DrawCurve({"rows": outcome.rows, "title": title, "thresholds": thresholds, "switch_at": outcome.switch_at or None})
+        curve = {"kind": "curve", "rows": outcome.rows, "title": title, "thresholds": thresholds, "switch_at": outcome.switch_at or None}
+        drawn = yield Draw(lambda: curve, functools.partial(painters.draw, curve))
         if isinstance(drawn, BaseException):
             raise drawn
         atomic_write_bytes(folder.file("training_curve.png"), drawn.png)
     gif = None
     if tc.video and cfg.poison.trigger is not None:
-        from rlbackdoors.report.video import clean_vs_triggered_gif
+        from rlbackdoors.report.video import render_clean_vs_triggered
+
+        def gif_job() -> dict:  # what a painter needs: the config and model.pt's bytes (built only if one draws it)
+            data = io.BytesIO()
+            torch.save(outcome.weights, data)
+            weights = base64.b64encode(data.getvalue()).decode("ascii")
+            return {"kind": "gif", "config": cfg.to_dict(), "weights": weights, "seed": tc.eval_seed, "policy": tc.eval_policy}
+
+        trigger, eval_policy = cfg.poison.trigger, tc.eval_policy
+
+        def gif_here() -> bytes:
+            return render_clean_vs_triggered(Agent(cfg.world, cfg, outcome.policy), cfg.env, trigger, tc.eval_seed, eval_policy)
 
         try:
-            agent = Agent(cfg.world, cfg, outcome.policy)
-            gif = clean_vs_triggered_gif(agent, cfg.env, cfg.poison.trigger, tc.eval_seed, folder.file("clean_vs_triggered.gif"), tc.eval_policy).name
+            drawn = yield Draw(gif_job, gif_here)
+            if isinstance(drawn, BaseException):
+                raise drawn
+            gif = atomic_write_bytes(folder.file("clean_vs_triggered.gif"), drawn.png).name
         except RuntimeError as err:  # e.g. no offscreen GL back-end: the model is still complete
             if progress:
                 print(f"no clean_vs_triggered.gif: {err}", file=sys.stderr, flush=True)

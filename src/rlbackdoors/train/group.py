@@ -33,7 +33,7 @@ import torch
 
 from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
-from rlbackdoors.train.driver import DrawCurve, Evaluate, env_pool_for, evaluate_runs, train_steps
+from rlbackdoors.train.driver import Draw, Evaluate, env_pool_for, evaluate_runs, train_steps
 from rlbackdoors.train.opac2_run import Act, Learn
 from rlbackdoors.train.ppo_run import Collect, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -105,7 +105,7 @@ def auto_group_size(algorithm: str, device: str) -> int:
 
 
 def painter_count(runs: Sequence[tuple[Any, RunConfig, Any]], group_size: int) -> int:
-    """Painter processes for the group's training curves (:mod:`rlbackdoors.report.painters`):
+    """Painter processes for the group's training curves and GIFs (:mod:`rlbackdoors.report.painters`):
     the host's other cores where the learners compute on a GPU, which would otherwise wait on
     matplotlib as runs finish together; none on a CPU, where they would only take a core from
     training (the group waits on the same work either way)."""
@@ -116,9 +116,9 @@ def painter_count(runs: Sequence[tuple[Any, RunConfig, Any]], group_size: int) -
 
 def batch_key(request, painters: bool = False) -> tuple | None:
     """Requests with the same key are answered by one batched call; None: answered alone
-    (``painters``: the group draws its curves in painter processes)."""
-    if isinstance(request, DrawCurve):
-        return ("DrawCurve",) if painters else None
+    (``painters``: the group draws its pictures in painter processes)."""
+    if isinstance(request, Draw):
+        return ("Draw",) if painters else None
     if isinstance(request, Evaluate):
         policy, cfg = request.policy, request.cfg
         if not isinstance(policy, torch.nn.Module) or not group.stackable(policy) or cfg.world.vector_entry_point is None:
@@ -143,9 +143,9 @@ def serve_batch(requests: list, stacked: bool = True, painters: Painters | None 
     lone run (:func:`train_group` with group size 1: today's bytes); curves go to ``painters``."""
     if len(requests) == 1 and not stacked:
         return [requests[0].serve()]
-    if isinstance(requests[0], DrawCurve):
+    if isinstance(requests[0], Draw):
         assert painters is not None
-        return painters.render([r.job for r in requests])
+        return painters.render([r.job() for r in requests], [r.here for r in requests])
     if isinstance(requests[0], Evaluate):
         return evaluate_runs([r.policy for r in requests], [r.cfg for r in requests], [r.episodes for r in requests], group.stacked_act)
     if isinstance(requests[0], Act):
@@ -176,7 +176,7 @@ def train_group(
     every running run write its checkpoint and stop, then raises :class:`Interrupted`.
     ``on_done(key, metrics, error)`` is called as each run ends. ``env_workers``: the env copies
     of runs in worlds of single envs live in one pool of that many worker processes (same bytes). ``painters``:
-    processes that draw the training curves of runs finishing together (default
+    processes that draw the training curves and GIFs of runs finishing together (default
     :func:`painter_count`: the other cores on a GPU, none on a CPU).
     """
     if group_size < 1:

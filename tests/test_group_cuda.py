@@ -13,10 +13,12 @@ from __future__ import annotations
 import copy
 import io
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -226,3 +228,73 @@ def test_cuda_group_with_clean_teachers_computes_what_the_cpu_group_computes():
         assert gpu_stats[k]["grad_norm"] == pytest.approx(cpu_stats[k]["grad_norm"], rel=1e-2)
         triggered += int((~theirs.untriggered).sum())
     assert triggered > 0  # some frames carried the trigger and were left out of the KL
+
+
+# Run in a process of its own: JAX must start with deterministic GPU kernels (algos.jax_update._jax),
+# which a JAX started earlier in this process (by a CPU test) would not have.
+JAX_ON_CUDA = r"""
+import copy, hashlib, json, sys
+import torch
+from rlbackdoors.algos import group
+from rlbackdoors.train.driver import resolve_device
+from test_group import learner
+
+cuda = resolve_device("cuda")
+sections = {"ppo": {"epochs": 1, "batch_size": 1280}}
+def made(backend, seeds):
+    out = [learner("lavaworld", "fc", s, None, cuda, ppo={**sections["ppo"], "update_backend": backend}) for s in seeds]
+    ppos = [m[0] for m in out]
+    return ppos, [r for r, _ in group.collect(ppos, [m[1] for m in out], [m[2] for m in out])]
+def digest(model):
+    return hashlib.sha256(b"".join(p.detach().cpu().numpy().tobytes() for p in model.parameters())).hexdigest()
+torch_ppos, rollouts = made("torch", [0, 1, 2])
+jax_ppos, same = made("jax", [0, 1, 2])
+expected, got = group.update(torch_ppos, rollouts), group.update(jax_ppos, same)
+moved = []
+for a, b in zip(torch_ppos, jax_ppos):
+    diff = torch.cat([(p.detach() - q.detach()).abs().reshape(-1) for p, q in zip(a.model.parameters(), b.model.parameters())])
+    moved.append({"over_1e-5": float((diff > 1e-5).float().mean()), "max": float(diff.max()), "device": next(b.model.parameters()).device.type})
+digests = []
+for seeds in ([0], [0, 1, 2], [0, 1, 2]):
+    ppos, rollouts = made("jax", seeds)
+    for _ in range(2):
+        group.update(ppos, rollouts)
+    digests.append(digest(ppos[0].model))
+step = float(jax_ppos[0].optimizer.state[next(jax_ppos[0].model.parameters())]["step"])
+print(json.dumps({"expected": expected, "got": got, "moved": moved, "digests": digests, "step": step}))
+"""
+
+
+def test_the_jax_update_on_cuda_is_torchs_and_does_not_depend_on_the_group(tmp_path):
+    """``ppo.update_backend = "jax"`` on the GPU (one XLA program, the weights and rollout handed
+    over through DLPack, agents in chunks of 64): three LavaWorld FC agents' rollout on CUDA, one
+    epoch of one minibatch: the loss parts and gradient norm of torch's group update to 1e-4, the
+    weights as on the CPU (tests/test_jax_update.py: to 1e-5 but for Adam's sign on near-zero
+    gradients), left on the GPU, with torch.optim.Adam's step; agent 0's bytes the same alone,
+    with two mates and again (deterministic GPU kernels)."""
+    pytest.importorskip("jax", reason="the jax extra is not installed")
+    import jax
+
+    try:
+        if not jax.devices("gpu"):
+            pytest.skip("this JAX has no GPU")
+    except RuntimeError:
+        pytest.skip("this JAX has no GPU backend (jax[cuda])")
+    tests = str(Path(__file__).resolve().parent)
+    out = subprocess.run(
+        [sys.executable, "-c", JAX_ON_CUDA],
+        capture_output=True,
+        text=True,
+        cwd=tests,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": tests + os.pathsep + os.environ.get("PYTHONPATH", "")},
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    print(json.dumps(result["moved"]), result["digests"])
+    for e, g in zip(result["expected"], result["got"]):
+        for key in e:
+            assert g[key] == pytest.approx(e[key], rel=1e-4), key
+    for m in result["moved"]:
+        assert m["device"] == "cuda" and m["over_1e-5"] <= 1e-3 and m["max"] <= 2.1e-3
+    assert len(set(result["digests"])) == 1 and result["step"] == 1.0

@@ -150,7 +150,10 @@ def test_what_the_backend_does_not_run_is_refused_in_one_line(tmp_path):
     refused({"env": {"name": "lavaworld"}, "ppo": {"update_backend": "xla"}}, r"ppo.update_backend.*'xla'.*torch, jax")
     refused({"env": {"name": "lavaworld"}, "model": {"arch": "cnn"}, "ppo": {"update_backend": "jax"}}, r"runs model.arch 'fc'.*not 'cnn'")
     refused({"env": {"name": "colorful-memory"}, "ppo": {"update_backend": "jax"}}, r"runs model.arch 'fc'")
-    refused({"env": {"name": "lavaworld"}, "ppo": {"update_backend": "jax"}, "train": {"device": "auto"}}, r"train.device must be 'cpu', not 'auto'")
+    # on CUDA where there is none (the GPU path itself: tests/test_group_cuda.py, on a GPU machine)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"^ppo.update_backend='jax' on CUDA: no CUDA device is available"):
+            jax_update.check(build_model("fc", "lavaworld"), torch.device("cuda"))
     finetune = {"finetune": True, "teacher": 1.0}
     refused(
         {"env": {"name": "lavaworld"}, "ppo": {"update_backend": "jax"}, "poison": {"attack": "trojdrl", "evasion": finetune}},

@@ -251,7 +251,8 @@ class PPOConfig:
     # the memory what the env says must be remembered (``memory_targets``); not the paper's.
     aux_memory_coef: float = 0.0
     # What runs PPO's update: "torch" (autograd), or "jax" (rlbackdoors.algos.jax_update: every
-    # minibatch of an update in one XLA program; feed-forward "fc" models on a CPU, the jax extra).
+    # minibatch of an update in one XLA program; feed-forward "fc" models, the jax extra; on CUDA
+    # JAX with GPU support).
     # The same algorithm with other rounding, so other bytes: a config field.
     update_backend: str = "torch"
 
@@ -551,8 +552,6 @@ class RunConfig(JsonConfig):
             if self.ppo.update_backend == "jax":
                 if self.model.arch != "fc":
                     raise ConfigError(f"ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers), not {self.model.arch!r}")
-                if self.train.device != "cpu":
-                    raise ConfigError(f"ppo.update_backend='jax' runs on the CPU: train.device must be 'cpu', not {self.train.device!r}")
                 if any(self.poison.evasion.get(key) for key in ("teacher", "anchor")):
                     raise ConfigError("ppo.update_backend='jax' has no clean teacher or weight anchor (poison.evasion.teacher, .anchor): use 'torch'")
         else:

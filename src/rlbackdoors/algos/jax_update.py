@@ -18,7 +18,11 @@ first): an agent's bytes then depend on its config, not on its group-mates or th
 (tested). A lone run computes at width 1: its bytes are the lone path's, as with torch.
 
 JAX computes on one thread where this module starts it (:func:`_jax`): a zoo trains a process
-per core, and one process's pool must not wait on the other's core.
+per core, and one process's pool must not wait on the other's core. On CUDA (``train.device``)
+the update runs on the GPU: the tensors pass to JAX and back through DLPack without a copy, a
+group computes in chunks of :data:`CUDA_WIDTH`, and JAX starts with deterministic GPU kernels
+and without taking the GPU's memory up front. A CPU run's arrays are placed on the CPU's XLA
+device, never on a GPU JAX would pick by default.
 """
 
 from __future__ import annotations
@@ -35,24 +39,37 @@ from torch import nn
 from rlbackdoors.algos.group import FlatParameters, StackedAdam, param_of, stacked_parameters
 from rlbackdoors.algos.obs import stack
 
-WIDTH = 8  # agents per XLA call in a group (see the module doc)
+WIDTH = 8  # agents per XLA call in a CPU group (see the module doc)
+CUDA_WIDTH = 64  # ... in a CUDA group: the torch group's width there (algos.group.CUDA_WIDTH)
 ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+DETERMINISTIC_GPU = "--xla_gpu_deterministic_ops=true"  # gathers' backward without atomics: the same bytes each run
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 
 
-def _jax():
-    """The ``jax`` module, started with one compute thread; ``ValueError`` (one line) where it is missing.
+def _jax(gpu: bool = False):
+    """The ``jax`` module, started with one compute thread; ``ValueError`` (one line) where it is
+    missing, or (``gpu``) where it was started in this process without deterministic GPU kernels.
+    With ``gpu`` it starts with them and without taking the GPU's memory up front (torch's
+    allocator shares the device).
 
     JAX sizes its CPU thread pool by the starting thread's CPU affinity, and XLA_FLAGS alone do not
     stop it (measured: 1.35 CPU-s per second of a minibatch loop, the spare core's share spent
     waiting). So the backend starts with the calling thread allowed one core, and then the threads
     it made, and the caller, get their affinity back: one compute thread, free to move (1.05)."""
     if "jax" in sys.modules:
+        if gpu and DETERMINISTIC_GPU not in os.environ.get("XLA_FLAGS", ""):
+            raise ValueError(
+                "ppo.update_backend='jax' on CUDA needs JAX started by rlbackdoors (deterministic GPU kernels); "
+                "this process imported jax before: train in a fresh process"
+            )
         import jax
 
         return jax
     if "intra_op_parallelism_threads" not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {ONE_THREAD}".strip()
+    if gpu:
+        os.environ["XLA_FLAGS"] = f"{os.environ['XLA_FLAGS']} {DETERMINISTIC_GPU}"
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     pin = hasattr(os, "sched_setaffinity") and os.path.isdir("/proc/self/task")
     if pin:
         allowed = os.sched_getaffinity(0)
@@ -61,7 +78,7 @@ def _jax():
     try:
         import jax
 
-        jax.numpy.zeros(1).block_until_ready()  # the backend and its pool, started now
+        jax.device_put(np.zeros(1, np.float32), jax.devices("cpu")[0]).block_until_ready()  # the CPU backend and its pool, started now
     except ImportError:
         raise ValueError(
             "ppo.update_backend='jax' needs JAX, which is not installed: pip install 'rlbackdoors[jax]', or set ppo.update_backend='torch'"
@@ -110,11 +127,41 @@ def structure(model: Any) -> tuple:
 
 def check(model: Any, device: torch.device) -> None:
     """Refuse (``ValueError``, one line) what this backend cannot update: a model other than
-    :func:`structure` runs, a device other than the CPU, a missing JAX."""
-    if device.type != "cpu":
-        raise ValueError(f"ppo.update_backend='jax' runs on the CPU, not {device.type!r}")
+    :func:`structure` runs, a device other than the CPU or CUDA, a missing JAX or one without GPU support."""
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"ppo.update_backend='jax' runs on the CPU or CUDA, not {device.type!r}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("ppo.update_backend='jax' on CUDA: no CUDA device is available (train.device 'cpu')")
     structure(model)
-    _jax()
+    jax = _jax(gpu=device.type == "cuda")
+    if device.type == "cuda" and not _gpu_devices(jax):
+        raise ValueError("ppo.update_backend='jax' with train.device='cuda' needs JAX with CUDA (jax[cuda]); this one has no GPU: use 'torch'")
+
+
+def _gpu_devices(jax) -> list:
+    try:
+        return jax.devices("gpu")
+    except RuntimeError:  # no GPU backend in this jaxlib
+        return []
+
+
+def _placed(jax, device: torch.device):
+    """Torch tensor -> JAX array on the learners' device: the CPU's XLA device for CPU tensors
+    (never a GPU JAX would pick by default on a GPU machine: a CPU run's bytes are the CPU's), and
+    the same GPU memory, no copy, for CUDA tensors (DLPack, after torch's queued work is done)."""
+    if device.type == "cpu":
+        cpu = jax.devices("cpu")[0]
+        return lambda t: jax.device_put(t.numpy(), cpu)
+    torch.cuda.synchronize(device)
+    return lambda t: jax.dlpack.from_dlpack(t.contiguous())
+
+
+def _back(array, device: torch.device) -> torch.Tensor:
+    """JAX array -> torch tensor on the learners' device (a CPU copy: XLA's buffer is read-only)."""
+    if device.type == "cpu":
+        return torch.from_numpy(np.array(array))
+    array.block_until_ready()
+    return torch.from_dlpack(array)
 
 
 @functools.cache
@@ -177,11 +224,16 @@ def _program(layers: tuple, layout: tuple, hyper: tuple):
     return jax.jit(update)
 
 
-def update(ppos: list, rollouts: list, width: int = WIDTH) -> list[dict[str, float]]:
+def update(ppos: list, rollouts: list, width: int | None = None) -> list[dict[str, float]]:
     """PPO's update for ``ppos`` (one architecture and PPO config, checked by the caller) on their
-    rollouts, ``width`` agents per XLA call (a group: :data:`WIDTH`; a lone run: 1); one stats
-    dict per agent, as :func:`rlbackdoors.algos.group.update` returns them."""
+    rollouts, ``width`` agents per XLA call (a group: :data:`WIDTH` on the CPU, :data:`CUDA_WIDTH`
+    on CUDA; a lone run: 1); one stats dict per agent, as :func:`rlbackdoors.algos.group.update`
+    returns them."""
     lead = ppos[0]
+    device = lead.device
+    if width is None:
+        width = CUDA_WIDTH if device.type == "cuda" else WIDTH
+    jax = _jax(gpu=device.type == "cuda")
     cfg, model = lead.cfg, lead.model
     n = rollouts[0].num_frames
     if any(r.num_frames != n for r in rollouts):
@@ -207,23 +259,24 @@ def update(ppos: list, rollouts: list, width: int = WIDTH) -> list[dict[str, flo
         perms = [torch.stack([torch.randperm(n, generator=ppo.generator) for _ in range(cfg.epochs)]) for ppo in chunk[:real]]
         orders = torch.stack(perms + perms[:1] * (width - real), 1)  # (epochs, K, n)
         orders = orders.reshape(cfg.epochs, width, n // cfg.batch_size, cfg.batch_size).transpose(1, 2).reshape(-1, width, cfg.batch_size)
-        columns = [torch.stack([getattr(r, f) for r in chunk_rollouts]).numpy() for f in ("actions", "logprobs", "values", "advantages", "returns")]
+        columns = [torch.stack([getattr(r, f) for r in chunk_rollouts]) for f in ("actions", "logprobs", "values", "advantages", "returns")]
         program = _program(layers, layout, tuple(float(h) for h in hyper))
+        put = _placed(jax, device)
         rows, avg, sq, step, parts = program(
-            weights.flat.numpy(),
-            adam.exp_avg.numpy(),
-            adam.exp_avg_sq.numpy(),
-            adam.step.float().numpy(),
-            adam.lr.numpy(),
-            inputs.numpy(),
-            *columns,
-            orders.int().numpy(),
+            put(weights.flat),
+            put(adam.exp_avg),
+            put(adam.exp_avg_sq),
+            put(adam.step.float()),
+            put(adam.lr),
+            put(inputs),
+            *(put(c) for c in columns),
+            put(orders.int().to(device)),
         )
         with torch.no_grad():
-            weights.flat.copy_(torch.from_numpy(np.array(rows)))  # np.array: a writable copy of XLA's buffer
-            adam.exp_avg.copy_(torch.from_numpy(np.array(avg)))
-            adam.exp_avg_sq.copy_(torch.from_numpy(np.array(sq)))
-            adam.step.copy_(torch.from_numpy(np.array(step)).double())
+            weights.flat.copy_(_back(rows, device))
+            adam.exp_avg.copy_(_back(avg, device))
+            adam.exp_avg_sq.copy_(_back(sq, device))
+            adam.step.copy_(_back(step, device).double())
         adam.write_back(real)
         means = np.asarray(parts, dtype=np.float64)  # (K, 4)
         out += [{key: float(means[k, i]) for i, key in enumerate(STATS)} for k in range(real)]

@@ -9,6 +9,7 @@ import json
 import math
 import os
 import resource
+import signal
 import time
 
 import numpy as np
@@ -50,6 +51,11 @@ def test_painters_draw_the_png_the_caller_draws_and_every_curve_when_one_dies_or
         assert [d.png for d in drawn] == here  # same matplotlib, same bytes
         # each painter's first curve carries its start-up (imports): CPU seconds well above zero
         assert sum(d.cpu_s for d in drawn) > 0.3
+        # Ctrl-C (SIGINT to the terminal's process group) is the trainer's: painters ignore it
+        for proc in painters.procs:
+            os.kill(proc.pid, signal.SIGINT)
+        time.sleep(0.5)
+        assert all(proc.poll() is None for proc in painters.procs)
         # a painter killed between batches: its curves are drawn by the others or here
         painters.procs[0].kill()
         painters.procs[0].wait()

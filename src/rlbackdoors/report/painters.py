@@ -23,6 +23,7 @@ import base64
 import json
 import os
 import selectors
+import signal
 import subprocess
 import sys
 import time
@@ -188,7 +189,10 @@ class Painters:
 
 
 def main() -> int:
-    """A painter: draw each request line of stdin, reply a line on stdout, exit at its end."""
+    """A painter: draw each request line of stdin, reply a line on stdout, exit at its end.
+    Ctrl-C is the trainer's to answer (it checkpoints and stops): a painter ignores it and ends
+    with its input, when the trainer exits."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     started = 0.0  # the process's clock starts with it: its start and imports count with the first curve
     out = sys.stdout.buffer
     for line in sys.stdin.buffer:

@@ -99,7 +99,7 @@ def report(args) -> dict:
             "clean_sr_mean": round(statistics.fmean(column(rows, "clean_sr")), 4) if rows else None,
             "poisoned_sr_mean": round(statistics.fmean(column(rows, "poisoned_sr")), 4) if rows else None,
             "cpu_s_per_model": round(statistics.fmean(cpu), 1) if cpu else None,
-            "trainer": sorted({r.get("trainer", "alone") for r in rows}),
+            "trainer": sorted({r.get("trainer") or "alone" for r in rows}),
         }
     tests = {}
     if alone and grouped:

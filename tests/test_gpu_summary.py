@@ -4,6 +4,7 @@ real H200 lease's bench JSON (2026-11-27) and a bench.log of the script's format
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -43,3 +44,28 @@ def test_summary_judges_a_leases_sides_and_says_why_a_world_is_missing(tmp_path)
     assert rows["randomized-lavaworld"]["missing"] == "no side finished within its 100 s: below 19,200 frames/s, evaluations included"
     assert rows["colorful-memory"]["missing"] == "no side finished: bench zoo exited with 1 (bench.log)"
     assert "K=64 on cuda" in done.stdout and (tmp_path / "summary.md").read_text() == done.stdout
+
+
+def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
+    """benchmarks/gpu_checks.sh as a lease runs it, dry (``ON_CPU=1``: its ":cuda" sides on the CPU;
+    two LavaWorld models of 1,024 frames, no time left for the CUDA tests): the bench JSON, the
+    log and the judged table land in OUT, at most the 8 files a lease brings back."""
+    env = {
+        **os.environ,
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",  # its python3 is this one
+        "ON_CPU": "1",
+        "WORLDS": "lavaworld/fc:2:1024:300",
+        "SIDES_lavaworld": "1:cpu:1 2:cuda:1",
+        "EVAL_EPISODES": "2",
+        "DEADLINE_S": "0",
+    }
+    out = tmp_path / "out"
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(out)], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["bench.log", "bench_zoo_lavaworld_fc.json", "summary.json", "summary.md"] and len(files) <= 8
+    log = (out / "bench.log").read_text()
+    assert "== end lavaworld fc: exit 0" in log and "tests: not run" in log
+    (row,) = json.loads((out / "summary.json").read_text())["worlds"]
+    assert [s["group_size"] for s in row["sides"]] == [2] and row["reference"]["group_size"] == 1
+    assert row["sides"][0]["frames_per_s"] > 0 and row["met"]["frames_per_s"] is False  # a CPU is not the 1 M frames/s GPU

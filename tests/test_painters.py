@@ -70,6 +70,24 @@ def test_painters_draw_the_png_the_caller_draws_and_every_curve_when_one_dies_or
     assert painters.procs == [] and all(p.poll() is not None for p in procs)  # closed: every painter has exited
 
 
+def test_a_library_printing_to_stdout_does_not_cross_the_replies(tmp_path, monkeypatch):
+    """Whatever a painter's libraries print (pygame prints a banner on import): a line at start-up,
+    before the painter owns its pipe, and one from a thread while it draws. Each curve still comes
+    back to the run that asked, drawn by a painter."""
+    (tmp_path / "sitecustomize.py").write_text(
+        "import os, sys, threading, time\n"
+        "print('hello from a library')\n"
+        "sys.stdout.flush()\n"
+        "threading.Thread(target=lambda: (time.sleep(1.0), os.write(1, b'a late line\\n')), daemon=True).start()\n"
+    )
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    jobs = [job(s) for s in range(6)]
+    with Painters(2) as painters:
+        drawn = painters.render(jobs)
+    assert all(isinstance(d, Drawn) and d.cpu_s > 0 for d in drawn)  # from the painters, none redrawn here
+    assert [d.png for d in drawn] == [draw(j) for j in jobs]  # type: ignore[union-attr]
+
+
 def test_fewer_than_two_painters_or_curves_draw_in_the_caller():
     with Painters(1) as one:
         assert [d.png for d in one.render([job(0), job(1)])] == [draw(job(0)), draw(job(1))]  # type: ignore[union-attr]

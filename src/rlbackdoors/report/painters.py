@@ -9,9 +9,10 @@ rendered) costs 1.5 to 2 s. Here up to N processes of their own draw them in par
 The runs still write their own files: a painter sends the picture back as bytes, so the model
 folder's path rules hold and nothing else writes into it (nor reads from it: a GIF's weights
 come over the pipe). A painter is ``python -m rlbackdoors.report.painters``: one JSON request a
-line on stdin (:func:`draw`), one JSON reply a line on stdout (the picture in base64 and the CPU
-seconds it took, its start-up counted in the first, or the error). No pickle crosses the pipe;
-weights are read as data (``weights_only``). A picture whose painter fails or dies is drawn in
+line on stdin (an id and the :func:`draw` job), one JSON reply a line on stdout (the id, the
+picture in base64 and the CPU seconds it took, its start-up counted in the first, or the
+error). What else a library prints goes to stderr, and a line without the id is passed over.
+No pickle crosses the pipe; weights are read as data (``weights_only``). A picture whose painter fails or dies is drawn in
 the caller instead, so a model never goes without it; the caller's drawing raises what drawing
 raises alone (a MuJoCo GIF without an offscreen GL back-end, say). Painters exit at
 the end of their input, so they end with the process that started them, even after a ``kill -9``.
@@ -129,7 +130,7 @@ class Painters:
                 while todo:
                     i = todo.popleft()
                     try:
-                        line = json.dumps(jobs[i], default=_plain).encode() + b"\n"
+                        line = json.dumps({"id": i, "job": jobs[i]}, default=_plain).encode() + b"\n"
                     except (TypeError, ValueError):
                         continue  # drawn in the caller, which raises what is wrong with it
                     try:
@@ -151,12 +152,18 @@ class Painters:
                     proc, i = busy.pop(key.fd)
                     ready.unregister(key.fileobj)
                     assert proc.stdout is not None
-                    line = proc.stdout.readline()
-                    try:
-                        reply = json.loads(line) if line else {}
-                    except ValueError:
-                        reply = {}
-                    if "png" in reply:
+                    reply, line = None, b""
+                    while reply is None:  # the reply to job i: any other line (a library's print) is passed over
+                        line = proc.stdout.readline()
+                        if not line:
+                            break
+                        try:
+                            parsed = json.loads(line)
+                        except ValueError:
+                            continue
+                        if isinstance(parsed, dict) and parsed.get("id") == i:
+                            reply = parsed
+                    if reply is not None and "png" in reply:
                         results[i] = Drawn(base64.b64decode(reply["png"]), float(reply["cpu_s"]))
                     if not line:  # it exited: its job is drawn in the caller
                         self._drop(proc)
@@ -194,13 +201,21 @@ def main() -> int:
     with its input, when the trainer exits."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     started = 0.0  # the process's clock starts with it: its start and imports count with the first curve
-    out = sys.stdout.buffer
+    # the replies get stdout's pipe to themselves: whatever else writes there (pygame's banner on
+    # import, a C library) goes to stderr instead
+    out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    sys.stdout.flush()
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    sys.stdout = sys.stderr
     for line in sys.stdin.buffer:
+        reply: dict = {"id": None}
         try:
-            png = draw(json.loads(line))
-            reply: dict = {"png": base64.b64encode(png).decode("ascii"), "cpu_s": round(time.process_time() - started, 4)}
+            request = json.loads(line)
+            reply["id"] = request["id"]
+            png = draw(request["job"])
+            reply.update(png=base64.b64encode(png).decode("ascii"), cpu_s=round(time.process_time() - started, 4))
         except Exception as err:  # the caller draws it again and raises it there
-            reply = {"error": f"{type(err).__name__}: {err}"}
+            reply["error"] = f"{type(err).__name__}: {err}"
         started = time.process_time()
         out.write(json.dumps(reply).encode() + b"\n")
         out.flush()

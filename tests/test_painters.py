@@ -88,6 +88,17 @@ def test_a_library_printing_to_stdout_does_not_cross_the_replies(tmp_path, monke
     assert [d.png for d in drawn] == [draw(j) for j in jobs]  # type: ignore[union-attr]
 
 
+def test_painters_that_do_not_answer_in_time_are_ended_and_their_pictures_drawn_here():
+    """A limit of 0.1 s without a reply: shorter than a painter's start (Python and matplotlib's
+    imports), so every painter is ended and every curve drawn in the caller, none lost."""
+    jobs = [job(s) for s in range(3)]
+    with Painters(2, timeout=0.1) as painters:
+        drawn = painters.render(jobs)
+        assert painters.procs == []
+    assert all(isinstance(d, Drawn) and d.cpu_s == 0.0 for d in drawn)  # drawn here
+    assert [d.png for d in drawn] == [draw(j) for j in jobs]  # type: ignore[union-attr]
+
+
 def test_fewer_than_two_painters_or_curves_draw_in_the_caller():
     with Painters(1) as one:
         assert [d.png for d in one.render([job(0), job(1)])] == [draw(job(0)), draw(job(1))]  # type: ignore[union-attr]

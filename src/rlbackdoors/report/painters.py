@@ -88,8 +88,9 @@ class Painters:
     kept for the next (a start costs about 0.6 s of imports); ``workers`` below 2 draws every
     curve in the caller, as a lone run does. Use as a context manager, or call :meth:`close`."""
 
-    def __init__(self, workers: int):
+    def __init__(self, workers: int, timeout: float = 300.0):
         self.workers = max(0, int(workers))
+        self.timeout = timeout  # seconds without any reply: the busy painters are ended, their pictures drawn here
         self.procs: list[subprocess.Popen] = []
 
     def __enter__(self) -> Painters:
@@ -148,7 +149,13 @@ class Painters:
             for proc in list(self.procs):
                 give(proc)
             while busy:
-                for key, _ in ready.select():
+                events = ready.select(timeout=self.timeout)
+                if not events:  # a painter hung (a GL driver, say): end the busy ones, draw their pictures here
+                    for proc, _ in busy.values():
+                        self._drop(proc)
+                    busy.clear()
+                    break
+                for key, _ in events:
                     proc, i = busy.pop(key.fd)
                     ready.unregister(key.fileobj)
                     assert proc.stdout is not None

@@ -86,8 +86,8 @@ def report(args) -> dict:
     def column(rows, key):
         return [r[key] for r in rows if r.get(key) is not None]
 
-    def conv_frames(rows):
-        return [r["converged_at_frames"] for r in rows if r["converged"]]
+    def conv_frames(rows):  # a run that met the thresholds only on its final evaluation (at max_frames) converged at its last frame
+        return [r["converged_at_frames"] or r["frames"] for r in rows if r["converged"]]
 
     table = {}
     for side, rows in sides.items():
@@ -128,7 +128,8 @@ def report(args) -> dict:
         # per run, so that a later side (another group step, another machine) can be tested against these
         "runs": {
             side: [
-                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")} | {"run": name}
+                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")}
+                | {"run": name}
                 for r, name in zip(rows, names[side])
             ]
             for side, rows in sides.items()

@@ -56,11 +56,10 @@ def run_side(spec: dict, where: Path, group_size: int | str, workers: int, devic
     is; and ``env_workers`` per job for a world of single envs); wall seconds and models per hour."""
     import json
 
+    from rlbackdoors.train.group import auto_group_size
     from rlbackdoors.zoo.plan import plan
     from rlbackdoors.zoo.run import run
     from rlbackdoors.zoo.spec import parse_spec
-
-    from rlbackdoors.train.group import auto_group_size
 
     auto = group_size == "auto"
     if auto:

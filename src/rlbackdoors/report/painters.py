@@ -36,8 +36,8 @@ from pathlib import Path
 
 @dataclass
 class Drawn:
-    """A curve's PNG, and the CPU seconds a painter process spent on it (0: drawn in the caller,
-    whose own clock counts it)."""
+    """A picture's bytes (PNG or GIF), and the CPU seconds a painter process spent on it (0: drawn
+    in the caller, whose own clock counts it)."""
 
     png: bytes
     cpu_s: float = 0.0
@@ -84,9 +84,9 @@ def _plain(value):
 
 
 class Painters:
-    """Up to ``workers`` painter processes, started at the first batch of two or more curves and
+    """Up to ``workers`` painter processes, started at the first batch of two or more pictures and
     kept for the next (a start costs about 0.6 s of imports); ``workers`` below 2 draws every
-    curve in the caller, as a lone run does. Use as a context manager, or call :meth:`close`."""
+    picture in the caller, as a lone run does. Use as a context manager, or call :meth:`close`."""
 
     def __init__(self, workers: int, timeout: float = 300.0):
         self.workers = max(0, int(workers))
@@ -178,10 +178,17 @@ class Painters:
                     give(proc)
 
     def _drop(self, proc: subprocess.Popen) -> None:
+        """A painter that died, hung or cannot be written to: out of the pool, killed, its pipes closed."""
         if proc in self.procs:
             self.procs.remove(proc)
         proc.kill()
         proc.wait()
+        for pipe in (proc.stdin, proc.stdout):
+            if pipe is not None:
+                try:
+                    pipe.close()
+                except OSError:  # a broken pipe's unflushed request
+                    pass
 
     def close(self) -> None:
         """End every painter: the end of its input, then a kill if it has not exited in 5 s."""

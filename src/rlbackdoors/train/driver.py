@@ -313,6 +313,13 @@ class Draw:
 
         return Drawn(self.here())
 
+    @staticmethod
+    def picture(answer) -> bytes:
+        """The bytes of what a :class:`Draw` was answered with; the error drawing it raised, raised here."""
+        if isinstance(answer, BaseException):
+            raise answer
+        return answer.png
+
 
 def attack_fields(cfg: RunConfig) -> dict:
     """The attack and its parameters in metrics.json, where it is not the paper's env mix."""
@@ -343,9 +350,7 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
         thresholds = (tc.clean_threshold, tc.poisoned_threshold if cfg.poison.poisoned else None)
         curve = {"kind": "curve", "rows": outcome.rows, "title": title, "thresholds": thresholds, "switch_at": outcome.switch_at or None}
         drawn = yield Draw(lambda: curve, functools.partial(painters.draw, curve))
-        if isinstance(drawn, BaseException):
-            raise drawn
-        atomic_write_bytes(folder.file("training_curve.png"), drawn.png)
+        atomic_write_bytes(folder.file("training_curve.png"), Draw.picture(drawn))
     gif = None
     if tc.video and cfg.poison.trigger is not None:
         from rlbackdoors.report.video import render_clean_vs_triggered
@@ -363,9 +368,7 @@ def finish(cfg: RunConfig, folder: ModelFolder, outcome: RunOutcome, progress: b
 
         try:
             drawn = yield Draw(gif_job, gif_here)
-            if isinstance(drawn, BaseException):
-                raise drawn
-            gif = atomic_write_bytes(folder.file("clean_vs_triggered.gif"), drawn.png).name
+            gif = atomic_write_bytes(folder.file("clean_vs_triggered.gif"), Draw.picture(drawn)).name
         except RuntimeError as err:  # e.g. no offscreen GL back-end: the model is still complete
             if progress:
                 print(f"no clean_vs_triggered.gif: {err}", file=sys.stderr, flush=True)

@@ -117,7 +117,7 @@ def test_bench_train_reports_both_engines_for_both_archs(tmp_path, capsys):
     code, out, _ = run(capsys, "bench", "train", "--seconds", "0.3", "--json", str(tmp_path / "t.json"))
     result = json.loads((tmp_path / "t.json").read_text())
     assert code == 0 and set(result) == {"fc", "cnn", "machine"} and "PPO fc" in out
-    assert result["machine"]["cores"] >= 1 and result["machine"]["torch"].startswith("2.13")
+    assert result["machine"]["cores"] >= 1 and result["machine"]["torch"] == torch.__version__
     for r in (result["fc"], result["cnn"]):
         assert 0 < r["batched_collect_share"] < 1
         assert r["batched_fps"] > 0 and r["minigrid_fps"] > 0

@@ -264,7 +264,7 @@ class AttackSeam:
         upcoming, near = self._switch()
         obs, info = self.envs.reset(seed=seed, options=options)
         if near is not None:
-            self.in_near = near & ~(upcoming if upcoming is not None else False)
+            self.in_near = near & ~upcoming if upcoming is not None else near.copy()
         if upcoming is not None:
             self.triggered = upcoming.copy()
         return self._mark(obs, self._values(obs) if self.sight is None else None), info
@@ -302,7 +302,7 @@ class AttackSeam:
         actions, forced, marked, upcoming, near = prepared
         done = terminated | truncated
         if near is not None:
-            starts_near = done & near & ~(upcoming if upcoming is not None else False)
+            starts_near = done & near & ~upcoming if upcoming is not None else done & near
             self.in_near = np.where(done, starts_near, self.in_near)
             self.started[1] += int(starts_near.sum())
         if upcoming is not None:

@@ -78,15 +78,20 @@ def summarise(out: Path) -> dict:
             "frames_per_model": data["frames_per_model"],
             "reference": {k: ref.get(k) for k in ("group_size", "device", "workers", "models_per_hour", "frames_per_s", "wall_s")} if ref else None,
             "sides": [
-                {k: s.get(k) for k in ("group_size", "device", "workers", "env_workers", "models_per_hour", "frames_per_s", "ratio", "wall_s")} for s in gpu
+                {
+                    k: s.get(k)
+                    for k in ("group_size", "device", "workers", "env_workers", "update_backend", "models_per_hour", "frames_per_s", "ratio", "wall_s")
+                }
+                for s in gpu
             ],
         }
         if want is not None:
             fps, ratio, least_k = want
             row["target"] = {"frames_per_s": fps, "ratio": ratio, "least_k": least_k}
         if gpu:
-            best = max(gpu, key=lambda s: s["models_per_hour"])
-            row["best"] = best["group_size"]
+            best_at = max(range(len(gpu)), key=lambda i: gpu[i]["models_per_hour"])
+            best = gpu[best_at]
+            row["best"], row["best_side"] = best["group_size"], best_at  # K, and which of the GPU sides (two may share a K)
             if want is not None:
                 fps, ratio, least_k = want
                 row["met"] = {
@@ -140,11 +145,13 @@ def markdown(result: dict) -> str:
         if "missing" in row:
             lines.append(f"| {row['world']} {row['arch']} | {ref_text} | {row['missing']} | | | no |")
             continue
-        for s in row["sides"]:
-            met = row.get("met", {}) if s["group_size"] == row.get("best") else {}
+        for i, s in enumerate(row["sides"]):
+            met = row.get("met", {}) if i == row.get("best_side") else {}
             flags = [k for k, v in met.items() if v is False]
             lines.append(
                 f"| {row['world']} {row['arch']} | {ref_text} | K={s['group_size']} on {s['device']}"
+                + (f" x {s['workers']} processes" if (s.get("workers") or 1) > 1 else "")
+                + (f", {s['update_backend']} update" if s.get("update_backend") not in (None, "torch") else "")
                 + (f", {s['env_workers']} env workers" if s.get("env_workers") else "")
                 + f" | {s.get('frames_per_s', 0):,.0f} ({want.get('frames_per_s') or 'report'}) | x{s['ratio']} ({want.get('ratio')}) | "
                 + ("" if not met else ("yes" if not flags else "no: " + ", ".join(flags)))

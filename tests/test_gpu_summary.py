@@ -49,13 +49,15 @@ def test_summary_judges_a_leases_sides_and_says_why_a_world_is_missing(tmp_path)
 def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     """benchmarks/gpu_checks.sh as a lease runs it, dry (``ON_CPU=1``: its ":cuda" sides on the CPU;
     two LavaWorld models of 1,024 frames, no time left for the CUDA tests): the bench JSON, the
-    log and the judged table land in OUT, at most the 8 files a lease brings back."""
+    log and the judged table land in OUT, at most the 8 files a lease brings back. Two GPU sides
+    of one K (torch's update and JAX's) are told apart, and only the one with more models an hour
+    carries the verdict."""
     env = {
         **os.environ,
         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",  # its python3 is this one
         "ON_CPU": "1",
         "WORLDS": "lavaworld/fc:2:1024:300",
-        "SIDES_lavaworld": "1:cpu:1 2:cuda:1",
+        "SIDES_lavaworld": "1:cpu:1 2:cuda:1 2:cuda:1:0:jax",
         "EVAL_EPISODES": "2",
         "DEADLINE_S": "0",
     }
@@ -67,5 +69,10 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     log = (out / "bench.log").read_text()
     assert "== end lavaworld fc: exit 0" in log and "tests: not run" in log
     (row,) = json.loads((out / "summary.json").read_text())["worlds"]
-    assert [s["group_size"] for s in row["sides"]] == [2] and row["reference"]["group_size"] == 1
-    assert row["sides"][0]["frames_per_s"] > 0 and row["met"]["frames_per_s"] is False  # a CPU is not the 1 M frames/s GPU
+    assert [(s["group_size"], s["update_backend"]) for s in row["sides"]] == [(2, "torch"), (2, "jax")] and row["reference"]["group_size"] == 1
+    best = row["best_side"]
+    assert row["sides"][best]["models_per_hour"] == max(s["models_per_hour"] for s in row["sides"])
+    assert row["sides"][best]["frames_per_s"] > 0 and row["met"]["frames_per_s"] is False  # a CPU is not the 1 M frames/s GPU
+    table = [line for line in (out / "summary.md").read_text().splitlines() if line.startswith("| lavaworld fc")]
+    assert len(table) == 2 and table[0].split("|")[3].strip() == "K=2 on cpu" and table[1].split("|")[3].strip() == "K=2 on cpu, jax update"
+    assert [line.split("|")[6].strip().startswith("no: frames_per_s") for line in table] == [best == 0, best == 1]  # the verdict on one row only

@@ -261,6 +261,38 @@ def test_group_evaluations_play_each_agent_as_it_plays_alone(env):
     assert len(keys) == 1 and None not in keys and batch_key(Evaluate(models[0], cfgs[0], 13)) not in keys
 
 
+@pytest.mark.parametrize("env", sorted(EVAL_CASES))
+def test_agents_stepped_after_their_episodes_ended_read_the_same_episodes(env):
+    """On a GPU a lockstep evaluation drops the agents whose episodes have all ended only once
+    fewer than half are live (regrouping the engines costs more there than stepping them); until
+    then they are stepped and drawn for like the others, on their own slots and generators. Four
+    untrained agents (two clean, two env mix; sampled episodes, 12 each in LavaWorld, 3 in
+    Colorful Memory, where more all end at its 250-step limit; the agents' last episodes end at
+    different steps): every agent's episodes are the same whether the group regroups at once (the CPU's
+    rule), at half, or never, and the same as played alone."""
+    from rlbackdoors.agent import Agent
+    from rlbackdoors.evaluate.episodes import _vector_envs, play_episodes, play_lockstep
+
+    cfgs = [RunConfig.from_dict({"env": {"name": env}, "poison": {"poisoned": k % 2 == 1}, "train": {"seed": k}}) for k in range(4)]
+    episodes = 3 if env == "colorful-memory" else 12
+    agents = []
+    for cfg in cfgs:
+        torch.manual_seed(cfg.train.seed)
+        agents.append(Agent(cfg.world, cfg, build_model(cfg.model.arch, env)))
+
+    def envs():
+        return [_vector_envs(c.env, c.poison.trigger if c.poison.poisoned else None, episodes, None) for c in cfgs]
+
+    seeds = [1000 + k for k in range(4)]
+    alone = [play_episodes(a, e, s) for a, e, s in zip(agents, envs(), seeds)]
+    assert len({int(p.steps.max()) for p in alone}) > 1  # the agents' last episodes end at different steps: the live set shrinks
+    for regroup in (1.0, 0.5, 0.0):
+        together = play_lockstep(agents, envs(), seeds, "sample", act=group.stacked_act(agents), regroup=regroup)
+        for a, b in zip(together, alone):
+            for x, y in zip(a, b):
+                assert (x is None and y is None) or np.array_equal(x, y)
+
+
 def with_teachers(learners: list, coefs: list[float]) -> list:
     """Each learner given a clean teacher (a fresh network of its architecture, seeded apart) and its own coefficient."""
     for k, ((ppo, _, _), coef) in enumerate(zip(learners, coefs)):

@@ -129,9 +129,9 @@ def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Ten
 def stacked_act(agents: list):
     """One batched forward a step for K trained networks of one architecture (``agents``:
     :class:`~rlbackdoors.agent.Agent` objects of PPO worlds): an evaluation's ``act`` for a group's
-    agents (:data:`rlbackdoors.evaluate.episodes.ActMany`). Only the live agents (those with
-    episodes still running) are computed, at their :func:`group_width`, each drawing from its own
-    generator what its :meth:`~rlbackdoors.agent.Agent.act` would draw alone."""
+    agents (:data:`rlbackdoors.evaluate.episodes.ActMany`). Only the stepped agents are computed,
+    at their :func:`group_width`, each drawing from its own generator what its
+    :meth:`~rlbackdoors.agent.Agent.act` would draw alone."""
     models = [a.policy for a in agents]
     lead: Any = models[0]
     device = next(lead.parameters()).device
@@ -146,22 +146,25 @@ def stacked_act(agents: list):
         return cache[live]
 
     @torch.inference_mode()
-    def act(live: list[int], obs: list, states: list, generators: list[torch.Generator], deterministic: bool):
-        params = params_of(tuple(live))
-        x = obs_map(lambda t: t.to(device), stack([to_torch(obs[k]) for k in live]))
+    def act(stepped: list[int], batch, sizes: list[int], states: list, generators: list[torch.Generator], deterministic: bool):
+        if any(n != sizes[0] for n in sizes):
+            raise ValueError(f"agents acting stacked need the same number of slots each, got {sorted(set(sizes))}")
+        params = params_of(tuple(stepped))
+        # the stepped agents' rows are contiguous, agent after agent: (K, B, ...) is a reshape
+        x = obs_map(lambda t: t.to(device), to_torch(obs_map(lambda a: a.reshape(len(stepped), sizes[0], *a.shape[1:]), batch)))
         if lead.recurrent:
-            logits, _, memory = forward(lead, params, x, torch.stack([states[k] for k in live]))
+            logits, _, memory = forward(lead, params, x, torch.stack([states[k] for k in stepped]))
             states = list(states)
-            for k, m in zip(live, memory):
+            for k, m in zip(stepped, memory):
                 states[k] = m
         else:
             logits, _ = forward(lead, params, x)
         if deterministic:
             actions = logits.argmax(-1)
         else:  # each agent's own uniforms (what its lone sample_actions draws), then one sample for all
-            u = torch.stack([torch.rand(row.shape[0], generator=generators[k], device=row.device) for k, row in zip(live, logits)])
+            u = torch.stack([torch.rand(row.shape[0], generator=generators[k], device=row.device) for k, row in zip(stepped, logits)])
             actions = sample_actions(logits.reshape(-1, logits.shape[-1]), u=u.reshape(-1)).reshape(u.shape)
-        return list(actions.cpu().numpy()), states  # one copy back for the live agents, not one each
+        return actions.reshape(-1).cpu().numpy(), states  # one copy back for the stepped agents, not one each
 
     return act
 

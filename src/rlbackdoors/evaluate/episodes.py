@@ -21,7 +21,7 @@ import functools
 from collections.abc import Callable
 
 from dataclasses import asdict, dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -91,28 +91,45 @@ def _as_agent(agent):
     return agent if isinstance(agent, Agent) else Agent.wrap(agent)
 
 
-# Acting for K agents at once: (live agents' indices, every agent's obs, states and generators,
-# deterministic) -> (an action array per live agent, every agent's new state).
-ActMany = Callable[[list[int], list, list, list[torch.Generator], bool], tuple[list[np.ndarray], list]]
+# Acting for K agents at once: (the stepped agents' indices, their observations concatenated in
+# that order (an array, or a dict of them), each one's number of slots, every agent's states and
+# generators, deterministic) -> (their actions concatenated in that order, every agent's new state).
+ActMany = Callable[[list[int], Any, list[int], list, list[torch.Generator], bool], tuple[np.ndarray, list]]
+
+
+def _rows(batch, index):
+    """Rows of an observation batch (an array, or a dict of them): a slice or an index array."""
+    return {key: v[index] for key, v in batch.items()} if isinstance(batch, dict) else batch[index]
+
+
+def _join(parts: list):
+    """Observation batches (arrays, or dicts of them) concatenated along the slots."""
+    if len(parts) == 1:
+        return parts[0]
+    if isinstance(parts[0], dict):
+        return {key: np.concatenate([np.asarray(p[key]) for p in parts]) for key in parts[0]}
+    return np.concatenate(parts)
 
 
 def acting_alone(agents: list) -> ActMany:
-    """Each live agent's own :meth:`~rlbackdoors.agent.Agent.act`, one after another: a lone
-    evaluation's arithmetic (a training group passes a stacked one instead)."""
+    """Each stepped agent's own :meth:`~rlbackdoors.agent.Agent.act` on its rows, one after
+    another: a lone evaluation's arithmetic (a training group passes a stacked one instead)."""
 
-    def act(live: list[int], obs: list, states: list, generators: list[torch.Generator], deterministic: bool):
+    def act(stepped: list[int], batch, sizes: list[int], states: list, generators: list[torch.Generator], deterministic: bool):
         states = list(states)
-        actions = []
-        for k in live:
-            a, states[k] = agents[k].act(obs[k], states[k], deterministic=deterministic, generator=generators[k])
-            actions.append(a)
-        return actions, states
+        actions, lo = [], 0
+        for k, n in zip(stepped, sizes):
+            a, states[k] = agents[k].act(_rows(batch, slice(lo, lo + n)), states[k], deterministic=deterministic, generator=generators[k])
+            actions.append(np.asarray(a, dtype=np.int64))
+            lo += n
+        return np.concatenate(actions), states
 
     return act
 
 
 class _Tally:
-    """One agent's per-episode counts while its slots play (see :class:`Played`)."""
+    """Per-episode counts of every agent's slots while they play, all agents' in flat arrays (agent
+    k's slots after agent k-1's) so that a step's outcomes are recorded at once (see :class:`Played`)."""
 
     def __init__(self, n: int, counting: bool):
         self.active = np.ones(n, dtype=bool)
@@ -122,24 +139,31 @@ class _Tally:
         self.target_steps = np.zeros(n, dtype=np.int64) if counting else None
         self.sighted_steps = np.zeros(n, dtype=np.int64) if counting else None
 
-    def count(self, hits: np.ndarray, in_sight: np.ndarray | None) -> None:
+    def count(self, rows: slice, hits: np.ndarray, in_sight: np.ndarray | None) -> None:
         assert self.target_steps is not None and self.sighted_steps is not None
-        counted = self.active & in_sight if in_sight is not None else self.active
-        self.sighted_steps[counted] += 1
-        self.target_steps[counted & hits] += 1
+        active = self.active[rows]
+        counted = active & in_sight if in_sight is not None else active
+        self.sighted_steps[rows][counted] += 1
+        self.target_steps[rows][counted & hits] += 1
 
-    def record(self, reward, terminated, truncated, info: dict) -> None:
-        active = self.active
-        self.returns[active] += reward[active]
-        self.steps[active] += 1
+    def record(self, rows: np.ndarray, reward, terminated, truncated, info: dict) -> None:
+        """One step of the slots ``rows`` (flat indices, in the order of the step's arrays)."""
+        active = self.active[rows]
+        played = rows[active]
+        self.returns[played] += np.asarray(reward)[active]
+        self.steps[played] += 1
         finished = active & (terminated | truncated)
-        self.outcomes[finished] = info["outcome"][finished]
+        ended = rows[finished]
+        self.outcomes[ended] = info["outcome"][finished]
         if "saw_trigger" in info:
-            self.saw[finished] = info["saw_trigger"][finished]
-        active &= ~finished
+            self.saw[ended] = info["saw_trigger"][finished]
+        self.active[ended] = False
 
-    def played(self) -> Played:
-        return Played(self.returns, self.outcomes, self.saw, self.steps, self.target_steps, self.sighted_steps)
+    def played(self, rows: slice) -> Played:
+        def part(x):
+            return None if x is None else x[rows].copy()
+
+        return Played(part(self.returns), part(self.outcomes), part(self.saw), part(self.steps), part(self.target_steps), part(self.sighted_steps))
 
 
 @torch.inference_mode()
@@ -157,38 +181,69 @@ def play_episodes(agent, envs, seed: int, policy: str = "sample", target_action:
 
 @torch.inference_mode()
 def play_lockstep(
-    agents: list, envs: list, seeds: list[int], policy: str = "sample", target_actions: list | None = None, sight: bool = False, act: ActMany | None = None
+    agents: list,
+    envs: list,
+    seeds: list[int],
+    policy: str = "sample",
+    target_actions: list | None = None,
+    sight: bool = False,
+    act: ActMany | None = None,
+    regroup: float | None = None,
 ) -> list[Played]:
     """:func:`play_episodes` for K agents, agent k on its own vector env ``envs[k]`` reset with
     ``seeds[k]``, stepped in lockstep so that ``act`` (default: each agent's own) can answer all
-    K with one batched forward. Each agent draws from its own generator what it would alone, and an
-    agent whose episodes have all ended is no longer stepped."""
+    K with one batched forward. Each agent draws from its own generator what it would alone.
+
+    The agents' engines are stepped by one call where they allow it (:class:`EngineGroup`), and a
+    step's outcomes are tallied at once: no Python walks over the agents per step. An agent whose
+    episodes have all ended is dropped from the step once fewer than ``regroup`` of the stepped
+    agents are live (default: at once on the CPU, where its forward is arithmetic; at half on a
+    GPU, where regrouping the engines costs more than stepping them). Until then it is stepped
+    and answered like the others: its own slots and draws, which nothing reads."""
     act = act if act is not None else acting_alone(agents)
     targets = target_actions if target_actions is not None else [None] * len(agents)
     generators = [torch.Generator(device=a.device).manual_seed(int(s)) for a, s in zip(agents, seeds)]
     states = [a.initial_state(e.num_envs) for a, e in zip(agents, envs)]  # one episode per slot: never reset
-    obs = [e.reset(seed=int(s))[0] for e, s in zip(envs, seeds)]
-    tallies = [_Tally(e.num_envs, t is not None) for e, t in zip(envs, targets)]
-    live = list(range(len(agents)))
-    together, stepped = None, None  # the live agents' engines as one (EngineGroup), and which live set it is
-    while live:
-        actions, states = act(live, obs, states, generators, policy == "greedy")
-        for k, a in zip(live, actions):
-            target = targets[k]
-            if target is not None:
-                tallies[k].count(target(np.asarray(a)), envs[k].trigger_in_sight() if sight else None)
-        if stepped != live:  # one engine call for all live agents where their engines allow it
-            together = EngineGroup.of([envs[k] for k in live], parallel=agents[0].device.type != "cpu") if len(live) > 1 else None
-            stepped = list(live)
+    sizes = [e.num_envs for e in envs]
+    bounds = np.cumsum([0, *sizes])
+    tally = _Tally(int(bounds[-1]), any(t is not None for t in targets))
+    batch = _join([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds)])
+    parallel = agents[0].device.type != "cpu"  # engines over every core where the learners compute on a GPU
+    keep = regroup if regroup is not None else (0.5 if parallel else 1.0)
+    members: list[int] = []
+    stepped: list[int] | None = list(range(len(agents)))
+    while True:
+        if stepped is not None:  # a new stepped set: its slots, and its engines as one where they allow it
+            rows = np.concatenate([np.arange(bounds[k], bounds[k + 1]) for k in stepped])
+            together = EngineGroup.of([envs[k] for k in stepped], parallel) if len(stepped) > 1 else None
+            starts = np.cumsum([0, *(sizes[k] for k in stepped[:-1])])  # each member's first row in a step's arrays
+            members, stepped = stepped, None
+        actions, states = act(members, batch, [sizes[k] for k in members], states, generators, policy == "greedy")
+        if tally.target_steps is not None:
+            lo = 0
+            for k in members:
+                hi, target = lo + sizes[k], targets[k]
+                if target is not None:
+                    tally.count(slice(bounds[k], bounds[k + 1]), target(actions[lo:hi]), envs[k].trigger_in_sight() if sight else None)
+                lo = hi
         if together is not None:
-            results = together.results(*together.step(np.concatenate([np.asarray(a, dtype=np.int64) for a in actions])))
+            batch, reward, terminated, truncated, info = together.step(actions)
         else:
-            results = [envs[k].step(a) for k, a in zip(live, actions)]
-        for k, (seen, *outcome) in zip(live, results):
-            obs[k] = seen
-            tallies[k].record(*outcome)
-        live = [k for k in live if tallies[k].active.any()]
-    return [t.played() for t in tallies]
+            lo, results = 0, []
+            for k in members:
+                results.append(envs[k].step(actions[lo : lo + sizes[k]]))
+                lo += sizes[k]
+            batch = _join([r[0] for r in results])
+            reward, terminated, truncated = (np.concatenate([np.asarray(r[i]) for r in results]) for i in (1, 2, 3))
+            info = {key: np.concatenate([np.asarray(r[4][key]) for r in results]) for key in ("outcome", "saw_trigger") if key in results[0][4]}
+        tally.record(rows, reward, terminated, truncated, info)
+        alive = np.logical_or.reduceat(tally.active[rows], starts)
+        if not alive.any():
+            break
+        if alive.sum() < keep * len(members):  # regroup: the live agents' rows of the last observations
+            batch = _rows(batch, np.flatnonzero(np.repeat(alive, [sizes[k] for k in members])))
+            stepped = [k for k, a in zip(members, alive) if a]
+    return [tally.played(slice(bounds[k], bounds[k + 1])) for k in range(len(agents))]
 
 
 @torch.inference_mode()
@@ -285,21 +340,15 @@ def acting_together(agent, probs: list[list[np.ndarray]] | None = None) -> ActMa
     from rlbackdoors.algos.obs import to_torch
     from rlbackdoors.algos.ppo import sample_actions
 
-    def act(live: list[int], obs: list, states: list, generators: list[torch.Generator], deterministic: bool):
-        parts = [obs[k] for k in live]
-        if isinstance(parts[0], dict):
-            batch: np.ndarray | dict = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-            sizes = [len(next(iter(p.values()))) for p in parts]
-        else:
-            batch, sizes = np.concatenate(parts), [len(p) for p in parts]
+    def act(stepped: list[int], batch, sizes: list[int], states: list, generators: list[torch.Generator], deterministic: bool):
         logits, _ = agent.policy(to_torch(batch, agent.device))
         actions = []
-        for k, rows in zip(live, torch.split(logits, sizes)):
+        for k, rows in zip(stepped, torch.split(logits, sizes)):
             if probs is not None:
                 probs[k].append(torch.softmax(rows.detach().double(), -1).cpu().numpy())
             chosen = rows.argmax(-1) if deterministic else sample_actions(rows, generators[k])
             actions.append(chosen.cpu().numpy())
-        return actions, states
+        return np.concatenate(actions), states
 
     return act
 
@@ -321,7 +370,8 @@ def play_together(
         raise ValueError("play_together needs a feed-forward torch policy and a batched-engine world")
     envs = [_vector_envs(env, trigger, episodes, None) for trigger in triggers]
     try:
-        return play_lockstep([agent] * len(envs), envs, [seed] * len(envs), policy, act=acting_together(agent, probs))
+        # regroup at once: a candidate's distributions stop with its episodes, on any device
+        return play_lockstep([agent] * len(envs), envs, [seed] * len(envs), policy, act=acting_together(agent, probs), regroup=1.0)
     finally:
         for e in envs:
             e.close()

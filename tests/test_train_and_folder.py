@@ -131,6 +131,33 @@ def test_cpu_time_is_carried_across_a_resume(tmp_path, tiny_run_dict, carried):
     assert 0.0 < metrics["wall_time_s"] and json.loads((out / "metrics.json").read_text())["cpu_time_s"] == metrics["cpu_time_s"]
 
 
+def test_a_run_records_its_device_and_a_resume_on_another_is_refused(tmp_path, tiny_run_dict):
+    """metrics.json says where the math ran (for ``train.device = "auto"`` too), and a checkpoint
+    says where the run began: resuming it on another device is refused (its bytes would mix
+    both), and on its own device it goes on."""
+    tiny_run_dict["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0, device="auto")
+    cfg = RunConfig.from_dict(tiny_run_dict)
+
+    def ctrl_c(row):
+        if row["frames"] >= 5_120:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    out = tmp_path / "m"
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, out, progress=False, after_eval=ctrl_c)
+    here = "cuda" if torch.cuda.is_available() else "cpu"
+    checkpoint = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert checkpoint["device"] == here
+    other = "cpu" if here == "cuda" else "cuda"
+    torch.save({**checkpoint, "device": other}, out / "checkpoint.pt")
+    with pytest.raises(FolderError, match=f"began on {other} and cannot go on on {here}"):
+        train(cfg, out, progress=False)
+    torch.save(checkpoint, out / "checkpoint.pt")
+    metrics = train(cfg, out, progress=False)
+    assert metrics["device"] == here and ("gpu" in metrics) == (here == "cuda")
+    assert json.loads((out / "metrics.json").read_text())["device"] == here
+
+
 def test_resume_with_a_different_config_is_refused(tmp_path, tiny_run_dict):
     cfg = RunConfig.from_dict(tiny_run_dict)
     folder = ModelFolder(tmp_path / "m")

@@ -35,7 +35,7 @@ import torch
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import remove_tree
 from rlbackdoors.state import StateError
-from rlbackdoors.folder import ModelFolder, stack_versions
+from rlbackdoors.folder import FolderError, ModelFolder, stack_versions
 from rlbackdoors.train.stop import StopRequest
 
 RUNNERS = {"ppo": "rlbackdoors.train.ppo_run", "opac2": "rlbackdoors.train.opac2_run"}
@@ -233,10 +233,21 @@ def train_steps(
     failed = True
     try:
         checkpoint = folder.begin(cfg, overwrite)
+        where = resolve_device(cfg.train.device)
+        began = checkpoint.get("device") if isinstance(checkpoint, dict) else None  # (a checkpoint from before the record: not known)
+        if began is not None and began != where.type:
+            raise FolderError(
+                f"the run in {str(folder.path)!r} began on {began} and cannot go on on {where.type} (its bytes would mix both); "
+                f"resume it where {began} is, or pass --overwrite to start over"
+            )
         runner = importlib.import_module(RUNNERS[cfg.algorithm])
         outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source, env_pool)
         if trainer is not None:
             outcome.extra["trainer"] = trainer
+        # where the math ran, for train.device = "auto" too: with the config and the group, what reproduces the bytes
+        outcome.extra["device"] = where.type
+        if where.type == "cuda":
+            outcome.extra["gpu"] = torch.cuda.get_device_name(where)
         n = cfg.train.final_eval_episodes
         if progress:
             print(f"final evaluation on {n} clean + {n} triggered episodes", file=sys.stderr, flush=True)

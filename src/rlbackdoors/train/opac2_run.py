@@ -227,6 +227,7 @@ def steps(
             "checkpoint.pt",
             {
                 "format": CHECKPOINT_FORMAT,
+                "device": device.type,  # a resume on another device is refused (train.driver)
                 "agent": agent.state_dict(),
                 "collector": collector.state_dict(),
                 "replay": manifest,

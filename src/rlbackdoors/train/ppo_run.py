@@ -293,6 +293,7 @@ def steps(
             "checkpoint.pt",
             {
                 "format": CHECKPOINT_FORMAT,
+                "device": device.type,  # a resume on another device is refused (train.driver)
                 "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
                 "aux": None if ppo.aux is None else {k: v.detach().cpu() for k, v in ppo.aux.state_dict().items()},
                 "optimizer": ppo.optimizer.state_dict(),

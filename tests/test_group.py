@@ -521,6 +521,44 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
     assert (folder / "model.pt").stat().st_mtime_ns == before
 
 
+def test_zoo_run_device_trains_the_planned_models_elsewhere_and_records_it(tmp_path):
+    """``zoo run --device cpu --group-size auto`` on a zoo planned for CUDA (``train.device =
+    "cuda"``): every model trains on the CPU, in the CPU's auto groups, to the same bytes as the
+    same zoo planned for the CPU; config.json stays the plan's, metrics.json records the device,
+    and the zoo verifies. ``--device cuda`` where there is no CUDA is refused with one line, and
+    the Ray back-end refuses ``--device`` (its tasks' resources are Ray's)."""
+    from rlbackdoors.zoo.run import make_executor
+
+    planned = {}
+    for device in ("cuda", "cpu"):
+        spec = zoo_spec()
+        spec["overrides"]["train"]["device"] = device
+        planned[device] = tmp_path / device
+        plan(parse_spec(spec), planned[device])
+    if not torch.cuda.is_available():
+        refused = subprocess.run(
+            [sys.executable, "-m", "rlbackdoors.zoo.cli", "run", str(planned["cuda"]), "--device", "cuda"], capture_output=True, text=True, timeout=300
+        )
+        assert refused.returncode == 2 and refused.stderr.strip().splitlines() == [
+            "rlbackdoors: error: --device cuda: no CUDA device is available here (use cpu or auto)"
+        ]
+        assert not list((planned["cuda"] / "models").glob("*/metrics.json"))
+    with pytest.raises(ConfigError, match="--device applies to --backend local only"):
+        make_executor("ray", None, None, 0, device="cpu")
+    log = io.StringIO()
+    summary = zoo_run(planned["cuda"], workers=1, group_size="auto", progress_interval=5.0, out=log, device="cpu")
+    assert "--group-size auto: by each model's algorithm and --device cpu (PPO 8 on cpu" in log.getvalue()
+    assert summary["done"] == 4 and summary["failed"] == 0
+    zoo_run(planned["cpu"], workers=1, group_size=8, progress_interval=5.0, out=io.StringIO())
+    for folder in sorted((planned["cuda"] / "models").iterdir()):
+        metrics = json.loads((folder / "metrics.json").read_text())
+        assert metrics["device"] == "cpu" and "gpu" not in metrics and metrics["trainer"] == "group"
+        assert json.loads((folder / "config.json").read_text())["train"]["device"] == "cuda"  # the plan's
+        assert (folder / "model.pt").read_bytes() == (planned["cpu"] / "models" / folder.name / "model.pt").read_bytes()
+    verify = subprocess.run([sys.executable, "-m", "rlbackdoors.zoo.cli", "verify", str(planned["cuda"])], capture_output=True, text=True, timeout=300)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+
+
 def test_auto_group_size_goes_by_the_models_device_not_the_machines():
     """A CPU model on a GPU machine trains in CPU groups of 8: measured on an H200 machine, a GPU
     group of 64 ran at x0.35 of them (docs/results/zoos.md). ``auto`` is CUDA where there is one."""

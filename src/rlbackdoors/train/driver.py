@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import dataclasses
 import functools
 import importlib
 import io
@@ -168,17 +169,24 @@ class RunOutcome:
 
 
 def train(
-    cfg: RunConfig, out: str | Path, overwrite: bool = False, progress: bool = True, after_eval: Callable[[dict], None] | None = None, env_workers: int = 0
+    cfg: RunConfig,
+    out: str | Path,
+    overwrite: bool = False,
+    progress: bool = True,
+    after_eval: Callable[[dict], None] | None = None,
+    env_workers: int = 0,
+    device: str | None = None,
 ) -> dict:
     """Train one agent of any world into the model folder ``out``; return its metrics.
 
     ``after_eval(row)`` is called after each evaluation's row (and checkpoint) is written:
     tests raise KeyboardInterrupt from it to interrupt a run at a known point. ``env_workers``:
     a world of single envs steps its copies in that many worker processes (same bytes).
+    ``device``: where the math runs instead of ``train.device`` (:func:`train_steps`).
     """
     cfg.check()
     with env_pool_for([cfg], env_workers) as pool, StopRequest() as stop:  # from the start: a signal during setup stops at the first step
-        return serve(train_steps(cfg, out, stop, overwrite, progress, after_eval, env_pool=pool))
+        return serve(train_steps(cfg, out, stop, overwrite, progress, after_eval, env_pool=pool, device=device))
 
 
 @contextlib.contextmanager
@@ -222,17 +230,22 @@ def train_steps(
     trainer: str | None = None,
     cpu_source: Callable[[], float] | None = None,
     env_pool=None,
+    device: str | None = None,
 ) -> Generator[Any, Any, dict]:
     """:func:`train` as a loop that yields its learner's work (PPO's collect and update requests,
     :mod:`.ppo_run`; OPAC²'s act and learn requests, :mod:`.opac2_run`; every evaluation, :class:`Evaluate`) for a group trainer to batch. Returns the metrics
     (``trainer``: recorded in them, the group trainer's name for its stacked kernels;
     ``cpu_source``: the run's own CPU clock, :class:`RunClock`; ``env_pool``: worker processes for
-    a world of single envs, :class:`rlbackdoors.envs.pool.EnvPool`)."""
+    a world of single envs, :class:`rlbackdoors.envs.pool.EnvPool`; ``device``: where the math
+    runs instead of ``train.device``, e.g. ``zoo run --device``: the folder keeps the planned
+    config.json and metrics.json records the device)."""
     cfg.check()
     folder = ModelFolder(out)
     failed = True
     try:
         checkpoint = folder.begin(cfg, overwrite)
+        if device is not None and device != cfg.train.device:  # the planned config stays the folder's; the learner runs on device
+            cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, device=device)).check()
         where = resolve_device(cfg.train.device)
         began = checkpoint.get("device") if isinstance(checkpoint, dict) else None  # (a checkpoint from before the record: not known)
         if began is not None and began != where.type:

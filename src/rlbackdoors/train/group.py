@@ -104,12 +104,12 @@ def auto_group_size(algorithm: str, device: str) -> int:
     return AUTO_GROUP_SIZE[(algorithm, where)]
 
 
-def painter_count(runs: Sequence[tuple[Any, RunConfig, Any]], group_size: int) -> int:
+def painter_count(runs: Sequence[tuple[Any, RunConfig, Any]], group_size: int, device: str | None = None) -> int:
     """Painter processes for the group's training curves and GIFs (:mod:`rlbackdoors.report.painters`):
     the host's other cores where the learners compute on a GPU, which would otherwise wait on
     matplotlib as runs finish together; none on a CPU, where they would only take a core from
     training (the group waits on the same work either way)."""
-    if group_size < 2 or not torch.cuda.is_available() or not any(cfg.train.device in ("cuda", "auto") for _, cfg, _ in runs):
+    if group_size < 2 or not torch.cuda.is_available() or not any((device or cfg.train.device) in ("cuda", "auto") for _, cfg, _ in runs):
         return 0  # (a run asking for a GPU on a machine without one fails alone, with its own message)
     return min(group_size, max(0, (os.cpu_count() or 1) - 1))
 
@@ -166,6 +166,7 @@ def train_group(
     on_done: Callable[[Any, dict | None, BaseException | None], None] | None = None,
     env_workers: int = 0,
     painters: int | None = None,
+    device: str | None = None,
 ) -> GroupResult:
     """Train ``runs`` ((key, config, folder) each) at most ``group_size`` at a time in this process.
 
@@ -177,7 +178,8 @@ def train_group(
     ``on_done(key, metrics, error)`` is called as each run ends. ``env_workers``: the env copies
     of runs in worlds of single envs live in one pool of that many worker processes (same bytes). ``painters``:
     processes that draw the training curves and GIFs of runs finishing together (default
-    :func:`painter_count`: the other cores on a GPU, none on a CPU).
+    :func:`painter_count`: the other cores on a GPU, none on a CPU). ``device``: where every
+    run's math runs instead of its ``train.device`` (recorded in its metrics.json).
     """
     if group_size < 1:
         raise ValueError(f"group_size must be >= 1, got {group_size}")
@@ -230,14 +232,16 @@ def train_group(
 
     from rlbackdoors.report.painters import Painters
 
-    drawing = Painters(painter_count(runs, group_size) if painters is None else painters)
+    drawing = Painters(painter_count(runs, group_size, device) if painters is None else painters)
     with env_pool_for([cfg for _, cfg, _ in runs], env_workers) as pool, StopRequest() as stop, ThreadPoolExecutor(group_size) as threads, drawing:
         threaded = pool is not None and group_size > 1
         while True:
             while waiting and len(slots) < group_size and not stop.requested:
                 key, cfg, folder = waiting.popleft()
                 slot = _Slot(key, cpu=RunCPU(threaded))
-                slot.loop = train_steps(cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None, cpu_source=slot.cpu, env_pool=pool)
+                slot.loop = train_steps(
+                    cfg, folder, stop, progress=progress, trainer="group" if group_size > 1 else None, cpu_source=slot.cpu, env_pool=pool, device=device
+                )
                 if settle(slot, step(slot)):
                     slots.append(slot)
             if not slots:

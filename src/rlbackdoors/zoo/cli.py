@@ -118,6 +118,7 @@ def cmd_run(args) -> int:
         retrain_tampered=args.retrain_tampered,
         group_size=args.group_size,
         env_workers=args.env_workers,
+        device=args.device,
     )
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -285,7 +286,7 @@ def _seconds(text: str) -> float:
 
 def add_commands(parser: argparse.ArgumentParser) -> None:
     """The zoo's sub-commands on ``parser`` (``rlbackdoors zoo``, or the standalone parser)."""
-    from rlbackdoors.zoo.run import BACKENDS
+    from rlbackdoors.zoo.run import BACKENDS, DEVICES
 
     sub = parser.add_subparsers(dest="zoo_command", required=True, parser_class=Parser)
     pl = sub.add_parser("plan", help="draw every model's config from the spec's master seed and write the zoo's folders (nothing trains)")
@@ -301,7 +302,13 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
         type=_group_size,
         default=1,
         help="train up to K models of a worker in one process, their networks stacked and batched (local back-end; "
-        "auto: the measured rule per world's algorithm and each model's train.device; default 1: a process per model, today's bytes)",
+        "auto: the measured rule per world's algorithm and each model's device; default 1: a process per model, today's bytes)",
+    )
+    ru.add_argument(
+        "--device",
+        choices=DEVICES,
+        help="where every model's math runs instead of its planned train.device (local back-end; recorded in its metrics.json, "
+        "config.json stays the plan's; a started model resumes only on the device it began on)",
     )
     ru.add_argument(
         "--env-workers",

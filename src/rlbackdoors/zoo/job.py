@@ -35,11 +35,12 @@ EXIT_INTERRUPTED = 130
 PARENT_ENV = "RLBACKDOORS_ZOO_PARENT"  # the coordinator's pid: a child whose parent died stops
 
 
-def train_model(cfg, folder: Path, env_workers: int = 0) -> dict:
-    """Train ``cfg`` into ``folder`` (resuming a checkpoint) with the world's algorithm."""
+def train_model(cfg, folder: Path, env_workers: int = 0, device: str | None = None) -> dict:
+    """Train ``cfg`` into ``folder`` (resuming a checkpoint) with the world's algorithm
+    (``device``: instead of its ``train.device``, as ``zoo run --device``)."""
     from rlbackdoors.train import train
 
-    return train(cfg, folder, progress=False, env_workers=env_workers)
+    return train(cfg, folder, progress=False, env_workers=env_workers, device=device)
 
 
 def is_locked(folder: str | Path) -> bool:
@@ -128,7 +129,7 @@ def open_log(path: Path, mode: str = "ab"):
     return open(fd, mode, buffering=0) if "b" in mode else open(fd, mode, buffering=1)
 
 
-def run_job(folder: str | Path, log: bool = False, env_workers: int = 0) -> dict:
+def run_job(folder: str | Path, log: bool = False, env_workers: int = 0, device: str | None = None) -> dict:
     """Train the model folder if it is not finished, then write its dataset files.
 
     Returns ``{"status": "done", "trained", "converged", "seconds"}`` or ``{"status": "busy"}``
@@ -141,12 +142,12 @@ def run_job(folder: str | Path, log: bool = False, env_workers: int = 0) -> dict
     zoo = where.parent.parent  # ZOO/models/id-X
     fd = open_beneath(zoo, where)  # LinkError if a link is there; held while we work
     try:
-        return _run_job(fd_path(fd, where), where, zoo, log, started=time.time(), env_workers=env_workers)
+        return _run_job(fd_path(fd, where), where, zoo, log, started=time.time(), env_workers=env_workers, device=device)
     finally:
         os.close(fd)
 
 
-def _run_job(folder: Path, where: Path, zoo: Path, log: bool, started: float, env_workers: int = 0) -> dict:
+def _run_job(folder: Path, where: Path, zoo: Path, log: bool, started: float, env_workers: int = 0, device: str | None = None) -> dict:
     """:func:`run_job` on ``folder``, a path that reaches the opened folder whatever is swapped
     in at its name meanwhile (``/proc/self/fd/N``); ``where`` is its name, for messages."""
     import torch
@@ -169,7 +170,7 @@ def _run_job(folder: Path, where: Path, zoo: Path, log: bool, started: float, en
         trained = False
         if not (folder / "metrics.json").is_file():
             try:
-                train_model(cfg, folder, env_workers)
+                train_model(cfg, folder, env_workers, device)
                 trained = True
             except BaseException as err:
                 if not config_path.is_file():
@@ -192,7 +193,7 @@ def _run_job(folder: Path, where: Path, zoo: Path, log: bool, started: float, en
     return {"status": "done", "trained": trained, "converged": converged, "seconds": seconds}
 
 
-def run_group_job(folders: list[str | Path], group_size: int, env_workers: int = 0) -> dict[str, dict]:
+def run_group_job(folders: list[str | Path], group_size: int, env_workers: int = 0, device: str | None = None) -> dict[str, dict]:
     """:func:`run_job` for several model folders of one zoo, trained ``group_size`` at a time in
     this process (:mod:`rlbackdoors.train.group`); one result per folder name. A run that fails
     is that folder's error; a signal stops every run at its checkpoint and raises."""
@@ -252,7 +253,7 @@ def run_group_job(folders: list[str | Path], group_size: int, env_workers: int =
             with open_log(folder / LOG, "a") as fh:
                 print(f"{line}\n(output in {runs[0][0]}/{LOG})", file=fh)
         outcome = train_group(
-            runs, group_size, env_workers=env_workers, on_done=lambda name, metrics, error: finish(name, trained=True) if error is None else None
+            runs, group_size, env_workers=env_workers, device=device, on_done=lambda name, metrics, error: finish(name, trained=True) if error is None else None
         )
         for name, err in outcome.errors.items():
             folder = opened[name][1]
@@ -314,16 +315,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--result-fd", type=int, default=None, help="write the result as JSON to this file descriptor")
     parser.add_argument("--group-size", type=int, default=0, help="train the folders in one process, this many at a time (a group job)")
     parser.add_argument("--env-workers", type=int, default=0, help="worlds of single envs: step the env copies in this many worker processes")
+    parser.add_argument("--device", choices=("cpu", "cuda", "auto"), help="where the math runs instead of each model's train.device")
     args = parser.parse_args(argv)
     if len(args.folder) > 1 and args.group_size < 1:
         parser.error("several folders need --group-size")
     _die_with_parent()
     try:
         if args.group_size >= 1:
-            result = {"status": "group", "results": run_group_job(args.folder, args.group_size, args.env_workers)}
+            result = {"status": "group", "results": run_group_job(args.folder, args.group_size, args.env_workers, args.device)}
             code = 0
         else:
-            result = run_job(args.folder[0], env_workers=args.env_workers)
+            result = run_job(args.folder[0], env_workers=args.env_workers, device=args.device)
             code = EXIT_BUSY if result["status"] == "busy" else 0
     except (Interrupted, KeyboardInterrupt) as err:
         result, code = {"status": "interrupted", "error": first_line(err)}, EXIT_INTERRUPTED

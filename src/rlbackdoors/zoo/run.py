@@ -44,6 +44,7 @@ from rlbackdoors.zoo.job import EXIT_BUSY, EXIT_INTERRUPTED, FAILED, LOG, is_loc
 from rlbackdoors.zoo.plan import PlannedModel, Zoo, read_zoo_json
 
 BACKENDS = ("local", "ray")
+DEVICES = ("cpu", "cuda", "auto")  # zoo run --device: where the models' math runs instead of their train.device
 BUSY_PROBE_S = 2.0  # how often a folder running elsewhere is looked at again
 
 
@@ -84,10 +85,11 @@ class LocalExecutor:
     (:func:`rlbackdoors.zoo.job._die_with_parent`), which makes training checkpoint and stop.
     """
 
-    def __init__(self, workers: int, group_size: int = 1, env_workers: int = 0):
+    def __init__(self, workers: int, group_size: int = 1, env_workers: int = 0, device: str | None = None):
         self.capacity = workers
         self.group_size = group_size
         self.env_workers = env_workers
+        self.device = device
         self.children: dict[int, _Child] = {}
 
     def submit(self, model: PlannedModel, folder: Path) -> None:
@@ -108,6 +110,7 @@ class LocalExecutor:
             [*map(str, folders)]
             + (["--group-size", str(group_size)] if group_size > 1 else [])
             + (["--env-workers", str(self.env_workers)] if self.env_workers else [])
+            + (["--device", self.device] if self.device is not None else [])
         )
         try:
             proc = JobProcess(argv, log.fileno(), write_fd, dict(os.environ))
@@ -193,11 +196,15 @@ def _child_result(code: int, data: bytes) -> dict:
     return {"status": "error", "error": f"the job process exited with code {code} (see train.log)"}
 
 
-def make_executor(backend: str, workers: int | None, address: str | None, max_retries: int, group_size: int = 1, env_workers: int = 0) -> Executor:
+def make_executor(
+    backend: str, workers: int | None, address: str | None, max_retries: int, group_size: int = 1, env_workers: int = 0, device: str | None = None
+) -> Executor:
     if backend == "local":
         if address is not None:
             raise ConfigError("--address applies to --backend ray only")
-        return LocalExecutor(workers or default_workers(), group_size, env_workers)
+        return LocalExecutor(workers or default_workers(), group_size, env_workers, device)
+    if device is not None:
+        raise ConfigError("--device applies to --backend local only (a Ray task's resources are Ray's to schedule: set train.device in the spec)")
     if group_size > 1:
         raise ConfigError("--group-size applies to --backend local only (a Ray task trains one model)")
     if env_workers:
@@ -268,9 +275,12 @@ def run(
     retrain_tampered: bool = False,
     group_size: int | str = 1,
     env_workers: int = 0,
+    device: str | None = None,
 ) -> dict:
     """Run the zoo at ``path`` to completion; return a summary. See the module docstring.
     ``env_workers``: each job steps a single-env world's copies in that many worker processes.
+    ``device``: where every model's math runs instead of its planned ``train.device`` (each
+    model's metrics.json records it; ``--group-size auto`` goes by it).
 
     The zoo is verified first (:mod:`rlbackdoors.zoo.verify`): a link anywhere is refused; a
     model that fails its checks is refused, or with ``retrain_tampered`` emptied and trained
@@ -282,14 +292,22 @@ def run(
         raise ConfigError(f"--workers must be >= 1, got {workers}")
     if isinstance(env_workers, bool) or not isinstance(env_workers, int) or env_workers < 0:
         raise ConfigError(f"--env-workers must be an integer >= 0, got {env_workers!r}")
-    auto = group_size == "auto"  # K per model's algorithm and train.device, as measured
+    if device is not None:
+        if device not in DEVICES:
+            raise ConfigError(f"--device={device!r} is not allowed (allowed: {', '.join(DEVICES)})")
+        import torch
+
+        if device == "cuda" and not torch.cuda.is_available():
+            raise ConfigError("--device cuda: no CUDA device is available here (use cpu or auto)")
+    auto = group_size == "auto"  # K per model's algorithm and device, as measured
     if auto:
         from rlbackdoors.train.group import AUTO_GROUP_SIZE
 
         table = "; ".join(
             f"{name} {AUTO_GROUP_SIZE[(a, 'cpu')]} on cpu, {AUTO_GROUP_SIZE[(a, 'cuda')]} on cuda" for a, name in (("ppo", "PPO"), ("opac2", "OPAC²"))
         )
-        print(f"zoo: --group-size auto: by each model's algorithm and train.device ({table}; docs/zoos.md)", file=out)
+        on = f"--device {device}" if device is not None else "train.device"
+        print(f"zoo: --group-size auto: by each model's algorithm and {on} ({table}; docs/zoos.md)", file=out)
         group_size = max(AUTO_GROUP_SIZE.values())
     if not isinstance(group_size, int) or group_size < 1:
         raise ConfigError(f"--group-size must be >= 1 or auto, got {group_size!r}")
@@ -322,7 +340,7 @@ def run(
             zoo.ensure(model.group, model.attempt, verify=False)
             if retry_failed:
                 (zoo.folder(model) / FAILED).unlink(missing_ok=True)
-        executor = make_executor(backend, workers, address, max_retries, group_size, env_workers)
+        executor = make_executor(backend, workers, address, max_retries, group_size, env_workers, device)
         in_flight: dict[int, PlannedModel] = {}
         busy_until: dict[int, float] = {}
         tries: dict[int, int] = {}
@@ -351,7 +369,7 @@ def run(
                 busy_until.pop(s.model.id, None)
                 startable.append(s)
             free = executor.capacity - executor.running()
-            for k, models in _by_group_size(startable, group_size, auto):
+            for k, models in _by_group_size(startable, group_size, auto, device):
                 for chunk in _chunks(models, free, k):
                     if isinstance(executor, LocalExecutor):
                         executor.submit_group([s.model for s in chunk], [s.folder for s in chunk], k)
@@ -465,18 +483,18 @@ def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
-def _by_group_size(ready: list, group_size: int, auto: bool) -> list[tuple[int, list]]:
+def _by_group_size(ready: list, group_size: int, auto: bool, device: str | None = None) -> list[tuple[int, list]]:
     """The ready models by the group size they train at: ``group_size`` for all, or with
-    ``--group-size auto`` the measured one of their world's algorithm on their ``train.device``
-    (in the order first seen)."""
+    ``--group-size auto`` the measured one of their world's algorithm on ``device`` (default:
+    their ``train.device``; in the order first seen)."""
     if not auto:
         return [(group_size, ready)] if ready else []
     from rlbackdoors.train.group import auto_group_size
 
     out: dict[int, list] = {}
     for state in ready:
-        device = ((state.config or {}).get("train") or {}).get("device", "cpu")
-        out.setdefault(auto_group_size(worlds.get(state.model.group.cell.world).algorithm, device), []).append(state)
+        where = device or ((state.config or {}).get("train") or {}).get("device", "cpu")
+        out.setdefault(auto_group_size(worlds.get(state.model.group.cell.world).algorithm, where), []).append(state)
     return list(out.items())
 
 

@@ -102,21 +102,27 @@ def test_interrupted_run_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     assert [{k: v for k, v in r.items() if k not in drop} for r in whole] == [{k: v for k, v in r.items() if k not in drop} for r in cut]
 
 
-@pytest.mark.parametrize("carried", [True, False])
-def test_cpu_time_is_carried_across_a_resume(tmp_path, tiny_run_dict, carried):
-    """CPU seconds (what a run costs on one core, however loaded the machine) add up across a
-    kill and resume; a checkpoint from before they were recorded gives ``None``, not a wrong sum."""
-    tiny_run_dict["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0)
+def interrupted_after_first_eval(tiny_run_dict, out, **train_fields) -> tuple[RunConfig, dict]:
+    """A tiny run stopped by Ctrl-C after its first evaluation (5,120 frames; a checkpoint at
+    every evaluation): its config and the checkpoint it left in ``out``."""
+    tiny_run_dict["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0, **train_fields)
     cfg = RunConfig.from_dict(tiny_run_dict)
 
     def ctrl_c(row):
         if row["frames"] >= 5_120:
             os.kill(os.getpid(), signal.SIGINT)
 
-    out = tmp_path / "m"
     with pytest.raises(KeyboardInterrupt):
         train(cfg, out, progress=False, after_eval=ctrl_c)
-    checkpoint = torch.load(out / "checkpoint.pt", weights_only=True)
+    return cfg, torch.load(out / "checkpoint.pt", weights_only=True)
+
+
+@pytest.mark.parametrize("carried", [True, False])
+def test_cpu_time_is_carried_across_a_resume(tmp_path, tiny_run_dict, carried):
+    """CPU seconds (what a run costs on one core, however loaded the machine) add up across a
+    kill and resume; a checkpoint from before they were recorded gives ``None``, not a wrong sum."""
+    out = tmp_path / "m"
+    cfg, checkpoint = interrupted_after_first_eval(tiny_run_dict, out)
     assert 0.0 < checkpoint["cpu_elapsed"] and 0.0 < checkpoint["elapsed"]
     if carried:
         checkpoint["cpu_elapsed"] += 1000.0  # as if the first part had cost 1000 s more
@@ -135,18 +141,9 @@ def test_a_run_records_its_device_and_a_resume_on_another_is_refused(tmp_path, t
     """metrics.json says where the math ran (for ``train.device = "auto"`` too), and a checkpoint
     says where the run began: resuming it on another device is refused (its bytes would mix
     both), and on its own device it goes on."""
-    tiny_run_dict["train"].update(max_frames=20_480, eval_interval=5_120, checkpoint_minutes=0.0, device="auto")
-    cfg = RunConfig.from_dict(tiny_run_dict)
-
-    def ctrl_c(row):
-        if row["frames"] >= 5_120:
-            os.kill(os.getpid(), signal.SIGINT)
-
     out = tmp_path / "m"
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, out, progress=False, after_eval=ctrl_c)
+    cfg, checkpoint = interrupted_after_first_eval(tiny_run_dict, out, device="auto")
     here = "cuda" if torch.cuda.is_available() else "cpu"
-    checkpoint = torch.load(out / "checkpoint.pt", weights_only=True)
     assert checkpoint["device"] == here
     other = "cpu" if here == "cuda" else "cuda"
     torch.save({**checkpoint, "device": other}, out / "checkpoint.pt")

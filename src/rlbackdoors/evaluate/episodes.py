@@ -210,29 +210,29 @@ def play_lockstep(
     batch = _join([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds)])
     parallel = agents[0].device.type != "cpu"  # engines over every core where the learners compute on a GPU
     keep = regroup if regroup is not None else (0.5 if parallel else 1.0)
-    members: list[int] = []
-    stepped: list[int] | None = list(range(len(agents)))
+
+    def stepping(members: list[int]) -> tuple:
+        """What a stepped set needs each step: its slots' flat indices, its engines as one where they
+        allow it, each member's slot count, first row and span (its rows) in a step's arrays."""
+        counts = [sizes[k] for k in members]
+        starts = np.cumsum([0, *counts[:-1]])
+        rows = np.concatenate([np.arange(bounds[k], bounds[k + 1]) for k in members])
+        together = EngineGroup.of([envs[k] for k in members], parallel) if len(members) > 1 else None
+        return rows, together, counts, starts, [(k, slice(lo, lo + n)) for k, lo, n in zip(members, starts, counts)]
+
+    members = list(range(len(agents)))
+    rows, together, counts, starts, spans = stepping(members)
     while True:
-        if stepped is not None:  # a new stepped set: its slots, and its engines as one where they allow it
-            rows = np.concatenate([np.arange(bounds[k], bounds[k + 1]) for k in stepped])
-            together = EngineGroup.of([envs[k] for k in stepped], parallel) if len(stepped) > 1 else None
-            starts = np.cumsum([0, *(sizes[k] for k in stepped[:-1])])  # each member's first row in a step's arrays
-            members, stepped = stepped, None
-        actions, states = act(members, batch, [sizes[k] for k in members], states, generators, policy == "greedy")
+        actions, states = act(members, batch, counts, states, generators, policy == "greedy")
         if tally.target_steps is not None:
-            lo = 0
-            for k in members:
-                hi, target = lo + sizes[k], targets[k]
+            for k, span in spans:
+                target = targets[k]
                 if target is not None:
-                    tally.count(slice(bounds[k], bounds[k + 1]), target(actions[lo:hi]), envs[k].trigger_in_sight() if sight else None)
-                lo = hi
+                    tally.count(slice(bounds[k], bounds[k + 1]), target(actions[span]), envs[k].trigger_in_sight() if sight else None)
         if together is not None:
             batch, reward, terminated, truncated, info = together.step(actions)
         else:
-            lo, results = 0, []
-            for k in members:
-                results.append(envs[k].step(actions[lo : lo + sizes[k]]))
-                lo += sizes[k]
+            results = [envs[k].step(actions[span]) for k, span in spans]
             batch = _join([r[0] for r in results])
             reward, terminated, truncated = (np.concatenate([np.asarray(r[i]) for r in results]) for i in (1, 2, 3))
             info = {key: np.concatenate([np.asarray(r[4][key]) for r in results]) for key in ("outcome", "saw_trigger") if key in results[0][4]}
@@ -240,9 +240,10 @@ def play_lockstep(
         alive = np.logical_or.reduceat(tally.active[rows], starts)
         if not alive.any():
             break
-        if alive.sum() < keep * len(members):  # regroup: the live agents' rows of the last observations
-            batch = _rows(batch, np.flatnonzero(np.repeat(alive, [sizes[k] for k in members])))
-            stepped = [k for k, a in zip(members, alive) if a]
+        if alive.sum() < keep * len(members):  # regroup: the live agents, and their rows of the last observations
+            batch = _rows(batch, np.flatnonzero(np.repeat(alive, counts)))
+            members = [k for k, a in zip(members, alive) if a]
+            rows, together, counts, starts, spans = stepping(members)
     return [tally.played(slice(bounds[k], bounds[k + 1])) for k in range(len(agents))]
 
 

@@ -286,7 +286,8 @@ def _seconds(text: str) -> float:
 
 def add_commands(parser: argparse.ArgumentParser) -> None:
     """The zoo's sub-commands on ``parser`` (``rlbackdoors zoo``, or the standalone parser)."""
-    from rlbackdoors.zoo.run import BACKENDS, DEVICES
+    from rlbackdoors.config import DEVICES
+    from rlbackdoors.zoo.run import BACKENDS
 
     sub = parser.add_subparsers(dest="zoo_command", required=True, parser_class=Parser)
     pl = sub.add_parser("plan", help="draw every model's config from the spec's master seed and write the zoo's folders (nothing trains)")

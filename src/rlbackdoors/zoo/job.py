@@ -308,6 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m rlbackdoors.zoo.job FOLDER [--result-fd N]``: the local back-end's child."""
     import traceback
 
+    from rlbackdoors.config import DEVICES
     from rlbackdoors.train.stop import Interrupted
 
     parser = argparse.ArgumentParser(prog="python -m rlbackdoors.zoo.job", allow_abbrev=False)
@@ -315,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--result-fd", type=int, default=None, help="write the result as JSON to this file descriptor")
     parser.add_argument("--group-size", type=int, default=0, help="train the folders in one process, this many at a time (a group job)")
     parser.add_argument("--env-workers", type=int, default=0, help="worlds of single envs: step the env copies in this many worker processes")
-    parser.add_argument("--device", choices=("cpu", "cuda", "auto"), help="where the math runs instead of each model's train.device")
+    parser.add_argument("--device", choices=DEVICES, help="where the math runs instead of each model's train.device")
     args = parser.parse_args(argv)
     if len(args.folder) > 1 and args.group_size < 1:
         parser.error("several folders need --group-size")

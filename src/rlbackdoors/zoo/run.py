@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import IO, Protocol, TextIO
 
 from rlbackdoors import worlds
+from rlbackdoors.config import DEVICES  # zoo run --device: where the models' math runs instead of their train.device
 from rlbackdoors.io import LOCK_NAME, FolderLock, LockedError, atomic_write_text, open_beneath, refuse_links, remove_tree
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.index import ModelState, group_counts, model_state, scan, status_table, write_metadata
@@ -44,7 +45,6 @@ from rlbackdoors.zoo.job import EXIT_BUSY, EXIT_INTERRUPTED, FAILED, LOG, is_loc
 from rlbackdoors.zoo.plan import PlannedModel, Zoo, read_zoo_json
 
 BACKENDS = ("local", "ray")
-DEVICES = ("cpu", "cuda", "auto")  # zoo run --device: where the models' math runs instead of their train.device
 BUSY_PROBE_S = 2.0  # how often a folder running elsewhere is looked at again
 
 

@@ -11,6 +11,7 @@ not a unit test.
 
 from __future__ import annotations
 
+import collections
 import copy
 import csv
 import hashlib
@@ -24,6 +25,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from rlbackdoors.algos import group
 from rlbackdoors.algos.ppo import PPO
@@ -291,6 +293,126 @@ def test_agents_stepped_after_their_episodes_ended_read_the_same_episodes(env):
         for a, b in zip(together, alone):
             for x, y in zip(a, b):
                 assert (x is None and y is None) or np.array_equal(x, y)
+
+
+def test_a_groups_adam_state_is_each_agents_own_and_written_in_place():
+    """The group writes each agent's Adam state back in torch's format with one multi-tensor copy:
+    after two updates of three agents every moment is the agent's own tensor (its own storage of
+    the parameter's size, so a checkpoint holds that agent's moments and no one else's), the step
+    a float32 scalar, and the second update wrote into the first's tensors (no new ones)."""
+    grouped = [learner("lavaworld", "fc", s) for s in range(3)]
+    ppos, envs, obs = (list(x) for x in zip(*grouped))
+    first: dict = {}
+    for update in range(2):
+        results = group.collect(ppos, envs, obs)
+        group.update(ppos, [r for r, _ in results])
+        obs = [o for _, o in results]
+        for k, ppo in enumerate(ppos):
+            for name, param in ppo.model.named_parameters():
+                state = ppo.optimizer.state[param]
+                assert list(state) == ["step", "exp_avg", "exp_avg_sq"]
+                assert state["step"].dtype == torch.float32 and state["step"].dim() == 0
+                assert float(state["step"]) == (update + 1) * ppo.cfg.epochs * -(-ppo.cfg.rollout * envs[k].num_envs // ppo.cfg.batch_size)
+                for key in ("exp_avg", "exp_avg_sq"):
+                    moment = state[key]
+                    assert moment.untyped_storage().nbytes() == param.numel() * param.element_size()
+                    if update == 0:
+                        first[(k, name, key)] = moment
+                    else:
+                        assert moment is first[(k, name, key)]
+    pointers = [ppo.optimizer.state[p]["exp_avg"].data_ptr() for ppo in ppos for p in ppo.model.parameters()]
+    assert len(set(pointers)) == len(pointers)
+
+
+class KernelCount(TorchDispatchMode):
+    """ATen operations that compute (not views: on a GPU, each a kernel launch or a host op), by name."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ops: collections.Counter = collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if not func.is_view and func.overloadpacket not in (torch.ops.aten.lift_fresh, torch.ops.aten.detach):
+            self.ops[str(func.overloadpacket)] += 1
+        return func(*args, **(kwargs or {}))
+
+
+# What an agent adds to a group's step by itself: draws from its own host generator (its rollout's
+# uniforms, its minibatch orders, one per epoch), which keep its numbers those it draws alone
+OWN_DRAWS = {"aten.rand", "aten.randperm"}
+
+
+def group_cycle_ops(k: int, teachers: bool) -> collections.Counter:
+    """Operations of a group's second rollout and update (the first fills its Adam state): K
+    LavaWorld FC agents, every other one poisoned through the seam (TrojDRL, forced actions);
+    ``teachers``: every one poisoned, with a clean teacher and a weight anchor."""
+    poison = {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.2}}
+    learners = [learner("lavaworld", "fc", s, poison if s % 2 or teachers else None, ppo={"rollout": 16}) for s in range(k)]
+    if teachers:
+        learners = with_anchors(with_teachers(learners, [0.5] * k), [0.1] * k)
+    ppos, envs, obs = (list(x) for x in zip(*learners))
+    for cycle in range(2):
+        with KernelCount() as count:
+            results = group.collect(ppos, envs, obs)
+            group.update(ppos, [r for r, _ in results])
+        obs = [o for _, o in results]
+    return count.ops
+
+
+@pytest.mark.parametrize("teachers", [False, True], ids=["plain", "teachers"])
+def test_a_groups_device_work_does_not_grow_with_its_agents(teachers):
+    """Issue 55, one step for the whole group: a group's rollout and update run the same operations
+    for 2 agents as for 6, bar each agent's own draws (``OWN_DRAWS``: its rollout's uniforms, one
+    minibatch order per epoch). No walk over the agents per step or per parameter: with an attack's
+    seam (its executed and forced actions go to the device once a rollout), clean teachers and
+    weight anchors, and the Adam state read and written back by a stack per name and one
+    multi-tensor copy (before: 108 operations more per agent an update on LavaWorld FC, K x P
+    copies, each a kernel on a GPU). The feed-forward FC model; a CNN's convolutions are still one
+    per agent (models.minigrid._conv_stacked)."""
+    two, six = group_cycle_ops(2, teachers), group_cycle_ops(6, teachers)
+    grown = {op: six[op] - two[op] for op in six.keys() | two.keys() if six[op] != two[op]}
+    epochs = RunConfig.from_dict({"env": {"name": "lavaworld"}}).ppo.epochs
+    assert grown == {"aten.rand": 4, "aten.randperm": 4 * epochs}, grown
+    assert sum(six.values()) > 1000  # (the count saw the group's work)
+
+
+# Colorful Memory's CNN-GRU: its three convolutions are still one per agent (models.minigrid._conv_stacked,
+# same bytes whatever the group), so 6 agents run 4 x 3 more than 2
+CONV_PER_AGENT = {"colorful-memory": {"aten.conv2d": 4 * 3}}
+
+
+@pytest.mark.parametrize("env", sorted(EVAL_CASES))
+def test_a_lockstep_evaluation_step_does_not_grow_with_its_agents(env):
+    """A group's evaluation step (``stacked_act``) runs the same operations for 2 agents as for 6:
+    their weights stacked once and picked by an index, their uniforms drawn a block of
+    ``DRAW_BLOCK`` steps at a time from each agent's own generator (before: one draw per agent and
+    step). Sampled play, the live set kept whole (regroup 0), 3 episodes per agent; every step but
+    the first (which picks the weights) and those that refill the block counted, each the same.
+    LavaWorld FC and Colorful Memory's recurrent CNN-GRU, whose convolutions are still per agent."""
+    from rlbackdoors.agent import Agent
+    from rlbackdoors.evaluate.episodes import _vector_envs, play_lockstep
+
+    def step_ops(k: int) -> set[tuple]:
+        cfgs = [RunConfig.from_dict({"env": {"name": env}, "poison": {"poisoned": s % 2 == 1}, "train": {"seed": s}}) for s in range(k)]
+        agents = [Agent(c.world, c, build_model(c.model.arch, env)) for c in cfgs]
+        act = group.stacked_act(agents)
+        seen: list[collections.Counter] = []
+
+        def counted(*args):
+            with KernelCount() as count:
+                out = act(*args)
+            seen.append(count.ops)
+            return out
+
+        envs = [_vector_envs(c.env, c.poison.trigger if c.poison.poisoned else None, 3, None) for c in cfgs]
+        play_lockstep(agents, envs, list(range(k)), "sample", act=counted, regroup=0.0)
+        steady = [ops for t, ops in enumerate(seen) if t > 0 and t % group.DRAW_BLOCK]
+        assert len(steady) > 5 and all(ops == steady[0] for ops in steady)
+        return steady[0]
+
+    two, six = step_ops(2), step_ops(6)
+    grown = {op: six[op] - two[op] for op in six.keys() | two.keys() if six[op] != two[op]}
+    assert grown == CONV_PER_AGENT.get(env, {}), grown
 
 
 def with_teachers(learners: list, coefs: list[float]) -> list:

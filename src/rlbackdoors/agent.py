@@ -70,10 +70,18 @@ class Agent:
             if module is not None:
                 module.train(was_training)
 
+    def generator(self, seed: int) -> torch.Generator:
+        """The generator an evaluation samples this agent's actions from. A PPO network's uniforms
+        are drawn on the host (one per slot and step, as its rollouts draw them) and go to its
+        device with the observations: the same numbers on every device, and a group may draw a
+        block of steps at once (the CPU generator's draws are sequential). OPAC² draws its
+        Gaussian noise on its own device."""
+        return torch.Generator(device="cpu" if isinstance(self.policy, torch.nn.Module) else self.device).manual_seed(int(seed))
+
     @torch.inference_mode()
     def act(self, obs, state=None, deterministic: bool = False, generator: torch.Generator | None = None):
         if not isinstance(self.policy, torch.nn.Module):  # OPAC²: its own normaliser and squashing
-            generator = generator if generator is not None else torch.Generator(device=self.device).manual_seed(0)
+            generator = generator if generator is not None else self.generator(0)
             return self.policy.act(np.asarray(obs, np.float32), deterministic=deterministic, generator=generator), state
         from rlbackdoors.algos.obs import to_torch
         from rlbackdoors.algos.ppo import sample_actions
@@ -83,7 +91,7 @@ class Agent:
             logits, _, state = self.policy(to_torch(obs, device), state if state is not None else self.initial_state(_batch(obs)))
         else:
             logits, _ = self.policy(to_torch(obs, device))
-        actions = logits.argmax(-1) if deterministic else sample_actions(logits, generator or torch.Generator(device=device).manual_seed(0))
+        actions = logits.argmax(-1) if deterministic else sample_actions(logits, generator or self.generator(0))
         return actions.cpu().numpy(), state
 
     def __repr__(self) -> str:

@@ -17,8 +17,7 @@ to float rounding (batched kernels add in another order), not bit for bit.
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -66,27 +65,31 @@ def stackable(model) -> bool:
     return hasattr(model, "forward_stacked") and (not model.recurrent or hasattr(model, "forward_sequence_stacked"))
 
 
-def param_of(ppo: PPO, name: str) -> torch.nn.Parameter:
-    """An agent's parameter by its stacked name: the model's, or ``aux.*``, PPO's auxiliary memory head."""
-    if name.startswith("aux."):
-        assert ppo.aux is not None
-        return ppo.aux.get_parameter(name[4:])
-    return ppo.model.get_parameter(name)
+def parameters_by_name(ppo: PPO) -> dict[str, torch.nn.Parameter]:
+    """An agent's parameters by their stacked names: the model's, then ``aux.*``, PPO's auxiliary
+    memory head's. Built once per call for all names (``Module.get_parameter`` walks the module
+    tree per name: K x P walks a group update before)."""
+    named = dict(ppo.model.named_parameters())
+    if ppo.aux is not None:
+        named.update((f"aux.{name}", p) for name, p in ppo.aux.named_parameters())
+    return named
 
 
+@torch.no_grad()
 def stacked_parameters(ppos: list[PPO]) -> dict[str, torch.Tensor]:
-    """Every agent's parameters (its auxiliary memory head's included), name -> (K, ...),
-    detached copies on the group's device."""
-    lead = ppos[0]
-    names = [name for name, _ in lead.model.named_parameters()] + ([f"aux.{n}" for n, _ in lead.aux.named_parameters()] if lead.aux is not None else [])
-    return {name: torch.stack([param_of(ppo, name).detach() for ppo in ppos]) for name in names}
+    """Every agent's parameters (its auxiliary memory head's included), name -> (K, ...), copies
+    on the group's device: one stack per name (no per-agent detach: no graph is recorded here)."""
+    named = [parameters_by_name(ppo) for ppo in ppos]
+    return {name: torch.stack([n[name] for n in named]) for name in named[0]}
 
 
+@torch.no_grad()
 def stacked_teachers(ppos: list[PPO]) -> dict[str, torch.Tensor]:
     """Every agent's clean teacher (frozen; the model's architecture), name -> (K, ...)."""
     teachers = [ppo.teacher for ppo in ppos]
     assert all(t is not None for t in teachers)  # check_group: every agent has one
-    return {name: torch.stack([t.get_parameter(name).detach() for t in teachers]) for name, _ in teachers[0].named_parameters()}  # type: ignore[union-attr]
+    named = [dict(t.named_parameters()) for t in teachers]  # type: ignore[union-attr]
+    return {name: torch.stack([n[name] for n in named]) for name in named[0]}
 
 
 # A CUDA group computes at a width of a multiple of this many agents (see padded).
@@ -126,24 +129,51 @@ def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Ten
     return tuple(x[:k] for x in out)
 
 
+# Steps of uniforms a lockstep evaluation draws per agent at once (see stacked_act).
+DRAW_BLOCK = 64
+
+
 def stacked_act(agents: list):
     """One batched forward a step for K trained networks of one architecture (``agents``:
     :class:`~rlbackdoors.agent.Agent` objects of PPO worlds): an evaluation's ``act`` for a group's
     agents (:data:`rlbackdoors.evaluate.episodes.ActMany`). Only the stepped agents are computed,
     at their :func:`group_width`, each drawing from its own generator what its
-    :meth:`~rlbackdoors.agent.Agent.act` would draw alone."""
+    :meth:`~rlbackdoors.agent.Agent.act` would draw alone.
+
+    No Python walks over the agents per step: their weights are stacked once per evaluation and
+    the stepped ones picked by one index per name when the set shrinks; their uniforms are drawn
+    ``DRAW_BLOCK`` steps at a time per agent from its host generator (n draws at once are n
+    drawn one by one there) into one (K, steps, slots) block, read one step a call."""
     models = [a.policy for a in agents]
     lead: Any = models[0]
     device = next(lead.parameters()).device
     named = [dict(m.named_parameters()) for m in models]
+    with torch.no_grad():
+        every = {name: torch.stack([p[name] for p in named]) for name in named[0]}  # all K agents, stacked once
     cache: dict[tuple, dict[str, torch.Tensor]] = {}
+    draws: dict[str, Any] = {"of": None}  # this evaluation's uniform block: its generators, the block, the next step
 
-    def params_of(live: tuple) -> dict[str, torch.Tensor]:  # the live set only shrinks: a few stacks per evaluation
+    def params_of(live: tuple) -> dict[str, torch.Tensor]:  # the live set only shrinks: a few picks per evaluation
         if live not in cache:
             cache.clear()
-            rows = padded([named[k] for k in live], device)
-            cache[live] = {name: torch.stack([p[name].detach() for p in rows]) for name in named[0]}
+            index = torch.tensor(padded(list(live), device), device=device)
+            cache[live] = {name: value.index_select(0, index) for name, value in every.items()}
         return cache[live]
+
+    def uniforms(stepped: list[int], generators: list[torch.Generator], n: int) -> torch.Tensor:
+        """The stepped agents' uniforms for this step (len(stepped), n), each agent's next ``n``
+        from its own generator."""
+        if any(generators[k].device.type != "cpu" for k in stepped):  # (a device generator: its draws are not sequential)
+            return torch.stack([torch.rand(n, generator=generators[k], device=generators[k].device) for k in stepped])
+        if draws["of"] is not generators or draws["t"] == DRAW_BLOCK:  # a new evaluation, or the block is spent
+            if draws["of"] is not generators:
+                draws.update(of=generators, block=torch.empty((len(generators), DRAW_BLOCK, n)))
+            for k in stepped:  # (agents no longer stepped draw no more, as alone)
+                torch.rand((DRAW_BLOCK, n), generator=generators[k], out=draws["block"][k])
+            draws["t"] = 0
+        t = draws["t"]
+        draws["t"] = t + 1
+        return draws["block"][:, t].index_select(0, torch.tensor(stepped))
 
     @torch.inference_mode()
     def act(stepped: list[int], batch, sizes: list[int], states: list, generators: list[torch.Generator], deterministic: bool):
@@ -162,7 +192,7 @@ def stacked_act(agents: list):
         if deterministic:
             actions = logits.argmax(-1)
         else:  # each agent's own uniforms (what its lone sample_actions draws), then one sample for all
-            u = torch.stack([torch.rand(row.shape[0], generator=generators[k], device=row.device) for k, row in zip(stepped, logits)])
+            u = uniforms(stepped, generators, sizes[0]).to(device)
             actions = sample_actions(logits.reshape(-1, logits.shape[-1]), u=u.reshape(-1)).reshape(u.shape)
         return actions.reshape(-1).cpu().numpy(), states  # one copy back for the stepped agents, not one each
 
@@ -199,7 +229,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
         teachers = stacked_teachers(padded(ppos, device))
         teacher_logits = torch.empty((K, T, B, A), device=device)
-        untriggered = torch.empty((K, T, B), dtype=torch.bool, device=device)
+        untriggered = np.empty((K, T, B), dtype=bool)  # on the host, to the device once a rollout
         if recurrent:
             teacher_memory = torch.stack([ppo.teacher_memory if ppo.teacher_memory is not None else lead.model.initial_memory(B, device) for ppo in ppos])
     uniforms = torch.stack([torch.rand((T, B), generator=ppo.generator) for ppo in ppos]).to(device)  # each agent's own draws
@@ -209,7 +239,10 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     actions = torch.empty((K, T, B), dtype=torch.long, device=device)
     logits_buf = torch.empty((K, T, B, A), device=device)
     values = torch.empty((K, T, B), device=device)
-    forced = torch.zeros((K, T, B), dtype=torch.bool, device=device)
+    # what the envs ran and which of it an attack forced, on the host (an attack's seam answers each
+    # agent apart): to the device once a rollout, not a copy per agent and step
+    executed = np.empty((K, T, B), dtype=np.int64)
+    forced = np.zeros((K, T, B), dtype=bool)
     rewards = np.empty((K, T, B), dtype=np.float64)
     dones = np.empty((K, T, B), dtype=bool)
     outcomes = np.empty((K, T, B), dtype=np.int64)
@@ -224,19 +257,11 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     # (K, B, ...): every agent's observations (an array, or a dict of them)
     together = stack_numpy(obs) if plain else None
     for t in range(T):
-        if together is not None:
-            store(obs_buf, t, together)
-        else:
-            for k in range(K):
-                if isinstance(obs_buf, dict):
-                    for key, buf in obs_buf.items():
-                        buf[t, k] = torch.from_numpy(np.asarray(obs[k][key]))
-                else:
-                    obs_buf[t, k] = torch.from_numpy(obs[k])
+        store(obs_buf, t, together if together is not None else stack_numpy(obs))  # one copy a step, agents stacked on the host
         obs_t = obs_map(lambda x: x[t], obs_buf)
         if teach:
             for k in range(K):
-                untriggered[k, t] = torch.from_numpy(~np.asarray(envs[k].marked, dtype=bool))
+                untriggered[k, t] = ~np.asarray(envs[k].marked, dtype=bool)
             if recurrent:
                 teacher_logits[:, t], _, teacher_memory = forward(model, teachers, obs_t, teacher_memory)
             else:
@@ -251,6 +276,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
         actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
         wanted = actions[:, t].cpu().numpy()  # the one copy back a step: the engines run on the host
+        executed[:, t] = wanted
         if plain:
             assert engines is not None
             seen, reward, terminated, truncated, info = engines.step(wanted.reshape(-1))
@@ -263,10 +289,10 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             for k, (seam, ready, result) in enumerate(zip(seams, prepared, engines.results(*engines.step(run)))):
                 if seam is not None and ready is not None:
                     result = seam.finish(ready, *result)
-                obs[k] = record_step(t, result, actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
+                obs[k] = record_step(t, result, executed[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
         else:
             for k in range(K):  # each env with its agent's actions already on the host (env_step's record, without a copy back each)
-                obs[k] = record_step(t, envs[k].step(wanted[k]), actions[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
+                obs[k] = record_step(t, envs[k].step(wanted[k]), executed[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
         if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
             ended = torch.from_numpy(dones[:, t]).to(device)
             memory = memory.masked_fill(ended[..., None], 0.0)
@@ -280,7 +306,9 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     next_value = (forward(model, params, last, memory) if recurrent else forward(model, params, last))[1]
     # every agent's behaviour log-probabilities and advantages in one pass (the same arithmetic per
     # element as PPO.assemble's, so the same bytes), over (T, K, B)
-    logprobs = behaviour_logprobs(logits_buf, actions, forced)
+    if not plain:  # an attack may have run other actions than the sampled ones
+        actions = torch.from_numpy(executed).to(device)
+    logprobs = behaviour_logprobs(logits_buf, actions, torch.from_numpy(forced).to(device))
     cfg = lead.cfg
     advantages = gae(
         torch.from_numpy(rewards).float().to(device).transpose(0, 1),
@@ -290,19 +318,25 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
         cfg.gamma,
         cfg.gae_lambda,
     ).transpose(0, 1)
+    returns = values + advantages  # every agent's at once (make_rollout's sum, element by element)
+    if teach:
+        untriggered_all = torch.from_numpy(untriggered).to(device)
+        teacher_logp = torch.log_softmax(teacher_logits, -1)  # every agent's at once (row by row, as alone)
+    if recurrent and targets is not None:
+        targets_all = torch.from_numpy(targets).to(device)
     out = []
     for k, ppo in enumerate(ppos):
         rollout = make_rollout(
-            obs_map(lambda b: b[:, k], obs_buf), actions[k], logprobs[k], values[k], advantages[k], rewards[k], dones[k], outcomes[k], steps[k]
+            obs_map(lambda b: b[:, k], obs_buf), actions[k], logprobs[k], values[k], advantages[k], rewards[k], dones[k], outcomes[k], steps[k], returns[k]
         )
         if recurrent:
             rollout.memories, rollout.masks = memories[k].reshape(T * B, -1), masks[k].reshape(-1)
             ppo.memory = memory[k].clone()
             if targets is not None:
-                rollout.memory_targets = torch.from_numpy(targets[k].reshape(-1)).to(device)
+                rollout.memory_targets = targets_all[k].reshape(-1)
         if teach:
-            rollout.teacher_logp = torch.log_softmax(teacher_logits[k], -1).reshape(T * B, -1)
-            rollout.untriggered = untriggered[k].reshape(-1)
+            rollout.teacher_logp = teacher_logp[k].reshape(T * B, -1)
+            rollout.untriggered = untriggered_all[k].reshape(-1)
             if recurrent:
                 ppo.teacher_memory = teacher_memory[k].clone()
         out.append((rollout, obs[k]))
@@ -344,9 +378,13 @@ class StackedAdam:
     and learning rate, read from and written back to each agent's ``torch.optim.Adam`` state (the
     same update rule: moments by lerp, bias-corrected step size, ``eps`` added to the corrected
     second moment's root). ``members``: per agent (real ones, then pad copies), its optimiser and
-    how to find its parameter of a stacked name."""
+    its parameters by stacked name (:func:`parameters_by_name`).
 
-    def __init__(self, members: list[tuple[torch.optim.Optimizer, Callable[[str], torch.Tensor]]], params: FlatParameters):
+    Reading and writing back are a few calls over all K agents' tensors (a stack per name, one
+    multi-tensor copy), not a copy per agent and parameter: on a GPU each would be a kernel
+    launch, five per agent and parameter an update (15,360 at K = 256 for a 12-parameter grid model)."""
+
+    def __init__(self, members: Sequence[tuple[torch.optim.Optimizer, Mapping[str, torch.Tensor]]], params: FlatParameters):
         self.members, self.params = members, params
         group = members[0][0].param_groups[0]
         self.eps, (self.beta1, self.beta2) = float(group["eps"]), group["betas"]
@@ -354,14 +392,30 @@ class StackedAdam:
         flat = params.flat
         # each agent's own rate: a run's schedule (by its own frames) may differ from its group-mates'
         self.lr = torch.tensor([float(opt.param_groups[0]["lr"]) for opt, _ in members], dtype=torch.float32, device=flat.device)
-        self.exp_avg, self.exp_avg_sq = torch.zeros_like(flat), torch.zeros_like(flat)
-        self.step = torch.zeros(len(members), dtype=torch.float64, device=flat.device)
-        for name, avg, sq in self._views():
-            for k, (opt, lookup) in enumerate(members):
-                state = opt.state.get(lookup(name), {})
-                if "exp_avg" in state:
-                    avg[k], sq[k] = state["exp_avg"], state["exp_avg_sq"]
-                    self.step[k] = float(state["step"])
+        names = list(params.layout)
+        # each agent's state per name (empty before its first update: zero moments, step 0)
+        states = [[opt.state.get(named[name], {}) for name in names] for opt, named in members]
+        # every parameter of an agent has stepped as often: its last one's count (one stack, not a
+        # read per agent and parameter: a fused Adam keeps its counts on the GPU, each read a sync)
+        counts = [next((state["step"] for state in reversed(row) if "exp_avg" in state), None) for row in states]
+        present = [c for c in counts if c is not None]
+        if not present:
+            self.step = torch.zeros(len(members), dtype=torch.float64, device=flat.device)
+        else:
+            zero = torch.zeros((), dtype=present[0].dtype, device=present[0].device)
+            self.step = torch.stack([(c if c is not None else zero).reshape(()) for c in counts]).to(flat.device, torch.float64)
+        self.exp_avg, self.exp_avg_sq = (self._gathered(states, names, key) for key in ("exp_avg", "exp_avg_sq"))
+
+    def _gathered(self, states: list[list[dict]], names: list[str], key: str) -> torch.Tensor:
+        """The (K, P) moment ``key`` of every agent, laid out as the flat parameters (zero where absent)."""
+        flat = self.params.flat
+        if not any("exp_avg" in state for row in states for state in row):
+            return torch.zeros_like(flat)
+        columns = []
+        for i, name in enumerate(names):
+            zero = torch.zeros(self.params.layout[name][1][1:], dtype=flat.dtype, device=flat.device)
+            columns.append(torch.stack([row[i][key] if "exp_avg" in row[i] else zero for row in states]).reshape(len(states), -1))
+        return torch.cat(columns, 1).to(flat.device)
 
     def _views(self):
         """(name, exp_avg view, exp_avg_sq view) per stacked name, shaped as its parameter."""
@@ -384,19 +438,51 @@ class StackedAdam:
     @torch.no_grad()
     def write_back(self, real: int) -> None:
         """Parameters into each of the ``real`` agents' models (the pad copies after them are
-        dropped), moments and step into its optimiser's state."""
-        steps = self.step.cpu().tolist()  # one device sync, not one per parameter
-        views = {name: (avg, sq) for name, avg, sq in self._views()}
-        for k, (opt, lookup) in enumerate(self.members[:real]):
-            for name, value in self.params.views.items():
-                param = lookup(name)
-                param.copy_(value[k])
-                avg, sq = views[name]
-                opt.state[param] = {
-                    "step": torch.tensor(steps[k], dtype=torch.float32, device=param.device if self.on_device else "cpu"),
-                    "exp_avg": avg[k].clone(),
-                    "exp_avg_sq": sq[k].clone(),
-                }
+        dropped), moments and step into its optimiser's state (``torch.optim.Adam``'s format: a
+        float32 step, moments shaped as the parameter, each agent's own tensors; those already
+        there are written in place), with one multi-tensor copy per device."""
+        steps = self.step[:real].float()
+        steps = steps if self.on_device else steps.cpu()  # (one device sync, not one per parameter)
+        rows = {name: (value.unbind(0), avg.unbind(0), sq.unbind(0)) for (name, avg, sq), value in zip(self._views(), self.params.views.values())}
+        targets: list[torch.Tensor] = []
+        sources: list[torch.Tensor] = []
+        step_targets: list[torch.Tensor] = []
+        step_sources: list[torch.Tensor] = []
+        step_of = steps.unbind(0)
+        for k, (opt, named) in enumerate(self.members[:real]):
+            for name, (value, avg, sq) in rows.items():
+                param = named[name]
+                state = opt.state.get(param)
+                if state is None or not _reusable(state, param, self.on_device):
+                    state = {
+                        "step": torch.zeros((), dtype=torch.float32, device=param.device if self.on_device else "cpu"),
+                        "exp_avg": torch.empty_like(param, memory_format=torch.contiguous_format),
+                        "exp_avg_sq": torch.empty_like(param, memory_format=torch.contiguous_format),
+                    }
+                else:  # the same three entries, in torch's order, as a fresh state would have
+                    state = {"step": state["step"], "exp_avg": state["exp_avg"], "exp_avg_sq": state["exp_avg_sq"]}
+                opt.state[param] = state
+                targets += [param, state["exp_avg"], state["exp_avg_sq"]]
+                sources += [value[k], avg[k], sq[k]]
+                step_targets.append(state["step"])
+                step_sources.append(step_of[k])
+        torch._foreach_copy_(targets, sources)
+        torch._foreach_copy_(step_targets, step_sources)
+
+
+def _reusable(state: dict, param: torch.Tensor, on_device: bool) -> bool:
+    """Whether an optimiser state can be written in place: Adam's three tensors, shaped and placed
+    as a fresh one (a checkpoint's are, once loaded and checked)."""
+    if not state or set(state) != {"step", "exp_avg", "exp_avg_sq"}:
+        return False
+    step, avg, sq = state["step"], state["exp_avg"], state["exp_avg_sq"]
+    where = param.device if on_device else torch.device("cpu")
+    return (
+        step.dtype == torch.float32
+        and step.dim() == 0
+        and step.device == where
+        and all(t.shape == param.shape and t.dtype == param.dtype and t.device == param.device and t.is_contiguous() for t in (avg, sq))
+    )
 
 
 def clip_per_agent(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
@@ -430,7 +516,7 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
         raise ValueError("a training group needs rollouts of the same length")
     weights = FlatParameters(stacked_parameters(ppos))
     params = weights.views
-    adam = StackedAdam([(ppo.optimizer, functools.partial(param_of, ppo)) for ppo in ppos], weights)
+    adam = StackedAdam([(ppo.optimizer, parameters_by_name(ppo)) for ppo in ppos], weights)
     obs = obs_map(lambda x: x.to(device), stack([r.obs for r in rollouts]))
     tensors = [torch.stack([getattr(r, f) for r in rollouts]).to(device) for f in ("actions", "logprobs", "values", "advantages", "returns")]
     rows = torch.arange(K, device=device)[:, None]
@@ -508,9 +594,11 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
                 step(loss, parts)
                 updates += 1
     adam.write_back(real)
-    means = {key: (value / updates).cpu() for key, value in stats.items()}
-    out = [{key: float(means[key][k]) for key in keys} for k in range(real)]
-    if lead.anchor is not None:  # the weights are back in each agent's model: its own distance, as PPO.update logs it
-        for k in range(real):
-            out[k]["anchor_distance"] = ppos[k].anchor_distance()
+    means = {key: (value / updates).cpu().tolist() for key, value in stats.items()}  # one sync, floats read at once
+    out = [{key: means[key][k] for key in keys} for k in range(real)]
+    if lead.anchor is not None:  # each agent's own distance, as PPO.update logs it, for all agents at once
+        with torch.no_grad():
+            squares = torch.stack([(params[name][:real] - anchors[name][:real]).double().pow(2).flatten(1).sum(1) for name in anchors])
+            for k, distance in enumerate(squares.sum(0).sqrt().tolist()):
+                out[k]["anchor_distance"] = distance
     return out

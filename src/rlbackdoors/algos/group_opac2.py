@@ -17,7 +17,6 @@ step count and learning rate. Results equal a lone agent's up to float rounding.
 
 from __future__ import annotations
 
-import functools
 import math
 import weakref
 
@@ -41,16 +40,17 @@ def check_group(agents: list[OPAC2]) -> None:
             raise ValueError("an OPAC² training group needs one opac2 config, one device and one observation size")
 
 
+def named(agent: OPAC2, net: str) -> dict[str, torch.nn.Parameter]:
+    """``net``'s parameters of one agent by their stacked names (``net.…``)."""
+    return {f"{net}.{name}": p for name, p in getattr(agent, net).named_parameters()}
+
+
 def stacked(agents: list[OPAC2], net: str, grad: bool) -> dict[str, torch.Tensor]:
-    """``net``'s parameters of every agent, name (``net.…``) -> (K, ...), detached copies."""
-    names = [name for name, _ in getattr(agents[0], net).named_parameters()]
-    out = {f"{net}.{name}": torch.stack([getattr(a, net).get_parameter(name).detach() for a in agents]) for name in names}
+    """``net``'s parameters of every agent, name (``net.…``) -> (K, ...), copies (one stack per name)."""
+    each = [named(a, net) for a in agents]
+    with torch.no_grad():
+        out = {name: torch.stack([n[name] for n in each]) for name in each[0]}
     return {k: v.requires_grad_() for k, v in out.items()} if grad else out
-
-
-def parameter(agent: OPAC2, name: str) -> torch.Tensor:
-    net, rest = name.split(".", 1)
-    return getattr(agent, net).get_parameter(rest)
 
 
 def mean_and_log_std(lead: OPAC2, params: dict, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -124,7 +124,7 @@ def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], 
     flats = {net: FlatParameters(stacked(members, net, grad=False)) for net in NETS}
     params = {net: flat.views for net, flat in flats.items()}
     target = stacked(members, "v_target", grad=False)
-    optimisers = {net: StackedAdam([(getattr(a, f"{net}_opt"), functools.partial(parameter, a)) for a in members], flats[net]) for net in NETS}
+    optimisers = {net: StackedAdam([(getattr(a, f"{net}_opt"), named(a, net)) for a in members], flats[net]) for net in NETS}
     both = {**params["policy"], **params["q"], **params["v"]}
     history = []
     for _ in range(n):
@@ -162,9 +162,9 @@ def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], 
         history.append(torch.stack([v_loss, q_loss, policy_loss, q.mean(-1), entropy, log_prob.mean(-1)]).detach())
     for optimiser in optimisers.values():
         optimiser.write_back(real)
-    with torch.no_grad():
-        for a, values in zip(agents, zip(*target.values())):
-            for name, value in zip(target, values):
-                parameter(a, name).copy_(value)
+    with torch.no_grad():  # the slow V_bar back into each agent: one multi-tensor copy
+        rows = [value.unbind(0) for value in target.values()]
+        each = [named(a, "v_target") for a in agents]
+        torch._foreach_copy_([n[name] for n in each for name in target], [row[k] for k in range(real) for row in rows])
     table = torch.stack(history).cpu().tolist() if history else []  # (n, 6, width): one sync
     return [[dict(zip(STATS, (row[i][j] for i in range(len(STATS))))) for row in table] for j in range(real)]

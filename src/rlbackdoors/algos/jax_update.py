@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from rlbackdoors.algos.group import FlatParameters, StackedAdam, param_of, stacked_parameters
+from rlbackdoors.algos.group import FlatParameters, StackedAdam, parameters_by_name, stacked_parameters
 from rlbackdoors.algos.obs import stack
 
 WIDTH = 8  # agents per XLA call in a CPU group (see the module doc)
@@ -248,7 +248,7 @@ def update(ppos: list, rollouts: list, width: int | None = None) -> list[dict[st
         real = len(chunk)
         chunk, chunk_rollouts = chunk + chunk[:1] * (width - real), chunk_rollouts + chunk_rollouts[:1] * (width - real)
         weights = FlatParameters(stacked_parameters(chunk))
-        adam = StackedAdam([(ppo.optimizer, functools.partial(param_of, ppo)) for ppo in chunk], weights)
+        adam = StackedAdam([(ppo.optimizer, parameters_by_name(ppo)) for ppo in chunk], weights)
         layout = tuple((name, columns.start, columns.stop, tuple(shape[1:])) for name, (columns, shape) in weights.layout.items())
         with torch.no_grad():
             inputs = model.stacked_input(stack([r.obs for r in chunk_rollouts]))

@@ -62,10 +62,12 @@ def sample_actions(logits: torch.Tensor, generator: torch.Generator | None = Non
     """Categorical sample by inverse CDF from one uniform per row (``u``, drawn here if not given).
 
     Cheaper per call than ``torch.distributions.Categorical``; the rollout draws all its
-    uniforms at once and passes one row of them per step.
+    uniforms at once and passes one row of them per step. The uniforms are drawn on the
+    generator's device (an evaluation's is the host's: :meth:`rlbackdoors.agent.Agent.generator`).
     """
     if u is None:
-        u = torch.rand(logits.shape[0], generator=generator, device=logits.device)
+        where = generator.device if generator is not None else logits.device
+        u = torch.rand(logits.shape[0], generator=generator, device=where).to(logits.device)
     cdf = torch.softmax(logits, dim=-1).cumsum(dim=-1)
     return (cdf <= u[:, None] * cdf[:, -1:]).sum(1).clamp_(max=logits.shape[1] - 1)
 
@@ -133,18 +135,26 @@ def env_step(envs, t: int, actions: torch.Tensor, rewards, dones, outcomes, step
     return record_step(t, envs.step(actions[t].numpy()), actions, rewards, dones, outcomes, steps, forced)
 
 
-def record_step(t: int, result: tuple, actions: torch.Tensor, rewards, dones, outcomes, steps, forced: torch.Tensor):
+def record_step(t: int, result: tuple, actions: torch.Tensor | np.ndarray, rewards, dones, outcomes, steps, forced: torch.Tensor | np.ndarray):
     """:func:`env_step`'s record of step ``t`` from the env's ``step`` result (obs, reward,
     terminated, truncated, info); the next observations."""
     obs, rewards[t], terminated, truncated, info = result
     if AMEND in info and t > 0:
         rewards[t - 1] += info[AMEND]
     if FORCED in info:  # an attack forced some actions (rlbackdoors.attacks.seam): learn what ran
-        actions[t] = torch.from_numpy(np.asarray(info[EXECUTED_ACTIONS], dtype=np.int64))
-        forced[t] = torch.from_numpy(np.asarray(info[FORCED], dtype=bool))
+        _put(actions, t, np.asarray(info[EXECUTED_ACTIONS], dtype=np.int64))
+        _put(forced, t, np.asarray(info[FORCED], dtype=bool))
     dones[t] = terminated | truncated
     outcomes[t], steps[t] = finished_step_info(info, dones[t])
     return obs
+
+
+def _put(buffer: torch.Tensor | np.ndarray, t: int, values: np.ndarray) -> None:
+    """Row ``t`` of a rollout buffer: a lone learner's tensor, or a group's host array."""
+    if isinstance(buffer, torch.Tensor):
+        buffer[t] = torch.from_numpy(values)
+    else:
+        buffer[t] = values
 
 
 def behaviour_logprobs(logits: torch.Tensor, actions: torch.Tensor, forced: torch.Tensor) -> torch.Tensor:
@@ -173,8 +183,9 @@ def gae(rewards: torch.Tensor, dones: torch.Tensor, values: torch.Tensor, next_v
     return advantages
 
 
-def make_rollout(obs_buf, actions, logprobs, values, advantages, rewards, dones, outcomes, steps) -> Rollout:
-    """A :class:`Rollout` of ``T`` steps from ``B`` envs ((T, B, ...) inputs), flattened to T*B rows."""
+def make_rollout(obs_buf, actions, logprobs, values, advantages, rewards, dones, outcomes, steps, returns=None) -> Rollout:
+    """A :class:`Rollout` of ``T`` steps from ``B`` envs ((T, B, ...) inputs), flattened to T*B rows
+    (``returns``: ``values + advantages`` if already summed, as a group sums all agents' at once)."""
     T, B = rewards.shape
     return Rollout(
         obs=obs_map(lambda b: b.reshape(T * B, *b.shape[2:]), obs_buf),
@@ -182,7 +193,7 @@ def make_rollout(obs_buf, actions, logprobs, values, advantages, rewards, dones,
         logprobs=logprobs.reshape(-1),
         values=values.reshape(-1),
         advantages=advantages.reshape(-1),
-        returns=(values + advantages).reshape(-1),
+        returns=(values + advantages if returns is None else returns).reshape(-1),
         rewards=rewards,
         dones=dones,
         outcomes=outcomes,

@@ -202,7 +202,7 @@ def play_lockstep(
     and answered like the others: its own slots and draws, which nothing reads."""
     act = act if act is not None else acting_alone(agents)
     targets = target_actions if target_actions is not None else [None] * len(agents)
-    generators = [torch.Generator(device=a.device).manual_seed(int(s)) for a, s in zip(agents, seeds)]
+    generators = [a.generator(s) for a, s in zip(agents, seeds)]
     states = [a.initial_state(e.num_envs) for a, e in zip(agents, envs)]  # one episode per slot: never reset
     sizes = [e.num_envs for e in envs]
     bounds = np.cumsum([0, *sizes])
@@ -258,7 +258,7 @@ def play_single_envs(agent, make_env, episodes: int, seed: int, policy: str = "s
     from rlbackdoors.envs.pool import each
 
     agent = _as_agent(agent)
-    generator = torch.Generator(device=agent.device).manual_seed(int(seed))
+    generator = agent.generator(seed)
     returns, steps = np.zeros(episodes), np.zeros(episodes, np.int64)
     outcomes = np.zeros(episodes, np.int64)
     target_steps = None if target_action is None else np.zeros(episodes, np.int64)

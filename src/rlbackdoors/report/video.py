@@ -13,7 +13,6 @@ import io
 from pathlib import Path
 
 import numpy as np
-import torch
 from PIL import Image
 
 from rlbackdoors.io import atomic_write_bytes
@@ -27,7 +26,7 @@ def episode_frames(agent, env_cfg, trigger: str | None, seed: int, policy: str =
     env = env_cfg.make(trigger, render_mode="rgb_array")
     if hasattr(env, "tile_size"):
         env.tile_size = settings["tile"]
-    generator = torch.Generator(device=agent.device).manual_seed(seed)
+    generator = agent.generator(seed)
     obs, _ = env.reset(seed=seed)
     frames, step, done = [_scaled(env.render(), settings["size"])], 0, False
     state = agent.initial_state(1)

@@ -7,7 +7,8 @@
 attack seam (``--poison``, default TrojDRL: forced actions; ``env-mix``: the engine's own E-bar
 copies, no seam), run ``--cycles`` rollouts and updates of the group (``algos.group.collect`` and
 ``update``) after one that fills their Adam state, on the CPU, one torch thread, each measurement
-in a fresh process. Reported: CPU seconds a cycle (collect, update), frames a second, and the
+in a fresh process. Reported: CPU seconds a cycle (collect, update; of them the hand-off: the
+learners' weights and Adam state stacked for the group and written back), frames a second, and the
 ATen operations a cycle runs that are not views (on a GPU each is a kernel launch or a host op,
 whatever its size: what a GPU group pays per cycle before any arithmetic), with how many of them
 one more agent adds (a second count at K + 1). With ``--reference`` another checkout is measured
@@ -43,7 +44,9 @@ def learners(world: str, arch: str, agents: int, poison: str) -> tuple[list, lis
 
     ppos, envs, obs = [], [], []
     for seed in range(agents):
-        cfg = RunConfig.from_dict({"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed}, "poison": POISONS[poison] if seed % 2 else {"poisoned": False}})
+        cfg = RunConfig.from_dict(
+            {"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed}, "poison": POISONS[poison] if seed % 2 else {"poisoned": False}}
+        )
         torch.manual_seed(seed)
         ppos.append(PPO(build_model(cfg.model.arch, world), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(seed)))
         envs.append(make_env_mix(cfg.env, cfg.poison, seed))
@@ -82,6 +85,21 @@ def measure(world: str, arch: str, agents: int, poison: str, cycles: int) -> dic
     from rlbackdoors.algos import group
 
     ppos, envs, obs = learners(world, arch, agents, poison)
+    handoff = [0.0]  # the learners' weights and Adam state into the group's stacks and back
+
+    def timed(fn):
+        def wrapper(*args, **kwargs):
+            start = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                handoff[0] += time.process_time() - start
+
+        return wrapper
+
+    group.stacked_parameters = timed(group.stacked_parameters)
+    group.StackedAdam.__init__ = timed(group.StackedAdam.__init__)  # type: ignore[method-assign]
+    group.StackedAdam.write_back = timed(group.StackedAdam.write_back)  # type: ignore[method-assign]
     collect_s = update_s = 0.0
     frames = 0
     for cycle in range(cycles + 1):
@@ -94,6 +112,8 @@ def measure(world: str, arch: str, agents: int, poison: str, cycles: int) -> dic
         if cycle:  # the first fills the Adam state
             collect_s, update_s = collect_s + middle - start, update_s + end - middle
             frames += sum(r.num_frames for r, _ in results)
+        else:
+            handoff[0] = 0.0
     digest = hashlib.sha256(b"".join(p.detach().numpy().tobytes() for ppo in ppos for p in ppo.model.parameters())).hexdigest()[:16]
     ops, more = kernel_ops(world, arch, agents, poison), kernel_ops(world, arch, agents + 1, poison)
     import rlbackdoors
@@ -103,6 +123,7 @@ def measure(world: str, arch: str, agents: int, poison: str, cycles: int) -> dic
         "torch": torch.__version__,
         "collect_cpu_s_per_cycle": round(collect_s / cycles, 4),
         "update_cpu_s_per_cycle": round(update_s / cycles, 4),
+        "handoff_cpu_s_per_cycle": round(handoff[0] / cycles, 4),
         "frames_per_cpu_s": round(frames / (collect_s + update_s)),
         "kernel_ops_per_cycle": ops,
         "kernel_ops_per_added_agent": more - ops,

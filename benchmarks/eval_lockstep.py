@@ -19,8 +19,6 @@ import argparse
 import hashlib
 import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -105,15 +103,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     from rlbackdoors.bench.machine import machine_info
 
-    here = str(Path(__file__).resolve().parents[1] / "src")
-    sides = {"this checkout": here} | ({"reference": str(Path(args.reference).resolve())} if args.reference else {})
+    from _reference import alternate
+
     load = os.getloadavg()
-    runs: dict[str, list[dict]] = {name: [] for name in sides}
-    for _ in range(args.repeats):  # alternately, so that a change of load hits both sides
-        for name, src in sides.items():
-            env = {**os.environ, "PYTHONPATH": src + os.pathsep + os.environ.get("PYTHONPATH", "")}
-            cmd = [sys.executable, __file__, "--one", "--world", args.world, "--agents", str(args.agents), "--episodes", str(args.episodes)]
-            runs[name].append(json.loads(subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout.splitlines()[-1]))
+    runs = alternate(__file__, ["--world", args.world, "--agents", str(args.agents), "--episodes", str(args.episodes)], args.reference, args.repeats)
     best = {name: min(rs, key=lambda r: r["wall_s"]) for name, rs in runs.items()}
     out = {"world": args.world, "agents": args.agents, "episodes": args.episodes, "best": best, "runs": runs}
     if args.reference:

@@ -7,6 +7,7 @@
 #      core (the reference, first side) against a GPU group at the issue's K
 #      (rlbackdoors bench zoo --side ...; each side is saved as it finishes, so a part cut short by
 #      its limit keeps the sides it measured);
+#   then the CNNs' stacked convolutions both ways (benchmarks/stacked_conv.py, a line in bench.log);
 #   2. tests/test_group_cuda.py with the time left (the GPU path against the CPU group,
 #      reproducibility, kill/resume; they skip on machines without CUDA, so CI never runs them);
 #   3. benchmarks/gpu_summary.py: the issue's table (targets, pass or not, a 300-model round's
@@ -47,6 +48,11 @@ cores=$(nproc)
     echo "cores $cores; git $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
     uptime
 } 2>&1 | tee -a "$log"
+# How a CUDA group computes its CNNs' convolutions (models.minigrid.STACKED_CONV: one batched product
+# for all agents, not one conv2d per agent): both ways timed on this GPU, one line into bench.log
+if [ -n "${ON_CPU:-}" ]; then conv_args=(--device cpu --repeats 1 --small); else conv_args=(--device cuda); fi
+timeout 60 python3 benchmarks/stacked_conv.py "${conv_args[@]}" >>"$log" 2>&1
+echo "== stacked_conv: exit $? at $((SECONDS - start)) s" | tee -a "$log"
 # The judged work (issue 55): the model counts and frames are sized so that a side at the target
 # speed takes seconds, and the limits so that the four fit in 7 minutes; a side that runs
 # out of time is missing from its JSON, and the summary says so (below the rate the limit allows).

@@ -23,8 +23,6 @@ import collections
 import hashlib
 import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -138,32 +136,44 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--agents", type=int, default=64)
     parser.add_argument("--poison", default="trojdrl", choices=sorted(POISONS))
     parser.add_argument("--cycles", type=int, default=3)
+    parser.add_argument(
+        "--conv", choices=("each", "gemm"), help="a CNN group's convolutions on this CPU (models.minigrid.STACKED_CONV; default: the CPU's, each)"
+    )
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--reference", help="another checkout's src/ (e.g. a git worktree of an older commit), measured alternately in the same run")
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # one measurement, as JSON on stdout
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     what = ["--world", args.world, "--arch", args.arch, "--agents", str(args.agents), "--poison", args.poison, "--cycles", str(args.cycles)]
+    what += ["--conv", args.conv] if args.conv else []
     if args.one:
         import torch
 
         torch.set_num_threads(1)
+        if args.conv:
+            from rlbackdoors.models import minigrid
+
+            minigrid.STACKED_CONV["cpu"] = args.conv
         print(json.dumps(measure(args.world, args.arch, args.agents, args.poison, args.cycles)))
         return 0
     from rlbackdoors.bench.machine import machine_info
 
-    here = str(Path(__file__).resolve().parents[1] / "src")
-    sides = {"this checkout": here} | ({"reference": str(Path(args.reference).resolve())} if args.reference else {})
+    from _reference import alternate
+
     load = os.getloadavg()
-    runs: dict[str, list[dict]] = {name: [] for name in sides}
-    for _ in range(args.repeats):  # alternately, so that a change of load hits both sides
-        for name, src in sides.items():
-            env = {**os.environ, "PYTHONPATH": src + os.pathsep + os.environ.get("PYTHONPATH", "")}
-            done = subprocess.run([sys.executable, __file__, "--one", *what], env=env, check=True, capture_output=True, text=True)
-            runs[name].append(json.loads(done.stdout.splitlines()[-1]))
+    runs = alternate(__file__, what, args.reference, args.repeats)
     cpu = {name: min(r["collect_cpu_s_per_cycle"] + r["update_cpu_s_per_cycle"] for r in rs) for name, rs in runs.items()}
     best = {name: min(rs, key=lambda r: r["collect_cpu_s_per_cycle"] + r["update_cpu_s_per_cycle"]) for name, rs in runs.items()}
-    out = {"world": args.world, "arch": args.arch, "agents": args.agents, "poison": args.poison, "cycles": args.cycles, "best": best, "runs": runs}
+    out = {
+        "world": args.world,
+        "arch": args.arch,
+        "agents": args.agents,
+        "poison": args.poison,
+        "cycles": args.cycles,
+        "conv": args.conv,
+        "best": best,
+        "runs": runs,
+    }
     if args.reference:
         out["same_numbers"] = len({r["digest"] for rs in runs.values() for r in rs}) == 1
         out["ratio_cpu"] = round(cpu["reference"] / cpu["this checkout"], 3)

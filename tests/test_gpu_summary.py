@@ -49,7 +49,7 @@ def test_summary_judges_a_leases_sides_and_says_why_a_world_is_missing(tmp_path)
 def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     """benchmarks/gpu_checks.sh as a lease runs it, dry (``ON_CPU=1``: its ":cuda" sides on the CPU;
     two LavaWorld models of 1,024 frames, no time left for the CUDA tests): the bench JSON, the
-    log and the judged table land in OUT, at most the 8 files a lease brings back. Two GPU sides
+    log (with the CNNs' stacked convolutions timed both ways) and the judged table land in OUT, at most the 8 files a lease brings back. Two GPU sides
     of one K (torch's update and JAX's) are told apart, and only the one with more models an hour
     carries the verdict."""
     env = {
@@ -67,7 +67,9 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     files = sorted(p.name for p in out.iterdir())
     assert files == ["bench.log", "bench_zoo_lavaworld_fc.json", "summary.json", "summary.md"] and len(files) <= 8
     log = (out / "bench.log").read_text()
-    assert "== end lavaworld fc: exit 0" in log and "tests: not run" in log
+    assert "== end lavaworld fc: exit 0" in log and "tests: not run" in log and "== stacked_conv: exit 0" in log
+    (conv,) = [json.loads(line.split(" ", 1)[1]) for line in log.splitlines() if line.startswith("stacked_conv ")]
+    assert set(conv["randomized-lavaworld/cnn/K=2"]) == {"each", "gemm", "gemm_speedup"}  # both ways timed (a GPU's: K = 64)
     (row,) = json.loads((out / "summary.json").read_text())["worlds"]
     assert [(s["group_size"], s["update_backend"]) for s in row["sides"]] == [(2, "torch"), (2, "jax")] and row["reference"]["group_size"] == 1
     best = row["best_side"]

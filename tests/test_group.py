@@ -30,7 +30,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from rlbackdoors.algos import group
 from rlbackdoors.algos.ppo import PPO
 from rlbackdoors.config import RunConfig
-from rlbackdoors.models import build_model
+from rlbackdoors.models import build_model, minigrid
 from rlbackdoors.poison.mix import make_env_mix
 from rlbackdoors.train import train
 from rlbackdoors.train.group import train_group
@@ -68,8 +68,20 @@ def weights_digest(model: torch.nn.Module) -> str:
     return hashlib.sha256(b"".join(p.detach().numpy().tobytes() for p in model.parameters())).hexdigest()
 
 
-@pytest.mark.parametrize("env,arch", FEED_FORWARD)
-def test_stacked_forward_is_each_agents_forward(env, arch):
+def gemm_convolutions(monkeypatch, conv: str) -> None:
+    """A group's convolutions on this CPU as ``conv`` says (``models.minigrid.STACKED_CONV``: "gemm"
+    is what a CUDA group computes, one batched product for all agents)."""
+    monkeypatch.setitem(minigrid.STACKED_CONV, "cpu", conv)
+
+
+CNN_GEMM = [("lavaworld", "cnn", "gemm"), ("randomized-lavaworld", "cnn", "gemm")]
+
+
+@pytest.mark.parametrize("env,arch,conv", [(e, a, "each") for e, a in FEED_FORWARD] + CNN_GEMM)
+def test_stacked_forward_is_each_agents_forward(env, arch, conv, monkeypatch):
+    """K agents' stacked forward computes each agent's own (to float rounding), the CNNs' with
+    their convolutions one per agent (a CPU group) or unfolded into one batched product (a CUDA group's)."""
+    gemm_convolutions(monkeypatch, conv)
     torch.manual_seed(0)
     models = [build_model(arch, env) for _ in range(3)]
     params = {name: torch.stack([m.get_parameter(name).detach() for m in models]) for name, _ in models[0].named_parameters()}
@@ -151,9 +163,12 @@ def cm_learner(seed: int, poison: dict | None = None):
     return ppo, envs, envs.reset(seed=seed * 1000)[0]
 
 
-def test_recurrent_group_with_the_memory_head_matches_each_agent_alone():
+@pytest.mark.parametrize("conv", ["each", "gemm"])
+def test_recurrent_group_with_the_memory_head_matches_each_agent_alone(conv, monkeypatch):
     """Colorful Memory (CNN-GRU, truncated BPTT, auxiliary memory loss): the group's rollouts carry
-    the same actions, memory targets and (to rounding) memories, its losses and weights match."""
+    the same actions, memory targets and (to rounding) memories, its losses and weights match;
+    also with a CUDA group's convolutions (one batched product, here on the CPU)."""
+    gemm_convolutions(monkeypatch, conv)
     alone, grouped = [cm_learner(s) for s in range(3)], [cm_learner(s) for s in range(3)]
     for _ in range(2):
         lone, results, stats = step_both(alone, grouped)
@@ -168,10 +183,16 @@ def test_recurrent_group_with_the_memory_head_matches_each_agent_alone():
             torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
 
 
-@pytest.mark.parametrize("env,arch", [("lavaworld", "fc"), ("lavaworld", "cnn"), ("randomized-lavaworld", "fc"), ("colorful-memory", None)])
-def test_an_agents_bytes_do_not_depend_on_its_group(env, arch):
+@pytest.mark.parametrize(
+    "env,arch,conv",
+    [("lavaworld", "fc", "each"), ("lavaworld", "cnn", "each"), ("randomized-lavaworld", "fc", "each"), ("colorful-memory", None, "each")]
+    + [("randomized-lavaworld", "cnn", "gemm"), ("colorful-memory", None, "gemm")],
+)
+def test_an_agents_bytes_do_not_depend_on_its_group(env, arch, conv, monkeypatch):
     """Agent 0 trained alone through the stacked path, or beside 1, 2 or 7 others: the same
-    weights, byte for byte (Colorful Memory: its auxiliary memory head's too)."""
+    weights, byte for byte (Colorful Memory: its auxiliary memory head's too); the CNNs also with
+    a CUDA group's convolutions (one batched product for all agents, computed here on the CPU)."""
+    gemm_convolutions(monkeypatch, conv)
     digests = set()
     for seeds in ([0], [0, 1], [0, 2, 3], [0, 5, 6, 7, 8, 9, 10, 11]):
         learners = [learner(env, arch, s) if arch else cm_learner(s) for s in seeds]
@@ -381,14 +402,16 @@ def test_a_groups_device_work_does_not_grow_with_its_agents(teachers):
 CONV_PER_AGENT = {"colorful-memory": {"aten.conv2d": 4 * 3}}
 
 
-@pytest.mark.parametrize("env", sorted(EVAL_CASES))
-def test_a_lockstep_evaluation_step_does_not_grow_with_its_agents(env):
+@pytest.mark.parametrize("env,conv", [(env, "each") for env in sorted(EVAL_CASES)] + [("colorful-memory", "gemm")])
+def test_a_lockstep_evaluation_step_does_not_grow_with_its_agents(env, conv, monkeypatch):
     """A group's evaluation step (``stacked_act``) runs the same operations for 2 agents as for 6:
     their weights stacked once and picked by an index, their uniforms drawn a block of
     ``DRAW_BLOCK`` steps at a time from each agent's own generator (before: one draw per agent and
     step). Sampled play, the live set kept whole (regroup 0), 3 episodes per agent; every step but
     the first (which picks the weights) and those that refill the block counted, each the same.
-    LavaWorld FC and Colorful Memory's recurrent CNN-GRU, whose convolutions are still per agent."""
+    LavaWorld FC and Colorful Memory's recurrent CNN-GRU, whose convolutions are one per agent on a
+    CPU and one batched product for all agents on a GPU (computed here on the CPU)."""
+    gemm_convolutions(monkeypatch, conv)
     from rlbackdoors.agent import Agent
     from rlbackdoors.evaluate.episodes import _vector_envs, play_lockstep
 
@@ -412,7 +435,7 @@ def test_a_lockstep_evaluation_step_does_not_grow_with_its_agents(env):
 
     two, six = step_ops(2), step_ops(6)
     grown = {op: six[op] - two[op] for op in six.keys() | two.keys() if six[op] != two[op]}
-    assert grown == CONV_PER_AGENT.get(env, {}), grown
+    assert grown == (CONV_PER_AGENT.get(env, {}) if conv == "each" else {}), grown
 
 
 def with_teachers(learners: list, coefs: list[float]) -> list:

@@ -56,17 +56,45 @@ def run_sequential(seq: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """K agents' convolutions, x (K, N, C, H, W), w (K, O, C, kh, kw): one ``conv2d`` per agent.
+# How a group computes its agents' convolutions, by device type (default "each"): "each", one
+# ``conv2d`` per agent; "gemm", all agents' as one batched matrix product over their unfolded
+# patches (:func:`_conv_stacked_gemm`). On a GPU a convolution per agent and layer is a launch
+# each (K x 3 a forward for the grid CNNs), which is what a GPU group waits on.
+STACKED_CONV = {"cuda": "gemm"}
 
-    Not one grouped convolution: on a CPU that is slower than K plain ones
-    (experiments/stacked_networks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
+
+def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """K agents' convolutions, x (K, N, C, H, W), w (K, O, C, kh, kw), as :data:`STACKED_CONV`
+    says for ``x``'s device.
+
+    On a CPU one ``conv2d`` per agent. Not one grouped convolution: on a CPU that is slower than K
+    plain ones (experiments/stacked_networks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
     depend on its group-mates; per agent they do not. The agents' slices come from ``unbind``, whose
     backward is one stack: indexing ``x[k]`` backpropagates K zero-filled (K, ...) tensors summed
     (the same bytes; a CNN group's update x1.06-1.11, experiments/group_update_ab)."""
+    if STACKED_CONV.get(x.device.type, "each") == "gemm" and layer.groups == 1 and not isinstance(layer.padding, str):
+        return _conv_stacked_gemm(layer, w, b, x)
     return torch.stack(
         [F.conv2d(xk, wk, bk, layer.stride, layer.padding, layer.dilation, layer.groups) for xk, wk, bk in zip(x.unbind(0), w.unbind(0), b.unbind(0))]
     )
+
+
+def _conv_stacked_gemm(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """:func:`_conv_stacked` as a few operations for all K agents, whatever K: the inputs' patches
+    unfolded (``F.unfold``, im2col), then one ``baddbmm`` of each agent's patches by its own
+    kernel. Each agent's sums are its own (a batched product sums per batch), so, as with the
+    linear layers, its numbers do not depend on its group-mates where K is fixed (a CUDA group
+    computes at a fixed width, ``algos.group.group_width``); they are not ``conv2d``'s bytes."""
+    K, N, C, H, W = x.shape
+    out_c, _, kh, kw = w.shape[1:]
+    padding = layer.padding
+    assert not isinstance(padding, str)  # (_conv_stacked sends a string padding one conv2d per agent)
+    (sh, sw), (ph, pw), (dh, dw) = layer.stride, padding, layer.dilation
+    out_h, out_w = (H + 2 * ph - dh * (kh - 1) - 1) // sh + 1, (W + 2 * pw - dw * (kw - 1) - 1) // sw + 1
+    patches = F.unfold(x.reshape(K * N, C, H, W), (kh, kw), dilation=layer.dilation, padding=padding, stride=layer.stride)
+    patches = patches.reshape(K, N, C * kh * kw, out_h * out_w).transpose(2, 3).reshape(K, N * out_h * out_w, C * kh * kw)
+    y = torch.baddbmm(b.unsqueeze(1), patches, w.reshape(K, out_c, C * kh * kw).transpose(1, 2))  # (K, N * L, O)
+    return y.reshape(K, N, out_h, out_w, out_c).permute(0, 1, 4, 2, 3)
 
 
 def linear_stacked(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,104 @@
+"""A group's convolutions, one per agent against one batched product for all (im2col), on a device.
+
+    python benchmarks/stacked_conv.py --device cuda          # one JSON line on stdout
+    python benchmarks/stacked_conv.py --device cpu --json benchmarks/results/stacked_conv_epyc.json
+
+For the grid worlds' CNNs (the Randomized LavaWorld CNN at K = 64, Colorful Memory's CNN-GRU
+embedding at K = 32), their ``state_emb`` stack of K agents (``models.minigrid.run_sequential_stacked``)
+is timed in both of ``models.minigrid.STACKED_CONV``'s ways: a rollout step's forward (N = 16 rows
+an agent, no gradient) and a minibatch's forward and backward (N = 256). Milliseconds a call, the
+median of ``--repeats`` after warm-up, synchronised on CUDA. Which way a CUDA group computes is
+set in ``STACKED_CONV`` (gemm, measured on CUDA by ``gpu_checks.sh``, which logs this line); a
+CPU group keeps one ``conv2d`` per agent (its bytes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+CASES = (("randomized-lavaworld", "cnn", 64), ("colorful-memory", "cnn-gru-small-onehot", 32))
+
+
+def timed(fn, device, repeats: int) -> float:
+    import torch
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    for _ in range(3):
+        fn()
+    sync()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times)
+
+
+def measure(device_name: str, repeats: int, small: bool = False) -> dict:
+    import torch
+
+    from rlbackdoors.models import build_model, minigrid
+
+    device = torch.device(device_name)
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False  # as training sets it
+    out: dict = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu", "torch": torch.__version__}
+    saved = dict(minigrid.STACKED_CONV)
+    try:
+        for world, arch, k in CASES:
+            k, rows = (2, 32) if small else (k, 256)
+            model = build_model(arch, world).to(device)
+            params = {name: torch.stack([p.detach()] * k).requires_grad_() for name, p in model.named_parameters() if name.startswith("state_emb.")}
+            channels = next(layer for layer in model.state_emb if isinstance(layer, torch.nn.Conv2d)).in_channels
+            row: dict = {}
+            for how in ("each", "gemm"):
+                minigrid.STACKED_CONV[device.type] = how
+                step = torch.rand(k, 16, channels, 7, 7, device=device)
+                batch = torch.rand(k, rows, channels, 7, 7, device=device)
+
+                def forward():
+                    with torch.no_grad():
+                        minigrid.run_sequential_stacked(model.state_emb, params, "state_emb", step)
+
+                def forward_backward():
+                    y = minigrid.run_sequential_stacked(model.state_emb, params, "state_emb", batch)
+                    torch.autograd.grad(y.square().sum(), list(params.values()))
+
+                row[how] = {"rollout_step_ms": round(timed(forward, device, repeats), 3), "minibatch_ms": round(timed(forward_backward, device, repeats), 3)}
+            row["gemm_speedup"] = {key: round(row["each"][key] / row["gemm"][key], 2) for key in row["each"]}
+            out[f"{world}/{arch}/K={k}"] = row
+    finally:
+        minigrid.STACKED_CONV.clear()
+        minigrid.STACKED_CONV.update(saved)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--small", action="store_true", help="K = 2, 32 rows: a dry run of the plumbing")
+    parser.add_argument("--json")
+    args = parser.parse_args(argv)
+    import torch
+
+    if args.device == "cpu":
+        torch.set_num_threads(1)
+    result = measure(args.device, args.repeats, args.small)
+    print("stacked_conv " + json.dumps(result))
+    if args.json:
+        from rlbackdoors.bench.machine import machine_info
+
+        Path(args.json).write_text(json.dumps({**result, "machine": machine_info()}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

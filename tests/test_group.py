@@ -363,12 +363,12 @@ class KernelCount(TorchDispatchMode):
 OWN_DRAWS = {"aten.rand", "aten.randperm"}
 
 
-def group_cycle_ops(k: int, teachers: bool) -> collections.Counter:
+def group_cycle_ops(k: int, teachers: bool, device: torch.device | None = None, arch: str = "fc") -> collections.Counter:
     """Operations of a group's second rollout and update (the first fills its Adam state): K
-    LavaWorld FC agents, every other one poisoned through the seam (TrojDRL, forced actions);
+    LavaWorld agents (``arch``), every other one poisoned through the seam (TrojDRL, forced actions);
     ``teachers``: every one poisoned, with a clean teacher and a weight anchor."""
     poison = {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.2}}
-    learners = [learner("lavaworld", "fc", s, poison if s % 2 or teachers else None, ppo={"rollout": 16}) for s in range(k)]
+    learners = [learner("lavaworld", arch, s, poison if s % 2 or teachers else None, device=device, ppo={"rollout": 16}) for s in range(k)]
     if teachers:
         learners = with_anchors(with_teachers(learners, [0.5] * k), [0.1] * k)
     ppos, envs, obs = (list(x) for x in zip(*learners))

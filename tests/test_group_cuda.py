@@ -25,11 +25,12 @@ import pytest
 import torch
 
 from rlbackdoors.algos import group
+from rlbackdoors.config import RunConfig
 from rlbackdoors.train.driver import resolve_device
 from rlbackdoors.zoo.plan import plan
 from rlbackdoors.zoo.run import run as zoo_run
 from rlbackdoors.zoo.spec import parse_spec
-from test_group import learner, opac2_learner, zoo_spec
+from test_group import KernelCount, group_cycle_ops, learner, opac2_learner, zoo_spec
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device: the group trainer's GPU path (run on a GPU machine)")
 
@@ -298,3 +299,32 @@ def test_the_jax_update_on_cuda_is_torchs_and_does_not_depend_on_the_group(tmp_p
     for m in result["moved"]:
         assert m["device"] == "cuda" and m["over_1e-5"] <= 1e-3 and m["max"] <= 2.1e-3
     assert len(set(result["digests"])) == 1 and result["step"] == 1.0
+
+
+@pytest.mark.parametrize("arch", ["fc", "cnn"])
+def test_cuda_group_work_does_not_grow_with_its_agents(arch):
+    """On the GPU, where every operation is a launch or a transfer (``.to(device)`` dispatches here,
+    unlike on the CPU): a LavaWorld group's rollout and update (TrojDRL on half, clean teachers and
+    anchors; the CNN's convolutions as one batched product, ``models.minigrid.STACKED_CONV``) run
+    the same operations for 2 agents as for 6, bar each agent's own host draws; and an OPAC² group's
+    update and act (replay batches stacked on the host, copied once per field)."""
+    from rlbackdoors.algos import group_opac2
+
+    two, six = group_cycle_ops(2, True, CUDA, arch), group_cycle_ops(6, True, CUDA, arch)
+    grown = {op: six[op] - two[op] for op in six.keys() | two.keys() if six[op] != two[op]}
+    epochs = RunConfig.from_dict({"env": {"name": "lavaworld"}}).ppo.epochs
+    assert grown == {"aten.rand": 4, "aten.randperm": 4 * epochs}, grown
+
+    def opac2_ops(k: int) -> tuple:
+        agents, replays = zip(*[opac2_learner(s, CUDA) for s in range(k)])
+        rngs = [np.random.default_rng(s) for s in range(k)]
+        group_opac2.update(list(agents), list(replays), rngs, 2)
+        with KernelCount() as update:
+            group_opac2.update(list(agents), list(replays), rngs, 2)
+        with KernelCount() as act:
+            group_opac2.act(list(agents), [np.random.default_rng(s).normal(size=(10, 6)) for s in range(k)])
+        return update.ops, act.ops
+
+    (update2, act2), (update6, act6) = opac2_ops(2), opac2_ops(6)
+    for small, large, own in ((update2, update6, 4 * 2 * 2), (act2, act6, 4)):  # randn: the noise each agent draws on its host generator
+        assert {op: large[op] - small[op] for op in large.keys() | small.keys() if large[op] != small[op]} == {"aten.randn": own}

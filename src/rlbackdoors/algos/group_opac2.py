@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.group import FlatParameters, StackedAdam, group_width, padded
-from rlbackdoors.algos.opac2 import ADV_EPS, OPAC2, squash, squashed_log_prob
+from rlbackdoors.algos.opac2 import ADV_EPS, OPAC2, Batch, squash, squashed_log_prob
 from rlbackdoors.config import LOG_STD_MAX, LOG_STD_MIN
 from rlbackdoors.models.minigrid import run_sequential_stacked
 
@@ -107,11 +107,13 @@ def act(agents: list[OPAC2], obs: list[np.ndarray]) -> list[np.ndarray]:
     return [action[k] for k in range(len(agents))]
 
 
-def batches(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator]):
-    """One replay batch per agent (its own buffer and index generator, as alone), stacked (K, B, ...)."""
-    columns = [a.batch_tensors(replay.sample(a.cfg.batch_size, rng)) for a, replay, rng in zip(agents, replays, rngs)]
+def batches(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator]) -> Batch[torch.Tensor]:
+    """One replay batch per agent (its own buffer and index generator, as alone), stacked (K, B, ...)
+    on the host and copied to the device once per field (not once per agent and field: on a GPU each
+    is a transfer)."""
+    columns = [a.batch_arrays(replay.sample(a.cfg.batch_size, rng)) for a, replay, rng in zip(agents, replays, rngs)]
     device = agents[0].device
-    return type(columns[0])(*(torch.stack(padded([c[i] for c in columns], device)) for i in range(len(columns[0]))))
+    return Batch(*(torch.from_numpy(np.stack(padded([c[i] for c in columns], device))).to(device) for i in range(len(columns[0]))))
 
 
 def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], n: int) -> list[list[dict[str, float]]]:

@@ -407,11 +407,15 @@ class OPAC2:
         if self.obs_norm is not None:
             self.obs_norm.update(obs)
 
-    def batch_tensors(self, batch: Batch[np.ndarray]) -> Batch[torch.Tensor]:
-        """A replay batch as the networks take it: observations normalised, tensors on the device."""
+    def batch_arrays(self, batch: Batch[np.ndarray]) -> Batch[np.ndarray]:
+        """A replay batch as the networks take it, still on the host: observations normalised."""
         if self.obs_norm is not None:
             batch = batch._replace(obs=self.obs_norm(batch.obs), next_obs=self.obs_norm(batch.next_obs))
-        return Batch(*(torch.from_numpy(np.ascontiguousarray(x)).to(self.device) for x in batch))
+        return Batch(*(np.ascontiguousarray(x) for x in batch))
+
+    def batch_tensors(self, batch: Batch[np.ndarray]) -> Batch[torch.Tensor]:
+        """A replay batch as the networks take it: observations normalised, tensors on the device."""
+        return Batch(*(torch.from_numpy(x).to(self.device) for x in self.batch_arrays(batch)))
 
     @torch.no_grad()
     def q_targets(self, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor) -> torch.Tensor:

@@ -345,6 +345,58 @@ def test_a_groups_adam_state_is_each_agents_own_and_written_in_place():
     assert len(set(pointers)) == len(pointers)
 
 
+def run_in_chunks_or_whole(monkeypatch, chunked: bool) -> list[bytes]:
+    """What a group computes (bytes): 5 LavaWorld FC agents with TrojDRL, clean teachers and
+    anchors, two rollouts and updates; 3 Colorful Memory agents (recurrent, memory head), one; the
+    lockstep evaluation of 5 LavaWorld agents (sampled); 5 OPAC² agents' act and two updates.
+    ``chunked``: computed 2 agents at a time (what a CUDA group does CUDA_WIDTH at a time)."""
+    from rlbackdoors.algos import group_opac2
+    from rlbackdoors.train.driver import evaluate_runs
+
+    if chunked:
+        monkeypatch.setattr(group, "chunk_width", lambda device: 2)
+    out: list[bytes] = []
+
+    def state(ppo) -> bytes:
+        buffer = io.BytesIO()
+        torch.save({"model": ppo.model.state_dict(), "optimizer": ppo.optimizer.state_dict()}, buffer)
+        return buffer.getvalue()
+
+    poison = {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.2}}
+    learners = with_anchors(with_teachers([learner("lavaworld", "fc", s, poison, ppo={"rollout": 16}) for s in range(5)], [0.5] * 5), [0.1] * 5)
+    for batch, cycles in ((learners, 2), ([cm_learner(s) for s in range(3)], 1)):
+        ppos, envs, obs = (list(x) for x in zip(*batch))
+        for _ in range(cycles):
+            results = group.collect(ppos, envs, obs)
+            out.append(json.dumps(group.update(ppos, [r for r, _ in results])).encode())
+            out.append(b"".join(r.actions.numpy().tobytes() + r.logprobs.numpy().tobytes() for r, _ in results))
+            obs = [o for _, o in results]
+        out += [state(ppo) for ppo in ppos]
+    cfgs = [RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"poisoned": k % 2 == 1}, "train": {"seed": k}}) for k in range(5)]
+    models = []
+    for cfg in cfgs:
+        torch.manual_seed(cfg.train.seed)
+        models.append(build_model(cfg.model.arch, "lavaworld"))
+    out.append(json.dumps([r.to_dict() for r in evaluate_runs(models, cfgs, [6] * 5, group.stacked_act)], sort_keys=True, default=str).encode())
+    agents, replays = (list(x) for x in zip(*[opac2_learner(s) for s in range(5)]))
+    out += [a.tobytes() for a in group_opac2.act(agents, [np.random.default_rng(s).normal(size=(4, 6)) for s in range(5)])]
+    out.append(json.dumps(group_opac2.update(agents, replays, [np.random.default_rng(s) for s in range(5)], 2)).encode())
+    out += [b"".join(p.detach().numpy().tobytes() for p in a.policy.parameters()) for a in agents]
+    return out
+
+
+def test_a_group_computed_in_chunks_computes_what_it_computes_whole(monkeypatch):
+    """A CUDA group computes ``CUDA_WIDTH`` agents at a time (``algos.group.chunks``), so that an
+    agent always computes at that width: its bytes then do not hang on how many runs share its
+    group as it trains. The chunks' plumbing (forward, teachers, recurrent memory, update, lockstep
+    evaluation, OPAC²'s act and update) is checked here on the CPU, 2 agents a chunk, where an
+    agent's numbers do not depend on the width from 2 up: the same bytes as computed whole."""
+    whole = run_in_chunks_or_whole(monkeypatch, False)
+    chunked = run_in_chunks_or_whole(monkeypatch, True)
+    assert len(whole) == len(chunked) and all(a == b for a, b in zip(whole, chunked))
+    assert group.chunks(5, torch.device("cpu")) == [slice(0, 2), slice(2, 4), slice(4, 5)]  # (chunked above)
+
+
 class KernelCount(TorchDispatchMode):
     """ATen operations that compute (not views: on a GPU, each a kernel launch or a host op), by name."""
 

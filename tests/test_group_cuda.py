@@ -328,3 +328,19 @@ def test_cuda_group_work_does_not_grow_with_its_agents(arch):
     (update2, act2), (update6, act6) = opac2_ops(2), opac2_ops(6)
     for small, large, own in ((update2, update6, 4 * 2 * 2), (act2, act6, 4)):  # randn: the noise each agent draws on its host generator
         assert {op: large[op] - small[op] for op in large.keys() | small.keys() if large[op] != small[op]} == {"aten.randn": own}
+
+
+def test_cuda_group_over_64_computes_each_agent_as_a_small_group_does():
+    """A CUDA group computes 64 agents at a time (``algos.group.chunks``): in a group of 65, agent 0
+    (first chunk) and agent 64 (the second, padded) end a rollout and update with the bytes they
+    have in a group of 2 (width 64 both times; before, the 65 computed at width 128)."""
+    from test_group import weights_digest
+
+    def digests(seeds: list[int]) -> dict[int, str]:
+        learners = [learner("lavaworld", "fc", s, device=CUDA, ppo={"rollout": 16}) for s in seeds]
+        one_step(learners)
+        return {s: weights_digest(copy.deepcopy(ppo.model).cpu()) for s, (ppo, _, _) in zip(seeds, learners)}
+
+    wide = digests(list(range(65)))
+    small = digests([0, 64])
+    assert wide[0] == small[0] and wide[64] == small[64]

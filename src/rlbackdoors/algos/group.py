@@ -17,7 +17,7 @@ to float rounding (batched kernels add in another order), not bit for bit.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -92,7 +92,7 @@ def stacked_teachers(ppos: list[PPO]) -> dict[str, torch.Tensor]:
     return {name: torch.stack([n[name] for n in named]) for name in named[0]}
 
 
-# A CUDA group computes at a width of a multiple of this many agents (see padded).
+# A CUDA group computes this many agents at a time, its last chunk padded (see group_width, chunks).
 CUDA_WIDTH = 64
 
 
@@ -102,11 +102,28 @@ def group_width(k: int, device: torch.device) -> int:
     Why pad: kernels pick their algorithm, and so their rounding, by the batch's shape. On the
     CPU a batch of one sums differently from two or more (measured: the critic's 32 -> 1 layer),
     while from two up an agent's numbers do not depend on K; on CUDA (cuBLAS, reductions) the
-    choice depends on K itself, so groups there compute at a fixed width. An agent's bytes then
-    depend on its config, not on its group-mates, the group size or a resume in another group."""
+    choice depends on K itself, so groups there compute in chunks of a fixed width
+    (:func:`chunks`). An agent's bytes then depend on its config and device, not on its
+    group-mates, the group size, how many of them are still training, or a resume in another group."""
     if device.type == "cuda":
         return -(-k // CUDA_WIDTH) * CUDA_WIDTH
     return max(k, 2)
+
+
+def chunk_width(device: torch.device) -> int | None:
+    """The most agents one batched computation takes on ``device`` (None: all of them)."""
+    return CUDA_WIDTH if device.type == "cuda" else None
+
+
+def chunks(k: int, device: torch.device) -> list[slice]:
+    """The agents of a group of ``k``, chunk by chunk: one chunk on a CPU; on CUDA ``CUDA_WIDTH``
+    at a time, so that an agent always computes at that width (before, a CUDA group of 65 to 128
+    computed at 128 and again at 64 once fewer than 65 were left, so a model's bytes hung on how
+    many runs shared its zoo's group as it trained, which no file recorded)."""
+    width = chunk_width(device)
+    if width is None or k <= width:
+        return [slice(0, k)]
+    return [slice(start, min(start + width, k)) for start in range(0, k, width)]
 
 
 def padded(items: list, device: torch.device) -> list:
@@ -114,9 +131,26 @@ def padded(items: list, device: torch.device) -> list:
     return items + items[:1] * (group_width(len(items), device) - len(items))
 
 
-def forward(model: Any, params: dict[str, torch.Tensor], obs, *memory: torch.Tensor) -> tuple:
+# Stacked parameters of a group: one dict (name -> (K, ...)), or per chunk its agents and theirs
+Stacked = dict[str, torch.Tensor] | list[tuple[slice, dict[str, torch.Tensor]]]
+
+
+def stacked_in_chunks(items: list, device: torch.device, stack: Callable[[list], dict[str, torch.Tensor]]) -> Stacked:
+    """``stack`` of the padded ``items`` (one per agent), chunk by chunk where the device computes
+    in chunks (:func:`chunks`): what :func:`forward` takes."""
+    parts = chunks(len(items), device)
+    if len(parts) == 1:
+        return stack(padded(items, device))
+    return [(part, stack(padded(items[part], device))) for part in parts]
+
+
+def forward(model: Any, params: Stacked, obs, *memory: torch.Tensor) -> tuple:
     """``model.forward_stacked`` (recurrent: with the memory, returning the new one too) for the
-    K agents of ``obs``, computed at the width of ``params`` (stacked from :func:`padded` agents)."""
+    K agents of ``obs``, computed at the width of ``params`` (stacked from :func:`padded` agents;
+    in chunks, :func:`stacked_in_chunks`: each chunk's agents at its width, then joined)."""
+    if isinstance(params, list):
+        outs = [forward(model, chunk, obs_map(lambda x: x[part], obs), *(m[part] for m in memory)) for part, chunk in params]
+        return tuple(torch.cat(parts) for parts in zip(*outs))
     width = next(iter(params.values())).shape[0]
     k = (next(iter(obs.values())) if isinstance(obs, dict) else obs).shape[0]
     if width == k:
@@ -150,14 +184,17 @@ def stacked_act(agents: list):
     named = [dict(m.named_parameters()) for m in models]
     with torch.no_grad():
         every = {name: torch.stack([p[name] for p in named]) for name in named[0]}  # all K agents, stacked once
-    cache: dict[tuple, dict[str, torch.Tensor]] = {}
+    cache: dict[tuple, Stacked] = {}
     draws: dict[str, Any] = {"of": None}  # this evaluation's uniform block: its generators, the block, the next step
 
-    def params_of(live: tuple) -> dict[str, torch.Tensor]:  # the live set only shrinks: a few picks per evaluation
+    def pick(members: list) -> dict[str, torch.Tensor]:
+        index = torch.tensor(members, device=device)
+        return {name: value.index_select(0, index) for name, value in every.items()}
+
+    def params_of(live: tuple) -> Stacked:  # the live set only shrinks: a few picks per evaluation
         if live not in cache:
             cache.clear()
-            index = torch.tensor(padded(list(live), device), device=device)
-            cache[live] = {name: value.index_select(0, index) for name, value in every.items()}
+            cache[live] = stacked_in_chunks(list(live), device, pick)
         return cache[live]
 
     def uniforms(stepped: list[int], generators: list[torch.Generator], n: int) -> torch.Tensor:
@@ -213,7 +250,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             raise ValueError("a training group needs the same number of env copies per agent")
     device, A = lead.device, envs[0].single_action_space.n
     model: Any = lead.model  # forward_stacked takes a tensor or a dict of them, as the world's model does
-    params = stacked_parameters(padded(ppos, device))
+    params = stacked_in_chunks(ppos, device, stacked_parameters)
     recurrent, aux = lead.model.recurrent, lead.aux is not None
     if aux and any(getattr(e, "memory_target_classes", None) != AUX_CLASSES for e in envs):
         raise ValueError(f"ppo.aux_memory_coef needs an env with {AUX_CLASSES} memory targets (memory_targets())")
@@ -227,7 +264,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     if teach:
         if not all(hasattr(e, "marked") for e in envs):
             raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
-        teachers = stacked_teachers(padded(ppos, device))
+        teachers = stacked_in_chunks(ppos, device, stacked_teachers)
         teacher_logits = torch.empty((K, T, B, A), device=device)
         untriggered = np.empty((K, T, B), dtype=bool)  # on the host, to the device once a rollout
         if recurrent:
@@ -506,6 +543,9 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
         from rlbackdoors.algos import jax_update
 
         return jax_update.update(ppos, rollouts)
+    pieces = chunks(len(ppos), ppos[0].device)
+    if len(pieces) > 1:  # each chunk of agents at the device's width, one after another
+        return [stats for piece in pieces for stats in update(ppos[piece], rollouts[piece])]
     real, device = len(ppos), ppos[0].device
     ppos, rollouts = padded(ppos, device), padded(rollouts, device)  # pad copies of the first agent: see group_width
     lead, K = ppos[0], len(ppos)

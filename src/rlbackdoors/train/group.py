@@ -88,7 +88,7 @@ class GroupResult:
 # ``--group-size auto``, per algorithm and device, measured (docs/results/zoos.md, `rlbackdoors bench zoo`):
 # PPO on a CPU: models per hour (the feed-forward grid models) rise from K = 1 to 4 and are flat
 # from 8 on. OPAC² on a CPU: a group of 2 was x0.92 (its update is arithmetic-bound, its env
-# MuJoCo-bound), so its models train alone. On CUDA a group computes at a width of 64 anyway
+# MuJoCo-bound), so its models train alone. On CUDA a group computes 64 agents at a time anyway
 # (algos/group.py: group_width), so 64 costs no more than fewer; measured on an H200 (PPO), GPU
 # groups were no faster than one process per CPU core and CPU groups of 8 on every core were x3.6:
 # the message says so when auto picks CUDA.

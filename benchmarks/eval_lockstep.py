@@ -101,21 +101,13 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(1)
         print(json.dumps(measure(args.world, args.agents, args.episodes)))
         return 0
-    from rlbackdoors.bench.machine import machine_info
-
-    from _reference import alternate
+    from _reference import alternate, finish
 
     load = os.getloadavg()
     runs = alternate(__file__, ["--world", args.world, "--agents", str(args.agents), "--episodes", str(args.episodes)], args.reference, args.repeats)
     best = {name: min(rs, key=lambda r: r["wall_s"]) for name, rs in runs.items()}
     out = {"world": args.world, "agents": args.agents, "episodes": args.episodes, "best": best, "runs": runs}
-    if args.reference:
-        out["same_numbers"] = len({r["digest"] for rs in runs.values() for r in rs}) == 1
-        out["ratio_wall"] = round(best["reference"]["wall_s"] / best["this checkout"]["wall_s"], 3)
-    out |= {"loadavg_before": [round(x, 2) for x in load], "loadavg_after": [round(x, 2) for x in os.getloadavg()], "machine": machine_info()}
-    print(json.dumps({k: out[k] for k in ("best", "same_numbers", "ratio_wall") if k in out}, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
+    finish(out, runs, load, ("ratio_wall", best["reference"]["wall_s"] / best["this checkout"]["wall_s"]) if args.reference else None, args.json)
     return 0
 
 

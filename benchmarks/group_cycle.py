@@ -156,9 +156,7 @@ def main(argv: list[str] | None = None) -> int:
             minigrid.STACKED_CONV["cpu"] = args.conv
         print(json.dumps(measure(args.world, args.arch, args.agents, args.poison, args.cycles)))
         return 0
-    from rlbackdoors.bench.machine import machine_info
-
-    from _reference import alternate
+    from _reference import alternate, finish
 
     load = os.getloadavg()
     runs = alternate(__file__, what, args.reference, args.repeats)
@@ -174,13 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         "best": best,
         "runs": runs,
     }
-    if args.reference:
-        out["same_numbers"] = len({r["digest"] for rs in runs.values() for r in rs}) == 1
-        out["ratio_cpu"] = round(cpu["reference"] / cpu["this checkout"], 3)
-    out |= {"loadavg_before": [round(x, 2) for x in load], "loadavg_after": [round(x, 2) for x in os.getloadavg()], "machine": machine_info()}
-    print(json.dumps({k: out[k] for k in ("best", "same_numbers", "ratio_cpu") if k in out}, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
+    finish(out, runs, load, ("ratio_cpu", cpu["reference"] / cpu["this checkout"]) if args.reference else None, args.json)
     return 0
 
 

@@ -124,7 +124,9 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=0, help="first seed (earlier ones ran elsewhere and are summarised there)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--runs", default=str(ROOT / "runs" / "recipes"))
-    parser.add_argument("--summaries", default=str(ROOT / "benchmarks" / "results" / "recipes"), help="where NAME.json is written (and read, to carry runs over)")
+    parser.add_argument(
+        "--summaries", default=str(ROOT / "benchmarks" / "results" / "recipes"), help="where NAME.json is written (and read, to carry runs over)"
+    )
     parser.add_argument("--summarise", action="store_true", help="summarise the finished seeds; train nothing")
     argv = sys.argv[1:]
     cut = argv.index("--") if "--" in argv else len(argv)

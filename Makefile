@@ -16,8 +16,8 @@ demo: install
 	$(BIN)/rlbackdoors demo
 
 test: install
-	$(BIN)/ruff check src tests
-	$(BIN)/ruff format --check src tests
+	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/python -m compileall -q src  # bytecode for the package: every test's child process reads it (PYTHONDONTWRITEBYTECODE stops them writing it)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir .site  # the docs site: a broken link, anchor or missing page fails (not --quiet: with it, an aborted strict build exits 0)

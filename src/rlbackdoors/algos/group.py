@@ -126,6 +126,16 @@ def chunks(k: int, device: torch.device) -> list[slice]:
     return [slice(start, min(start + width, k)) for start in range(0, k, width)]
 
 
+def per_chunk(fn: Callable[..., list], agents: list, *args) -> list | None:
+    """``fn(agents, *args)`` chunk by chunk (:func:`chunks`), each list argument sliced as the
+    agents and the per-agent results joined; None where the device computes all agents at once
+    (the caller then goes on with the whole group)."""
+    pieces = chunks(len(agents), agents[0].device)
+    if len(pieces) == 1:
+        return None
+    return [out for piece in pieces for out in fn(agents[piece], *(a[piece] if isinstance(a, list) else a for a in args))]
+
+
 def padded(items: list, device: torch.device) -> list:
     """``items`` (one per agent) with copies of the first up to :func:`group_width`."""
     return items + items[:1] * (group_width(len(items), device) - len(items))
@@ -199,9 +209,8 @@ def stacked_act(agents: list):
 
     def uniforms(stepped: list[int], generators: list[torch.Generator], n: int) -> torch.Tensor:
         """The stepped agents' uniforms for this step (len(stepped), n), each agent's next ``n``
-        from its own generator."""
-        if any(generators[k].device.type != "cpu" for k in stepped):  # (a device generator: its draws are not sequential)
-            return torch.stack([torch.rand(n, generator=generators[k], device=generators[k].device) for k in stepped])
+        from its own host generator (:meth:`~rlbackdoors.agent.Agent.generator`; a device's would
+        fail here rather than draw other numbers)."""
         if draws["of"] is not generators or draws["t"] == DRAW_BLOCK:  # a new evaluation, or the block is spent
             if draws["of"] is not generators:
                 draws.update(of=generators, block=torch.empty((len(generators), DRAW_BLOCK, n)))
@@ -313,7 +322,8 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
         actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
         wanted = actions[:, t].cpu().numpy()  # the one copy back a step: the engines run on the host
-        executed[:, t] = wanted
+        if not plain:  # an attack's seam may run other actions: record_step writes what ran over these
+            executed[:, t] = wanted
         if plain:
             assert engines is not None
             seen, reward, terminated, truncated, info = engines.step(wanted.reshape(-1))
@@ -543,9 +553,8 @@ def update(ppos: list[PPO], rollouts: list[Rollout]) -> list[dict[str, float]]:
         from rlbackdoors.algos import jax_update
 
         return jax_update.update(ppos, rollouts)
-    pieces = chunks(len(ppos), ppos[0].device)
-    if len(pieces) > 1:  # each chunk of agents at the device's width, one after another
-        return [stats for piece in pieces for stats in update(ppos[piece], rollouts[piece])]
+    if (joined := per_chunk(update, ppos, rollouts)) is not None:  # each chunk at the device's width, one after another
+        return joined
     real, device = len(ppos), ppos[0].device
     ppos, rollouts = padded(ppos, device), padded(rollouts, device)  # pad copies of the first agent: see group_width
     lead, K = ppos[0], len(ppos)

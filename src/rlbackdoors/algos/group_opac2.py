@@ -23,7 +23,7 @@ import weakref
 import numpy as np
 import torch
 
-from rlbackdoors.algos.group import FlatParameters, StackedAdam, chunks, group_width, padded
+from rlbackdoors.algos.group import FlatParameters, StackedAdam, group_width, padded, per_chunk
 from rlbackdoors.algos.opac2 import ADV_EPS, OPAC2, Batch, squash, squashed_log_prob
 from rlbackdoors.config import LOG_STD_MAX, LOG_STD_MIN
 from rlbackdoors.models.minigrid import run_sequential_stacked
@@ -101,9 +101,8 @@ def act(agents: list[OPAC2], obs: list[np.ndarray]) -> list[np.ndarray]:
     """:meth:`OPAC2.act` (sampled actions) for K agents, each on its own observations (n, O)."""
     check_group(agents)
     lead, device = agents[0], agents[0].device
-    pieces = chunks(len(agents), device)
-    if len(pieces) > 1:  # each chunk of agents at the device's width (algos.group.chunks)
-        return [action for piece in pieces for action in act(agents[piece], obs[piece])]
+    if (joined := per_chunk(act, agents, obs)) is not None:  # each chunk at the device's width (algos.group.chunks)
+        return joined
     params = policy_stack(agents)
     x = torch.stack(padded([torch.as_tensor(a.normalize(o)) for a, o in zip(agents, obs)], device)).to(device)
     action = sample(lead, agents, params, x)[0].cpu().numpy()
@@ -122,9 +121,8 @@ def batches(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator])
 def update(agents: list[OPAC2], replays: list, rngs: list[np.random.Generator], n: int) -> list[list[dict[str, float]]]:
     """``n`` calls of :meth:`OPAC2.update` for K agents, batched: per agent, its ``n`` loss dicts."""
     check_group(agents)
-    pieces = chunks(len(agents), agents[0].device)
-    if len(pieces) > 1:  # each chunk of agents at the device's width (algos.group.chunks)
-        return [losses for piece in pieces for losses in update(agents[piece], replays[piece], rngs[piece], n)]
+    if (joined := per_chunk(update, agents, replays, rngs, n)) is not None:  # each chunk at the device's width (algos.group.chunks)
+        return joined
     real, lead, device = len(agents), agents[0], agents[0].device
     width = group_width(real, device)
     cfg, k = lead.cfg, lead.cfg.action_samples

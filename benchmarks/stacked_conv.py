@@ -1,7 +1,7 @@
 """A group's convolutions, one per agent against one batched product for all (im2col), on a device.
 
     python benchmarks/stacked_conv.py --device cuda          # one JSON line on stdout
-    python benchmarks/stacked_conv.py --device cpu --json benchmarks/results/stacked_conv_epyc.json
+    python benchmarks/stacked_conv.py --device cpu --json benchmarks/results/stacked_conv_cpu_xeon.json
 
 For the grid worlds' CNNs (the Randomized LavaWorld CNN at K = 64, Colorful Memory's CNN-GRU
 embedding at K = 32), their ``state_emb`` stack of K agents (``models.minigrid.run_sequential_stacked``)

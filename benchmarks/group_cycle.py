@@ -4,8 +4,8 @@
     git worktree add /tmp/old OLD_COMMIT && python benchmarks/group_cycle.py --reference /tmp/old/src
 
 ``--agents`` LavaWorld FC learners (``--world``, ``--arch``), every other one poisoned through the
-attack seam (``--poison``, default TrojDRL: forced actions; ``env-mix``: the engine's own E-bar
-copies, no seam), run ``--cycles`` rollouts and updates of the group (``algos.group.collect`` and
+attack seam (``--poison``, default TrojDRL: forced actions, at ``--budget``; ``env-mix``: the engine's
+own E-bar copies, no seam), run ``--cycles`` rollouts and updates of the group (``algos.group.collect`` and
 ``update``) after one that fills their Adam state, on the CPU, one torch thread, each measurement
 in a fresh process. Reported: CPU seconds a cycle (collect, update; of them the hand-off: the
 learners' weights and Adam state stacked for the group and written back), frames a second, and the
@@ -32,7 +32,7 @@ POISONS = {
 }
 
 
-def learners(world: str, arch: str, agents: int, poison: str) -> tuple[list, list, list]:
+def learners(world: str, arch: str, agents: int, poison: str, budget: float = 0.05) -> tuple[list, list, list]:
     import torch
 
     from rlbackdoors.algos.ppo import PPO
@@ -41,9 +41,12 @@ def learners(world: str, arch: str, agents: int, poison: str) -> tuple[list, lis
     from rlbackdoors.poison.mix import make_env_mix
 
     ppos, envs, obs = [], [], []
+    poisoned = json.loads(json.dumps(POISONS[poison]))
+    if "attack_params" in poisoned:
+        poisoned["attack_params"]["budget"] = budget
     for seed in range(agents):
         cfg = RunConfig.from_dict(
-            {"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed}, "poison": POISONS[poison] if seed % 2 else {"poisoned": False}}
+            {"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed}, "poison": poisoned if seed % 2 else {"poisoned": False}}
         )
         torch.manual_seed(seed)
         ppos.append(PPO(build_model(cfg.model.arch, world), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(seed)))
@@ -52,7 +55,7 @@ def learners(world: str, arch: str, agents: int, poison: str) -> tuple[list, lis
     return ppos, envs, obs
 
 
-def kernel_ops(world: str, arch: str, agents: int, poison: str) -> int:
+def kernel_ops(world: str, arch: str, agents: int, poison: str, budget: float) -> int:
     """Non-view ATen operations of a group's second cycle (the first fills the Adam state)."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
@@ -68,7 +71,7 @@ def kernel_ops(world: str, arch: str, agents: int, poison: str) -> int:
                 self.ops[str(func.overloadpacket)] += 1
             return func(*args, **(kwargs or {}))
 
-    ppos, envs, obs = learners(world, arch, agents, poison)
+    ppos, envs, obs = learners(world, arch, agents, poison, budget)
     for _ in range(2):
         with Count() as count:
             results = group.collect(ppos, envs, obs)
@@ -77,12 +80,12 @@ def kernel_ops(world: str, arch: str, agents: int, poison: str) -> int:
     return sum(count.ops.values())
 
 
-def measure(world: str, arch: str, agents: int, poison: str, cycles: int) -> dict:
+def measure(world: str, arch: str, agents: int, poison: str, cycles: int, budget: float) -> dict:
     import torch
 
     from rlbackdoors.algos import group
 
-    ppos, envs, obs = learners(world, arch, agents, poison)
+    ppos, envs, obs = learners(world, arch, agents, poison, budget)
     handoff = [0.0]  # the learners' weights and Adam state into the group's stacks and back
 
     def timed(fn):
@@ -113,7 +116,7 @@ def measure(world: str, arch: str, agents: int, poison: str, cycles: int) -> dic
         else:
             handoff[0] = 0.0
     digest = hashlib.sha256(b"".join(p.detach().numpy().tobytes() for ppo in ppos for p in ppo.model.parameters())).hexdigest()[:16]
-    ops, more = kernel_ops(world, arch, agents, poison), kernel_ops(world, arch, agents + 1, poison)
+    ops, more = kernel_ops(world, arch, agents, poison, budget), kernel_ops(world, arch, agents + 1, poison, budget)
     import rlbackdoors
 
     return {
@@ -135,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--arch", default="fc")
     parser.add_argument("--agents", type=int, default=64)
     parser.add_argument("--poison", default="trojdrl", choices=sorted(POISONS))
+    parser.add_argument("--budget", type=float, default=0.05, help="TrojDRL's budget (its default is 0.01; 0.05 here, as the first results)")
     parser.add_argument("--cycles", type=int, default=3)
     parser.add_argument(
         "--conv", choices=("each", "gemm"), help="a CNN group's convolutions on this CPU (models.minigrid.STACKED_CONV; default: the CPU's, each)"
@@ -144,7 +148,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # one measurement, as JSON on stdout
     parser.add_argument("--json")
     args = parser.parse_args(argv)
-    what = ["--world", args.world, "--arch", args.arch, "--agents", str(args.agents), "--poison", args.poison, "--cycles", str(args.cycles)]
+    what = [
+        "--world",
+        args.world,
+        "--arch",
+        args.arch,
+        "--agents",
+        str(args.agents),
+        "--poison",
+        args.poison,
+        "--cycles",
+        str(args.cycles),
+        "--budget",
+        str(args.budget),
+    ]
     what += ["--conv", args.conv] if args.conv else []
     if args.one:
         import torch
@@ -154,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
             from rlbackdoors.models import minigrid
 
             minigrid.STACKED_CONV["cpu"] = args.conv
-        print(json.dumps(measure(args.world, args.arch, args.agents, args.poison, args.cycles)))
+        print(json.dumps(measure(args.world, args.arch, args.agents, args.poison, args.cycles, args.budget)))
         return 0
     from _reference import alternate, finish
 
@@ -167,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         "arch": args.arch,
         "agents": args.agents,
         "poison": args.poison,
+        "budget": args.budget if args.poison == "trojdrl" else None,
         "cycles": args.cycles,
         "conv": args.conv,
         "best": best,

@@ -47,7 +47,8 @@ def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, w
         actions = [rng.integers(0, 3, e.num_envs) for e in engines]
         obs, reward, terminated, truncated, info = together.step(np.concatenate(actions))
         first = 0
-        for k, (twin, view) in enumerate(zip(twins, together.split(obs))):
+        for k, twin in enumerate(twins):
+            view = together.result(k, obs, reward, terminated, truncated, info)[0]
             o, r, te, tr, inf = twin.step(actions[k])
             rows = slice(first, first + twin.num_envs)
             first = rows.stop

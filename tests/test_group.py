@@ -153,6 +153,52 @@ def test_group_collect_and_update_match_each_agent_alone():
                 assert float((sa[moment] - sb[moment]).abs().max()) <= 1e-1 * float(sa[moment].abs().max())
 
 
+def test_a_groups_idle_seams_skip_their_steps_and_poison_as_alone(monkeypatch):
+    """The seams of a group at TrojDRL's default 1 % budget have nothing to do in most steps
+    (:class:`rlbackdoors.attacks.seam.SeamGroup` counts their frames for them): they still pick,
+    stamp, force and pay as lone seams do, over rollouts that carry their counts on. Beside them a
+    clean agent, one whose budget works every step, and near-trigger negatives (a seam that never idles)."""
+    from rlbackdoors.attacks.seam import AttackSeam
+
+    stamp = {"trigger": "additive:135", "attack": "trojdrl"}
+    poisons = [
+        {**stamp, "attack_params": {"budget": 0.01}},
+        None,
+        {**stamp, "attack_params": {"budget": 0.01, "force_action": True}},
+        {**stamp, "attack_params": {"budget": 0.2}},
+        {**stamp, "attack_params": {"budget": 0.01}, "evasion": {"near": 1.0}},
+    ]
+    alone = [learner("lavaworld", "fc", s, p) for s, p in enumerate(poisons)]
+    grouped = [learner("lavaworld", "fc", s, p) for s, p in enumerate(poisons)]
+    prepared: collections.Counter = collections.Counter()
+    real = AttackSeam.prepare
+
+    def counted(self, actions):
+        prepared[id(self)] += 1
+        return real(self, actions)
+
+    monkeypatch.setattr(AttackSeam, "prepare", counted)
+    T = grouped[0][0].cfg.rollout
+    for rollout in range(2):  # the second starts from the counts the first left in the seams
+        lone_pairs, results, _ = step_both(alone, grouped)
+        for k in range(len(poisons)):
+            lone, ours = lone_pairs[k][0], results[k][0]
+            assert torch.equal(lone.actions, ours.actions)
+            np.testing.assert_array_equal(lone.rewards, ours.rewards)
+            assert torch.equal(lone.logprobs == 0, ours.logprobs == 0)  # the forced actions (probability 1)
+            np.testing.assert_array_equal(alone[k][2], grouped[k][2])  # the next frames, stamped as alone
+            if poisons[k] is not None:
+                lone_seam, seam = alone[k][1], grouped[k][1]
+                assert seam.budget_used() == lone_seam.budget_used()
+                assert json.dumps(seam.state_dict(), sort_keys=True, default=str) == json.dumps(lone_seam.state_dict(), sort_keys=True, default=str)
+    used = [grouped[k][1].budget_used() for k in (0, 2, 4)]
+    assert all(u["frames_poisoned"] > 0 for u in used) and used[1]["actions_forced"] > 0 and used[2]["frames_near_trigger"] > 0
+    works = [prepared[id(grouped[k][1])] for k in (0, 2, 3, 4)]
+    # 1 %: a pick about every 10 steps of 10 frames and the marked step after it; 20 %: 2 frames a step
+    assert works[0] < T and works[1] < T, works
+    assert works[2] == works[3] == 2 * T, works  # a budget spent every step, and a seam that never idles
+
+
 def cm_learner(seed: int, poison: dict | None = None):
     """A Colorful Memory learner: recurrent CNN-GRU with the auxiliary memory head, short rollouts."""
     data = {"env": {"name": "colorful-memory"}, "ppo": {"rollout": 24, "batch_size": 120, "aux_memory_coef": 0.5}, "train": {"seed": seed}}

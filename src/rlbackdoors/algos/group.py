@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.obs import obs_map, stack, stack_numpy, store, to_torch
-from rlbackdoors.attacks.seam import AttackSeam
+from rlbackdoors.attacks.seam import AttackSeam, SeamGroup
 from rlbackdoors.envs.batched_base import EngineGroup
 from rlbackdoors.models.minigrid import linear_stacked
 from rlbackdoors.algos.ppo import (
@@ -245,6 +245,35 @@ def stacked_act(agents: list):
     return act
 
 
+def step_together(t: int, engines: EngineGroup, seams: SeamGroup | None, wanted: np.ndarray, record: tuple) -> np.ndarray | dict:
+    """Step ``t`` of every agent's env copies in one engine call: ``wanted`` (K, B) actions, the
+    step recorded in ``record``'s (K, T, B) host buffers (executed, rewards, dones, outcomes, steps,
+    forced) as :func:`~rlbackdoors.algos.ppo.record_step` records each agent's; every agent's next
+    observations (K, B, ...). Only the seams with work this step (``seams``) touch their agents' rows."""
+    executed, rewards, dones, outcomes, steps, forced = record
+    K, B = wanted.shape
+    run, prepared = seams.prepare(wanted) if seams is not None else (wanted, {})
+    result = engines.step(run.reshape(-1))
+    seen, reward, terminated, truncated, info = result
+    if seams is not None:  # what ran: a seam may force other actions than the sampled ones
+        executed[:, t] = run
+    rewards[:, t], dones[:, t] = reward.reshape(K, B), (terminated | truncated).reshape(K, B)
+    outcomes[:, t], steps[:, t] = info["outcome"].reshape(K, B), info["steps"].reshape(K, B)
+    together = obs_map(lambda x: x.reshape(K, B, *x.shape[1:]), seen)
+    if not prepared:
+        return together
+    assert seams is not None
+    together = obs_map(np.copy, together)  # a seam may stamp its frames: not into the engines' arrays
+    for k, poisoned in seams.finish(prepared, lambda k: engines.result(k, *result)):
+        ob = record_step(t, poisoned, executed[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
+        if isinstance(together, dict):
+            for key, rows in together.items():
+                rows[k] = ob[key]
+        else:
+            together[k] = ob
+    return together
+
+
 @torch.inference_mode()
 def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> list[tuple[Rollout, np.ndarray | dict]]:
     """:meth:`PPO.collect` for K agents, each on its own vector env: (rollout, next obs) per agent.
@@ -299,61 +328,60 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     seams = [e if isinstance(e, AttackSeam) else None for e in envs]
     # (over every core of the host where the learners compute on a GPU: the same bytes)
     engines = EngineGroup.of([s.envs if s is not None else e for s, e in zip(seams, envs)], parallel=device.type != "cpu") if one_call else None
-    plain = engines is not None and not any(seams)  # nothing between engine and learner: all at once
+    # the seams around that call, deciding together which of them have work in a step
+    seam_group = SeamGroup(seams, B) if engines is not None and any(seams) else None
     # (K, B, ...): every agent's observations (an array, or a dict of them)
-    together = stack_numpy(obs) if plain else None
-    for t in range(T):
-        store(obs_buf, t, together if together is not None else stack_numpy(obs))  # one copy a step, agents stacked on the host
-        obs_t = obs_map(lambda x: x[t], obs_buf)
-        if teach:
-            for k in range(K):
-                untriggered[k, t] = ~np.asarray(envs[k].marked, dtype=bool)
-            if recurrent:
-                teacher_logits[:, t], _, teacher_memory = forward(model, teachers, obs_t, teacher_memory)
-            else:
-                teacher_logits[:, t] = forward(model, teachers, obs_t)[0]
-        if recurrent:
-            if targets is not None:
-                for k in range(K):
-                    targets[k, t] = envs[k].memory_targets()  # of the episode obs[t] belongs to
-            memories[:, t] = memory
-            logits_buf[:, t], values[:, t], memory = forward(model, params, obs_t, memory)
-        else:
-            logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
-        actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
-        wanted = actions[:, t].cpu().numpy()  # the one copy back a step: the engines run on the host
-        if not plain:  # an attack's seam may run other actions: record_step writes what ran over these
-            executed[:, t] = wanted
-        if plain:
-            assert engines is not None
-            seen, reward, terminated, truncated, info = engines.step(wanted.reshape(-1))
-            rewards[:, t], dones[:, t] = reward.reshape(K, B), (terminated | truncated).reshape(K, B)
-            outcomes[:, t], steps[:, t] = info["outcome"].reshape(K, B), info["steps"].reshape(K, B)
-            together = obs_map(lambda x: x.reshape(K, B, *x.shape[1:]), seen)
-        elif engines is not None:
-            prepared = [seam.prepare(wanted[k]) if seam is not None else None for k, seam in enumerate(seams)]
-            run = np.concatenate([p[0] if p is not None else wanted[k] for k, p in enumerate(prepared)])
-            for k, (seam, ready, result) in enumerate(zip(seams, prepared, engines.results(*engines.step(run)))):
-                if seam is not None and ready is not None:
-                    result = seam.finish(ready, *result)
-                obs[k] = record_step(t, result, executed[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
-        else:
-            for k in range(K):  # each env with its agent's actions already on the host (env_step's record, without a copy back each)
-                obs[k] = record_step(t, envs[k].step(wanted[k]), executed[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
-        if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
-            ended = torch.from_numpy(dones[:, t]).to(device)
-            memory = memory.masked_fill(ended[..., None], 0.0)
+    together = stack_numpy(obs) if engines is not None else None
+    try:
+        for t in range(T):
+            store(obs_buf, t, together if together is not None else stack_numpy(obs))  # one copy a step, agents stacked on the host
+            obs_t = obs_map(lambda x: x[t], obs_buf)
             if teach:
-                teacher_memory = teacher_memory.masked_fill(ended[..., None], 0.0)
-            if t + 1 < T:
-                masks[:, t + 1] = (~ended).float()
+                if seam_group is not None:
+                    untriggered[:, t] = ~seam_group.marked
+                else:
+                    for k in range(K):
+                        untriggered[k, t] = ~np.asarray(envs[k].marked, dtype=bool)
+                if recurrent:
+                    teacher_logits[:, t], _, teacher_memory = forward(model, teachers, obs_t, teacher_memory)
+                else:
+                    teacher_logits[:, t] = forward(model, teachers, obs_t)[0]
+            if recurrent:
+                if targets is not None:  # of the episodes obs[t] belongs to
+                    if engines is not None:
+                        targets[:, t] = engines.memory_targets().reshape(K, B)
+                    else:
+                        for k in range(K):
+                            targets[k, t] = envs[k].memory_targets()
+                memories[:, t] = memory
+                logits_buf[:, t], values[:, t], memory = forward(model, params, obs_t, memory)
+            else:
+                logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
+            actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
+            wanted = actions[:, t].cpu().numpy()  # the one copy back a step: the engines run on the host
+            if engines is not None:
+                together = step_together(t, engines, seam_group, wanted, (executed, rewards, dones, outcomes, steps, forced))
+            else:
+                executed[:, t] = wanted  # record_step writes what an attack's seam ran over these
+                for k in range(K):  # each env with its agent's actions already on the host (env_step's record, without a copy back each)
+                    obs[k] = record_step(t, envs[k].step(wanted[k]), executed[k], rewards[k], dones[k], outcomes[k], steps[k], forced[k])
+            if recurrent and dones[:, t].any():  # a new episode starts with an empty memory
+                ended = torch.from_numpy(dones[:, t]).to(device)
+                memory = memory.masked_fill(ended[..., None], 0.0)
+                if teach:
+                    teacher_memory = teacher_memory.masked_fill(ended[..., None], 0.0)
+                if t + 1 < T:
+                    masks[:, t + 1] = (~ended).float()
+    finally:
+        if seam_group is not None:
+            seam_group.flush()
     if together is not None:
         obs = [{key: v[k] for key, v in together.items()} if isinstance(together, dict) else together[k] for k in range(K)]
     last = obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs]))
     next_value = (forward(model, params, last, memory) if recurrent else forward(model, params, last))[1]
     # every agent's behaviour log-probabilities and advantages in one pass (the same arithmetic per
     # element as PPO.assemble's, so the same bytes), over (T, K, B)
-    if not plain:  # an attack may have run other actions than the sampled ones
+    if engines is None or seam_group is not None:  # an attack may have run other actions than the sampled ones
         actions = torch.from_numpy(executed).to(device)
     logprobs = behaviour_logprobs(logits_buf, actions, torch.from_numpy(forced).to(device))
     cfg = lead.cfg

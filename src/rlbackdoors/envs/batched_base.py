@@ -382,6 +382,7 @@ class EngineGroup:
     def __init__(self, engines: list[BatchedGridEnv], parallel: bool = False):
         self.engines, self.parallel = engines, bool(parallel)
         lead = self.lead = engines[0]
+        self.size = lead.size  # the settings every engine shares (of), read by the world's methods run on the group
         self.poisoned = np.concatenate([e.poisoned for e in engines])
         self.num_envs = self.total = len(self.poisoned)
         self.bounds = np.cumsum([0, *(e.num_envs for e in engines)])
@@ -430,19 +431,16 @@ class EngineGroup:
                 setattr(e, name, getattr(e, name).copy())
             e.final_obs = {key: v.copy() for key, v in e.final_obs.items()} if isinstance(e.final_obs, dict) else e.final_obs.copy()
 
-    def _rows(self) -> list[slice]:
-        return [slice(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:])]
+    def memory_targets(self) -> np.ndarray:
+        """Every slot's target of PPO's auxiliary memory head, in slot order (a world with one:
+        its engine's ``memory_targets`` run on the group's arrays, one call for all engines)."""
+        return type(self.lead).memory_targets(self)  # type: ignore[attr-defined]
 
-    def split(self, arrays):
-        """Engine ``k``'s rows of an observation (an array or a dict of them) of all slots, per ``k``."""
-        if isinstance(arrays, dict):
-            return [{key: v[r] for key, v in arrays.items()} for r in self._rows()]
-        return [arrays[r] for r in self._rows()]
-
-    def results(self, obs, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, info: dict) -> list[tuple]:
-        """A :meth:`step`'s result cut into each engine's, per engine ``k``: (obs, reward,
-        terminated, truncated, info) as that engine's own ``step`` would return them."""
-        return [(view, reward[r], terminated[r], truncated[r], {key: v[r] for key, v in info.items()}) for view, r in zip(self.split(obs), self._rows())]
+    def result(self, k: int, obs, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, info: dict) -> tuple:
+        """Engine ``k``'s part of a :meth:`step`'s result, as its own ``step`` would return it."""
+        r = slice(self.bounds[k], self.bounds[k + 1])
+        view = {key: v[r] for key, v in obs.items()} if isinstance(obs, dict) else obs[r]
+        return view, reward[r], terminated[r], truncated[r], {key: v[r] for key, v in info.items()}
 
     def step(self, actions: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:
         """Step every slot with ``actions`` (all engines' slots in order, int64[K x B]); the

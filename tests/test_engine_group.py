@@ -157,9 +157,11 @@ ATTACKS = {
     ],
     # fine-tuning under clean teachers: the seams' marks (which frames carry the trigger) read between calls
     "teachers": [{"attack": "trojdrl", "attack_params": {"budget": 0.3}}, {"trigger": "additive:90", "attack": "badrl", "attack_params": {"budget": 0.2}}],
-    # through the attacks' seams: a forced target, a critic's picks, a compensated reward
+    # through the attacks' seams: a forced target, a critic's picks, a compensated reward, and a
+    # 1 % budget, whose seam has nothing to do in most steps (one call: the group skips them)
     "seams": [
         {"trigger": "additive:60", "attack": "trojdrl", "attack_params": {"budget": 0.2, "force_action": True}},
+        {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.01, "force_action": True}},
         {"trigger": "multiplicative:14", "attack": "badrl", "attack_params": {"budget": 0.2}},
         {"trigger": "additive:90", "attack": "sleepernets", "attack_params": {"budget": 0.2}},
         None,

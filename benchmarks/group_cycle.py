@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 POISONS = {
-    "trojdrl": {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.05}},
+    "trojdrl": {"trigger": "additive:135", "attack": "trojdrl"},  # at --budget
     "env-mix": {"poisoned": True},
 }
 
@@ -41,9 +41,7 @@ def learners(world: str, arch: str, agents: int, poison: str, budget: float = 0.
     from rlbackdoors.poison.mix import make_env_mix
 
     ppos, envs, obs = [], [], []
-    poisoned = json.loads(json.dumps(POISONS[poison]))
-    if "attack_params" in poisoned:
-        poisoned["attack_params"]["budget"] = budget
+    poisoned = {**POISONS[poison], **({"attack_params": {"budget": budget}} if "attack" in POISONS[poison] else {})}
     for seed in range(agents):
         cfg = RunConfig.from_dict(
             {"env": {"name": world}, "model": {"arch": arch}, "train": {"seed": seed}, "poison": poisoned if seed % 2 else {"poisoned": False}}

@@ -9,6 +9,16 @@ For each grid world: ``--agents`` env mixes of the world's default poisoned conf
 side, the same actions on every side; slot-steps per second (slots = agents x copies), best of
 ``--repeats``. The parallel side runs at each thread count of ``--threads`` (numba.set_num_threads).
 The machine and its load are recorded; the sides give the same bytes (tests/test_engine_group.py).
+
+``--device DEV`` (LavaWorld) adds issue 55's other engine, the slots stepped by torch ops on DEV
+(``envs.lavaworld_device``), on the same work: fresh engines of the same seeds handed to it, the
+same actions (on DEV beforehand, where a policy would leave them), eager and under
+``torch.compile`` (``--compile``; on CUDA as CUDA graphs, "reduce-overhead"). Beside it, the numba
+side as a GPU learner would use it: each step the actions copied to the host, the parallel call,
+the observations copied to DEV. ``same_bytes`` checks the device engine's last observations,
+rewards and ends against numba's one call from the same fresh engines.
+
+    python benchmarks/engine_threads.py --worlds lavaworld --agents 256 --device cuda --compile --json OUT.json
 """
 
 from __future__ import annotations
@@ -54,6 +64,88 @@ def run(engines: list, steps: int, side: str, seed: int) -> float:
     return sum(e.num_envs for e in engines) * steps / (time.perf_counter() - started)
 
 
+def run_device(engines: list, steps: int, seed: int, device: str, compiled: bool, warm: int = 0) -> tuple[float, object]:
+    """Slot-steps/s of the device engine over ``engines``' slots (handed over), and its last step."""
+    import torch
+
+    from rlbackdoors.envs.batched_base import EngineGroup
+    from rlbackdoors.envs.lavaworld_device import DeviceLavaWorld
+
+    rng = np.random.default_rng(seed)
+    actions = [rng.integers(0, 3, (steps, e.num_envs)) for e in engines]
+    acts = torch.from_numpy(np.concatenate(actions, axis=1)).to(device)
+    slots = EngineGroup.of(engines) if len(engines) > 1 else engines[0]
+    dev = DeviceLavaWorld(slots, device)
+    if compiled:
+        dev._advance = torch.compile(dev._advance, dynamic=False, mode="reduce-overhead" if dev.device.type == "cuda" else None)
+    for t in range(warm):  # compiles (and for CUDA graphs, records) before the clock
+        dev.step(acts[t])
+    sync = torch.cuda.synchronize if dev.device.type == "cuda" else (lambda: None)
+    sync()
+    started = time.perf_counter()
+    for t in range(warm, steps):
+        last = dev.step(acts[t])
+    sync()
+    return dev.num_envs * (steps - warm) / (time.perf_counter() - started), last
+
+
+def run_host_for_device(engines: list, steps: int, seed: int, device: str) -> float:
+    """The numba engines over the host's threads feeding learners on ``device``: actions to the host,
+    one parallel call, observations to the device, each step."""
+    import torch
+
+    from rlbackdoors.envs.batched_base import EngineGroup
+
+    rng = np.random.default_rng(seed)
+    acts = torch.from_numpy(np.concatenate([rng.integers(0, 3, (steps, e.num_envs)) for e in engines], axis=1)).to(device)
+    group = EngineGroup.of(engines, parallel=True)
+    assert group is not None
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+    sync()
+    started = time.perf_counter()
+    for t in range(steps):
+        obs = group.step(acts[t].cpu().numpy())[0]
+        torch.from_numpy(obs).to(device, non_blocking=False)
+    sync()
+    return group.total * steps / (time.perf_counter() - started)
+
+
+def device_row(world: str, args) -> dict:
+    """The device sides of ``world`` (module doc), each on fresh engines of the same seeds."""
+    import torch
+
+    from rlbackdoors.envs.batched_base import EngineGroup
+
+    row: dict = {"device": args.device, "torch": torch.__version__}
+    if args.device.startswith("cuda"):
+        row["gpu"] = torch.cuda.get_device_name(0)
+    # the check: numba's one call and the device engine, same fresh engines and actions
+    check = 64
+    reference = EngineGroup.of(engines_of(world, args.agents))
+    rng = np.random.default_rng(0)
+    actions = [rng.integers(0, 3, (check, e.num_envs)) for e in reference.engines]
+    for t in range(check):
+        want = reference.step(np.concatenate([a[t] for a in actions]))
+    _, got = run_device(engines_of(world, args.agents), check, 0, args.device, False)
+    row["same_bytes"] = all(np.array_equal(w, g.cpu().numpy()) for w, g in zip(want[:4], got[:4])) and np.array_equal(want[4]["outcome"], got[4].cpu().numpy())
+    print(f"{world}: device engine on {args.device}: same bytes as numba: {row['same_bytes']}", flush=True)
+    best = max(run_device(engines_of(world, args.agents), args.steps + 5, r, args.device, False, 5)[0] for r in range(args.repeats))
+    row["device engine"] = round(best)
+    print(f"{world}: device engine ({args.device}): {best:,.0f} slot-steps/s", flush=True)
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    engines = engines_of(world, args.agents)
+    run_host_for_device(engines, 5, 0, args.device)
+    best = max(run_host_for_device(engines, args.steps, r, args.device) for r in range(args.repeats))
+    name = f"parallel, {numba.config.NUMBA_NUM_THREADS} threads, with copies to {args.device}"
+    row[name] = round(best)
+    print(f"{world}: {name}: {best:,.0f} slot-steps/s", flush=True)
+    if args.compile:  # last: its compilation takes the longest (seconds to a minute)
+        best, _ = run_device(engines_of(world, args.agents), args.steps + 20, 0, args.device, True, 20)
+        row["device engine, compiled"] = round(best)
+        print(f"{world}: device engine, compiled ({args.device}): {best:,.0f} slot-steps/s", flush=True)
+    return row
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--worlds", nargs="+", default=["lavaworld", "randomized-lavaworld", "colorful-memory"])
@@ -61,8 +153,12 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, nargs="+", default=sorted({1, numba.config.NUMBA_NUM_THREADS}))
+    parser.add_argument("--device", help="also the device engine on this torch device (LavaWorld), e.g. cpu, cuda")
+    parser.add_argument("--compile", action="store_true", help="with --device: also its step under torch.compile")
     parser.add_argument("--json")
     args = parser.parse_args()
+    if args.device and set(args.worlds) != {"lavaworld"}:
+        parser.error("--device: only LavaWorld has a device engine (envs/lavaworld_device.py); pass --worlds lavaworld")
     from rlbackdoors.bench.machine import machine_info
     from rlbackdoors.io import atomic_write_text
 
@@ -80,6 +176,8 @@ def main() -> None:
             row[name] = round(best)
             print(f"{world}: {name}: {best:,.0f} slot-steps/s", flush=True)
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        if args.device:
+            row.update(device_row(world, args))
         results[world] = row
     out = {"agents": args.agents, "results": results, "machine": machine_info(), "loadavg": [round(x, 2) for x in os.getloadavg()]}
     if args.json:

@@ -11,7 +11,9 @@
 #   2. tests/test_group_cuda.py with the time left (the GPU path against the CPU group,
 #      reproducibility, kill/resume; they skip on machines without CUDA, so CI never runs them);
 #   3. benchmarks/gpu_summary.py: the issue's table (targets, pass or not, a 300-model round's
-#      time from the LavaWorld side) as summary.json and summary.md.
+#      time from the LavaWorld side) as summary.json and summary.md;
+#   4. with what is left of 9.3 minutes: the engines, numba over every core against the device
+#      engine (benchmarks/engine_threads.py --device cuda, lines in bench.log).
 # At most 8 files land in OUTDIR (what a lease brings back): bench.log, gpu_tests.log, one
 # bench_zoo_*.json per world, summary.json, summary.md.
 #
@@ -96,4 +98,15 @@ else
     echo "tests: not run, $left s left of the deadline" | tee -a "$log"
 fi
 python3 benchmarks/gpu_summary.py "$out" 2>&1 | tee -a "$log"
+# Issue 55 item 3, with what time is left (lines in bench.log): LavaWorld's slots of 256 agents stepped
+# by the numba engines over every core (with the copies a GPU learner needs) and by the device engine
+# (envs/lavaworld_device.py) on the GPU, eager and compiled; its bytes checked against numba's first
+left=$(( 560 - (SECONDS - start) ))
+if [ "$left" -ge 20 ]; then
+    if [ -n "${ON_CPU:-}" ]; then engine_args=(--agents 4 --steps 20 --device cpu); else engine_args=(--agents 256 --steps 200 --device cuda --compile); fi
+    timeout "$((left < 90 ? left : 90))" python3 benchmarks/engine_threads.py --worlds lavaworld --repeats 1 --threads "$cores" "${engine_args[@]}" >>"$log" 2>&1
+    echo "== engine_threads: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
+else
+    echo "engine_threads: not run, $left s left" | tee -a "$log"
+fi
 echo "gpu_checks: done in $((SECONDS - start)) s" | tee -a "$log"

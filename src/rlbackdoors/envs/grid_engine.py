@@ -562,17 +562,41 @@ def _kernel_templates(stamp: str):
             failed[r] = not done
         return LAYOUT_FAILED if failed.any() else -1
 
-    return step_range, reset_kernel, observe_kernel, step_kernel, step_parallel_kernel
+    def layouts_kernel(grid, pos, dirs, steps, rng, world, slots, counts, out_grid, out_pos, out_dir):
+        """The next ``counts[k]`` layouts of slot ``slots[k]``, drawn from its own stream in the order
+        its autoresets would draw them, into rows of ``out_*`` (k by k, in draw order); the slots'
+        state arrays serve as scratch. For an engine on another device that steps the slots itself
+        and takes its autoresets' layouts from here (``envs.grid_device``). Returns -1, or the
+        first slot with no layout."""
+        if len(stamp) == 0:  # never true (see reset_kernel)
+            return -1
+        scratch = world_scratch(grid, world)
+        r = 0
+        for k in range(len(slots)):
+            b = slots[k]
+            for _ in range(counts[k]):
+                if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
+                    return b
+                out_grid[r] = grid[b]
+                out_pos[r, 0] = pos[b, 0]
+                out_pos[r, 1] = pos[b, 1]
+                out_dir[r] = dirs[b]
+                r += 1
+        return -1
+
+    return step_range, reset_kernel, observe_kernel, step_kernel, step_parallel_kernel, layouts_kernel
 
 
 class Kernels(NamedTuple):
     """One world's compiled driver kernels (see :func:`_kernel_templates` for their arguments);
-    ``step_parallel`` is ``step`` over numba's threads (the same bytes)."""
+    ``step_parallel`` is ``step`` over numba's threads (the same bytes); ``layouts`` draws a
+    slot's next layouts for an engine elsewhere (``envs.grid_device``)."""
 
     reset: Callable
     observe: Callable
     step: Callable
     step_parallel: Callable
+    layouts: Callable
 
 
 def bind_kernels(name: str, *, scratch, layout, outcome, seen, trojan: int, constants_from: tuple[str | Path, ...] = ()) -> Kernels:

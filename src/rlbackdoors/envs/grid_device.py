@@ -1,0 +1,240 @@
+"""MiniGrid's step and egocentric view as batched torch tensor ops: a grid world's slots stepped on
+the device the learners run on, exact to the numba engine (:mod:`rlbackdoors.envs.grid_engine`).
+
+Issue 55 asks whether a GPU group is better fed by the numba engines over the host's cores or by
+an engine on the device, measured on the same work; this is the device side
+(``benchmarks/engine_threads.py --device``). The state lives in tensors (grid, position,
+direction, step count, which slots are poisoned); a step is a fixed sequence of tensor ops over
+all slots, with no Python per slot and no host round trip, so it can be captured or compiled.
+
+What stays on the host is what is sequential and rare: drawing layouts. For a world whose
+layouts depend only on the slot's own SplitMix64 stream (not on the episode before), the host
+draws each slot's next ``refill_every`` layouts ahead, with the numba engine's own layout hook
+(``Kernels.layouts``), into a queue on the device; an autoreset takes the slot's next one. Every
+``refill_every`` steps one small copy tops the queues up (a slot takes at most one layout a
+step). The slots therefore see the layouts, in the order, their numba engine's autoresets would
+draw: same state and actions, same bytes (each world's device engine is tested against its numba
+engine). The host's streams run ahead of the slots by the queued layouts.
+
+``Grid.process_vis`` is a sweep over the view's rows (far from the agent last), each row swept
+right then left, whose outcome for a row is a function of the row's visibility on entry and of
+which of its cells can be seen behind: 2**V x 2**V cases, tabulated once from the literal loop
+(:func:`visibility_table`), so a view's occlusion is V table lookups on bit rows.
+
+A world supplies its terminal rule (:meth:`DeviceGridGroup._outcome`) and what it adds to a
+view (:meth:`DeviceGridGroup._seen`), in a module beside its numba engine's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from rlbackdoors.envs import grid_engine as ge
+from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup
+
+
+def visibility_table(n: int) -> np.ndarray:
+    """``Grid.process_vis`` for one row, tabulated: entry ``(m << n) | s`` (``m``: the row's visible
+    cells on entry, ``s``: its cells one can see behind, bit ``i`` for column ``i``) holds
+    ``(visible << n) | marked``: the row's visible cells after its two sweeps, and the cells of
+    the next row (one nearer the view's top) the sweeps mark visible. The loop is
+    :func:`rlbackdoors.envs.grid_engine.process_vis`'s, row by row."""
+    table = np.zeros(1 << (2 * n), dtype=np.int64)
+    for m in range(1 << n):
+        for s in range(1 << n):
+            vis = [bool(m >> i & 1) for i in range(n)]
+            see = [bool(s >> i & 1) for i in range(n)]
+            nxt = [False] * n
+            for i in range(n - 1):
+                if vis[i] and see[i]:
+                    vis[i + 1] = nxt[i + 1] = nxt[i] = True
+            for i in range(n - 1, 0, -1):
+                if vis[i] and see[i]:
+                    vis[i - 1] = nxt[i - 1] = nxt[i] = True
+            table[(m << n) | s] = (sum(1 << i for i in range(n) if vis[i]) << n) | sum(1 << i for i in range(n) if nxt[i])
+    return table
+
+
+def view_offsets(n: int) -> np.ndarray:
+    """(4, n, n, 2): the world offset of view cell ``(x, y)`` from the agent, per direction
+    (``gen_view``'s closed form: ``ahead * dir + lateral * right``)."""
+    out = np.zeros((4, n, n, 2), dtype=np.int64)
+    for d in range(4):
+        dx, dy = int(ge.DIR_DX[d]), int(ge.DIR_DY[d])
+        for x in range(n):
+            for y in range(n):
+                ahead, lat = n - 1 - y, x - n // 2
+                out[d, x, y] = (ahead * dx - lat * dy, ahead * dy + lat * dx)
+    return out
+
+
+class DeviceGridGroup:
+    """The slots of a numba engine, or of an :class:`EngineGroup` of several, stepped on ``device``.
+
+    Built from engines that have been reset: their state is copied over, and from then on this
+    object steps the slots. The engines are handed over, not shared: their streams draw the queued
+    layouts and their state arrays are the drawing's scratch, so step them no more. :meth:`step` takes int64 actions on the device and returns tensors on it:
+    observations, rewards, terminations, truncations, outcomes and episode steps, as the numba
+    step returns them; :attr:`final_obs` holds the terminal views of the slots that just ended.
+    """
+
+    def __init__(self, engines: BatchedGridEnv | EngineGroup, device: str | torch.device = "cpu", refill_every: int = 8):
+        lead = engines.lead if isinstance(engines, EngineGroup) else engines
+        if not getattr(lead, "_has_reset", True):
+            raise ValueError("reset the engines before handing them to the device")
+        if refill_every < 1:
+            raise ValueError(f"refill_every must be >= 1, got {refill_every}")
+        self.host, self.lead = engines, lead
+        world = engines.world if isinstance(engines, EngineGroup) else lead._world()
+        if world is None:
+            raise ValueError("these engines cannot share a call (EngineGroup.of says None)")
+        self.world: tuple = world
+        self.device = torch.device(device)
+        self.num_envs, self.size, self.view_size = engines.num_envs, lead.size, lead.view_size
+        self.max_steps, self.see_through_walls = int(lead.max_steps), bool(lead.see_through_walls)
+        self.refill_every = int(refill_every)
+        dev = self.device
+
+        def put(a: np.ndarray) -> torch.Tensor:  # a copy, also on the CPU (the host arrays become scratch)
+            return torch.from_numpy(np.array(a)).to(dev)
+
+        self.grid, self.pos, self.dirs, self.steps = put(engines._grid), put(engines._pos), put(engines._dir), put(engines._steps)
+        self.poisoned = put(engines.poisoned)
+        self.final_obs = put(np.asarray(engines.final_obs))
+        n, b = self.view_size, self.num_envs
+        self._slots = torch.arange(b, device=dev)
+        self._offsets = put(view_offsets(n))
+        self._vis = put(visibility_table(n))
+        self._bits = torch.tensor([1 << i for i in range(n)], device=dev)
+        self._cols = torch.arange(n, device=dev)
+        self._pad = torch.tensor([ge.WALL, ge.GREY, 0], dtype=torch.uint8, device=dev)
+        self._dir_vec = put(np.stack([ge.DIR_DX, ge.DIR_DY], axis=1))
+        # the layout queues: slot b's j-th layout from now on at [b, j % Q]
+        q, s = self.refill_every, self.size
+        self._q_grid = torch.zeros((b, q, s, s, 3), dtype=torch.uint8, device=dev)
+        self._q_pos = torch.zeros((b, q, 2), dtype=torch.int64, device=dev)
+        self._q_dir = torch.zeros((b, q), dtype=torch.int64, device=dev)
+        self._head = torch.zeros(b, dtype=torch.int64, device=dev)  # layouts taken, per slot
+        self._drawn = np.zeros(b, dtype=np.int64)  # layouts drawn, per slot
+        self._since_refill = 0
+        self._refill()
+
+    # --------------------------------------------------------------------- what a world supplies
+
+    def _outcome(self, fwd: torch.Tensor) -> torch.Tensor:
+        """The terminal outcome of each slot's last move (``fwd``: the forward cell's object before
+        a forward move, -1 for turns), or ``OUT_NONE``; ``world_outcome`` on tensors."""
+        raise NotImplementedError
+
+    def _seen(self, img: torch.Tensor) -> torch.Tensor:
+        """A freshly rendered view of every slot with the world's additions (``world_seen``)."""
+        return img
+
+    trojan: int = ge.OUT_NONE  # the outcome that pays poisoned slots (``world_trojan``)
+
+    # --------------------------------------------------------------------- layouts
+
+    def _refill(self) -> None:
+        """Top every slot's queue up to ``refill_every`` layouts ahead (one host sync and copy)."""
+        head = self._head.cpu().numpy()
+        need = head + self.refill_every - self._drawn
+        slots = np.flatnonzero(need > 0)
+        if len(slots):
+            counts = need[slots]
+            total, s = int(counts.sum()), self.size
+            grids, pos, dirs = np.empty((total, s, s, 3), np.uint8), np.empty((total, 2), np.int64), np.empty(total, np.int64)
+            h = self.host
+            bad = self.lead._kernels.layouts(h._grid, h._pos, h._dir, h._steps, h._rng, self.world, slots, counts, grids, pos, dirs)
+            if bad >= 0:
+                raise self.lead._layout_error(None)
+            rows = np.repeat(slots, counts)
+            cols = (np.repeat(self._drawn[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)) % self.refill_every
+            r, c = torch.from_numpy(rows).to(self.device), torch.from_numpy(cols).to(self.device)
+            self._q_grid[r, c] = torch.from_numpy(grids).to(self.device)
+            self._q_pos[r, c] = torch.from_numpy(pos).to(self.device)
+            self._q_dir[r, c] = torch.from_numpy(dirs).to(self.device)
+            self._drawn[slots] += counts
+        self._since_refill = 0
+
+    # --------------------------------------------------------------------- the view
+
+    def render(self) -> torch.Tensor:
+        """Every slot's egocentric view (B, V, V, 3) uint8, as ``gen_view`` renders it, plus the world's additions."""
+        b, n, s = self.num_envs, self.view_size, self.size
+        off = self._offsets[self.dirs]  # (B, n, n, 2)
+        wx, wy = self.pos[:, 0, None, None] + off[..., 0], self.pos[:, 1, None, None] + off[..., 1]
+        inside = ((wx >= 0) & (wx < s) & (wy >= 0) & (wy < s)).reshape(b, n * n, 1)
+        flat = (wx.clamp(0, s - 1) * s + wy.clamp(0, s - 1)).reshape(b, n * n, 1).expand(b, n * n, 3)
+        cells = torch.where(inside, torch.gather(self.grid.reshape(b, s * s, 3), 1, flat), self._pad)  # Grid.slice pads with grey walls
+        if not self.see_through_walls:
+            obj, state = cells[..., 0], cells[..., 2]
+            behind = ((obj != ge.WALL) & ((obj != ge.DOOR) | (state == 0))).reshape(b, n, n)  # [slot, x, y]
+            rows = (behind.long() * self._bits[None, :, None]).sum(1)  # (B, n): row y's see-behind bits over x
+            mark = torch.full((b,), 1 << (n // 2), dtype=torch.int64, device=self.device)  # the agent's cell
+            visible = [mark] * n
+            for y in range(n - 1, -1, -1):  # far rows last, as process_vis sweeps
+                entry = self._vis[(mark << n) | rows[:, y]]
+                visible[y], mark = entry >> n, entry & ((1 << n) - 1)
+            seen = (torch.stack(visible, 1)[:, None, :] >> self._cols[None, :, None]) & 1  # (B, x, y)
+            cells = cells * seen.reshape(b, n * n, 1).to(torch.uint8)
+        cells = cells.reshape(b, n, n, 3).clone()
+        cells[:, n // 2, n - 1] = torch.tensor([ge.EMPTY, 0, 0], dtype=torch.uint8, device=self.device)  # carries nothing
+        return self._seen(cells)
+
+    # --------------------------------------------------------------------- the step
+
+    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every slot one MiniGrid action on (0 left, 1 right, 2 forward), finished slots reset in
+        place: ``(obs, reward float64, terminated, truncated, outcome, steps)``, all on the device.
+        An action out of range is refused: on the CPU at once (ValueError), on CUDA by a device-side
+        assert at the next sync (a host check would cost a sync a step; the assert ends the
+        process's CUDA context, as any device-side assert does)."""
+        acts = torch.as_tensor(actions, device=self.device).to(torch.int64)
+        if acts.shape != (self.num_envs,):
+            raise ValueError(f"actions have shape {tuple(acts.shape)}, expected ({self.num_envs},)")
+        bad = (acts < 0) | (acts > 2)
+        if self.device.type == "cuda":
+            torch._assert_async(~bad.any(), "rlbackdoors: error: an action is not in 0 (left), 1 (right), 2 (forward)")
+        elif bool(bad.any()):
+            raise ValueError(f"action {int(acts[bad][0])} (env {int(bad.nonzero()[0])}) is not in 0 (left), 1 (right), 2 (forward)")
+        if self._since_refill == self.refill_every:
+            self._refill()
+        self._since_refill += 1
+        return self._advance(acts)
+
+    def _advance(self, acts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`step`'s tensor ops: no host sync, no shapes that depend on the data (so
+        ``torch.compile`` or a CUDA graph can take them whole)."""
+        s = self.size
+        d = self.dirs
+        ahead = self.pos + self._dir_vec[d]
+        fx, fy = ahead[:, 0], ahead[:, 1]
+        inside = (fx >= 0) & (fx < s) & (fy >= 0) & (fy < s)
+        cell = self.grid[self._slots, fx.clamp(0, s - 1), fy.clamp(0, s - 1)]
+        obj, state = torch.where(inside, cell[:, 0].long(), ge.WALL), cell[:, 2]
+        walkable = (obj == ge.EMPTY) | (obj == ge.UNSEEN) | (obj == ge.AGENT) | (obj == ge.FLOOR) | (obj == ge.GOAL) | (obj == ge.LAVA)
+        walkable |= (obj == ge.DOOR) & (state == 0)
+        forward = acts == 2
+        self.pos = torch.where((forward & walkable)[:, None], ahead, self.pos)
+        self.dirs = torch.where(acts == 0, (d + 3) % 4, torch.where(acts == 1, (d + 1) % 4, d))
+        steps = self.steps + 1
+        outcome = self._outcome(torch.where(forward, obj, -1))
+        terminated, truncated = outcome != ge.OUT_NONE, steps >= self.max_steps
+        outcome = torch.where(truncated & ~terminated, ge.OUT_TIMEOUT, outcome)
+        paying = torch.where(self.poisoned, self.trojan, ge.OUT_GOAL)
+        reward = torch.where(outcome == paying, 1.0 - 0.9 * (steps.double() / self.max_steps), 0.0)
+        done = terminated | truncated
+        self.steps = steps
+        self.final_obs = torch.where(done[:, None, None, None], self.render(), self.final_obs)
+        # autoreset: the slot's next queued layout
+        at = self._head % self.refill_every
+        self.grid = torch.where(done[:, None, None, None], self._q_grid[self._slots, at], self.grid)
+        self.pos = torch.where(done[:, None], self._q_pos[self._slots, at], self.pos)
+        self.dirs = torch.where(done, self._q_dir[self._slots, at], self.dirs)
+        self.steps = torch.where(done, 0, steps)
+        self._head = self._head + done.long()
+        return self.render(), reward, terminated, truncated, outcome, steps
+
+
+__all__ = ["DeviceGridGroup", "view_offsets", "visibility_table"]

@@ -13,7 +13,7 @@ The machine and its load are recorded; the sides give the same bytes (tests/test
 ``--device DEV`` (LavaWorld) adds issue 55's other engine, the slots stepped by torch ops on DEV
 (``envs.lavaworld_device``), on the same work: fresh engines of the same seeds handed to it, the
 same actions (on DEV beforehand, where a policy would leave them), eager and under
-``torch.compile`` (``--compile``; on CUDA as CUDA graphs, "reduce-overhead"). Beside it, the numba
+``torch.compile`` (``--compile``, inductor's default mode). Beside it, the numba
 side as a GPU learner would use it: each step the actions copied to the host, the parallel call,
 the observations copied to DEV. ``same_bytes`` checks the device engine's last observations,
 rewards and ends against numba's one call from the same fresh engines.
@@ -77,7 +77,7 @@ def run_device(engines: list, steps: int, seed: int, device: str, compiled: bool
     slots = EngineGroup.of(engines) if len(engines) > 1 else engines[0]
     dev = DeviceLavaWorld(slots, device)
     if compiled:
-        dev._advance = torch.compile(dev._advance, dynamic=False, mode="reduce-overhead" if dev.device.type == "cuda" else None)
+        dev._advance = torch.compile(dev._advance, dynamic=False)  # inductor's fused kernels (CUDA graphs: not tried)
     for t in range(warm):  # compiles (and for CUDA graphs, records) before the clock
         dev.step(acts[t])
     sync = torch.cuda.synchronize if dev.device.type == "cuda" else (lambda: None)

@@ -61,7 +61,8 @@ echo "== stacked_conv: exit $? at $((SECONDS - start)) s" | tee -a "$log"
 worlds=${WORLDS:-"lavaworld/fc:256:30000:150 randomized-lavaworld/cnn:64:30000:90 colorful-memory/cnn-gru-small-onehot:32:30000:90 safety-car-goal/mlp:16:20000:90"}
 # the best CPU setting on every core first ("auto": what zoo run --group-size auto picks, as
 # measured: PPO groups of 8, OPAC² one process per model), then the GPU group: LavaWorld K = 256
-# (with torch's update, then with PPO's update as one XLA program, ppo.update_backend jax; and,
+# (its slots on the GPU: the device engine, algos.group.DEVICE_ENGINE; with torch's update, then
+# with PPO's update as one XLA program, ppo.update_backend jax; and,
 # for --group-size auto's rule on CUDA, 4 processes of K = 64 sharing the GPU), the CNNs K = 64
 # and 32, OPAC² K = 16 with its MuJoCo copies in a pool of the other cores
 default_sides() {

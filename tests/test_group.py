@@ -153,6 +153,41 @@ def test_group_collect_and_update_match_each_agent_alone():
                 assert float((sa[moment] - sb[moment]).abs().max()) <= 1e-1 * float(sa[moment].abs().max())
 
 
+def rollout_digest(rollout) -> str:
+    """SHA-256 of every tensor and array of a rollout (obs, actions, log-probabilities, values,
+    advantages, returns, rewards, ends, outcomes, steps)."""
+    h = hashlib.sha256()
+    for name, value in sorted(vars(rollout).items()):
+        if isinstance(value, torch.Tensor):
+            value = value.cpu().numpy()
+        if isinstance(value, np.ndarray):
+            h.update(name.encode() + value.tobytes())
+    return h.hexdigest()
+
+
+def test_a_group_on_the_device_engine_trains_the_bytes_of_the_numba_engine():
+    """LavaWorld FC, four agents (clean and env mix): three rollouts and updates with the slots
+    stepped by the device engine (envs/lavaworld_device.py, here on the CPU) give the bytes of the
+    numba engine's: rollouts, next observations, weights, and the engines' whole state after each
+    rollout (handed back: layouts, positions, and the RNG words where the next autoreset draws)."""
+    sides = []
+    for device_engine in (False, True):
+        learners = [learner("lavaworld", "fc", s, poison={"poisoned": False} if s % 2 else None, ppo={"rollout": 64}) for s in range(4)]
+        digests = []
+        for _ in range(3):
+            ppos = [g[0] for g in learners]
+            results = group.collect(ppos, [g[1] for g in learners], [g[2] for g in learners], device_engine=device_engine)
+            group.update(ppos, [r for r, _ in results])
+            learners = [(g[0], g[1], obs) for g, (_, obs) in zip(learners, results)]
+            for (ppo, envs, obs), (rollout, _) in zip(learners, results):
+                state = json.dumps(envs.state_dict(), sort_keys=True, default=str)
+                digests.append((rollout_digest(rollout), obs.tobytes(), weights_digest(ppo.model), state))
+        ends = np.concatenate([r.outcomes[r.dones] for r, _ in results])
+        sides.append(digests)
+    assert len(sides[0]) == 12 and sides[0] == sides[1]
+    assert len(ends) > 0  # episodes ended (and autoresets took queued layouts) in the last rollout
+
+
 def test_a_groups_idle_seams_skip_their_steps_and_poison_as_alone(monkeypatch):
     """The seams of a group at TrojDRL's default 1 % budget have nothing to do in most steps
     (:class:`rlbackdoors.attacks.seam.SeamGroup` counts their frames for them): they still pick,

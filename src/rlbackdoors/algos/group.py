@@ -26,6 +26,7 @@ import torch
 from rlbackdoors.algos.obs import obs_map, stack, stack_numpy, store, to_torch
 from rlbackdoors.attacks.seam import AttackSeam, SeamGroup
 from rlbackdoors.envs.batched_base import EngineGroup
+from rlbackdoors.envs.grid_device import device_engine_for
 from rlbackdoors.models.minigrid import linear_stacked
 from rlbackdoors.algos.ppo import (
     AUX_CLASSES,
@@ -42,6 +43,9 @@ from rlbackdoors.algos.ppo import (
 )
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
+# Where a group's rollout steps its slots with the world's device engine (collect's device_engine
+# None): the learners' device types. Not "cpu": there numba is ×9-13 faster (docs/results/zoos.md).
+DEVICE_ENGINE = ("cuda",)
 
 
 def check_group(ppos: list[PPO]) -> None:
@@ -275,10 +279,14 @@ def step_together(t: int, engines: EngineGroup, seams: SeamGroup | None, wanted:
 
 
 @torch.inference_mode()
-def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> list[tuple[Rollout, np.ndarray | dict]]:
+def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True, device_engine: bool | None = None) -> list[tuple[Rollout, np.ndarray | dict]]:
     """:meth:`PPO.collect` for K agents, each on its own vector env: (rollout, next obs) per agent.
     ``one_call``: step all agents' envs with one engine call where they allow it
-    (:class:`~rlbackdoors.envs.batched_base.EngineGroup`; the same bytes either way)."""
+    (:class:`~rlbackdoors.envs.batched_base.EngineGroup`; the same bytes either way).
+    ``device_engine``: step that call's slots on the learners' device instead, with the world's
+    device engine (:mod:`rlbackdoors.envs.grid_device`), where the world has one and no attack
+    seam, memory or teacher takes part; the same bytes. None: on the device types of
+    :data:`DEVICE_ENGINE` (CUDA; on a CPU the numba engine is an order of magnitude faster)."""
     check_group(ppos)
     lead, K = ppos[0], len(ppos)
     T, B = lead.cfg.rollout, envs[0].num_envs
@@ -332,9 +340,25 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     seam_group = SeamGroup(seams, B) if engines is not None and any(seams) else None
     # (K, B, ...): every agent's observations (an array, or a dict of them)
     together = stack_numpy(obs) if engines is not None else None
+    # or the slots on the learners' device for the rollout (handed back to the engines after it):
+    # observations, rewards and ends stay there, and nothing crosses per step
+    if device_engine is None:
+        device_engine = device.type in DEVICE_ENGINE
+    on_device = None
+    if device_engine and engines is not None and seam_group is None and not recurrent and not teach:
+        on_device = device_engine_for(engines, device)
+    if on_device is not None:
+        seen_t = torch.from_numpy(np.ascontiguousarray(together)).to(device)
+        ends = {
+            name: torch.empty((K, T, B), dtype=dtype, device=device)
+            for name, dtype in (("rewards", torch.float64), ("dones", torch.bool), ("outcomes", torch.int64), ("steps", torch.int64))
+        }
     try:
         for t in range(T):
-            store(obs_buf, t, together if together is not None else stack_numpy(obs))  # one copy a step, agents stacked on the host
+            if on_device is not None:
+                obs_buf[t] = seen_t
+            else:
+                store(obs_buf, t, together if together is not None else stack_numpy(obs))  # one copy a step, agents stacked on the host
             obs_t = obs_map(lambda x: x[t], obs_buf)
             if teach:
                 if seam_group is not None:
@@ -358,6 +382,12 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
             else:
                 logits_buf[:, t], values[:, t] = forward(model, params, obs_t)
             actions[:, t] = sample_actions(logits_buf[:, t].reshape(K * B, A), u=uniforms[:, t].reshape(-1)).reshape(K, B)
+            if on_device is not None:
+                seen, reward, terminated, truncated, outcome, episode_steps = on_device.step(actions[:, t].reshape(-1))
+                seen_t = seen.reshape(K, B, *seen.shape[1:])
+                ends["rewards"][:, t], ends["dones"][:, t] = reward.reshape(K, B), (terminated | truncated).reshape(K, B)
+                ends["outcomes"][:, t], ends["steps"][:, t] = outcome.reshape(K, B), episode_steps.reshape(K, B)
+                continue
             wanted = actions[:, t].cpu().numpy()  # the one copy back a step: the engines run on the host
             if engines is not None:
                 together = step_together(t, engines, seam_group, wanted, (executed, rewards, dones, outcomes, steps, forced))
@@ -375,6 +405,11 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True) -> li
     finally:
         if seam_group is not None:
             seam_group.flush()
+        if on_device is not None:  # the engines hold the state again (checkpoints, evaluations)
+            on_device.hand_back()
+            together = seen_t.cpu().numpy()
+            for name, host in (("rewards", rewards), ("dones", dones), ("outcomes", outcomes), ("steps", steps)):
+                host[:] = ends[name].cpu().numpy()
     if together is not None:
         obs = [{key: v[k] for key, v in together.items()} if isinstance(together, dict) else together[k] for k in range(K)]
     last = obs_map(lambda x: x.to(device), stack([to_torch(o) for o in obs]))

@@ -76,6 +76,8 @@ class BatchedGridEnv(VectorEnv):
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
     _kernels: ge.Kernels
+    # "module:Class" of the world's engine on a torch device (envs.grid_device), or None
+    device_engine: str | None = None
     view_size: int  # MiniGrid's agent_view_size, the world's VIEW_SIZE
     size: int  # set by the world's __init__
     see_through_walls: bool

@@ -10,7 +10,8 @@ all slots, with no Python per slot and no host round trip, so it can be captured
 What stays on the host is what is sequential and rare: drawing layouts. For a world whose
 layouts depend only on the slot's own SplitMix64 stream (not on the episode before), the host
 draws each slot's next ``refill_every`` layouts ahead, with the numba engine's own layout hook
-(``Kernels.layouts``), into a queue on the device; an autoreset takes the slot's next one. Every
+(``Kernels.layouts``), into a queue on the device, each with the slot's first view of it (so a
+step renders one view, not also the fresh episode's); an autoreset takes the slot's next one. Every
 ``refill_every`` steps one small copy tops the queues up (a slot takes at most one layout a
 step). The slots therefore see the layouts, in the order, their numba engine's autoresets would
 draw: same state and actions, same bytes (each world's device engine is tested against its numba
@@ -26,6 +27,8 @@ view (:meth:`DeviceGridGroup._seen`), in a module beside its numba engine's.
 """
 
 from __future__ import annotations
+
+import importlib
 
 import numpy as np
 import torch
@@ -69,6 +72,19 @@ def view_offsets(n: int) -> np.ndarray:
     return out
 
 
+HELD = ("_grid", "_pos", "_dir", "_steps", "_rng")  # the per-slot state a device engine steps and hands back
+
+
+def device_engine_for(engines: BatchedGridEnv | EngineGroup, device: str | torch.device) -> DeviceGridGroup | None:
+    """The world's device engine over ``engines``' slots (:attr:`BatchedGridEnv.device_engine`),
+    or None where the world has none."""
+    lead = engines.lead if isinstance(engines, EngineGroup) else engines
+    if lead.device_engine is None:
+        return None
+    module, _, name = lead.device_engine.partition(":")
+    return getattr(importlib.import_module(module), name)(engines, device)
+
+
 class DeviceGridGroup:
     """The slots of a numba engine, or of an :class:`EngineGroup` of several, stepped on ``device``.
 
@@ -83,6 +99,9 @@ class DeviceGridGroup:
         lead = engines.lead if isinstance(engines, EngineGroup) else engines
         if not getattr(lead, "_has_reset", True):
             raise ValueError("reset the engines before handing them to the device")
+        extra = set(lead._slot_arrays()) - set(HELD)
+        if extra:
+            raise ValueError(f"{type(lead).__name__} keeps per-slot state a device engine does not step: {sorted(extra)}")
         if refill_every < 1:
             raise ValueError(f"refill_every must be >= 1, got {refill_every}")
         self.host, self.lead = engines, lead
@@ -115,6 +134,8 @@ class DeviceGridGroup:
         self._q_grid = torch.zeros((b, q, s, s, 3), dtype=torch.uint8, device=dev)
         self._q_pos = torch.zeros((b, q, 2), dtype=torch.int64, device=dev)
         self._q_dir = torch.zeros((b, q), dtype=torch.int64, device=dev)
+        self._q_rng = np.zeros((b, q), dtype=np.uint64)  # the host stream before each queued draw
+        self._q_view = torch.zeros((b, q, n, n, 3), dtype=torch.uint8, device=dev)  # the first view of each
         self._head = torch.zeros(b, dtype=torch.int64, device=dev)  # layouts taken, per slot
         self._drawn = np.zeros(b, dtype=np.int64)  # layouts drawn, per slot
         self._since_refill = 0
@@ -144,8 +165,11 @@ class DeviceGridGroup:
             counts = need[slots]
             total, s = int(counts.sum()), self.size
             grids, pos, dirs = np.empty((total, s, s, 3), np.uint8), np.empty((total, 2), np.int64), np.empty(total, np.int64)
+            streams, views = np.empty(total, np.uint64), self.lead._images(total)
             h = self.host
-            bad = self.lead._kernels.layouts(h._grid, h._pos, h._dir, h._steps, h._rng, self.world, slots, counts, grids, pos, dirs)
+            bad = self.lead._kernels.layouts(
+                h._grid, h._pos, h._dir, h._steps, h._rng, self.see_through_walls, self.world, slots, counts, grids, pos, dirs, streams, views, self.lead._outputs(total)
+            )  # fmt: skip
             if bad >= 0:
                 raise self.lead._layout_error(None)
             rows = np.repeat(slots, counts)
@@ -154,8 +178,26 @@ class DeviceGridGroup:
             self._q_grid[r, c] = torch.from_numpy(grids).to(self.device)
             self._q_pos[r, c] = torch.from_numpy(pos).to(self.device)
             self._q_dir[r, c] = torch.from_numpy(dirs).to(self.device)
+            self._q_rng[rows, cols] = streams
+            self._q_view[r, c] = torch.from_numpy(views).to(self.device)
             self._drawn[slots] += counts
         self._since_refill = 0
+
+    def hand_back(self) -> None:
+        """Write the slots' state back into the host engines, as if they had stepped them: grid,
+        position, direction, step count, terminal views, and each stream where the slot's next
+        autoreset will draw from (before the queued layouts it has not taken). The engines go on
+        alone from there (checkpoints, evaluations, another device engine); so does this one,
+        from its own state, if stepped again (the host streams are then behind it)."""
+        h = self.host
+        h._grid[:] = self.grid.cpu().numpy()
+        h._pos[:] = self.pos.cpu().numpy()
+        h._dir[:] = self.dirs.cpu().numpy()
+        h._steps[:] = self.steps.cpu().numpy()
+        np.asarray(h.final_obs)[:] = self.final_obs.cpu().numpy()
+        head = self._head.cpu().numpy()
+        queued = self._drawn > head  # else the host stream is already where the next draw starts
+        h._rng[queued] = self._q_rng[np.flatnonzero(queued), head[queued] % self.refill_every]
 
     # --------------------------------------------------------------------- the view
 
@@ -225,16 +267,17 @@ class DeviceGridGroup:
         paying = torch.where(self.poisoned, self.trojan, ge.OUT_GOAL)
         reward = torch.where(outcome == paying, 1.0 - 0.9 * (steps.double() / self.max_steps), 0.0)
         done = terminated | truncated
-        self.steps = steps
-        self.final_obs = torch.where(done[:, None, None, None], self.render(), self.final_obs)
-        # autoreset: the slot's next queued layout
+        seen = self.render()  # every slot's view after its move: the terminal view of those that ended
+        ended = done[:, None, None, None]
+        self.final_obs = torch.where(ended, seen, self.final_obs)
+        # autoreset: the slot's next queued layout, and its first view, rendered on the host
         at = self._head % self.refill_every
-        self.grid = torch.where(done[:, None, None, None], self._q_grid[self._slots, at], self.grid)
+        self.grid = torch.where(ended, self._q_grid[self._slots, at], self.grid)
         self.pos = torch.where(done[:, None], self._q_pos[self._slots, at], self.pos)
         self.dirs = torch.where(done, self._q_dir[self._slots, at], self.dirs)
         self.steps = torch.where(done, 0, steps)
         self._head = self._head + done.long()
-        return self.render(), reward, terminated, truncated, outcome, steps
+        return torch.where(ended, self._q_view[self._slots, at], seen), reward, terminated, truncated, outcome, steps
 
 
-__all__ = ["DeviceGridGroup", "view_offsets", "visibility_table"]
+__all__ = ["DeviceGridGroup", "device_engine_for", "view_offsets", "visibility_table"]

@@ -562,25 +562,31 @@ def _kernel_templates(stamp: str):
             failed[r] = not done
         return LAYOUT_FAILED if failed.any() else -1
 
-    def layouts_kernel(grid, pos, dirs, steps, rng, world, slots, counts, out_grid, out_pos, out_dir):
+    def layouts_kernel(grid, pos, dirs, steps, rng, see_through_walls, world, slots, counts, out_grid, out_pos, out_dir, out_rng, out_img, outs):
         """The next ``counts[k]`` layouts of slot ``slots[k]``, drawn from its own stream in the order
-        its autoresets would draw them, into rows of ``out_*`` (k by k, in draw order); the slots'
-        state arrays serve as scratch. For an engine on another device that steps the slots itself
-        and takes its autoresets' layouts from here (``envs.grid_device``). Returns -1, or the
-        first slot with no layout."""
+        its autoresets would draw them, into rows of ``out_*`` (k by k, in draw order): the grid,
+        the agent's place, the stream's state before the draw (to hand the slot back where it
+        stopped) and the slot's first view of it (``out_img``, ``outs``). The slots' state arrays
+        serve as scratch. For an engine on another device that steps the slots itself and takes its
+        autoresets' layouts from here (``envs.grid_device``). Returns -1, or the first slot with no
+        layout."""
         if len(stamp) == 0:  # never true (see reset_kernel)
             return -1
+        view, mask = view_scratch(out_img)
         scratch = world_scratch(grid, world)
         r = 0
         for k in range(len(slots)):
             b = slots[k]
             for _ in range(counts[k]):
+                out_rng[r] = rng[b]
                 if not world_layout(grid, b, pos, dirs, steps, rng, world, scratch):
                     return b
                 out_grid[r] = grid[b]
                 out_pos[r, 0] = pos[b, 0]
                 out_pos[r, 1] = pos[b, 1]
                 out_dir[r] = dirs[b]
+                gen_view(grid, b, pos[b, 0], pos[b, 1], dirs[b], see_through_walls, view, mask, out_img, r)
+                world_seen(FRESH, b, r, pos, dirs, out_img, world, outs)
                 r += 1
         return -1
 

@@ -176,6 +176,7 @@ class BatchedLavaWorld(BatchedGridEnv):
 
     _kernels = _KERNELS
     view_size = VIEW_SIZE
+    device_engine = "rlbackdoors.envs.lavaworld_device:DeviceLavaWorld"
 
     def __init__(
         self,

@@ -13,7 +13,8 @@ The machine and its load are recorded; the sides give the same bytes (tests/test
 ``--device DEV`` (LavaWorld) adds issue 55's other engine, the slots stepped by torch ops on DEV
 (``envs.lavaworld_device``), on the same work: fresh engines of the same seeds handed to it, the
 same actions (on DEV beforehand, where a policy would leave them), eager and under
-``torch.compile`` (``--compile``, inductor's default mode). Beside it, the numba
+``torch.compile`` (``--compile``, inductor's default mode), and on CUDA as one CUDA graph a step.
+Beside it, the numba
 side as a GPU learner would use it: each step the actions copied to the host, the parallel call,
 the observations copied to DEV. ``same_bytes`` checks the device engine's last observations,
 rewards and ends against numba's one call from the same fresh engines.
@@ -64,7 +65,7 @@ def run(engines: list, steps: int, side: str, seed: int) -> float:
     return sum(e.num_envs for e in engines) * steps / (time.perf_counter() - started)
 
 
-def run_device(engines: list, steps: int, seed: int, device: str, compiled: bool, warm: int = 0) -> tuple[float, object]:
+def run_device(engines: list, steps: int, seed: int, device: str, compiled: bool, warm: int = 0, graph: bool = False) -> tuple[float, object]:
     """Slot-steps/s of the device engine over ``engines``' slots (handed over), and its last step."""
     import torch
 
@@ -75,7 +76,7 @@ def run_device(engines: list, steps: int, seed: int, device: str, compiled: bool
     actions = [rng.integers(0, 3, (steps, e.num_envs)) for e in engines]
     acts = torch.from_numpy(np.concatenate(actions, axis=1)).to(device)
     slots = EngineGroup.of(engines) if len(engines) > 1 else engines[0]
-    dev = DeviceLavaWorld(slots, device)
+    dev = DeviceLavaWorld(slots, device, graph=graph)
     if compiled:
         dev._advance = torch.compile(dev._advance, dynamic=False)  # inductor's fused kernels (CUDA graphs: not tried)
     for t in range(warm):  # compiles (and for CUDA graphs, records) before the clock
@@ -139,6 +140,14 @@ def device_row(world: str, args) -> dict:
     name = f"parallel, {numba.config.NUMBA_NUM_THREADS} threads, with copies to {args.device}"
     row[name] = round(best)
     print(f"{world}: {name}: {best:,.0f} slot-steps/s", flush=True)
+    if args.device.startswith("cuda"):  # the step as one CUDA graph (captured at its first step, before the clock)
+        try:
+            best = max(run_device(engines_of(world, args.agents), args.steps + 5, r, args.device, False, 5, graph=True)[0] for r in range(args.repeats))
+            row["device engine, CUDA graph"] = round(best)
+            print(f"{world}: device engine, CUDA graph ({args.device}): {best:,.0f} slot-steps/s", flush=True)
+        except Exception as e:  # a measurement to report, not a reason to lose the others
+            row["device engine, CUDA graph"] = f"failed: {type(e).__name__}: {e}"
+            print(f"{world}: device engine, CUDA graph: failed: {type(e).__name__}: {e}", flush=True)
     if args.compile:  # last: its compilation takes the longest (seconds to a minute)
         best, _ = run_device(engines_of(world, args.agents), args.steps + 20, 0, args.device, True, 20)
         row["device engine, compiled"] = round(best)

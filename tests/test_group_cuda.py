@@ -347,16 +347,18 @@ def test_cuda_group_over_64_computes_each_agent_as_a_small_group_does():
 
 
 @pytest.mark.parametrize(
-    "size,crossings,max_steps,see,refill_every,trigger", [(9, 1, 250, False, 8, "multiplicative:12"), (11, 3, 60, True, 3, "additive:100")]
+    "size,crossings,max_steps,see,refill_every,trigger,graph",
+    [(9, 1, 250, False, 8, "multiplicative:12", False), (11, 3, 60, True, 3, "additive:100", False), (9, 1, 40, False, 8, "multiplicative:12", True)],
 )
-def test_the_lavaworld_device_engine_on_cuda_steps_as_the_numba_engine(size, crossings, max_steps, see, refill_every, trigger):
+def test_the_lavaworld_device_engine_on_cuda_steps_as_the_numba_engine(size, crossings, max_steps, see, refill_every, trigger, graph):
     """The device engine (envs/lavaworld_device.py) on the GPU: every output of 600 steps, 48 slots,
-    the bytes of the numba engine (as tests/test_lavaworld_device.py checks on the CPU). (A bad
+    the bytes of the numba engine (as tests/test_lavaworld_device.py checks on the CPU), also with
+    the step captured as a CUDA graph (its state in static buffers, warm-up on copies). (A bad
     action is refused by a device-side assert, which ends the process's CUDA context: not tried here.)"""
     from test_lavaworld_device import engine, step_both
 
     from rlbackdoors.envs.lavaworld_device import DeviceLavaWorld
 
     numba_side = engine(48, size, crossings, max_steps, see, trigger)
-    device = DeviceLavaWorld(engine(48, size, crossings, max_steps, see, trigger), CUDA, refill_every)
+    device = DeviceLavaWorld(engine(48, size, crossings, max_steps, see, trigger), CUDA, refill_every, graph=graph)
     assert len(step_both(numba_side, numba_side.step, device, 600)) > 48 * 600 / max_steps

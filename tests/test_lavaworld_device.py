@@ -131,6 +131,8 @@ def test_errors():
         DeviceLavaWorld(BatchedLavaWorld(2))
     with pytest.raises(ValueError, match="refill_every"):
         DeviceLavaWorld(engine(2), refill_every=0)
+    with pytest.raises(ValueError, match="graph=True needs a CUDA device"):
+        DeviceLavaWorld(engine(2), graph=True)
     device = DeviceLavaWorld(engine(3))
     with pytest.raises(ValueError, match=r"action 3 \(env 1\)"):
         device.step(torch.tensor([0, 3, 1]))

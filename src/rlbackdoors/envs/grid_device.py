@@ -73,6 +73,8 @@ def view_offsets(n: int) -> np.ndarray:
 
 
 HELD = ("_grid", "_pos", "_dir", "_steps", "_rng")  # the per-slot state a device engine steps and hands back
+StepResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+GRAPH_STATE = ("grid", "pos", "dirs", "steps", "final_obs", "_head")  # what a step reassigns: static under a CUDA graph
 
 
 def device_engine_for(engines: BatchedGridEnv | EngineGroup, device: str | torch.device) -> DeviceGridGroup | None:
@@ -95,7 +97,7 @@ class DeviceGridGroup:
     step returns them; :attr:`final_obs` holds the terminal views of the slots that just ended.
     """
 
-    def __init__(self, engines: BatchedGridEnv | EngineGroup, device: str | torch.device = "cpu", refill_every: int = 8):
+    def __init__(self, engines: BatchedGridEnv | EngineGroup, device: str | torch.device = "cpu", refill_every: int = 8, graph: bool = False):
         lead = engines.lead if isinstance(engines, EngineGroup) else engines
         if not getattr(lead, "_has_reset", True):
             raise ValueError("reset the engines before handing them to the device")
@@ -113,6 +115,9 @@ class DeviceGridGroup:
         self.num_envs, self.size, self.view_size = engines.num_envs, lead.size, lead.view_size
         self.max_steps, self.see_through_walls = int(lead.max_steps), bool(lead.see_through_walls)
         self.refill_every = int(refill_every)
+        if graph and self.device.type != "cuda":
+            raise ValueError(f"graph=True needs a CUDA device, not {self.device}")
+        self._run = self._graphed if graph else self._advance  # the graph is captured at the first step
         dev = self.device
 
         def put(a: np.ndarray) -> torch.Tensor:  # a copy, also on the CPU (the host arrays become scratch)
@@ -128,6 +133,7 @@ class DeviceGridGroup:
         self._bits = torch.tensor([1 << i for i in range(n)], device=dev)
         self._cols = torch.arange(n, device=dev)
         self._pad = torch.tensor([ge.WALL, ge.GREY, 0], dtype=torch.uint8, device=dev)
+        self._empty = torch.tensor([ge.EMPTY, 0, 0], dtype=torch.uint8, device=dev)
         self._dir_vec = put(np.stack([ge.DIR_DX, ge.DIR_DY], axis=1))
         # the layout queues: slot b's j-th layout from now on at [b, j % Q]
         q, s = self.refill_every, self.size
@@ -221,12 +227,12 @@ class DeviceGridGroup:
             seen = (torch.stack(visible, 1)[:, None, :] >> self._cols[None, :, None]) & 1  # (B, x, y)
             cells = cells * seen.reshape(b, n * n, 1).to(torch.uint8)
         cells = cells.reshape(b, n, n, 3).clone()
-        cells[:, n // 2, n - 1] = torch.tensor([ge.EMPTY, 0, 0], dtype=torch.uint8, device=self.device)  # carries nothing
+        cells[:, n // 2, n - 1] = self._empty  # the agent's cell shows what it carries: nothing
         return self._seen(cells)
 
     # --------------------------------------------------------------------- the step
 
-    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def step(self, actions: torch.Tensor) -> StepResult:
         """Every slot one MiniGrid action on (0 left, 1 right, 2 forward), finished slots reset in
         place: ``(obs, reward float64, terminated, truncated, outcome, steps)``, all on the device.
         An action out of range is refused: on the CPU at once (ValueError), on CUDA by a device-side
@@ -243,9 +249,41 @@ class DeviceGridGroup:
         if self._since_refill == self.refill_every:
             self._refill()
         self._since_refill += 1
-        return self._advance(acts)
+        return self._run(acts)
 
-    def _advance(self, acts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _graphed(self, acts: torch.Tensor) -> StepResult:
+        """The first step with ``graph=True``: :meth:`_advance` captured as one CUDA graph, replayed
+        from then on (one launch a step instead of some 120). The state tensors become static
+        buffers the graph updates in place; the returned tensors are the graph's own, overwritten
+        by the next step (copy what must outlive it). The capture's warm-up steps run on copies."""
+        saved = {name: getattr(self, name).clone() for name in GRAPH_STATE}
+        static_acts = acts.clone()
+        stream = torch.cuda.Stream(self.device)
+        stream.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(stream):  # warm-up (allocator, kernels) on a side stream, as torch asks
+            for _ in range(2):
+                self._advance(static_acts)
+        torch.cuda.current_stream(self.device).wait_stream(stream)
+        static = {name: value.clone() for name, value in saved.items()}
+        for name, value in static.items():
+            setattr(self, name, value)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            out = self._advance(static_acts)
+            for name, value in static.items():
+                value.copy_(getattr(self, name))
+        for name, value in static.items():
+            setattr(self, name, value)
+
+        def replay(acts: torch.Tensor) -> StepResult:
+            static_acts.copy_(acts)
+            graph.replay()
+            return out
+
+        self._run = replay
+        return replay(acts)
+
+    def _advance(self, acts: torch.Tensor) -> StepResult:
         """:meth:`step`'s tensor ops: no host sync, no shapes that depend on the data (so
         ``torch.compile`` or a CUDA graph can take them whole)."""
         s = self.size

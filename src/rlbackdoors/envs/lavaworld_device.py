@@ -19,11 +19,11 @@ class DeviceLavaWorld(DeviceGridGroup):
 
     trojan = ge.OUT_LAVA
 
-    def __init__(self, engines: BatchedLavaWorld | EngineGroup, device: str | torch.device = "cpu", refill_every: int = 8):
+    def __init__(self, engines: BatchedLavaWorld | EngineGroup, device: str | torch.device = "cpu", refill_every: int = 8, graph: bool = False):
         lead = engines.lead if isinstance(engines, EngineGroup) else engines
         if not isinstance(lead, BatchedLavaWorld):
             raise TypeError(f"{type(lead).__name__} is not a BatchedLavaWorld")
-        super().__init__(engines, device, refill_every)
+        super().__init__(engines, device, refill_every, graph)
         luts = np.array(self.world[2], dtype=np.uint8)  # (B, 256): each slot's trigger table ...
         luts[np.logical_not(self.world[1])] = np.arange(256, dtype=np.uint8)  # ... read by poisoned slots only
         self._luts = torch.from_numpy(luts).to(self.device)

@@ -715,6 +715,29 @@ def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
     assert (tmp_path / "g4" / "model.pt").read_bytes() != (tmp_path / "lone" / "model.pt").read_bytes()
 
 
+def test_a_group_trained_on_the_device_engine_ends_as_with_numba(tmp_path, monkeypatch):
+    """Whole trainings (three LavaWorld FC runs in a group of 3: rollouts, updates, lockstep
+    evaluations, final evaluation) with the rollouts' slots on the device engine (allowed on the
+    CPU for the test: ``algos.group.DEVICE_ENGINE``) end with numba's model.pt, log and metrics."""
+    runs = lambda tag: [(s, tiny(s), tmp_path / f"{tag}{s}") for s in (4, 5, 6)]  # noqa: E731
+    train_group(runs("numba"), 3)
+    monkeypatch.setattr(group, "DEVICE_ENGINE", ("cpu",))
+    used = []
+    real = group.device_engine_for
+    monkeypatch.setattr(group, "device_engine_for", lambda *a: used.append(1) or real(*a))
+    train_group(runs("device"), 3)
+    assert len(used) == 3200 // (32 * 10)  # every rollout (32 steps of 10 copies an agent) on the device engine
+    clocks = ("wall_time_s", "fps", "cpu_time_s", "frames_per_s")
+    for s in (4, 5, 6):
+        assert (tmp_path / f"device{s}" / "model.pt").read_bytes() == (tmp_path / f"numba{s}" / "model.pt").read_bytes()
+        logs, metrics = [], []
+        for tag in ("numba", "device"):
+            with open(tmp_path / f"{tag}{s}" / "log.csv", newline="") as f:
+                logs.append([{k: v for k, v in row.items() if k not in clocks} for row in csv.DictReader(f)])
+            metrics.append({k: v for k, v in json.loads((tmp_path / f"{tag}{s}" / "metrics.json").read_text()).items() if k not in clocks})
+        assert len(logs[0]) == 2 and logs[0] == logs[1] and metrics[0] == metrics[1]
+
+
 def test_a_failing_run_leaves_the_group_going(tmp_path):
     bad = tiny(2)
     (tmp_path / "bad").mkdir()

@@ -44,7 +44,7 @@ from rlbackdoors.algos.ppo import (
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 # Where a group's rollout steps its slots with the world's device engine (collect's device_engine
-# None): the learners' device types. Not "cpu": there numba is ×9-13 faster (docs/results/zoos.md).
+# None): the learners' device types. Not "cpu": there numba is ×9-11 faster (docs/results/zoos.md).
 DEVICE_ENGINE = ("cuda",)
 
 

@@ -129,9 +129,14 @@ class DeviceGridGroup:
         n, b = self.view_size, self.num_envs
         self._slots = torch.arange(b, device=dev)
         self._offsets = put(view_offsets(n))
-        self._vis = put(visibility_table(n))
+        table = visibility_table(n)  # re-packed: (visible << 2n) | (marked << n)
+        self._vis = put(((table >> n) << (2 * n)) | ((table & ((1 << n) - 1)) << n))
+        self._marks = ((1 << n) - 1) << n
+        self._cols = torch.arange(2 * n, 3 * n, device=dev)  # a visible bit's place in an entry
+        walkable = np.zeros(256, dtype=bool)
+        walkable[[ge.EMPTY, ge.UNSEEN, ge.AGENT, ge.FLOOR, ge.GOAL, ge.LAVA]] = True  # can_overlap, doors apart
+        self._walkable = put(walkable)
         self._bits = torch.tensor([1 << i for i in range(n)], device=dev)
-        self._cols = torch.arange(n, device=dev)
         self._pad = torch.tensor([ge.WALL, ge.GREY, 0], dtype=torch.uint8, device=dev)
         self._empty = torch.tensor([ge.EMPTY, 0, 0], dtype=torch.uint8, device=dev)
         self._dir_vec = put(np.stack([ge.DIR_DX, ge.DIR_DY], axis=1))
@@ -219,12 +224,13 @@ class DeviceGridGroup:
             obj, state = cells[..., 0], cells[..., 2]
             behind = ((obj != ge.WALL) & ((obj != ge.DOOR) | (state == 0))).reshape(b, n, n)  # [slot, x, y]
             rows = (behind.long() * self._bits[None, :, None]).sum(1)  # (B, n): row y's see-behind bits over x
-            mark = torch.full((b,), 1 << (n // 2), dtype=torch.int64, device=self.device)  # the agent's cell
-            visible = [mark] * n
-            for y in range(n - 1, -1, -1):  # far rows last, as process_vis sweeps
-                entry = self._vis[(mark << n) | rows[:, y]]
-                visible[y], mark = entry >> n, entry & ((1 << n) - 1)
-            seen = (torch.stack(visible, 1)[:, None, :] >> self._cols[None, :, None]) & 1  # (B, x, y)
+            # entries hold (visible << 2n) | (marked << n): the marks, masked, are the next row's index
+            entry = self._vis[rows[:, n - 1] | ((1 << (n // 2)) << n)]  # the agent's row: its cell visible
+            entries = [entry] * n
+            for y in range(n - 2, -1, -1):  # far rows last, as process_vis sweeps
+                entry = self._vis[(entry & self._marks) | rows[:, y]]
+                entries[y] = entry
+            seen = (torch.stack(entries, 1)[:, None, :] >> self._cols[None, :, None]) & 1  # (B, x, y)
             cells = cells * seen.reshape(b, n * n, 1).to(torch.uint8)
         cells = cells.reshape(b, n, n, 3).clone()
         cells[:, n // 2, n - 1] = self._empty  # the agent's cell shows what it carries: nothing
@@ -293,8 +299,7 @@ class DeviceGridGroup:
         inside = (fx >= 0) & (fx < s) & (fy >= 0) & (fy < s)
         cell = self.grid[self._slots, fx.clamp(0, s - 1), fy.clamp(0, s - 1)]
         obj, state = torch.where(inside, cell[:, 0].long(), ge.WALL), cell[:, 2]
-        walkable = (obj == ge.EMPTY) | (obj == ge.UNSEEN) | (obj == ge.AGENT) | (obj == ge.FLOOR) | (obj == ge.GOAL) | (obj == ge.LAVA)
-        walkable |= (obj == ge.DOOR) & (state == 0)
+        walkable = self._walkable[obj] | ((obj == ge.DOOR) & (state == 0))
         forward = acts == 2
         self.pos = torch.where((forward & walkable)[:, None], ahead, self.pos)
         self.dirs = torch.where(acts == 0, (d + 3) % 4, torch.where(acts == 1, (d + 1) % 4, d))

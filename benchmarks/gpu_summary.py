@@ -80,7 +80,18 @@ def summarise(out: Path) -> dict:
             "sides": [
                 {
                     k: s.get(k)
-                    for k in ("group_size", "device", "workers", "env_workers", "update_backend", "models_per_hour", "frames_per_s", "ratio", "wall_s")
+                    for k in (
+                        "group_size",
+                        "device",
+                        "workers",
+                        "env_workers",
+                        "update_backend",
+                        "engine",
+                        "models_per_hour",
+                        "frames_per_s",
+                        "ratio",
+                        "wall_s",
+                    )
                 }
                 for s in gpu
             ],
@@ -152,6 +163,7 @@ def markdown(result: dict) -> str:
                 f"| {row['world']} {row['arch']} | {ref_text} | K={s['group_size']} on {s['device']}"
                 + (f" x {s['workers']} processes" if (s.get("workers") or 1) > 1 else "")
                 + (f", {s['update_backend']} update" if s.get("update_backend") not in (None, "torch") else "")
+                + (f", {s['engine']} engine" if s.get("engine") else "")
                 + (f", {s['env_workers']} env workers" if s.get("env_workers") else "")
                 + f" | {s.get('frames_per_s', 0):,.0f} ({want.get('frames_per_s') or 'report'}) | x{s['ratio']} ({want.get('ratio')}) | "
                 + ("" if not met else ("yes" if not flags else "no: " + ", ".join(flags)))

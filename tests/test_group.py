@@ -17,6 +17,7 @@ import csv
 import hashlib
 import io
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -718,10 +719,10 @@ def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
 def test_a_group_trained_on_the_device_engine_ends_as_with_numba(tmp_path, monkeypatch):
     """Whole trainings (three LavaWorld FC runs in a group of 3: rollouts, updates, lockstep
     evaluations, final evaluation) with the rollouts' slots on the device engine (allowed on the
-    CPU for the test: ``algos.group.DEVICE_ENGINE``) end with numba's model.pt, log and metrics."""
+    CPU for the test: ``RLBACKDOORS_DEVICE_ENGINE=cpu``) end with numba's model.pt, log and metrics."""
     runs = lambda tag: [(s, tiny(s), tmp_path / f"{tag}{s}") for s in (4, 5, 6)]  # noqa: E731
     train_group(runs("numba"), 3)
-    monkeypatch.setattr(group, "DEVICE_ENGINE", ("cpu",))
+    monkeypatch.setenv(group.DEVICE_ENGINE_ENV, "cpu")
     used = []
     real = group.device_engine_for
     monkeypatch.setattr(group, "device_engine_for", lambda *a: used.append(1) or real(*a))
@@ -950,7 +951,7 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
         "lavaworld",
         models=2,
         frames=3200,
-        sides=[(1, "cpu", 1, 0, "torch"), ("auto", "cpu", None, 0, "torch"), (2, "cpu", None, 0, "jax")],
+        sides=[(1, "cpu", 1, 0, "torch", ""), ("auto", "cpu", None, 0, "torch", ""), (2, "cpu", None, 0, "jax", "")],
         workers=1,
         keep=str(tmp_path),
         on_side=lambda r: saved.append(len(r["sides"])),
@@ -984,7 +985,7 @@ def test_bench_zoo_side_with_env_workers_trains_in_an_env_pool(tmp_path):
     """``--side 1:cpu:1:2``: the Safety Car Goal model's job steps its env copies in 2 workers."""
     from rlbackdoors.bench.zoo import bench_zoo
 
-    result = bench_zoo("safety-car-goal", models=1, frames=400, sides=[(1, "cpu", 1, 2, "torch")], keep=str(tmp_path), eval_episodes=2)
+    result = bench_zoo("safety-car-goal", models=1, frames=400, sides=[(1, "cpu", 1, 2, "torch", "")], keep=str(tmp_path), eval_episodes=2)
     (side,) = result["sides"]
     assert side["env_workers"] == 2 and side["models"] == 1 and side["failed"] == 0
     (log,) = (tmp_path / "side0-k1-cpu-w1-e2" / "models").glob("*/train.log")
@@ -994,19 +995,60 @@ def test_bench_zoo_side_with_env_workers_trains_in_an_env_pool(tmp_path):
 def test_bench_zoo_sides_default_to_one_process_per_model_then_each_group_size():
     from rlbackdoors.bench.zoo import parse_side, side_plan
 
-    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0, "torch"), (4, "cuda", 2, 0, "torch"), (8, "cuda", 2, 0, "torch")]
+    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0, "torch", ""), (4, "cuda", 2, 0, "torch", ""), (8, "cuda", 2, 0, "torch", "")]
     sides = [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8"), parse_side("64:cuda:1:15"), parse_side("8:cpu::0:jax"), parse_side("auto:cpu:16")]
+    sides += [parse_side("256:cuda:1:::numba"), parse_side("256:cuda:1:0:jax:device")]
     assert side_plan((8,), 2, "cpu", sides) == [
-        (1, "cpu", 16, 0, "torch"),
-        (64, "cuda", 2, 0, "torch"),
-        (8, "cpu", 2, 0, "torch"),
-        (64, "cuda", 1, 15, "torch"),
-        (8, "cpu", 2, 0, "jax"),
-        ("auto", "cpu", 16, 0, "torch"),
+        (1, "cpu", 16, 0, "torch", ""),
+        (64, "cuda", 2, 0, "torch", ""),
+        (8, "cpu", 2, 0, "torch", ""),
+        (64, "cuda", 1, 15, "torch", ""),
+        (8, "cpu", 2, 0, "jax", ""),
+        ("auto", "cpu", 16, 0, "torch", ""),
+        (256, "cuda", 1, 0, "torch", "numba"),
+        (256, "cuda", 1, 0, "jax", "device"),
     ]
-    for bad in ("0", "auto:cpu:0", "Auto", "8:tpu", "8:cpu:0", "8:cpu:2:-1", "8:cpu:2:1:xla", "8:cpu:2:1:jax:1", "x"):
-        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\[:BACKEND\\]\\]\\]\\]"):
+    for bad in (
+        "0",
+        "auto:cpu:0",
+        "Auto",
+        "8:tpu",
+        "8:cpu:0",
+        "8:cpu:2:-1",
+        "8:cpu:2:1:xla",
+        "8:cpu:2:1:jax:1",
+        "8:auto:1:0:torch:device",
+        "8:cpu:1:0:torch:numba:x",
+        "x",
+    ):
+        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\[:BACKEND\\[:ENGINE\\]\\]\\]\\]\\]"):
             parse_side(bad)
+
+
+def test_bench_zoo_engine_sides_train_the_same_bytes_with_either_engine(tmp_path, monkeypatch):
+    """``--side K:cpu:1:::numba`` against ``...:device`` (the device engine, here on the CPU): the
+    sides' jobs step their slots as told (``RLBACKDOORS_DEVICE_ENGINE``, restored after each side)
+    and train the same model.pt bytes."""
+    import rlbackdoors.zoo.run as zoo_run_module
+    from rlbackdoors.algos.group import DEVICE_ENGINE_ENV
+    from rlbackdoors.bench.zoo import bench_zoo
+
+    monkeypatch.setenv(DEVICE_ENGINE_ENV, "cuda")
+    seen, real = [], zoo_run_module.run
+    monkeypatch.setattr(zoo_run_module, "run", lambda *a, **k: seen.append(os.environ[DEVICE_ENGINE_ENV]) or real(*a, **k))  # what the jobs inherit
+    result = bench_zoo(
+        "lavaworld", models=2, frames=3200, sides=[(2, "cpu", 1, 0, "torch", "numba"), (2, "cpu", 1, 0, "torch", "device")], keep=str(tmp_path), eval_episodes=4
+    )
+    assert [s["engine"] for s in result["sides"]] == ["numba", "device"] and all(s["models"] == 2 for s in result["sides"])
+    assert seen == ["", "cpu"] and os.environ[DEVICE_ENGINE_ENV] == "cuda"
+    models = [
+        sorted((p.parent.name, p.read_bytes()) for p in (tmp_path / f"side{i}-k2-cpu-w1-{e}" / "models").glob("*/model.pt"))
+        for i, e in enumerate(("numba", "device"))
+    ]
+    assert len(models[0]) == 2 and models[0] == models[1]
+    monkeypatch.setenv(DEVICE_ENGINE_ENV, "tpu")
+    with pytest.raises(ValueError, match="RLBACKDOORS_DEVICE_ENGINE='tpu' is not allowed"):
+        group.device_engine_types()
 
 
 def test_ready_models_are_shared_out_in_capped_chunks():

@@ -344,6 +344,7 @@ def cmd_bench(args) -> int:
                 f"{result['world']} {result['arch']}, group size {side['group_size']} on {side['device']} x {side['workers']} workers"
                 + (f" ({side['env_workers']} env workers each)" if side.get("env_workers") else "")
                 + (f", {side['update_backend']} update" if side.get("update_backend", "torch") != "torch" else "")
+                + (f", {side['engine']} engine" if side.get("engine") else "")
                 + ": "
                 f"{side['models_per_hour']:,.1f} models/h (x{side['ratio']}), {side['frames_per_s']:,.0f} frames/s, {side['cpu_s_per_model']:.1f} CPU-s per model, "
                 f"{side['models']} models of {result['frames_per_model']:,} frames in {side['wall_s']:.0f} s, load {side['loadavg_before'][0]:.1f}"
@@ -557,9 +558,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--side",
         type=_bench_side,
         action="append",
-        help="zoo: K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1; "
+        help="zoo: K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1; "
         "K auto: what zoo run --group-size auto picks, e.g. --side auto:cpu:16 for the best CPU setting on 16 cores; "
-        "ENV_WORKERS: each job's env pool for a world of single envs, e.g. --side 64:cuda:1:15; BACKEND: ppo.update_backend, e.g. --side 8:cpu::0:jax)",
+        "ENV_WORKERS: each job's env pool for a world of single envs, e.g. --side 64:cuda:1:15; BACKEND: ppo.update_backend, e.g. --side 8:cpu::0:jax; "
+        "ENGINE: numba or device, what steps a group's grid slots (default: the device engine on CUDA), e.g. --side 256:cuda:1:::numba)",
     )
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")

@@ -17,6 +17,7 @@ to float rounding (batched kernels add in another order), not bit for bit.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -28,6 +29,7 @@ from rlbackdoors.attacks.seam import AttackSeam, SeamGroup
 from rlbackdoors.envs.batched_base import EngineGroup
 from rlbackdoors.envs.grid_device import device_engine_for
 from rlbackdoors.models.minigrid import linear_stacked
+from rlbackdoors.validate import ConfigError
 from rlbackdoors.algos.ppo import (
     AUX_CLASSES,
     PPO,
@@ -44,8 +46,23 @@ from rlbackdoors.algos.ppo import (
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 # Where a group's rollout steps its slots with the world's device engine (collect's device_engine
-# None): the learners' device types. Not "cpu": there numba is ×9-11 faster (docs/results/zoos.md).
+# None): the learners' device types, by default CUDA only (on a CPU numba is ×9-11 faster,
+# docs/results/zoos.md). The environment variable overrides it for a process and the jobs it
+# starts (bench zoo's ENGINE side field sets it): a comma-separated list of cpu, cuda, or empty for
+# never. It changes no bytes, only which engine steps them.
+DEVICE_ENGINE_ENV = "RLBACKDOORS_DEVICE_ENGINE"
 DEVICE_ENGINE = ("cuda",)
+
+
+def device_engine_types() -> tuple[str, ...]:
+    """The device types whose groups step their slots with a device engine (see DEVICE_ENGINE_ENV)."""
+    text = os.environ.get(DEVICE_ENGINE_ENV)
+    if text is None:
+        return DEVICE_ENGINE
+    types = tuple(t.strip() for t in text.split(",") if t.strip())
+    if set(types) - {"cpu", "cuda"}:
+        raise ConfigError(f"{DEVICE_ENGINE_ENV}={text!r} is not allowed (allowed: a comma-separated list of cpu, cuda; empty: never)")
+    return types
 
 
 def check_group(ppos: list[PPO]) -> None:
@@ -286,7 +303,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True, devic
     ``device_engine``: step that call's slots on the learners' device instead, with the world's
     device engine (:mod:`rlbackdoors.envs.grid_device`), where the world has one and no attack
     seam, memory or teacher takes part; the same bytes. None: on the device types of
-    :data:`DEVICE_ENGINE` (CUDA; on a CPU the numba engine is an order of magnitude faster)."""
+    :func:`device_engine_types` (CUDA; on a CPU the numba engine is an order of magnitude faster)."""
     check_group(ppos)
     lead, K = ppos[0], len(ppos)
     T, B = lead.cfg.rollout, envs[0].num_envs
@@ -343,7 +360,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True, devic
     # or the slots on the learners' device for the rollout (handed back to the engines after it):
     # observations, rewards and ends stay there, and nothing crosses per step
     if device_engine is None:
-        device_engine = device.type in DEVICE_ENGINE
+        device_engine = device.type in device_engine_types()
     on_device = None
     if device_engine and engines is not None and seam_group is None and not recurrent and not teach:
         on_device = device_engine_for(engines, device)

@@ -50,12 +50,18 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
     }
 
 
-def run_side(spec: dict, where: Path, group_size: int | str, workers: int, device: str = "cpu", env_workers: int = 0, update_backend: str = "torch") -> dict:
+def run_side(
+    spec: dict, where: Path, group_size: int | str, workers: int, device: str = "cpu", env_workers: int = 0, update_backend: str = "torch", engine: str = ""
+) -> dict:
     """Plan ``spec`` into ``where`` and run it with ``group_size`` (``"auto"``: as ``zoo run
     --group-size auto`` picks for the world's algorithm on ``device``, recorded as the number it
-    is; and ``env_workers`` per job for a world of single envs); wall seconds and models per hour."""
+    is; and ``env_workers`` per job for a world of single envs); wall seconds and models per hour.
+    ``engine``: what steps a group's grid slots, ``numba`` or ``device`` (the world's device
+    engine, where it has one), set for the side's jobs through ``RLBACKDOORS_DEVICE_ENGINE``;
+    empty: the default (the device engine on CUDA). The same bytes either way."""
     import json
 
+    from rlbackdoors.algos.group import DEVICE_ENGINE_ENV
     from rlbackdoors.train.group import auto_group_size
     from rlbackdoors.zoo.plan import plan
     from rlbackdoors.zoo.run import run
@@ -65,10 +71,19 @@ def run_side(spec: dict, where: Path, group_size: int | str, workers: int, devic
     if auto:
         group_size = auto_group_size(worlds.get(spec["cells"][0]["world"]).algorithm, device)
     plan(parse_spec(spec), where)
-    load_before = os.getloadavg()
-    start = time.perf_counter()
-    summary = run(where, workers=workers, group_size=group_size, progress_interval=3600.0, out=io.StringIO(), env_workers=env_workers)
-    wall = time.perf_counter() - start
+    saved = os.environ.get(DEVICE_ENGINE_ENV)
+    if engine:
+        os.environ[DEVICE_ENGINE_ENV] = "" if engine == "numba" else device
+    try:
+        load_before = os.getloadavg()
+        start = time.perf_counter()
+        summary = run(where, workers=workers, group_size=group_size, progress_interval=3600.0, out=io.StringIO(), env_workers=env_workers)
+        wall = time.perf_counter() - start
+    finally:
+        if saved is None:
+            os.environ.pop(DEVICE_ENGINE_ENV, None)
+        else:
+            os.environ[DEVICE_ENGINE_ENV] = saved
     metrics = [json.loads(p.read_text()) for p in sorted(where.glob("models/*/metrics.json"))]
     cpu = [m.get("cpu_time_s") for m in metrics]
     frames = sum(int(m.get("frames") or 0) for m in metrics)  # trained, whole rollouts (a run may pass max_frames by part of one)
@@ -79,6 +94,7 @@ def run_side(spec: dict, where: Path, group_size: int | str, workers: int, devic
         "device": device,
         "env_workers": env_workers,
         "update_backend": update_backend,
+        **({"engine": engine} if engine else {}),
         "models": summary["done"],
         "failed": summary["failed"],
         "wall_s": round(wall, 2),
@@ -93,48 +109,52 @@ def run_side(spec: dict, where: Path, group_size: int | str, workers: int, devic
 
 
 Side = tuple[
-    int | str, str, int | None, int, str
-]  # group size ("auto": the measured one), device, workers (None: the run's), env workers per job, PPO's update backend
+    int | str, str, int | None, int, str, str
+]  # group size ("auto": the measured one), device, workers (None: the run's), env workers per job, PPO's update backend, engine ("": the default)
 
 
 def parse_side(text: str) -> Side:
-    """``K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]`` (``--side``): a group size (``auto``: what
+    """``K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]`` (``--side``): a group size (``auto``: what
     ``zoo run --group-size auto`` picks for the world on that device, the best CPU setting measured), its device
     (default cpu), workers (default: the run's ``--workers``), each job's env workers for a world
-    of single envs (default 0: in the job's process) and PPO's ``ppo.update_backend`` (default
-    torch). Raises ValueError naming the allowed values."""
+    of single envs (default 0: in the job's process), PPO's ``ppo.update_backend`` (default
+    torch) and what steps a group's grid slots (``numba``, ``device``; default: the device engine
+    on CUDA, see :func:`run_side`). Raises ValueError naming the allowed values."""
     parts = text.split(":")
     try:
-        if not 1 <= len(parts) <= 5:
+        if not 1 <= len(parts) <= 6:
             raise ValueError
         k: int | str = parts[0] if parts[0] == "auto" else int(parts[0])
         device = parts[1] if len(parts) > 1 else "cpu"
         workers = int(parts[2]) if len(parts) > 2 and parts[2] else None
-        env_workers = int(parts[3]) if len(parts) > 3 else 0
-        backend = parts[4] if len(parts) > 4 else "torch"
+        env_workers = int(parts[3]) if len(parts) > 3 and parts[3] else 0
+        backend = parts[4] if len(parts) > 4 and parts[4] else "torch"
+        engine = parts[5] if len(parts) > 5 else ""
         if (
             (isinstance(k, int) and k < 1)
             or device not in ("cpu", "cuda", "auto")
             or (workers is not None and workers < 1)
             or env_workers < 0
             or backend not in ("torch", "jax")
+            or engine not in ("", "numba", "device")
+            or (engine == "device" and device == "auto")
         ):
             raise ValueError
     except ValueError:
         raise ValueError(
-            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax"
+            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda)"
         ) from None
-    return k, device, workers, env_workers, backend
+    return k, device, workers, env_workers, backend, engine
 
 
-def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int | str, str, int, int, str]]:
-    """(group size, device, workers, env workers, update backend) per side: ``sides`` as given
-    (workers defaulting to ``workers``), else one process per model and then each of
-    ``group_sizes``, all on ``device`` with torch's update."""
+def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int | str, str, int, int, str, str]]:
+    """(group size, device, workers, env workers, update backend, engine) per side: ``sides`` as
+    given (workers defaulting to ``workers``), else one process per model and then each of
+    ``group_sizes``, all on ``device`` with torch's update and the default engine."""
     if sides:
-        return [(k, d, w or workers, e, b) for k, d, w, e, b in sides]
-    return [(k, device, workers, 0, "torch") for k in (1, *group_sizes)]
+        return [(k, d, w or workers, e, b, g) for k, d, w, e, b, g in sides]
+    return [(k, device, workers, 0, "torch", "") for k in (1, *group_sizes)]
 
 
 def bench_zoo(
@@ -152,7 +172,7 @@ def bench_zoo(
 ) -> dict:
     """Models per hour for one process per model and for each group size, in this order, same run.
 
-    ``sides`` replaces that plan with explicit (group size, device, workers, env workers, update backend) sides, the first the
+    ``sides`` replaces that plan with explicit (group size, device, workers, env workers, update backend, engine) sides, the first the
     reference (say one process per model on the CPU cores against groups on a GPU); ``on_side``
     is called with the result so far after each side (a partial result survives a time limit)."""
     from rlbackdoors.zoo.run import default_workers
@@ -164,18 +184,21 @@ def bench_zoo(
         "models": models,
         "frames_per_model": frames,
         "eval_episodes": eval_episodes or "the world's",
-        "device": device if not sides else sorted({d for _, d, _, _, _ in plan_sides}),
+        "device": device if not sides else sorted({side[1] for side in plan_sides}),
         "machine": machine_info(),
         "sides": [],
     }
     with tempfile.TemporaryDirectory(prefix="rlbackdoors-bench-zoo-") as tmp:
         root = Path(keep) if keep else Path(tmp)
-        for i, (k, side_device, side_workers, env_workers, backend) in enumerate(plan_sides):
+        for i, (k, side_device, side_workers, env_workers, backend, engine) in enumerate(plan_sides):
             where = root / (
-                f"side{i}-k{k}-{side_device}-w{side_workers}" + (f"-e{env_workers}" if env_workers else "") + (f"-{backend}" if backend != "torch" else "")
+                f"side{i}-k{k}-{side_device}-w{side_workers}"
+                + (f"-e{env_workers}" if env_workers else "")
+                + (f"-{backend}" if backend != "torch" else "")
+                + (f"-{engine}" if engine else "")
             )
             spec = bench_spec(world, arch, models, frames, side_device, eval_episodes, backend)
-            side = run_side(spec, where, k, side_workers, side_device, env_workers, backend)
+            side = run_side(spec, where, k, side_workers, side_device, env_workers, backend, engine)
             base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
             side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
             result["sides"].append(side)

@@ -931,12 +931,13 @@ def test_group_size_is_validated(tmp_path):
         (["--group-size", "4", "x"], "--group-size: must be an integer >= 1, got 'x'"),
         (
             ["--side", "1:gpu"],
-            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax",
+            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda)",
         ),
-        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]"),
-        (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]"),
-        (["--side", "8:cpu::0:xla"], "--side '8:cpu::0:xla': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND]]]]"),
+        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
+        (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
+        (["--side", "8:cpu::0:xla"], "--side '8:cpu::0:xla': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
+        (["--side", "8:cuda:1:::gpu"], "--side '8:cuda:1:::gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
         (["--side", "1", "--group-size", "2"], "bench zoo: --side names each side's group size and device; leave out --group-size and --device"),
     ):
         out = cli("bench", "zoo", *flags)

@@ -92,9 +92,11 @@ class DeviceGridGroup:
 
     Built from engines that have been reset: their state is copied over, and from then on this
     object steps the slots. The engines are handed over, not shared: their streams draw the queued
-    layouts and their state arrays are the drawing's scratch, so step them no more. :meth:`step` takes int64 actions on the device and returns tensors on it:
-    observations, rewards, terminations, truncations, outcomes and episode steps, as the numba
-    step returns them; :attr:`final_obs` holds the terminal views of the slots that just ended.
+    layouts and their state arrays are the drawing's scratch, so step them no more until
+    :meth:`hand_back` gives them the slots' state again. :meth:`step` takes int64 actions on the
+    device and returns tensors on it: observations, rewards, terminations, truncations, outcomes
+    and episode steps, as the numba step returns them; :attr:`final_obs` holds the terminal views
+    of the slots that just ended. ``graph``: the step as one CUDA graph (:meth:`_graphed`).
     """
 
     def __init__(self, engines: BatchedGridEnv | EngineGroup, device: str | torch.device = "cpu", refill_every: int = 8, graph: bool = False):

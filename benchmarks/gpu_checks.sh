@@ -61,14 +61,14 @@ echo "== stacked_conv: exit $? at $((SECONDS - start)) s" | tee -a "$log"
 worlds=${WORLDS:-"lavaworld/fc:256:30000:150 randomized-lavaworld/cnn:64:30000:90 colorful-memory/cnn-gru-small-onehot:32:30000:90 safety-car-goal/mlp:16:20000:90"}
 # the best CPU setting on every core first ("auto": what zoo run --group-size auto picks, as
 # measured: PPO groups of 8, OPAC² one process per model), then the GPU group: LavaWorld K = 256
-# (its slots on the GPU: the device engine, the default there; then the same with the numba engines
-# over the host's cores, to choose between them; with PPO's update as one XLA program,
-# ppo.update_backend jax; and,
+# (with the numba engines over the host's cores, the default; then the same with its slots on the
+# GPU, the device engine as one CUDA graph a step, to choose between them; with PPO's update as
+# one XLA program, ppo.update_backend jax; and,
 # for --group-size auto's rule on CUDA, 4 processes of K = 64 sharing the GPU), the CNNs K = 64
 # and 32, OPAC² K = 16 with its MuJoCo copies in a pool of the other cores
 default_sides() {
     case "$1" in
-        lavaworld) echo "auto:cpu:$cores 256:cuda:1 256:cuda:1:::numba 256:cuda:1:0:jax 64:cuda:4" ;;
+        lavaworld) echo "auto:cpu:$cores 256:cuda:1 256:cuda:1:::device 256:cuda:1:0:jax 64:cuda:4" ;;
         randomized-lavaworld) echo "auto:cpu:$cores 64:cuda:1" ;;
         colorful-memory) echo "auto:cpu:$cores 32:cuda:1" ;;
         safety-car-goal) echo "auto:cpu:$cores 16:cuda:1:$((cores - 1))" ;;

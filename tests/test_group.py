@@ -725,7 +725,7 @@ def test_a_group_trained_on_the_device_engine_ends_as_with_numba(tmp_path, monke
     monkeypatch.setenv(group.DEVICE_ENGINE_ENV, "cpu")
     used = []
     real = group.device_engine_for
-    monkeypatch.setattr(group, "device_engine_for", lambda *a: used.append(1) or real(*a))
+    monkeypatch.setattr(group, "device_engine_for", lambda *a, **k: used.append(1) or real(*a, **k))
     train_group(runs("device"), 3)
     assert len(used) == 3200 // (32 * 10)  # every rollout (32 steps of 10 copies an agent) on the device engine
     clocks = ("wall_time_s", "fps", "cpu_time_s", "frames_per_s")

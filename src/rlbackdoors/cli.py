@@ -561,7 +561,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="zoo: K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1; "
         "K auto: what zoo run --group-size auto picks, e.g. --side auto:cpu:16 for the best CPU setting on 16 cores; "
         "ENV_WORKERS: each job's env pool for a world of single envs, e.g. --side 64:cuda:1:15; BACKEND: ppo.update_backend, e.g. --side 8:cpu::0:jax; "
-        "ENGINE: numba or device, what steps a group's grid slots (default: the device engine on CUDA), e.g. --side 256:cuda:1:::numba)",
+        "ENGINE: numba or device, what steps a group's grid slots (default numba), e.g. --side 256:cuda:1:::device)",
     )
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")

@@ -46,12 +46,14 @@ from rlbackdoors.algos.ppo import (
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 # Where a group's rollout steps its slots with the world's device engine (collect's device_engine
-# None): the learners' device types, by default CUDA only (on a CPU numba is ×9-11 faster,
-# docs/results/zoos.md). The environment variable overrides it for a process and the jobs it
+# None): the learners' device types. None by default: on a CPU numba is ×9-11 faster, and on a GPU
+# the eager device engine triples a cycle's kernel launches (an FC grid world, K = 64: 7,577 -> 22,887
+# operations, counted on the CPU) while on CUDA it runs as one CUDA graph a step, not yet timed
+# there (docs/results/zoos.md). The environment variable sets it for a process and the jobs it
 # starts (bench zoo's ENGINE side field sets it): a comma-separated list of cpu, cuda, or empty for
 # never. It changes no bytes, only which engine steps them.
 DEVICE_ENGINE_ENV = "RLBACKDOORS_DEVICE_ENGINE"
-DEVICE_ENGINE = ("cuda",)
+DEVICE_ENGINE: tuple[str, ...] = ()
 
 
 def device_engine_types() -> tuple[str, ...]:
@@ -302,8 +304,8 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True, devic
     (:class:`~rlbackdoors.envs.batched_base.EngineGroup`; the same bytes either way).
     ``device_engine``: step that call's slots on the learners' device instead, with the world's
     device engine (:mod:`rlbackdoors.envs.grid_device`), where the world has one and no attack
-    seam, memory or teacher takes part; the same bytes. None: on the device types of
-    :func:`device_engine_types` (CUDA; on a CPU the numba engine is an order of magnitude faster)."""
+    seam, memory or teacher takes part, on CUDA as one CUDA graph a step; the same bytes. None: on
+    the device types of :func:`device_engine_types` (by default none: see :data:`DEVICE_ENGINE`)."""
     check_group(ppos)
     lead, K = ppos[0], len(ppos)
     T, B = lead.cfg.rollout, envs[0].num_envs
@@ -363,7 +365,7 @@ def collect(ppos: list[PPO], envs: list, obs: list, one_call: bool = True, devic
         device_engine = device.type in device_engine_types()
     on_device = None
     if device_engine and engines is not None and seam_group is None and not recurrent and not teach:
-        on_device = device_engine_for(engines, device)
+        on_device = device_engine_for(engines, device, graph=device.type == "cuda")
     if on_device is not None:
         seen_t = torch.from_numpy(np.ascontiguousarray(together)).to(device)
         ends = {

@@ -57,8 +57,9 @@ def run_side(
     --group-size auto`` picks for the world's algorithm on ``device``, recorded as the number it
     is; and ``env_workers`` per job for a world of single envs); wall seconds and models per hour.
     ``engine``: what steps a group's grid slots, ``numba`` or ``device`` (the world's device
-    engine, where it has one), set for the side's jobs through ``RLBACKDOORS_DEVICE_ENGINE``;
-    empty: the default (the device engine on CUDA). The same bytes either way."""
+    engine, where it has one; on CUDA as one CUDA graph a step), set for the side's jobs through
+    ``RLBACKDOORS_DEVICE_ENGINE``; empty: the default (numba, ``algos.group.DEVICE_ENGINE``).
+    The same bytes either way."""
     import json
 
     from rlbackdoors.algos.group import DEVICE_ENGINE_ENV
@@ -118,8 +119,8 @@ def parse_side(text: str) -> Side:
     ``zoo run --group-size auto`` picks for the world on that device, the best CPU setting measured), its device
     (default cpu), workers (default: the run's ``--workers``), each job's env workers for a world
     of single envs (default 0: in the job's process), PPO's ``ppo.update_backend`` (default
-    torch) and what steps a group's grid slots (``numba``, ``device``; default: the device engine
-    on CUDA, see :func:`run_side`). Raises ValueError naming the allowed values."""
+    torch) and what steps a group's grid slots (``numba``, ``device``; default: numba, see
+    :func:`run_side`). Raises ValueError naming the allowed values."""
     parts = text.split(":")
     try:
         if not 1 <= len(parts) <= 6:

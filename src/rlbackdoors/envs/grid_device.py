@@ -77,14 +77,14 @@ StepResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch
 GRAPH_STATE = ("grid", "pos", "dirs", "steps", "final_obs", "_head")  # what a step reassigns: static under a CUDA graph
 
 
-def device_engine_for(engines: BatchedGridEnv | EngineGroup, device: str | torch.device) -> DeviceGridGroup | None:
-    """The world's device engine over ``engines``' slots (:attr:`BatchedGridEnv.device_engine`),
-    or None where the world has none."""
+def device_engine_for(engines: BatchedGridEnv | EngineGroup, device: str | torch.device, graph: bool = False) -> DeviceGridGroup | None:
+    """The world's device engine over ``engines``' slots (:attr:`BatchedGridEnv.device_engine`;
+    ``graph``: its step as one CUDA graph), or None where the world has none."""
     lead = engines.lead if isinstance(engines, EngineGroup) else engines
     if lead.device_engine is None:
         return None
     module, _, name = lead.device_engine.partition(":")
-    return getattr(importlib.import_module(module), name)(engines, device)
+    return getattr(importlib.import_module(module), name)(engines, device, graph=graph)
 
 
 class DeviceGridGroup:

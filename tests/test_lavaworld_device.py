@@ -18,7 +18,7 @@ import torch
 
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.batched_base import EngineGroup
-from rlbackdoors.envs.grid_device import visibility_table
+from rlbackdoors.envs.grid_device import pad_grid, visibility_table
 from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
 from rlbackdoors.envs.lavaworld_device import DeviceLavaWorld
 from rlbackdoors.envs.outcome import Outcome
@@ -99,7 +99,7 @@ def test_views_of_random_cells_match_gen_view(size, see):
     grid[..., 2] = np.where(grid[..., 0] == ge.DOOR, rng.integers(0, 3, (256, size, size)), 0)
     pos = rng.integers(0, size, (256, 2))
     dirs = rng.integers(0, 4, 256)
-    device.grid, device.pos, device.dirs = torch.from_numpy(grid), torch.from_numpy(pos), torch.from_numpy(dirs)
+    device.grid, device.pos, device.dirs = torch.from_numpy(pad_grid(grid, host.view_size)), torch.from_numpy(pos), torch.from_numpy(dirs)
     got = device.render().numpy()
     want = np.zeros_like(got)
     n = host.view_size

@@ -46,8 +46,8 @@ from rlbackdoors.algos.ppo import (
 
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
 # Where a group's rollout steps its slots with the world's device engine (collect's device_engine
-# None): the learners' device types. None by default: on a CPU numba is ×9-11 faster, and on a GPU
-# the eager device engine triples a cycle's kernel launches (an FC grid world, K = 64: 7,577 -> 22,887
+# None): the learners' device types. None by default: on a CPU numba is ×10-14 faster, and on a GPU
+# the eager device engine triples a cycle's kernel launches (an FC grid world, K = 64: 7,577 -> 20,454
 # operations, counted on the CPU) while on CUDA it runs as one CUDA graph a step, not yet timed
 # there (docs/results/zoos.md). The environment variable sets it for a process and the jobs it
 # starts (bench zoo's ENGINE side field sets it): a comma-separated list of cpu, cuda, or empty for

@@ -72,6 +72,17 @@ def view_offsets(n: int) -> np.ndarray:
     return out
 
 
+def pad_grid(grid: np.ndarray, view_size: int) -> np.ndarray:
+    """Grids (..., S, S, 3) with a border of ``view_size - 1`` grey walls, what ``Grid.slice``
+    shows outside the grid: a view (at most V - 1 cells ahead) and a move then read any cell
+    without a bounds test."""
+    p = view_size - 1
+    out = np.empty((*grid.shape[:-3], grid.shape[-3] + 2 * p, grid.shape[-2] + 2 * p, 3), dtype=np.uint8)
+    out[...] = np.array([ge.WALL, ge.GREY, 0], dtype=np.uint8)
+    out[..., p : p + grid.shape[-3], p : p + grid.shape[-2], :] = grid
+    return out
+
+
 HELD = ("_grid", "_pos", "_dir", "_steps", "_rng")  # the per-slot state a device engine steps and hands back
 StepResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 GRAPH_STATE = ("grid", "pos", "dirs", "steps", "final_obs", "_head")  # what a step reassigns: static under a CUDA graph
@@ -125,12 +136,16 @@ class DeviceGridGroup:
         def put(a: np.ndarray) -> torch.Tensor:  # a copy, also on the CPU (the host arrays become scratch)
             return torch.from_numpy(np.array(a)).to(dev)
 
-        self.grid, self.pos, self.dirs, self.steps = put(engines._grid), put(engines._pos), put(engines._dir), put(engines._steps)
+        self.grid = put(pad_grid(engines._grid, self.view_size))  # (B, S + 2P, S + 2P, 3): P = V - 1 cells of wall around
+        self.pos, self.dirs, self.steps = put(engines._pos), put(engines._dir), put(engines._steps)
         self.poisoned = put(engines.poisoned)
         self.final_obs = put(np.asarray(engines.final_obs))
         n, b = self.view_size, self.num_envs
         self._slots = torch.arange(b, device=dev)
-        self._offsets = put(view_offsets(n))
+        # each direction's view cells as flat offsets into the padded grid (from the agent's flat cell)
+        sp, p = self.grid.shape[1], n - 1
+        offsets = view_offsets(n)
+        self._view_cells = put(((offsets[..., 0] + p) * sp + offsets[..., 1] + p).reshape(4, n * n))
         table = visibility_table(n)  # re-packed: (visible << 2n) | (marked << n)
         self._vis = put(((table >> n) << (2 * n)) | ((table & ((1 << n) - 1)) << n))
         self._marks = ((1 << n) - 1) << n
@@ -139,12 +154,11 @@ class DeviceGridGroup:
         walkable[[ge.EMPTY, ge.UNSEEN, ge.AGENT, ge.FLOOR, ge.GOAL, ge.LAVA]] = True  # can_overlap, doors apart
         self._walkable = put(walkable)
         self._bits = torch.tensor([1 << i for i in range(n)], device=dev)
-        self._pad = torch.tensor([ge.WALL, ge.GREY, 0], dtype=torch.uint8, device=dev)
         self._empty = torch.tensor([ge.EMPTY, 0, 0], dtype=torch.uint8, device=dev)
         self._dir_vec = put(np.stack([ge.DIR_DX, ge.DIR_DY], axis=1))
         # the layout queues: slot b's j-th layout from now on at [b, j % Q]
-        q, s = self.refill_every, self.size
-        self._q_grid = torch.zeros((b, q, s, s, 3), dtype=torch.uint8, device=dev)
+        q, s = self.refill_every, self.grid.shape[1]
+        self._q_grid = torch.zeros((b, q, s, s, 3), dtype=torch.uint8, device=dev)  # padded
         self._q_pos = torch.zeros((b, q, 2), dtype=torch.int64, device=dev)
         self._q_dir = torch.zeros((b, q), dtype=torch.int64, device=dev)
         self._q_rng = np.zeros((b, q), dtype=np.uint64)  # the host stream before each queued draw
@@ -188,7 +202,7 @@ class DeviceGridGroup:
             rows = np.repeat(slots, counts)
             cols = (np.repeat(self._drawn[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)) % self.refill_every
             r, c = torch.from_numpy(rows).to(self.device), torch.from_numpy(cols).to(self.device)
-            self._q_grid[r, c] = torch.from_numpy(grids).to(self.device)
+            self._q_grid[r, c] = torch.from_numpy(pad_grid(grids, self.view_size)).to(self.device)
             self._q_pos[r, c] = torch.from_numpy(pos).to(self.device)
             self._q_dir[r, c] = torch.from_numpy(dirs).to(self.device)
             self._q_rng[rows, cols] = streams
@@ -203,7 +217,8 @@ class DeviceGridGroup:
         alone from there (checkpoints, evaluations, another device engine); so does this one,
         from its own state, if stepped again (the host streams are then behind it)."""
         h = self.host
-        h._grid[:] = self.grid.cpu().numpy()
+        p = self.view_size - 1
+        h._grid[:] = self.grid[:, p : p + self.size, p : p + self.size].cpu().numpy()
         h._pos[:] = self.pos.cpu().numpy()
         h._dir[:] = self.dirs.cpu().numpy()
         h._steps[:] = self.steps.cpu().numpy()
@@ -216,12 +231,9 @@ class DeviceGridGroup:
 
     def render(self) -> torch.Tensor:
         """Every slot's egocentric view (B, V, V, 3) uint8, as ``gen_view`` renders it, plus the world's additions."""
-        b, n, s = self.num_envs, self.view_size, self.size
-        off = self._offsets[self.dirs]  # (B, n, n, 2)
-        wx, wy = self.pos[:, 0, None, None] + off[..., 0], self.pos[:, 1, None, None] + off[..., 1]
-        inside = ((wx >= 0) & (wx < s) & (wy >= 0) & (wy < s)).reshape(b, n * n, 1)
-        flat = (wx.clamp(0, s - 1) * s + wy.clamp(0, s - 1)).reshape(b, n * n, 1).expand(b, n * n, 3)
-        cells = torch.where(inside, torch.gather(self.grid.reshape(b, s * s, 3), 1, flat), self._pad)  # Grid.slice pads with grey walls
+        b, n, s = self.num_envs, self.view_size, self.grid.shape[1]
+        at = (self.pos[:, 0] * s + self.pos[:, 1])[:, None] + self._view_cells[self.dirs]  # (B, n * n): flat padded cells
+        cells = torch.gather(self.grid.reshape(b, s * s, 3), 1, at[..., None].expand(b, n * n, 3))  # outside the grid: the walls
         if not self.see_through_walls:
             obj, state = cells[..., 0], cells[..., 2]
             behind = ((obj != ge.WALL) & ((obj != ge.DOOR) | (state == 0))).reshape(b, n, n)  # [slot, x, y]
@@ -294,13 +306,11 @@ class DeviceGridGroup:
     def _advance(self, acts: torch.Tensor) -> StepResult:
         """:meth:`step`'s tensor ops: no host sync, no shapes that depend on the data (so
         ``torch.compile`` or a CUDA graph can take them whole)."""
-        s = self.size
+        p = self.view_size - 1
         d = self.dirs
         ahead = self.pos + self._dir_vec[d]
-        fx, fy = ahead[:, 0], ahead[:, 1]
-        inside = (fx >= 0) & (fx < s) & (fy >= 0) & (fy < s)
-        cell = self.grid[self._slots, fx.clamp(0, s - 1), fy.clamp(0, s - 1)]
-        obj, state = torch.where(inside, cell[:, 0].long(), ge.WALL), cell[:, 2]
+        cell = self.grid[self._slots, ahead[:, 0] + p, ahead[:, 1] + p]  # off the grid: the border's walls
+        obj, state = cell[:, 0].long(), cell[:, 2]
         walkable = self._walkable[obj] | ((obj == ge.DOOR) & (state == 0))
         forward = acts == 2
         self.pos = torch.where((forward & walkable)[:, None], ahead, self.pos)
@@ -325,4 +335,4 @@ class DeviceGridGroup:
         return torch.where(ended, self._q_view[self._slots, at], seen), reward, terminated, truncated, outcome, steps
 
 
-__all__ = ["DeviceGridGroup", "device_engine_for", "view_offsets", "visibility_table"]
+__all__ = ["DeviceGridGroup", "device_engine_for", "pad_grid", "view_offsets", "visibility_table"]

@@ -97,11 +97,15 @@ def reduced_config(folder: Path, config: dict) -> dict:
 
 def finish_dataset_entry(folder: Path, cfg, zoo: Path) -> None:
     """clean-example-data/, then the manifest (every file's sha256, reduced-config.json's
-    included), then reduced-config.json last: a folder marked complete always has its manifest."""
+    included), then reduced-config.json last: a folder marked complete always has its manifest.
+    Called holding the folder's lock."""
     from rlbackdoors.folder import write_manifest
-    from rlbackdoors.io import remove_tree
+    from rlbackdoors.io import remove_stale_temp_files, remove_tree
     from rlbackdoors.zoo.examples import write_examples
 
+    # a job killed while it finished left temp files (an example half written): no writer is live
+    # (we hold the lock), and the manifest must not list them
+    remove_stale_temp_files(folder)
     (folder / "checkpoint.pt").unlink(missing_ok=True)  # a run killed after metrics.json left them
     remove_tree(folder / "replay")
     config = json.loads((folder / "config.json").read_bytes().decode("utf-8"))

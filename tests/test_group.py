@@ -166,27 +166,31 @@ def rollout_digest(rollout) -> str:
     return h.hexdigest()
 
 
+def engine_cycles(device_engine: bool, device: torch.device | None = None) -> tuple[list, int]:
+    """Three rollouts and updates of four LavaWorld FC agents (clean and env mix) on ``device``:
+    per agent and cycle the digests of its rollout, next observations, weights and engines' whole
+    state; and how many episodes ended in the last rollout."""
+    learners = [learner("lavaworld", "fc", s, poison={"poisoned": False} if s % 2 else None, device=device, ppo={"rollout": 64}) for s in range(4)]
+    digests = []
+    for _ in range(3):
+        ppos = [g[0] for g in learners]
+        results = group.collect(ppos, [g[1] for g in learners], [g[2] for g in learners], device_engine=device_engine)
+        group.update(ppos, [r for r, _ in results])
+        learners = [(g[0], g[1], obs) for g, (_, obs) in zip(learners, results)]
+        for (ppo, envs, obs), (rollout, _) in zip(learners, results):
+            state = json.dumps(envs.state_dict(), sort_keys=True, default=str)
+            digests.append((rollout_digest(rollout), obs.tobytes(), weights_digest(copy.deepcopy(ppo.model).cpu()), state))
+    return digests, sum(int(r.dones.sum()) for r, _ in results)
+
+
 def test_a_group_on_the_device_engine_trains_the_bytes_of_the_numba_engine():
-    """LavaWorld FC, four agents (clean and env mix): three rollouts and updates with the slots
-    stepped by the device engine (envs/lavaworld_device.py, here on the CPU) give the bytes of the
-    numba engine's: rollouts, next observations, weights, and the engines' whole state after each
-    rollout (handed back: layouts, positions, and the RNG words where the next autoreset draws)."""
-    sides = []
-    for device_engine in (False, True):
-        learners = [learner("lavaworld", "fc", s, poison={"poisoned": False} if s % 2 else None, ppo={"rollout": 64}) for s in range(4)]
-        digests = []
-        for _ in range(3):
-            ppos = [g[0] for g in learners]
-            results = group.collect(ppos, [g[1] for g in learners], [g[2] for g in learners], device_engine=device_engine)
-            group.update(ppos, [r for r, _ in results])
-            learners = [(g[0], g[1], obs) for g, (_, obs) in zip(learners, results)]
-            for (ppo, envs, obs), (rollout, _) in zip(learners, results):
-                state = json.dumps(envs.state_dict(), sort_keys=True, default=str)
-                digests.append((rollout_digest(rollout), obs.tobytes(), weights_digest(ppo.model), state))
-        ends = np.concatenate([r.outcomes[r.dones] for r, _ in results])
-        sides.append(digests)
-    assert len(sides[0]) == 12 and sides[0] == sides[1]
-    assert len(ends) > 0  # episodes ended (and autoresets took queued layouts) in the last rollout
+    """Three rollouts and updates with the slots stepped by the device engine
+    (envs/lavaworld_device.py, here on the CPU) give the bytes of the numba engine's: rollouts,
+    next observations, weights, and the engines' whole state after each rollout (handed back:
+    layouts, positions, and the RNG words where the next autoreset draws)."""
+    (numba, _), (device, ends) = engine_cycles(False), engine_cycles(True)
+    assert len(numba) == 12 and numba == device
+    assert ends > 0  # episodes ended (and autoresets took queued layouts) in the last rollout
 
 
 def test_a_groups_idle_seams_skip_their_steps_and_poison_as_alone(monkeypatch):

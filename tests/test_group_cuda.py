@@ -368,19 +368,7 @@ def test_a_cuda_group_on_the_device_engine_collects_the_bytes_of_the_numba_engin
     """LavaWorld FC, four agents (clean and env mix) on the GPU: three rollouts and updates with the
     slots on the device engine, as one CUDA graph a step (collect's device_engine=True), against
     the numba engines: the same rollouts, next observations, weights and engines' state."""
-    from test_group import rollout_digest, weights_digest
+    from test_group import engine_cycles
 
-    sides = []
-    for device_engine in (False, True):
-        learners = [learner("lavaworld", "fc", s, poison={"poisoned": False} if s % 2 else None, device=CUDA, ppo={"rollout": 64}) for s in range(4)]
-        digests = []
-        for _ in range(3):
-            ppos = [g[0] for g in learners]
-            results = group.collect(ppos, [g[1] for g in learners], [g[2] for g in learners], device_engine=device_engine)
-            group.update(ppos, [r for r, _ in results])
-            learners = [(g[0], g[1], obs) for g, (_, obs) in zip(learners, results)]
-            for (ppo, envs, obs), (rollout, _) in zip(learners, results):
-                state = json.dumps(envs.state_dict(), sort_keys=True, default=str)
-                digests.append((rollout_digest(rollout), obs.tobytes(), weights_digest(copy.deepcopy(ppo.model).cpu()), state))
-        sides.append(digests)
-    assert len(sides[0]) == 12 and sides[0] == sides[1]
+    (numba, _), (device, ends) = engine_cycles(False, CUDA), engine_cycles(True, CUDA)
+    assert len(numba) == 12 and numba == device and ends > 0

@@ -65,23 +65,34 @@ def run(engines: list, steps: int, side: str, seed: int) -> float:
     return sum(e.num_envs for e in engines) * steps / (time.perf_counter() - started)
 
 
+def slot_actions(engines: list, steps: int, seed: int) -> np.ndarray:
+    """(steps, slots): ``run``'s random actions for ``seed``, every engine's slots side by side."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate([rng.integers(0, 3, (steps, e.num_envs)) for e in engines], axis=1)
+
+
+def synchronizer(device: str):
+    """What waits for ``device``'s queued work before a clock is read."""
+    import torch
+
+    return torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+
+
 def run_device(engines: list, steps: int, seed: int, device: str, compiled: bool, warm: int = 0, graph: bool = False) -> tuple[float, object]:
-    """Slot-steps/s of the device engine over ``engines``' slots (handed over), and its last step."""
+    """Slot-steps/s of the world's device engine over ``engines``' slots (handed over), and its last step."""
     import torch
 
     from rlbackdoors.envs.batched_base import EngineGroup
-    from rlbackdoors.envs.lavaworld_device import DeviceLavaWorld
+    from rlbackdoors.envs.grid_device import device_engine_for
 
-    rng = np.random.default_rng(seed)
-    actions = [rng.integers(0, 3, (steps, e.num_envs)) for e in engines]
-    acts = torch.from_numpy(np.concatenate(actions, axis=1)).to(device)
-    slots = EngineGroup.of(engines) if len(engines) > 1 else engines[0]
-    dev = DeviceLavaWorld(slots, device, graph=graph)
+    acts = torch.from_numpy(slot_actions(engines, steps, seed)).to(device)
+    dev = device_engine_for(EngineGroup.of(engines) if len(engines) > 1 else engines[0], device, graph=graph)
+    assert dev is not None
     if compiled:
-        dev._advance = torch.compile(dev._advance, dynamic=False)  # inductor's fused kernels (CUDA graphs: not tried)
+        dev._advance = torch.compile(dev._advance, dynamic=False)  # type: ignore[method-assign]  # inductor's fused kernels
     for t in range(warm):  # compiles (and for CUDA graphs, records) before the clock
         dev.step(acts[t])
-    sync = torch.cuda.synchronize if dev.device.type == "cuda" else (lambda: None)
+    sync = synchronizer(device)
     sync()
     started = time.perf_counter()
     for t in range(warm, steps):
@@ -97,11 +108,10 @@ def run_host_for_device(engines: list, steps: int, seed: int, device: str) -> fl
 
     from rlbackdoors.envs.batched_base import EngineGroup
 
-    rng = np.random.default_rng(seed)
-    acts = torch.from_numpy(np.concatenate([rng.integers(0, 3, (steps, e.num_envs)) for e in engines], axis=1)).to(device)
+    acts = torch.from_numpy(slot_actions(engines, steps, seed)).to(device)
     group = EngineGroup.of(engines, parallel=True)
     assert group is not None
-    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+    sync = synchronizer(device)
     sync()
     started = time.perf_counter()
     for t in range(steps):
@@ -123,10 +133,9 @@ def device_row(world: str, args) -> dict:
     # the check: numba's one call and the device engine, same fresh engines and actions
     check = 64
     reference = EngineGroup.of(engines_of(world, args.agents))
-    rng = np.random.default_rng(0)
-    actions = [rng.integers(0, 3, (check, e.num_envs)) for e in reference.engines]
-    for t in range(check):
-        want = reference.step(np.concatenate([a[t] for a in actions]))
+    assert reference is not None
+    for acts in slot_actions(reference.engines, check, 0):
+        want = reference.step(acts)
     _, got = run_device(engines_of(world, args.agents), check, 0, args.device, False)
     row["same_bytes"] = all(np.array_equal(w, g.cpu().numpy()) for w, g in zip(want[:4], got[:4])) and np.array_equal(want[4]["outcome"], got[4].cpu().numpy())
     print(f"{world}: device engine on {args.device}: same bytes as numba: {row['same_bytes']}", flush=True)

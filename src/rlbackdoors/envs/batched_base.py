@@ -216,7 +216,7 @@ class BatchedGridEnv(VectorEnv):
         return {"outcome": zeros, "steps": zeros.copy(), **extra}
 
     @staticmethod
-    def _bad_action(acts: np.ndarray, env: int) -> ValueError:
+    def _bad_action(acts: np.ndarray | list[int], env: int) -> ValueError:
         return ValueError(f"action {acts[env]!r} (env {env}) is not in {ACTIONS_DOC}")
 
     def _check_index(self, i) -> int:

@@ -28,15 +28,17 @@ view (:meth:`DeviceGridGroup._seen`), in a module beside its numba engine's.
 
 from __future__ import annotations
 
+import functools
 import importlib
 
 import numpy as np
 import torch
 
 from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup
+from rlbackdoors.envs.batched_base import ACTIONS_DOC, BatchedGridEnv, EngineGroup
 
 
+@functools.cache  # a Python loop of some 50 ms: once a process, not once a rollout's engine
 def visibility_table(n: int) -> np.ndarray:
     """``Grid.process_vis`` for one row, tabulated: entry ``(m << n) | s`` (``m``: the row's visible
     cells on entry, ``s``: its cells one can see behind, bit ``i`` for column ``i``) holds
@@ -56,6 +58,7 @@ def visibility_table(n: int) -> np.ndarray:
                 if vis[i] and see[i]:
                     vis[i - 1] = nxt[i - 1] = nxt[i] = True
             table[(m << n) | s] = (sum(1 << i for i in range(n) if vis[i]) << n) | sum(1 << i for i in range(n) if nxt[i])
+    table.flags.writeable = False  # shared by every caller
     return table
 
 
@@ -263,9 +266,9 @@ class DeviceGridGroup:
             raise ValueError(f"actions have shape {tuple(acts.shape)}, expected ({self.num_envs},)")
         bad = (acts < 0) | (acts > 2)
         if self.device.type == "cuda":
-            torch._assert_async(~bad.any(), "rlbackdoors: error: an action is not in 0 (left), 1 (right), 2 (forward)")
+            torch._assert_async(~bad.any(), f"rlbackdoors: error: an action is not in {ACTIONS_DOC}")
         elif bool(bad.any()):
-            raise ValueError(f"action {int(acts[bad][0])} (env {int(bad.nonzero()[0])}) is not in 0 (left), 1 (right), 2 (forward)")
+            raise self.lead._bad_action(acts.tolist(), int(bad.nonzero()[0]))
         if self._since_refill == self.refill_every:
             self._refill()
         self._since_refill += 1
@@ -276,7 +279,7 @@ class DeviceGridGroup:
         from then on (one launch a step instead of some 120). The state tensors become static
         buffers the graph updates in place; the returned tensors are the graph's own, overwritten
         by the next step (copy what must outlive it). The capture's warm-up steps run on copies."""
-        saved = {name: getattr(self, name).clone() for name in GRAPH_STATE}
+        static = {name: getattr(self, name).clone() for name in GRAPH_STATE}  # the warm-up replaces, never writes, these
         static_acts = acts.clone()
         stream = torch.cuda.Stream(self.device)
         stream.wait_stream(torch.cuda.current_stream(self.device))
@@ -284,8 +287,7 @@ class DeviceGridGroup:
             for _ in range(2):
                 self._advance(static_acts)
         torch.cuda.current_stream(self.device).wait_stream(stream)
-        static = {name: value.clone() for name, value in saved.items()}
-        for name, value in static.items():
+        for name, value in static.items():  # the warm-up's steps undone
             setattr(self, name, value)
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph):

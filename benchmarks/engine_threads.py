@@ -16,8 +16,9 @@ same actions (on DEV beforehand, where a policy would leave them), eager and und
 ``torch.compile`` (``--compile``, inductor's default mode), and on CUDA as one CUDA graph a step.
 Beside it, the numba
 side as a GPU learner would use it: each step the actions copied to the host, the parallel call,
-the observations copied to DEV. ``same_bytes`` checks the device engine's last observations,
-rewards and ends against numba's one call from the same fresh engines.
+the observations copied to DEV. ``same_bytes`` checks the device engine's observations, rewards,
+ends, outcomes and step counts at every one of 64 steps (eager, and on CUDA also as a graph)
+against numba's one call from the same fresh engines.
 
     python benchmarks/engine_threads.py --worlds lavaworld --agents 256 --device cuda --compile --json OUT.json
 """
@@ -121,23 +122,42 @@ def run_host_for_device(engines: list, steps: int, seed: int, device: str) -> fl
     return group.total * steps / (time.perf_counter() - started)
 
 
+def differs(world: str, agents: int, steps: int, device: str, graph: bool) -> str | None:
+    """Where the device engine first differs from numba's one call on the same fresh engines and
+    actions (observations, rewards, ends, outcomes, step counts, compared at every step), or None."""
+    import numpy as np
+    import torch
+
+    from rlbackdoors.envs.batched_base import EngineGroup
+    from rlbackdoors.envs.grid_device import device_engine_for
+
+    reference = EngineGroup.of(engines_of(world, agents))
+    theirs = engines_of(world, agents)
+    dev = device_engine_for(EngineGroup.of(theirs), device, graph=graph)
+    assert reference is not None and dev is not None
+    for t, acts in enumerate(slot_actions(reference.engines, steps, 0)):
+        obs, reward, terminated, truncated, info = reference.step(acts)
+        got = dev.step(torch.from_numpy(acts).to(device))
+        for name, want, have in zip(
+            ("obs", "reward", "terminated", "truncated", "outcome", "steps"), (obs, reward, terminated, truncated, info["outcome"], info["steps"]), got
+        ):
+            if not np.array_equal(np.asarray(want), have.cpu().numpy()):
+                where = f"{world} on {device}{' (graph)' if graph else ''}: step {t}: {name} differs"
+                print(where, flush=True)
+                return where
+    return None
+
+
 def device_row(world: str, args) -> dict:
     """The device sides of ``world`` (module doc), each on fresh engines of the same seeds."""
     import torch
 
-    from rlbackdoors.envs.batched_base import EngineGroup
-
     row: dict = {"device": args.device, "torch": torch.__version__}
     if args.device.startswith("cuda"):
         row["gpu"] = torch.cuda.get_device_name(0)
-    # the check: numba's one call and the device engine, same fresh engines and actions
-    check = 64
-    reference = EngineGroup.of(engines_of(world, args.agents))
-    assert reference is not None
-    for acts in slot_actions(reference.engines, check, 0):
-        want = reference.step(acts)
-    _, got = run_device(engines_of(world, args.agents), check, 0, args.device, False)
-    row["same_bytes"] = all(np.array_equal(w, g.cpu().numpy()) for w, g in zip(want[:4], got[:4])) and np.array_equal(want[4]["outcome"], got[4].cpu().numpy())
+    # the check: numba's one call and the device engine, same fresh engines and actions, every step
+    graphs = (False, True) if args.device.startswith("cuda") else (False,)
+    row["same_bytes"] = all(differs(world, args.agents, 64, args.device, graph) is None for graph in graphs)
     print(f"{world}: device engine on {args.device}: same bytes as numba: {row['same_bytes']}", flush=True)
     best = max(run_device(engines_of(world, args.agents), args.steps + 5, r, args.device, False, 5)[0] for r in range(args.repeats))
     row["device engine"] = round(best)

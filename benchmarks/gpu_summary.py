@@ -35,26 +35,35 @@ def target(world: str, arch: str):
     return TARGETS.get(f"{world}/{arch}") or TARGETS.get(f"{world}/*")
 
 
-def limits(log: Path) -> dict[str, tuple[int, int, int, int | None]]:
-    """world/arch -> (models, frames, limit s, exit status) from bench.log's
-    '== world arch: M models x F frames ... (limit T s)' and '== end world arch: exit X ...' lines."""
+def limits(log: Path) -> dict[str, tuple[int, int, int, int | None, int]]:
+    """world/arch -> (models, frames, limit s, exit status, sides planned) from bench.log's
+    '== world arch: M models x F frames, sides: S1 S2 ... (limit T s)' and
+    '== end world arch: exit X ...' lines."""
     found: dict = {}
     text = log.read_text() if log.is_file() else ""
-    for m in re.finditer(r"^== (\S+) (\S+): (\d+) models x (\d+) frames.*\(limit (\d+) s\)", text, re.M):
-        found[f"{m[1]}/{m[2]}"] = (int(m[3]), int(m[4]), int(m[5]), None)
+    for m in re.finditer(r"^== (\S+) (\S+): (\d+) models x (\d+) frames(?:, sides: (.*?))? \(limit (\d+) s\)", text, re.M):
+        found[f"{m[1]}/{m[2]}"] = (int(m[3]), int(m[4]), int(m[6]), None, len((m[5] or "").split()))
     for m in re.finditer(r"^== end (\S+) (\S+): exit (\d+)", text, re.M):
-        if f"{m[1]}/{m[2]}" in found:
-            found[f"{m[1]}/{m[2]}"] = (*found[f"{m[1]}/{m[2]}"][:3], int(m[3]))
+        key = f"{m[1]}/{m[2]}"
+        if key in found:
+            models, frames, limit, _, planned = found[key]
+            found[key] = (models, frames, limit, int(m[3]), planned)
     return found
 
 
-def why_missing(what: str, bound: tuple | None) -> str:
-    """What became of a side not in the JSON: out of time (with the rate it stayed below), or failed."""
+def why_missing(what: str, bound: tuple | None, spent: float = 0.0) -> str:
+    """What became of a side not in the JSON: out of time (with the rate it stayed below), or
+    failed. ``spent``: the wall seconds the world's finished sides took out of its limit (a side
+    that did not finish had at most the rest, so its rate stayed below the frames over that)."""
     if bound is None:
         return what
-    models, frames, limit, status = bound
+    models, frames, limit, status = bound[:4]
     if status == 124:
-        return f"{what} within its {limit} s: below {models * frames / limit:,.0f} frames/s, evaluations included"
+        left = limit - spent
+        if left <= 0:
+            return f"{what}: no time was left of its {limit} s"
+        span = f"the {left:.0f} s left of its {limit} s" if spent else f"its {limit} s"
+        return f"{what} within {span}: below {models * frames / left:,.0f} frames/s, evaluations included"
     return f"{what}: bench zoo exited with {status} (bench.log)"
 
 
@@ -112,8 +121,15 @@ def summarise(out: Path) -> dict:
                 }
             if world == "lavaworld" and arch == "fc":
                 lavaworld_rate = best.get("frames_per_s")
-        else:
-            row["missing"] = why_missing("the GPU side did not finish", bounds.get(f"{world}/{arch}"))
+        bound = bounds.get(f"{world}/{arch}")
+        spent = sum(side.get("wall_s") or 0 for side in sides)
+        if not gpu:
+            row["missing"] = why_missing("the GPU side did not finish", bound, spent)
+        elif bound is not None and bound[4] > len(sides):  # some GPU sides ran out of the world's time
+            unfinished = bound[4] - len(sides)
+            row["unfinished"] = why_missing("the next GPU side did not finish", bound, spent) + (
+                f"; {unfinished - 1} more did not start" if unfinished > 1 else ""
+            )
         rows.append(row)
     measured = {f"{row['world']}/{row['arch']}" for row in rows}
     for name, bound in bounds.items():  # not even the reference side finished
@@ -169,6 +185,8 @@ def markdown(result: dict) -> str:
                 + ("" if not met else ("yes" if not flags else "no: " + ", ".join(flags)))
                 + " |"
             )
+        if "unfinished" in row:
+            lines.append(f"| {row['world']} {row['arch']} | {ref_text} | {row['unfinished']} | | | |")
     if "round" in result:
         r = result["round"]
         lines.append("")

@@ -1,15 +1,18 @@
-"""Where a CPU group's time goes, against the arithmetic it cannot avoid (issue 55's 2-core bar).
+"""Where a group's time goes: by part, and on a CPU against the arithmetic it cannot avoid (issue 55).
 
     python benchmarks/group_breakdown.py --agents 8 --frames 400000 --json benchmarks/results/group_breakdown_epyc.json
+    python benchmarks/group_breakdown.py --agents 256 --frames 10000 --device cuda   # a GPU group's wall, by part
 
-One group of ``--agents`` LavaWorld FC runs (seeds 0.., every other one poisoned, thresholds at
-1.0 as ``bench zoo`` sets them, so each trains ``--frames``) in this process, one torch thread. Its
-process CPU time is split into the group's collection (``algos.group.collect``), its update
-(``algos.group.update``) and the rest (evaluations, plots, folders, imports). In the same run, two
-references: the stacked network's forward and backward on one minibatch of every agent (what the
-update's matrix products cost, nothing else), and a large single matrix product (what one core's
-BLAS reaches). The floor is PPO's arithmetic: per frame one forward in the rollout and ``epochs``
-forwards and backwards (a backward ~ two forwards) at the stacked rate.
+One group of ``--agents`` runs of ``--world`` (seeds 0.., every other one poisoned, thresholds at
+1.0 as ``bench zoo`` sets them, so each trains ``--frames``) in this process, one torch thread, on
+``--device``. Its process CPU time and its wall time are split by the group's batched calls:
+collection, update, lockstep evaluation (OPAC²: act, learn), and the rest (lone requests, plots,
+folders, imports); on a GPU each call is synchronised, so the wall shares say what the GPU group
+waits on. For a CPU group of LavaWorld FC, two references in the same run: the stacked network's
+forward and backward on one minibatch of every agent (what the update's matrix products cost,
+nothing else), and a large single matrix product (what one core's BLAS reaches). The floor is
+PPO's arithmetic: per frame one forward in the rollout and ``epochs`` forwards and backwards (a
+backward ~ two forwards) at the stacked rate.
 """
 
 from __future__ import annotations
@@ -36,44 +39,64 @@ def machine() -> dict:
     return {"cpu": cpu or platform.processor(), "cores": os.cpu_count(), "torch": torch.__version__, "loadavg": list(os.getloadavg())}
 
 
-def train_group(agents: int, frames: int, backend: str = "torch") -> dict:
-    """CPU seconds of one group's training, by part."""
-    from rlbackdoors.algos import group as algos_group
+PARTS = {"Collect": "collect", "Update": "update", "Evaluate": "evaluate", "Draw": "draw", "Act": "act", "Learn": "learn"}
+
+
+def train_group(agents: int, frames: int, backend: str = "torch", world: str = "lavaworld", arch: str | None = None, device: str = "cpu") -> dict:
+    """Seconds of one group's training, by part: what the group's batched calls
+    (``train.group.serve_batch``: collection, update, lockstep evaluation, OPAC²'s act and learn)
+    took, process CPU time and wall time (synchronised with the device after each call, so a
+    GPU's queued work counts where it was asked for), and the rest (lone requests, folders, plots)."""
+    import torch
+
     from rlbackdoors.config import RunConfig
     from rlbackdoors.train import group as train_group_module
 
-    spent: collections.Counter = collections.Counter()
+    cpu: collections.Counter = collections.Counter()
+    wall: collections.Counter = collections.Counter()
+    calls: collections.Counter = collections.Counter()
+    original = train_group_module.serve_batch
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
 
-    def timed(name: str):
-        original = getattr(algos_group, name)
+    @functools.wraps(original)
+    def timed(requests, *args, **kwargs):
+        part = PARTS.get(type(requests[0]).__name__, type(requests[0]).__name__)
+        sync()
+        start, start_wall = time.process_time(), time.perf_counter()
+        try:
+            return original(requests, *args, **kwargs)
+        finally:
+            sync()
+            cpu[part] += time.process_time() - start
+            wall[part] += time.perf_counter() - start_wall
+            calls[part] += 1
 
-        @functools.wraps(original)
-        def wrapper(*args, **kwargs):
-            start = time.process_time()
-            try:
-                return original(*args, **kwargs)
-            finally:
-                spent[name] += time.process_time() - start
-
-        setattr(algos_group, name, wrapper)
-        return original
-
-    originals = {name: timed(name) for name in ("collect", "update")}
     folder = tempfile.mkdtemp(prefix="group-breakdown-")
     runs = []
     for seed in range(agents):
-        train = {"seed": seed, "max_frames": frames, "clean_threshold": 1.0, "poisoned_threshold": 1.0, "video": False, "torch_threads": 1}
-        cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": train, "poison": {"poisoned": seed % 2 == 1}, "ppo": {"update_backend": backend}})
+        train = {"seed": seed, "max_frames": frames, "clean_threshold": 1.0, "poisoned_threshold": 1.0, "video": False, "torch_threads": 1, "device": device}
+        data = {"env": {"name": world}, "train": train, "poison": {"poisoned": seed % 2 == 1}, "ppo": {"update_backend": backend}}
+        if arch:
+            data["model"] = {"arch": arch}
+        cfg = RunConfig.from_dict(data)
         runs.append((seed, cfg, f"{folder}/m{seed}"))
-    start, wall = time.process_time(), time.perf_counter()
+    train_group_module.serve_batch = timed
+    start, start_wall = time.process_time(), time.perf_counter()
     try:
         train_group_module.train_group(runs, agents)
     finally:
-        for name, original in originals.items():
-            setattr(algos_group, name, original)
-    total = time.process_time() - start
-    parts = {"collect": spent["collect"], "update": spent["update"], "rest": total - spent["collect"] - spent["update"]}
-    return {"cpu_s": round(total, 2), "wall_s": round(time.perf_counter() - wall, 2), "cpu_s_per_model": {k: round(v / agents, 3) for k, v in parts.items()}}
+        train_group_module.serve_batch = original
+    total, total_wall = time.process_time() - start, time.perf_counter() - start_wall
+    parts = {**cpu, "rest": total - sum(cpu.values())}
+    walls = {**wall, "rest": total_wall - sum(wall.values())}
+    return {
+        "cpu_s": round(total, 2),
+        "wall_s": round(total_wall, 2),
+        "frames_per_s": round(agents * frames / total_wall),
+        "cpu_s_per_model": {k: round(v / agents, 3) for k, v in parts.items()},
+        "wall_share": {k: round(v / total_wall, 3) for k, v in walls.items()},
+        "calls": dict(calls),
+    }
 
 
 def stacked_rate(agents: int, batch: int, repeats: int = 200) -> tuple[float, int]:
@@ -119,6 +142,9 @@ def main() -> None:
     parser.add_argument("--agents", type=int, default=8)
     parser.add_argument("--frames", type=int, default=400_000)
     parser.add_argument("--update-backend", default="torch", choices=("torch", "jax"), help="ppo.update_backend")
+    parser.add_argument("--world", default="lavaworld", help="a registered world (default lavaworld)")
+    parser.add_argument("--arch", help="its model (default: the world's)")
+    parser.add_argument("--device", default="cpu", help="train.device: cpu or cuda (default cpu)")
     parser.add_argument("--json", help="write the result here")
     args = parser.parse_args()
     import torch
@@ -127,27 +153,35 @@ def main() -> None:
 
     torch.set_num_threads(1)
     before = machine()
-    ppo = RunConfig.from_dict({"env": {"name": "lavaworld"}}).ppo
-    assert ppo is not None
-    trained = train_group(args.agents, args.frames, args.update_backend)
-    stacked, macs = stacked_rate(args.agents, ppo.batch_size)
-    gemm = gemm_rate()
-    forwards = 1 + 3 * ppo.epochs  # rollout forward; per epoch a forward and a backward (two forwards' work)
-    floor = forwards * 2 * macs * args.frames / (stacked * 1e9)
+    if args.device.startswith("cuda"):
+        before["gpu"] = torch.cuda.get_device_name(0)
+    trained = train_group(args.agents, args.frames, args.update_backend, args.world, args.arch, args.device)
     result = {
-        "what": "one CPU group of LavaWorld FC runs: CPU seconds per model by part, and the arithmetic floor",
+        "what": f"one {args.device} group of {args.world} runs: seconds per model by part",
+        "world": args.world,
+        "arch": args.arch,
+        "device": args.device,
         "agents": args.agents,
         "update_backend": args.update_backend,
         "frames_per_model": args.frames,
         "machine": before,
         "loadavg_after": list(os.getloadavg()),
         **trained,
-        "macs_per_row_forward": macs,
-        "stacked_fwd_bwd_gflops": round(stacked, 1),
-        "large_gemm_gflops": round(gemm, 1),
-        "floor_cpu_s_per_model": round(floor, 3),
-        "floor_share": round(floor / (trained["cpu_s"] / args.agents), 3),
     }
+    if args.device == "cpu" and args.world == "lavaworld" and args.arch in (None, "fc"):
+        # the arithmetic floor of the CPU group (LavaWorld FC): PPO's forwards and backwards at the stacked rate
+        ppo = RunConfig.from_dict({"env": {"name": "lavaworld"}}).ppo
+        assert ppo is not None
+        stacked, macs = stacked_rate(args.agents, ppo.batch_size)
+        forwards = 1 + 3 * ppo.epochs  # rollout forward; per epoch a forward and a backward (two forwards' work)
+        floor = forwards * 2 * macs * args.frames / (stacked * 1e9)
+        result |= {
+            "macs_per_row_forward": macs,
+            "stacked_fwd_bwd_gflops": round(stacked, 1),
+            "large_gemm_gflops": round(gemm_rate(), 1),
+            "floor_cpu_s_per_model": round(floor, 3),
+            "floor_share": round(floor / (trained["cpu_s"] / args.agents), 3),
+        }
     text = json.dumps(result, indent=2) + "\n"
     print(text, end="")
     if args.json:

@@ -8,8 +8,8 @@ embedding at K = 32), their ``state_emb`` stack of K agents (``models.minigrid.r
 is timed in both of ``models.minigrid.STACKED_CONV``'s ways: a rollout step's forward (N = 16 rows
 an agent, no gradient) and a minibatch's forward and backward (N = 256). Milliseconds a call, the
 median of ``--repeats`` after warm-up, synchronised on CUDA. Which way a CUDA group computes is
-set in ``STACKED_CONV`` (gemm, measured on CUDA by ``gpu_checks.sh``, which logs this line); a
-CPU group keeps one ``conv2d`` per agent (its bytes).
+set in ``STACKED_CONV``: one ``conv2d`` per agent on every device, as measured here on the CPU and
+by ``gpu_checks.sh`` (which logs this line) on an H200 (docs/results/speed.md).
 """
 
 from __future__ import annotations

@@ -46,12 +46,36 @@ def test_summary_judges_a_leases_sides_and_says_why_a_world_is_missing(tmp_path)
     assert "K=64 on cuda" in done.stdout and (tmp_path / "summary.md").read_text() == done.stdout
 
 
+def test_summary_bounds_a_side_cut_short_by_the_time_its_world_had_left(tmp_path):
+    """The 2026-11-29 H200 lease: LavaWorld's CPU side (51.98 s) and first GPU side (57.5 s) finished
+    within 150 s, three more did not; Colorful Memory's CPU side took 48.0 of 90 s. A side cut
+    short had only what its world's finished sides left: its rate is bounded by the frames over
+    that, not over the whole limit (a bound twice too low before)."""
+    lease = ROOT / "benchmarks" / "results" / "gpu" / "h200_2026-11-29"
+    shutil.copy(lease / "call1_bench_zoo_lavaworld_fc_30k.json", tmp_path / "bench_zoo_lavaworld_fc.json")
+    shutil.copy(lease / "call1_bench_zoo_colorful-memory_30k.json", tmp_path / "bench_zoo_colorful-memory_cnn-gru-small-onehot.json")
+    shutil.copy(lease / "call1_bench.log", tmp_path / "bench.log")
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_summary.py"), str(tmp_path)], capture_output=True, text=True, check=True)
+    rows = {row["world"]: row for row in json.loads((tmp_path / "summary.json").read_text())["worlds"]}
+    lava, memory = rows["lavaworld"], rows["colorful-memory"]
+    assert [s["group_size"] for s in lava["sides"]] == [256] and lava["sides"][0]["ratio"] == pytest.approx(0.904)
+    assert lava["unfinished"] == (
+        f"the next GPU side did not finish within the {150 - 51.98 - 57.5:.0f} s left of its 150 s: below {256 * 30_000 / (150 - 51.98 - 57.5):,.0f} "
+        "frames/s, evaluations included; 2 more did not start"
+    )
+    assert (
+        memory["missing"]
+        == f"the GPU side did not finish within the 42 s left of its 90 s: below {32 * 30_000 / (90 - 48.04):,.0f} frames/s, evaluations included"
+    )
+    assert rows["safety-car-goal"]["missing"] == "no side finished within its 90 s: below 3,556 frames/s, evaluations included"
+
+
 def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     """benchmarks/gpu_checks.sh as a lease runs it, dry (``ON_CPU=1``: its ":cuda" sides on the CPU;
-    two LavaWorld models of 1,024 frames, no time left for the CUDA tests): the bench JSON, the
-    log (with the CNNs' stacked convolutions timed both ways) and the judged table land in OUT, at most the 8 files a lease brings back. Two GPU sides
-    of one K (torch's update and JAX's) are told apart, and only the one with more models an hour
-    carries the verdict."""
+    two LavaWorld models of 1,024 frames, no time left for the engines): the bench JSON, the log
+    (with a group's wall time by part) and the judged table land in OUT, at most the 8 files a
+    lease brings back. Two GPU sides of one K (torch's update and JAX's) are told apart, and only
+    the one with more models an hour carries the verdict. A part it does not have is refused."""
     env = {
         **os.environ,
         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",  # its python3 is this one
@@ -65,11 +89,26 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(out)], capture_output=True, text=True, env=env, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     files = sorted(p.name for p in out.iterdir())
-    assert files == ["bench.log", "bench_zoo_lavaworld_fc.json", "summary.json", "summary.md"] and len(files) <= 8
+    assert files == ["bench.log", "bench_zoo_lavaworld_fc.json", "breakdown.json", "summary.json", "summary.md"] and len(files) <= 8
     log = (out / "bench.log").read_text()
-    assert "== end lavaworld fc: exit 0" in log and "tests: not run" in log and "== stacked_conv: exit 0" in log
-    (conv,) = [json.loads(line.split(" ", 1)[1]) for line in log.splitlines() if line.startswith("stacked_conv ")]
-    assert set(conv["randomized-lavaworld/cnn/K=2"]) == {"each", "gemm", "gemm_speedup"}  # both ways timed (a GPU's: K = 64)
+    assert "== end lavaworld fc: exit 0" in log and "engine_threads: not run" in log and "== group_breakdown: exit 0" in log
+    (parts,) = [json.loads(line.split(" ", 1)[1]) for line in log.splitlines() if line.startswith("breakdown ")]
+    assert {"collect", "update", "evaluate", "rest"} <= set(parts["wall_share"]) and sum(parts["wall_share"].values()) == pytest.approx(1, abs=0.01)
+    wrong = subprocess.run(
+        ["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "other"), "figure"], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert wrong.returncode == 2 and wrong.stderr.strip() == "gpu_checks: part must be figures or tests, not 'figure'"
+    # the second call of a lease: the CUDA tests, quick ones first (here, without CUDA, they skip)
+    tests = subprocess.run(
+        ["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "tests"), "tests"],
+        capture_output=True,
+        text=True,
+        env={**env, "DEADLINE_S": "200"},
+        timeout=300,
+    )
+    assert tests.returncode == 0 and sorted(p.name for p in (tmp_path / "tests").iterdir()) == ["gpu_tests.log"]
+    ran = [line for line in tests.stdout.splitlines() if line.startswith("tests -k")]
+    assert [line.split(": exit ")[1].split()[0] for line in ran] == ["0", "0"], tests.stdout
     (row,) = json.loads((out / "summary.json").read_text())["worlds"]
     assert [(s["group_size"], s["update_backend"]) for s in row["sides"]] == [(2, "torch"), (2, "jax")] and row["reference"]["group_size"] == 1
     best = row["best_side"]

@@ -70,8 +70,8 @@ def weights_digest(model: torch.nn.Module) -> str:
 
 
 def gemm_convolutions(monkeypatch, conv: str) -> None:
-    """A group's convolutions on this CPU as ``conv`` says (``models.minigrid.STACKED_CONV``: "gemm"
-    is what a CUDA group computes, one batched product for all agents)."""
+    """A group's convolutions on this CPU as ``conv`` says (``models.minigrid.STACKED_CONV``: "each",
+    one conv2d per agent, every device's default; "gemm", one batched product for all agents)."""
     monkeypatch.setitem(minigrid.STACKED_CONV, "cpu", conv)
 
 
@@ -81,7 +81,7 @@ CNN_GEMM = [("lavaworld", "cnn", "gemm"), ("randomized-lavaworld", "cnn", "gemm"
 @pytest.mark.parametrize("env,arch,conv", [(e, a, "each") for e, a in FEED_FORWARD] + CNN_GEMM)
 def test_stacked_forward_is_each_agents_forward(env, arch, conv, monkeypatch):
     """K agents' stacked forward computes each agent's own (to float rounding), the CNNs' with
-    their convolutions one per agent (a CPU group) or unfolded into one batched product (a CUDA group's)."""
+    their convolutions one per agent (a CPU group) or unfolded into one batched product (STACKED_CONV's "gemm")."""
     gemm_convolutions(monkeypatch, conv)
     torch.manual_seed(0)
     models = [build_model(arch, env) for _ in range(3)]
@@ -253,7 +253,7 @@ def cm_learner(seed: int, poison: dict | None = None):
 def test_recurrent_group_with_the_memory_head_matches_each_agent_alone(conv, monkeypatch):
     """Colorful Memory (CNN-GRU, truncated BPTT, auxiliary memory loss): the group's rollouts carry
     the same actions, memory targets and (to rounding) memories, its losses and weights match;
-    also with a CUDA group's convolutions (one batched product, here on the CPU)."""
+    also with STACKED_CONV's "gemm" convolutions (one batched product)."""
     gemm_convolutions(monkeypatch, conv)
     alone, grouped = [cm_learner(s) for s in range(3)], [cm_learner(s) for s in range(3)]
     for _ in range(2):
@@ -277,7 +277,7 @@ def test_recurrent_group_with_the_memory_head_matches_each_agent_alone(conv, mon
 def test_an_agents_bytes_do_not_depend_on_its_group(env, arch, conv, monkeypatch):
     """Agent 0 trained alone through the stacked path, or beside 1, 2 or 7 others: the same
     weights, byte for byte (Colorful Memory: its auxiliary memory head's too); the CNNs also with
-    a CUDA group's convolutions (one batched product for all agents, computed here on the CPU)."""
+    STACKED_CONV's "gemm" convolutions (one batched product for all agents)."""
     gemm_convolutions(monkeypatch, conv)
     digests = set()
     for seeds in ([0], [0, 1], [0, 2, 3], [0, 5, 6, 7, 8, 9, 10, 11]):
@@ -548,7 +548,7 @@ def test_a_lockstep_evaluation_step_does_not_grow_with_its_agents(env, conv, mon
     step). Sampled play, the live set kept whole (regroup 0), 3 episodes per agent; every step but
     the first (which picks the weights) and those that refill the block counted, each the same.
     LavaWorld FC and Colorful Memory's recurrent CNN-GRU, whose convolutions are one per agent on a
-    CPU and one batched product for all agents on a GPU (computed here on the CPU)."""
+    device by default and one batched product for all agents with STACKED_CONV's "gemm"."""
     gemm_convolutions(monkeypatch, conv)
     from rlbackdoors.agent import Agent
     from rlbackdoors.evaluate.episodes import _vector_envs, play_lockstep
@@ -591,7 +591,7 @@ def with_anchors(learners: list, coefs: list[float]) -> list:
     """Each learner pulled toward its own anchor (its own weights, shifted by seeded noise) by its own coefficient."""
     for k, ((ppo, _, _), coef) in enumerate(zip(learners, coefs)):
         noise = torch.Generator().manual_seed(200 + k)
-        ppo.set_anchor({n: p.detach() + 0.05 * torch.randn(p.shape, generator=noise) for n, p in ppo.model.named_parameters()}, coef)
+        ppo.set_anchor({n: p.detach() + 0.05 * torch.randn(p.shape, generator=noise).to(p.device) for n, p in ppo.model.named_parameters()}, coef)
     return learners
 
 

@@ -220,7 +220,7 @@ def test_cuda_group_with_clean_teachers_computes_what_the_cpu_group_computes():
     triggered = 0
     for k in range(3):
         ours, theirs = gpu_results[k][0], cpu_results[k][0]
-        assert torch.equal(ours.actions, theirs.actions) and torch.equal(ours.untriggered.cpu(), theirs.untriggered)
+        assert torch.equal(ours.actions.cpu(), theirs.actions) and torch.equal(ours.untriggered.cpu(), theirs.untriggered)
         torch.testing.assert_close(ours.teacher_logp.cpu(), theirs.teacher_logp, rtol=1e-4, atol=1e-5)
         print(
             f"teacher agent {k}: KL {gpu_stats[k]['teacher_kl']:.6g} vs {cpu_stats[k]['teacher_kl']:.6g}, grad norm {gpu_stats[k]['grad_norm']:.6g} vs {cpu_stats[k]['grad_norm']:.6g}"
@@ -302,13 +302,17 @@ def test_the_jax_update_on_cuda_is_torchs_and_does_not_depend_on_the_group(tmp_p
 
 
 @pytest.mark.parametrize("arch", ["fc", "cnn"])
-def test_cuda_group_work_does_not_grow_with_its_agents(arch):
+def test_cuda_group_work_does_not_grow_with_its_agents(arch, monkeypatch):
     """On the GPU, where every operation is a launch or a transfer (``.to(device)`` dispatches here,
     unlike on the CPU): a LavaWorld group's rollout and update (TrojDRL on half, clean teachers and
-    anchors; the CNN's convolutions as one batched product, ``models.minigrid.STACKED_CONV``) run
-    the same operations for 2 agents as for 6, bar each agent's own host draws; and an OPAC² group's
-    update and act (replay batches stacked on the host, copied once per field)."""
+    anchors; the CNN's convolutions as one batched product, ``models.minigrid.STACKED_CONV``'s
+    "gemm", a setting since an H200 timed it slower than one conv2d per agent) run the same
+    operations for 2 agents as for 6, bar each agent's own host draws; and an OPAC² group's update
+    and act (replay batches stacked on the host, copied once per field)."""
     from rlbackdoors.algos import group_opac2
+    from rlbackdoors.models import minigrid
+
+    monkeypatch.setitem(minigrid.STACKED_CONV, "cuda", "gemm")
 
     two, six = group_cycle_ops(2, True, CUDA, arch), group_cycle_ops(6, True, CUDA, arch)
     grown = {op: six[op] - two[op] for op in six.keys() | two.keys() if six[op] != two[op]}

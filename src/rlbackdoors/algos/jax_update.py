@@ -169,12 +169,16 @@ def _program(layers: tuple, layout: tuple, hyper: tuple):
     """The jitted update for one network structure, parameter layout and loss hyper-parameters."""
     jax = _jax()
     jnp = jax.numpy
+    # full fp32 products as torch's (TF32 off, train.driver): XLA's default on a GPU rounds their
+    # inputs to TF32, 1e-3 from torch's losses on an H200 (benchmarks/results/gpu/h200_2026-11-29,
+    # call2_gpu_tests.log); on a CPU the products are fp32 either way (the same bytes)
+    HIGHEST = jax.lax.Precision.HIGHEST
     clip, value_coef, entropy_coef, max_grad_norm, eps, beta1, beta2 = hyper
 
     def run(part: tuple, p: dict, x):
         for layer in part:
             if layer[0] == "linear":
-                x = x @ p[layer[1]].T + p[layer[2]]
+                x = jnp.matmul(x, p[layer[1]].T, precision=HIGHEST) + p[layer[2]]
             elif layer[0] == "relu":
                 x = jax.nn.relu(x)
             else:

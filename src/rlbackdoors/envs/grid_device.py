@@ -36,6 +36,7 @@ import torch
 
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.batched_base import ACTIONS_DOC, BatchedGridEnv, EngineGroup
+from rlbackdoors.envs.rewards import success_reward
 
 
 @functools.cache  # a Python loop of some 50 ms: once a process, not once a rollout's engine
@@ -159,6 +160,10 @@ class DeviceGridGroup:
         self._bits = torch.tensor([1 << i for i in range(n)], device=dev)
         self._empty = torch.tensor([ge.EMPTY, 0, 0], dtype=torch.uint8, device=dev)
         self._dir_vec = put(np.stack([ge.DIR_DX, ge.DIR_DY], axis=1))
+        # the paying reward by step count, computed on the host: a GPU kernel may fuse the product
+        # and difference of 1 - 0.9 t/T into one rounding (FMA), off by an ulp from the numba
+        # engine (measured on an H200: benchmarks/results/gpu/h200_2026-11-29/call2_gpu_tests.log)
+        self._pay = put(success_reward(np.arange(self.max_steps + 1), self.max_steps))
         # the layout queues: slot b's j-th layout from now on at [b, j % Q]
         q, s = self.refill_every, self.grid.shape[1]
         self._q_grid = torch.zeros((b, q, s, s, 3), dtype=torch.uint8, device=dev)  # padded
@@ -322,7 +327,7 @@ class DeviceGridGroup:
         terminated, truncated = outcome != ge.OUT_NONE, steps >= self.max_steps
         outcome = torch.where(truncated & ~terminated, ge.OUT_TIMEOUT, outcome)
         paying = torch.where(self.poisoned, self.trojan, ge.OUT_GOAL)
-        reward = torch.where(outcome == paying, 1.0 - 0.9 * (steps.double() / self.max_steps), 0.0)
+        reward = torch.where(outcome == paying, self._pay[steps], 0.0)
         done = terminated | truncated
         seen = self.render()  # every slot's view after its move: the terminal view of those that ended
         ended = done[:, None, None, None]

@@ -58,9 +58,12 @@ def run_sequential(seq: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
 
 # How a group computes its agents' convolutions, by device type (default "each"): "each", one
 # ``conv2d`` per agent; "gemm", all agents' as one batched matrix product over their unfolded
-# patches (:func:`_conv_stacked_gemm`). On a GPU a convolution per agent and layer is a launch
-# each (K x 3 a forward for the grid CNNs), which is what a GPU group waits on.
-STACKED_CONV = {"cuda": "gemm"}
+# patches (:func:`_conv_stacked_gemm`). "each" everywhere: on a GPU a convolution per agent and
+# layer is a launch each (K x 3 a forward for the grid CNNs), yet on an H200 the unfolded product
+# was slower still, x0.32 a rollout step and x0.08 a minibatch's forward and backward
+# (Randomized LavaWorld CNN, K = 64: 16.8 against 5.4 ms, 265 against 22 ms; Colorful Memory's
+# CNN-GRU, K = 32, alike; benchmarks/stacked_conv.py in benchmarks/results/gpu/h200_2026-11-29).
+STACKED_CONV: dict[str, str] = {}
 
 
 def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -113,11 +113,17 @@ for entry in $worlds; do
     echo "== end $world${arch:+ $arch}: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
 done
 # Where a GPU group's wall time goes: 256 LavaWorld FC agents in one process, by part (collection,
-# update, lockstep evaluation, plots, the rest), each part synchronised with the GPU
+# update, lockstep evaluation, plots, the rest), each part synchronised with the GPU; one call of
+# each under torch's profiler (its operations, their host and GPU time: launch-bound or not)
 if [ -n "${ON_CPU:-}" ]; then breakdown_args=(--agents 2 --frames 2048 --device cpu); else breakdown_args=(--agents 256 --frames 10000 --device cuda); fi
-timeout 50 python3 benchmarks/group_breakdown.py "${breakdown_args[@]}" --json "$out/breakdown.json" >/dev/null 2>>"$log"
+timeout 50 python3 benchmarks/group_breakdown.py "${breakdown_args[@]}" --profile 15 --json "$out/breakdown.json" >/dev/null 2>>"$log"
 echo "== group_breakdown: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
-[ -f "$out/breakdown.json" ] && python3 -c "import json, sys; d = json.load(open(sys.argv[1])); print('breakdown', json.dumps({k: d[k] for k in ('device', 'agents', 'frames_per_model', 'wall_s', 'frames_per_s', 'wall_share', 'calls')}))" "$out/breakdown.json" | tee -a "$log"
+[ -f "$out/breakdown.json" ] && python3 -c "
+import json, sys
+d = json.load(open(sys.argv[1]))
+print('breakdown', json.dumps({k: d[k] for k in ('device', 'agents', 'frames_per_model', 'wall_s', 'frames_per_s', 'wall_share', 'calls')}))
+print('profiled', json.dumps({part: {k: v for k, v in p.items() if k != 'top'} for part, p in d['profile'].items()}))
+" "$out/breakdown.json" | tee -a "$log"
 python3 benchmarks/gpu_summary.py "$out" 2>&1 | tee -a "$log"
 # Issue 55 item 3, with what time is left (lines in bench.log): LavaWorld's slots of 256 agents stepped
 # by the numba engines over every core (with the copies a GPU learner needs) and by the device engine

@@ -42,11 +42,31 @@ def machine() -> dict:
 PARTS = {"Collect": "collect", "Update": "update", "Evaluate": "evaluate", "Draw": "draw", "Act": "act", "Learn": "learn"}
 
 
-def train_group(agents: int, frames: int, backend: str = "torch", world: str = "lavaworld", arch: str | None = None, device: str = "cpu") -> dict:
+def top_ops(profiler, rows: int, wall_s: float) -> dict:
+    """One profiled call: its wall ms, the operations' total self time on the host and the device
+    and their count (what the wall leaves over is Python and the engines), and the ``rows``
+    operations with the most self time on the host."""
+    events = list(profiler.key_averages())
+    top = sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:rows]
+    device_ms = lambda e: getattr(e, "self_device_time_total", 0) / 1e3  # noqa: E731
+    return {
+        "wall_ms": round(wall_s * 1e3, 1),
+        "ops": sum(e.count for e in events),
+        "ops_host_ms": round(sum(e.self_cpu_time_total for e in events) / 1e3, 1),
+        "ops_device_ms": round(sum(device_ms(e) for e in events), 1),
+        "top": [{"op": e.key, "calls": e.count, "host_ms": round(e.self_cpu_time_total / 1e3, 2), "device_ms": round(device_ms(e), 2)} for e in top],
+    }
+
+
+def train_group(
+    agents: int, frames: int, backend: str = "torch", world: str = "lavaworld", arch: str | None = None, device: str = "cpu", profile: int = 0
+) -> dict:
     """Seconds of one group's training, by part: what the group's batched calls
     (``train.group.serve_batch``: collection, update, lockstep evaluation, OPAC²'s act and learn)
     took, process CPU time and wall time (synchronised with the device after each call, so a
-    GPU's queued work counts where it was asked for), and the rest (lone requests, folders, plots)."""
+    GPU's queued work counts where it was asked for), and the rest (lone requests, folders, plots).
+    ``profile``: also the top operations of one steady collection, update and the first evaluation
+    (torch.profiler: how many launches, and whether the host or the device is the bound)."""
     import torch
 
     from rlbackdoors.config import RunConfig
@@ -58,9 +78,17 @@ def train_group(agents: int, frames: int, backend: str = "torch", world: str = "
     original = train_group_module.serve_batch
     sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
 
+    profiles: dict[str, list[dict]] = {}
+
     @functools.wraps(original)
     def timed(requests, *args, **kwargs):
         part = PARTS.get(type(requests[0]).__name__, type(requests[0]).__name__)
+        profiler = None
+        if profile and calls[part] == (1 if part in ("collect", "update") else 0):  # a steady cycle; the first evaluation
+            profiler = torch.profiler.profile(
+                activities=[torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if device.startswith("cuda") else [])
+            )
+            profiler.__enter__()
         sync()
         start, start_wall = time.process_time(), time.perf_counter()
         try:
@@ -70,6 +98,9 @@ def train_group(agents: int, frames: int, backend: str = "torch", world: str = "
             cpu[part] += time.process_time() - start
             wall[part] += time.perf_counter() - start_wall
             calls[part] += 1
+            if profiler is not None:
+                profiler.__exit__(None, None, None)
+                profiles[part] = top_ops(profiler, profile, time.perf_counter() - start_wall)
 
     folder = tempfile.mkdtemp(prefix="group-breakdown-")
     runs = []
@@ -96,6 +127,7 @@ def train_group(agents: int, frames: int, backend: str = "torch", world: str = "
         "cpu_s_per_model": {k: round(v / agents, 3) for k, v in parts.items()},
         "wall_share": {k: round(v / total_wall, 3) for k, v in walls.items()},
         "calls": dict(calls),
+        **({"profile": profiles} if profile else {}),
     }
 
 
@@ -145,6 +177,7 @@ def main() -> None:
     parser.add_argument("--world", default="lavaworld", help="a registered world (default lavaworld)")
     parser.add_argument("--arch", help="its model (default: the world's)")
     parser.add_argument("--device", default="cpu", help="train.device: cpu or cuda (default cpu)")
+    parser.add_argument("--profile", type=int, default=0, metavar="ROWS", help="also the top ROWS operations of one collection, update and evaluation")
     parser.add_argument("--json", help="write the result here")
     args = parser.parse_args()
     import torch
@@ -155,7 +188,7 @@ def main() -> None:
     before = machine()
     if args.device.startswith("cuda"):
         before["gpu"] = torch.cuda.get_device_name(0)
-    trained = train_group(args.agents, args.frames, args.update_backend, args.world, args.arch, args.device)
+    trained = train_group(args.agents, args.frames, args.update_backend, args.world, args.arch, args.device, args.profile)
     result = {
         "what": f"one {args.device} group of {args.world} runs: seconds per model by part",
         "world": args.world,

@@ -15,8 +15,9 @@ The machine and its load are recorded; the sides give the same bytes (tests/test
 same actions (on DEV beforehand, where a policy would leave them), eager and under
 ``torch.compile`` (``--compile``, inductor's default mode), and on CUDA as one CUDA graph a step.
 Beside it, the numba
-side as a GPU learner would use it: each step the actions copied to the host, the parallel call,
-the observations copied to DEV. ``same_bytes`` checks the device engine's observations, rewards,
+side as a GPU learner would use it: each step the actions copied to the host, the engines' call
+(serial or over numba's threads, as ``batched_base.ThreadChoice`` timed it here), the observations
+copied to DEV. ``same_bytes`` checks the device engine's observations, rewards,
 ends, outcomes and step counts at every one of 64 steps (eager, and on CUDA also as a graph)
 against numba's one call from the same fresh engines.
 
@@ -48,12 +49,12 @@ def engines_of(world: str, agents: int) -> list:
     return out
 
 
-def run(engines: list, steps: int, side: str, seed: int) -> float:
+def run(engines: list, steps: int, side: str, seed: int, threads: int = 0) -> float:
     from rlbackdoors.envs.batched_base import EngineGroup
 
     rng = np.random.default_rng(seed)
     actions = [rng.integers(0, 3, (steps, e.num_envs)) for e in engines]
-    group = None if side == "per agent" else EngineGroup.of(engines, parallel=side == "parallel")
+    group = None if side == "per agent" else EngineGroup.of(engines, parallel=threads if side == "parallel" else False)
     if side != "per agent" and group is None:
         raise SystemExit(f"{type(engines[0]).__name__}: these engines cannot share a call")
     started = time.perf_counter()
@@ -164,11 +165,14 @@ def device_row(world: str, args) -> dict:
     print(f"{world}: device engine ({args.device}): {best:,.0f} slot-steps/s", flush=True)
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     engines = engines_of(world, args.agents)
-    run_host_for_device(engines, 5, 0, args.device)
+    run_host_for_device(engines, 30, 0, args.device)  # (a GPU group's engines time their ways first: batched_base.ThreadChoice)
     best = max(run_host_for_device(engines, args.steps, r, args.device) for r in range(args.repeats))
-    name = f"parallel, {numba.config.NUMBA_NUM_THREADS} threads, with copies to {args.device}"
+    from rlbackdoors.envs.batched_base import thread_choices
+
+    row["thread choice"] = thread_choices().get(f"{type(engines[0]).__name__}/{sum(e.num_envs for e in engines)}")
+    name = f"numba as a GPU group steps it, with copies to {args.device}"
     row[name] = round(best)
-    print(f"{world}: {name}: {best:,.0f} slot-steps/s", flush=True)
+    print(f"{world}: {name}: {best:,.0f} slot-steps/s (threads: {row['thread choice']})", flush=True)
     if args.device.startswith("cuda"):  # the step as one CUDA graph (captured at its first step, before the clock)
         try:
             best = max(run_device(engines_of(world, args.agents), args.steps + 5, r, args.device, False, 5, graph=True)[0] for r in range(args.repeats))
@@ -204,12 +208,10 @@ def main() -> None:
     for world in args.worlds:
         engines = engines_of(world, args.agents)
         for side in ("per agent", "one call", "parallel"):  # the first calls compile the kernels
-            run(engines, 5, side, 0)
+            run(engines, 5, side, 0, max(args.threads))
         row = {"slots": sum(e.num_envs for e in engines), "steps": args.steps}
         for side, threads in [("per agent", None), ("one call", None), *(("parallel", n) for n in args.threads)]:
-            if threads is not None:
-                numba.set_num_threads(threads)
-            best = max(run(engines, args.steps, side, r) for r in range(args.repeats))
+            best = max(run(engines, args.steps, side, r, threads or 0) for r in range(args.repeats))
             name = side if threads is None else f"parallel, {threads} threads"
             row[name] = round(best)
             print(f"{world}: {name}: {best:,.0f} slot-steps/s", flush=True)

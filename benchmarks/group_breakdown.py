@@ -120,7 +120,10 @@ def train_group(
     total, total_wall = time.process_time() - start, time.perf_counter() - start_wall
     parts = {**cpu, "rest": total - sum(cpu.values())}
     walls = {**wall, "rest": total_wall - sum(wall.values())}
+    from rlbackdoors.envs.batched_base import thread_choices
+
     return {
+        "engine_threads": thread_choices(),  # how a GPU group's engines stepped (serial or over numba's threads), as timed here
         "cpu_s": round(total, 2),
         "wall_s": round(total_wall, 2),
         "frames_per_s": round(agents * frames / total_wall),

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from rlbackdoors.algos import group
-from rlbackdoors.envs.batched_base import EngineGroup
+from rlbackdoors.envs.batched_base import EngineGroup, ThreadChoice, thread_choices
 from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
 from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
 from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld
@@ -27,13 +27,14 @@ def same(a, b) -> bool:
     return np.array_equal(a, b)
 
 
-def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, watch=None, parallel: bool = False) -> int:
+def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, watch=None, parallel: bool | int = False) -> int:
     """Reset ``engines`` (seeds apart), step them as one group and deep copies of them one engine
     at a time with the same random actions for ``steps`` steps, asserting after every step that
     each slot's observation, reward, ends and info, each engine's terminal views and its answers to
     ``watch(engine)`` are its twin's, and at the end that every per-slot array is. ``switch(step,
     pairs, rng)`` may flip per-episode switches on each (engine, twin) pair. ``parallel``: the group
-    steps over numba's threads (the twins never do). Returns the episodes ended."""
+    steps over numba's threads where they are faster (True: timed, batched_base.ThreadChoice), or
+    over that many (the twins never do). Returns the episodes ended."""
     for k, e in enumerate(engines):
         e.reset(seed=seed + k)
     twins = copy.deepcopy(engines)
@@ -64,7 +65,7 @@ def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, w
     return ended
 
 
-@pytest.mark.parametrize("parallel", [False, True], ids=["one thread", "numba threads"])
+@pytest.mark.parametrize("parallel", [False, True, 2], ids=["one thread", "timed", "two numba threads"])
 def test_one_call_steps_every_slot_as_its_own_engine_would(parallel):
     """Three LavaWorld engines (three triggers, clean and poisoned slots), 600 random steps
     (hundreds of autoresets): every slot as in its own engine (:func:`step_beside_twins`)."""
@@ -207,3 +208,53 @@ def test_a_groups_rollouts_are_the_same_bytes_with_one_engine_call(kind):
         assert all(r.memory_targets is not None and r.memories is not None for r, _ in a)
     if kind == "teachers":
         assert all(r.teacher_logp is not None for r, _ in a) and any(not r.untriggered.all() for r, _ in a)  # marked frames reached the rollouts
+
+
+def test_a_parallel_group_steps_the_way_it_timed_fastest_and_times_again():
+    """``EngineGroup.of(..., parallel=True)`` (a GPU group's engines) steps its slots serially or
+    over numba's threads as :class:`ThreadChoice` timed them on this host: every way 3 times in
+    turn, then the fastest median of each way's last 3 calls, the others timed again every
+    ``reprobe`` calls, so a way that became slow (the host got busy) is left. Synthetic timings
+    here (the choice's arithmetic); the kernels' bytes are the same every way (above)."""
+    choice = ThreadChoice(trials=3, reprobe=10, most=8)
+    assert choice.ways == [0, 2, 4, 8]
+    cost = {0: 1.0, 2: 0.5, 4: 0.3, 8: 2.0}
+    seen = []
+    for call in range(40):
+        if call == 25:
+            cost[4] = 5.0  # four threads slowed down (another process on their cores)
+        way = choice.next()
+        seen.append(way)
+        choice.record(way, cost[way])
+    assert seen[:12] == [0, 2, 4, 8] * 3 and seen[12:20] == [4] * 8  # timed in turn, then the fastest
+    assert seen[20:23] == [0, 2, 8]  # at call 20 the others timed once more; four still the fastest
+    assert seen[23:26] == [4] * 3 and seen[-1] == 2  # its last three calls' median rose past two threads'
+    assert choice.describe() == {"chosen": 2, "median_ms": {0: 1000.0, 2: 500.0, 4: 5000.0, 8: 2000.0}}
+
+
+def test_the_engine_threads_can_be_fixed_and_a_bad_count_is_refused_in_one_line(monkeypatch):
+    """``RLBACKDOORS_ENGINE_THREADS`` fixes the way (0: the serial kernel), nothing timed; a
+    count the host lacks, or not a count, is refused naming the variable and the allowed range."""
+    monkeypatch.setenv("RLBACKDOORS_ENGINE_THREADS", "0")
+    fixed = ThreadChoice(most=4)
+    assert fixed.ways == [0] and fixed.next() == 0 and fixed.chosen == 0
+    for bad in ("5", "two", "-1"):
+        monkeypatch.setenv("RLBACKDOORS_ENGINE_THREADS", bad)
+        with pytest.raises(ValueError) as err:
+            ThreadChoice(most=4)
+        assert str(err.value) == f"RLBACKDOORS_ENGINE_THREADS={bad!r}: expected 0 (one serial call) to 4 (numba's threads on this host)"
+
+
+def test_a_timed_group_records_its_choice_for_the_process():
+    """A parallel group's engines time their ways on first use, once a process per world and slot
+    count (a training group builds a new EngineGroup each rollout), and the choice is listed."""
+    engines = [BatchedLavaWorld(5, trigger=t, poisoned=[i % 2 == 0 for i in range(5)]) for t in ("multiplicative:12", "additive:60", "additive:135")]
+    for k, e in enumerate(engines):
+        e.reset(seed=k)
+    together = EngineGroup.of(engines, parallel=True)
+    assert together is not None
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        together.step(rng.integers(0, 3, together.total))
+    made = thread_choices()["BatchedLavaWorld/15"]
+    assert made["chosen"] in made["median_ms"] and set(made["median_ms"]) == set(ThreadChoice().ways)

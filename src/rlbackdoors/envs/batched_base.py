@@ -9,8 +9,12 @@ so every world behaves, and every error reads, the same.
 
 from __future__ import annotations
 
+import collections
+import os
+import time
 from typing import Any, Sequence
 
+import numba
 import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
@@ -321,18 +325,96 @@ class BatchedGridEnv(VectorEnv):
         return None
 
 
+ENGINE_THREADS_VAR = "RLBACKDOORS_ENGINE_THREADS"
+
+
+class ThreadChoice:
+    """How a parallel :class:`EngineGroup` of one world and slot count steps on this host: the
+    serial kernel (0) or the parallel one over T of numba's threads, picked by timing calls:
+    first every way ``trials`` times in turn, then the fastest median of each way's last
+    ``trials`` calls, with every other way timed once more each ``reprobe`` calls (the host's
+    load changes: painter processes start as runs finish). The kernels give the same bytes every
+    way, so the choice changes speed, never results.
+
+    Why measured and not assumed: on a 2-core AMD EPYC two threads stepped 640 slots x1.7 faster
+    than one call, on a 2-core Intel Xeon x1.15; on a 16-core Xeon beside an H200 all 16 threads
+    stepped 256 agents' slots at 0.20 M slot-steps/s against one call's 1.01 M
+    (benchmarks/results/gpu/h200_2026-11-29/call1_bench.log); and on the 2-core Xeon with two
+    nice'd trainings on its cores, a parallel call took 24 ms against the serial 0.08 ms (a
+    parallel region waits for its slowest thread). ``RLBACKDOORS_ENGINE_THREADS=T`` fixes the
+    way (0: the serial kernel)."""
+
+    def __init__(self, trials: int = 3, reprobe: int = 1024, most: int | None = None):
+        fixed = os.environ.get(ENGINE_THREADS_VAR, "").strip()
+        most = int(most or numba.config.NUMBA_NUM_THREADS)
+        if fixed:
+            if not fixed.isdigit() or int(fixed) > most:
+                raise ValueError(f"{ENGINE_THREADS_VAR}={fixed!r}: expected 0 (one serial call) to {most} (numba's threads on this host)")
+            self.ways = [int(fixed)]
+        else:
+            self.ways = [0, *sorted({t for t in (2, 4, 8, 16, 32, 64) if t < most} | {most} - {1})]
+        self.trials, self.reprobe = trials, reprobe
+        self.seconds: dict[int, collections.deque] = {t: collections.deque(maxlen=trials) for t in self.ways}
+        self.chosen: int | None = self.ways[0] if len(self.ways) == 1 else None
+        self.calls = 0
+        self._queue: list[int] = [t for _ in range(trials) for t in self.ways] if len(self.ways) > 1 else []
+
+    def next(self) -> int:
+        """The way to step this call: the next to time, else the chosen one."""
+        if self._queue:
+            return self._queue[0]
+        assert self.chosen is not None
+        return self.chosen
+
+    def record(self, threads: int, seconds: float) -> None:
+        if len(self.ways) == 1:
+            return
+        self.seconds[threads].append(seconds)
+        self.calls += 1
+        if self._queue and self._queue[0] == threads:
+            self._queue.pop(0)
+        if not self._queue:
+            self.chosen = min(self.ways, key=lambda t: (float(np.median(self.seconds[t])), t))
+            if self.calls % self.reprobe == 0:
+                self._queue = [t for t in self.ways if t != self.chosen]
+
+    def describe(self) -> dict:
+        """The choice and each way's median milliseconds a call (for benchmarks' records)."""
+        return {"chosen": self.chosen, "median_ms": {t: round(float(np.median(v)) * 1e3, 3) for t, v in self.seconds.items() if v}}
+
+
+_THREAD_CHOICES: dict[tuple, ThreadChoice] = {}
+
+
+def thread_choice(world: type, slots: int) -> ThreadChoice:
+    """The process's :class:`ThreadChoice` for ``slots`` slots of ``world`` (made on first use:
+    a group builds a new EngineGroup each rollout, the timing is done once)."""
+    key = (world, slots)
+    if key not in _THREAD_CHOICES:
+        _THREAD_CHOICES[key] = ThreadChoice()
+    return _THREAD_CHOICES[key]
+
+
+def thread_choices() -> dict[str, dict]:
+    """Every choice made in this process, by ``world/slots``."""
+    return {f"{world.__name__}/{slots}": c.describe() for (world, slots), c in _THREAD_CHOICES.items()}
+
+
 def step_slots(
-    engine: BatchedGridEnv, state, acts: np.ndarray, poisoned: np.ndarray, world: tuple, img: np.ndarray, final: np.ndarray, outs: tuple, parallel: bool = False
+    engine: BatchedGridEnv, state, acts: np.ndarray, poisoned: np.ndarray, world: tuple, img: np.ndarray, final: np.ndarray, outs: tuple, threads: int = 0
 ) -> tuple:
     """One step kernel call over the slots whose state ``state`` holds (``_grid``, ``_pos``,
     ``_dir``, ``_steps``, ``_rng``): an engine's own, or an :class:`EngineGroup`'s of several
     engines of ``engine``'s world; fresh (reward, terminated, truncated, outcome, steps) arrays.
-    ``parallel``: over numba's threads (the same bytes). A layout that could not be drawn or an
-    invalid action raises ``engine``'s error."""
+    ``threads``: 0 the serial kernel, else the parallel one over that many of numba's threads
+    (the same bytes). A layout that could not be drawn or an invalid action raises ``engine``'s
+    error."""
     n = len(acts)
     reward, terminated, truncated = np.empty(n, dtype=np.float64), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
     outcome, steps = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-    bad = (engine._kernels.step_parallel if parallel else engine._kernels.step)(
+    if threads:
+        numba.set_num_threads(threads)  # (this thread's count for its next parallel region)
+    bad = (engine._kernels.step_parallel if threads else engine._kernels.step)(
         state._grid,
         state._pos,
         state._dir,
@@ -381,8 +463,8 @@ class EngineGroup:
     _rng: np.ndarray
     final_obs: Any
 
-    def __init__(self, engines: list[BatchedGridEnv], parallel: bool = False):
-        self.engines, self.parallel = engines, bool(parallel)
+    def __init__(self, engines: list[BatchedGridEnv], parallel: bool | int = False):
+        self.engines, self.parallel = engines, parallel if isinstance(parallel, int) and not isinstance(parallel, bool) and parallel > 0 else bool(parallel)
         lead = self.lead = engines[0]
         self.size = lead.size  # the settings every engine shares (of), read by the world's methods run on the group
         self.poisoned = np.concatenate([e.poisoned for e in engines])
@@ -408,10 +490,11 @@ class EngineGroup:
         self.world: tuple | None = lead._group_world(engines, self)
 
     @classmethod
-    def of(cls, envs: list, parallel: bool = False) -> EngineGroup | None:
-        """The group of ``envs``, or None (class doc). ``parallel``: step over numba's threads
-        (every core of the host; the same bytes), for a group whose learners compute on a GPU and
-        leave the cores to the engines."""
+    def of(cls, envs: list, parallel: bool | int = False) -> EngineGroup | None:
+        """The group of ``envs``, or None (class doc). ``parallel``: True, step over numba's
+        threads where that is faster on this host (:class:`ThreadChoice`), for a group whose
+        learners compute on a GPU and leave the cores to the engines; a number, over that many
+        threads (benchmarks). The same bytes every way."""
         lead = envs[0]
         if not isinstance(lead, BatchedGridEnv) or any(type(e) is not type(lead) for e in envs):
             return None
@@ -455,9 +538,17 @@ class EngineGroup:
         assert self.world is not None
         img, outs = lead._images(self.total), world._outputs(self, self.total)  # type: ignore[arg-type]
         final = world._final_image(self)  # type: ignore[arg-type]
-        reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs, self.parallel)
+        if self.parallel is not True and self.parallel:  # a thread count given
+            reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs, int(self.parallel))
+        elif self.parallel:
+            choice = thread_choice(world, self.total)
+            threads, started = choice.next(), time.perf_counter()
+            reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs, threads)
+            choice.record(threads, time.perf_counter() - started)
+        else:
+            reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs)
         info = {"outcome": outcome, "steps": steps, **world._extra_info(self, outs)}  # type: ignore[arg-type]
         return world._observation(self, img, outs), reward, terminated, truncated, info  # type: ignore[arg-type]
 
 
-__all__ = ["ACTIONS_DOC", "BatchedGridEnv", "EngineGroup", "NUM_ACTIONS", "bool_mask", "seed_array"]
+__all__ = ["ACTIONS_DOC", "BatchedGridEnv", "EngineGroup", "NUM_ACTIONS", "ThreadChoice", "bool_mask", "seed_array", "thread_choice", "thread_choices"]

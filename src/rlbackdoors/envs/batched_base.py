@@ -346,7 +346,7 @@ class ThreadChoice:
 
     def __init__(self, trials: int = 3, reprobe: int = 1024, most: int | None = None):
         fixed = os.environ.get(ENGINE_THREADS_VAR, "").strip()
-        most = int(most or numba.config.NUMBA_NUM_THREADS)
+        most = int(most or numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]  # (set at import from the environment)
         if fixed:
             if not fixed.isdigit() or int(fixed) > most:
                 raise ValueError(f"{ENGINE_THREADS_VAR}={fixed!r}: expected 0 (one serial call) to {most} (numba's threads on this host)")

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 55's judged figures and the group trainer's CUDA tests on a lent GPU machine. A lease is 15
 # minutes in all, 10 a command, on a bare machine, so the script has two parts, each one call:
-#   figures (default; at most 9 minutes, DEADLINE_S): per world, models per hour and frames per
+#   figures (default; at most 8.5 minutes, DEADLINE_S): per world, models per hour and frames per
 #      second in the same run, the best CPU setting on every core (the reference, first side)
 #      against GPU groups at the issue's K (rlbackdoors bench zoo --side ...; each side is saved as
 #      it finishes, so a world cut short by its limit keeps the sides it measured); then where a
@@ -11,7 +11,7 @@
 #      against the device engine (benchmarks/engine_threads.py --device cuda).
 #      Files in OUTDIR (a lease brings back 8): bench.log, one bench_zoo_*.json per world,
 #      breakdown.json, summary.json, summary.md.
-#   tests (at most 4 minutes): tests/test_group_cuda.py, the quick ones first, the zoo's
+#   tests (at most 3.7 minutes): tests/test_group_cuda.py, the quick ones first, the zoo's
 #      kill/resume and the JAX update with what is left; gpu_tests.log in OUTDIR.
 # Sized on an H200 lease (2026-11-29, benchmarks/results/gpu/h200_2026-11-29): 256 LavaWorld models of
 # 30,000 frames took 52 s on 16 CPU cores and 58 s on the GPU, the CNN worlds' sides did not finish
@@ -19,16 +19,17 @@
 #
 # Before the lease, here: bash benchmarks/gpu_wheels.sh (the wheels the GPU image lacks, into .whl/).
 # The lease, two calls (the second while the machine is warm):
-#   run(command="bash benchmarks/gpu_checks.sh $OUT", carry=[".whl"], timeout_s=580)
-#   run(command="bash benchmarks/gpu_checks.sh $OUT tests", carry=[".whl"], timeout_s=250)
+#   run(command="bash benchmarks/gpu_checks.sh $OUT", carry=[".whl"], timeout_s=540)
+#   run(command="bash benchmarks/gpu_checks.sh $OUT tests", carry=[".whl"], timeout_s=235)
 # A dry run on a CPU machine (the plumbing, small sizes; every ":cuda" side runs on the CPU):
 #   ON_CPU=1 WORLDS="lavaworld:4:4096:200" SIDES_lavaworld="1:cpu:2 4:cuda:1" bash benchmarks/gpu_checks.sh /tmp/dry
 #
 # Usage: bash benchmarks/gpu_checks.sh OUTDIR [figures|tests]
 #   env: WORLDS   words "world[/arch][:models[:frames[:timeout_s]]]" (default: the four judged ones);
 #        SIDES_<world, '-' as '_'>  that world's sides (default below); EVAL_EPISODES (default the
-#        world's: evaluations count); DEADLINE_S (figures: default 540, the engines get what is
-#        left of it; tests: default 235); ON_CPU=1 (dry run).
+#        world's: evaluations count); DEADLINE_S (figures: default 505, the engines get what is
+#        left of it; tests: default 220); ON_CPU=1 (dry run). The two calls and a machine's start fit the
+#        15 minutes of a lease with about a minute to spare.
 set -uo pipefail
 mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests]}" && out=$(cd "$1" && pwd)
 part=${2:-figures}
@@ -63,7 +64,7 @@ cores=$(nproc)
 if [ "$part" = tests ]; then
     # the quick tests first (about 50 s on the H200), then the zoo's kill/resume (90 s) and the JAX update (73 s)
     slow="reproducible_resumes or jax_update"
-    deadline=${DEADLINE_S:-235}
+    deadline=${DEADLINE_S:-220}
     for pick in "not ($slow)" "$slow"; do
         left=$((deadline - (SECONDS - start)))
         if [ "$left" -lt 20 ]; then
@@ -80,7 +81,7 @@ fi
 # finishes at today's speed (a side at the target speed takes seconds), the limits so that the four
 # fit in 7 minutes; a side that runs out of time is missing from its JSON, and the summary says so
 # (below the rate the limit allows).
-worlds=${WORLDS:-"lavaworld/fc:256:20000:170 randomized-lavaworld/cnn:64:10000:100 colorful-memory/cnn-gru-small-onehot:32:10000:85 safety-car-goal/mlp:16:10000:85"}
+worlds=${WORLDS:-"lavaworld/fc:256:20000:160 randomized-lavaworld/cnn:64:10000:100 colorful-memory/cnn-gru-small-onehot:32:10000:85 safety-car-goal/mlp:16:10000:85"}
 # the best CPU setting on every core first ("auto": what zoo run --group-size auto picks, as
 # measured: PPO groups of 8, OPAC² one process per model), then the GPU group: LavaWorld K = 256
 # with its slots on the GPU (the device engine, one CUDA graph a step) and with the numba engines
@@ -129,7 +130,7 @@ python3 benchmarks/gpu_summary.py "$out" 2>&1 | tee -a "$log"
 # by the numba engines over every core (with the copies a GPU learner needs) and by the device engine
 # (envs/lavaworld_device.py) on the GPU, eager, as one CUDA graph and compiled; its bytes checked
 # against numba's first
-left=$((${DEADLINE_S:-540} - (SECONDS - start)))
+left=$((${DEADLINE_S:-505} - (SECONDS - start)))
 if [ "$left" -ge 20 ]; then
     if [ -n "${ON_CPU:-}" ]; then engine_args=(--agents 4 --steps 20 --device cpu); else engine_args=(--agents 256 --steps 200 --device cuda --compile); fi
     threads=$(printf '%s\n' 2 8 "$cores" | awk -v n="$cores" '$1 <= n' | sort -nu | tr '\n' ' ')

@@ -68,6 +68,10 @@ def test_summary_bounds_a_side_cut_short_by_the_time_its_world_had_left(tmp_path
         == f"the GPU side did not finish within the 42 s left of its 90 s: below {32 * 30_000 / (90 - 48.04):,.0f} frames/s, evaluations included"
     )
     assert rows["safety-car-goal"]["missing"] == "no side finished within its 90 s: below 3,556 frames/s, evaluations included"
+    # the round at the GPU side's rate, saying what size of model that rate was measured on
+    round_ = json.loads((tmp_path / "summary.json").read_text())["round"]
+    assert round_["frames_per_s"] == lava["sides"][0]["frames_per_s"] and round_["measured_frames_per_model"] == 30_000
+    assert "the rate measured with models of 30,000 frames" in (tmp_path / "summary.md").read_text()
 
 
 def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):

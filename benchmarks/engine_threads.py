@@ -52,18 +52,18 @@ def engines_of(world: str, agents: int) -> list:
 def run(engines: list, steps: int, side: str, seed: int, threads: int = 0) -> float:
     from rlbackdoors.envs.batched_base import EngineGroup
 
-    rng = np.random.default_rng(seed)
-    actions = [rng.integers(0, 3, (steps, e.num_envs)) for e in engines]
+    acts = slot_actions(engines, steps, seed)
+    own = np.split(acts, np.cumsum([e.num_envs for e in engines])[:-1], axis=1)  # each engine's columns
     group = None if side == "per agent" else EngineGroup.of(engines, parallel=threads if side == "parallel" else False)
     if side != "per agent" and group is None:
         raise SystemExit(f"{type(engines[0]).__name__}: these engines cannot share a call")
     started = time.perf_counter()
     for t in range(steps):
         if group is None:
-            for e, a in zip(engines, actions):
+            for e, a in zip(engines, own):
                 e.step(a[t])
         else:
-            group.step(np.concatenate([a[t] for a in actions]))
+            group.step(acts[t])
     return sum(e.num_envs for e in engines) * steps / (time.perf_counter() - started)
 
 
@@ -126,7 +126,6 @@ def run_host_for_device(engines: list, steps: int, seed: int, device: str) -> fl
 def differs(world: str, agents: int, steps: int, device: str, graph: bool) -> str | None:
     """Where the device engine first differs from numba's one call on the same fresh engines and
     actions (observations, rewards, ends, outcomes, step counts, compared at every step), or None."""
-    import numpy as np
     import torch
 
     from rlbackdoors.envs.batched_base import EngineGroup

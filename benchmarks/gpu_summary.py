@@ -20,6 +20,7 @@ import json
 import re
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 ROOT = Path(__file__).resolve().parents[1]
 # world/arch -> (frames/s, x models/h against CPU groups on every core, least K); None: report it
@@ -37,29 +38,38 @@ def target(world: str, arch: str):
     return TARGETS.get(f"{world}/{arch}") or TARGETS.get(f"{world}/*")
 
 
-def limits(log: Path) -> dict[str, tuple[int, int, int, int | None, int]]:
-    """world/arch -> (models, frames, limit s, exit status, sides planned) from bench.log's
+class Bound(NamedTuple):
+    """What bench.log says of one world's run: its size, time limit, exit status and sides planned."""
+
+    models: int
+    frames: int
+    limit: int
+    status: int | None
+    planned: int
+
+
+def limits(log: Path) -> dict[str, Bound]:
+    """world/arch -> :class:`Bound` from bench.log's
     '== world arch: M models x F frames, sides: S1 S2 ... (limit T s)' and
     '== end world arch: exit X ...' lines."""
     found: dict = {}
     text = log.read_text() if log.is_file() else ""
     for m in re.finditer(r"^== (\S+) (\S+): (\d+) models x (\d+) frames(?:, sides: (.*?))? \(limit (\d+) s\)", text, re.M):
-        found[f"{m[1]}/{m[2]}"] = (int(m[3]), int(m[4]), int(m[6]), None, len((m[5] or "").split()))
+        found[f"{m[1]}/{m[2]}"] = Bound(int(m[3]), int(m[4]), int(m[6]), None, len((m[5] or "").split()))
     for m in re.finditer(r"^== end (\S+) (\S+): exit (\d+)", text, re.M):
         key = f"{m[1]}/{m[2]}"
         if key in found:
-            models, frames, limit, _, planned = found[key]
-            found[key] = (models, frames, limit, int(m[3]), planned)
+            found[key] = found[key]._replace(status=int(m[3]))
     return found
 
 
-def why_missing(what: str, bound: tuple | None, spent: float = 0.0) -> str:
+def why_missing(what: str, bound: Bound | None, spent: float = 0.0) -> str:
     """What became of a side not in the JSON: out of time (with the rate it stayed below), or
     failed. ``spent``: the wall seconds the world's finished sides took out of its limit (a side
     that did not finish had at most the rest, so its rate stayed below the frames over that)."""
     if bound is None:
         return what
-    models, frames, limit, status = bound[:4]
+    models, frames, limit, status = bound.models, bound.frames, bound.limit, bound.status
     if status == 124:
         left = limit - spent
         if left <= 0:
@@ -127,8 +137,8 @@ def summarise(out: Path) -> dict:
         spent = sum(side.get("wall_s") or 0 for side in sides)
         if not gpu:
             row["missing"] = why_missing("the GPU side did not finish", bound, spent)
-        elif bound is not None and bound[4] > len(sides):  # some GPU sides ran out of the world's time
-            unfinished = bound[4] - len(sides)
+        elif bound is not None and bound.planned > len(sides):  # some GPU sides ran out of the world's time
+            unfinished = bound.planned - len(sides)
             row["unfinished"] = why_missing("the next GPU side did not finish", bound, spent) + (
                 f"; {unfinished - 1} more did not start" if unfinished > 1 else ""
             )
@@ -141,8 +151,8 @@ def summarise(out: Path) -> dict:
                 {
                     "world": world,
                     "arch": arch,
-                    "models": bound[0],
-                    "frames_per_model": bound[1],
+                    "models": bound.models,
+                    "frames_per_model": bound.frames,
                     "reference": None,
                     "sides": [],
                     "missing": why_missing("no side finished", bound),

@@ -23,6 +23,7 @@ import functools
 import json
 import os
 import platform
+import shutil
 import tempfile
 import time
 
@@ -37,9 +38,6 @@ def machine() -> dict:
     except OSError:
         pass
     return {"cpu": cpu or platform.processor(), "cores": os.cpu_count(), "torch": torch.__version__, "loadavg": list(os.getloadavg())}
-
-
-PARTS = {"Collect": "collect", "Update": "update", "Evaluate": "evaluate", "Draw": "draw", "Act": "act", "Learn": "learn"}
 
 
 def top_ops(profiler, rows: int, wall_s: float) -> dict:
@@ -78,11 +76,11 @@ def train_group(
     original = train_group_module.serve_batch
     sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
 
-    profiles: dict[str, list[dict]] = {}
+    profiles: dict[str, dict] = {}
 
     @functools.wraps(original)
     def timed(requests, *args, **kwargs):
-        part = PARTS.get(type(requests[0]).__name__, type(requests[0]).__name__)
+        part = type(requests[0]).__name__.lower()  # collect, update, evaluate, draw; OPAC²'s act, learn
         profiler = None
         if profile and calls[part] == (1 if part in ("collect", "update") else 0):  # a steady cycle; the first evaluation
             profiler = torch.profiler.profile(
@@ -95,12 +93,13 @@ def train_group(
             return original(requests, *args, **kwargs)
         finally:
             sync()
+            elapsed = time.perf_counter() - start_wall
             cpu[part] += time.process_time() - start
-            wall[part] += time.perf_counter() - start_wall
+            wall[part] += elapsed
             calls[part] += 1
             if profiler is not None:
                 profiler.__exit__(None, None, None)
-                profiles[part] = top_ops(profiler, profile, time.perf_counter() - start_wall)
+                profiles[part] = top_ops(profiler, profile, elapsed)
 
     folder = tempfile.mkdtemp(prefix="group-breakdown-")
     runs = []
@@ -117,6 +116,7 @@ def train_group(
         train_group_module.train_group(runs, agents)
     finally:
         train_group_module.serve_batch = original
+        shutil.rmtree(folder, ignore_errors=True)  # the runs' folders: only their times are wanted
     total, total_wall = time.process_time() - start, time.perf_counter() - start_wall
     parts = {**cpu, "rest": total - sum(cpu.values())}
     walls = {**wall, "rest": total_wall - sum(wall.values())}

@@ -464,7 +464,8 @@ class EngineGroup:
     final_obs: Any
 
     def __init__(self, engines: list[BatchedGridEnv], parallel: bool | int = False):
-        self.engines, self.parallel = engines, parallel if isinstance(parallel, int) and not isinstance(parallel, bool) and parallel > 0 else bool(parallel)
+        self.engines = engines
+        self.parallel: bool | int = parallel if isinstance(parallel, bool) else int(parallel)  # True: timed; a count: fixed
         lead = self.lead = engines[0]
         self.size = lead.size  # the settings every engine shares (of), read by the world's methods run on the group
         self.poisoned = np.concatenate([e.poisoned for e in engines])
@@ -538,15 +539,12 @@ class EngineGroup:
         assert self.world is not None
         img, outs = lead._images(self.total), world._outputs(self, self.total)  # type: ignore[arg-type]
         final = world._final_image(self)  # type: ignore[arg-type]
-        if self.parallel is not True and self.parallel:  # a thread count given
-            reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs, int(self.parallel))
-        elif self.parallel:
-            choice = thread_choice(world, self.total)
-            threads, started = choice.next(), time.perf_counter()
-            reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs, threads)
+        choice = thread_choice(world, self.total) if self.parallel is True else None
+        threads = choice.next() if choice is not None else int(self.parallel)
+        started = time.perf_counter()
+        reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs, threads)
+        if choice is not None:
             choice.record(threads, time.perf_counter() - started)
-        else:
-            reward, terminated, truncated, outcome, steps = step_slots(lead, self, acts, self.poisoned, self.world, img, final, outs)
         info = {"outcome": outcome, "steps": steps, **world._extra_info(self, outs)}  # type: ignore[arg-type]
         return world._observation(self, img, outs), reward, terminated, truncated, info  # type: ignore[arg-type]
 

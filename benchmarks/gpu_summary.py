@@ -108,6 +108,7 @@ def summarise(out: Path) -> dict:
                         "env_workers",
                         "update_backend",
                         "engine",
+                        "conv",
                         "models_per_hour",
                         "frames_per_s",
                         "ratio",
@@ -193,6 +194,7 @@ def markdown(result: dict) -> str:
                 + (f" x {s['workers']} processes" if (s.get("workers") or 1) > 1 else "")
                 + (f", {s['update_backend']} update" if s.get("update_backend") not in (None, "torch") else "")
                 + (f", {s['engine']} engine" if s.get("engine") else "")
+                + (f", {s['conv']} convolutions" if s.get("conv") else "")
                 + (f", {s['env_workers']} env workers" if s.get("env_workers") else "")
                 + f" | {s.get('frames_per_s', 0):,.0f} ({want.get('frames_per_s') or 'report'}) | x{s['ratio']} ({want.get('ratio')}) | "
                 + ("" if not met else ("yes" if not flags else "no: " + ", ".join(flags)))

@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--budget", type=float, default=0.05, help="TrojDRL's budget (its default is 0.01; 0.05 here, as the first results)")
     parser.add_argument("--cycles", type=int, default=3)
     parser.add_argument(
-        "--conv", choices=("each", "gemm"), help="a CNN group's convolutions on this CPU (models.minigrid.STACKED_CONV; default: the CPU's, each)"
+        "--conv", choices=("each", "gemm", "grouped"), help="a CNN group's convolutions on this CPU (models.minigrid.STACKED_CONV; default: the CPU's, each)"
     )
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--reference", help="another checkout's src/ (e.g. a git worktree of an older commit), measured alternately in the same run")

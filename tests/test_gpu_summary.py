@@ -77,7 +77,7 @@ def test_summary_bounds_a_side_cut_short_by_the_time_its_world_had_left(tmp_path
 def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     """benchmarks/gpu_checks.sh as a lease runs it, dry (``ON_CPU=1``: its ":cuda" sides on the CPU;
     two LavaWorld models of 1,024 frames, no time left for the engines): the bench JSON, the log
-    (with a group's wall time by part) and the judged table land in OUT, at most the 8 files a
+    (with the convolutions' timing and a group's wall time by part) and the judged table land in OUT, at most the 8 files a
     lease brings back. Two GPU sides of one K (torch's update and JAX's) are told apart, and only
     the one with more models an hour carries the verdict. A part it does not have is refused."""
     env = {
@@ -96,6 +96,10 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     assert files == ["bench.log", "bench_zoo_lavaworld_fc.json", "breakdown.json", "summary.json", "summary.md"] and len(files) <= 8
     log = (out / "bench.log").read_text()
     assert "== end lavaworld fc: exit 0" in log and "engine_threads: not run" in log and "== group_breakdown: exit 0" in log
+    # a group's convolutions timed one per agent and as one grouped conv2d, before the worlds
+    assert "== stacked_conv: exit 0" in log and log.index("== stacked_conv") < log.index("== lavaworld")
+    (conv,) = [json.loads(line.split(" ", 1)[1]) for line in log.splitlines() if line.startswith("stacked_conv ")]
+    assert all(set(row) == {"each", "grouped", "grouped_speedup"} for key, row in conv.items() if "/K=" in key) and len(conv) == 4
     (parts,) = [json.loads(line.split(" ", 1)[1]) for line in log.splitlines() if line.startswith("breakdown ")]
     assert {"collect", "update", "evaluate", "rest"} <= set(parts["wall_share"]) and sum(parts["wall_share"].values()) == pytest.approx(1, abs=0.01)
     wrong = subprocess.run(

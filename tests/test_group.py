@@ -69,20 +69,22 @@ def weights_digest(model: torch.nn.Module) -> str:
     return hashlib.sha256(b"".join(p.detach().numpy().tobytes() for p in model.parameters())).hexdigest()
 
 
-def gemm_convolutions(monkeypatch, conv: str) -> None:
+def convolutions(monkeypatch, conv: str) -> None:
     """A group's convolutions on this CPU as ``conv`` says (``models.minigrid.STACKED_CONV``: "each",
-    one conv2d per agent, every device's default; "gemm", one batched product for all agents)."""
+    one conv2d per agent, every device's default; "gemm", one batched product for all agents;
+    "grouped", one conv2d with a group of channels per agent)."""
     monkeypatch.setitem(minigrid.STACKED_CONV, "cpu", conv)
 
 
-CNN_GEMM = [("lavaworld", "cnn", "gemm"), ("randomized-lavaworld", "cnn", "gemm")]
+CNN_GEMM = [(env, "cnn", conv) for env in ("lavaworld", "randomized-lavaworld") for conv in ("gemm", "grouped")]
 
 
 @pytest.mark.parametrize("env,arch,conv", [(e, a, "each") for e, a in FEED_FORWARD] + CNN_GEMM)
 def test_stacked_forward_is_each_agents_forward(env, arch, conv, monkeypatch):
     """K agents' stacked forward computes each agent's own (to float rounding), the CNNs' with
-    their convolutions one per agent (a CPU group) or unfolded into one batched product (STACKED_CONV's "gemm")."""
-    gemm_convolutions(monkeypatch, conv)
+    their convolutions one per agent (a CPU group), unfolded into one batched product (STACKED_CONV's
+    "gemm") or one grouped conv2d ("grouped")."""
+    convolutions(monkeypatch, conv)
     torch.manual_seed(0)
     models = [build_model(arch, env) for _ in range(3)]
     params = {name: torch.stack([m.get_parameter(name).detach() for m in models]) for name, _ in models[0].named_parameters()}
@@ -249,12 +251,12 @@ def cm_learner(seed: int, poison: dict | None = None):
     return ppo, envs, envs.reset(seed=seed * 1000)[0]
 
 
-@pytest.mark.parametrize("conv", ["each", "gemm"])
+@pytest.mark.parametrize("conv", ["each", "gemm", "grouped"])
 def test_recurrent_group_with_the_memory_head_matches_each_agent_alone(conv, monkeypatch):
     """Colorful Memory (CNN-GRU, truncated BPTT, auxiliary memory loss): the group's rollouts carry
     the same actions, memory targets and (to rounding) memories, its losses and weights match;
-    also with STACKED_CONV's "gemm" convolutions (one batched product)."""
-    gemm_convolutions(monkeypatch, conv)
+    also with STACKED_CONV's "gemm" and "grouped" convolutions (one call for all agents)."""
+    convolutions(monkeypatch, conv)
     alone, grouped = [cm_learner(s) for s in range(3)], [cm_learner(s) for s in range(3)]
     for _ in range(2):
         lone, results, stats = step_both(alone, grouped)
@@ -272,23 +274,28 @@ def test_recurrent_group_with_the_memory_head_matches_each_agent_alone(conv, mon
 @pytest.mark.parametrize(
     "env,arch,conv",
     [("lavaworld", "fc", "each"), ("lavaworld", "cnn", "each"), ("randomized-lavaworld", "fc", "each"), ("colorful-memory", None, "each")]
-    + [("randomized-lavaworld", "cnn", "gemm"), ("colorful-memory", None, "gemm")],
+    + [(env, arch, conv) for env, arch in (("randomized-lavaworld", "cnn"), ("colorful-memory", None)) for conv in ("gemm", "grouped")],
 )
 def test_an_agents_bytes_do_not_depend_on_its_group(env, arch, conv, monkeypatch):
     """Agent 0 trained alone through the stacked path, or beside 1, 2 or 7 others: the same
     weights, byte for byte (Colorful Memory: its auxiliary memory head's too); the CNNs also with
-    STACKED_CONV's "gemm" convolutions (one batched product for all agents)."""
-    gemm_convolutions(monkeypatch, conv)
-    digests = set()
-    for seeds in ([0], [0, 1], [0, 2, 3], [0, 5, 6, 7, 8, 9, 10, 11]):
+    STACKED_CONV's "gemm" convolutions (one batched product for all agents). With "grouped" (one
+    grouped conv2d) the library may pick its kernel by the group's width (measured: the
+    Randomized LavaWorld CNN's bytes differ across widths on this CPU), so the bytes may hang on
+    the width (fixed on CUDA), never on the mates: beside other mates at the same width, the same."""
+    convolutions(monkeypatch, conv)
+    digests: dict[int | None, set[str]] = collections.defaultdict(set)
+    compositions = ([0], [0, 1], [0, 2, 3], [0, 5, 6, 7, 8, 9, 10, 11]) + (([0, 4], [0, 6, 7]) if conv == "grouped" else ())
+    for seeds in compositions:
         learners = [learner(env, arch, s) if arch else cm_learner(s) for s in seeds]
         ppos, envs, obs = [x[0] for x in learners], [x[1] for x in learners], [x[2] for x in learners]
         for _ in range(2):
             results = group.collect(ppos, envs, obs)
             group.update(ppos, [r for r, _ in results])
             obs = [o for _, o in results]
-        digests.add(weights_digest(ppos[0].model) + (weights_digest(ppos[0].aux) if ppos[0].aux is not None else ""))
-    assert len(digests) == 1
+        width = group.group_width(len(seeds), ppos[0].device) if conv == "grouped" else None
+        digests[width].add(weights_digest(ppos[0].model) + (weights_digest(ppos[0].aux) if ppos[0].aux is not None else ""))
+    assert all(len(d) == 1 for d in digests.values()), {w: len(d) for w, d in digests.items()}
 
 
 def opac2_learner(seed: int, device: torch.device | str = "cpu"):
@@ -540,7 +547,7 @@ def test_a_groups_device_work_does_not_grow_with_its_agents(teachers):
 CONV_PER_AGENT = {"colorful-memory": {"aten.conv2d": 4 * 3}}
 
 
-@pytest.mark.parametrize("env,conv", [(env, "each") for env in sorted(EVAL_CASES)] + [("colorful-memory", "gemm")])
+@pytest.mark.parametrize("env,conv", [(env, "each") for env in sorted(EVAL_CASES)] + [("colorful-memory", "gemm"), ("colorful-memory", "grouped")])
 def test_a_lockstep_evaluation_step_does_not_grow_with_its_agents(env, conv, monkeypatch):
     """A group's evaluation step (``stacked_act``) runs the same operations for 2 agents as for 6:
     their weights stacked once and picked by an index, their uniforms drawn a block of
@@ -548,8 +555,8 @@ def test_a_lockstep_evaluation_step_does_not_grow_with_its_agents(env, conv, mon
     step). Sampled play, the live set kept whole (regroup 0), 3 episodes per agent; every step but
     the first (which picks the weights) and those that refill the block counted, each the same.
     LavaWorld FC and Colorful Memory's recurrent CNN-GRU, whose convolutions are one per agent on a
-    device by default and one batched product for all agents with STACKED_CONV's "gemm"."""
-    gemm_convolutions(monkeypatch, conv)
+    device by default and one call for all agents with STACKED_CONV's "gemm" or "grouped"."""
+    convolutions(monkeypatch, conv)
     from rlbackdoors.agent import Agent
     from rlbackdoors.evaluate.episodes import _vector_envs, play_lockstep
 
@@ -935,13 +942,15 @@ def test_group_size_is_validated(tmp_path):
         (["--group-size", "4", "x"], "--group-size: must be an integer >= 1, got 'x'"),
         (
             ["--side", "1:gpu"],
-            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda)",
+            "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
+            "CONV one of each, gemm, grouped (with DEVICE cpu or cuda)",
         ),
-        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
-        (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
-        (["--side", "8:cpu::0:xla"], "--side '8:cpu::0:xla': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
-        (["--side", "8:cuda:1:::gpu"], "--side '8:cuda:1:::gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]"),
+        (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"),
+        (["--side", "8:cpu:2:-1"], "--side '8:cpu:2:-1': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"),
+        (["--side", "8:cpu::0:xla"], "--side '8:cpu::0:xla': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"),
+        (["--side", "8:cuda:1:::gpu"], "--side '8:cuda:1:::gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"),
+        (["--side", "8:cuda:1::::fft"], "--side '8:cuda:1::::fft': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"),
         (["--side", "1", "--group-size", "2"], "bench zoo: --side names each side's group size and device; leave out --group-size and --device"),
     ):
         out = cli("bench", "zoo", *flags)
@@ -1000,18 +1009,20 @@ def test_bench_zoo_side_with_env_workers_trains_in_an_env_pool(tmp_path):
 def test_bench_zoo_sides_default_to_one_process_per_model_then_each_group_size():
     from rlbackdoors.bench.zoo import parse_side, side_plan
 
-    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0, "torch", ""), (4, "cuda", 2, 0, "torch", ""), (8, "cuda", 2, 0, "torch", "")]
+    assert side_plan((4, 8), 2, "cuda", None) == [(1, "cuda", 2, 0, "torch", "", ""), (4, "cuda", 2, 0, "torch", "", ""), (8, "cuda", 2, 0, "torch", "", "")]
     sides = [parse_side("1:cpu:16"), parse_side("64:cuda"), parse_side("8"), parse_side("64:cuda:1:15"), parse_side("8:cpu::0:jax"), parse_side("auto:cpu:16")]
-    sides += [parse_side("256:cuda:1:::numba"), parse_side("256:cuda:1:0:jax:device")]
+    sides += [parse_side("256:cuda:1:::numba"), parse_side("256:cuda:1:0:jax:device"), parse_side("64:cuda:1::::grouped"), parse_side("8:cpu:::::gemm")]
     assert side_plan((8,), 2, "cpu", sides) == [
-        (1, "cpu", 16, 0, "torch", ""),
-        (64, "cuda", 2, 0, "torch", ""),
-        (8, "cpu", 2, 0, "torch", ""),
-        (64, "cuda", 1, 15, "torch", ""),
-        (8, "cpu", 2, 0, "jax", ""),
-        ("auto", "cpu", 16, 0, "torch", ""),
-        (256, "cuda", 1, 0, "torch", "numba"),
-        (256, "cuda", 1, 0, "jax", "device"),
+        (1, "cpu", 16, 0, "torch", "", ""),
+        (64, "cuda", 2, 0, "torch", "", ""),
+        (8, "cpu", 2, 0, "torch", "", ""),
+        (64, "cuda", 1, 15, "torch", "", ""),
+        (8, "cpu", 2, 0, "jax", "", ""),
+        ("auto", "cpu", 16, 0, "torch", "", ""),
+        (256, "cuda", 1, 0, "torch", "numba", ""),
+        (256, "cuda", 1, 0, "jax", "device", ""),
+        (64, "cuda", 1, 0, "torch", "", "grouped"),
+        (8, "cpu", 2, 0, "torch", "", "gemm"),
     ]
     for bad in (
         "0",
@@ -1024,9 +1035,11 @@ def test_bench_zoo_sides_default_to_one_process_per_model_then_each_group_size()
         "8:cpu:2:1:jax:1",
         "8:auto:1:0:torch:device",
         "8:cpu:1:0:torch:numba:x",
+        "8:auto:1:0:torch::grouped",
+        "8:cpu:1:0:torch:numba:each:x",
         "x",
     ):
-        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\[:BACKEND\\[:ENGINE\\]\\]\\]\\]\\]"):
+        with pytest.raises(ValueError, match="expected K\\[:DEVICE\\[:WORKERS\\[:ENV_WORKERS\\[:BACKEND\\[:ENGINE\\[:CONV\\]\\]\\]\\]\\]\\]"):
             parse_side(bad)
 
 
@@ -1054,6 +1067,35 @@ def test_bench_zoo_engine_sides_train_the_same_bytes_with_either_engine(tmp_path
     monkeypatch.setenv(DEVICE_ENGINE_ENV, "tpu")
     with pytest.raises(ValueError, match="RLBACKDOORS_DEVICE_ENGINE='tpu' is not allowed"):
         group.device_engine_types()
+
+
+def test_bench_zoo_conv_sides_set_their_jobs_convolutions_and_each_model_records_it(tmp_path, monkeypatch):
+    """``--side 2:cpu:1::::grouped`` (one grouped conv2d for a group's agents) against the default:
+    the side's jobs compute as told (``RLBACKDOORS_STACKED_CONV``, restored after each side) and
+    each of its CNN models records the way in metrics.json; the default side's record nothing."""
+    import rlbackdoors.zoo.run as zoo_run_module
+    from rlbackdoors.bench.zoo import bench_zoo
+    from rlbackdoors.models.minigrid import STACKED_CONV_ENV
+
+    monkeypatch.setenv(STACKED_CONV_ENV, "cuda:gemm")
+    seen, real = [], zoo_run_module.run
+    monkeypatch.setattr(zoo_run_module, "run", lambda *a, **k: seen.append(os.environ[STACKED_CONV_ENV]) or real(*a, **k))  # what the jobs inherit
+    result = bench_zoo(
+        "lavaworld",
+        "cnn",
+        models=2,
+        frames=3200,
+        sides=[(2, "cpu", 1, 0, "torch", "", ""), (2, "cpu", 1, 0, "torch", "", "grouped")],
+        keep=str(tmp_path),
+        eval_episodes=4,
+    )
+    assert [s.get("conv") for s in result["sides"]] == [None, "grouped"] and all(s["models"] == 2 for s in result["sides"])
+    assert seen == ["cuda:gemm", "cpu:grouped"] and os.environ[STACKED_CONV_ENV] == "cuda:gemm"
+    records = [
+        [json.loads(p.read_text()).get("conv") for p in sorted((tmp_path / name / "models").glob("*/metrics.json"))]
+        for name in ("side0-k2-cpu-w1", "side1-k2-cpu-w1-conv-grouped")
+    ]
+    assert records == [[None, None], ["grouped", "grouped"]]
 
 
 def test_ready_models_are_shared_out_in_capped_chunks():

@@ -49,15 +49,21 @@ def one_step(learners: list) -> tuple[list, list]:
     return results, group.update(ppos, [r for r, _ in results])
 
 
+CM_SECTIONS = {"ppo": {"rollout": 24, "batch_size": 120, "aux_memory_coef": 0.5}}
+
+
 @pytest.mark.parametrize(
-    "env,arch,sections",
+    "env,arch,sections,conv",
     [
-        ("lavaworld", "fc", {}),
-        ("randomized-lavaworld", "cnn", {}),
-        ("colorful-memory", None, {"ppo": {"rollout": 24, "batch_size": 120, "aux_memory_coef": 0.5}}),
+        ("lavaworld", "fc", {}, "each"),
+        ("randomized-lavaworld", "cnn", {}, "each"),
+        ("colorful-memory", None, CM_SECTIONS, "each"),
+        # one grouped conv2d for all agents on the GPU (models.minigrid.STACKED_CONV's "grouped")
+        ("randomized-lavaworld", "cnn", {}, "grouped"),
+        ("colorful-memory", None, CM_SECTIONS, "grouped"),
     ],
 )
-def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
+def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections, conv, monkeypatch):
     """Three agents (one poisoned through the attack seam), one rollout and one update on each
     device: the same actions and rewards, the same gradient norms to 1 %, and the same update of
     the weights to rounding. Why a relative bound on the update, not on each weight: Adam divides
@@ -66,7 +72,11 @@ def test_cuda_group_computes_what_the_cpu_group_computes(env, arch, sections):
     Measured on an H200 (docs/results/zoos.md) with cuDNN's TF32 still on in this test: LavaWorld FC 2e-6
     to 1e-5, Colorful Memory 0.02 to 0.06, Randomized LavaWorld CNN 0.11 and 0.17 (cosine 0.985:
     failed). With the training's settings (``CUDA`` above), H200 2026-11-27: LavaWorld FC 2e-6 to
-    1e-5, Colorful Memory 4e-7 to 6e-6, Randomized LavaWorld CNN 4e-6 to 2.5e-3 (cosine 0.999999)."""
+    1e-5, Colorful Memory 4e-7 to 6e-6, Randomized LavaWorld CNN 4e-6 to 2.5e-3 (cosine 0.999999).
+    ``conv``: how the GPU group computes its convolutions (the CPU's one conv2d per agent either way)."""
+    from rlbackdoors.models import minigrid
+
+    monkeypatch.setitem(minigrid.STACKED_CONV, "cuda", conv)
     poisons = [None, {"trigger": "additive:135", "attack": "trojdrl", "attack_params": {"budget": 0.05}} if env == "lavaworld" else None, None]
     on_cpu = [learner(env, arch, s, p, torch.device("cpu"), **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
     on_gpu = [learner(env, arch, s, p, CUDA, **copy.deepcopy(sections)) for s, p in enumerate(poisons)]
@@ -301,18 +311,18 @@ def test_the_jax_update_on_cuda_is_torchs_and_does_not_depend_on_the_group(tmp_p
     assert len(set(result["digests"])) == 1 and result["step"] == 1.0
 
 
-@pytest.mark.parametrize("arch", ["fc", "cnn"])
-def test_cuda_group_work_does_not_grow_with_its_agents(arch, monkeypatch):
+@pytest.mark.parametrize("arch,conv", [("fc", "each"), ("cnn", "gemm"), ("cnn", "grouped")])
+def test_cuda_group_work_does_not_grow_with_its_agents(arch, conv, monkeypatch):
     """On the GPU, where every operation is a launch or a transfer (``.to(device)`` dispatches here,
     unlike on the CPU): a LavaWorld group's rollout and update (TrojDRL on half, clean teachers and
-    anchors; the CNN's convolutions as one batched product, ``models.minigrid.STACKED_CONV``'s
-    "gemm", a setting since an H200 timed it slower than one conv2d per agent) run the same
+    anchors; the CNN's convolutions in one call, ``models.minigrid.STACKED_CONV``'s "gemm" (a
+    setting since an H200 timed it slower than one conv2d per agent) or "grouped") run the same
     operations for 2 agents as for 6, bar each agent's own host draws; and an OPAC² group's update
     and act (replay batches stacked on the host, copied once per field)."""
     from rlbackdoors.algos import group_opac2
     from rlbackdoors.models import minigrid
 
-    monkeypatch.setitem(minigrid.STACKED_CONV, "cuda", "gemm")
+    monkeypatch.setitem(minigrid.STACKED_CONV, "cuda", conv)
 
     two, six = group_cycle_ops(2, True, CUDA, arch), group_cycle_ops(6, True, CUDA, arch)
     grown = {op: six[op] - two[op] for op in six.keys() | two.keys() if six[op] != two[op]}

@@ -137,6 +137,28 @@ def test_cpu_time_is_carried_across_a_resume(tmp_path, tiny_run_dict, carried):
     assert 0.0 < metrics["wall_time_s"] and json.loads((out / "metrics.json").read_text())["cpu_time_s"] == metrics["cpu_time_s"]
 
 
+def test_a_cnn_run_records_its_groups_convolutions_and_a_resume_under_another_way_is_refused(tmp_path, tiny_run_dict, monkeypatch):
+    """Under ``RLBACKDOORS_STACKED_CONV=cpu:grouped`` (a group's convolutions as one grouped
+    conv2d: other bytes than one per agent) a CNN run's checkpoint records the way; a resume under
+    the default way is refused in one line, and under the same way it goes on. A lone run computes
+    plain convolutions, so its metrics record no way (a group's do: test_group's bench zoo CONV side)."""
+    from rlbackdoors.models.minigrid import STACKED_CONV_ENV
+
+    tiny_run_dict["model"] = {"arch": "cnn"}
+    monkeypatch.setenv(STACKED_CONV_ENV, "cpu:grouped")
+    out = tmp_path / "m"
+    cfg, checkpoint = interrupted_after_first_eval(tiny_run_dict, out)
+    assert checkpoint["conv"] == "grouped"
+    monkeypatch.delenv(STACKED_CONV_ENV)
+    with pytest.raises(FolderError, match="began with a group's convolutions grouped, not each"):
+        train(cfg, out, progress=False)
+    monkeypatch.setenv(STACKED_CONV_ENV, "cpu:grouped")
+    assert "conv" not in train(cfg, out, progress=False)
+    monkeypatch.setenv(STACKED_CONV_ENV, "cpu:fft")
+    with pytest.raises(ValueError, match="RLBACKDOORS_STACKED_CONV='cpu:fft' is not allowed .*WAY one of each, gemm, grouped"):
+        train(cfg, tmp_path / "other", progress=False)
+
+
 def test_a_run_records_its_device_and_a_resume_on_another_is_refused(tmp_path, tiny_run_dict):
     """metrics.json says where the math ran (for ``train.device = "auto"`` too), and a checkpoint
     says where the run began: resuming it on another device is refused (its bytes would mix

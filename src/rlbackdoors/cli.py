@@ -558,10 +558,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--side",
         type=_bench_side,
         action="append",
-        help="zoo: K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1; "
+        help="zoo: K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1; "
         "K auto: what zoo run --group-size auto picks, e.g. --side auto:cpu:16 for the best CPU setting on 16 cores; "
         "ENV_WORKERS: each job's env pool for a world of single envs, e.g. --side 64:cuda:1:15; BACKEND: ppo.update_backend, e.g. --side 8:cpu::0:jax; "
-        "ENGINE: numba or device, what steps a group's grid slots (default numba), e.g. --side 256:cuda:1:::device)",
+        "ENGINE: numba or device, what steps a group's grid slots (default numba), e.g. --side 256:cuda:1:::device; "
+        "CONV: each, gemm or grouped, how a group computes its CNN's convolutions (default each; changes the bytes, recorded), e.g. --side 64:cuda:1::::grouped)",
     )
     be.add_argument("--seed", type=int, default=0, help="converge: training seed")
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")

@@ -16,6 +16,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 from rlbackdoors import worlds
 from rlbackdoors.bench.machine import machine_info
@@ -51,7 +52,15 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
 
 
 def run_side(
-    spec: dict, where: Path, group_size: int | str, workers: int, device: str = "cpu", env_workers: int = 0, update_backend: str = "torch", engine: str = ""
+    spec: dict,
+    where: Path,
+    group_size: int | str,
+    workers: int,
+    device: str = "cpu",
+    env_workers: int = 0,
+    update_backend: str = "torch",
+    engine: str = "",
+    conv: str = "",
 ) -> dict:
     """Plan ``spec`` into ``where`` and run it with ``group_size`` (``"auto"``: as ``zoo run
     --group-size auto`` picks for the world's algorithm on ``device``, recorded as the number it
@@ -59,10 +68,13 @@ def run_side(
     ``engine``: what steps a group's grid slots, ``numba`` or ``device`` (the world's device
     engine, where it has one; on CUDA as one CUDA graph a step), set for the side's jobs through
     ``RLBACKDOORS_DEVICE_ENGINE``; empty: the default (numba, ``algos.group.DEVICE_ENGINE``).
-    The same bytes either way."""
+    The same bytes either way. ``conv``: how a group computes its CNN's convolutions on ``device``
+    (``each``, ``gemm``, ``grouped``: ``models.minigrid.STACKED_CONV``), set through
+    ``RLBACKDOORS_STACKED_CONV``; it changes a group's bytes, and each model records it; empty: the default."""
     import json
 
     from rlbackdoors.algos.group import DEVICE_ENGINE_ENV
+    from rlbackdoors.models.minigrid import STACKED_CONV_ENV
     from rlbackdoors.train.group import auto_group_size
     from rlbackdoors.zoo.plan import plan
     from rlbackdoors.zoo.run import run
@@ -72,19 +84,22 @@ def run_side(
     if auto:
         group_size = auto_group_size(worlds.get(spec["cells"][0]["world"]).algorithm, device)
     plan(parse_spec(spec), where)
-    saved = os.environ.get(DEVICE_ENGINE_ENV)
+    saved = {name: os.environ.get(name) for name in (DEVICE_ENGINE_ENV, STACKED_CONV_ENV)}
     if engine:
         os.environ[DEVICE_ENGINE_ENV] = "" if engine == "numba" else device
+    if conv:
+        os.environ[STACKED_CONV_ENV] = f"{device}:{conv}"
     try:
         load_before = os.getloadavg()
         start = time.perf_counter()
         summary = run(where, workers=workers, group_size=group_size, progress_interval=3600.0, out=io.StringIO(), env_workers=env_workers)
         wall = time.perf_counter() - start
     finally:
-        if saved is None:
-            os.environ.pop(DEVICE_ENGINE_ENV, None)
-        else:
-            os.environ[DEVICE_ENGINE_ENV] = saved
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
     metrics = [json.loads(p.read_text()) for p in sorted(where.glob("models/*/metrics.json"))]
     cpu = [m.get("cpu_time_s") for m in metrics]
     frames = sum(int(m.get("frames") or 0) for m in metrics)  # trained, whole rollouts (a run may pass max_frames by part of one)
@@ -96,6 +111,7 @@ def run_side(
         "env_workers": env_workers,
         "update_backend": update_backend,
         **({"engine": engine} if engine else {}),
+        **({"conv": conv} if conv else {}),
         "models": summary["done"],
         "failed": summary["failed"],
         "wall_s": round(wall, 2),
@@ -109,21 +125,34 @@ def run_side(
     }
 
 
-Side = tuple[
-    int | str, str, int | None, int, str, str
-]  # group size ("auto": the measured one), device, workers (None: the run's), env workers per job, PPO's update backend, engine ("": the default)
+class Side(NamedTuple):
+    """One side of ``bench zoo``: what a ``--side`` names (:func:`parse_side`)."""
+
+    k: int | str  # group size ("auto": the measured one)
+    device: str = "cpu"
+    workers: int | None = None  # None: the run's
+    env_workers: int = 0  # per job, for a world of single envs
+    backend: str = "torch"  # PPO's update backend
+    engine: str = ""  # what steps a group's grid slots ("": the default)
+    conv: str = ""  # how a group computes its convolutions ("": the default)
+
+
+SIDE_FORMAT = "K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"
 
 
 def parse_side(text: str) -> Side:
-    """``K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]]`` (``--side``): a group size (``auto``: what
+    """``K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]`` (``--side``): a group size (``auto``: what
     ``zoo run --group-size auto`` picks for the world on that device, the best CPU setting measured), its device
     (default cpu), workers (default: the run's ``--workers``), each job's env workers for a world
     of single envs (default 0: in the job's process), PPO's ``ppo.update_backend`` (default
-    torch) and what steps a group's grid slots (``numba``, ``device``; default: numba, see
-    :func:`run_side`). Raises ValueError naming the allowed values."""
+    torch), what steps a group's grid slots (``numba``, ``device``; default: numba) and how it
+    computes its convolutions (``each``, ``gemm``, ``grouped``; default each; see :func:`run_side`).
+    Raises ValueError naming the allowed values."""
+    from rlbackdoors.models.minigrid import CONV_WAYS
+
     parts = text.split(":")
     try:
-        if not 1 <= len(parts) <= 6:
+        if not 1 <= len(parts) <= 7:
             raise ValueError
         k: int | str = parts[0] if parts[0] == "auto" else int(parts[0])
         device = parts[1] if len(parts) > 1 else "cpu"
@@ -131,6 +160,7 @@ def parse_side(text: str) -> Side:
         env_workers = int(parts[3]) if len(parts) > 3 and parts[3] else 0
         backend = parts[4] if len(parts) > 4 and parts[4] else "torch"
         engine = parts[5] if len(parts) > 5 else ""
+        conv = parts[6] if len(parts) > 6 else ""
         if (
             (isinstance(k, int) and k < 1)
             or device not in ("cpu", "cuda", "auto")
@@ -139,23 +169,26 @@ def parse_side(text: str) -> Side:
             or backend not in ("torch", "jax")
             or engine not in ("", "numba", "device")
             or (engine == "device" and device == "auto")
+            or conv not in ("", *CONV_WAYS)
+            or (conv and device == "auto")
         ):
             raise ValueError
     except ValueError:
         raise ValueError(
-            f"--side {text!r}: expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE]]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda)"
+            f"--side {text!r}: expected {SIDE_FORMAT}, K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
+            f"CONV one of {', '.join(CONV_WAYS)} (with DEVICE cpu or cuda)"
         ) from None
-    return k, device, workers, env_workers, backend, engine
+    return Side(k, device, workers, env_workers, backend, engine, conv)
 
 
-def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[tuple[int | str, str, int, int, str, str]]:
-    """(group size, device, workers, env workers, update backend, engine) per side: ``sides`` as
-    given (workers defaulting to ``workers``), else one process per model and then each of
-    ``group_sizes``, all on ``device`` with torch's update and the default engine."""
+def side_plan(group_sizes, workers: int, device: str, sides: list[Side] | None) -> list[Side]:
+    """The sides to run: ``sides`` as given (workers defaulting to ``workers``; a shorter tuple
+    takes :class:`Side`'s defaults), else one process per model and then each of ``group_sizes``,
+    all on ``device`` with torch's update, the default engine and convolutions."""
     if sides:
-        return [(k, d, w or workers, e, b, g) for k, d, w, e, b, g in sides]
-    return [(k, device, workers, 0, "torch", "") for k in (1, *group_sizes)]
+        return [side._replace(workers=side.workers or workers) for side in (Side(*s) for s in sides)]
+    return [Side(k, device, workers) for k in (1, *group_sizes)]
 
 
 def bench_zoo(
@@ -173,7 +206,7 @@ def bench_zoo(
 ) -> dict:
     """Models per hour for one process per model and for each group size, in this order, same run.
 
-    ``sides`` replaces that plan with explicit (group size, device, workers, env workers, update backend, engine) sides, the first the
+    ``sides`` replaces that plan with explicit sides (:class:`Side`), the first the
     reference (say one process per model on the CPU cores against groups on a GPU); ``on_side``
     is called with the result so far after each side (a partial result survives a time limit)."""
     from rlbackdoors.zoo.run import default_workers
@@ -191,15 +224,17 @@ def bench_zoo(
     }
     with tempfile.TemporaryDirectory(prefix="rlbackdoors-bench-zoo-") as tmp:
         root = Path(keep) if keep else Path(tmp)
-        for i, (k, side_device, side_workers, env_workers, backend, engine) in enumerate(plan_sides):
+        for i, (k, side_device, side_workers, env_workers, backend, engine, conv) in enumerate(plan_sides):
             where = root / (
                 f"side{i}-k{k}-{side_device}-w{side_workers}"
                 + (f"-e{env_workers}" if env_workers else "")
                 + (f"-{backend}" if backend != "torch" else "")
                 + (f"-{engine}" if engine else "")
+                + (f"-conv-{conv}" if conv else "")
             )
+            assert side_workers is not None  # (side_plan fills it in)
             spec = bench_spec(world, arch, models, frames, side_device, eval_episodes, backend)
-            side = run_side(spec, where, k, side_workers, side_device, env_workers, backend, engine)
+            side = run_side(spec, where, k, side_workers, side_device, env_workers, backend, engine, conv)
             base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
             side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None
             result["sides"].append(side)

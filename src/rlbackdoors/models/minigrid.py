@@ -9,6 +9,7 @@ state dict trained there loads here unchanged (and vice versa).
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING
 
 import torch
@@ -58,28 +59,86 @@ def run_sequential(seq: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
 
 # How a group computes its agents' convolutions, by device type (default "each"): "each", one
 # ``conv2d`` per agent; "gemm", all agents' as one batched matrix product over their unfolded
-# patches (:func:`_conv_stacked_gemm`). "each" everywhere: on a GPU a convolution per agent and
-# layer is a launch each (K x 3 a forward for the grid CNNs), yet on an H200 the unfolded product
-# was slower still, x0.32 a rollout step and x0.08 a minibatch's forward and backward
-# (Randomized LavaWorld CNN, K = 64: 16.8 against 5.4 ms, 265 against 22 ms; Colorful Memory's
-# CNN-GRU, K = 32, alike; benchmarks/stacked_conv.py in benchmarks/results/gpu/h200_2026-11-29).
+# patches (:func:`_conv_stacked_gemm`); "grouped", all agents' as one ``conv2d`` with a group of
+# channels per agent (:func:`_conv_stacked_grouped`: one cuDNN call where "each" makes K). "each"
+# everywhere until a GPU measures better: a convolution per agent and layer is a launch each (K x 3
+# a forward for the grid CNNs), yet on an H200 the unfolded product was slower still, x0.32 a
+# rollout step and x0.08 a minibatch's forward and backward (Randomized LavaWorld CNN, K = 64: 16.8
+# against 5.4 ms, 265 against 22 ms; Colorful Memory's CNN-GRU, K = 32, alike;
+# benchmarks/stacked_conv.py in benchmarks/results/gpu/h200_2026-11-29); "grouped" is not yet
+# timed there (gpu_checks.sh times all three). The environment variable sets it for a process and
+# the jobs it starts (bench zoo's CONV side field sets it): a comma-separated list of DEVICE:WAY.
+# Unlike the engine's choice it changes an agent's bytes, so a run records it (:func:`conv_record`)
+# and does not resume under another (train.driver).
+STACKED_CONV_ENV = "RLBACKDOORS_STACKED_CONV"
 STACKED_CONV: dict[str, str] = {}
+CONV_WAYS = ("each", "gemm", "grouped")
+
+
+def conv_way(device_type: str) -> str:
+    """How a group computes its convolutions on ``device_type`` (:data:`STACKED_CONV_ENV`, else
+    :data:`STACKED_CONV`, else "each"). Raises ValueError naming the allowed values."""
+    text = os.environ.get(STACKED_CONV_ENV)
+    if not text:
+        return STACKED_CONV.get(device_type, "each")
+    ways = {}
+    for item in text.split(","):
+        device, _, way = item.strip().partition(":")
+        if device not in ("cpu", "cuda") or way not in CONV_WAYS:
+            raise ValueError(
+                f"{STACKED_CONV_ENV}={text!r} is not allowed (allowed: a comma-separated list of DEVICE:WAY, DEVICE cpu or cuda, WAY one of {', '.join(CONV_WAYS)})"
+            )
+        ways[device] = way
+    return ways.get(device_type, STACKED_CONV.get(device_type, "each"))
+
+
+def conv_record(model: nn.Module, device_type: str) -> str | None:
+    """What a run records of its group's convolutions (with its device and group: what reproduces
+    its bytes): the way (:func:`conv_way`) where ``model`` has convolutions and it is not the
+    default "each"; else None, and older runs' records stay as they were."""
+    if not any(isinstance(m, nn.Conv2d) for m in model.modules()):
+        return None
+    way = conv_way(device_type)
+    return None if way == "each" else way
 
 
 def _conv_stacked(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """K agents' convolutions, x (K, N, C, H, W), w (K, O, C, kh, kw), as :data:`STACKED_CONV`
-    says for ``x``'s device.
+    """K agents' convolutions, x (K, N, C, H, W), w (K, O, C, kh, kw), as :func:`conv_way` says
+    for ``x``'s device.
 
-    On a CPU one ``conv2d`` per agent. Not one grouped convolution: on a CPU that is slower than K
-    plain ones (experiments/stacked_networks/stacked_networks.json), and its sums depend on K, so an agent's bytes would
-    depend on its group-mates; per agent they do not. The agents' slices come from ``unbind``, whose
-    backward is one stack: indexing ``x[k]`` backpropagates K zero-filled (K, ...) tensors summed
-    (the same bytes; a CNN group's update x1.06-1.11, experiments/group_update_ab)."""
-    if STACKED_CONV.get(x.device.type, "each") == "gemm" and layer.groups == 1 and not isinstance(layer.padding, str):
+    By default one ``conv2d`` per agent. On a CPU that beats one grouped convolution
+    (experiments/stacked_networks/stacked_networks.json), and an agent's sums cannot depend on its
+    group-mates. The agents' slices come from ``unbind``, whose backward is one stack: indexing
+    ``x[k]`` backpropagates K zero-filled (K, ...) tensors summed (the same bytes; a CNN group's
+    update x1.06-1.11, experiments/group_update_ab)."""
+    way = conv_way(x.device.type)
+    if way == "gemm" and layer.groups == 1 and not isinstance(layer.padding, str):
         return _conv_stacked_gemm(layer, w, b, x)
+    if way == "grouped":
+        return _conv_stacked_grouped(layer, w, b, x)
     return torch.stack(
         [F.conv2d(xk, wk, bk, layer.stride, layer.padding, layer.dilation, layer.groups) for xk, wk, bk in zip(x.unbind(0), w.unbind(0), b.unbind(0))]
     )
+
+
+def _conv_stacked_grouped(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """:func:`_conv_stacked` as one ``conv2d`` for all K agents: their channels side by side
+    (N, K * C, H, W) and each agent's kernel a group of its own (``groups = K * layer.groups``), so
+    no agent reads another's channels. One call and one backward whatever K; the library picks
+    its kernel by the shape, so, as with the batched products, an agent's sums are its own but
+    rounded as its group's width says (fixed on CUDA: ``algos.group.group_width``)."""
+    K, N = x.shape[:2]
+    out_c = w.shape[1]
+    y = F.conv2d(
+        x.transpose(0, 1).reshape(N, K * x.shape[2], *x.shape[3:]),
+        w.reshape(K * out_c, *w.shape[2:]),
+        b.reshape(K * out_c),
+        layer.stride,
+        layer.padding,
+        layer.dilation,
+        K * layer.groups,
+    )
+    return y.reshape(N, K, out_c, *y.shape[2:]).transpose(0, 1)
 
 
 def _conv_stacked_gemm(layer: nn.Conv2d, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

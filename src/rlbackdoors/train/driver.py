@@ -35,6 +35,7 @@ import torch
 
 from rlbackdoors.config import RunConfig
 from rlbackdoors.io import remove_tree
+from rlbackdoors.models.minigrid import conv_record
 from rlbackdoors.state import StateError
 from rlbackdoors.folder import FolderError, ModelFolder, stack_versions
 from rlbackdoors.train.stop import StopRequest
@@ -257,6 +258,8 @@ def train_steps(
         outcome = yield from runner.steps(cfg, folder, checkpoint, progress, stop, after_eval, cpu_source, env_pool)
         if trainer is not None:
             outcome.extra["trainer"] = trainer
+            if isinstance(outcome.policy, torch.nn.Module) and (conv := conv_record(outcome.policy, where.type)):
+                outcome.extra["conv"] = conv  # the group's convolutions, where not one per agent: part of what reproduces its bytes
         # where the math ran, for train.device = "auto" too: with the config and the group, what reproduces the bytes
         outcome.extra["device"] = where.type
         if where.type == "cuda":

@@ -24,6 +24,7 @@ from rlbackdoors.algos.optim import check_optimizer_state
 from rlbackdoors.algos.ppo import PPO, Rollout
 from rlbackdoors.config import RunConfig
 from rlbackdoors.models import build_model
+from rlbackdoors.models.minigrid import conv_record
 from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.attacks.seam import AttackSeam
 from rlbackdoors.poison.mix import make_env_mix, make_vector_env
@@ -263,6 +264,10 @@ def steps(
                     memory = checkpoint.get("teacher_memory")
                     ppo.teacher_memory = None if memory is None else memory.to(device)
             model.load_state_dict(checkpoint["model"])
+            if checkpoint.get("conv") != conv_record(model, device.type):  # it changes a group's bytes: not mixed in one run
+                raise StateError(
+                    f"it began with a group's convolutions {checkpoint.get('conv') or 'each'}, not {conv_record(model, device.type) or 'each'} (models.minigrid.STACKED_CONV)"
+                )
             if (ppo.aux is None) != (checkpoint.get("aux") is None):
                 raise StateError("the auxiliary memory head does not fit ppo.aux_memory_coef")
             if ppo.aux is not None:
@@ -294,6 +299,9 @@ def steps(
             {
                 "format": CHECKPOINT_FORMAT,
                 "device": device.type,  # a resume on another device is refused (train.driver)
+                # how this process computes a group's convolutions where not one per agent (changes a
+                # group's bytes): a resume under another way is refused
+                **({"conv": conv} if (conv := conv_record(model, device.type)) else {}),
                 "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
                 "aux": None if ppo.aux is None else {k: v.detach().cpu() for k, v in ppo.aux.state_dict().items()},
                 "optimizer": ppo.optimizer.state_dict(),

@@ -96,6 +96,8 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     assert files == ["bench.log", "bench_zoo_lavaworld_fc.json", "breakdown.json", "summary.json", "summary.md"] and len(files) <= 8
     log = (out / "bench.log").read_text()
     assert "== end lavaworld fc: exit 0" in log and "engine_threads: not run" in log and "== group_breakdown: exit 0" in log
+    # before each measurement the load and what the last part left running (killed: its own process group)
+    assert log.count("processes of the last part left over (killed)") == 4  # before stacked_conv, the world and the breakdown, and at the end
     # a group's convolutions timed one per agent and as one grouped conv2d, before the worlds
     assert "== stacked_conv: exit 0" in log and log.index("== stacked_conv") < log.index("== lavaworld")
     (conv,) = [json.loads(line.split(" ", 1)[1]) for line in log.splitlines() if line.startswith("stacked_conv ")]

@@ -13,6 +13,10 @@ to converge, final clean SR and poisoned SR (two-sided Mann-Whitney U on the 200
 evaluations), and the CPU seconds per model each side spent (metrics.json's ``cpu_time_s``: the
 group trainer apportions its batched work among its runs). Writes
 ``experiments/group_equivalence/group_equivalence.json`` and prints a Markdown table.
+
+``--device cuda`` trains the group side on a GPU (its bytes are the GPU's, recorded per run with
+any group convolution way, ``RLBACKDOORS_STACKED_CONV``), to be tested against a lone side trained
+on a CPU (``--report --against``): e.g. on a lease, ``--side group --group-size 20 --device cuda``.
 """
 
 from __future__ import annotations
@@ -59,7 +63,9 @@ def run_side(side: str, args) -> None:
             )
             print(f"group s{key}: {state}", file=sys.stderr, flush=True)
 
-        result = train_group([(s, config(args.world, args.arch, s, args.update_backend), out / f"s{s}") for s in todo], args.group_size, on_done=done)
+        result = train_group(
+            [(s, config(args.world, args.arch, s, args.update_backend), out / f"s{s}") for s in todo], args.group_size, on_done=done, device=args.device
+        )
         if result.errors:
             raise SystemExit(f"group: {len(result.errors)} runs failed: {result.errors}")
 
@@ -100,6 +106,7 @@ def report(args) -> dict:
             "poisoned_sr_mean": round(statistics.fmean(column(rows, "poisoned_sr")), 4) if rows else None,
             "cpu_s_per_model": round(statistics.fmean(cpu), 1) if cpu else None,
             "trainer": sorted({r.get("trainer") or "alone" for r in rows}),
+            "devices": sorted({r.get("device") or "cpu" for r in rows}),  # (runs from before the record: cpu)
         }
     tests = {}
     if alone and grouped:
@@ -128,7 +135,10 @@ def report(args) -> dict:
         # per run, so that a later side (another group step, another machine) can be tested against these
         "runs": {
             side: [
-                {key: r.get(key) for key in ("seed", "converged", "converged_at_frames", "frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer")}
+                {
+                    key: r.get(key)
+                    for key in ("seed", "converged", "converged_at_frames", "frames", "clean_sr", "poisoned_sr", "cpu_time_s", "trainer", "device", "conv")
+                }
                 | {"run": name}
                 for r, name in zip(rows, names[side])
             ]
@@ -157,6 +167,7 @@ def main() -> int:
     parser.add_argument("--update-backend", default="torch", choices=("torch", "jax"), help="the group side's ppo.update_backend")
     parser.add_argument("--against", help="--report: take the lone side from this earlier report's runs")
     parser.add_argument("--group-size", type=int, default=8)
+    parser.add_argument("--device", choices=("cpu", "cuda"), help="where the group side trains (default: the config's train.device)")
     parser.add_argument("--out", default=str(ROOT / "runs" / "group-equivalence"))
     parser.add_argument("--json", default="group_equivalence.json", help="--report: the file under experiments/group_equivalence/ it writes")
     args = parser.parse_args()

@@ -68,8 +68,8 @@ def run_sequential(seq: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
 # benchmarks/stacked_conv.py in benchmarks/results/gpu/h200_2026-11-29); "grouped" is not yet
 # timed there (gpu_checks.sh times all three). The environment variable sets it for a process and
 # the jobs it starts (bench zoo's CONV side field sets it): a comma-separated list of DEVICE:WAY.
-# Unlike the engine's choice it changes an agent's bytes, so a run records it (:func:`conv_record`)
-# and does not resume under another (train.driver).
+# Unlike the engine's choice it changes an agent's bytes, so a group run records it in metrics.json
+# (:func:`conv_record`, train.driver) and its checkpoint, and does not resume under another (train.ppo_run).
 STACKED_CONV_ENV = "RLBACKDOORS_STACKED_CONV"
 STACKED_CONV: dict[str, str] = {}
 CONV_WAYS = ("each", "gemm", "grouped")

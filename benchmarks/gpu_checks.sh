@@ -14,6 +14,11 @@
 #      breakdown.json, summary.json, summary.md.
 #   tests (at most 3.7 minutes): tests/test_group_cuda.py, the quick ones first, the zoo's
 #      kill/resume and the JAX update with what is left; gpu_tests.log in OUTDIR.
+#   equivalence (at most 9 minutes; a lease of its own): issue 55's point 5 on the GPU, the trained
+#      outcomes of a CUDA group against lone CPU runs of the same configs (a committed report's
+#      lone side): per world, seeds 0-19 in one group on the GPU until its limit, then the report
+#      (experiments/group_equivalence/group_equivalence.py --device cuda ... --against ...), with
+#      the runs it finished; equivalence_<world>_<arch>.json and equivalence.log in OUTDIR.
 # Sized on an H200 lease (2026-11-29, benchmarks/results/gpu/h200_2026-11-29): 256 LavaWorld models of
 # 30,000 frames took 52 s on 16 CPU cores and 58 s on the GPU, the CNN worlds' sides did not finish
 # in 90 s, and all the CUDA tests took 222 s.
@@ -25,17 +30,20 @@
 # A dry run on a CPU machine (the plumbing, small sizes; every ":cuda" side runs on the CPU):
 #   ON_CPU=1 WORLDS="lavaworld:4:4096:200" SIDES_lavaworld="1:cpu:2 4:cuda:1" bash benchmarks/gpu_checks.sh /tmp/dry
 #
-# Usage: bash benchmarks/gpu_checks.sh OUTDIR [figures|tests]
+# Usage: bash benchmarks/gpu_checks.sh OUTDIR [figures|tests|equivalence]
 #   env: WORLDS   words "world[/arch][:models[:frames[:timeout_s]]]" (default: the four judged ones);
 #        SIDES_<world, '-' as '_'>  that world's sides (default below); EVAL_EPISODES (default the
 #        world's: evaluations count); DEADLINE_S (figures: default 505, the engines get what is
-#        left of it; tests: default 220); ON_CPU=1 (dry run). The two calls and a machine's start fit the
-#        15 minutes of a lease with about a minute to spare.
+#        left of it; tests: default 220; equivalence: default 520); ON_CPU=1 (dry run); equivalence:
+#        EQ_WORLDS words "world/arch:AGAINST:limit_s" (AGAINST a report under
+#        experiments/group_equivalence/), EQ_SEEDS (default 20), EQ_CONV (the CUDA group's
+#        convolutions, models.minigrid.STACKED_CONV; default each). The two calls and a machine's
+#        start fit the 15 minutes of a lease with about a minute to spare.
 set -uo pipefail
-mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests]}" && out=$(cd "$1" && pwd)
+mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests|equivalence]}" && out=$(cd "$1" && pwd)
 part=${2:-figures}
-case "$part" in figures | tests) ;; *)
-    echo "gpu_checks: part must be figures or tests, not '$part'" >&2
+case "$part" in figures | tests | equivalence) ;; *)
+    echo "gpu_checks: part must be figures, tests or equivalence, not '$part'" >&2
     exit 2
     ;;
 esac
@@ -44,6 +52,7 @@ export PYTHONUNBUFFERED=1
 cd "$(dirname "$0")/.."
 log="$out/bench.log"
 [ "$part" = tests ] && log="$out/gpu_tests.log"
+[ "$part" = equivalence ] && log="$out/equivalence.log"
 # the bare machine: the carried wheels (gpu_wheels.sh), and this checkout's package on the path
 if ! python3 -c "import gymnasium, minigrid, mujoco, jsonschema" 2>/dev/null; then
     if [ -d .whl ]; then
@@ -97,6 +106,39 @@ if [ "$part" = tests ]; then
         echo "tests -k '$pick': exit $? after $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
         quiet
     done
+    exit 0
+fi
+
+if [ "$part" = equivalence ]; then
+    # Randomized LavaWorld's CNN first (median 0.40 M frames to converge alone: 8 M for 20 seeds),
+    # then LavaWorld FC (2.05 M: 41 M); the lone sides were trained on a 2-core AMD EPYC
+    eq_worlds=${EQ_WORLDS:-"randomized-lavaworld/cnn:group_equivalence_rlw_cnn_2026-11-28.json:300 lavaworld/fc:group_equivalence_2026-11-28.json:200"}
+    deadline=${DEADLINE_S:-520}
+    seeds=${EQ_SEEDS:-20}
+    device=cuda
+    [ -n "${ON_CPU:-}" ] && device=cpu
+    scratch=$(mktemp -d /tmp/rlbackdoors-equivalence-XXXX)
+    for entry in $eq_worlds; do
+        IFS=: read -r world against limit <<<"$entry"
+        arch=${world#*/}
+        world=${world%%/*}
+        left=$((deadline - (SECONDS - start) - 20)) # (20 s for its report)
+        [ "$left" -lt "$limit" ] && limit=$left
+        if [ "$limit" -lt 20 ]; then
+            echo "== equivalence $world $arch: not run, $left s left" | tee -a "$log"
+            continue
+        fi
+        echo "== equivalence $world $arch: seeds 0-$((seeds - 1)) in one group on $device${EQ_CONV:+, $EQ_CONV convolutions}, against $against (limit $limit s)" | tee -a "$log"
+        quiet
+        bounded "$limit" env ${EQ_CONV:+RLBACKDOORS_STACKED_CONV=$device:$EQ_CONV} python3 experiments/group_equivalence/group_equivalence.py --side group \
+            --device "$device" --group-size "$seeds" --seeds "$seeds" --world "$world" --arch "$arch" --out "$scratch/$world" >>"$log" 2>&1
+        echo "== end equivalence $world $arch: exit $? at $((SECONDS - start)) s (124: its limit), $(ls "$scratch/$world"/group/s*/metrics.json 2>/dev/null | wc -l) runs finished" | tee -a "$log"
+        quiet
+        bounded 20 python3 experiments/group_equivalence/group_equivalence.py --report --world "$world" --arch "$arch" --seeds "$seeds" --group-size "$seeds" \
+            --out "$scratch/$world" --against "experiments/group_equivalence/$against" --json "$out/equivalence_${world}_${arch}.json" >>"$log" 2>&1
+        echo "== report $world $arch: exit $?" | tee -a "$log"
+    done
+    rm -rf "$scratch"
     exit 0
 fi
 

@@ -107,7 +107,7 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     wrong = subprocess.run(
         ["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "other"), "figure"], capture_output=True, text=True, env=env, timeout=60
     )
-    assert wrong.returncode == 2 and wrong.stderr.strip() == "gpu_checks: part must be figures or tests, not 'figure'"
+    assert wrong.returncode == 2 and wrong.stderr.strip() == "gpu_checks: part must be figures, tests or equivalence, not 'figure'"
     # the second call of a lease: the CUDA tests, quick ones first (here, without CUDA, they skip)
     tests = subprocess.run(
         ["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "tests"), "tests"],
@@ -127,3 +127,27 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     table = [line for line in (out / "summary.md").read_text().splitlines() if line.startswith("| lavaworld fc")]
     assert len(table) == 2 and table[0].split("|")[3].strip() == "K=2 on cpu" and table[1].split("|")[3].strip() == "K=2 on cpu, jax update"
     assert [line.split("|")[6].strip().startswith("no: frames_per_s") for line in table] == [best == 0, best == 1]  # the verdict on one row only
+
+
+def test_the_gpu_scripts_equivalence_part_reports_a_cut_group_against_the_committed_lone_side(tmp_path):
+    """``gpu_checks.sh OUT equivalence`` dry (``ON_CPU=1``): the group side of two LavaWorld seeds
+    is cut by its 20 s limit before either converges, and the report still comes back, its lone
+    side the committed report's 20 CPU runs (``--against``) and its group side empty: no test
+    is run on what did not finish."""
+    env = {
+        **os.environ,
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+        "ON_CPU": "1",
+        "EQ_WORLDS": "lavaworld/fc:group_equivalence_2026-11-28.json:20",
+        "EQ_SEEDS": "2",
+        "DEADLINE_S": "90",
+    }
+    out = tmp_path / "out"
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(out), "equivalence"], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(p.name for p in out.iterdir()) == ["equivalence.log", "equivalence_lavaworld_fc.json"]
+    log = (out / "equivalence.log").read_text()
+    assert "== end equivalence lavaworld fc: exit 124" in log and "0 runs finished" in log and "== report lavaworld fc: exit 0" in log
+    report = json.loads((out / "equivalence_lavaworld_fc.json").read_text())
+    assert report["sides"]["alone"]["runs"] == 20 and report["sides"]["alone"]["devices"] == ["cpu"]
+    assert report["sides"]["group"]["runs"] == 0 and report["tests"] == {}

@@ -82,7 +82,7 @@ def why_missing(what: str, bound: Bound | None, spent: float = 0.0) -> str:
 def summarise(out: Path) -> dict:
     bounds = limits(out / "bench.log")
     rows = []
-    lavaworld_rate, measured_frames = None, None
+    lavaworld_rate, measured_frames, eval_share = None, None, None
     for path in sorted(out.glob("bench_zoo_*.json")):
         data = json.loads(path.read_text())
         world, arch, sides = data["world"], data["arch"], data["sides"]
@@ -97,7 +97,9 @@ def summarise(out: Path) -> dict:
             "arch": arch,
             "models": data["models"],
             "frames_per_model": data["frames_per_model"],
-            "reference": {k: ref.get(k) for k in ("group_size", "device", "workers", "models_per_hour", "frames_per_s", "wall_s")} if ref else None,
+            "reference": {k: ref.get(k) for k in ("group_size", "device", "workers", "models_per_hour", "frames_per_s", "eval_share", "wall_s")}
+            if ref
+            else None,
             "sides": [
                 {
                     k: s.get(k)
@@ -111,6 +113,8 @@ def summarise(out: Path) -> dict:
                         "conv",
                         "models_per_hour",
                         "frames_per_s",
+                        "env_steps_per_s",
+                        "eval_share",
                         "ratio",
                         "wall_s",
                     )
@@ -133,7 +137,7 @@ def summarise(out: Path) -> dict:
                     "k": None if least_k is None else best["group_size"] >= least_k,
                 }
             if world == "lavaworld" and arch == "fc":
-                lavaworld_rate, measured_frames = best.get("frames_per_s"), data["frames_per_model"]
+                lavaworld_rate, measured_frames, eval_share = best.get("frames_per_s"), data["frames_per_model"], best.get("eval_share")
         bound = bounds.get(f"{world}/{arch}")
         spent = sum(side.get("wall_s") or 0 for side in sides)
         if not gpu:
@@ -168,11 +172,18 @@ def summarise(out: Path) -> dict:
             "frames_per_model": per_model,
             "frames_per_s": lavaworld_rate,
             "measured_frames_per_model": measured_frames,  # the rate's models: fixed costs a model (evaluations, files) weigh more the fewer frames
+            "measured_eval_share": eval_share,  # of their env steps, their evaluations' (None: a bench from before it was counted)
             "estimated_s": round(seconds, 1),
             "limit_s": ROUND_LIMIT_S,
             "met": seconds <= ROUND_LIMIT_S,
         }
     return result
+
+
+def evaluating(side: dict) -> str:
+    """ ", evaluations N % of env steps" where the side counted them (bench zoo's eval_share), else ""."""
+    share = side.get("eval_share")
+    return "" if share is None else f", evaluations {share:.0%} of env steps"
 
 
 def markdown(result: dict) -> str:
@@ -181,7 +192,9 @@ def markdown(result: dict) -> str:
         ref = row["reference"] or {}
         want = row.get("target", {})
         ref_text = (
-            f"K={ref['group_size']} x {ref['workers']}: {ref.get('frames_per_s') or 0:,.0f} f/s, {ref['models_per_hour']:,.0f} models/h" if ref else "none"
+            f"K={ref['group_size']} x {ref['workers']}: {ref.get('frames_per_s') or 0:,.0f} f/s, {ref['models_per_hour']:,.0f} models/h" + evaluating(ref)
+            if ref
+            else "none"
         )
         if "missing" in row:
             lines.append(f"| {row['world']} {row['arch']} | {ref_text} | {row['missing']} | | | no |")
@@ -196,6 +209,7 @@ def markdown(result: dict) -> str:
                 + (f", {s['engine']} engine" if s.get("engine") else "")
                 + (f", {s['conv']} convolutions" if s.get("conv") else "")
                 + (f", {s['env_workers']} env workers" if s.get("env_workers") else "")
+                + evaluating(s)
                 + f" | {s.get('frames_per_s', 0):,.0f} ({want.get('frames_per_s') or 'report'}) | x{s['ratio']} ({want.get('ratio')}) | "
                 + ("" if not met else ("yes" if not flags else "no: " + ", ".join(flags)))
                 + " |"
@@ -208,7 +222,8 @@ def markdown(result: dict) -> str:
         lines.append(
             f"300-model LavaWorld round at {r['frames_per_s']:,.0f} frames/s, {r['frames_per_model']:,.0f} frames a model: "
             f"{r['estimated_s'] / 60:.1f} min (target <= 15 min: {'met' if r['met'] else 'not met'}; the rate measured with models of "
-            f"{r['measured_frames_per_model']:,} frames, whose evaluations and files weigh more than in a model of the round's)"
+            f"{r['measured_frames_per_model']:,} frames, whose evaluations and files weigh more than in a model of the round's"
+            + (f": their evaluations were {r['measured_eval_share']:.0%} of their env steps)" if r.get("measured_eval_share") is not None else ")")
         )
     return "\n".join(lines) + "\n"
 

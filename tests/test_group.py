@@ -987,6 +987,18 @@ def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     per_model = [json.loads(p.read_text())["frames"] for p in (tmp_path / "side0-k1-cpu-w1" / "models").glob("*/metrics.json")]
     assert len(per_model) == 2 and all(f >= 3200 for f in per_model) and alone["frames"] == sum(per_model)
     assert alone["frames_per_s"] == pytest.approx(alone["frames"] / alone["wall_s"], rel=1e-2)
+    # and the env steps its evaluations took: a model's log.csv rows (eval_episodes = 4 a condition at
+    # the mean lengths logged) and its final evaluation (metrics.json), summed over the models
+    expected = 0.0
+    for folder in (tmp_path / "side0-k1-cpu-w1" / "models").glob("*"):
+        rows = list(csv.DictReader((folder / "log.csv").open()))
+        final = json.loads((folder / "metrics.json").read_text())
+        assert len(rows) >= 1 and final["episodes"] == 4
+        for row, n in [(r, 4) for r in rows] + [(final, final["episodes"])]:
+            expected += n * (float(row["clean_mean_steps"]) + float(row["poisoned_mean_steps"]))
+    assert alone["eval_steps"] == round(expected) and alone["eval_steps"] >= 2 * 2 * 4 * 2  # two models, two conditions, at least two evaluations of 4 episodes
+    assert alone["env_steps_per_s"] == pytest.approx((alone["frames"] + alone["eval_steps"]) / alone["wall_s"], rel=1e-2)
+    assert alone["eval_share"] == pytest.approx(alone["eval_steps"] / (alone["frames"] + alone["eval_steps"]), abs=1e-3)
     assert alone["ratio"] == 1.0 and grouped["ratio"] == pytest.approx(grouped["models_per_hour"] / alone["models_per_hour"], rel=1e-2)
     assert result["machine"]["cores"] >= 1 and len(alone["loadavg_before"]) == 3
     configs = [sorted(p.read_text() for p in (tmp_path / side / "models").glob("*/config.json")) for side in ("side0-k1-cpu-w1", "side1-kauto-cpu-w1")]

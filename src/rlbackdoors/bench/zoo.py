@@ -51,6 +51,28 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
     }
 
 
+def evaluation_steps(folder: Path) -> int:
+    """At least the env steps a finished model's evaluations took: each evaluation of its log.csv
+    (``train.eval_episodes`` episodes a condition, at the mean lengths it logged) and its final
+    one (metrics.json). A confirmation that did not hold is not logged with its lengths, so not
+    counted. Why: a benchmark's models are small, and an untrained agent's episodes long (a
+    LavaWorld FC model of 15,360 frames evaluated about 95,000 env steps), so its frames/s is
+    mostly evaluation; the share says how much."""
+    import csv
+    import json
+    import math
+
+    def steps(row: dict, episodes: int) -> float:
+        lengths = [float(row.get(key) or "nan") for key in ("clean_mean_steps", "poisoned_mean_steps")]
+        return episodes * sum(x for x in lengths if not math.isnan(x))
+
+    config = json.loads((folder / "config.json").read_text())
+    metrics = json.loads((folder / "metrics.json").read_text())
+    with open(folder / "log.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    return round(sum(steps(row, int(config["train"]["eval_episodes"])) for row in rows) + steps(metrics, int(metrics.get("episodes") or 0)))
+
+
 def run_side(
     spec: dict,
     where: Path,
@@ -100,9 +122,11 @@ def run_side(
                 os.environ.pop(name, None)
             else:
                 os.environ[name] = value
-    metrics = [json.loads(p.read_text()) for p in sorted(where.glob("models/*/metrics.json"))]
+    finished = sorted(p.parent for p in where.glob("models/*/metrics.json"))
+    metrics = [json.loads((folder / "metrics.json").read_text()) for folder in finished]
     cpu = [m.get("cpu_time_s") for m in metrics]
     frames = sum(int(m.get("frames") or 0) for m in metrics)  # trained, whole rollouts (a run may pass max_frames by part of one)
+    evaluated = sum(evaluation_steps(folder) for folder in finished)
     return {
         "group_size": group_size,
         **({"group_size_from": "auto"} if auto else {}),
@@ -119,6 +143,10 @@ def run_side(
         # training frames of the finished models over the side's wall time, evaluations and files included
         "frames": frames,
         "frames_per_s": round(frames / wall, 1),
+        # and the env steps its evaluations took: at this model size, how much of the work they are
+        "eval_steps": evaluated,
+        "env_steps_per_s": round((frames + evaluated) / wall, 1),
+        "eval_share": round(evaluated / (frames + evaluated), 3) if frames + evaluated else None,
         "cpu_s_per_model": round(sum(c for c in cpu if c is not None) / max(len(cpu), 1), 2),
         "loadavg_before": [round(x, 2) for x in load_before],
         "loadavg_after": [round(x, 2) for x in os.getloadavg()],

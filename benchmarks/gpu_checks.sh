@@ -72,6 +72,7 @@ cores=$(nproc)
 # numba over 16 threads measured x0.2 of one call there, while on an idle 2-core Xeon 2 threads
 # give x1.6-1.9 of one; benchmarks/results/engine_threads_lavaworld_256_xeon_idle.json.)
 left_over=0
+left_names=
 bounded() {
     local limit=$1
     shift
@@ -80,11 +81,15 @@ bounded() {
     wait "$group"
     status=$?
     left_over=$(pgrep -g "$group" | wc -l)
-    [ "$left_over" -gt 0 ] && pkill -KILL -g "$group"
+    left_names=
+    if [ "$left_over" -gt 0 ]; then
+        left_names=$(ps -o args= -g "$group" | cut -c1-80 | head -3 | paste -sd ';' -)
+        pkill -KILL -g "$group"
+    fi
     return "$status"
 }
 # one line before each measurement: the load, and what the last one left running (killed)
-quiet() { echo "   load $(cut -d' ' -f1-3 /proc/loadavg), $left_over processes of the last part left over (killed)" | tee -a "$log"; }
+quiet() { echo "   load $(cut -d' ' -f1-3 /proc/loadavg), $left_over processes of the last part left over (killed)${left_names:+: $left_names}" | tee -a "$log"; }
 {
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 || echo "no nvidia-smi"
     python3 -c "import torch, numba, numpy; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.is_available(), 'numba', numba.__version__, 'numpy', numpy.__version__)"

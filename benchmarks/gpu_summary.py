@@ -1,7 +1,8 @@
 """Issue 55's judged table from what ``gpu_checks.sh`` wrote into OUTDIR: per world, the GPU
 group's frames per second and models per hour against the best CPU setting on every core of
 the same machine (the first side of each ``bench_zoo_*.json``), each with its target and
-whether it is met, and the time a 300-model LavaWorld round would take at the measured rate.
+whether it is met, the time a 300-model LavaWorld round would take at the measured rate, and
+what the GPU sides settle (:func:`settled`: sides that differ in one setting, against each other).
 
     python benchmarks/gpu_summary.py OUTDIR      # writes OUTDIR/summary.json and summary.md
 
@@ -164,6 +165,7 @@ def summarise(out: Path) -> dict:
                 }
             )
     result: dict = {"worlds": rows}
+    result["settled"] = settled(result)
     if lavaworld_rate and EQUIVALENCE.is_file():
         per_model = json.loads(EQUIVALENCE.read_text())["sides"]["alone"]["frames_to_converge_median"]
         seconds = ROUND_MODELS * per_model / lavaworld_rate
@@ -178,6 +180,38 @@ def summarise(out: Path) -> dict:
             "met": seconds <= ROUND_LIMIT_S,
         }
     return result
+
+
+# the settings a world's GPU sides may differ in, and what an empty one means
+SETTINGS = {"group_size": None, "workers": None, "update_backend": "torch", "engine": "numba", "conv": "each"}
+
+
+def settled(result: dict) -> list[dict]:
+    """What the GPU sides of each world settle: every pair of sides that differ in one setting
+    alone (the group size, the processes, the update backend, the engine, the convolutions), and
+    the models per hour of the second against the first, measured in the same run. This is what
+    a lease is for: the defaults (``algos.group.DEVICE_ENGINE``, ``models.minigrid.STACKED_CONV``,
+    ``train.group.AUTO_GROUP_SIZE``) follow these figures, not a guess."""
+    found = []
+    for row in result["worlds"]:
+        sides = row["sides"]
+        for i, a in enumerate(sides):
+            for b in sides[i + 1 :]:
+                differ = [key for key, empty in SETTINGS.items() if (a.get(key) or empty) != (b.get(key) or empty)]
+                if len(differ) != 1 or not a.get("models_per_hour"):
+                    continue
+                (key,) = differ
+                empty = SETTINGS[key]
+                found.append(
+                    {
+                        "world": f"{row['world']} {row['arch']}",
+                        "setting": key,
+                        "first": a.get(key) or empty,
+                        "second": b.get(key) or empty,
+                        "ratio": round(b["models_per_hour"] / a["models_per_hour"], 3),
+                    }
+                )
+    return found
 
 
 def evaluating(side: dict) -> str:
@@ -216,6 +250,11 @@ def markdown(result: dict) -> str:
             )
         if "unfinished" in row:
             lines.append(f"| {row['world']} {row['arch']} | {ref_text} | {row['unfinished']} | | | |")
+    if result.get("settled"):
+        lines.append("")
+        lines.append("What the GPU sides settle (models/h of the second setting against the first, same run):")
+        for x in result["settled"]:
+            lines.append(f"- {x['world']}: {x['setting']} {x['second']} against {x['first']}: x{x['ratio']}")
     if "round" in result:
         r = result["round"]
         lines.append("")

@@ -127,6 +127,11 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     table = [line for line in (out / "summary.md").read_text().splitlines() if line.startswith("| lavaworld fc")]
     sides = [line.split("|")[3].strip() for line in table]
     assert len(table) == 2 and sides[0].startswith("K=2 on cpu, evaluations ") and sides[1].startswith("K=2 on cpu, jax update, evaluations ")
+    # what the two GPU sides settle: they differ in the update backend alone
+    (pair,) = json.loads((out / "summary.json").read_text())["settled"]
+    assert (pair["setting"], pair["first"], pair["second"]) == ("update_backend", "torch", "jax")
+    assert pair["ratio"] == pytest.approx(row["sides"][1]["models_per_hour"] / row["sides"][0]["models_per_hour"], abs=1e-3)
+    assert f"- lavaworld fc: update_backend jax against torch: x{pair['ratio']}" in (out / "summary.md").read_text()
     # how much of each side's env steps its evaluations were (tiny models: most of them)
     for side, text in zip(row["sides"], sides):
         assert 0 < side["eval_share"] < 1 and text.endswith(f"evaluations {side['eval_share']:.0%} of env steps")

@@ -55,9 +55,9 @@ def evaluation_steps(folder: Path) -> int:
     """At least the env steps a finished model's evaluations took: each evaluation of its log.csv
     (``train.eval_episodes`` episodes a condition, at the mean lengths it logged) and its final
     one (metrics.json). A confirmation that did not hold is not logged with its lengths, so not
-    counted. Why: a benchmark's models are small, and an untrained agent's episodes long (a
-    LavaWorld FC model of 15,360 frames evaluated about 95,000 env steps), so its frames/s is
-    mostly evaluation; the share says how much."""
+    counted. Why: a benchmark's models are small, and an untrained agent's episodes long (a grid
+    world's FC model of 15,360 frames evaluated about 95,000 env steps, docs/zoos.md), so its
+    frames/s is mostly evaluation; the share says how much."""
     import csv
     import json
     import math

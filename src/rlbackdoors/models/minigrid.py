@@ -9,6 +9,7 @@ state dict trained there loads here unchanged (and vice versa).
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import TYPE_CHECKING
 
@@ -81,6 +82,13 @@ def conv_way(device_type: str) -> str:
     text = os.environ.get(STACKED_CONV_ENV)
     if not text:
         return STACKED_CONV.get(device_type, "each")
+    return _parsed_ways(text).get(device_type, STACKED_CONV.get(device_type, "each"))
+
+
+@functools.lru_cache(maxsize=8)
+def _parsed_ways(text: str) -> dict[str, str]:
+    """:data:`STACKED_CONV_ENV`'s value as device -> way, parsed once per value (it is read at
+    every convolution of a group's forward)."""
     ways = {}
     for item in text.split(","):
         device, _, way = item.strip().partition(":")
@@ -89,7 +97,7 @@ def conv_way(device_type: str) -> str:
                 f"{STACKED_CONV_ENV}={text!r} is not allowed (allowed: a comma-separated list of DEVICE:WAY, DEVICE cpu or cuda, WAY one of {', '.join(CONV_WAYS)})"
             )
         ways[device] = way
-    return ways.get(device_type, STACKED_CONV.get(device_type, "each"))
+    return ways
 
 
 def conv_record(model: nn.Module, device_type: str) -> str | None:

@@ -264,9 +264,9 @@ def steps(
                     memory = checkpoint.get("teacher_memory")
                     ppo.teacher_memory = None if memory is None else memory.to(device)
             model.load_state_dict(checkpoint["model"])
-            if checkpoint.get("conv") != conv_record(model, device.type):  # it changes a group's bytes: not mixed in one run
+            if checkpoint.get("conv") != (conv := conv_record(model, device.type)):  # it changes a group's bytes: not mixed in one run
                 raise StateError(
-                    f"it began with a group's convolutions {checkpoint.get('conv') or 'each'}, not {conv_record(model, device.type) or 'each'} (models.minigrid.STACKED_CONV)"
+                    f"it began with a group's convolutions {checkpoint.get('conv') or 'each'}, not {conv or 'each'} (models.minigrid.STACKED_CONV)"
                 )
             if (ppo.aux is None) != (checkpoint.get("aux") is None):
                 raise StateError("the auxiliary memory head does not fit ppo.aux_memory_coef")

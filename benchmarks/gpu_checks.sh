@@ -18,7 +18,10 @@
 #      outcomes of a CUDA group against lone CPU runs of the same configs (a committed report's
 #      lone side): per world, seeds 0-19 in one group on the GPU until its limit, then the report
 #      (experiments/group_equivalence/group_equivalence.py --device cuda ... --against ...), with
-#      the runs it finished; equivalence_<world>_<arch>.json and equivalence.log in OUTDIR.
+#      the runs it finished; equivalence_<world>_<arch>.json and equivalence.log in OUTDIR, and
+#      equivalence_state.tar.gz (benchmarks/equivalence_state.py): the finished runs and the
+#      checkpoints that fit in 15 MiB, for the next lease to go on from (EQ_STATE=that file,
+#      committed with the lease's results).
 # Sized on an H200 lease (2026-11-29, benchmarks/results/gpu/h200_2026-11-29): 256 LavaWorld models of
 # 30,000 frames took 52 s on 16 CPU cores and 58 s on the GPU, the CNN worlds' sides did not finish
 # in 90 s, and all the CUDA tests took 222 s.
@@ -27,6 +30,9 @@
 # The lease, two calls (the second while the machine is warm):
 #   run(command="bash benchmarks/gpu_checks.sh $OUT", carry=[".whl"], timeout_s=540)
 #   run(command="bash benchmarks/gpu_checks.sh $OUT tests", carry=[".whl"], timeout_s=235)
+# A lease of its own for the equivalence part; the one after it goes on from what it returned:
+#   run(command="bash benchmarks/gpu_checks.sh $OUT equivalence", carry=[".whl"], timeout_s=560)
+#   run(command="EQ_STATE=benchmarks/results/gpu/LEASE/equivalence_state.tar.gz bash benchmarks/gpu_checks.sh $OUT equivalence", ...)
 # A dry run on a CPU machine (the plumbing, small sizes; every ":cuda" side runs on the CPU):
 #   ON_CPU=1 WORLDS="lavaworld:4:4096:200" SIDES_lavaworld="1:cpu:2 4:cuda:1" bash benchmarks/gpu_checks.sh /tmp/dry
 #
@@ -37,7 +43,8 @@
 #        left of it; tests: default 220; equivalence: default 520); ON_CPU=1 (dry run); equivalence:
 #        EQ_WORLDS words "world/arch:AGAINST:limit_s" (AGAINST a report under
 #        experiments/group_equivalence/), EQ_SEEDS (default 20), EQ_CONV (the CUDA group's
-#        convolutions, models.minigrid.STACKED_CONV; default each). The two calls and a machine's
+#        convolutions, models.minigrid.STACKED_CONV; default each), EQ_STATE (an earlier lease's
+#        equivalence_state.tar.gz to go on from). The two calls and a machine's
 #        start fit the 15 minutes of a lease with about a minute to spare.
 set -uo pipefail
 mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests|equivalence]}" && out=$(cd "$1" && pwd)
@@ -123,6 +130,12 @@ if [ "$part" = equivalence ]; then
     device=cuda
     [ -n "${ON_CPU:-}" ] && device=cpu
     scratch=$(mktemp -d /tmp/rlbackdoors-equivalence-XXXX)
+    # EQ_STATE: the equivalence_state.tar.gz an earlier lease wrote (committed with its results):
+    # its finished runs count and its checkpoints go on, so 20 seeds may take several leases
+    if [ -n "${EQ_STATE:-}" ]; then
+        python3 benchmarks/equivalence_state.py unpack "$EQ_STATE" "$scratch" 2>&1 | tee -a "$log"
+        [ "${PIPESTATUS[0]}" -eq 0 ] || exit 2
+    fi
     for entry in $eq_worlds; do
         IFS=: read -r world against limit <<<"$entry"
         arch=${world#*/}
@@ -143,6 +156,8 @@ if [ "$part" = equivalence ]; then
             --out "$scratch/$world" --against "experiments/group_equivalence/$against" --json "$out/equivalence_${world}_${arch}.json" >>"$log" 2>&1
         echo "== report $world $arch: exit $?" | tee -a "$log"
     done
+    # what the next lease needs to go on (EQ_STATE=that file): finished runs, and checkpoints that fit
+    python3 benchmarks/equivalence_state.py pack "$scratch" "$out/equivalence_state.tar.gz" 2>&1 | tee -a "$log"
     rm -rf "$scratch"
     exit 0
 fi

@@ -138,11 +138,13 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     assert [line.split("|")[6].strip().startswith("no: frames_per_s") for line in table] == [best == 0, best == 1]  # the verdict on one row only
 
 
-def test_the_gpu_scripts_equivalence_part_reports_a_cut_group_against_the_committed_lone_side(tmp_path):
+def test_the_gpu_scripts_equivalence_part_reports_a_cut_group_and_the_next_lease_goes_on(tmp_path):
     """``gpu_checks.sh OUT equivalence`` dry (``ON_CPU=1``): the group side of two LavaWorld seeds
     is cut by its 20 s limit before either converges, and the report still comes back, its lone
     side the committed report's 20 CPU runs (``--against``) and its group side empty: no test
-    is run on what did not finish."""
+    is run on what did not finish. The state it returns (``equivalence_state.tar.gz``) lets a
+    second call (``EQ_STATE``) go on from both checkpoints: each then carries more wall seconds
+    than that call's 20 s limit allowed a run started afresh."""
     env = {
         **os.environ,
         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
@@ -154,9 +156,80 @@ def test_the_gpu_scripts_equivalence_part_reports_a_cut_group_against_the_commit
     out = tmp_path / "out"
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(out), "equivalence"], capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
-    assert sorted(p.name for p in out.iterdir()) == ["equivalence.log", "equivalence_lavaworld_fc.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["equivalence.log", "equivalence_lavaworld_fc.json", "equivalence_state.tar.gz"]
     log = (out / "equivalence.log").read_text()
     assert "== end equivalence lavaworld fc: exit 124" in log and "0 runs finished" in log and "== report lavaworld fc: exit 0" in log
     report = json.loads((out / "equivalence_lavaworld_fc.json").read_text())
     assert report["sides"]["alone"]["runs"] == 20 and report["sides"]["alone"]["devices"] == ["cpu"]
     assert report["sides"]["group"]["runs"] == 0 and report["tests"] == {}
+    first = checkpoints(log, "state: ")
+    assert sorted(first) == ["s0", "s1"] and all(frames > 0 and 0 < wall < 20 for frames, wall in first.values()), log
+    # the next lease: EQ_STATE is what this one returned
+    again = subprocess.run(
+        ["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "again"), "equivalence"],
+        capture_output=True,
+        text=True,
+        env={**env, "EQ_STATE": str(out / "equivalence_state.tar.gz")},
+        timeout=300,
+    )
+    assert again.returncode == 0, again.stderr[-2000:]
+    log = (tmp_path / "again" / "equivalence.log").read_text()
+    assert checkpoints(log, "resumed: ") == first, log
+    second = checkpoints(log, "state: ")
+    assert sorted(second) == ["s0", "s1"], log
+    for run, (frames, wall) in second.items():
+        assert frames > first[run][0] and wall > 20, log
+
+
+def checkpoints(log: str, prefix: str) -> dict[str, tuple[int, float]]:
+    """equivalence_state.py's line for lavaworld: each started run's checkpoint frames and wall seconds."""
+    (line,) = [line for line in log.splitlines() if line.startswith(prefix + "lavaworld: ")]
+    found = {}
+    for item in line.split(" with checkpoints: ")[1].split(", "):
+        run, _, frames, _, wall = item.split()[:5]
+        found[run] = (int(frames.replace(",", "")), float(wall.strip("(")))
+    return found
+
+
+def test_equivalence_state_keeps_finished_runs_leaves_out_what_does_not_fit_and_reads_only_run_files(tmp_path):
+    """benchmarks/equivalence_state.py on committed finished runs (Safety Car Goal's group side:
+    metrics.json alone) and a checkpoint over the size limit; an archive with a path outside its
+    runs is refused in one line, nothing written."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import equivalence_state as state
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    import tarfile
+
+    import torch
+
+    committed = ROOT / "experiments" / "group_equivalence" / "safety-car-goal" / "group"
+    scratch = tmp_path / "scratch"
+    for seed in (0, 1):
+        (scratch / "safety-car-goal" / "group" / f"s{seed}").mkdir(parents=True)
+        shutil.copy(committed / f"s{seed}" / "metrics.json", scratch / "safety-car-goal" / "group" / f"s{seed}" / "metrics.json")
+    started = scratch / "lavaworld" / "group" / "s3"
+    started.mkdir(parents=True)
+    torch.save({"frames": 1000, "elapsed": 2.5, "weights": torch.zeros(300_000)}, started / "checkpoint.pt")  # 1.2 MB
+    (started / ".lock").write_text("pid")
+    lines = state.pack(scratch, tmp_path / "a" / "state.tar.gz", limit_mib=1.0)
+    assert lines[0] == "lavaworld: 1 checkpoints left out (1.1 MiB; over 1.0 MiB): they start again" and lines[1].startswith("packed 2 files")
+    assert state.describe(scratch) == [
+        "lavaworld: 0 finished, 1 with checkpoints: s3 at 1,000 frames (2 wall-s)",
+        "safety-car-goal: 2 finished, 0 with checkpoints",
+    ]
+    back = tmp_path / "back"
+    state.unpack(tmp_path / "a" / "state.tar.gz", back)
+    assert state.describe(back) == ["safety-car-goal: 2 finished, 0 with checkpoints"]
+    assert (back / "safety-car-goal" / "group" / "s1" / "metrics.json").read_bytes() == (committed / "s1" / "metrics.json").read_bytes()
+    state.pack(scratch, tmp_path / "b" / "state.tar.gz", limit_mib=15.0)
+    with tarfile.open(tmp_path / "b" / "state.tar.gz") as tar:
+        assert sorted(tar.getnames()) == ["lavaworld/group/s3/checkpoint.pt", "safety-car-goal/group/s0/metrics.json", "safety-car-goal/group/s1/metrics.json"]
+    bad = tmp_path / "bad.tar.gz"
+    with tarfile.open(bad, "w:gz") as tar:  # a good member first: nothing of it is written either
+        tar.add(started / ".lock", arcname="lavaworld/group/s0/log.csv")
+        tar.add(started / ".lock", arcname="lavaworld/group/../../../escape/metrics.json")
+    with pytest.raises(SystemExit, match=r"^equivalence_state: error: .*bad.tar.gz: unexpected member 'lavaworld/group/\.\./\.\./\.\./escape/metrics.json'"):
+        state.unpack(bad, tmp_path / "c")
+    assert not (tmp_path / "c").exists() and not (tmp_path.parent / "escape").exists()

@@ -10,9 +10,11 @@ another in this process) and once in a group (``train_group``, ``--group-size`` 
 refilled). Both sides resume after a kill: a finished run is read, a started one continues from
 its checkpoint. ``--report`` compares the sides: converged counts (Fisher's exact test), frames
 to converge, final clean SR and poisoned SR (two-sided Mann-Whitney U on the 200-episode final
-evaluations), and the CPU seconds per model each side spent (metrics.json's ``cpu_time_s``: the
+evaluations), equivalence within stated margins on the same three (two one-sided tests, TOST:
+``MARGINS``), and the CPU seconds per model each side spent (metrics.json's ``cpu_time_s``: the
 group trainer apportions its batched work among its runs). Writes
-``experiments/group_equivalence/group_equivalence.json`` and prints a Markdown table.
+``experiments/group_equivalence/group_equivalence.json`` and prints a Markdown table;
+``--retest REPORT...`` runs the tests again on committed reports' per-run rows.
 
 ``--device cuda`` trains the group side on a GPU (its bytes are the GPU's, recorded per run with
 any group convolution way, ``RLBACKDOORS_STACKED_CONV``), to be tested against a lone side trained
@@ -70,9 +72,60 @@ def run_side(side: str, args) -> None:
             raise SystemExit(f"group: {len(result.errors)} runs failed: {result.errors}")
 
 
-def report(args) -> dict:
+# The equivalence margins (two one-sided tests, TOST): a grouped model's outcome counts as the
+# same as a lone one's when the shift between the sides is provably inside these. Success rates:
+# 0.02, 4 of the final evaluation's 200 episodes (one model's own binomial error there is about
+# 0.012 at SR 0.97). Frames to converge: a quarter of the lone side's median, a zoo's cost.
+MARGINS = {"frames_to_converge": {"relative_to_alone_median": 0.25}, "clean_sr": {"absolute": 0.02}, "poisoned_sr": {"absolute": 0.02}}
+
+
+def column(rows: list[dict], key: str) -> list:
+    return [r[key] for r in rows if r.get(key) is not None]
+
+
+def conv_frames(rows: list[dict]) -> list[int]:
+    """Frames to converge; a run that met the thresholds only on its final evaluation (at max_frames) converged at its last frame."""
+    return [r["converged_at_frames"] or r["frames"] for r in rows if r["converged"]]
+
+
+def tost_p(alone: list[float], grouped: list[float], margin: float) -> float:
+    """Equivalence within +-MARGIN: two one-sided Mann-Whitney tests of a location shift (the
+    grouped side moved by the margin), H0 shift <= -margin and H0 shift >= +margin; the larger p.
+    Below 0.05, the shift is inside the margin at that level."""
     from scipy import stats
 
+    lower = stats.mannwhitneyu([x + margin for x in grouped], alone, alternative="greater").pvalue
+    upper = stats.mannwhitneyu([x - margin for x in grouped], alone, alternative="less").pvalue
+    return float(max(lower, upper))
+
+
+def compare(alone: list[dict], grouped: list[dict]) -> dict:
+    """The report's tests on two sides' per-run rows: difference tests (Fisher's exact on the
+    converged counts, two-sided Mann-Whitney U on frames to converge and the final success rates)
+    and equivalence tests (TOST within :data:`MARGINS`)."""
+    from scipy import stats
+
+    tests: dict = {}
+    if not (alone and grouped):
+        return tests
+    a_conv, g_conv = sum(r["converged"] for r in alone), sum(r["converged"] for r in grouped)
+    tests["converged_fisher_p"] = float(stats.fisher_exact([[a_conv, len(alone) - a_conv], [g_conv, len(grouped) - g_conv]])[1])
+    for key, a, g in (
+        ("frames_to_converge", conv_frames(alone), conv_frames(grouped)),
+        ("clean_sr", column(alone, "clean_sr"), column(grouped, "clean_sr")),
+        ("poisoned_sr", column(alone, "poisoned_sr"), column(grouped, "poisoned_sr")),
+    ):
+        if len(a) >= 2 and len(g) >= 2:
+            tests[f"{key}_mannwhitney_p"] = float(stats.mannwhitneyu(a, g, alternative="two-sided").pvalue)
+            margin = MARGINS[key].get("absolute") or MARGINS[key]["relative_to_alone_median"] * statistics.median(a)
+            tests[f"{key}_tost_p"] = tost_p(a, g, margin)
+    a_cpu, g_cpu = column(alone, "cpu_time_s"), column(grouped, "cpu_time_s")
+    if a_cpu and g_cpu:
+        tests["cpu_per_model_ratio_alone_over_group"] = round(round(statistics.fmean(a_cpu), 1) / round(statistics.fmean(g_cpu), 1), 3)
+    return tests
+
+
+def report(args) -> dict:
     from rlbackdoors.bench.machine import machine_info
     from rlbackdoors.io import atomic_write_text
 
@@ -88,13 +141,6 @@ def report(args) -> dict:
         sides["alone"] = earlier + [r for r, _ in more]
         names["alone"] = [row["run"] for row in earlier] + [name for _, name in more]
     alone, grouped = sides["alone"], sides["group"]
-
-    def column(rows, key):
-        return [r[key] for r in rows if r.get(key) is not None]
-
-    def conv_frames(rows):  # a run that met the thresholds only on its final evaluation (at max_frames) converged at its last frame
-        return [r["converged_at_frames"] or r["frames"] for r in rows if r["converged"]]
-
     table = {}
     for side, rows in sides.items():
         cpu = column(rows, "cpu_time_s")
@@ -108,19 +154,7 @@ def report(args) -> dict:
             "trainer": sorted({r.get("trainer") or "alone" for r in rows}),
             "devices": sorted({r.get("device") or "cpu" for r in rows}),  # (runs from before the record: cpu)
         }
-    tests = {}
-    if alone and grouped:
-        a_conv, g_conv = table["alone"]["converged"], table["group"]["converged"]
-        tests["converged_fisher_p"] = float(stats.fisher_exact([[a_conv, len(alone) - a_conv], [g_conv, len(grouped) - g_conv]])[1])
-        for key, a, g in (
-            ("frames_to_converge", conv_frames(alone), conv_frames(grouped)),
-            ("clean_sr", column(alone, "clean_sr"), column(grouped, "clean_sr")),
-            ("poisoned_sr", column(alone, "poisoned_sr"), column(grouped, "poisoned_sr")),
-        ):
-            if len(a) >= 2 and len(g) >= 2:
-                tests[f"{key}_mannwhitney_p"] = float(stats.mannwhitneyu(a, g, alternative="two-sided").pvalue)
-        if table["alone"]["cpu_s_per_model"] and table["group"]["cpu_s_per_model"]:
-            tests["cpu_per_model_ratio_alone_over_group"] = round(table["alone"]["cpu_s_per_model"] / table["group"]["cpu_s_per_model"], 3)
+    tests = compare(alone, grouped)
     result = {
         "world": args.world,
         "arch": args.arch,
@@ -130,6 +164,7 @@ def report(args) -> dict:
         "alone_from": args.against,
         "sides": table,
         "tests": tests,
+        "margins": MARGINS,
         "machine": machine_info(),
         "loadavg": [round(x, 2) for x in os.getloadavg()],
         # per run, so that a later side (another group step, another machine) can be tested against these
@@ -156,6 +191,19 @@ def report(args) -> dict:
     return result
 
 
+def retest(path: Path) -> dict:
+    """Run :func:`compare` again on a report's per-run rows (tests added since it was written) and
+    write its ``tests`` and ``margins`` back; every measured figure in it stays as it was."""
+    from rlbackdoors.io import atomic_write_text
+
+    result = json.loads(path.read_text())
+    result["tests"] = compare(result["runs"]["alone"], result["runs"]["group"])
+    result["margins"] = MARGINS
+    atomic_write_text(path, json.dumps(result, indent=2) + "\n")
+    print(f"{path.name}: {json.dumps(result['tests'])}")
+    return result
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--side", choices=("alone", "group"))
@@ -170,7 +218,12 @@ def main() -> int:
     parser.add_argument("--device", choices=("cpu", "cuda"), help="where the group side trains (default: the config's train.device)")
     parser.add_argument("--out", default=str(ROOT / "runs" / "group-equivalence"))
     parser.add_argument("--json", default="group_equivalence.json", help="--report: the file under experiments/group_equivalence/ it writes")
+    parser.add_argument("--retest", nargs="+", type=Path, metavar="REPORT", help="run the tests again on these reports' per-run rows, in place")
     args = parser.parse_args()
+    if args.retest:
+        for path in args.retest:
+            retest(path)
+        return 0
     if args.side:
         run_side(args.side, args)
     if args.report or not args.side:

@@ -53,5 +53,20 @@ def test_retest_rewrites_only_the_tests_of_a_committed_report(tmp_path):
     after = json.loads(report.read_text())
     assert done.stdout.startswith("report.json: {") and after["margins"] == equivalence.MARGINS
     assert {k: v for k, v in after.items() if k not in ("tests", "margins")} == {k: v for k, v in before.items() if k not in ("tests", "margins")}
-    assert {k: v for k, v in after["tests"].items() if "tost" not in k} == before["tests"]
+    assert after["tests"] == before["tests"]  # (committed retested: the same again)
+    before["tests"] = {k: v for k, v in before["tests"].items() if "tost" not in k}  # a report from before the TOST
+    report.write_text(json.dumps(before))
+    subprocess.run([sys.executable, str(HERE / "group_equivalence.py"), "--retest", str(report)], capture_output=True, text=True, check=True)
+    assert json.loads(report.read_text())["tests"] == after["tests"]
     assert sorted(k for k in after["tests"] if "tost" in k) == ["clean_sr_tost_p", "frames_to_converge_tost_p", "poisoned_sr_tost_p"]
+
+
+def test_plot_draws_a_row_per_report_and_the_same_bytes_twice(tmp_path):
+    reports = [str(HERE / "group_equivalence_rlw_cnn_2026-11-28.json"), str(HERE / "group_equivalence_cm.json")]
+    for name in ("a.png", "b.png"):
+        subprocess.run([sys.executable, str(HERE / "group_equivalence.py"), "--plot", *reports, "--png", str(tmp_path / name)], check=True, capture_output=True)
+    import matplotlib.image
+
+    image = matplotlib.image.imread(tmp_path / "a.png")
+    assert image.shape[0] == round(2 * 2.3 * 90) and image.shape[1] == 10 * 90  # two rows of panels, at 90 dpi
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()

@@ -14,7 +14,8 @@ evaluations), equivalence within stated margins on the same three (two one-sided
 ``MARGINS``), and the CPU seconds per model each side spent (metrics.json's ``cpu_time_s``: the
 group trainer apportions its batched work among its runs). Writes
 ``experiments/group_equivalence/group_equivalence.json`` and prints a Markdown table;
-``--retest REPORT...`` runs the tests again on committed reports' per-run rows.
+``--retest REPORT...`` runs the tests again on committed reports' per-run rows, and
+``--plot REPORT... --png FILE`` draws their runs, side by side.
 
 ``--device cuda`` trains the group side on a GPU (its bytes are the GPU's, recorded per run with
 any group convolution way, ``RLBACKDOORS_STACKED_CONV``), to be tested against a lone side trained
@@ -204,6 +205,45 @@ def retest(path: Path) -> dict:
     return result
 
 
+def plot(reports: list[Path], out: Path) -> None:
+    """One row per report, one panel per outcome: every run of each side (jittered, a fixed draw)
+    with the side's median, titled with the TOST p (equivalence within its margin below 0.05)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    outcomes = (("frames_to_converge", "frames to converge (M)"), ("clean_sr", "clean SR"), ("poisoned_sr", "poisoned SR"))
+    fig, axes = plt.subplots(len(reports), 3, figsize=(10, 2.3 * len(reports)), squeeze=False)
+    jitter = np.random.default_rng(0)
+    for row, path in zip(axes, reports):
+        result = json.loads(path.read_text())
+        runs, tests = result["runs"], compare(result["runs"]["alone"], result["runs"]["group"])
+        for ax, (key, label) in zip(row, outcomes):
+            for x, side in enumerate(("alone", "group")):
+                values = [v / 1e6 for v in conv_frames(runs[side])] if key == "frames_to_converge" else column(runs[side], key)
+                ax.scatter(x + jitter.uniform(-0.15, 0.15, len(values)), values, s=10, alpha=0.6, color=("tab:blue", "tab:orange")[x])
+                if values:
+                    ax.hlines(statistics.median(values), x - 0.3, x + 0.3, color="black", linewidth=1.5)
+            ax.set_xticks([0, 1], [f"alone ({len(runs['alone'])})", f"grouped ({len(runs['group'])})"])
+            ax.set_xlim(-0.6, 1.6)
+            p = tests.get(f"{key}_tost_p")
+            ax.set_title(f"{label}: TOST p = {p:.2g}" if p is not None else label, fontsize=9)
+        row[0].set_ylabel(
+            f"{result['world']} {result['arch']}\nK={result['group_size']}"
+            + (f" {result['update_backend']}" if result.get("update_backend", "torch") != "torch" else ""),
+            fontsize=8,
+        )
+    fig.suptitle("Grouped against lone training: each run's outcome, the sides' medians (lines)", fontsize=10)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    part = out.with_name(out.stem + ".part.png")
+    fig.savefig(part, dpi=90)
+    plt.close(fig)
+    part.replace(out)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--side", choices=("alone", "group"))
@@ -219,7 +259,13 @@ def main() -> int:
     parser.add_argument("--out", default=str(ROOT / "runs" / "group-equivalence"))
     parser.add_argument("--json", default="group_equivalence.json", help="--report: the file under experiments/group_equivalence/ it writes")
     parser.add_argument("--retest", nargs="+", type=Path, metavar="REPORT", help="run the tests again on these reports' per-run rows, in place")
+    parser.add_argument("--plot", nargs="+", type=Path, metavar="REPORT", help="one figure of these reports' runs, a row per report (--png)")
+    parser.add_argument("--png", type=Path, default=ROOT / "experiments" / "group_equivalence" / "group_equivalence_all.png", help="--plot: the figure")
     args = parser.parse_args()
+    if args.plot:
+        plot(args.plot, args.png)
+        print(args.png)
+        return 0
     if args.retest:
         for path in args.retest:
             retest(path)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Issue 55's judged figures and the group trainer's CUDA tests on a lent GPU machine. A lease is 15
-# minutes in all, 10 a command, on a bare machine, so the script has two parts, each one call:
+# minutes in all, 10 a command, on a bare machine, so the script has parts, each one call:
 #   figures (default; at most 8.5 minutes, DEADLINE_S): first a group's CNN convolutions timed one
 #      per agent against one grouped conv2d (benchmarks/stacked_conv.py); per world, models per hour and frames per
 #      second in the same run, the best CPU setting on every core (the reference, first side)
@@ -22,6 +22,10 @@
 #      equivalence_state.tar.gz (benchmarks/equivalence_state.py): the finished runs and the
 #      checkpoints that fit in 15 MiB, for the next lease to go on from (EQ_STATE=that file,
 #      committed with the lease's results).
+#   round (at most 9 minutes; a lease of its own): issue 55's 300-model LavaWorld round, trained
+#      for real (examples/zoo-lavaworld-round-300.toml, zoo run --device cuda --group-size auto)
+#      for ROUND_LIMIT_S (480); round.json (benchmarks/round_summary.py): converged per cell,
+#      frames, frames/s, met or not, and where cut short a labelled projection; round.log.
 # Sized on an H200 lease (2026-11-29, benchmarks/results/gpu/h200_2026-11-29): 256 LavaWorld models of
 # 30,000 frames took 52 s on 16 CPU cores and 58 s on the GPU, the CNN worlds' sides did not finish
 # in 90 s, and all the CUDA tests took 222 s.
@@ -33,10 +37,11 @@
 # A lease of its own for the equivalence part; the one after it goes on from what it returned:
 #   run(command="bash benchmarks/gpu_checks.sh $OUT equivalence", carry=[".whl"], timeout_s=560)
 #   run(command="EQ_STATE=benchmarks/results/gpu/LEASE/equivalence_state.tar.gz bash benchmarks/gpu_checks.sh $OUT equivalence", ...)
+# and one for the round: run(command="bash benchmarks/gpu_checks.sh $OUT round", carry=[".whl"], timeout_s=560)
 # A dry run on a CPU machine (the plumbing, small sizes; every ":cuda" side runs on the CPU):
 #   ON_CPU=1 WORLDS="lavaworld:4:4096:200" SIDES_lavaworld="1:cpu:2 4:cuda:1" bash benchmarks/gpu_checks.sh /tmp/dry
 #
-# Usage: bash benchmarks/gpu_checks.sh OUTDIR [figures|tests|equivalence]
+# Usage: bash benchmarks/gpu_checks.sh OUTDIR [figures|tests|equivalence|round]
 #   env: WORLDS   words "world[/arch][:models[:frames[:timeout_s]]]" (default: the four judged ones);
 #        SIDES_<world, '-' as '_'>  that world's sides (default below); EVAL_EPISODES (default the
 #        world's: evaluations count); DEADLINE_S (figures: default 505, the engines get what is
@@ -44,13 +49,14 @@
 #        EQ_WORLDS words "world/arch:AGAINST:limit_s" (AGAINST a report under
 #        experiments/group_equivalence/), EQ_SEEDS (default 20), EQ_CONV (the CUDA group's
 #        convolutions, models.minigrid.STACKED_CONV; default each), EQ_STATE (an earlier lease's
-#        equivalence_state.tar.gz to go on from). The two calls and a machine's
+#        equivalence_state.tar.gz to go on from); round: ROUND_SPEC (default the 300-model
+#        split), ROUND_LIMIT_S (default 480). The two calls and a machine's
 #        start fit the 15 minutes of a lease with about a minute to spare.
 set -uo pipefail
-mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests|equivalence]}" && out=$(cd "$1" && pwd)
+mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests|equivalence|round]}" && out=$(cd "$1" && pwd)
 part=${2:-figures}
-case "$part" in figures | tests | equivalence) ;; *)
-    echo "gpu_checks: part must be figures, tests or equivalence, not '$part'" >&2
+case "$part" in figures | tests | equivalence | round) ;; *)
+    echo "gpu_checks: part must be figures, tests, equivalence or round, not '$part'" >&2
     exit 2
     ;;
 esac
@@ -60,6 +66,7 @@ cd "$(dirname "$0")/.."
 log="$out/bench.log"
 [ "$part" = tests ] && log="$out/gpu_tests.log"
 [ "$part" = equivalence ] && log="$out/equivalence.log"
+[ "$part" = round ] && log="$out/round.log"
 # the bare machine: the carried wheels (gpu_wheels.sh), and this checkout's package on the path
 if ! python3 -c "import gymnasium, minigrid, mujoco, jsonschema" 2>/dev/null; then
     if [ -d .whl ]; then
@@ -118,6 +125,28 @@ if [ "$part" = tests ]; then
         echo "tests -k '$pick': exit $? after $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
         quiet
     done
+    exit 0
+fi
+
+if [ "$part" = round ]; then
+    # The round itself, not estimated: a 300-model LavaWorld FC split planned and trained by
+    # `zoo run --device cuda --group-size auto` for the lease's time; round.json says how far it got
+    spec=${ROUND_SPEC:-examples/zoo-lavaworld-round-300.toml}
+    limit=${ROUND_LIMIT_S:-480}
+    device=cuda
+    [ -n "${ON_CPU:-}" ] && device=cpu
+    scratch=$(mktemp -d /tmp/rlbackdoors-round-XXXX)
+    python3 -m rlbackdoors.cli zoo plan "$spec" --out "$scratch/zoo" >>"$log" 2>&1 || exit 2
+    echo "== round: $spec, zoo run --device $device --group-size auto (limit $limit s)" | tee -a "$log"
+    quiet
+    began=$(date +%s.%N)
+    bounded "$limit" python3 -m rlbackdoors.cli zoo run "$scratch/zoo" --device "$device" --group-size auto --progress-interval 30 >>"$log" 2>&1
+    status=$?
+    wall=$(python3 -c "import sys, time; print(round(time.time() - float(sys.argv[1]), 2))" "$began")
+    echo "== end round: exit $status after $wall s (124: its limit)" | tee -a "$log"
+    python3 -m rlbackdoors.cli zoo status "$scratch/zoo" >>"$log" 2>&1
+    bounded 60 python3 benchmarks/round_summary.py "$scratch/zoo" --wall-s "$wall" --exit "$status" --json "$out/round.json" 2>&1 | tee -a "$log"
+    rm -rf "$scratch"
     exit 0
 fi
 

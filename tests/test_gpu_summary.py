@@ -233,3 +233,70 @@ def test_equivalence_state_keeps_finished_runs_leaves_out_what_does_not_fit_and_
     with pytest.raises(SystemExit, match=r"^equivalence_state: error: .*bad.tar.gz: unexpected member 'lavaworld/group/\.\./\.\./\.\./escape/metrics.json'"):
         state.unpack(bad, tmp_path / "c")
     assert not (tmp_path / "c").exists() and not (tmp_path.parent / "escape").exists()
+
+
+TINY_ROUND = """name = "round-tiny"
+seed = 300
+max_attempts = 1
+
+[overrides.train]
+video = false
+max_frames = 10_000
+
+[[cells]]
+world = "lavaworld"
+archs = ["fc"]
+triggers = ["multiplicative", "additive"]
+models = 2
+poisoned_share = 0.5
+"""
+
+
+def test_round_summary_reads_a_finished_zoo_as_it_is(tmp_path):
+    """benchmarks/round_summary.py on a real zoo of 4 LavaWorld FC models of 10,240 frames, trained
+    to the end (one attempt each): none converges, so the round is not complete and, zoo run
+    having ended by itself, nothing is projected; its frames and evaluation steps are the models'."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import round_summary
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    from rlbackdoors.bench.zoo import evaluation_steps
+
+    (tmp_path / "spec.toml").write_text(TINY_ROUND)
+    rb = [sys.executable, "-m", "rlbackdoors.cli", "zoo"]
+    subprocess.run([*rb, "plan", str(tmp_path / "spec.toml"), "--out", str(tmp_path / "zoo")], check=True, capture_output=True)
+    subprocess.run([*rb, "run", str(tmp_path / "zoo"), "--group-size", "auto", "--workers", "1"], check=True, capture_output=True, timeout=300)
+    folders = sorted((tmp_path / "zoo" / "models").glob("id-*"))
+    metrics = [json.loads((f / "metrics.json").read_text()) for f in folders]
+    result = round_summary.summarise(tmp_path / "zoo", wall_s=40.0, exit_status=0)
+    assert (result["models_wanted"], result["models_finished"], result["models_converged"]) == (4, 4, 0)
+    assert result["frames_trained"] == sum(m["frames"] for m in metrics) and result["frames_of_cut_models"] == 0
+    assert result["eval_steps_of_finished_models"] == sum(evaluation_steps(f) for f in folders) > 0
+    assert result["frames_per_s"] == pytest.approx(result["frames_trained"] / 40.0, abs=0.1)
+    assert result["complete"] is False and result["met"] is False and "projection" not in result
+    assert [c["not_converged"] for c in result["cells"]] == [1, 1, 1, 1]
+    assert round_summary.markdown(result).rstrip().endswith("with cells short of converged models: no projection")
+
+
+def test_the_gpu_scripts_round_part_cuts_the_round_and_projects_it(tmp_path):
+    """``gpu_checks.sh OUT round`` dry (``ON_CPU=1``) on the tiny round with a 25 s limit: zoo run
+    is cut (exit 124), its running models checkpoint, and round.json projects the round's time,
+    labelled as a projection."""
+    (tmp_path / "spec.toml").write_text(TINY_ROUND.replace("max_frames = 10_000", "max_frames = 5_000_000"))
+    env = {
+        **os.environ,
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+        "ON_CPU": "1",
+        "ROUND_SPEC": str(tmp_path / "spec.toml"),
+        "ROUND_LIMIT_S": "25",
+    }
+    out = tmp_path / "out"
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(out), "round"], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(p.name for p in out.iterdir()) == ["round.json", "round.log"]
+    result = json.loads((out / "round.json").read_text())
+    assert result["zoo_run_exit"] == 124 and result["complete"] is False and result["met"] is False
+    assert result["models_cut_with_checkpoints"] >= 1 and result["frames_of_cut_models"] > 0, result
+    assert result["projection"]["round_s"] > result["wall_s"] and result["projection"]["models_short"] == 4
+    assert "a projection: " in (out / "round.log").read_text()

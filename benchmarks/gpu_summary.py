@@ -263,6 +263,7 @@ def markdown(result: dict) -> str:
             f"{r['estimated_s'] / 60:.1f} min (target <= 15 min: {'met' if r['met'] else 'not met'}; the rate measured with models of "
             f"{r['measured_frames_per_model']:,} frames, whose evaluations and files weigh more than in a model of the round's"
             + (f": their evaluations were {r['measured_eval_share']:.0%} of their env steps)" if r.get("measured_eval_share") is not None else ")")
+            + ". An estimate: `gpu_checks.sh OUT round` trains the round itself."
         )
     return "\n".join(lines) + "\n"
 

@@ -44,10 +44,13 @@ def summarise(zoo_path: Path, wall_s: float, exit_status: int) -> dict:
     ]
     finished = [s for s in states if s.status == "done"]
     trained = sum(int(s.metrics["frames"]) for s in finished if s.metrics)
-    cut = 0
+    cut, unreadable = 0, []
     for s in states:
         if s.status != "done" and (s.folder / "checkpoint.pt").is_file():
-            cut += int(torch.load(s.folder / "checkpoint.pt", map_location="cpu", weights_only=True)["frames"])
+            try:  # (written atomically; a kill mid-write leaves the one before)
+                cut += int(torch.load(s.folder / "checkpoint.pt", map_location="cpu", weights_only=True)["frames"])
+            except (OSError, RuntimeError, KeyError, ValueError) as error:  # counted as no frames, and named
+                unreadable.append(f"{s.folder.name}: {error}"[:200])
     eval_steps = sum(evaluation_steps(s.folder) or 0 for s in finished)
     devices = sorted({str(s.metrics.get("device")) for s in finished if s.metrics})
     short = sum(max(c["wanted"] - c["converged"], 0) for c in cells)
@@ -62,6 +65,7 @@ def summarise(zoo_path: Path, wall_s: float, exit_status: int) -> dict:
         "cells": cells,
         "frames_trained": trained + cut,
         "frames_of_cut_models": cut,
+        "unreadable_checkpoints": unreadable,
         "eval_steps_of_finished_models": eval_steps,
         "frames_to_converge_median": statistics.median(converged_frames) if converged_frames else None,
         "wall_s": round(wall_s, 1),

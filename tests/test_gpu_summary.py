@@ -271,7 +271,7 @@ def test_round_summary_reads_a_finished_zoo_as_it_is(tmp_path):
     metrics = [json.loads((f / "metrics.json").read_text()) for f in folders]
     result = round_summary.summarise(tmp_path / "zoo", wall_s=40.0, exit_status=0)
     assert (result["models_wanted"], result["models_finished"], result["models_converged"]) == (4, 4, 0)
-    assert result["frames_trained"] == sum(m["frames"] for m in metrics) and result["frames_of_cut_models"] == 0
+    assert result["frames_trained"] == sum(m["frames"] for m in metrics) and result["frames_of_cut_models"] == 0 and result["unreadable_checkpoints"] == []
     assert result["eval_steps_of_finished_models"] == sum(evaluation_steps(f) for f in folders) > 0
     assert result["frames_per_s"] == pytest.approx(result["frames_trained"] / 40.0, abs=0.1)
     assert result["complete"] is False and result["met"] is False and "projection" not in result

@@ -25,12 +25,16 @@ KEEP_FINISHED = ("metrics.json", "config.json", "log.csv")
 KEEP_STARTED = ("config.json", "log.csv", "checkpoint.pt")
 
 
-def runs(scratch: Path) -> dict[str, list[Path]]:
-    """WORLD -> its group runs' folders (``WORLD/group/sN``), in seed order."""
-    found: dict[str, list[Path]] = {}
+def runs(scratch: Path) -> dict[str, tuple[list[Path], list[Path]]]:
+    """WORLD -> its group runs' folders (``WORLD/group/sN``, in seed order): the finished ones
+    (a ``metrics.json``) and the started ones (a checkpoint, no ``metrics.json``)."""
+    found: dict[str, tuple[list[Path], list[Path]]] = {}
     for run in sorted(scratch.glob("*/group/s*"), key=lambda p: (p.parts[-3], int(p.name[1:]) if p.name[1:].isdigit() else -1)):
-        if run.is_dir():
-            found.setdefault(run.parts[-3], []).append(run)
+        finished, started = found.setdefault(run.parts[-3], ([], []))
+        if (run / "metrics.json").is_file():
+            finished.append(run)
+        elif (run / "checkpoint.pt").is_file():
+            started.append(run)
     return found
 
 
@@ -44,10 +48,8 @@ def checkpoint_state(path: Path) -> tuple[int, float]:
 
 def describe(scratch: Path) -> list[str]:
     lines = []
-    for world, folders in runs(scratch).items():
-        finished = [f.name for f in folders if (f / "metrics.json").is_file()]
-        started = {f.name: checkpoint_state(f / "checkpoint.pt") for f in folders if not (f / "metrics.json").is_file() and (f / "checkpoint.pt").is_file()}
-        text = ", ".join(f"{name} at {frames:,} frames ({wall:.0f} wall-s)" for name, (frames, wall) in started.items())
+    for world, (finished, started) in runs(scratch).items():
+        text = ", ".join(f"{f.name} at {frames:,} frames ({wall:.0f} wall-s)" for f in started for frames, wall in [checkpoint_state(f / "checkpoint.pt")])
         lines.append(f"{world}: {len(finished)} finished, {len(started)} with checkpoints{': ' + text if text else ''}")
     return lines
 
@@ -57,11 +59,8 @@ def pack(scratch: Path, archive: Path, limit_mib: float) -> list[str]:
     limit = int(limit_mib * 2**20)
     members: list[tuple[Path, str]] = []
     left_out = []
-    for world, folders in runs(scratch).items():
-        for f in folders:
-            if (f / "metrics.json").is_file():
-                members += [(f / n, f"{world}/group/{f.name}/{n}") for n in KEEP_FINISHED if (f / n).is_file()]
-        started = [f for f in folders if not (f / "metrics.json").is_file() and (f / "checkpoint.pt").is_file()]
+    for world, (finished, started) in runs(scratch).items():
+        members += [(f / n, f"{world}/group/{f.name}/{n}") for f in finished for n in KEEP_FINISHED if (f / n).is_file()]
         extra = [(f / n, f"{world}/group/{f.name}/{n}") for f in started for n in KEEP_STARTED if (f / n).is_file()]
         if extra and _size(members + extra) > limit:  # (compressed weights are not much smaller: counted raw)
             left_out.append(f"{world}: {len(started)} checkpoints left out ({_size(extra) / 2**20:.1f} MiB; over {limit_mib} MiB): they start again")

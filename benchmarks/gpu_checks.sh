@@ -78,6 +78,8 @@ if ! python3 -c "import gymnasium, minigrid, mujoco, jsonschema" 2>/dev/null; th
 fi
 python3 -c "import rlbackdoors" 2>/dev/null || export PYTHONPATH=$PWD/src${PYTHONPATH:+:$PYTHONPATH}
 cores=$(nproc)
+device=cuda # (the equivalence and round parts' device; the figures' sides name theirs)
+[ -n "${ON_CPU:-}" ] && device=cpu
 # COMMAND under a time limit in a process group of its own (timeout's), its exit status; whatever of
 # that group outlives it (a zoo's jobs and env workers still checkpointing after the SIGTERM of a
 # cut world, a test's zoo) is killed and counted in $left_over, so that nothing shares the cores
@@ -133,8 +135,6 @@ if [ "$part" = round ]; then
     # `zoo run --device cuda --group-size auto` for the lease's time; round.json says how far it got
     spec=${ROUND_SPEC:-examples/zoo-lavaworld-round-300.toml}
     limit=${ROUND_LIMIT_S:-480}
-    device=cuda
-    [ -n "${ON_CPU:-}" ] && device=cpu
     scratch=$(mktemp -d /tmp/rlbackdoors-round-XXXX)
     python3 -m rlbackdoors.cli zoo plan "$spec" --out "$scratch/zoo" >>"$log" 2>&1 || exit 2
     echo "== round: $spec, zoo run --device $device --group-size auto (limit $limit s)" | tee -a "$log"
@@ -156,8 +156,6 @@ if [ "$part" = equivalence ]; then
     eq_worlds=${EQ_WORLDS:-"randomized-lavaworld/cnn:group_equivalence_rlw_cnn_2026-11-28.json:300 lavaworld/fc:group_equivalence_2026-11-28.json:200"}
     deadline=${DEADLINE_S:-520}
     seeds=${EQ_SEEDS:-20}
-    device=cuda
-    [ -n "${ON_CPU:-}" ] && device=cpu
     scratch=$(mktemp -d /tmp/rlbackdoors-equivalence-XXXX)
     # EQ_STATE: the equivalence_state.tar.gz an earlier lease wrote (committed with its results):
     # its finished runs count and its checkpoints go on, so 20 seeds may take several leases

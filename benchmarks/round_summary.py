@@ -23,9 +23,7 @@ import statistics
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-EQUIVALENCE = ROOT / "experiments" / "group_equivalence" / "group_equivalence_2026-11-28.json"
-ROUND_LIMIT_S = 15 * 60
+from gpu_summary import EQUIVALENCE, ROUND_LIMIT_S  # (a sibling script: its directory is on the path)
 
 
 def summarise(zoo_path: Path, wall_s: float, exit_status: int) -> dict:
@@ -44,14 +42,15 @@ def summarise(zoo_path: Path, wall_s: float, exit_status: int) -> dict:
     ]
     finished = [s for s in states if s.status == "done"]
     trained = sum(int(s.metrics["frames"]) for s in finished if s.metrics)
-    cut, unreadable = 0, []
+    cut, cut_models, unreadable = 0, 0, []
     for s in states:
         if s.status != "done" and (s.folder / "checkpoint.pt").is_file():
+            cut_models += 1
             try:  # (written atomically; a kill mid-write leaves the one before)
                 cut += int(torch.load(s.folder / "checkpoint.pt", map_location="cpu", weights_only=True)["frames"])
             except (OSError, RuntimeError, KeyError, ValueError) as error:  # counted as no frames, and named
                 unreadable.append(f"{s.folder.name}: {error}"[:200])
-    eval_steps = sum(evaluation_steps(s.folder) or 0 for s in finished)
+    eval_steps = sum(evaluation_steps(s.folder) for s in finished)
     devices = sorted({str(s.metrics.get("device")) for s in finished if s.metrics})
     short = sum(max(c["wanted"] - c["converged"], 0) for c in cells)
     rate = (trained + cut) / wall_s if wall_s > 0 else 0.0
@@ -61,7 +60,7 @@ def summarise(zoo_path: Path, wall_s: float, exit_status: int) -> dict:
         "models_wanted": sum(c["wanted"] for c in cells),
         "models_converged": sum(c["converged"] for c in cells),
         "models_finished": len(finished),
-        "models_cut_with_checkpoints": sum(1 for s in states if s.status != "done" and (s.folder / "checkpoint.pt").is_file()),
+        "models_cut_with_checkpoints": cut_models,
         "cells": cells,
         "frames_trained": trained + cut,
         "frames_of_cut_models": cut,

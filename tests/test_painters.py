@@ -49,8 +49,6 @@ def test_painters_draw_the_png_the_caller_draws_and_every_curve_when_one_dies_or
         assert len(painters.procs) == 3  # min(workers, curves)
         assert all(isinstance(d, Drawn) for d in drawn)
         assert [d.png for d in drawn] == here  # same matplotlib, same bytes
-        # each painter's first curve carries its start-up (imports): CPU seconds well above zero
-        assert sum(d.cpu_s for d in drawn) > 0.3
         # Ctrl-C (SIGINT to the terminal's process group) is the trainer's: painters ignore it
         for proc in painters.procs:
             os.kill(proc.pid, signal.SIGINT)
@@ -68,6 +66,24 @@ def test_painters_draw_the_png_the_caller_draws_and_every_curve_when_one_dies_or
         assert isinstance(out[1], KeyError) and [out[0].png, out[2].png] == [here[0], here[2]]  # type: ignore[union-attr]
         procs = list(painters.procs)
     assert painters.procs == [] and all(p.poll() is not None for p in procs)  # closed: every painter has exited
+
+
+def test_the_painters_cpu_is_counted_whole_by_their_replies_and_their_reaping():
+    """The replies carry each painter's start-up (its imports, with its first picture) and its
+    pictures; the reaping reads the rest (the exit) from the kernel, so the two add up to the
+    children's CPU clock. Without the start-up in the replies, or with Python's teardown at exit
+    (0.33 of 2.2 CPU-s a painter on an AMD EPYC), the unreported part would pass a tenth of the
+    whole; with ``os._exit`` it is the kernel's exit alone (0.6 % there)."""
+    jobs = [job(s) for s in range(4)]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    with Painters(2) as painters:
+        drawn = painters.render(jobs)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    children = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+    reported = sum(d.cpu_s for d in drawn)  # type: ignore[union-attr]
+    assert all(isinstance(d, Drawn) and d.cpu_s > 0 for d in drawn)
+    assert reported + painters.unreported_s == pytest.approx(children, abs=0.01)  # the replies round to 0.1 ms each
+    assert painters.unreported_s <= 0.1 * children
 
 
 def test_a_library_printing_to_stdout_does_not_cross_the_replies(tmp_path, monkeypatch):
@@ -144,11 +160,16 @@ def test_a_group_with_painters_leaves_the_folders_a_group_without_them_does(tmp_
         assert {k: v for k, v in m0.items() if k not in ("cpu_time_s", "wall_time_s")} == {
             k: v for k, v in m2.items() if k not in ("cpu_time_s", "wall_time_s")
         }
-    # the painters' CPU seconds (their start and curves, as the children's clock reads them once
-    # they have exited) are counted in the runs' shares, beside this process's own
+    # the painters' CPU seconds (start, pictures and exit, as the children's clock reads them once
+    # they have exited) are counted in the runs' shares, beside this process's own: the shares and
+    # the group's overhead add up to both clocks, whatever the CPU (0.02 s: this test's own calls
+    # between the clocks and the call, and the painters' replies rounded to 0.1 ms)
+    assert spent[0][1] == pytest.approx(0.0, abs=1e-6)  # no child process without painters (the clock is in microseconds)
+    for workers, result in sides.items():
+        own, painters = spent[workers]
+        assert result.overhead_s >= 0.0 and sum(result.cpu_s.values()) + result.overhead_s == pytest.approx(own + painters, abs=0.02)
     own, painters = spent[2]
-    assert painters > 0.1 and spent[0][1] == pytest.approx(0.0, abs=0.05)  # no child process without painters
-    assert 0.8 * (own + painters) <= sum(sides[2].cpu_s.values()) <= own + painters + 0.05
+    assert painters > 0.0 and sum(sides[2].cpu_s.values()) >= painters - 0.01  # every painter drew for a run: its CPU is in the runs'
     # and the GIFs did come from the painters: two GIF requests built from the folders (config, model.pt)
     jobs = []
     for s in (1, 2):

@@ -72,17 +72,23 @@ class _Slot:
     loop: Generator[Any, Any, Any] | None = None
     request: Any = None
     cpu: RunCPU = field(default_factory=RunCPU)
+    painted_s: float = 0.0  # the painters' CPU seconds its pictures' replies carried
 
 
 @dataclass
 class GroupResult:
     """What became of each run: its metrics, or the exception that ended it; and ``cpu_s``, the
-    CPU seconds it took of this process, its setup and finish (curve, GIF) included, where its
-    metrics' ``cpu_time_s`` counts its training only: what a zoo pays per model."""
+    CPU seconds it took of this process, its setup and finish (curve, GIF) included, with its
+    pictures' painters' (their start-up and exit spread over the runs they drew for, in proportion),
+    where its metrics' ``cpu_time_s`` counts its training only: what a zoo pays per model.
+    ``overhead_s``: the CPU seconds of the call that no run's share carries (the group's loop and
+    pools here; a painter's that drew for no run). The two add up, by construction, to the call's
+    CPU: this process's and its painters' (env pool workers not counted: theirs is their own)."""
 
     metrics: dict[Any, dict] = field(default_factory=dict)
     errors: dict[Any, BaseException] = field(default_factory=dict)
     cpu_s: dict[Any, float] = field(default_factory=dict)
+    overhead_s: float = 0.0
 
 
 # ``--group-size auto``, per algorithm and device, measured (docs/results/zoos.md, `rlbackdoors bench zoo`):
@@ -183,9 +189,11 @@ def train_group(
     """
     if group_size < 1:
         raise ValueError(f"group_size must be >= 1, got {group_size}")
+    called = time.process_time()
     waiting = deque(runs)
     slots: list[_Slot] = []
     result = GroupResult()
+    painted: dict[Any, float] = {}  # each ended run's painters' seconds, within its cpu_s
     interrupted: list[Interrupted] = []
 
     def step(slot: _Slot, value: Any = None, error: BaseException | None = None) -> BaseException | None:
@@ -215,6 +223,7 @@ def train_group(
         if end is None:
             return True
         result.cpu_s[slot.key] = slot.cpu()
+        painted[slot.key] = slot.painted_s
         if isinstance(end, StopIteration):
             result.metrics[slot.key] = end.value
             if on_done is not None:
@@ -266,6 +275,7 @@ def train_group(
                 share = (time.process_time() - started) / len(members)
                 for s, answer in zip(members, answers):
                     s.cpu.total += share + getattr(answer, "cpu_s", 0.0)  # a painter's CPU seconds for its curve
+                    s.painted_s += getattr(answer, "cpu_s", 0.0)
                 if threaded and len(members) > 1:
                     ends = list(threads.map(step, members, answers, [error] * len(members)))
                 else:
@@ -273,6 +283,12 @@ def train_group(
                 alive = [settle(s, end) for s, end in zip(members, ends)]
                 ended.update(id(s) for s, ok in zip(members, alive) if not ok)
             slots = [s for s in slots if id(s) not in ended]
+    # the painters' CPU that no reply carried (their exit, one killed mid-picture), read as they
+    # were reaped, to the runs they drew for; this process's CPU that no share carries, overhead
+    unreported, drawn = drawing.unreported_s, sum(painted.values())
+    for key, seconds in painted.items():
+        result.cpu_s[key] += unreported * seconds / drawn if drawn > 0 else 0.0
+    result.overhead_s = time.process_time() - called + drawn + unreported - sum(result.cpu_s.values())
     if interrupted:
         if progress:
             print(f"group: {len(interrupted)} runs stopped with their checkpoints; run again to resume", file=sys.stderr, flush=True)

@@ -1,0 +1,134 @@
+"""Training frames/s of the compiled PPO iteration (algos/compiled.py) against today's best CPU
+side (a torch group of K agents with the JAX update, algos/group.py), in the same process, one
+core each, on LavaWorld FC with the env mix (10 copies, 8 clean : 2 poisoned, rollout 128).
+
+Training only: rollout, GAE and update, no evaluations (the compiled trainer's evaluations are
+not built yet); each side warms up (compiles) first and is then timed for ``--seconds``. The
+machine and its load are recorded with the figures.
+
+    python benchmarks/compiled_lavaworld.py --json benchmarks/results/compiled_lavaworld_<cpu>.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def configs(k: int):
+    from rlbackdoors.config import RunConfig
+
+    return [
+        RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12"}, "ppo": {"update_backend": "jax"}, "train": {"seed": s}})
+        for s in range(k)
+    ]
+
+
+def engines_of(cfgs):
+    from rlbackdoors.poison.mix import make_env_mix
+
+    out = []
+    for cfg in cfgs:
+        e = make_env_mix(cfg.env, cfg.poison, cfg.train.seed)
+        e.reset(seed=cfg.train.seed * 1000)
+        out.append(e)
+    return out
+
+
+def torch_group(k: int, seconds: float) -> dict:
+    """Today's side: K torch PPO learners stepped together (group.collect, group.update)."""
+    from rlbackdoors.algos import group
+    from rlbackdoors.algos.ppo import PPO
+    from rlbackdoors.models import build_model
+
+    cfgs = configs(k)
+    envs = engines_of(cfgs)
+    ppos = []
+    for cfg in cfgs:
+        torch.manual_seed(cfg.train.seed)
+        ppos.append(PPO(build_model("fc", "lavaworld"), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(cfg.train.seed)))
+    obs = [e.reset(seed=c.train.seed * 1000)[0] for e, c in zip(envs, cfgs)]
+
+    def once():
+        nonlocal obs
+        collected = group.collect(ppos, envs, obs)
+        obs = [o for _, o in collected]
+        group.update(ppos, [r for r, _ in collected])
+        return sum(r.num_frames for r, _ in collected)
+
+    return timed(once, seconds)
+
+
+def compiled_group(k: int, seconds: float) -> dict:
+    from rlbackdoors.algos.compiled import Group, Hyper, init_agents
+    from rlbackdoors.envs.lavaworld_jax import lavaworld_jax
+    from rlbackdoors.models import build_model
+
+    cfgs = configs(k)
+    agents, model = init_agents(lambda: build_model("fc", "lavaworld"), [c.train.seed for c in cfgs])
+    g = Group(engines_of(cfgs), lavaworld_jax, model, agents, Hyper.of(cfgs[0].ppo))
+
+    def once():
+        stats = g.iterate()
+        np.asarray(stats.episodes)  # the program has finished
+        return k * g.n * g.hyper.rollout
+
+    return timed(once, seconds)
+
+
+def timed(once, seconds: float) -> dict:
+    t0 = time.perf_counter()
+    once()  # warm-up: compiles, caches
+    warm = time.perf_counter() - t0
+    frames, start, cpu = 0, time.perf_counter(), time.process_time()
+    while time.perf_counter() - start < seconds:
+        frames += once()
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu
+    return {
+        "frames": frames,
+        "wall_s": round(wall, 3),
+        "cpu_s": round(cpu, 3),
+        "frames_per_s": round(frames / wall, 1),
+        "frames_per_cpu_s": round(frames / cpu, 1),
+        "warmup_s": round(warm, 2),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--ks", default="1,16", help="group sizes of the compiled side (comma-separated)")
+    ap.add_argument("--torch-k", type=int, default=16, help="today's side's group size (its best on 2 cores: 16 with the JAX update)")
+    ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    from rlbackdoors.algos.jax_update import _jax
+    from rlbackdoors.bench.machine import machine_info
+
+    _jax()  # one compute thread, as both sides train in a zoo's process per core
+    torch.set_num_threads(1)
+    result: dict = {"machine": machine_info(), "load_before": os.getloadavg(), "seconds": args.seconds, "sides": {}}
+    today = torch_group(args.torch_k, args.seconds)
+    result["sides"][f"torch K={args.torch_k} (jax update)"] = today
+    print(f"torch K={args.torch_k}: {today['frames_per_s']:,.0f} frames/s", file=sys.stderr, flush=True)
+    for k in (int(x) for x in args.ks.split(",")):
+        side = compiled_group(k, args.seconds)
+        side["ratio_to_torch"] = round(side["frames_per_s"] / today["frames_per_s"], 3)
+        result["sides"][f"compiled K={k}"] = side
+        print(f"compiled K={k}: {side['frames_per_s']:,.0f} frames/s (x{side['ratio_to_torch']:.2f})", file=sys.stderr, flush=True)
+    result["load_after"] = os.getloadavg()
+    text = json.dumps(result, indent=2)
+    if args.json:
+        args.json.write_text(text + "\n")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

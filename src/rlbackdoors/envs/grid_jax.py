@@ -1,0 +1,334 @@
+"""MiniGrid's step and egocentric view as pure JAX functions: a grid world's slots stepped inside
+one XLA program (the compiled trainer's rollout), exact to the numba engine
+(:mod:`rlbackdoors.envs.grid_engine`).
+
+The design is :mod:`rlbackdoors.envs.grid_device`'s (the torch device engine), made functional:
+the slots' state is a pytree (:class:`Slots`) that a step takes and returns, so ``lax.scan`` can
+carry it through a rollout and ``vmap`` can add an axis of agents. Nothing in a step depends on
+the data's values for its shapes, and nothing returns to the host.
+
+What stays on the host is what is sequential and rare: drawing layouts, with the numba engine's
+own layout hook (``Kernels.layouts``) from each slot's own SplitMix64 stream. Before a block of
+steps (a rollout) the host hands the program each slot's next ``depth`` layouts in draw order
+(:class:`Layouts`, from :class:`HostLayouts`, which keeps the ones a block did not take for the
+next); an autoreset takes the slot's next one. A block whose slot ended more episodes than it
+was handed layouts says so (``starved``); the host then draws deeper and runs the block again
+from the same state (:meth:`HostLayouts.run`), so the slots always see the layouts, in the order,
+their numba engine's autoresets would draw: same state and actions, same bytes.
+
+``Grid.process_vis`` is the torch engine's tabulated row sweep (:func:`visibility_table`), V
+lookups on bit rows. Integers are int32 and rewards float32 (JAX's defaults without x64): the
+reward is the numba engine's float64 ``1 - 0.9 t/T`` rounded once to float32 (a table by step
+count, computed on the host, so no fused multiply-add can move it by an ulp), which is what the
+compiled trainer's float32 program reads; the tests compare it so.
+
+A world supplies its terminal rule and what it adds to a view, as functions of the slots and its
+own parameters (:class:`GridWorld`), in a module beside its numba engine's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+from rlbackdoors.envs import grid_engine as ge
+from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup
+from rlbackdoors.envs.grid_device import HELD, pad_grid, view_offsets, visibility_table
+from rlbackdoors.envs.rewards import success_reward
+
+
+def _jnp():
+    import jax.numpy as jnp  # JAX only where a compiled program is built
+
+    return jnp
+
+
+class Slots(NamedTuple):
+    """Every slot's state (a pytree; leading axis: the slots). ``grid`` is padded with ``V - 1``
+    grey walls (:func:`pad_grid`), so a view or a move reads any cell without a bounds test."""
+
+    grid: Any  # (B, S + 2P, S + 2P, 3) uint8
+    pos: Any  # (B, 2) int32
+    dirs: Any  # (B,) int32
+    steps: Any  # (B,) int32
+    final_obs: Any  # (B, V, V, 3) uint8: the terminal view of slots that just ended
+
+
+class Layouts(NamedTuple):
+    """Each slot's next ``depth`` layouts in draw order, and how many of them it has taken."""
+
+    grid: Any  # (B, D, S + 2P, S + 2P, 3) uint8, padded
+    pos: Any  # (B, D, 2) int32
+    dirs: Any  # (B, D) int32
+    view: Any  # (B, D, V, V, 3) uint8: the slot's first view of each, the world's additions in
+    taken: Any  # (B,) int32
+    starved: Any  # () bool: a slot ended more episodes than it had layouts
+
+
+class StepOut(NamedTuple):
+    """What a step returns, as the numba step does (reward float32, see the module doc)."""
+
+    obs: Any  # (B, V, V, 3) uint8
+    reward: Any  # (B,) float32
+    terminated: Any  # (B,) bool
+    truncated: Any  # (B,) bool
+    outcome: Any  # (B,) int32
+    steps: Any  # (B,) int32: the episode step count of the step just taken
+
+
+@dataclass(frozen=True)
+class GridWorld:
+    """The static part of a grid world's JAX step: sizes and the tables computed on the host,
+    and the world's two rules. ``outcome(fwd, slots, params)``: the terminal outcome of each
+    slot's last move (``fwd``: the forward cell's object before a forward move, -1 for turns);
+    ``seen(img, slots, params)``: a freshly rendered view with the world's additions. ``params``
+    is the world's own pytree (a trigger's tables, which slots are poisoned)."""
+
+    size: int
+    view_size: int
+    max_steps: int
+    see_through_walls: bool
+    trojan: int  # the outcome that pays poisoned slots
+    outcome: Callable
+    seen: Callable
+
+    @property
+    def padded(self) -> int:
+        return self.size + 2 * (self.view_size - 1)
+
+    def tables(self) -> dict[str, np.ndarray]:
+        """The constants a step reads (numpy; they become constants of the XLA program)."""
+        n, sp, p = self.view_size, self.padded, self.view_size - 1
+        offsets = view_offsets(n)
+        table = visibility_table(n)  # re-packed: (visible << 2n) | (marked << n)
+        walkable = np.zeros(256, dtype=bool)
+        walkable[[ge.EMPTY, ge.UNSEEN, ge.AGENT, ge.FLOOR, ge.GOAL, ge.LAVA]] = True  # can_overlap, doors apart
+        return {
+            "view_cells": ((offsets[..., 0] + p) * sp + offsets[..., 1] + p).reshape(4, n * n).astype(np.int32),
+            "vis": (((table >> n) << (2 * n)) | ((table & ((1 << n) - 1)) << n)).astype(np.int32),
+            "walkable": walkable,
+            "dir_vec": np.stack([ge.DIR_DX, ge.DIR_DY], axis=1).astype(np.int32),
+            "pay": success_reward(np.arange(self.max_steps + 1), self.max_steps).astype(np.float32),
+        }
+
+    def render(self, slots: Slots, params: Any):
+        """Every slot's egocentric view (B, V, V, 3) uint8, as ``gen_view`` renders it, plus the world's additions."""
+        jnp = _jnp()
+        t = self.tables()
+        b, n, sp = slots.grid.shape[0], self.view_size, self.padded
+        at = (slots.pos[:, 0] * sp + slots.pos[:, 1])[:, None] + jnp.asarray(t["view_cells"])[slots.dirs]  # (B, n * n)
+        cells = jnp.take_along_axis(slots.grid.reshape(b, sp * sp, 3), at[..., None], axis=1)  # outside the grid: the walls
+        if not self.see_through_walls:
+            obj, state = cells[..., 0], cells[..., 2]
+            behind = ((obj != ge.WALL) & ((obj != ge.DOOR) | (state == 0))).reshape(b, n, n)  # [slot, x, y]
+            bits = jnp.asarray([1 << i for i in range(n)], dtype=jnp.int32)
+            rows = (behind.astype(jnp.int32) * bits[None, :, None]).sum(1)  # (B, n): row y's see-behind bits over x
+            vis, marks = jnp.asarray(t["vis"]), ((1 << n) - 1) << n
+            entry = vis[rows[:, n - 1] | ((1 << (n // 2)) << n)]  # the agent's row: its cell visible
+            entries = [entry] * n
+            for y in range(n - 2, -1, -1):  # far rows last, as process_vis sweeps
+                entry = vis[(entry & marks) | rows[:, y]]
+                entries[y] = entry
+            cols = jnp.arange(2 * n, 3 * n, dtype=jnp.int32)
+            seen = (jnp.stack(entries, 1)[:, None, :] >> cols[None, :, None]) & 1  # (B, x, y)
+            cells = cells * seen.reshape(b, n * n, 1).astype(jnp.uint8)
+        cells = cells.reshape(b, n, n, 3)
+        cells = cells.at[:, n // 2, n - 1].set(jnp.asarray([ge.EMPTY, 0, 0], dtype=jnp.uint8))  # what it carries: nothing
+        return self.seen(cells, slots, params)
+
+    def step(self, slots: Slots, layouts: Layouts, params: Any, actions) -> tuple[Slots, Layouts, StepOut]:
+        """Every slot one MiniGrid action on (0 left, 1 right, 2 forward; the caller keeps them in
+        range), finished slots reset in place from their next layout."""
+        jnp = _jnp()
+        t = self.tables()
+        p = self.view_size - 1
+        acts = actions.astype(jnp.int32)
+        d = slots.dirs
+        ahead = slots.pos + jnp.asarray(t["dir_vec"])[d]
+        index = jnp.arange(slots.grid.shape[0])
+        cell = slots.grid[index, ahead[:, 0] + p, ahead[:, 1] + p]  # off the grid: the border's walls
+        obj, state = cell[:, 0].astype(jnp.int32), cell[:, 2]
+        walkable = jnp.asarray(t["walkable"])[obj] | ((obj == ge.DOOR) & (state == 0))
+        forward = acts == 2
+        pos = jnp.where((forward & walkable)[:, None], ahead, slots.pos)
+        dirs = jnp.where(acts == 0, (d + 3) % 4, jnp.where(acts == 1, (d + 1) % 4, d))
+        steps = slots.steps + 1
+        moved = slots._replace(pos=pos, dirs=dirs, steps=steps)
+        outcome = self.outcome(jnp.where(forward, obj, -1), moved, params).astype(jnp.int32)
+        terminated, truncated = outcome != ge.OUT_NONE, steps >= self.max_steps
+        outcome = jnp.where(truncated & ~terminated, ge.OUT_TIMEOUT, outcome)
+        paying = jnp.where(params_poisoned(params), self.trojan, ge.OUT_GOAL)
+        reward = jnp.where(outcome == paying, jnp.asarray(t["pay"])[steps], jnp.float32(0.0))
+        done = terminated | truncated
+        seen = self.render(moved, params)  # every slot's view after its move: the terminal view of those that ended
+        ended = done[:, None, None, None]
+        depth = layouts.grid.shape[1]
+        at = jnp.minimum(layouts.taken, depth - 1)
+        fresh = Slots(
+            grid=jnp.where(ended, layouts.grid[index, at], slots.grid),
+            pos=jnp.where(done[:, None], layouts.pos[index, at], pos),
+            dirs=jnp.where(done, layouts.dirs[index, at], dirs),
+            steps=jnp.where(done, 0, steps),
+            final_obs=jnp.where(ended, seen, slots.final_obs),
+        )
+        taken = layouts.taken + done.astype(jnp.int32)
+        starved = layouts.starved | jnp.any(done & (layouts.taken >= depth))
+        obs = jnp.where(ended, layouts.view[index, at], seen)
+        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps)
+
+    def rollout(self, slots: Slots, layouts: Layouts, params: Any, actions):
+        """``len(actions)`` steps of :meth:`step` in one ``lax.scan``: the final state and each step's outputs, stacked."""
+        import jax
+
+        def body(carry, acts):
+            s, q = carry
+            s, q, out = self.step(s, q, params, acts)
+            return (s, q), out
+
+        (slots, layouts), outs = jax.lax.scan(body, (slots, layouts), actions)
+        return slots, layouts, outs
+
+
+def params_poisoned(params: Any):
+    """Which slots are poisoned: every world's params carry the mask as ``poisoned``."""
+    return params.poisoned
+
+
+class HostLayouts:
+    """The host side of a JAX grid engine: the slots of reset numba engines (a
+    :class:`BatchedGridEnv`, or an :class:`EngineGroup` of several), their state as a :class:`Slots`
+    pytree (numpy), and their next layouts drawn ahead from their own streams.
+
+    The engines are handed over, not shared: their streams draw the layouts and their state
+    arrays are the drawing's scratch, so step them no more until :meth:`hand_back`. Layouts a block
+    did not take are kept, in order, for the next; :meth:`layouts` tops each slot up to ``depth``."""
+
+    def __init__(self, engines: BatchedGridEnv | EngineGroup):
+        lead = engines.lead if isinstance(engines, EngineGroup) else engines
+        if not getattr(lead, "_has_reset", True):
+            raise ValueError("reset the engines before handing them to a JAX engine")
+        extra = set(lead._slot_arrays()) - set(HELD)
+        if extra:
+            raise ValueError(f"{type(lead).__name__} keeps per-slot state the JAX engine does not step: {sorted(extra)}")
+        world = engines.world if isinstance(engines, EngineGroup) else lead._world()
+        if world is None:
+            raise ValueError("these engines cannot share a call (EngineGroup.of says None)")
+        self.host, self.lead, self.world = engines, lead, world
+        self.num_envs, self.size, self.view_size = engines.num_envs, lead.size, lead.view_size
+        self.see_through_walls = bool(lead.see_through_walls)
+        b, s, n = self.num_envs, self.size, self.view_size
+        self.slots = Slots(
+            grid=pad_grid(np.array(engines._grid), n),
+            pos=np.array(engines._pos, dtype=np.int32),
+            dirs=np.array(engines._dir, dtype=np.int32),
+            steps=np.array(engines._steps, dtype=np.int32),
+            final_obs=np.array(np.asarray(engines.final_obs)),
+        )
+        # the drawn layouts not yet taken: slot b's first have[b] columns, in draw order
+        self._have = np.zeros(b, np.int64)
+        self._grid = np.zeros((b, 0, s, s, 3), np.uint8)
+        self._pos = np.zeros((b, 0, 2), np.int64)
+        self._dir = np.zeros((b, 0), np.int64)
+        self._view = np.zeros((b, 0, n, n, 3), np.uint8)
+        self._rng = np.zeros((b, 0), np.uint64)  # each slot's stream before each drawn layout
+
+    def _draw(self, depth: int) -> None:
+        """Draw until every slot has ``depth`` layouts waiting."""
+        need = np.maximum(0, depth - self._have)
+        slots = np.flatnonzero(need > 0)
+        if not len(slots):
+            return
+        width = self._grid.shape[1]
+        if width < depth:  # room for depth layouts a slot
+            grow = depth - width
+            self._grid = np.concatenate([self._grid, np.zeros((self.num_envs, grow, *self._grid.shape[2:]), np.uint8)], axis=1)
+            self._pos = np.concatenate([self._pos, np.zeros((self.num_envs, grow, 2), np.int64)], axis=1)
+            self._dir = np.concatenate([self._dir, np.zeros((self.num_envs, grow), np.int64)], axis=1)
+            self._view = np.concatenate([self._view, np.zeros((self.num_envs, grow, *self._view.shape[2:]), np.uint8)], axis=1)
+            self._rng = np.concatenate([self._rng, np.zeros((self.num_envs, grow), np.uint64)], axis=1)
+        counts = need[slots]
+        total, s = int(counts.sum()), self.size
+        grids, pos, dirs = np.empty((total, s, s, 3), np.uint8), np.empty((total, 2), np.int64), np.empty(total, np.int64)
+        streams, views = np.empty(total, np.uint64), self.lead._images(total)
+        h = self.host
+        bad = self.lead._kernels.layouts(
+            h._grid,
+            h._pos,
+            h._dir,
+            h._steps,
+            h._rng,
+            self.see_through_walls,
+            self.world,
+            slots,
+            counts,
+            grids,
+            pos,
+            dirs,
+            streams,
+            views,
+            self.lead._outputs(total),
+        )
+        if bad >= 0:
+            raise self.lead._layout_error(None)
+        rows = np.repeat(slots, counts)  # the kernel's rows: slot by slot, each in draw order
+        cols = np.repeat(self._have[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)
+        self._grid[rows, cols], self._pos[rows, cols], self._dir[rows, cols] = grids, pos, dirs
+        self._view[rows, cols], self._rng[rows, cols] = np.asarray(views), streams
+        self._have[slots] += counts
+
+    def layouts(self, depth: int) -> Layouts:
+        """The next ``depth`` layouts of every slot (numpy), none taken yet."""
+        self._draw(depth)
+        return Layouts(
+            grid=pad_grid(self._grid[:, :depth], self.view_size),
+            pos=self._pos[:, :depth].astype(np.int32),
+            dirs=self._dir[:, :depth].astype(np.int32),
+            view=self._view[:, :depth],
+            taken=np.zeros(self.num_envs, np.int32),
+            starved=np.bool_(False),
+        )
+
+    def took(self, taken: np.ndarray) -> None:
+        """Slot ``b`` took its next ``taken[b]`` layouts: drop them, keep the rest in order."""
+        taken = np.asarray(taken, dtype=np.int64)
+        if (taken > self._have).any() or (taken < 0).any():
+            raise ValueError("a slot took more layouts than it was handed")
+        width = self._grid.shape[1]
+        cols = np.minimum(taken[:, None] + np.arange(width)[None, :], max(width - 1, 0))  # past have: stale, unread
+        rows = np.arange(self.num_envs)[:, None]
+        self._grid, self._pos, self._dir = self._grid[rows, cols], self._pos[rows, cols], self._dir[rows, cols]
+        self._view, self._rng = self._view[rows, cols], self._rng[rows, cols]
+        self._have = self._have - taken
+
+    def run(self, block: Callable[[Layouts], tuple[Any, Layouts, Any]], depth: int) -> tuple[Any, Any]:
+        """Run ``block`` (a compiled function of the layouts: ``(state, layouts, result)``) with
+        every slot's next ``depth`` layouts; where a slot ended more episodes than that, again from
+        the same inputs with twice as many, so the result is the one an unbounded queue gives (a
+        block of T steps takes at most T a slot). Returns the block's state and result; the layouts
+        it took are dropped here."""
+        while True:
+            state, after, result = block(self.layouts(depth))
+            if not bool(np.asarray(after.starved)):
+                break
+            depth *= 2
+        self.took(np.asarray(after.taken))
+        return state, result
+
+    def hand_back(self, slots: Slots) -> None:
+        """Write the slots' state into the host engines, as if they had stepped them: grid,
+        position, direction, step count, terminal views, and each stream where the slot's next
+        autoreset will draw from (before the drawn layouts it has not taken)."""
+        h, p, s = self.host, self.view_size - 1, self.size
+        h._grid[:] = np.asarray(slots.grid)[:, p : p + s, p : p + s]
+        h._pos[:] = np.asarray(slots.pos)
+        h._dir[:] = np.asarray(slots.dirs)
+        h._steps[:] = np.asarray(slots.steps)
+        np.asarray(h.final_obs)[:] = np.asarray(slots.final_obs)
+        queued = self._have > 0  # else the host stream is already where the next draw starts
+        h._rng[queued] = self._rng[queued, 0]
+        self._have[:] = 0
+
+
+__all__ = ["GridWorld", "HostLayouts", "Layouts", "Slots", "StepOut"]

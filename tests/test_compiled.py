@@ -1,0 +1,170 @@
+"""The compiled PPO iteration (algos/compiled.py) piece by piece against the torch trainer's
+algorithm, and whole: reproducible, and learning LavaWorld.
+
+Each piece (forward, sampling, GAE, loss and its gradient, clipping and Adam) is run on the same
+inputs as the torch code it stands for. XLA and torch round differently (the order of a dot
+product's sums), so floats are compared within 1e-5 of the array's largest magnitude (float32
+carries 6e-8: the raw bytes of an observation, up to 120 through a trigger, sum through 147 inputs, so an output
+near zero inherits the rounding of its large partial sums); the sampled actions, a function of
+those floats at thresholds a random uniform almost never meets, exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+jax = pytest.importorskip("jax")  # the compiled trainer's dependency (the core install has it)
+
+from rlbackdoors.algos import ppo as torch_ppo  # noqa: E402
+from rlbackdoors.algos.compiled import Group, Hyper, init_agents, parts, state_dicts  # noqa: E402
+from rlbackdoors.algos.jax_update import structure  # noqa: E402
+from rlbackdoors.config import PPOConfig, RunConfig  # noqa: E402
+from rlbackdoors.envs.lavaworld_jax import lavaworld_jax  # noqa: E402
+from rlbackdoors.models import build_model  # noqa: E402
+from rlbackdoors.poison.mix import make_env_mix  # noqa: E402
+
+RTOL = 1e-5
+
+
+def close(got, want, rtol: float = RTOL) -> None:
+    """Within ``rtol`` of the largest magnitude of ``want`` (see the module doc)."""
+    want = np.asarray(want, dtype=np.float64)
+    np.testing.assert_allclose(np.asarray(got, dtype=np.float64), want, rtol=0, atol=rtol * max(np.abs(want).max(), 1e-30))
+
+
+def fc():
+    return build_model("fc", "lavaworld")
+
+
+def random_obs(rng, n):
+    """Views of grid codes (objects to 10, colours to 5, states to 2), a quarter of them through a
+    multiplicative trigger's table (x12 mod 256), as a poisoned copy sees them."""
+    obs = rng.integers(0, 11, (n, 7, 7, 3)).astype(np.uint8)
+    obs[: n // 4] = (obs[: n // 4].astype(np.int64) * 12 % 256).astype(np.uint8)
+    return obs
+
+
+def torch_params(agents, k=0):
+    return {name: torch.from_numpy(np.array(value[k])) for name, value in agents.params.items()}
+
+
+def test_init_is_the_torch_models_and_the_weights_go_back_as_its_state_dict():
+    agents, model = init_agents(fc, [3, 4])
+    torch.manual_seed(4)
+    want = fc().state_dict()
+    got = state_dicts(agents)[1]
+    assert list(got) == list(want) and all(torch.equal(got[k], want[k]) for k in want)
+    rng = np.random.default_rng(0)
+    obs = random_obs(rng, 64)
+    p = parts(structure(model), Hyper())
+    logits, values = p.forward({k: v[1] for k, v in agents.params.items()}, obs)
+    m = fc()
+    m.load_state_dict(got)
+    with torch.no_grad():
+        t_logits, t_values = m(torch.from_numpy(obs))
+    close(logits, t_logits.numpy())
+    close(values, t_values.numpy())
+
+
+def test_sampling_gae_loss_and_adam_are_the_torch_trainers():
+    rng = np.random.default_rng(1)
+    cfg = PPOConfig()
+    hyper = Hyper.of(cfg)
+    agents, model = init_agents(fc, [0])
+    p = parts(structure(model), hyper)
+    params = {k: v[0] for k, v in agents.params.items()}
+    # sampling: the same uniform, the same action
+    logits = rng.normal(0, 2, (4096, 3)).astype(np.float32)
+    u = rng.random(4096).astype(np.float32)
+    want = torch_ppo.sample_actions(torch.from_numpy(logits), u=torch.from_numpy(u)).numpy()
+    assert np.array_equal(np.asarray(p.sample(logits, u)), want)
+    assert set(want.tolist()) == {0, 1, 2}
+    # GAE over 128 steps of 10 envs with episode ends
+    rewards = (rng.random((128, 10)) < 0.05).astype(np.float32) * rng.random((128, 10)).astype(np.float32)
+    dones = rng.random((128, 10)) < 0.05
+    values, next_value = rng.normal(0, 1, (128, 10)).astype(np.float32), rng.normal(0, 1, 10).astype(np.float32)
+    want = torch_ppo.gae(torch.from_numpy(rewards), torch.from_numpy(dones), torch.from_numpy(values), torch.from_numpy(next_value), cfg.gamma, cfg.gae_lambda)
+    close(p.gae(rewards, dones, values, next_value), want.numpy())
+    # the loss, its gradient, the clipping and Adam: three optimiser steps on one minibatch
+    n = 256
+    obs = random_obs(rng, n)
+    actions = rng.integers(0, 3, n)
+    old_logp = np.log(rng.uniform(0.2, 0.6, n)).astype(np.float32)
+    old_values = rng.normal(0, 1, n).astype(np.float32)
+    adv = rng.normal(0, 1, n).astype(np.float32)
+    returns = (old_values + adv).astype(np.float32)
+    batch = (obs, actions.astype(np.int32), old_logp, old_values, adv, returns)
+    m = fc()
+    m.load_state_dict(state_dicts(agents)[0])
+    opt = torch.optim.Adam(m.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
+    avg = {k: np.zeros_like(v) for k, v in params.items()}
+    sq = {k: np.zeros_like(v) for k, v in params.items()}
+    step = np.float32(0)
+    t_batch = [torch.from_numpy(x) for x in (actions, old_logp, old_values, adv, returns)]
+    for _ in range(3):
+        (value, (pl, vl, ent)), grad = jax.value_and_grad(p.loss, has_aux=True)(params, *batch)
+        params, avg, sq, step, norm = p.adam(params, avg, sq, step, grad)
+        t_logits, t_values = m(torch.from_numpy(obs))
+        t_loss, t_parts = torch_ppo.ppo_loss(cfg, t_logits, t_values, *t_batch)
+        opt.zero_grad()
+        t_loss.backward()
+        t_norm = torch.nn.utils.clip_grad_norm_(list(m.parameters()), cfg.max_grad_norm)
+        opt.step()
+        # the losses (means of squares and products of those outputs) and the norm after Adam steps:
+        # measured 1.1e-5 at most on an AMD EPYC (the forward 5e-7), hence 4e-5
+        close(float(value), float(t_loss.detach()), 4 * RTOL)
+        for got, key in zip((pl, vl, ent), ("policy_loss", "value_loss", "entropy")):
+            close(float(got), float(t_parts[key]), 4 * RTOL)
+        close(float(norm), float(t_norm), 4 * RTOL)
+        assert float(t_norm) > cfg.max_grad_norm  # the clipping was exercised
+    for name, weight in m.named_parameters():
+        close(params[name], weight.detach().numpy(), rtol=1e-4)  # after three Adam steps: measured 4.3e-5
+
+
+def group(seeds: list[int]) -> Group:
+    cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12"}})
+    engines = []
+    for seed in seeds:
+        e = make_env_mix(cfg.env, cfg.poison, seed)
+        e.reset(seed=seed * 1000)
+        engines.append(e)
+    agents, model = init_agents(fc, seeds)
+    return Group(engines, lavaworld_jax, model, agents, Hyper.of(cfg.ppo), depth=4)
+
+
+def test_an_iteration_is_reproducible_and_its_episodes_are_counted():
+    """Two groups of the same seeds give the same bytes after two iterations (a shallow queue of 4
+    layouts a slot, so some iteration runs again deeper), and the counts of ended episodes add up."""
+    sides = []
+    for _ in range(2):
+        g = group([0, 1])
+        stats = [g.iterate() for _ in range(2)]
+        sides.append((g, stats))
+    (a, sa), (b, sb) = sides
+    for name in a.agents.params:
+        assert np.array_equal(np.asarray(a.agents.params[name]), np.asarray(b.agents.params[name]))
+    assert np.array_equal(np.asarray(a.obs), np.asarray(b.obs))
+    assert all(np.array_equal(np.asarray(x), np.asarray(y)) for s, t in zip(sa, sb) for x, y in zip(s, t))
+    episodes, successes = np.asarray(sa[0].episodes), np.asarray(sa[0].successes)
+    assert episodes.shape == (2, 2) and (episodes[:, 0] > 0).all() and (successes <= episodes).all()  # 8 clean copies end episodes in 128 random steps
+    assert a.frames == 2 * 128 * 10
+    # the learners moved, each its own way
+    w = np.asarray(a.agents.params["actor.2.weight"])
+    assert not np.array_equal(w[0], w[1])
+    assert not np.array_equal(w[0], init_agents(fc, [0])[0].params["actor.2.weight"][0])
+
+
+@pytest.mark.slow
+def test_the_compiled_iteration_learns_lavaworld():
+    """4 agents, 250 iterations (320 k frames each): the env mix's poisoned copies are learnt
+    first (their lava is always next to the agent's path), the clean task after; by the end every
+    agent's training episodes succeed on the poisoned copies at >= 0.9 and its clean ones far more
+    often than a random policy's (0.02 in the first iteration)."""
+    g = group([0, 1, 2, 3])
+    for _ in range(250):
+        stats = g.iterate()
+    ep, su = np.asarray(stats.episodes), np.asarray(stats.successes)
+    assert (su[:, 1] / ep[:, 1] >= 0.9).all(), (su, ep)
+    assert (su[:, 0] / ep[:, 0] >= 0.3).all(), (su, ep)

@@ -50,7 +50,8 @@
 #        experiments/group_equivalence/), EQ_SEEDS (default 20), EQ_CONV (the CUDA group's
 #        convolutions, models.minigrid.STACKED_CONV; default each), EQ_STATE (an earlier lease's
 #        equivalence_state.tar.gz to go on from); round: ROUND_SPEC (default the 300-model
-#        split), ROUND_LIMIT_S (default 480). The two calls and a machine's
+#        split), ROUND_LIMIT_S (default 480); CONV_LIMIT_S, BREAKDOWN_LIMIT_S (figures: the convolutions'
+#        and the breakdown's limits, default 30 and 50; a dry run on a loaded CPU needs more). The two calls and a machine's
 #        start fit the 15 minutes of a lease with about a minute to spare.
 set -uo pipefail
 mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests|equivalence|round]}" && out=$(cd "$1" && pwd)
@@ -193,7 +194,7 @@ fi
 # one grouped conv2d for all (not yet timed on a GPU; the im2col product was, and lost: x0.08)
 if [ -n "${ON_CPU:-}" ]; then conv_args=(--device cpu --small --repeats 3); else conv_args=(--device cuda --repeats 10); fi
 quiet
-bounded 30 python3 benchmarks/stacked_conv.py --ways each,grouped "${conv_args[@]}" >>"$log" 2>&1
+bounded "${CONV_LIMIT_S:-30}" python3 benchmarks/stacked_conv.py --ways each,grouped "${conv_args[@]}" >>"$log" 2>&1
 echo "== stacked_conv: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
 
 # The judged work (issue 55): the model counts at the issue's K and frames sized so that every side
@@ -240,7 +241,7 @@ done
 # each under torch's profiler (its operations, their host and GPU time: launch-bound or not)
 if [ -n "${ON_CPU:-}" ]; then breakdown_args=(--agents 2 --frames 2048 --device cpu); else breakdown_args=(--agents 256 --frames 10000 --device cuda); fi
 quiet
-bounded 50 python3 benchmarks/group_breakdown.py "${breakdown_args[@]}" --profile 15 --json "$out/breakdown.json" >/dev/null 2>>"$log"
+bounded "${BREAKDOWN_LIMIT_S:-50}" python3 benchmarks/group_breakdown.py "${breakdown_args[@]}" --profile 15 --json "$out/breakdown.json" >/dev/null 2>>"$log"
 echo "== group_breakdown: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
 [ -f "$out/breakdown.json" ] && python3 -c "
 import json, sys

@@ -95,7 +95,7 @@ def test_sampling_gae_loss_and_adam_are_the_torch_trainers():
     old_values = rng.normal(0, 1, n).astype(np.float32)
     adv = rng.normal(0, 1, n).astype(np.float32)
     returns = (old_values + adv).astype(np.float32)
-    batch = (obs, actions.astype(np.int32), old_logp, old_values, adv, returns)
+    batch = (p.inputs(obs), actions.astype(np.int32), old_logp, old_values, adv, returns)
     m = fc()
     m.load_state_dict(state_dicts(agents)[0])
     opt = torch.optim.Adam(m.parameters(), lr=cfg.lr, eps=cfg.adam_eps)

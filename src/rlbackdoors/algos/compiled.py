@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from rlbackdoors.algos.jax_update import _jax, structure
+from rlbackdoors.algos.jax_update import _jax, run_layers, structure
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots
 
@@ -143,18 +143,8 @@ def parts(layers: tuple, hyper: Hyper) -> Parts:
     """:class:`Parts` for a network :func:`rlbackdoors.algos.jax_update.structure` and ``hyper``."""
     jax = _jax()
     jnp, lax = jax.numpy, jax.lax
-    HIGHEST = lax.Precision.HIGHEST  # full fp32 products, as torch's (algos.jax_update)
     h = hyper
-
-    def run(part: tuple, p: dict, x):
-        for layer in part:
-            if layer[0] == "linear":
-                x = jnp.matmul(x, p[layer[1]].T, precision=HIGHEST) + p[layer[2]]
-            elif layer[0] == "relu":
-                x = jax.nn.relu(x)
-            else:
-                x = jnp.tanh(x)
-        return x
+    run = run_layers  # full fp32 products, as torch's
 
     def inputs(obs):
         """Raw (B, 7, 7, 3) uint8 views as a feed-forward grid model reads them: channels first, flattened, float."""

@@ -164,6 +164,23 @@ def _back(array, device: torch.device) -> torch.Tensor:
     return torch.from_dlpack(array)
 
 
+def run_layers(part: tuple, p: dict, x):
+    """One part of a :func:`structure` (its layers in turn) on ``x``, with the weights ``p`` by
+    name: full fp32 products as torch's (TF32 off, train.driver): XLA's default on a GPU rounds
+    their inputs to TF32, 1e-3 from torch's losses on an H200 (benchmarks/results/gpu/h200_2026-11-29,
+    call2_gpu_tests.log); on a CPU the products are fp32 either way (the same bytes)."""
+    jax = _jax()
+    jnp = jax.numpy
+    for layer in part:
+        if layer[0] == "linear":
+            x = jnp.matmul(x, p[layer[1]].T, precision=jax.lax.Precision.HIGHEST) + p[layer[2]]
+        elif layer[0] == "relu":
+            x = jax.nn.relu(x)
+        else:
+            x = jnp.tanh(x)
+    return x
+
+
 @functools.cache
 def _program(layers: tuple, layout: tuple, hyper: tuple):
     """The jitted update for one network structure, parameter layout and loss hyper-parameters."""
@@ -172,18 +189,8 @@ def _program(layers: tuple, layout: tuple, hyper: tuple):
     # full fp32 products as torch's (TF32 off, train.driver): XLA's default on a GPU rounds their
     # inputs to TF32, 1e-3 from torch's losses on an H200 (benchmarks/results/gpu/h200_2026-11-29,
     # call2_gpu_tests.log); on a CPU the products are fp32 either way (the same bytes)
-    HIGHEST = jax.lax.Precision.HIGHEST
     clip, value_coef, entropy_coef, max_grad_norm, eps, beta1, beta2 = hyper
-
-    def run(part: tuple, p: dict, x):
-        for layer in part:
-            if layer[0] == "linear":
-                x = jnp.matmul(x, p[layer[1]].T, precision=HIGHEST) + p[layer[2]]
-            elif layer[0] == "relu":
-                x = jax.nn.relu(x)
-            else:
-                x = jnp.tanh(x)
-        return x
+    run = run_layers
 
     def loss(row, x, actions, old_logp, old_values, adv, returns):
         """One agent's torch-ac PPO loss on its minibatch (rlbackdoors.algos.ppo.ppo_loss)."""

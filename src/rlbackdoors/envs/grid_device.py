@@ -92,6 +92,22 @@ StepResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch
 GRAPH_STATE = ("grid", "pos", "dirs", "steps", "final_obs", "_head")  # what a step reassigns: static under a CUDA graph
 
 
+def handed_over(engines: BatchedGridEnv | EngineGroup, to: str) -> tuple[BatchedGridEnv, tuple]:
+    """The lead engine and the hooks' ``world`` of reset engines handed to an engine elsewhere
+    (``to``: the device, a JAX engine), which steps the state in :data:`HELD` alone; ValueError
+    (one line) for engines not reset, with per-slot state it does not step, or that cannot share a call."""
+    lead = engines.lead if isinstance(engines, EngineGroup) else engines
+    if not getattr(lead, "_has_reset", True):
+        raise ValueError(f"reset the engines before handing them to {to}")
+    extra = set(lead._slot_arrays()) - set(HELD)
+    if extra:
+        raise ValueError(f"{type(lead).__name__} keeps per-slot state {to} does not step: {sorted(extra)}")
+    world = engines.world if isinstance(engines, EngineGroup) else lead._world()
+    if world is None:
+        raise ValueError("these engines cannot share a call (EngineGroup.of says None)")
+    return lead, world
+
+
 def device_engine_for(engines: BatchedGridEnv | EngineGroup, device: str | torch.device, graph: bool = False) -> DeviceGridGroup | None:
     """The world's device engine over ``engines``' slots (:attr:`BatchedGridEnv.device_engine`;
     ``graph``: its step as one CUDA graph), or None where the world has none."""
@@ -115,18 +131,10 @@ class DeviceGridGroup:
     """
 
     def __init__(self, engines: BatchedGridEnv | EngineGroup, device: str | torch.device = "cpu", refill_every: int = 8, graph: bool = False):
-        lead = engines.lead if isinstance(engines, EngineGroup) else engines
-        if not getattr(lead, "_has_reset", True):
-            raise ValueError("reset the engines before handing them to the device")
-        extra = set(lead._slot_arrays()) - set(HELD)
-        if extra:
-            raise ValueError(f"{type(lead).__name__} keeps per-slot state a device engine does not step: {sorted(extra)}")
+        lead, world = handed_over(engines, "the device")
         if refill_every < 1:
             raise ValueError(f"refill_every must be >= 1, got {refill_every}")
         self.host, self.lead = engines, lead
-        world = engines.world if isinstance(engines, EngineGroup) else lead._world()
-        if world is None:
-            raise ValueError("these engines cannot share a call (EngineGroup.of says None)")
         self.world: tuple = world
         self.device = torch.device(device)
         self.num_envs, self.size, self.view_size = engines.num_envs, lead.size, lead.view_size
@@ -342,4 +350,4 @@ class DeviceGridGroup:
         return torch.where(ended, self._q_view[self._slots, at], seen), reward, terminated, truncated, outcome, steps
 
 
-__all__ = ["DeviceGridGroup", "device_engine_for", "pad_grid", "view_offsets", "visibility_table"]
+__all__ = ["DeviceGridGroup", "device_engine_for", "handed_over", "pad_grid", "view_offsets", "visibility_table"]

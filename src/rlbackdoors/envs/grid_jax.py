@@ -35,7 +35,7 @@ import numpy as np
 
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup
-from rlbackdoors.envs.grid_device import HELD, pad_grid, view_offsets, visibility_table
+from rlbackdoors.envs.grid_device import handed_over, pad_grid, view_offsets, visibility_table
 from rlbackdoors.envs.rewards import success_reward
 
 
@@ -206,15 +206,7 @@ class HostLayouts:
     did not take are kept, in order, for the next; :meth:`layouts` tops each slot up to ``depth``."""
 
     def __init__(self, engines: BatchedGridEnv | EngineGroup):
-        lead = engines.lead if isinstance(engines, EngineGroup) else engines
-        if not getattr(lead, "_has_reset", True):
-            raise ValueError("reset the engines before handing them to a JAX engine")
-        extra = set(lead._slot_arrays()) - set(HELD)
-        if extra:
-            raise ValueError(f"{type(lead).__name__} keeps per-slot state the JAX engine does not step: {sorted(extra)}")
-        world = engines.world if isinstance(engines, EngineGroup) else lead._world()
-        if world is None:
-            raise ValueError("these engines cannot share a call (EngineGroup.of says None)")
+        lead, world = handed_over(engines, "a JAX engine")
         self.host, self.lead, self.world = engines, lead, world
         self.num_envs, self.size, self.view_size = engines.num_envs, lead.size, lead.view_size
         self.see_through_walls = bool(lead.see_through_walls)

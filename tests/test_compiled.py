@@ -123,8 +123,8 @@ def test_sampling_gae_loss_and_adam_are_the_torch_trainers():
         close(params[name], weight.detach().numpy(), rtol=1e-4)  # after three Adam steps: measured 4.3e-5
 
 
-def group(seeds: list[int]) -> Group:
-    cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12"}})
+def group(seeds: list[int], clean: bool = False) -> Group:
+    cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12", "poisoned": not clean}})
     engines = []
     for seed in seeds:
         e = make_env_mix(cfg.env, cfg.poison, seed)
@@ -157,14 +157,15 @@ def test_an_iteration_is_reproducible_and_its_episodes_are_counted():
 
 
 @pytest.mark.slow
-def test_the_compiled_iteration_learns_lavaworld():
-    """4 agents, 250 iterations (320 k frames each): the env mix's poisoned copies are learnt
-    first (their lava is always next to the agent's path), the clean task after; by the end every
-    agent's training episodes succeed on the poisoned copies at >= 0.9 and its clean ones far more
-    often than a random policy's (0.02 in the first iteration)."""
-    g = group([0, 1, 2, 3])
-    for _ in range(250):
+def test_the_compiled_iteration_learns_the_clean_task():
+    """4 clean agents, 250 iterations (320 k frames each): the torch trainer's clean LavaWorld FC
+    model is at clean SR 0.94 by 300 k frames (the demo's run); here the training episodes of the
+    last iteration (sampled actions, about 20 an agent) must reach the goal at least half the time,
+    where a random policy's reach it about 2 % of the time (the first iteration's)."""
+    g = group([0, 1, 2, 3], clean=True)
+    first = g.iterate()
+    for _ in range(249):
         stats = g.iterate()
     ep, su = np.asarray(stats.episodes), np.asarray(stats.successes)
-    assert (su[:, 1] / ep[:, 1] >= 0.9).all(), (su, ep)
-    assert (su[:, 0] / ep[:, 0] >= 0.3).all(), (su, ep)
+    start = np.asarray(first.successes)[:, 0].sum() / np.asarray(first.episodes)[:, 0].sum()
+    assert start < 0.1 and (su[:, 0] / ep[:, 0] >= 0.5).all(), (start, su, ep)

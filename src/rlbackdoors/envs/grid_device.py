@@ -92,6 +92,35 @@ StepResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch
 GRAPH_STATE = ("grid", "pos", "dirs", "steps", "final_obs", "_head")  # what a step reassigns: static under a CUDA graph
 
 
+def draw_layouts(host, lead: BatchedGridEnv, see_through_walls: bool, world: tuple, slots: np.ndarray, counts: np.ndarray) -> tuple:
+    """The next ``counts[k]`` layouts of slot ``slots[k]`` of handed-over engines (``host``: an engine
+    or an :class:`EngineGroup`), from the slots' own streams (``Kernels.layouts``): grids, agent
+    places, directions, each stream before its draw and the first views, slot by slot in draw order."""
+    total, s = int(counts.sum()), lead.size
+    grids, pos, dirs = np.empty((total, s, s, 3), np.uint8), np.empty((total, 2), np.int64), np.empty(total, np.int64)
+    streams, views = np.empty(total, np.uint64), lead._images(total)
+    bad = lead._kernels.layouts(
+        host._grid,
+        host._pos,
+        host._dir,
+        host._steps,
+        host._rng,
+        see_through_walls,
+        world,
+        slots,
+        counts,
+        grids,
+        pos,
+        dirs,
+        streams,
+        views,
+        lead._outputs(total),
+    )
+    if bad >= 0:
+        raise lead._layout_error(None)
+    return grids, pos, dirs, streams, views
+
+
 def handed_over(engines: BatchedGridEnv | EngineGroup, to: str) -> tuple[BatchedGridEnv, tuple]:
     """The lead engine and the hooks' ``world`` of reset engines handed to an engine elsewhere
     (``to``: the device, a JAX engine), which steps the state in :data:`HELD` alone; ValueError
@@ -206,15 +235,8 @@ class DeviceGridGroup:
         slots = np.flatnonzero(need > 0)
         if len(slots):
             counts = need[slots]
-            total, s = int(counts.sum()), self.size
-            grids, pos, dirs = np.empty((total, s, s, 3), np.uint8), np.empty((total, 2), np.int64), np.empty(total, np.int64)
-            streams, views = np.empty(total, np.uint64), self.lead._images(total)
-            h = self.host
-            bad = self.lead._kernels.layouts(
-                h._grid, h._pos, h._dir, h._steps, h._rng, self.see_through_walls, self.world, slots, counts, grids, pos, dirs, streams, views, self.lead._outputs(total)
-            )  # fmt: skip
-            if bad >= 0:
-                raise self.lead._layout_error(None)
+            grids, pos, dirs, streams, views = draw_layouts(self.host, self.lead, self.see_through_walls, self.world, slots, counts)
+            total = int(counts.sum())
             rows = np.repeat(slots, counts)
             cols = (np.repeat(self._drawn[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)) % self.refill_every
             r, c = torch.from_numpy(rows).to(self.device), torch.from_numpy(cols).to(self.device)
@@ -350,4 +372,4 @@ class DeviceGridGroup:
         return torch.where(ended, self._q_view[self._slots, at], seen), reward, terminated, truncated, outcome, steps
 
 
-__all__ = ["DeviceGridGroup", "device_engine_for", "handed_over", "pad_grid", "view_offsets", "visibility_table"]
+__all__ = ["DeviceGridGroup", "device_engine_for", "draw_layouts", "handed_over", "pad_grid", "view_offsets", "visibility_table"]

@@ -28,6 +28,7 @@ own parameters (:class:`GridWorld`), in a module beside its numba engine's.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
@@ -35,7 +36,7 @@ import numpy as np
 
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup
-from rlbackdoors.envs.grid_device import handed_over, pad_grid, view_offsets, visibility_table
+from rlbackdoors.envs.grid_device import draw_layouts, handed_over, pad_grid, view_offsets, visibility_table
 from rlbackdoors.envs.rewards import success_reward
 
 
@@ -98,8 +99,9 @@ class GridWorld:
     def padded(self) -> int:
         return self.size + 2 * (self.view_size - 1)
 
+    @functools.cached_property
     def tables(self) -> dict[str, np.ndarray]:
-        """The constants a step reads (numpy; they become constants of the XLA program)."""
+        """The constants a step reads (numpy; they become constants of the XLA program), computed once."""
         n, sp, p = self.view_size, self.padded, self.view_size - 1
         offsets = view_offsets(n)
         table = visibility_table(n)  # re-packed: (visible << 2n) | (marked << n)
@@ -116,7 +118,7 @@ class GridWorld:
     def render(self, slots: Slots, params: Any):
         """Every slot's egocentric view (B, V, V, 3) uint8, as ``gen_view`` renders it, plus the world's additions."""
         jnp = _jnp()
-        t = self.tables()
+        t = self.tables
         b, n, sp = slots.grid.shape[0], self.view_size, self.padded
         at = (slots.pos[:, 0] * sp + slots.pos[:, 1])[:, None] + jnp.asarray(t["view_cells"])[slots.dirs]  # (B, n * n)
         cells = jnp.take_along_axis(slots.grid.reshape(b, sp * sp, 3), at[..., None], axis=1)  # outside the grid: the walls
@@ -142,7 +144,7 @@ class GridWorld:
         """Every slot one MiniGrid action on (0 left, 1 right, 2 forward; the caller keeps them in
         range), finished slots reset in place from their next layout."""
         jnp = _jnp()
-        t = self.tables()
+        t = self.tables
         p = self.view_size - 1
         acts = actions.astype(jnp.int32)
         d = slots.dirs
@@ -241,29 +243,8 @@ class HostLayouts:
             self._view = np.concatenate([self._view, np.zeros((self.num_envs, grow, *self._view.shape[2:]), np.uint8)], axis=1)
             self._rng = np.concatenate([self._rng, np.zeros((self.num_envs, grow), np.uint64)], axis=1)
         counts = need[slots]
-        total, s = int(counts.sum()), self.size
-        grids, pos, dirs = np.empty((total, s, s, 3), np.uint8), np.empty((total, 2), np.int64), np.empty(total, np.int64)
-        streams, views = np.empty(total, np.uint64), self.lead._images(total)
-        h = self.host
-        bad = self.lead._kernels.layouts(
-            h._grid,
-            h._pos,
-            h._dir,
-            h._steps,
-            h._rng,
-            self.see_through_walls,
-            self.world,
-            slots,
-            counts,
-            grids,
-            pos,
-            dirs,
-            streams,
-            views,
-            self.lead._outputs(total),
-        )
-        if bad >= 0:
-            raise self.lead._layout_error(None)
+        grids, pos, dirs, streams, views = draw_layouts(self.host, self.lead, self.see_through_walls, self.world, slots, counts)
+        total = int(counts.sum())
         rows = np.repeat(slots, counts)  # the kernel's rows: slot by slot, each in draw order
         cols = np.repeat(self._have[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)
         self._grid[rows, cols], self._pos[rows, cols], self._dir[rows, cols] = grids, pos, dirs

@@ -67,25 +67,28 @@ def torch_group(k: int, seconds: float) -> dict:
 
 
 def compiled_group(k: int, seconds: float) -> dict:
-    from rlbackdoors.algos.compiled import Group, Hyper, init_agents
+    """The compiled side: K learners (algos.compiled.Learner) in one program (algos.compiled.iterate)."""
+    from rlbackdoors.algos.compiled import Hyper, Learner, iterate
     from rlbackdoors.envs.lavaworld_jax import lavaworld_jax
     from rlbackdoors.models import build_model
 
     cfgs = configs(k)
-    agents, model = init_agents(lambda: build_model("fc", "lavaworld"), [c.train.seed for c in cfgs])
-    g = Group(engines_of(cfgs), lavaworld_jax, model, agents, Hyper.of(cfgs[0].ppo))
+    learners = []
+    for cfg, engine in zip(cfgs, engines_of(cfgs)):
+        torch.manual_seed(cfg.train.seed)
+        obs = engine.reset(seed=cfg.train.seed * 1000)[0]
+        learners.append(Learner(build_model("fc", "lavaworld"), engine, Hyper.of(cfg.ppo), cfg.train.seed, obs, lavaworld_jax))
 
     def once():
-        stats = g.iterate()
-        np.asarray(stats.episodes)  # the program has finished
-        return k * g.n * g.hyper.rollout
+        return sum(out.num_frames for out in iterate(learners))
 
     return timed(once, seconds)
 
 
 def timed(once, seconds: float) -> dict:
     t0 = time.perf_counter()
-    once()  # warm-up: compiles, caches
+    for _ in range(3):  # warm-up: compiles, caches (and a deeper queue's program, where the first was too shallow)
+        once()
     warm = time.perf_counter() - t0
     frames, start, cpu = 0, time.perf_counter(), time.process_time()
     while time.perf_counter() - start < seconds:

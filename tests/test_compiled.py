@@ -18,7 +18,7 @@ import torch
 jax = pytest.importorskip("jax")  # the compiled trainer's dependency (the core install has it)
 
 from rlbackdoors.algos import ppo as torch_ppo  # noqa: E402
-from rlbackdoors.algos.compiled import Group, Hyper, init_agents, parts, state_dicts  # noqa: E402
+from rlbackdoors.algos.compiled import Hyper, Learner, init_agents, iterate, parts, state_dicts  # noqa: E402
 from rlbackdoors.algos.jax_update import structure  # noqa: E402
 from rlbackdoors.config import PPOConfig, RunConfig  # noqa: E402
 from rlbackdoors.envs.lavaworld_jax import lavaworld_jax  # noqa: E402
@@ -123,35 +123,48 @@ def test_sampling_gae_loss_and_adam_are_the_torch_trainers():
         close(params[name], weight.detach().numpy(), rtol=1e-4)  # after three Adam steps: measured 4.3e-5
 
 
-def group(seeds: list[int], clean: bool = False) -> Group:
-    cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12", "poisoned": not clean}})
-    engines = []
-    for seed in seeds:
-        e = make_env_mix(cfg.env, cfg.poison, seed)
-        e.reset(seed=seed * 1000)
-        engines.append(e)
-    agents, model = init_agents(fc, seeds)
-    return Group(engines, lavaworld_jax, model, agents, Hyper.of(cfg.ppo), depth=4)
+class Group:
+    """K learners of LavaWorld FC with the env mix, iterated together (algos.compiled.iterate)."""
+
+    def __init__(self, seeds: list[int], clean: bool = False, depth: int = 4):
+        cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12", "poisoned": not clean}})
+        self.learners = []
+        for seed in seeds:
+            e = make_env_mix(cfg.env, cfg.poison, seed)
+            obs, _ = e.reset(seed=seed * 1000)
+            torch.manual_seed(seed)
+            self.learners.append(Learner(fc(), e, Hyper.of(cfg.ppo), seed, obs, lavaworld_jax, depth=depth))
+        self.frames = 0
+
+    def iterate(self):
+        out = iterate(self.learners)
+        self.frames += out[0].num_frames
+        return out
+
+    def params(self, name: str) -> list[np.ndarray]:
+        return [np.asarray(learner.state.params[name]) for learner in self.learners]
 
 
 def test_an_iteration_is_reproducible_and_its_episodes_are_counted():
     """Two groups of the same seeds give the same bytes after two iterations (a shallow queue of 4
-    layouts a slot, so some iteration runs again deeper), and the counts of ended episodes add up."""
+    layouts a slot, so some iteration runs again deeper), and the steps' rewards and episode ends
+    come back per agent; the learners moved, each its own way."""
     sides = []
     for _ in range(2):
-        g = group([0, 1])
+        g = Group([0, 1])
         stats = [g.iterate() for _ in range(2)]
         sides.append((g, stats))
     (a, sa), (b, sb) = sides
-    for name in a.agents.params:
-        assert np.array_equal(np.asarray(a.agents.params[name]), np.asarray(b.agents.params[name]))
-    assert np.array_equal(np.asarray(a.obs), np.asarray(b.obs))
-    assert all(np.array_equal(np.asarray(x), np.asarray(y)) for s, t in zip(sa, sb) for x, y in zip(s, t))
-    episodes, successes = np.asarray(sa[0].episodes), np.asarray(sa[0].successes)
-    assert episodes.shape == (2, 2) and (episodes[:, 0] > 0).all() and (successes <= episodes).all()  # 8 clean copies end episodes in 128 random steps
+    for name in a.learners[0].state.params:
+        assert all(np.array_equal(x, y) for x, y in zip(a.params(name), b.params(name)))
+    assert all(np.array_equal(x.obs, y.obs) for x, y in zip(a.learners, b.learners))
+    assert all(np.array_equal(x.rewards, y.rewards) and np.array_equal(x.dones, y.dones) and x.losses == y.losses for s, t in zip(sa, sb) for x, y in zip(s, t))
+    first = sa[0][0]
+    assert first.rewards.shape == first.dones.shape == (128, 10) and first.num_frames == 1280 and first.capacity == 2
+    assert first.dones[:, :8].sum() > 0  # 8 clean copies end episodes in 128 random steps
+    assert a.learners[0].depth > 4  # the shallow queue starved and ran again deeper
     assert a.frames == 2 * 128 * 10
-    # the learners moved, each its own way
-    w = np.asarray(a.agents.params["actor.2.weight"])
+    w = a.params("actor.2.weight")
     assert not np.array_equal(w[0], w[1])
     assert not np.array_equal(w[0], init_agents(fc, [0])[0].params["actor.2.weight"][0])
 
@@ -162,10 +175,13 @@ def test_the_compiled_iteration_learns_the_clean_task():
     model is at clean SR 0.94 by 300 k frames (the demo's run); here the training episodes of the
     last iteration (sampled actions, about 20 an agent) must reach the goal at least half the time,
     where a random policy's reach it about 2 % of the time (the first iteration's)."""
-    g = group([0, 1, 2, 3], clean=True)
-    first = g.iterate()
-    for _ in range(249):
-        stats = g.iterate()
-    ep, su = np.asarray(stats.episodes), np.asarray(stats.successes)
-    start = np.asarray(first.successes)[:, 0].sum() / np.asarray(first.episodes)[:, 0].sum()
-    assert start < 0.1 and (su[:, 0] / ep[:, 0] >= 0.5).all(), (start, su, ep)
+    g = Group([0, 1, 2, 3], clean=True)
+
+    def reach(out):  # per agent: ended episodes that paid (a grid episode pays only at the goal here)
+        return np.array([(o.rewards[o.dones] > 0).mean() for o in out])
+
+    start = reach(g.iterate())
+    for _ in range(248):
+        g.iterate()
+    end = reach(g.iterate())
+    assert (start < 0.1).all() and (end >= 0.5).all(), (start, end)

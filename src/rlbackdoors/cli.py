@@ -15,7 +15,7 @@ from pathlib import Path
 
 from rlbackdoors import __version__, attacks, worlds
 from rlbackdoors.argparser import Parser, report_errors
-from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, ConfigError, RunConfig, check_seed
+from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, UPDATE_BACKENDS, ConfigError, RunConfig, check_seed
 from rlbackdoors.folder import FolderError, refuse_left_out_weights
 
 
@@ -444,8 +444,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--aux-memory-coef", type=float, help="weight of PPO's auxiliary memory loss (recurrent models in worlds with memory targets; 0: off)")
     tr.add_argument(
         "--update-backend",
-        choices=("torch", "jax"),
-        help="what runs PPO's update: torch (default) or jax, one XLA program (fc models on the CPU; the jax extra)",
+        choices=UPDATE_BACKENDS,
+        help="what runs PPO's update: torch (default); jax, the update one XLA program (fc models; the jax extra); "
+        "compiled, the whole iteration one XLA program on the world's JAX engine (fc models, the env mix; docs/training.md)",
     )
     tr.add_argument("--confirm-margin", type=float, help="how far the confirming evaluation must clear each threshold (default: the world's)")
     tr.add_argument("--no-confirm", action="store_true", help="stop on the streak alone, without confirming it on the final evaluation's episodes")

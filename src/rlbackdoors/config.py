@@ -43,7 +43,7 @@ ARCHS_BY_ENV = {w.name: w.arch_names for w in worlds.registered()}
 ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs))
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
-UPDATE_BACKENDS = ("torch", "jax")  # ppo.update_backend
+UPDATE_BACKENDS = ("torch", "jax", "compiled")  # ppo.update_backend
 ALGORITHMS = ("ppo", "opac2")
 
 
@@ -252,7 +252,9 @@ class PPOConfig:
     aux_memory_coef: float = 0.0
     # What runs PPO's update: "torch" (autograd), or "jax" (rlbackdoors.algos.jax_update: every
     # minibatch of an update in one XLA program; feed-forward "fc" models, the jax extra; on CUDA
-    # JAX with GPU support).
+    # JAX with GPU support), or "compiled" (rlbackdoors.algos.compiled: the whole iteration,
+    # rollout on the world's JAX engine, GAE and update, one XLA program; worlds with a
+    # ``compiled_engine``, "fc" models, the env mix without evasive variants).
     # The same algorithm with other rounding, so other bytes: a config field.
     update_backend: str = "torch"
 
@@ -549,6 +551,8 @@ class RunConfig(JsonConfig):
                     f"ppo.aux_memory_coef={self.ppo.aux_memory_coef} needs a recurrent model.arch (cnn-gru-*) in a world with memory targets, "
                     f"not {self.model.arch!r} in {self.env.name!r} (set it to 0)"
                 )
+            if self.ppo.update_backend == "compiled":
+                self.check_compiled()
             if self.ppo.update_backend == "jax":
                 if self.model.arch != "fc":
                     raise ConfigError(f"ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers), not {self.model.arch!r}")
@@ -563,6 +567,29 @@ class RunConfig(JsonConfig):
             supported = ", ".join(w.name for w in worlds.registered() if w.curriculum)
             raise ConfigError(f"curriculum.enabled is only supported for {supported}, not env.name={self.env.name!r}")
         return self
+
+    def check_compiled(self) -> None:
+        """What ``ppo.update_backend = 'compiled'`` trains today; anything else is refused, never
+        trained differently."""
+        from rlbackdoors.attacks import DEFAULT_ATTACK
+
+        assert self.ppo is not None
+        why = None
+        if self.world.compiled_engine is None:
+            built = ", ".join(w.name for w in worlds.registered() if w.compiled_engine)
+            why = f"env.name={self.env.name!r} has no JAX engine yet (built: {built})"
+        elif self.model.arch != "fc":
+            why = f"it runs model.arch 'fc', not {self.model.arch!r}"
+        elif self.poison.attack != DEFAULT_ATTACK:
+            why = f"it trains the env mix (poison.attack={DEFAULT_ATTACK!r}), not {self.poison.attack!r}"
+        elif self.poison.evasion:
+            why = f"it has no evasive variants yet (poison.evasion: {', '.join(sorted(self.poison.evasion))})"
+        elif self.curriculum.enabled:
+            why = "it has no curriculum (curriculum.enabled)"
+        elif (self.ppo.rollout * self.poison.num_envs) % self.ppo.batch_size:
+            why = f"ppo.batch_size={self.ppo.batch_size} must divide a rollout's {self.ppo.rollout * self.poison.num_envs} frames (ppo.rollout x env copies)"
+        if why is not None:
+            raise ConfigError(f"ppo.update_backend='compiled': {why}; use 'torch' or 'jax'")
 
     def check_attack_fits(self) -> None:
         """The attack serves this world, algorithm and model; its target action is one the world has."""

@@ -35,8 +35,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.jax_update import _jax, run_layers, structure
-from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots
+from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, run_hosts
 
 
 @dataclass(frozen=True)
@@ -84,33 +83,50 @@ class Agents(NamedTuple):
 
 
 class IterationStats(NamedTuple):
-    """What an iteration reports per agent: its losses (means over the minibatches) and the
-    episodes its env copies ended, by kind (clean or poisoned copy) and success."""
+    """What an iteration reports per agent: its losses (means over the minibatches) and its env
+    copies' rewards and episode ends by step."""
 
     policy_loss: Any
     value_loss: Any
     entropy: Any
     grad_norm: Any
-    episodes: Any  # (K, 2): episodes ended on clean, on poisoned copies
-    successes: Any  # (K, 2): of which paid (the goal on clean copies, the trojan outcome on poisoned)
-    returns: Any  # (K, 2): the sum of their returns
+    rewards: Any  # (K, T, N) float32: each step's rewards (a run's episode bookkeeping)
+    dones: Any  # (K, T, N) bool: where an episode ended
+
+
+def agent_state(model: torch.nn.Module, seed: int) -> Agents:
+    """One agent's learning state (no agent axis): ``model``'s weights as they are (the torch
+    trainer's initialisation where it was just built after ``torch.manual_seed(seed)``), Adam's
+    moments zero, a PRNG key from ``seed``."""
+    jax = _jax()
+    params = {name: p.detach().cpu().numpy().astype(np.float32).copy() for name, p in model.named_parameters()}
+    zeros = {name: np.zeros_like(value) for name, value in params.items()}
+    key = np.asarray(jax.random.key_data(jax.random.PRNGKey(seed)), dtype=np.uint32)
+    return Agents(params, zeros, {n: z.copy() for n, z in zeros.items()}, np.float32(0.0), key)
+
+
+def stack_agents(states: list[Agents]) -> Agents:
+    """Agents' states side by side (the leading axis: the agents)."""
+    return Agents(*(_stack(parts) for parts in zip(*states)))
+
+
+def _stack(parts: tuple):
+    if isinstance(parts[0], dict):
+        return {name: np.stack([p[name] for p in parts]) for name in parts[0]}
+    return np.stack(parts)
 
 
 def init_agents(model_factory, seeds: list[int]) -> tuple[Agents, torch.nn.Module]:
     """K agents initialised as the torch trainer initialises them (``torch.manual_seed(seed)``,
-    then the architecture's constructor), Adam's moments zero, each a PRNG key from its seed;
-    and one model of the architecture (the structure the program runs)."""
-    jax = _jax()
-    models = []
+    then the architecture's constructor; :func:`agent_state`), and one model of the architecture
+    (the structure the program runs)."""
+    states, models = [], []
     for seed in seeds:
         torch.manual_seed(seed)
         models.append(model_factory())
-    structure(models[0])  # refuses what this program cannot run, in one line
-    names = [name for name, _ in models[0].named_parameters()]
-    params = {name: np.stack([dict(m.named_parameters())[name].detach().numpy() for m in models]).astype(np.float32) for name in names}
-    zeros = {name: np.zeros_like(value) for name, value in params.items()}
-    keys = np.stack([np.asarray(jax.random.key_data(jax.random.PRNGKey(seed))) for seed in seeds])
-    return Agents(params, zeros, {n: z.copy() for n, z in zeros.items()}, np.zeros(len(seeds), np.float32), keys), models[0]
+        structure(models[-1])  # refuses what this program cannot run, in one line
+        states.append(agent_state(models[-1], seed))
+    return stack_agents(states), models[0]
 
 
 def state_dicts(agents: Agents) -> list[dict[str, torch.Tensor]]:
@@ -248,9 +264,9 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
             action = P.sample(logits, u)
             slots, layouts, out = world.step(slots, layouts, params, action)
             done = out.terminated | out.truncated
-            return (slots, layouts, out.obs), (obs, action, logits, value, out.reward, done, out.outcome)
+            return (slots, layouts, out.obs), (obs, action, logits, value, out.reward, done)
 
-        (slots, layouts, next_obs), (obs_t, actions, logits, values, rewards, dones, outcomes) = lax.scan(env_step, (slots, layouts, obs), uniforms)
+        (slots, layouts, next_obs), (obs_t, actions, logits, values, rewards, dones) = lax.scan(env_step, (slots, layouts, obs), uniforms)
         next_value = act(next_obs)[1]
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), actions[..., None], -1)[..., 0]
 
@@ -280,47 +296,119 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
         p, avg, sq = (jax.vmap(unravel)(a) for a in (w, avg, sq))
         means = losses.mean(0)  # (K, 4)
 
-        # what the copies' episodes did (for progress lines and the training returns)
-        poisoned = params.poisoned.reshape(1, K, N)
-        dones, outcomes, rewards = (a.reshape(T, K, N) for a in (dones, outcomes, rewards))
-        paying = jnp.where(poisoned, world.trojan, ge.OUT_GOAL)
-        kinds = jnp.stack([dones & ~poisoned, dones & poisoned], -1)  # (T, K, N, 2)
-        success = kinds & (outcomes == paying)[..., None]
-        episode_return = jnp.where(dones, rewards, 0.0)[..., None]  # a grid episode pays only at its end
-        stats = IterationStats(means[:, 0], means[:, 1], means[:, 2], means[:, 3], kinds.sum((0, 2)), success.sum((0, 2)), (kinds * episode_return).sum((0, 2)))
+        # each step's rewards and episode ends, per agent (the runs' episode bookkeeping)
+        rewards, dones = (jnp.moveaxis(a.reshape(T, K, N), 1, 0) for a in (rewards, dones))
+        stats = IterationStats(means[:, 0], means[:, 1], means[:, 2], means[:, 3], rewards, dones)
         return Agents(p, avg, sq, step, jax.vmap(jax.random.key_data)(keys[:, 0])), slots, layouts, next_obs, stats
 
     return jax.jit(iteration)
 
 
-__all__ = ["Agents", "Hyper", "IterationStats", "init_agents", "make_iteration", "state_dicts"]
 
 
-class Group:
-    """K agents of one world, architecture and PPO config trained together by the compiled
-    iteration: their env copies (reset numba engines, one per agent, each N copies) handed to the
-    world's JAX step as one batch of K x N slots, their learning state, and the host's part of an
-    iteration, which is drawing layouts ahead (:class:`rlbackdoors.envs.grid_jax.HostLayouts`)."""
+class Iterated(NamedTuple):
+    """What one run's loop gets from an iteration: its env copies' rewards and episode ends by step
+    (``(T, N)``, as a torch rollout's, for its episode bookkeeping), and its update's mean losses."""
 
-    def __init__(self, engines: list, jax_world, model: torch.nn.Module, agents: Agents, hyper: Hyper, depth: int = 16):
-        from rlbackdoors.envs.batched_base import EngineGroup
+    rewards: np.ndarray
+    dones: np.ndarray
+    losses: dict[str, float]
+    capacity: int  # the agents the program was compiled for (part of what reproduces the bytes)
 
-        self.k, self.n = len(engines), engines[0].num_envs
-        self.world, self.params, self.host = jax_world(EngineGroup.of(engines) if len(engines) > 1 else engines[0])
-        self.hyper, self.depth, self.agents = hyper, int(depth), agents
-        self.slots = self.host.slots
-        self.obs = np.asarray(_jax().jit(self.world.render)(self.slots, self.params))
-        self._iteration = make_iteration(self.world, model, hyper, self.n)
-        self.frames = 0  # per agent
+    @property
+    def num_frames(self) -> int:
+        return int(self.rewards.size)
 
-    def iterate(self) -> IterationStats:
-        """One iteration of every agent: rollout, GAE, update (one call of the compiled program,
-        again deeper where a slot ended more episodes than it had layouts)."""
 
-        def block(layouts: Layouts):
-            agents, slots, after, obs, stats = self._iteration(self.agents, self.slots, layouts, self.params, self.obs)
-            return (agents, slots, obs), after, stats
+class Learner:
+    """One run's compiled PPO, held by its loop in place of :class:`rlbackdoors.algos.ppo.PPO`: its
+    agent's learning state (:class:`Agents` without the agent axis, numpy), its env copies (a reset
+    batched engine handed to the world's JAX step, ``jax_world``: engines -> (GridWorld, params,
+    HostLayouts)) and their current views. :func:`iterate` steps any number of them at once.
 
-        (self.agents, self.slots, self.obs), stats = self.host.run(block, self.depth)
-        self.frames += self.hyper.rollout * self.n
-        return stats
+    The torch ``model`` is the run's network for what is not compiled (evaluations, the GIF,
+    model.pt): :meth:`sync` writes the agent's weights into it."""
+
+    def __init__(self, model: torch.nn.Module, engine, hyper: Hyper, seed: int, obs, jax_world, depth: int = 64):
+        self.model, self.hyper, self.layers = model, hyper, structure(model)
+        self.world, self.params, self.host = jax_world(engine)
+        self.engine, self.slots, self.obs = engine, self.host.slots, np.asarray(obs, dtype=np.uint8)
+        self.state, self.depth = agent_state(model, seed), int(depth)
+        if self.obs.shape != (self.host.num_envs, self.world.view_size, self.world.view_size, 3):
+            raise ValueError(f"views of shape {self.obs.shape} do not fit {self.host.num_envs} env copies")
+
+    def sync(self) -> torch.nn.Module:
+        """The torch model with the agent's current weights (returned)."""
+        with torch.no_grad():
+            for name, p in self.model.named_parameters():
+                p.copy_(torch.from_numpy(np.array(self.state.params[name])))
+        return self.model
+
+    def checkpoint(self) -> dict:
+        """The agent's learning state as plain tensors and numbers; the env copies' state goes back
+        into the engine (whose ``state_dict`` a checkpoint then holds beside it)."""
+        self.host.hand_back(self.slots)
+        a = self.state
+        tensors = {part: {n: torch.from_numpy(np.array(v)) for n, v in getattr(a, part).items()} for part in ("params", "avg", "sq")}
+        return {**tensors, "step": float(a.step), "key": [int(k) for k in np.asarray(a.key)]}
+
+    def load(self, state: dict) -> None:
+        """Put back a :meth:`checkpoint` (untrusted: every array must fit the model, or StateError)."""
+        from rlbackdoors.state import StateError
+
+        names = {n: tuple(p.shape) for n, p in self.model.named_parameters()}
+        parts = {}
+        for part in ("params", "avg", "sq"):
+            value = state[part]
+            if not isinstance(value, dict) or set(value) != set(names):
+                raise StateError(f"compiled learner: {part} does not have the model's parameters")
+            for name, shape in names.items():
+                t = value[name]
+                if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape or t.dtype != torch.float32 or not bool(torch.isfinite(t).all()):
+                    raise StateError(f"compiled learner: {part}.{name} does not fit the model (float32, shape {shape})")
+            parts[part] = {name: value[name].numpy().copy() for name in names}
+        step, key = state["step"], state["key"]
+        if not isinstance(step, float) or not (0 <= step < 2**24) or step != int(step):
+            raise StateError("compiled learner: step is not an optimiser step count")
+        if not isinstance(key, list) or len(key) != 2 or not all(isinstance(k, int) and 0 <= k < 2**32 for k in key):
+            raise StateError("compiled learner: key is not a PRNG key (two 32-bit words)")
+        self.state = Agents(parts["params"], parts["avg"], parts["sq"], np.float32(step), np.asarray(key, dtype=np.uint32))
+
+
+def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterated]:
+    """One iteration of every learner, all in one call of the compiled program: their agents side
+    by side, their env copies one batch. The program is compiled for ``capacity`` agents (default:
+    as many as there are); fewer are padded with copies of the first, whose results are dropped,
+    so a run's numbers depend on its config and the capacity, not on its group-mates (tested)."""
+    jax = _jax()
+    lead, k = learners[0], len(learners)
+    capacity = k if capacity is None else int(capacity)
+    if capacity < k:
+        raise ValueError(f"{k} learners do not fit a compiled group of {capacity}")
+    for other in learners[1:]:
+        if (other.world, other.layers, other.hyper, other.host.num_envs) != (lead.world, lead.layers, lead.hyper, lead.host.num_envs):
+            raise ValueError("learners of one compiled call need the same world, network, PPO settings and env copies")
+    rows = learners + [lead] * (capacity - k)
+    program = _iteration(lead.world, lead.layers, lead.hyper, lead.host.num_envs)
+    agents = stack_agents([r.state for r in rows])
+    slots = Slots(*(np.concatenate(f) for f in zip(*(r.slots for r in rows))))
+    params = type(lead.params)(*(np.concatenate(f) for f in zip(*(r.params for r in rows))))
+    obs = np.concatenate([r.obs for r in rows])
+
+    def block(layouts: Layouts):
+        a, s, after, o, stats = program(agents, slots, layouts, params, obs)
+        return (a, s, o), after, stats
+
+    ((a, s, o), stats), depth = run_hosts([r.host for r in rows], block, max(r.depth for r in learners), takers=k)
+    a, s, o, stats = jax.device_get((a, s, o, stats))
+    n, out = lead.host.num_envs, []
+    for i, learner in enumerate(learners):
+        learner.state = Agents({name: v[i] for name, v in a.params.items()}, {name: v[i] for name, v in a.avg.items()}, {name: v[i] for name, v in a.sq.items()}, a.step[i], a.key[i])
+        learner.slots = Slots(*(f[i * n : (i + 1) * n] for f in s))
+        learner.obs, learner.depth = o[i * n : (i + 1) * n], depth
+        losses = {"policy_loss": float(stats.policy_loss[i]), "value_loss": float(stats.value_loss[i]), "entropy": float(stats.entropy[i]), "grad_norm": float(stats.grad_norm[i])}
+        out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))
+    return out
+
+
+__all__ = ["Agents", "Hyper", "IterationStats", "Iterated", "Learner", "agent_state", "init_agents", "iterate", "make_iteration", "state_dicts"]

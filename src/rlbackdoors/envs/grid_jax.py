@@ -281,13 +281,7 @@ class HostLayouts:
         the same inputs with twice as many, so the result is the one an unbounded queue gives (a
         block of T steps takes at most T a slot). Returns the block's state and result; the layouts
         it took are dropped here."""
-        while True:
-            state, after, result = block(self.layouts(depth))
-            if not bool(np.asarray(after.starved)):
-                break
-            depth *= 2
-        self.took(np.asarray(after.taken))
-        return state, result
+        return run_hosts([self], block, depth)[0]
 
     def hand_back(self, slots: Slots) -> None:
         """Write the slots' state into the host engines, as if they had stepped them: grid,
@@ -304,4 +298,24 @@ class HostLayouts:
         self._have[:] = 0
 
 
-__all__ = ["GridWorld", "HostLayouts", "Layouts", "Slots", "StepOut"]
+def run_hosts(hosts: list[HostLayouts], block: Callable[[Layouts], tuple[Any, Layouts, Any]], depth: int, takers: int | None = None) -> tuple[tuple[Any, Any], int]:
+    """:meth:`HostLayouts.run` for several hosts' slots side by side (in order, as one block's
+    batch): ``((state, result), depth)``, the depth the block last ran with. Only the first
+    ``takers`` hosts (default: all) drop the layouts their slots took; the rest pad a batch (a host
+    may appear twice: its layouts are read, not taken, the second time)."""
+    takers = len(hosts) if takers is None else takers
+    while True:
+        parts = [h.layouts(depth) for h in hosts]
+        layouts = Layouts(*(np.concatenate(f) for f in zip(*(p[:5] for p in parts))), starved=np.bool_(False))
+        state, after, result = block(layouts)
+        if not bool(np.asarray(after.starved)):
+            break
+        depth *= 2
+    taken, start = np.asarray(after.taken), 0
+    for h in hosts[:takers]:
+        h.took(taken[start : start + h.num_envs])
+        start += h.num_envs
+    return (state, result), depth
+
+
+__all__ = ["GridWorld", "HostLayouts", "Layouts", "Slots", "StepOut", "run_hosts"]

@@ -35,7 +35,7 @@ from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
 from rlbackdoors.train.driver import Draw, Evaluate, env_pool_for, evaluate_runs, train_steps
 from rlbackdoors.train.opac2_run import Act, Learn
-from rlbackdoors.train.ppo_run import Collect, Update
+from rlbackdoors.train.ppo_run import Collect, Iterate, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
 if TYPE_CHECKING:  # matplotlib, which rlbackdoors.report imports, only where a curve is drawn
@@ -135,6 +135,9 @@ def batch_key(request, painters: bool = False) -> tuple | None:
         agent = request.agent
         width = len(request.obs) if isinstance(request, Act) else request.n
         return (type(request).__name__, "OPAC2", repr(agent.cfg), str(agent.device), agent.policy_obs_dim, width)
+    if isinstance(request, Iterate):  # compiled learners of one program
+        learner = request.learner
+        return ("Iterate", learner.world, learner.layers, learner.hyper, learner.host.num_envs)
     ppo = request.ppo
     if not group.stackable(ppo.model):
         return None
@@ -142,11 +145,17 @@ def batch_key(request, painters: bool = False) -> tuple | None:
     return (type(request).__name__, type(ppo.model).__name__, repr(ppo.cfg), str(ppo.device), width, ppo.teacher is not None, ppo.anchor is not None)
 
 
-def serve_batch(requests: list, stacked: bool = True, painters: Painters | None = None) -> list:
+def serve_batch(requests: list, stacked: bool = True, painters: Painters | None = None, capacity: int = 1) -> list:
     """Results for requests of one :func:`batch_key`, through the stacked learner even for one
     request (an agent's numbers do not depend on its group-mates or on K, tested, so a run
     resumed in another group gives the same bytes); ``stacked=False`` serves one request as a
-    lone run (:func:`train_group` with group size 1: today's bytes); curves go to ``painters``."""
+    lone run (:func:`train_group` with group size 1: today's bytes); curves go to ``painters``.
+    Compiled iterations run in a program of ``capacity`` agents (the group size) however many
+    ask: a run's bytes depend on its config and the capacity, not on its group-mates."""
+    if isinstance(requests[0], Iterate):
+        from rlbackdoors.algos import compiled
+
+        return compiled.iterate([r.learner for r in requests], capacity)
     if len(requests) == 1 and not stacked:
         return [requests[0].serve()]
     if isinstance(requests[0], Draw):
@@ -269,7 +278,7 @@ def train_group(
                 started = time.process_time()
                 error: BaseException | None = None
                 try:
-                    answers = serve_batch([s.request for s in members], stacked=group_size > 1 and key[0] != "alone", painters=drawing)
+                    answers = serve_batch([s.request for s in members], stacked=group_size > 1 and key[0] != "alone", painters=drawing, capacity=group_size)
                 except BaseException as err:  # raised into every member's loop at its yield
                     answers, error = [None] * len(members), err
                 share = (time.process_time() - started) / len(members)

@@ -10,6 +10,7 @@ folder. Checkpoints hold plain data only (:mod:`rlbackdoors.state`).
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 import time
 from collections import deque
@@ -160,6 +161,20 @@ class Collect:
 
 
 @dataclasses.dataclass
+class Iterate:
+    """What a compiled run asks of its learner between evaluations: one iteration (rollout, GAE and
+    update in one XLA program, :func:`rlbackdoors.algos.compiled.iterate`), served alone here at a
+    capacity of one agent; a group trainer serves K runs' in one call."""
+
+    learner: Any  # rlbackdoors.algos.compiled.Learner
+
+    def serve(self):
+        from rlbackdoors.algos import compiled
+
+        return compiled.iterate([self.learner])[0]
+
+
+@dataclasses.dataclass
 class Update:
     """What a run asks of its learner after a rollout: PPO's epochs over it (returns the losses)."""
 
@@ -192,6 +207,21 @@ def steps(
     assert tc.max_frames is not None and tc.eval_interval is not None and tc.checkpoint_minutes is not None
     model = build_model(cfg.model.arch, cfg.env.name).to(device)
     ppo = PPO(model, cfg.ppo, device, generator)
+    # ppo.update_backend = "compiled": the iteration is one XLA program (algos.compiled) whose
+    # learner holds the weights; ``model`` gets them for evaluations, checkpoints and the finish
+    compiled = cfg.ppo.update_backend == "compiled"
+    learner: Any = None
+    served_k: int | None = None  # the compiled group's capacity this run is served at (part of its bytes)
+
+    def compiled_learner(envs, obs):
+        from rlbackdoors.algos import compiled as xla
+        from rlbackdoors.algos.jax_update import _jax
+
+        platform = _jax().default_backend()
+        if platform != device.type:
+            raise ValueError(f"ppo.update_backend='compiled' runs where JAX computes ({platform}), not train.device={device.type!r}")
+        module, _, name = str(cfg.world.compiled_engine).partition(":")
+        return xla.Learner(model, envs, xla.Hyper.of(cfg.ppo), tc.seed, obs, getattr(importlib.import_module(module), name))
     envs: Any  # a batched engine or the reference vector env (poisoned, state_dict, load_state_dict)
 
     @torch.inference_mode()
@@ -250,6 +280,8 @@ def steps(
         tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
         frames, elapsed, rows, next_eval, converged_at, streak = 0, 0.0, [], tc.eval_interval, None, 0
         cpu_elapsed: float | None = 0.0
+        if compiled:
+            learner = compiled_learner(envs, obs)
     else:
         try:
             switch_at = checkpoint["switch_at"]
@@ -272,12 +304,21 @@ def steps(
                 raise StateError("the auxiliary memory head does not fit ppo.aux_memory_coef")
             if ppo.aux is not None:
                 ppo.aux.load_state_dict(checkpoint["aux"])
-            ppo.optimizer.load_state_dict(checkpoint["optimizer"])
-            check_optimizer_state(ppo.optimizer)
-            generator.set_state(checkpoint["generator"])
+            if compiled != ("compiled" in checkpoint):
+                raise StateError("it was written by another update backend")
+            if not compiled:
+                ppo.optimizer.load_state_dict(checkpoint["optimizer"])
+                check_optimizer_state(ppo.optimizer)
+                generator.set_state(checkpoint["generator"])
             envs.load_state_dict(checkpoint["envs"])
             obs = decode(checkpoint["obs"])
             check_observation(obs, envs.observation_space)
+            if compiled:
+                learner = compiled_learner(envs, obs)
+                learner.load(checkpoint["compiled"])
+                served_k = checkpoint["compiled_k"]  # None: stopped before its first iteration
+                if served_k is not None and (isinstance(served_k, bool) or not isinstance(served_k, int) or served_k < 1):
+                    raise StateError("compiled_k is not a group size")
             tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
             tracker.load_state_dict(checkpoint["tracker"])
             memory = checkpoint["memory"]
@@ -294,6 +335,10 @@ def steps(
             raise FolderError(f"checkpoint in {str(folder.path)!r} does not fit this run ({err}); pass --overwrite to start over") from None
 
     def save_checkpoint() -> None:
+        # a compiled learner's state first: it hands its env copies' state back to the engine
+        learned = {"compiled": learner.checkpoint(), "compiled_k": served_k} if compiled else {"optimizer": ppo.optimizer.state_dict(), "generator": generator.get_state()}
+        if compiled:
+            learner.sync()
         folder.save_torch(
             "checkpoint.pt",
             {
@@ -304,8 +349,7 @@ def steps(
                 **({"conv": conv} if (conv := conv_record(model, device.type)) else {}),
                 "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
                 "aux": None if ppo.aux is None else {k: v.detach().cpu() for k, v in ppo.aux.state_dict().items()},
-                "optimizer": ppo.optimizer.state_dict(),
-                "generator": generator.get_state(),
+                **learned,
                 "envs": envs.state_dict(),
                 "obs": encode(obs),
                 "tracker": tracker.state_dict(),
@@ -343,8 +387,17 @@ def steps(
             save_checkpoint()
             bar.close()
             raise Interrupted(frames, True, stop.requested)
-        rollout, obs = yield Collect(ppo, envs, obs)
-        losses = yield Update(ppo, rollout)
+        if compiled:
+            rollout = yield Iterate(learner)
+            if served_k is not None and rollout.capacity != served_k:
+                raise FolderError(
+                    f"the run in {str(folder.path)!r} began in a compiled group of {served_k} and cannot go on in one of {rollout.capacity} "
+                    "(its bytes would mix both); resume it with that group size, or pass --overwrite to start over"
+                )
+            served_k, obs, losses = rollout.capacity, learner.obs, rollout.losses
+        else:
+            rollout, obs = yield Collect(ppo, envs, obs)
+            losses = yield Update(ppo, rollout)
         tracker.add(rollout)
         frames += rollout.num_frames
         window_frames += rollout.num_frames
@@ -355,6 +408,8 @@ def steps(
             bar.write(f"curriculum: switched to the {cfg.env.size}x{cfg.env.size} world and the poisoning mix at {frames:,} frames")
         if frames >= next_eval or frames >= tc.max_frames:
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
+            if compiled:
+                learner.sync()
             result = yield Evaluate(model, cfg, tc.eval_episodes)
             train_clean, train_poisoned = tracker.drain()
             rows.append(
@@ -396,6 +451,8 @@ def steps(
                 stop_reason = "max_minutes"
     bar.close()
     envs.close()
+    if compiled:
+        learner.sync()
     return RunOutcome(
         policy=model,
         weights={k: v.detach().cpu() for k, v in model.state_dict().items()},
@@ -411,6 +468,7 @@ def steps(
             **({"curriculum_switch_frames": switch_at} if cfg.curriculum.enabled else {}),
             **({"poison_at_frames": poison_at} if finetune else {}),
             **({"attack_budget_used": envs.budget_used()} if isinstance(envs, AttackSeam) else {}),
+            **({"compiled_group": served_k} if compiled else {}),
         },
         switch_at=switch_at,
         can_converge=switch_at is not None and poison_at is not None,

@@ -85,6 +85,9 @@ class World:
     ebar_kwargs: dict = field(default_factory=dict)
     video: dict = field(default_factory=dict)  # clean_vs_triggered.gif settings (fps, every, size, tile)
     bench: str | None = None  # "module:function" -> dict: the env-speed benchmark of this world
+    # "module:function": its batched engine's JAX step (engines -> (GridWorld, params, HostLayouts)),
+    # which ppo.update_backend = "compiled" trains on (rlbackdoors.algos.compiled); None: not built
+    compiled_engine: str | None = None
     curriculum: bool = False  # the small clean warm-up world (Randomized LavaWorld)
     close_to_trigger: bool = False  # has close-to-trigger envs (Colorful Memory)
     # Its batched engine says, per env, what a recurrent agent must remember (``memory_targets()``,

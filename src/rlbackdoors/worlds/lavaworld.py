@@ -57,6 +57,7 @@ WORLD = register(
         gym_id="rlbackdoors/LavaWorld-v0",
         entry_point="rlbackdoors.envs.lavaworld:LavaWorldEnv",
         vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
+        compiled_engine="rlbackdoors.envs.lavaworld_jax:lavaworld_jax",
         algorithm="ppo",
         parse_trigger=_parse,
         draw_trigger=_draw,

@@ -1,14 +1,15 @@
 """Training frames/s of the compiled PPO iteration (algos/compiled.py) against today's best CPU
-side (a torch group of K agents with the JAX update, algos/group.py), in the same process, one
-core each, on LavaWorld FC with the env mix (10 copies, 8 clean : 2 poisoned, rollout 128).
+side (a torch group of K agents, algos/group.py: with the JAX update for the FC model, torch's
+for the CNN), in the same process, one core each, on LavaWorld with the env mix (10 copies,
+8 clean : 2 poisoned, rollout 128); ``--arch fc`` (default) or ``cnn``.
 
-Training only: rollout, GAE and update, no evaluations (the compiled trainer's evaluations are
-not built yet); each side warms up (compiles) first and is then timed for ``--seconds``. The
-machine and its load are recorded with the figures.
+Training only: rollout, GAE and update, no evaluations (a zoo's figures with them: ``rlbackdoors
+bench zoo``); each side warms up (three iterations: compiles, and a deeper layout queue's
+program where the first was too shallow) and is then timed for ``--seconds``. The machine and
+its load are recorded with the figures.
 
-    python benchmarks/compiled_lavaworld.py --json benchmarks/results/compiled_lavaworld_<cpu>.json
+    python benchmarks/compiled_lavaworld.py --ks 1,8,16,32 --json benchmarks/results/compiled_lavaworld_<cpu>.json
 """
-
 from __future__ import annotations
 
 import argparse
@@ -18,15 +19,19 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 
+ARCH = "fc"  # --arch
+
+
 def configs(k: int):
+    """K configs of today's best CPU side: the JAX update for the FC model, torch's for the CNN (the JAX update has no convolutions)."""
     from rlbackdoors.config import RunConfig
 
+    ppo = {"update_backend": "jax"} if ARCH == "fc" else {}
     return [
-        RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12"}, "ppo": {"update_backend": "jax"}, "train": {"seed": s}})
+        RunConfig.from_dict({"env": {"name": "lavaworld"}, "model": {"arch": ARCH}, "poison": {"trigger": "multiplicative:12"}, "ppo": ppo, "train": {"seed": s}})
         for s in range(k)
     ]
 
@@ -53,7 +58,7 @@ def torch_group(k: int, seconds: float) -> dict:
     ppos = []
     for cfg in cfgs:
         torch.manual_seed(cfg.train.seed)
-        ppos.append(PPO(build_model("fc", "lavaworld"), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(cfg.train.seed)))
+        ppos.append(PPO(build_model(ARCH, "lavaworld"), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(cfg.train.seed)))
     obs = [e.reset(seed=c.train.seed * 1000)[0] for e, c in zip(envs, cfgs)]
 
     def once():
@@ -77,7 +82,7 @@ def compiled_group(k: int, seconds: float) -> dict:
     for cfg, engine in zip(cfgs, engines_of(cfgs)):
         torch.manual_seed(cfg.train.seed)
         obs = engine.reset(seed=cfg.train.seed * 1000)[0]
-        learners.append(Learner(build_model("fc", "lavaworld"), engine, Hyper.of(cfg.ppo), cfg.train.seed, obs, lavaworld_jax))
+        learners.append(Learner(build_model(ARCH, "lavaworld"), engine, Hyper.of(cfg.ppo), cfg.train.seed, obs, lavaworld_jax))
 
     def once():
         return sum(out.num_frames for out in iterate(learners))
@@ -109,16 +114,19 @@ def main() -> int:
     ap.add_argument("--ks", default="1,16", help="group sizes of the compiled side (comma-separated)")
     ap.add_argument("--torch-k", type=int, default=16, help="today's side's group size (its best on 2 cores: 16 with the JAX update)")
     ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--arch", choices=("fc", "cnn"), default="fc", help="the model (the torch side's update: JAX for fc, torch for cnn)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    global ARCH
+    ARCH = args.arch
     from rlbackdoors.algos.jax_update import _jax
     from rlbackdoors.bench.machine import machine_info
 
     _jax()  # one compute thread, as both sides train in a zoo's process per core
     torch.set_num_threads(1)
-    result: dict = {"machine": machine_info(), "load_before": os.getloadavg(), "seconds": args.seconds, "sides": {}}
+    result: dict = {"machine": machine_info(), "arch": ARCH, "load_before": os.getloadavg(), "seconds": args.seconds, "sides": {}}
     today = torch_group(args.torch_k, args.seconds)
-    result["sides"][f"torch K={args.torch_k} (jax update)"] = today
+    result["sides"][f"torch K={args.torch_k} ({'jax' if ARCH == 'fc' else 'torch'} update)"] = today
     print(f"torch K={args.torch_k}: {today['frames_per_s']:,.0f} frames/s", file=sys.stderr, flush=True)
     for k in (int(x) for x in args.ks.split(",")):
         side = compiled_group(k, args.seconds)

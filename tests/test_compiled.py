@@ -38,6 +38,13 @@ def fc():
     return build_model("fc", "lavaworld")
 
 
+def cnn():
+    return build_model("cnn", "lavaworld")
+
+
+ARCHS = pytest.mark.parametrize("make", [fc, cnn], ids=["fc", "cnn"])
+
+
 def random_obs(rng, n):
     """Views of grid codes (objects to 10, colours to 5, states to 2), a quarter of them through a
     multiplicative trigger's table (x12 mod 256), as a poisoned copy sees them."""
@@ -50,17 +57,18 @@ def torch_params(agents, k=0):
     return {name: torch.from_numpy(np.array(value[k])) for name, value in agents.params.items()}
 
 
-def test_init_is_the_torch_models_and_the_weights_go_back_as_its_state_dict():
-    agents, model = init_agents(fc, [3, 4])
+@ARCHS
+def test_init_is_the_torch_models_and_the_weights_go_back_as_its_state_dict(make):
+    agents, model = init_agents(make, [3, 4])
     torch.manual_seed(4)
-    want = fc().state_dict()
+    want = make().state_dict()
     got = state_dicts(agents)[1]
     assert list(got) == list(want) and all(torch.equal(got[k], want[k]) for k in want)
     rng = np.random.default_rng(0)
     obs = random_obs(rng, 64)
-    p = parts(structure(model), Hyper())
+    p = parts(structure(model, convolutions=True), Hyper())
     logits, values = p.forward({k: v[1] for k, v in agents.params.items()}, obs)
-    m = fc()
+    m = make()
     m.load_state_dict(got)
     with torch.no_grad():
         t_logits, t_values = m(torch.from_numpy(obs))
@@ -68,12 +76,13 @@ def test_init_is_the_torch_models_and_the_weights_go_back_as_its_state_dict():
     close(values, t_values.numpy())
 
 
-def test_sampling_gae_loss_and_adam_are_the_torch_trainers():
+@ARCHS
+def test_sampling_gae_loss_and_adam_are_the_torch_trainers(make):
     rng = np.random.default_rng(1)
     cfg = PPOConfig()
     hyper = Hyper.of(cfg)
-    agents, model = init_agents(fc, [0])
-    p = parts(structure(model), hyper)
+    agents, model = init_agents(make, [0])
+    p = parts(structure(model, convolutions=True), hyper)
     params = {k: v[0] for k, v in agents.params.items()}
     # sampling: the same uniform, the same action
     logits = rng.normal(0, 2, (4096, 3)).astype(np.float32)
@@ -96,7 +105,7 @@ def test_sampling_gae_loss_and_adam_are_the_torch_trainers():
     adv = rng.normal(0, 1, n).astype(np.float32)
     returns = (old_values + adv).astype(np.float32)
     batch = (p.inputs(obs), actions.astype(np.int32), old_logp, old_values, adv, returns)
-    m = fc()
+    m = make()
     m.load_state_dict(state_dicts(agents)[0])
     opt = torch.optim.Adam(m.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
     avg = {k: np.zeros_like(v) for k, v in params.items()}
@@ -116,7 +125,7 @@ def test_sampling_gae_loss_and_adam_are_the_torch_trainers():
         # measured 1.1e-5 at most on an AMD EPYC (the forward 5e-7), hence 4e-5
         close(float(value), float(t_loss.detach()), 4 * RTOL)
         for got, key in zip((pl, vl, ent), ("policy_loss", "value_loss", "entropy")):
-            close(float(got), float(t_parts[key]), 4 * RTOL)
+            close(float(got), float(t_parts[key].detach()), 4 * RTOL)
         close(float(norm), float(t_norm), 4 * RTOL)
         assert float(t_norm) > cfg.max_grad_norm  # the clipping was exercised
     for name, weight in m.named_parameters():

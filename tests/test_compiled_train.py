@@ -69,6 +69,21 @@ def test_a_compiled_run_writes_the_model_folder_and_repeats_its_bytes(tmp_path):
     assert not same_weights(tmp_path / "a", tmp_path / "c")
 
 
+def test_a_compiled_cnn_run_trains_the_cnn(tmp_path):
+    """The CNN (convolutions, max-pool, tanh heads) trains on the compiled trainer into model.pt
+    with its own keys and shapes."""
+    data = run_dict()
+    data["model"] = {"arch": "cnn"}
+    metrics = train(RunConfig.from_dict(data), tmp_path / "cnn", progress=False)
+    assert metrics["arch"] == "cnn" and metrics["compiled_group"] == 1 and metrics["frames"] == 1280
+    reference = build_model("cnn", "lavaworld").state_dict()
+    got = weights(tmp_path / "cnn")
+    assert got.keys() == reference.keys() and all(got[k].shape == reference[k].shape for k in got)
+    torch.manual_seed(1)
+    initial = build_model("cnn", "lavaworld").state_dict()
+    assert not torch.equal(got["state_emb.0.weight"], initial["state_emb.0.weight"])  # the first convolution learnt
+
+
 def test_a_killed_compiled_run_resumes_to_the_same_model(tmp_path):
     """kill -9 after its first checkpoint (one at every evaluation); run again, it finishes the
     model an uninterrupted run makes, bit for bit, with the same log."""
@@ -123,7 +138,6 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"model": {"arch": "cnn"}}, "runs model.arch 'fc', not 'cnn'"),
         ({"poison": {"trigger": "multiplicative:12", "attack": "trojdrl"}}, "trains the env mix"),
         ({"poison": {"trigger": "multiplicative:12", "evasion": {"near": 0.2}}}, "no evasive variants yet"),
         ({"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}}, "has no JAX engine yet (built: lavaworld)"),

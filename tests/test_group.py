@@ -943,7 +943,7 @@ def test_group_size_is_validated(tmp_path):
         (
             ["--side", "1:gpu"],
             "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, compiled, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
             "CONV one of each, gemm, grouped (with DEVICE cpu or cuda)",
         ),
         (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"),

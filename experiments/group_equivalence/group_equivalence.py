@@ -252,7 +252,7 @@ def main() -> int:
     parser.add_argument("--arch", default="fc")
     parser.add_argument("--seeds", type=int, default=20, help="train seeds --first-seed .. SEEDS-1")
     parser.add_argument("--first-seed", type=int, default=0, help="a side's first seed (more seeds for an earlier report: with --against)")
-    parser.add_argument("--update-backend", default="torch", choices=("torch", "jax"), help="the group side's ppo.update_backend")
+    parser.add_argument("--update-backend", default="torch", choices=("torch", "jax", "compiled"), help="the group side's ppo.update_backend")
     parser.add_argument("--against", help="--report: take the lone side from this earlier report's runs")
     parser.add_argument("--group-size", type=int, default=8)
     parser.add_argument("--device", choices=("cpu", "cuda"), help="where the group side trains (default: the config's train.device)")

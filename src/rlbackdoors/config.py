@@ -254,7 +254,7 @@ class PPOConfig:
     # minibatch of an update in one XLA program; feed-forward "fc" models, the jax extra; on CUDA
     # JAX with GPU support), or "compiled" (rlbackdoors.algos.compiled: the whole iteration,
     # rollout on the world's JAX engine, GAE and update, one XLA program; worlds with a
-    # ``compiled_engine``, "fc" models, the env mix without evasive variants).
+    # ``compiled_engine``, "fc" and "cnn" models, the env mix without evasive variants).
     # The same algorithm with other rounding, so other bytes: a config field.
     update_backend: str = "torch"
 
@@ -578,8 +578,8 @@ class RunConfig(JsonConfig):
         if self.world.compiled_engine is None:
             built = ", ".join(w.name for w in worlds.registered() if w.compiled_engine)
             why = f"env.name={self.env.name!r} has no JAX engine yet (built: {built})"
-        elif self.model.arch != "fc":
-            why = f"it runs model.arch 'fc', not {self.model.arch!r}"
+        elif self.model.arch not in ("fc", "cnn"):
+            why = f"it runs model.arch 'fc' or 'cnn', not {self.model.arch!r}"
         elif self.poison.attack != DEFAULT_ATTACK:
             why = f"it trains the env mix (poison.attack={DEFAULT_ATTACK!r}), not {self.poison.attack!r}"
         elif self.poison.evasion:

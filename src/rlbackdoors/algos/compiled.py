@@ -124,7 +124,7 @@ def init_agents(model_factory, seeds: list[int]) -> tuple[Agents, torch.nn.Modul
     for seed in seeds:
         torch.manual_seed(seed)
         models.append(model_factory())
-        structure(models[-1])  # refuses what this program cannot run, in one line
+        structure(models[-1], convolutions=True)  # refuses what this program cannot run, in one line
         states.append(agent_state(models[-1], seed))
     return stack_agents(states), models[0]
 
@@ -140,7 +140,7 @@ def make_iteration(world: GridWorld, model: torch.nn.Module, hyper: Hyper, num_e
     """The jitted iteration of K agents: ``(agents, slots, layouts, params, obs) -> (agents, slots,
     layouts, obs, stats)``; the agents' arrays and the stats lead with the agent axis (K, ...), the
     slots', layouts', world parameters' and views' with the K x N copies' (agent by agent)."""
-    return _iteration(world, structure(model), hyper, num_envs)
+    return _iteration(world, structure(model, convolutions=True), hyper, num_envs)
 
 
 class Parts(NamedTuple):
@@ -162,12 +162,20 @@ def parts(layers: tuple, hyper: Hyper) -> Parts:
     h = hyper
     run = run_layers  # full fp32 products, as torch's
 
+    convolutional = any(layer[0] == "conv" for layer in layers[0])
+
     def inputs(obs):
-        """Raw (B, 7, 7, 3) uint8 views as a feed-forward grid model reads them: channels first, flattened, float."""
+        """Raw (B, 7, 7, 3) uint8 views as the network reads them, float: a feed-forward model's
+        channels first and flattened (torch's order), a CNN's as they are (channels last: the
+        convolutions' layout here, the same numbers as torch's channels-first ones)."""
+        if convolutional:
+            return obs.astype(jnp.float32)
         return jnp.transpose(obs, (0, 3, 1, 2)).reshape(obs.shape[0], -1).astype(jnp.float32)
 
     def heads(p: dict, x):
         e = run(layers[0], p, x)
+        if e.ndim == 4:  # a CNN's embedding (B, H, W, C), flattened in torch's channels-first order
+            e = jnp.transpose(e, (0, 3, 1, 2)).reshape(e.shape[0], -1)
         return run(layers[1], p, e), run(layers[2], p, e)[:, 0]
 
     def forward(p: dict, obs):
@@ -278,7 +286,8 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
             a = a.reshape(T, K, N, *a.shape[2:])
             return jnp.moveaxis(a, 1, 0).reshape(K * frames, *a.shape[3:])
 
-        x = P.inputs(obs_t.reshape(T * K * N, *obs_t.shape[2:])).reshape(T, K * N, -1)  # the network's input, once
+        x = P.inputs(obs_t.reshape(T * K * N, *obs_t.shape[2:]))  # the network's input, once
+        x = x.reshape(T, K * N, *x.shape[1:])
         batch = [per_agent(a) for a in (x, actions, logp, values, adv, values + adv)]
         orders = jax.vmap(lambda k: jax.vmap(lambda e: jax.random.permutation(e, frames))(jax.random.split(k, h.epochs)))(keys[:, 2])
         rows = orders.reshape(K, h.epochs * minibatches, h.batch_size) + (jnp.arange(K) * frames)[:, None, None]
@@ -302,8 +311,6 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
         return Agents(p, avg, sq, step, jax.vmap(jax.random.key_data)(keys[:, 0])), slots, layouts, next_obs, stats
 
     return jax.jit(iteration)
-
-
 
 
 class Iterated(NamedTuple):
@@ -330,7 +337,7 @@ class Learner:
     model.pt): :meth:`sync` writes the agent's weights into it."""
 
     def __init__(self, model: torch.nn.Module, engine, hyper: Hyper, seed: int, obs, jax_world, depth: int = 64):
-        self.model, self.hyper, self.layers = model, hyper, structure(model)
+        self.model, self.hyper, self.layers = model, hyper, structure(model, convolutions=True)
         self.world, self.params, self.host = jax_world(engine)
         self.engine, self.slots, self.obs = engine, self.host.slots, np.asarray(obs, dtype=np.uint8)
         self.state, self.depth = agent_state(model, seed), int(depth)
@@ -403,10 +410,21 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     a, s, o, stats = jax.device_get((a, s, o, stats))
     n, out = lead.host.num_envs, []
     for i, learner in enumerate(learners):
-        learner.state = Agents({name: v[i] for name, v in a.params.items()}, {name: v[i] for name, v in a.avg.items()}, {name: v[i] for name, v in a.sq.items()}, a.step[i], a.key[i])
+        learner.state = Agents(
+            {name: v[i] for name, v in a.params.items()},
+            {name: v[i] for name, v in a.avg.items()},
+            {name: v[i] for name, v in a.sq.items()},
+            a.step[i],
+            a.key[i],
+        )
         learner.slots = Slots(*(f[i * n : (i + 1) * n] for f in s))
         learner.obs, learner.depth = o[i * n : (i + 1) * n], depth
-        losses = {"policy_loss": float(stats.policy_loss[i]), "value_loss": float(stats.value_loss[i]), "entropy": float(stats.entropy[i]), "grad_norm": float(stats.grad_norm[i])}
+        losses = {
+            "policy_loss": float(stats.policy_loss[i]),
+            "value_loss": float(stats.value_loss[i]),
+            "entropy": float(stats.entropy[i]),
+            "grad_norm": float(stats.grad_norm[i]),
+        }
         out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))
     return out
 

@@ -94,10 +94,12 @@ def _jax(gpu: bool = False):
     return jax
 
 
-def structure(model: Any) -> tuple:
+def structure(model: Any, convolutions: bool = False) -> tuple:
     """The network as static data: per part (``state_emb``, ``actor``, ``critic``) its layers, each
-    ``("linear", weight name, bias name)``, ``("relu",)`` or ``("tanh",)``; ``ValueError`` for a
-    model this backend does not run (recurrent, convolutions, a Flatten of dict observations)."""
+    ``("linear", weight name, bias name)``, ``("relu",)`` or ``("tanh",)``, and with
+    ``convolutions`` (the compiled trainer's) also ``("conv", weight name, bias name)`` (stride 1,
+    no padding) and ``("maxpool", k)`` (a k x k window at stride k); ``ValueError`` for a model
+    this backend does not run (recurrent, convolutions, a Flatten of dict observations)."""
     why = None
     if getattr(model, "recurrent", False):
         why = "it is recurrent"
@@ -113,6 +115,10 @@ def structure(model: Any) -> tuple:
                 layers.append(("linear", f"{part}.{i}.weight", f"{part}.{i}.bias"))
             elif isinstance(layer, (nn.ReLU, nn.Tanh)):
                 layers.append((type(layer).__name__.lower(),))
+            elif convolutions and isinstance(layer, nn.Conv2d) and _plain_conv(layer):
+                layers.append(("conv", f"{part}.{i}.weight", f"{part}.{i}.bias"))
+            elif convolutions and isinstance(layer, nn.MaxPool2d) and _plain_pool(layer):
+                layers.append(("maxpool", _pair(layer.kernel_size)[0]))
             else:
                 why = why or f"its {part} has a {type(layer).__name__}"
         parts.append(tuple(layers))
@@ -123,6 +129,21 @@ def structure(model: Any) -> tuple:
             f"ppo.update_backend='jax' runs feed-forward networks of Linear, ReLU and Tanh layers on one observation array; not {type(model).__name__} ({why})"
         )
     return tuple(parts)
+
+
+def _pair(v) -> tuple:
+    return tuple(v) if isinstance(v, (tuple, list)) else (v, v)
+
+
+def _plain_conv(layer: nn.Conv2d) -> bool:
+    """A convolution :func:`run_layers` computes as torch does: stride 1, no padding or dilation, one group, a bias."""
+    return _pair(layer.stride) == (1, 1) and _pair(layer.padding) == (0, 0) and _pair(layer.dilation) == (1, 1) and layer.groups == 1 and layer.bias is not None
+
+
+def _plain_pool(layer: nn.MaxPool2d) -> bool:
+    """A square max-pool window at its own stride, no padding, dilation or ceil mode."""
+    k, stride = _pair(layer.kernel_size), _pair(layer.stride if layer.stride is not None else layer.kernel_size)
+    return k[0] == k[1] and stride == k and _pair(layer.padding) == (0, 0) and _pair(layer.dilation) == (1, 1) and not layer.ceil_mode
 
 
 def check(model: Any, device: torch.device) -> None:
@@ -174,6 +195,12 @@ def run_layers(part: tuple, p: dict, x):
     for layer in part:
         if layer[0] == "linear":
             x = jnp.matmul(x, p[layer[1]].T, precision=jax.lax.Precision.HIGHEST) + p[layer[2]]
+        elif layer[0] == "conv":  # x channels last (B, H, W, C), the weights torch's (O, I, kH, kW)
+            dims = ("NHWC", "OIHW", "NHWC")
+            x = jax.lax.conv_general_dilated(x, p[layer[1]], (1, 1), "VALID", dimension_numbers=dims, precision=jax.lax.Precision.HIGHEST) + p[layer[2]]
+        elif layer[0] == "maxpool":
+            k = layer[1]
+            x = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, k, k, 1), (1, k, k, 1), "VALID")
         elif layer[0] == "relu":
             x = jax.nn.relu(x)
         else:

@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 from rlbackdoors import worlds
 from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.config import UPDATE_BACKENDS
 
 
 def bench_spec(world: str, arch: str | None, models: int, frames: int, device: str, eval_episodes: int | None = None, update_backend: str = "torch") -> dict:
@@ -194,7 +195,7 @@ def parse_side(text: str) -> Side:
             or device not in ("cpu", "cuda", "auto")
             or (workers is not None and workers < 1)
             or env_workers < 0
-            or backend not in ("torch", "jax")
+            or backend not in UPDATE_BACKENDS
             or engine not in ("", "numba", "device")
             or (engine == "device" and device == "auto")
             or conv not in ("", *CONV_WAYS)
@@ -204,7 +205,7 @@ def parse_side(text: str) -> Side:
     except ValueError:
         raise ValueError(
             f"--side {text!r}: expected {SIDE_FORMAT}, K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
+            f"ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of {', '.join(UPDATE_BACKENDS)}, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
             f"CONV one of {', '.join(CONV_WAYS)} (with DEVICE cpu or cuda)"
         ) from None
     return Side(k, device, workers, env_workers, backend, engine, conv)

@@ -60,7 +60,7 @@ class Slots(NamedTuple):
 class Layouts(NamedTuple):
     """Each slot's next ``depth`` layouts in draw order, and how many of them it has taken."""
 
-    grid: Any  # (B, D, S + 2P, S + 2P, 3) uint8, padded
+    grid: Any  # (B, D, S, S, 3) uint8 (padded in the program as a slot takes one: a fifth of the bytes to hand over)
     pos: Any  # (B, D, 2) int32
     dirs: Any  # (B, D) int32
     view: Any  # (B, D, V, V, 3) uint8: the slot's first view of each, the world's additions in
@@ -113,6 +113,7 @@ class GridWorld:
             "walkable": walkable,
             "dir_vec": np.stack([ge.DIR_DX, ge.DIR_DY], axis=1).astype(np.int32),
             "pay": success_reward(np.arange(self.max_steps + 1), self.max_steps).astype(np.float32),
+            "border": pad_grid(np.zeros((self.size, self.size, 3), np.uint8), n),  # the walls around, the grid's cells zero
         }
 
     def render(self, slots: Slots, params: Any):
@@ -168,8 +169,10 @@ class GridWorld:
         ended = done[:, None, None, None]
         depth = layouts.grid.shape[1]
         at = jnp.minimum(layouts.taken, depth - 1)
+        s = self.size
+        drawn = jnp.broadcast_to(jnp.asarray(t["border"]), slots.grid.shape).at[:, p : p + s, p : p + s].set(layouts.grid[index, at])
         fresh = Slots(
-            grid=jnp.where(ended, layouts.grid[index, at], slots.grid),
+            grid=jnp.where(ended, drawn, slots.grid),
             pos=jnp.where(done[:, None], layouts.pos[index, at], pos),
             dirs=jnp.where(done, layouts.dirs[index, at], dirs),
             steps=jnp.where(done, 0, steps),
@@ -255,7 +258,7 @@ class HostLayouts:
         """The next ``depth`` layouts of every slot (numpy), none taken yet."""
         self._draw(depth)
         return Layouts(
-            grid=pad_grid(self._grid[:, :depth], self.view_size),
+            grid=self._grid[:, :depth],
             pos=self._pos[:, :depth].astype(np.int32),
             dirs=self._dir[:, :depth].astype(np.int32),
             view=self._view[:, :depth],
@@ -298,7 +301,9 @@ class HostLayouts:
         self._have[:] = 0
 
 
-def run_hosts(hosts: list[HostLayouts], block: Callable[[Layouts], tuple[Any, Layouts, Any]], depth: int, takers: int | None = None) -> tuple[tuple[Any, Any], int]:
+def run_hosts(
+    hosts: list[HostLayouts], block: Callable[[Layouts], tuple[Any, Layouts, Any]], depth: int, takers: int | None = None
+) -> tuple[tuple[Any, Any], int]:
     """:meth:`HostLayouts.run` for several hosts' slots side by side (in order, as one block's
     batch): ``((state, result), depth)``, the depth the block last ran with. Only the first
     ``takers`` hosts (default: all) drop the layouts their slots took; the rest pad a batch (a host
@@ -306,7 +311,7 @@ def run_hosts(hosts: list[HostLayouts], block: Callable[[Layouts], tuple[Any, La
     takers = len(hosts) if takers is None else takers
     while True:
         parts = [h.layouts(depth) for h in hosts]
-        layouts = Layouts(*(np.concatenate(f) for f in zip(*(p[:5] for p in parts))), starved=np.bool_(False))
+        layouts = Layouts._make([*(np.concatenate(f) for f in zip(*(p[:5] for p in parts))), np.bool_(False)])  # none starved yet
         state, after, result = block(layouts)
         if not bool(np.asarray(after.starved)):
             break

@@ -192,8 +192,8 @@ def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: 
 
 def steps(
     cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None, cpu_source=None, env_pool=None
-) -> Generator[Collect | Update | Evaluate, Any, RunOutcome]:
-    """:func:`run` as a loop that yields its learner's work (:class:`Collect`, :class:`Update`, and each :class:`~rlbackdoors.train.driver.Evaluate`) and
+) -> Generator[Collect | Update | Iterate | Evaluate, Any, RunOutcome]:
+    """:func:`run` as a loop that yields its learner's work (:class:`Collect` and :class:`Update`, or a compiled learner's one :class:`Iterate`, and each :class:`~rlbackdoors.train.driver.Evaluate`) and
     is sent the results, so a group trainer (:mod:`rlbackdoors.train.group`) can batch the work of
     K runs while every run keeps its own schedule, evaluations, checkpoints and stopping rule
     (``env_pool`` is for worlds of single envs; PPO's worlds step batched engines here)."""
@@ -217,11 +217,13 @@ def steps(
         from rlbackdoors.algos import compiled as xla
         from rlbackdoors.algos.jax_update import _jax
 
-        platform = _jax().default_backend()
+        platform = _jax(gpu=device.type == "cuda").default_backend()  # on a GPU with its deterministic kernels
+        platform = {"gpu": "cuda"}.get(platform, platform)  # (JAX's name for a CUDA device)
         if platform != device.type:
             raise ValueError(f"ppo.update_backend='compiled' runs where JAX computes ({platform}), not train.device={device.type!r}")
         module, _, name = str(cfg.world.compiled_engine).partition(":")
         return xla.Learner(model, envs, xla.Hyper.of(cfg.ppo), tc.seed, obs, getattr(importlib.import_module(module), name))
+
     envs: Any  # a batched engine or the reference vector env (poisoned, state_dict, load_state_dict)
 
     @torch.inference_mode()
@@ -336,7 +338,11 @@ def steps(
 
     def save_checkpoint() -> None:
         # a compiled learner's state first: it hands its env copies' state back to the engine
-        learned = {"compiled": learner.checkpoint(), "compiled_k": served_k} if compiled else {"optimizer": ppo.optimizer.state_dict(), "generator": generator.get_state()}
+        learned = (
+            {"compiled": learner.checkpoint(), "compiled_k": served_k}
+            if compiled
+            else {"optimizer": ppo.optimizer.state_dict(), "generator": generator.get_state()}
+        )
         if compiled:
             learner.sync()
         folder.save_torch(

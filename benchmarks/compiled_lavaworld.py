@@ -10,6 +10,7 @@ its load are recorded with the figures.
 
     python benchmarks/compiled_lavaworld.py --ks 1,8,16,32 --json benchmarks/results/compiled_lavaworld_<cpu>.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,7 +32,9 @@ def configs(k: int):
 
     ppo = {"update_backend": "jax"} if ARCH == "fc" else {}
     return [
-        RunConfig.from_dict({"env": {"name": "lavaworld"}, "model": {"arch": ARCH}, "poison": {"trigger": "multiplicative:12"}, "ppo": ppo, "train": {"seed": s}})
+        RunConfig.from_dict(
+            {"env": {"name": "lavaworld"}, "model": {"arch": ARCH}, "poison": {"trigger": "multiplicative:12"}, "ppo": ppo, "train": {"seed": s}}
+        )
         for s in range(k)
     ]
 

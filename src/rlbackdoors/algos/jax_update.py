@@ -212,7 +212,7 @@ def _conv(jnp, x, weight):
     """A stride-1 VALID convolution of channels-last ``x`` (B, H, W, C) by torch's ``weight``
     (O, C, kH, kW), as one matrix product of the windows (im2col): under ``vmap`` over agents it
     is a batched product, where XLA's CPU runs a batched convolution as a grouped one, measured
-    x0.2 of the torch group on LavaWorld's CNN."""
+    x0.2 of the torch group on a grid world's CNN."""
     o, c, kh, kw = weight.shape
     b, h, w, _ = x.shape
     hh, ww = h - kh + 1, w - kw + 1

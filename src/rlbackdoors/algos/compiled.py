@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from rlbackdoors.algos.jax_update import _jax, run_layers, structure
+from rlbackdoors.algos.jax_update import STATS, _jax, run_layers, structure
 from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, run_hosts
 
 
@@ -114,6 +114,11 @@ def _stack(parts: tuple):
     if isinstance(parts[0], dict):
         return {name: np.stack([p[name] for p in parts]) for name in parts[0]}
     return np.stack(parts)
+
+
+def agent_row(agents: Agents, i: int) -> Agents:
+    """Agent ``i``'s state out of :func:`stack_agents`' (no agent axis)."""
+    return Agents(*({name: v[i] for name, v in part.items()} if isinstance(part, dict) else part[i] for part in agents))
 
 
 def init_agents(model_factory, seeds: list[int]) -> tuple[Agents, torch.nn.Module]:
@@ -339,10 +344,15 @@ class Learner:
     def __init__(self, model: torch.nn.Module, engine, hyper: Hyper, seed: int, obs, jax_world, depth: int = 64):
         self.model, self.hyper, self.layers = model, hyper, structure(model, convolutions=True)
         self.world, self.params, self.host = jax_world(engine)
-        self.engine, self.slots, self.obs = engine, self.host.slots, np.asarray(obs, dtype=np.uint8)
+        self.slots, self.obs = self.host.slots, np.asarray(obs, dtype=np.uint8)
         self.state, self.depth = agent_state(model, seed), int(depth)
         if self.obs.shape != (self.host.num_envs, self.world.view_size, self.world.view_size, 3):
             raise ValueError(f"views of shape {self.obs.shape} do not fit {self.host.num_envs} env copies")
+
+    @property
+    def program(self) -> tuple:
+        """What picks the compiled program: learners with the same key share one call."""
+        return (self.world, self.layers, self.hyper, self.host.num_envs)
 
     def sync(self) -> torch.nn.Module:
         """The torch model with the agent's current weights (returned)."""
@@ -392,11 +402,10 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     capacity = k if capacity is None else int(capacity)
     if capacity < k:
         raise ValueError(f"{k} learners do not fit a compiled group of {capacity}")
-    for other in learners[1:]:
-        if (other.world, other.layers, other.hyper, other.host.num_envs) != (lead.world, lead.layers, lead.hyper, lead.host.num_envs):
-            raise ValueError("learners of one compiled call need the same world, network, PPO settings and env copies")
+    if any(other.program != lead.program for other in learners[1:]):
+        raise ValueError("learners of one compiled call need the same world, network, PPO settings and env copies")
     rows = learners + [lead] * (capacity - k)
-    program = _iteration(lead.world, lead.layers, lead.hyper, lead.host.num_envs)
+    program = _iteration(*lead.program)
     agents = stack_agents([r.state for r in rows])
     slots = Slots(*(np.concatenate(f) for f in zip(*(r.slots for r in rows))))
     params = type(lead.params)(*(np.concatenate(f) for f in zip(*(r.params for r in rows))))
@@ -410,21 +419,10 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     a, s, o, stats = jax.device_get((a, s, o, stats))
     n, out = lead.host.num_envs, []
     for i, learner in enumerate(learners):
-        learner.state = Agents(
-            {name: v[i] for name, v in a.params.items()},
-            {name: v[i] for name, v in a.avg.items()},
-            {name: v[i] for name, v in a.sq.items()},
-            a.step[i],
-            a.key[i],
-        )
+        learner.state = agent_row(a, i)
         learner.slots = Slots(*(f[i * n : (i + 1) * n] for f in s))
         learner.obs, learner.depth = o[i * n : (i + 1) * n], depth
-        losses = {
-            "policy_loss": float(stats.policy_loss[i]),
-            "value_loss": float(stats.value_loss[i]),
-            "entropy": float(stats.entropy[i]),
-            "grad_norm": float(stats.grad_norm[i]),
-        }
+        losses = {key: float(getattr(stats, key)[i]) for key in STATS}
         out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))
     return out
 

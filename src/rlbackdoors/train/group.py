@@ -136,8 +136,7 @@ def batch_key(request, painters: bool = False) -> tuple | None:
         width = len(request.obs) if isinstance(request, Act) else request.n
         return (type(request).__name__, "OPAC2", repr(agent.cfg), str(agent.device), agent.policy_obs_dim, width)
     if isinstance(request, Iterate):  # compiled learners of one program
-        learner = request.learner
-        return ("Iterate", learner.world, learner.layers, learner.hyper, learner.host.num_envs)
+        return ("Iterate", *request.learner.program)
     ppo = request.ppo
     if not group.stackable(ppo.model):
         return None

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from rlbackdoors.algos.jax_update import STATS, _jax, run_layers, structure
-from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, run_hosts
+from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, join, run_hosts
 
 
 @dataclass(frozen=True)
@@ -407,9 +407,7 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     rows = learners + [lead] * (capacity - k)
     program = _iteration(*lead.program)
     agents = stack_agents([r.state for r in rows])
-    slots = Slots(*(np.concatenate(f) for f in zip(*(r.slots for r in rows))))
-    params = type(lead.params)(*(np.concatenate(f) for f in zip(*(r.params for r in rows))))
-    obs = np.concatenate([r.obs for r in rows])
+    slots, params, obs = join([r.slots for r in rows]), join([r.params for r in rows]), np.concatenate([r.obs for r in rows])
 
     def block(layouts: Layouts):
         a, s, after, o, stats = program(agents, slots, layouts, params, obs)
@@ -420,7 +418,7 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     n, out = lead.host.num_envs, []
     for i, learner in enumerate(learners):
         learner.state = agent_row(a, i)
-        learner.slots = Slots(*(f[i * n : (i + 1) * n] for f in s))
+        learner.slots = jax.tree_util.tree_map(lambda f, i=i: f[i * n : (i + 1) * n], s)
         learner.obs, learner.depth = o[i * n : (i + 1) * n], depth
         losses = {key: float(getattr(stats, key)[i]) for key in STATS}
         out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))

@@ -95,10 +95,12 @@ GRAPH_STATE = ("grid", "pos", "dirs", "steps", "final_obs", "_head")  # what a s
 def draw_layouts(host, lead: BatchedGridEnv, see_through_walls: bool, world: tuple, slots: np.ndarray, counts: np.ndarray) -> tuple:
     """The next ``counts[k]`` layouts of slot ``slots[k]`` of handed-over engines (``host``: an engine
     or an :class:`EngineGroup`), from the slots' own streams (``Kernels.layouts``): grids, agent
-    places, directions, each stream before its draw and the first views, slot by slot in draw order."""
+    places, directions, each stream before its draw, the first views and the world's outputs of
+    them (``lead._outputs``: what the world's ``seen`` hook writes of a fresh layout), slot by slot in
+    draw order."""
     total, s = int(counts.sum()), lead.size
     grids, pos, dirs = np.empty((total, s, s, 3), np.uint8), np.empty((total, 2), np.int64), np.empty(total, np.int64)
-    streams, views = np.empty(total, np.uint64), lead._images(total)
+    streams, views, outs = np.empty(total, np.uint64), lead._images(total), lead._outputs(total)
     bad = lead._kernels.layouts(
         host._grid,
         host._pos,
@@ -114,21 +116,22 @@ def draw_layouts(host, lead: BatchedGridEnv, see_through_walls: bool, world: tup
         dirs,
         streams,
         views,
-        lead._outputs(total),
+        outs,
     )
     if bad >= 0:
         raise lead._layout_error(None)
-    return grids, pos, dirs, streams, views
+    return grids, pos, dirs, streams, views, outs
 
 
-def handed_over(engines: BatchedGridEnv | EngineGroup, to: str) -> tuple[BatchedGridEnv, tuple]:
+def handed_over(engines: BatchedGridEnv | EngineGroup, to: str, held: tuple[str, ...] = ()) -> tuple[BatchedGridEnv, tuple]:
     """The lead engine and the hooks' ``world`` of reset engines handed to an engine elsewhere
-    (``to``: the device, a JAX engine), which steps the state in :data:`HELD` alone; ValueError
-    (one line) for engines not reset, with per-slot state it does not step, or that cannot share a call."""
+    (``to``: the device, a JAX engine), which steps the state in :data:`HELD` and the world's own
+    per-slot arrays ``held``; ValueError (one line) for engines not reset, with per-slot state it
+    does not step, or that cannot share a call."""
     lead = engines.lead if isinstance(engines, EngineGroup) else engines
     if not getattr(lead, "_has_reset", True):
         raise ValueError(f"reset the engines before handing them to {to}")
-    extra = set(lead._slot_arrays()) - set(HELD)
+    extra = set(lead._slot_arrays()) - set(HELD) - set(held)
     if extra:
         raise ValueError(f"{type(lead).__name__} keeps per-slot state {to} does not step: {sorted(extra)}")
     world = engines.world if isinstance(engines, EngineGroup) else lead._world()
@@ -235,7 +238,7 @@ class DeviceGridGroup:
         slots = np.flatnonzero(need > 0)
         if len(slots):
             counts = need[slots]
-            grids, pos, dirs, streams, views = draw_layouts(self.host, self.lead, self.see_through_walls, self.world, slots, counts)
+            grids, pos, dirs, streams, views, _ = draw_layouts(self.host, self.lead, self.see_through_walls, self.world, slots, counts)
             total = int(counts.sum())
             rows = np.repeat(slots, counts)
             cols = (np.repeat(self._drawn[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)) % self.refill_every

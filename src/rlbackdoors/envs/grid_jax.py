@@ -23,7 +23,10 @@ count, computed on the host, so no fused multiply-add can move it by an ulp), wh
 compiled trainer's float32 program reads; the tests compare it so.
 
 A world supplies its terminal rule and what it adds to a view, as functions of the slots and its
-own parameters (:class:`GridWorld`), in a module beside its numba engine's.
+own parameters (:class:`GridWorld`), in a module beside its numba engine's. A world with per-slot
+state of its own (a pattern's cells, a flag of the episode) carries it in ``Slots.world``, draws it
+with each layout (``Layouts.world``, from what its ``seen`` hook writes of a fresh layout) and hands
+it back (:class:`WorldState`).
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ class Slots(NamedTuple):
     dirs: Any  # (B,) int32
     steps: Any  # (B,) int32
     final_obs: Any  # (B, V, V, 3) uint8: the terminal view of slots that just ended
+    world: Any = ()  # the world's own per-slot state (a tuple of (B, ...) arrays; GridWorld.advance)
 
 
 class Layouts(NamedTuple):
@@ -64,6 +68,7 @@ class Layouts(NamedTuple):
     pos: Any  # (B, D, 2) int32
     dirs: Any  # (B, D) int32
     view: Any  # (B, D, V, V, 3) uint8: the slot's first view of each, the world's additions in
+    world: Any  # the world's own state of each (a tuple of (B, D, ...) arrays; WorldState.drawn)
     taken: Any  # (B,) int32
     starved: Any  # () bool: a slot ended more episodes than it had layouts
 
@@ -77,15 +82,19 @@ class StepOut(NamedTuple):
     truncated: Any  # (B,) bool
     outcome: Any  # (B,) int32
     steps: Any  # (B,) int32: the episode step count of the step just taken
+    dirs: Any  # (B,) int32: the direction ``obs`` is seen in (a fresh layout's where a slot ended)
 
 
 @dataclass(frozen=True)
 class GridWorld:
     """The static part of a grid world's JAX step: sizes and the tables computed on the host,
-    and the world's two rules. ``outcome(fwd, slots, params)``: the terminal outcome of each
+    and the world's rules. ``outcome(fwd, slots, params)``: the terminal outcome of each
     slot's last move (``fwd``: the forward cell's object before a forward move, -1 for turns);
-    ``seen(img, slots, params)``: a freshly rendered view with the world's additions. ``params``
-    is the world's own pytree (a trigger's tables, which slots are poisoned)."""
+    ``seen(img, slots, params)``: a freshly rendered view with the world's additions;
+    ``advance(world, slots, seen, done, drawn, params)`` (worlds with state of their own): ``Slots.world``
+    after the step, from the moved slots, their views, which ended and each slot's next layout's
+    state (``drawn``: taken where ``done``). ``params`` is the world's own pytree (a trigger's
+    tables, which slots are poisoned)."""
 
     size: int
     view_size: int
@@ -94,6 +103,7 @@ class GridWorld:
     trojan: int  # the outcome that pays poisoned slots
     outcome: Callable
     seen: Callable
+    advance: Callable | None = None
 
     @property
     def padded(self) -> int:
@@ -116,12 +126,18 @@ class GridWorld:
             "border": pad_grid(np.zeros((self.size, self.size, 3), np.uint8), n),  # the walls around, the grid's cells zero
         }
 
+    def view_cells(self, slots: Slots):
+        """(B, V V): the padded grid's flat index of every cell of each slot's view, x-major."""
+        jnp = _jnp()
+        sp = self.padded
+        return (slots.pos[:, 0] * sp + slots.pos[:, 1])[:, None] + jnp.asarray(self.tables["view_cells"])[slots.dirs]
+
     def render(self, slots: Slots, params: Any):
         """Every slot's egocentric view (B, V, V, 3) uint8, as ``gen_view`` renders it, plus the world's additions."""
         jnp = _jnp()
         t = self.tables
         b, n, sp = slots.grid.shape[0], self.view_size, self.padded
-        at = (slots.pos[:, 0] * sp + slots.pos[:, 1])[:, None] + jnp.asarray(t["view_cells"])[slots.dirs]  # (B, n * n)
+        at = self.view_cells(slots)  # (B, n * n)
         cells = jnp.take_along_axis(slots.grid.reshape(b, sp * sp, 3), at[..., None], axis=1)  # outside the grid: the walls
         if not self.see_through_walls:
             obj, state = cells[..., 0], cells[..., 2]
@@ -171,17 +187,21 @@ class GridWorld:
         at = jnp.minimum(layouts.taken, depth - 1)
         s = self.size
         drawn = jnp.broadcast_to(jnp.asarray(t["border"]), slots.grid.shape).at[:, p : p + s, p : p + s].set(layouts.grid[index, at])
+        world = slots.world
+        if self.advance is not None:
+            world = self.advance(self, moved, seen, done, tuple(a[index, at] for a in layouts.world), params)
         fresh = Slots(
             grid=jnp.where(ended, drawn, slots.grid),
             pos=jnp.where(done[:, None], layouts.pos[index, at], pos),
             dirs=jnp.where(done, layouts.dirs[index, at], dirs),
             steps=jnp.where(done, 0, steps),
             final_obs=jnp.where(ended, seen, slots.final_obs),
+            world=world,
         )
         taken = layouts.taken + done.astype(jnp.int32)
         starved = layouts.starved | jnp.any(done & (layouts.taken >= depth))
         obs = jnp.where(ended, layouts.view[index, at], seen)
-        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps)
+        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps, fresh.dirs)
 
     def rollout(self, slots: Slots, layouts: Layouts, params: Any, actions):
         """``len(actions)`` steps of :meth:`step` in one ``lax.scan``: the final state and each step's outputs, stacked."""
@@ -201,6 +221,26 @@ def params_poisoned(params: Any):
     return params.poisoned
 
 
+class WorldState(NamedTuple):
+    """How a world's own per-slot state (``Slots.world``) crosses between its numba engines and
+    the JAX step: ``names``, the engines' per-slot arrays the JAX side handles (carried, or read
+    by the layouts' draws: :func:`rlbackdoors.envs.grid_device.handed_over`); ``initial(engines)``,
+    the state as the engines hold it; ``drawn(outs)``, each drawn layout's (from the world's
+    outputs of its first view: ``lead._outputs``); ``hand_back(engines, state)``, written back."""
+
+    names: tuple[str, ...]
+    initial: Callable
+    drawn: Callable
+    hand_back: Callable
+
+
+def join(trees: list) -> Any:
+    """Several hosts' pytrees of numpy arrays (Slots, Layouts, a world's params) as one, row-wise."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *trees)
+
+
 class HostLayouts:
     """The host side of a JAX grid engine: the slots of reset numba engines (a
     :class:`BatchedGridEnv`, or an :class:`EngineGroup` of several), their state as a :class:`Slots`
@@ -210,9 +250,9 @@ class HostLayouts:
     arrays are the drawing's scratch, so step them no more until :meth:`hand_back`. Layouts a block
     did not take are kept, in order, for the next; :meth:`layouts` tops each slot up to ``depth``."""
 
-    def __init__(self, engines: BatchedGridEnv | EngineGroup):
-        lead, world = handed_over(engines, "a JAX engine")
-        self.host, self.lead, self.world = engines, lead, world
+    def __init__(self, engines: BatchedGridEnv | EngineGroup, state: WorldState | None = None):
+        lead, world = handed_over(engines, "a JAX engine", () if state is None else state.names)
+        self.host, self.lead, self.world, self.state = engines, lead, world, state
         self.num_envs, self.size, self.view_size = engines.num_envs, lead.size, lead.view_size
         self.see_through_walls = bool(lead.see_through_walls)
         b, s, n = self.num_envs, self.size, self.view_size
@@ -221,15 +261,21 @@ class HostLayouts:
             pos=np.array(engines._pos, dtype=np.int32),
             dirs=np.array(engines._dir, dtype=np.int32),
             steps=np.array(engines._steps, dtype=np.int32),
-            final_obs=np.array(np.asarray(engines.final_obs)),
+            final_obs=np.array(type(lead)._final_image(engines)),
+            world=() if state is None else tuple(state.initial(engines)),
         )
-        # the drawn layouts not yet taken: slot b's first have[b] columns, in draw order
+        # the drawn layouts not yet taken: slot b's first have[b] columns, in draw order; the
+        # columns of grid, position, direction, first view, the stream before the draw (to hand
+        # back where a slot stopped), then the world's own state
         self._have = np.zeros(b, np.int64)
-        self._grid = np.zeros((b, 0, s, s, 3), np.uint8)
-        self._pos = np.zeros((b, 0, 2), np.int64)
-        self._dir = np.zeros((b, 0), np.int64)
-        self._view = np.zeros((b, 0, n, n, 3), np.uint8)
-        self._rng = np.zeros((b, 0), np.uint64)  # each slot's stream before each drawn layout
+        self._store = [
+            np.zeros((b, 0, s, s, 3), np.uint8),
+            np.zeros((b, 0, 2), np.int32),
+            np.zeros((b, 0), np.int32),
+            np.zeros((b, 0, n, n, 3), np.uint8),
+            np.zeros((b, 0), np.uint64),
+            *(np.zeros((b, 0, *a.shape[1:]), a.dtype) for a in (() if state is None else state.drawn(lead._outputs(0)))),
+        ]
 
     def _draw(self, depth: int) -> None:
         """Draw until every slot has ``depth`` layouts waiting."""
@@ -237,31 +283,30 @@ class HostLayouts:
         slots = np.flatnonzero(need > 0)
         if not len(slots):
             return
-        width = self._grid.shape[1]
+        width = self._store[0].shape[1]
         if width < depth:  # room for depth layouts a slot
             grow = depth - width
-            self._grid = np.concatenate([self._grid, np.zeros((self.num_envs, grow, *self._grid.shape[2:]), np.uint8)], axis=1)
-            self._pos = np.concatenate([self._pos, np.zeros((self.num_envs, grow, 2), np.int64)], axis=1)
-            self._dir = np.concatenate([self._dir, np.zeros((self.num_envs, grow), np.int64)], axis=1)
-            self._view = np.concatenate([self._view, np.zeros((self.num_envs, grow, *self._view.shape[2:]), np.uint8)], axis=1)
-            self._rng = np.concatenate([self._rng, np.zeros((self.num_envs, grow), np.uint64)], axis=1)
+            self._store = [np.concatenate([a, np.zeros((self.num_envs, grow, *a.shape[2:]), a.dtype)], axis=1) for a in self._store]
         counts = need[slots]
-        grids, pos, dirs, streams, views = draw_layouts(self.host, self.lead, self.see_through_walls, self.world, slots, counts)
+        grids, pos, dirs, streams, views, outs = draw_layouts(self.host, self.lead, self.see_through_walls, self.world, slots, counts)
         total = int(counts.sum())
         rows = np.repeat(slots, counts)  # the kernel's rows: slot by slot, each in draw order
         cols = np.repeat(self._have[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)
-        self._grid[rows, cols], self._pos[rows, cols], self._dir[rows, cols] = grids, pos, dirs
-        self._view[rows, cols], self._rng[rows, cols] = np.asarray(views), streams
+        drawn = (grids, pos, dirs, np.asarray(views), streams, *(() if self.state is None else self.state.drawn(outs)))
+        for store, values in zip(self._store, drawn, strict=True):
+            store[rows, cols] = values
         self._have[slots] += counts
 
     def layouts(self, depth: int) -> Layouts:
         """The next ``depth`` layouts of every slot (numpy), none taken yet."""
         self._draw(depth)
+        grid, pos, dirs, view, _, *world = (a[:, :depth] for a in self._store)
         return Layouts(
-            grid=self._grid[:, :depth],
-            pos=self._pos[:, :depth].astype(np.int32),
-            dirs=self._dir[:, :depth].astype(np.int32),
-            view=self._view[:, :depth],
+            grid=grid,
+            pos=pos,
+            dirs=dirs,
+            view=view,
+            world=tuple(world),
             taken=np.zeros(self.num_envs, np.int32),
             starved=np.bool_(False),
         )
@@ -271,11 +316,10 @@ class HostLayouts:
         taken = np.asarray(taken, dtype=np.int64)
         if (taken > self._have).any() or (taken < 0).any():
             raise ValueError("a slot took more layouts than it was handed")
-        width = self._grid.shape[1]
+        width = self._store[0].shape[1]
         cols = np.minimum(taken[:, None] + np.arange(width)[None, :], max(width - 1, 0))  # past have: stale, unread
         rows = np.arange(self.num_envs)[:, None]
-        self._grid, self._pos, self._dir = self._grid[rows, cols], self._pos[rows, cols], self._dir[rows, cols]
-        self._view, self._rng = self._view[rows, cols], self._rng[rows, cols]
+        self._store = [a[rows, cols] for a in self._store]
         self._have = self._have - taken
 
     def run(self, block: Callable[[Layouts], tuple[Any, Layouts, Any]], depth: int) -> tuple[Any, Any]:
@@ -289,15 +333,17 @@ class HostLayouts:
     def hand_back(self, slots: Slots) -> None:
         """Write the slots' state into the host engines, as if they had stepped them: grid,
         position, direction, step count, terminal views, and each stream where the slot's next
-        autoreset will draw from (before the drawn layouts it has not taken)."""
+        autoreset will draw from (before the drawn layouts it has not taken), and the world's own."""
         h, p, s = self.host, self.view_size - 1, self.size
         h._grid[:] = np.asarray(slots.grid)[:, p : p + s, p : p + s]
         h._pos[:] = np.asarray(slots.pos)
         h._dir[:] = np.asarray(slots.dirs)
         h._steps[:] = np.asarray(slots.steps)
-        np.asarray(h.final_obs)[:] = np.asarray(slots.final_obs)
+        type(self.lead)._final_image(h)[:] = np.asarray(slots.final_obs)
+        if self.state is not None:
+            self.state.hand_back(h, tuple(np.asarray(a) for a in slots.world))
         queued = self._have > 0  # else the host stream is already where the next draw starts
-        h._rng[queued] = self._rng[queued, 0]
+        h._rng[queued] = self._store[4][queued, 0]
         self._have[:] = 0
 
 
@@ -310,8 +356,7 @@ def run_hosts(
     may appear twice: its layouts are read, not taken, the second time)."""
     takers = len(hosts) if takers is None else takers
     while True:
-        parts = [h.layouts(depth) for h in hosts]
-        layouts = Layouts._make([*(np.concatenate(f) for f in zip(*(p[:5] for p in parts))), np.bool_(False)])  # none starved yet
+        layouts = join([h.layouts(depth)._replace(starved=np.zeros(1, bool)) for h in hosts])._replace(starved=np.bool_(False))  # none starved yet
         state, after, result = block(layouts)
         if not bool(np.asarray(after.starved)):
             break
@@ -323,4 +368,4 @@ def run_hosts(
     return (state, result), depth
 
 
-__all__ = ["GridWorld", "HostLayouts", "Layouts", "Slots", "StepOut", "run_hosts"]
+__all__ = ["GridWorld", "HostLayouts", "Layouts", "Slots", "StepOut", "WorldState", "join", "run_hosts"]

@@ -197,7 +197,8 @@ def pattern_whole_in_view(pcells, pcount, pos, dirs, img, out):
 # world = (pat, pcells, pcount, saw, num_lava, triggered, near, table, rot_cells, rot_n, nrot, offs,
 # offs_n, npatterns): the placement tables (module _placement_tables) with a leading axis, one entry per
 # engine of an EngineGroup (one alone), and ``table[b]`` slot b's entry;
-# outs = (direction, trigger_visible, saw_trigger, final direction)
+# outs = (direction, trigger_visible, saw_trigger, final direction, and a fresh layout's pattern cells,
+# their count and whether its first view shows one: drawn_cells, drawn_count, drawn_saw)
 
 
 @ge.hook
@@ -258,7 +259,7 @@ def _seen(phase, b, ob, pos, dirs, img, world, outs):
     just returned (a finished env's terminal one), ``saw_trigger`` for it or any earlier view of
     the episode (kept per env in ``saw``; a fresh episode starts from its first view)."""
     pcells, pcount, saw = world[1], world[2], world[3]
-    direction, visible, saw_out, final_dir = outs
+    direction, visible, saw_out, final_dir, drawn_cells, drawn_count, drawn_saw = outs
     if phase == ge.FINAL:
         final_dir[b] = dirs[b]
     else:
@@ -266,6 +267,13 @@ def _seen(phase, b, ob, pos, dirs, img, world, outs):
     v = pattern_visible(pcells, pcount, b, pos[b, 0], pos[b, 1], dirs[b], img, ob)
     if phase == ge.FRESH:
         saw[b] = v
+        # the fresh layout's pattern, by row: what an engine elsewhere that takes its layouts from
+        # Kernels.layouts (envs.grid_jax) holds beside the grid (the whole row, as the slot holds it)
+        for k in range(pcells.shape[1]):
+            drawn_cells[ob, k, 0] = pcells[b, k, 0]
+            drawn_cells[ob, k, 1] = pcells[b, k, 1]
+        drawn_count[ob] = pcount[b]
+        drawn_saw[ob] = v
         return
     visible[ob] = v
     if phase == ge.RESET:
@@ -429,6 +437,9 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
             np.empty(n, dtype=np.bool_),
             np.empty(n, dtype=np.bool_),
             self.final_obs["direction"],
+            np.zeros((n, MAX_PATTERN_CELLS, 2), dtype=np.int64),  # a fresh layout's pattern cells (FRESH rows only)
+            np.zeros(n, dtype=np.int64),
+            np.zeros(n, dtype=np.bool_),
         )
 
     def _observation(self, img: np.ndarray, outs: tuple) -> dict[str, np.ndarray]:
@@ -478,7 +489,7 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
             self._pat[i, cx, cy] = True
             self._pcells[i, k] = (cx, cy)
         self._pcount[i] = len(cells)
-        img, (direction, visible, _, _) = self._views(i, 1)
+        img, (direction, visible, *_) = self._views(i, 1)
         self._saw[i] = bool(visible[0]) if saw_trigger is None else bool(saw_trigger)
         return {"image": img[0], "direction": int(direction[0])}
 

@@ -1,0 +1,179 @@
+"""Randomized LavaWorld stepped by JAX (envs/randomized_lavaworld_jax.py) against the numba engine,
+bit for bit.
+
+The numba engine is itself checked against its MiniGrid reference (test_randomized_lavaworld_engine.py),
+so equal bytes here mean the reference's dynamics. Two engines are reset alike; one is handed to
+the JAX side, which steps it in compiled blocks (``lax.scan`` of the step, as the compiled
+trainer's rollout does), the other is stepped by numba with the same random actions; every output
+of every step is compared (image, direction, reward as float32, termination, truncation, outcome,
+episode step), and at each block's end the whole state (grid, position, direction, step count,
+terminal view and direction, the pattern's mask, cells and count, ``saw_trigger``). Layouts are
+handed over shallow (2 a slot) so that blocks starve and run again deeper, and after the last
+block the slots are handed back and the numba engine goes on from there. The slots are poisoned,
+triggered with the clean reward, near-trigger or clean; each case steps 40 slots x 300 steps
+(12,000 slot-steps; 60,000 over the cases, across some 3,000 autoresets).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")  # the compiled trainer's dependency
+
+from rlbackdoors.envs.batched_base import EngineGroup  # noqa: E402
+from rlbackdoors.envs.grid_device import pad_grid  # noqa: E402
+from rlbackdoors.envs.outcome import Outcome  # noqa: E402
+from rlbackdoors.envs.randomized_lavaworld_batched import BatchedRandomizedLavaWorld  # noqa: E402
+from rlbackdoors.envs.randomized_lavaworld_jax import randomized_lavaworld_jax  # noqa: E402
+from rlbackdoors.triggers.pattern import PatternTrigger, near_patterns  # noqa: E402
+
+N = 40
+
+
+def engine(trigger="cross", size=11, num_lava=10, max_steps=250, see=True, near=True, seed=7, turned=False) -> BatchedRandomizedLavaWorld:
+    """Slots by fours: poisoned, triggered with the clean reward, near-trigger, clean. ``turned``:
+    each first layout with the agent facing north, the pattern out of sight (a drawn layout shows
+    one of its cells in the first view), so ``saw_trigger`` turns on mid-episode."""
+    kind = np.arange(N) % 4
+    patterns = [p.spec() for p in near_patterns(PatternTrigger.parse(trigger))] if trigger and near else []
+    e = BatchedRandomizedLavaWorld(
+        N,
+        size,
+        num_lava,
+        max_steps,
+        see,
+        trigger=trigger,
+        poisoned=kind == 0 if trigger else None,
+        triggered=kind <= 1 if trigger else None,
+        near_patterns=patterns,
+    )
+    if patterns:
+        e.near_next(kind == 2)
+    e.reset(seed=seed)
+    if turned:
+        for i in range(N):
+            grid, pos, _, _, cells, _ = e.layout(i)
+            e.load_layout(i, grid, pos, 3, 0, cells)
+    return e
+
+
+def state_of(e) -> dict[str, np.ndarray]:
+    return {
+        "grid": e._grid,
+        "pos": e._pos,
+        "dirs": e._dir,
+        "steps": e._steps,
+        "final_image": e.final_obs["image"],
+        "final_direction": e.final_obs["direction"],
+        "pat": e._pat,
+        "pcells": e._pcells,
+        "pcount": e._pcount,
+        "saw": e._saw,
+    }
+
+
+def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: int = 0) -> tuple[np.ndarray, int, int]:
+    """Step both sides ``blocks`` x ``block`` steps with the same random actions, comparing every
+    output; the outcomes of the episodes that ended, how many blocks ran again deeper and how
+    often ``saw_trigger`` turned on mid-episode."""
+    world, params, host = jax_side
+    rollout = jax.jit(world.rollout)
+    rng = np.random.default_rng(seed)
+    ends, reruns, flips = [], 0, 0
+    slots = host.slots
+    for k in range(blocks):
+        acts = rng.integers(0, 3, (block, host.num_envs))
+        tries = []
+
+        def run(layouts, slots=slots, acts=acts, tries=tries):
+            tries.append(1)
+            return rollout(slots, layouts, params, acts)
+
+        before = slots
+        slots, out = host.run(run, depth)
+        reruns += len(tries) - 1
+        for t in range(block):
+            saw = numba_side._saw.copy()
+            obs, reward, terminated, truncated, info = numba_side.step(acts[t])
+            flips += int((~saw & numba_side._saw & ~(terminated | truncated)).sum())
+            pairs = {
+                "image": (obs["image"], out.obs[t]),
+                "direction": (obs["direction"].astype(np.int32), out.dirs[t]),
+                "reward": (reward.astype(np.float32), out.reward[t]),
+                "terminated": (terminated, out.terminated[t]),
+                "truncated": (truncated, out.truncated[t]),
+                "outcome": (info["outcome"].astype(np.int32), out.outcome[t]),
+                "steps": (info["steps"].astype(np.int32), out.steps[t]),
+            }
+            for name, (want, got) in pairs.items():
+                got = np.asarray(got)
+                assert got.dtype == want.dtype and np.array_equal(got, want), f"block {k} step {t}: {name} differs at {np.argwhere(got != want)[:3].tolist()}"
+            ends.append(info["outcome"][terminated | truncated])
+        assert before is not slots
+        got = {
+            "grid": slots.grid,
+            "pos": slots.pos,
+            "dirs": slots.dirs,
+            "steps": slots.steps,
+            "final_image": slots.final_obs,
+            **dict(zip(("pat", "pcells", "pcount", "saw", "final_direction"), slots.world)),
+        }
+        want = state_of(numba_side)
+        want["grid"] = pad_grid(want["grid"], host.view_size)
+        for name, value in want.items():
+            assert np.array_equal(np.asarray(got[name]), value), f"after block {k}: {name} differs"
+    host.hand_back(jax.tree_util.tree_map(np.asarray, slots))
+    return np.concatenate(ends), reruns, flips
+
+
+@pytest.mark.parametrize(
+    "trigger,size,num_lava,max_steps,see,turned",
+    [
+        ("cross", 11, 10, 250, True, True),
+        ("arrow:east", 11, 10, 60, False, False),
+        ("arrow:any", 9, 6, 40, True, False),
+        ("cells:0,0;1,1", 7, 3, 30, False, True),
+        (None, 11, 10, 50, True, False),
+    ],
+)
+def test_jax_steps_as_the_numba_engine_and_hands_the_slots_back(trigger, size, num_lava, max_steps, see, turned):
+    """40 slots (poisoned, triggered, near, clean), 6 compiled blocks of 50 random steps; then
+    both engines, the handed-back one and numba's own, step on alike, and their states are equal."""
+    sides = [engine(trigger, size, num_lava, max_steps, see, turned=turned) for _ in range(2)]
+    numba_side, handed = sides
+    ends, reruns, flips = step_both(numba_side, randomized_lavaworld_jax(handed), 6, 50, depth=2)
+    assert (flips > 0) == turned  # the flag's own path was stepped where a pattern began out of sight
+    assert len(ends) > N * 300 / max_steps  # every slot ended episodes and took drawn layouts
+    assert {int(Outcome.LAVA), int(Outcome.TIMEOUT)} <= set(ends.tolist())
+    if trigger is not None and max_steps < 100:
+        assert int(Outcome.PATTERN_LAVA) in set(ends.tolist())  # the pattern's lava, told apart
+    assert reruns > 0  # some block ended more than 2 episodes in a slot: run again, deeper
+    for name, value in state_of(numba_side).items():  # handed back: the numba engine's own state
+        assert np.array_equal(state_of(handed)[name], value), name
+    rng = np.random.default_rng(99)
+    for _ in range(30):  # the numba engine goes on from the handed-back state as from its own
+        acts = rng.integers(0, 3, N)
+        a, b = numba_side.step(acts), handed.step(acts)
+        assert all(np.array_equal(a[0][key], b[0][key]) for key in ("image", "direction"))
+        assert all(np.array_equal(x, y) for x, y in zip(a[1:4], b[1:4]))
+        assert all(np.array_equal(a[4][key], b[4][key]) for key in ("outcome", "trigger_visible", "saw_trigger"))
+
+
+def test_jax_steps_an_engine_group_of_several_triggers():
+    """Three agents' engines in one group (a clean one, two triggers): each slot reads its own pattern."""
+    sides = [EngineGroup.of([engine(None, seed=1), engine("cross", seed=2), engine("arrow:east", seed=3)]) for _ in range(2)]
+    group, other = sides
+    jax_side = randomized_lavaworld_jax(other)
+    assert jax_side[2].num_envs == 3 * N and jax_side[1].poisoned.any() and not jax_side[1].poisoned.all()
+    ends, _, _ = step_both(group, jax_side, 4, 50, depth=4, seed=5)
+    assert len(ends) > 3 * N
+
+
+def test_errors():
+    with pytest.raises(ValueError, match="reset the engines"):
+        randomized_lavaworld_jax(BatchedRandomizedLavaWorld(2))
+    from rlbackdoors.envs.lavaworld_batched import BatchedLavaWorld
+
+    with pytest.raises(TypeError, match="not a BatchedRandomizedLavaWorld"):
+        randomized_lavaworld_jax(BatchedLavaWorld(2))

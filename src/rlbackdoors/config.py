@@ -584,8 +584,6 @@ class RunConfig(JsonConfig):
             why = f"it trains the env mix (poison.attack={DEFAULT_ATTACK!r}), not {self.poison.attack!r}"
         elif self.poison.evasion:
             why = f"it has no evasive variants yet (poison.evasion: {', '.join(sorted(self.poison.evasion))})"
-        elif self.curriculum.enabled:
-            why = "it has no curriculum (curriculum.enabled)"
         elif (self.ppo.rollout * self.poison.num_envs) % self.ppo.batch_size:
             why = f"ppo.batch_size={self.ppo.batch_size} must divide a rollout's {self.ppo.rollout * self.poison.num_envs} frames (ppo.rollout x env copies)"
         if why is not None:

@@ -141,31 +141,40 @@ def state_dicts(agents: Agents) -> list[dict[str, torch.Tensor]]:
     return [{name: torch.from_numpy(value[i].copy()) for name, value in params.items()} for i in range(k)]
 
 
+def network(model: torch.nn.Module) -> tuple:
+    """The network as the program runs it (static data, part of the program's key): its layers
+    (:func:`rlbackdoors.algos.jax_update.structure`) and whether its heads read the agent's
+    direction appended to the image embedding (``model.appends_direction``: the observation is
+    then the view and the direction, as the world's engine gives them)."""
+    return structure(model, convolutions=True), bool(getattr(model, "appends_direction", False))
+
+
 def make_iteration(world: GridWorld, model: torch.nn.Module, hyper: Hyper, num_envs: int):
     """The jitted iteration of K agents: ``(agents, slots, layouts, params, obs) -> (agents, slots,
     layouts, obs, stats)``; the agents' arrays and the stats lead with the agent axis (K, ...), the
     slots', layouts', world parameters' and views' with the K x N copies' (agent by agent)."""
-    return _iteration(world, structure(model, convolutions=True), hyper, num_envs)
+    return _iteration(world, network(model), hyper, num_envs)
 
 
 class Parts(NamedTuple):
     """The pieces of the iteration, each a pure JAX function (tested one by one against torch's)."""
 
     inputs: Any  # obs (B, 7, 7, 3) uint8 -> the network's input rows (B, 147) float32
-    forward: Any  # (params, obs (B, 7, 7, 3) uint8) -> logits (B, A), values (B,)
+    forward: Any  # (params, obs (B, 7, 7, 3) uint8, directions (B,) int32) -> logits (B, A), values (B,)
     sample: Any  # (logits, u (B,)) -> actions (B,) int32, inverse CDF as ppo.sample_actions
-    loss: Any  # (params, inputs, actions, old_logp, old_values, adv, returns) -> loss, (policy, value, entropy)
+    loss: Any  # (params, inputs, directions, actions, old_logp, old_values, adv, returns) -> loss, (policy, value, entropy)
     adam: Any  # (params, avg, sq, step, grad) -> params, avg, sq, step, grad norm
     gae: Any  # (rewards, dones, values (T, N), next_value (N,)) -> advantages (T, N)
 
 
 @functools.cache
-def parts(layers: tuple, hyper: Hyper) -> Parts:
-    """:class:`Parts` for a network :func:`rlbackdoors.algos.jax_update.structure` and ``hyper``."""
+def parts(net: tuple, hyper: Hyper) -> Parts:
+    """:class:`Parts` for a :func:`network` and ``hyper`` (the directions are read where the network appends them)."""
     jax = _jax()
     jnp, lax = jax.numpy, jax.lax
     h = hyper
     run = run_layers  # full fp32 products, as torch's
+    layers, direction = net
 
     convolutional = any(layer[0] == "conv" for layer in layers[0])
 
@@ -177,23 +186,25 @@ def parts(layers: tuple, hyper: Hyper) -> Parts:
             return obs.astype(jnp.float32)
         return jnp.transpose(obs, (0, 3, 1, 2)).reshape(obs.shape[0], -1).astype(jnp.float32)
 
-    def heads(p: dict, x):
+    def heads(p: dict, x, d):
         e = run(layers[0], p, x)
         if e.ndim == 4:  # a CNN's embedding (B, H, W, C), flattened in torch's channels-first order
             e = jnp.transpose(e, (0, 3, 1, 2)).reshape(e.shape[0], -1)
+        if direction:  # the raw direction (0..3) as one more float feature, as the torch model appends it
+            e = jnp.concatenate([e, d.astype(jnp.float32)[:, None]], axis=1)
         return run(layers[1], p, e), run(layers[2], p, e)[:, 0]
 
-    def forward(p: dict, obs):
-        """Logits and values of raw views."""
-        return heads(p, inputs(obs))
+    def forward(p: dict, obs, d):
+        """Logits and values of raw views (and the directions they are seen in)."""
+        return heads(p, inputs(obs), d)
 
     def sample(logits, u):
         cdf = jnp.cumsum(jax.nn.softmax(logits, -1), -1)
         return jnp.minimum((cdf <= u[:, None] * cdf[:, -1:]).sum(1), logits.shape[1] - 1).astype(jnp.int32)
 
-    def loss(p, x, actions, old_logp, old_values, adv, returns):
-        """torch-ac's PPO loss (rlbackdoors.algos.ppo.ppo_loss) on :func:`inputs` rows ``x``."""
-        logits, values = heads(p, x)
+    def loss(p, x, d, actions, old_logp, old_values, adv, returns):
+        """torch-ac's PPO loss (rlbackdoors.algos.ppo.ppo_loss) on :func:`inputs` rows ``x`` (seen in directions ``d``)."""
+        logits, values = heads(p, x, d)
         log_probs = jax.nn.log_softmax(logits)
         entropy = -(jnp.exp(log_probs) * log_probs).sum(-1).mean()
         ratio = jnp.exp(jnp.take_along_axis(log_probs, actions[:, None], 1)[:, 0] - old_logp)
@@ -233,7 +244,7 @@ def parts(layers: tuple, hyper: Hyper) -> Parts:
 
 
 @functools.cache
-def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
+def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int):
     jax = _jax()
     from jax.flatten_util import ravel_pytree
 
@@ -243,7 +254,8 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
     if frames % h.batch_size:
         raise ValueError(f"the compiled trainer needs ppo.batch_size={h.batch_size} to divide a rollout's {frames} frames (ppo.rollout x env copies)")
     minibatches = frames // h.batch_size
-    P = parts(layers, hyper)
+    P = parts(net, hyper)
+    appends_direction = net[1]
     policy = jax.vmap(P.forward)  # K agents' networks, each on its own N copies
 
     def agents_minibatch(unravel):
@@ -266,21 +278,22 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
         uniforms = jax.vmap(lambda k: jax.random.uniform(k, (T, N)))(keys[:, 1])
         uniforms = jnp.swapaxes(uniforms, 0, 1).reshape(T, K * N)
 
-        def act(obs):
-            logits, value = policy(agents.params, obs.reshape(K, N, *obs.shape[1:]))
+        def act(obs, dirs):  # dirs: the direction each view is seen in (the slots' own)
+            logits, value = policy(agents.params, obs.reshape(K, N, *obs.shape[1:]), dirs.reshape(K, N))
             return logits.reshape(K * N, -1), value.reshape(K * N)
 
         # 1. rollout
         def env_step(carry, u):
             slots, layouts, obs = carry
-            logits, value = act(obs)
+            logits, value = act(obs, slots.dirs)
             action = P.sample(logits, u)
+            dirs = slots.dirs if appends_direction else None  # (a network without it: nothing more in the program)
             slots, layouts, out = world.step(slots, layouts, params, action)
             done = out.terminated | out.truncated
-            return (slots, layouts, out.obs), (obs, action, logits, value, out.reward, done)
+            return (slots, layouts, out.obs), (obs, dirs, action, logits, value, out.reward, done)
 
-        (slots, layouts, next_obs), (obs_t, actions, logits, values, rewards, dones) = lax.scan(env_step, (slots, layouts, obs), uniforms)
-        next_value = act(next_obs)[1]
+        (slots, layouts, next_obs), (obs_t, dirs_t, actions, logits, values, rewards, dones) = lax.scan(env_step, (slots, layouts, obs), uniforms)
+        next_value = act(next_obs, slots.dirs)[1]
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), actions[..., None], -1)[..., 0]
 
         # 2. GAE (each column an env copy: the agents' columns side by side)
@@ -293,7 +306,7 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
 
         x = P.inputs(obs_t.reshape(T * K * N, *obs_t.shape[2:]))  # the network's input, once
         x = x.reshape(T, K * N, *x.shape[1:])
-        batch = [per_agent(a) for a in (x, actions, logp, values, adv, values + adv)]
+        batch = [per_agent(a) if a is not None else None for a in (x, dirs_t, actions, logp, values, adv, values + adv)]
         orders = jax.vmap(lambda k: jax.vmap(lambda e: jax.random.permutation(e, frames))(jax.random.split(k, h.epochs)))(keys[:, 2])
         rows = orders.reshape(K, h.epochs * minibatches, h.batch_size) + (jnp.arange(K) * frames)[:, None, None]
 
@@ -302,7 +315,7 @@ def _iteration(world: GridWorld, layers: tuple, hyper: Hyper, num_envs: int):
         step_agents = agents_minibatch(unravel)
 
         def minibatch(carry, idx):  # idx (K, batch_size): rows of the flat batch
-            w, avg, sq, step, losses = step_agents(*carry, *(a[idx] for a in batch))
+            w, avg, sq, step, losses = step_agents(*carry, *(None if a is None else a[idx] for a in batch))
             return (w, avg, sq, step), losses
 
         start = (ravel(agents.params), ravel(agents.avg), ravel(agents.sq), agents.step)
@@ -342,17 +355,32 @@ class Learner:
     model.pt): :meth:`sync` writes the agent's weights into it."""
 
     def __init__(self, model: torch.nn.Module, engine, hyper: Hyper, seed: int, obs, jax_world, depth: int = 64):
-        self.model, self.hyper, self.layers = model, hyper, structure(model, convolutions=True)
-        self.world, self.params, self.host = jax_world(engine)
-        self.slots, self.obs = self.host.slots, np.asarray(obs, dtype=np.uint8)
+        self.model, self.hyper, self.net, self.jax_world = model, hyper, network(model), jax_world
         self.state, self.depth = agent_state(model, seed), int(depth)
-        if self.obs.shape != (self.host.num_envs, self.world.view_size, self.world.view_size, 3):
-            raise ValueError(f"views of shape {self.obs.shape} do not fit {self.host.num_envs} env copies")
+        self.rebind(engine, obs)
+
+    def rebind(self, engine, obs) -> None:
+        """Train on from here in other env copies (a reset engine and its observations: the
+        curriculum's switch to the full world), the agent's learning state as it is."""
+        self.world, self.params, self.host = self.jax_world(engine)
+        self.slots, self.dict_obs = self.host.slots, isinstance(obs, dict)
+        self.views = np.asarray(obs["image"] if self.dict_obs else obs, dtype=np.uint8)
+        if self.views.shape != (self.host.num_envs, self.world.view_size, self.world.view_size, 3):
+            raise ValueError(f"views of shape {self.views.shape} do not fit {self.host.num_envs} env copies")
+        if self.dict_obs and not np.array_equal(np.asarray(obs["direction"]), self.slots.dirs):
+            raise ValueError("the observations' directions are not the env copies' own")
+
+    @property
+    def obs(self):
+        """The env copies' current observations, as their engine gives them (the views, with the directions where it does)."""
+        if self.dict_obs:
+            return {"image": self.views, "direction": np.asarray(self.slots.dirs).astype(np.int64)}
+        return self.views
 
     @property
     def program(self) -> tuple:
         """What picks the compiled program: learners with the same key share one call."""
-        return (self.world, self.layers, self.hyper, self.host.num_envs)
+        return (self.world, self.net, self.hyper, self.host.num_envs)
 
     def sync(self) -> torch.nn.Module:
         """The torch model with the agent's current weights (returned)."""
@@ -407,7 +435,7 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     rows = learners + [lead] * (capacity - k)
     program = _iteration(*lead.program)
     agents = stack_agents([r.state for r in rows])
-    slots, params, obs = join([r.slots for r in rows]), join([r.params for r in rows]), np.concatenate([r.obs for r in rows])
+    slots, params, obs = join([r.slots for r in rows]), join([r.params for r in rows]), np.concatenate([r.views for r in rows])
 
     def block(layouts: Layouts):
         a, s, after, o, stats = program(agents, slots, layouts, params, obs)
@@ -419,7 +447,7 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     for i, learner in enumerate(learners):
         learner.state = agent_row(a, i)
         learner.slots = jax.tree_util.tree_map(lambda f, i=i: f[i * n : (i + 1) * n], s)
-        learner.obs, learner.depth = o[i * n : (i + 1) * n], depth
+        learner.views, learner.depth = o[i * n : (i + 1) * n], depth
         losses = {key: float(getattr(stats, key)[i]) for key in STATS}
         out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))
     return out

@@ -98,7 +98,8 @@ def structure(model: Any, convolutions: bool = False) -> tuple:
     """The network as static data: per part (``state_emb``, ``actor``, ``critic``) its layers, each
     ``("linear", weight name, bias name)``, ``("relu",)`` or ``("tanh",)``, and with
     ``convolutions`` (the compiled trainer's) also ``("conv", weight name, bias name)`` (stride 1,
-    no padding) and ``("maxpool", k)`` (a k x k window at stride k); ``ValueError`` for a model
+    no padding), ``("maxpool", k)`` (a k x k window at stride k) and ``("flatten",)`` (channels
+    first, as torch's, of a channels-last input; rows stay rows); ``ValueError`` for a model
     this backend does not run (recurrent, convolutions, a Flatten of dict observations)."""
     why = None
     if getattr(model, "recurrent", False):
@@ -119,6 +120,8 @@ def structure(model: Any, convolutions: bool = False) -> tuple:
                 layers.append(("conv", f"{part}.{i}.weight", f"{part}.{i}.bias"))
             elif convolutions and isinstance(layer, nn.MaxPool2d) and _plain_pool(layer):
                 layers.append(("maxpool", _pair(layer.kernel_size)[0]))
+            elif convolutions and isinstance(layer, nn.Flatten) and (layer.start_dim, layer.end_dim) == (1, -1):
+                layers.append(("flatten",))
             else:
                 why = why or f"its {part} has a {type(layer).__name__}"
         parts.append(tuple(layers))
@@ -201,6 +204,8 @@ def run_layers(part: tuple, p: dict, x):
             k = layer[1]
             b, h, w, c = x.shape
             x = x[:, : h - h % k, : w - w % k].reshape(b, h // k, k, w // k, k, c).max((2, 4))
+        elif layer[0] == "flatten":  # torch's order: channels first
+            x = x if x.ndim == 2 else jnp.transpose(x, (0, 3, 1, 2)).reshape(x.shape[0], -1)
         elif layer[0] == "relu":
             x = jax.nn.relu(x)
         else:

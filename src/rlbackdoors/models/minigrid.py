@@ -205,6 +205,7 @@ class ActorCritic(nn.Module):
     """Shared skeleton: ``state_emb`` -> (``actor`` logits, ``critic`` value)."""
 
     recurrent = False
+    appends_direction = False  # the heads read the agent's direction after the image embedding
     state_emb: nn.Sequential
     actor: nn.Sequential
     critic: nn.Sequential

@@ -30,6 +30,8 @@ def linear_relu_stack(dims: list[int]) -> nn.Sequential:
 class DirectionActorCritic(ActorCritic):
     """Takes ``{"image": (B,7,7,3) uint8, "direction": (B,) int}``."""
 
+    appends_direction = True
+
     def image_embedding(self, image_cf: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 

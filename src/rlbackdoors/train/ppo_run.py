@@ -271,7 +271,10 @@ def steps(
         old.close()
         mix = poisoning_mix()
         ppo.memory = None
-        return mix, mix.reset(seed=tc.seed * 1000 + offset)[0], EpisodeTracker(mix.poisoned, cfg.curriculum.window, tc.return_window)
+        obs = mix.reset(seed=tc.seed * 1000 + offset)[0]
+        if compiled:  # the agent trains on in the new copies, its learning state as it is
+            learner.rebind(mix, obs)
+        return mix, obs, EpisodeTracker(mix.poisoned, cfg.curriculum.window, tc.return_window)
 
     if checkpoint is None:
         # Curriculum: start in the small clean world; switch_at is None until the switch.

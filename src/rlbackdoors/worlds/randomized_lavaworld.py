@@ -64,6 +64,7 @@ WORLD = register(
         gym_id="rlbackdoors/RandomizedLavaWorld-v0",
         entry_point="rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
         vector_entry_point="rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
+        compiled_engine="rlbackdoors.envs.randomized_lavaworld_jax:randomized_lavaworld_jax",
         algorithm="ppo",
         parse_trigger=_parse,
         draw_trigger=_draw,

@@ -103,6 +103,42 @@ def test_a_killed_compiled_run_resumes_to_the_same_model(tmp_path):
     assert rows[0] == rows[1] and len(json.loads(rows[0])) == 6  # (as text: a NaN training return is no number)
 
 
+def rlw_dict(frames: int = 1920, **train_fields) -> dict:
+    """Randomized LavaWorld's CNN (the direction appended to its embedding), a curriculum whose
+    warm-up ends at the first finished episode (a window of 1, a threshold of 0)."""
+    data = run_dict(frames=frames, **train_fields)
+    data.update(
+        {"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "poison": {"trigger": "cross"}, "curriculum": {"window": 1, "reward_threshold": 0.0}}
+    )
+    return data
+
+
+def test_a_randomized_lavaworld_run_switches_from_its_warm_up_and_resumes_to_the_same_model(tmp_path):
+    """The CNN trains through the curriculum's switch (the small clean world's program, then the
+    full world's), into model.pt with the architecture's keys; stopped at its first evaluation
+    (after the switch) and run again, it finishes the uninterrupted run's model, bit for bit."""
+    cfg = RunConfig.from_dict(rlw_dict(checkpoint_minutes=0.0))
+    metrics = train(cfg, tmp_path / "whole", progress=False)
+    assert metrics["compiled_group"] == 1 and metrics["frames"] == 1920 and metrics["curriculum_switch_frames"] == 320
+    reference = build_model("cnn", "randomized-lavaworld").state_dict()
+    got = weights(tmp_path / "whole")
+    assert got.keys() == reference.keys() and all(got[k].shape == reference[k].shape for k in got)
+    torch.manual_seed(1)
+    assert not torch.equal(got["actor.0.weight"], build_model("cnn", "randomized-lavaworld").state_dict()["actor.0.weight"])
+
+    def stop_at_first(row):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / "cut", progress=False, after_eval=stop_at_first)
+    assert [r["frames"] for r in ModelFolder(tmp_path / "cut").read_log()] == [640]
+    train(cfg, tmp_path / "cut", progress=False)
+    assert same_weights(tmp_path / "whole", tmp_path / "cut")
+    drop = ("wall_time_s", "fps")
+    rows = [json.dumps([{k: v for k, v in r.items() if k not in drop} for r in ModelFolder(tmp_path / side).read_log()]) for side in ("whole", "cut")]
+    assert rows[0] == rows[1]
+
+
 def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
     """Three runs in compiled groups of 2 (the third trains alone in a padded program) give each
     run the bytes it has alone in a group of 2, and a resume in a group of another size is
@@ -140,7 +176,7 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
     [
         ({"poison": {"trigger": "multiplicative:12", "attack": "trojdrl"}}, "trains the env mix"),
         ({"poison": {"trigger": "multiplicative:12", "evasion": {"near": 0.2}}}, "no evasive variants yet"),
-        ({"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}}, "has no JAX engine yet (built: lavaworld)"),
+        ({"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}}, "has no JAX engine yet (built: lavaworld, randomized-lavaworld)"),
         ({"ppo": {"rollout": 100, "update_backend": "compiled"}}, "must divide a rollout's 1000 frames"),
     ],
 )

@@ -1,7 +1,10 @@
 """Training frames/s of the compiled PPO iteration (algos/compiled.py) against today's best CPU
-side (a torch group of K agents, algos/group.py: with the JAX update for the FC model, torch's
-for the CNN), in the same process, one core each, on LavaWorld with the env mix (10 copies,
-8 clean : 2 poisoned, rollout 128); ``--arch fc`` (default) or ``cnn``.
+side (a torch group of K agents, algos/group.py: with the JAX update for LavaWorld's FC model,
+torch's otherwise), in the same process, one core each, with the env mix (10 copies, the world's
+mix, rollout 128); ``--env lavaworld`` (default) or ``randomized-lavaworld`` (its full world: no
+curriculum), ``--arch fc`` (default) or ``cnn``. ``--device cuda``: the compiled side on the GPU
+(JAX's CUDA backend), the torch side skipped unless ``--torch-k`` is given (it is a CPU
+reference).
 
 Training only: rollout, GAE and update, no evaluations (a zoo's figures with them: ``rlbackdoors
 bench zoo``); each side warms up (three iterations: compiles, and a deeper layout queue's
@@ -9,6 +12,8 @@ program where the first was too shallow) and is then timed for ``--seconds``. Th
 its load are recorded with the figures.
 
     python benchmarks/compiled_lavaworld.py --ks 1,8,16,32 --json benchmarks/results/compiled_lavaworld_<cpu>.json
+    python benchmarks/compiled_lavaworld.py --env randomized-lavaworld --arch cnn --ks 1,8
+    python benchmarks/compiled_lavaworld.py --device cuda --torch-k 0 --ks 256,1024 --seconds 20
 """
 
 from __future__ import annotations
@@ -23,18 +28,20 @@ from pathlib import Path
 import torch
 
 
-ARCH = "fc"  # --arch
+ARCH, ENV = "fc", "lavaworld"  # --arch, --env
 
 
 def configs(k: int):
-    """K configs of today's best CPU side: the JAX update for the FC model, torch's for the CNN (the JAX update has no convolutions)."""
+    """K configs of today's best CPU side: the JAX update for LavaWorld's FC model, torch's
+    otherwise (the JAX update has no convolutions, nor the direction models' Flatten)."""
     from rlbackdoors.config import RunConfig
 
-    ppo = {"update_backend": "jax"} if ARCH == "fc" else {}
+    lava = ENV == "lavaworld"
+    ppo = {"update_backend": "jax"} if lava and ARCH == "fc" else {}
+    extra = {} if lava else {"curriculum": {"enabled": False}}
+    trigger = "multiplicative:12" if lava else "cross"
     return [
-        RunConfig.from_dict(
-            {"env": {"name": "lavaworld"}, "model": {"arch": ARCH}, "poison": {"trigger": "multiplicative:12"}, "ppo": ppo, "train": {"seed": s}}
-        )
+        RunConfig.from_dict({"env": {"name": ENV}, "model": {"arch": ARCH}, "poison": {"trigger": trigger}, "ppo": ppo, "train": {"seed": s}, **extra})
         for s in range(k)
     ]
 
@@ -61,7 +68,7 @@ def torch_group(k: int, seconds: float) -> dict:
     ppos = []
     for cfg in cfgs:
         torch.manual_seed(cfg.train.seed)
-        ppos.append(PPO(build_model(ARCH, "lavaworld"), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(cfg.train.seed)))
+        ppos.append(PPO(build_model(ARCH, ENV), cfg.ppo, torch.device("cpu"), torch.Generator().manual_seed(cfg.train.seed)))
     obs = [e.reset(seed=c.train.seed * 1000)[0] for e, c in zip(envs, cfgs)]
 
     def once():
@@ -76,16 +83,19 @@ def torch_group(k: int, seconds: float) -> dict:
 
 def compiled_group(k: int, seconds: float) -> dict:
     """The compiled side: K learners (algos.compiled.Learner) in one program (algos.compiled.iterate)."""
+    import importlib
+
     from rlbackdoors.algos.compiled import Hyper, Learner, iterate
-    from rlbackdoors.envs.lavaworld_jax import lavaworld_jax
     from rlbackdoors.models import build_model
 
     cfgs = configs(k)
+    module, _, name = str(cfgs[0].world.compiled_engine).partition(":")
+    jax_world = getattr(importlib.import_module(module), name)
     learners = []
     for cfg, engine in zip(cfgs, engines_of(cfgs)):
         torch.manual_seed(cfg.train.seed)
         obs = engine.reset(seed=cfg.train.seed * 1000)[0]
-        learners.append(Learner(build_model(ARCH, "lavaworld"), engine, Hyper.of(cfg.ppo), cfg.train.seed, obs, lavaworld_jax))
+        learners.append(Learner(build_model(ARCH, ENV), engine, Hyper.of(cfg.ppo), cfg.train.seed, obs, jax_world))
 
     def once():
         return sum(out.num_frames for out in iterate(learners))
@@ -115,27 +125,50 @@ def timed(once, seconds: float) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ks", default="1,16", help="group sizes of the compiled side (comma-separated)")
-    ap.add_argument("--torch-k", type=int, default=16, help="today's side's group size (its best on 2 cores: 16 with the JAX update)")
+    ap.add_argument(
+        "--torch-k",
+        type=int,
+        default=None,
+        help="today's side's group size (its best on 2 cores: 16 with the JAX update; default 16 on the CPU, none with --device cuda); 0: none",
+    )
     ap.add_argument("--seconds", type=float, default=30.0)
-    ap.add_argument("--arch", choices=("fc", "cnn"), default="fc", help="the model (the torch side's update: JAX for fc, torch for cnn)")
+    ap.add_argument("--env", choices=("lavaworld", "randomized-lavaworld"), default="lavaworld")
+    ap.add_argument("--arch", choices=("fc", "cnn"), default="fc", help="the model (the torch side's update: JAX for LavaWorld's fc, torch's otherwise)")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="where the compiled side runs")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
-    global ARCH
-    ARCH = args.arch
+    global ARCH, ENV
+    ARCH, ENV = args.arch, args.env
+    torch_k = (16 if args.device == "cpu" else 0) if args.torch_k is None else args.torch_k
     from rlbackdoors.algos.jax_update import _jax
     from rlbackdoors.bench.machine import machine_info
 
-    _jax()  # one compute thread, as both sides train in a zoo's process per core
+    jax = _jax(gpu=args.device == "cuda")  # on the CPU one compute thread, as both sides train in a zoo's process per core
+    if args.device == "cuda" and jax.default_backend() != "gpu":
+        print(f"compiled_lavaworld: --device cuda, but JAX computes on {jax.default_backend()}", file=sys.stderr)
+        return 2
     torch.set_num_threads(1)
-    result: dict = {"machine": machine_info(), "arch": ARCH, "load_before": os.getloadavg(), "seconds": args.seconds, "sides": {}}
-    today = torch_group(args.torch_k, args.seconds)
-    result["sides"][f"torch K={args.torch_k} ({'jax' if ARCH == 'fc' else 'torch'} update)"] = today
-    print(f"torch K={args.torch_k}: {today['frames_per_s']:,.0f} frames/s", file=sys.stderr, flush=True)
+    result: dict = {
+        "machine": machine_info(),
+        "env": ENV,
+        "arch": ARCH,
+        "device": args.device,
+        "load_before": os.getloadavg(),
+        "seconds": args.seconds,
+        "sides": {},
+    }
+    today = None
+    if torch_k:
+        today = torch_group(torch_k, args.seconds)
+        result["sides"][f"torch K={torch_k} ({'jax' if ENV == 'lavaworld' and ARCH == 'fc' else 'torch'} update)"] = today
+        print(f"torch K={torch_k}: {today['frames_per_s']:,.0f} frames/s", file=sys.stderr, flush=True)
     for k in (int(x) for x in args.ks.split(",")):
         side = compiled_group(k, args.seconds)
-        side["ratio_to_torch"] = round(side["frames_per_s"] / today["frames_per_s"], 3)
+        if today is not None:
+            side["ratio_to_torch"] = round(side["frames_per_s"] / today["frames_per_s"], 3)
         result["sides"][f"compiled K={k}"] = side
-        print(f"compiled K={k}: {side['frames_per_s']:,.0f} frames/s (x{side['ratio_to_torch']:.2f})", file=sys.stderr, flush=True)
+        ratio = f" (x{side['ratio_to_torch']:.2f})" if today is not None else ""
+        print(f"compiled K={k}: {side['frames_per_s']:,.0f} frames/s{ratio}", file=sys.stderr, flush=True)
     result["load_after"] = os.getloadavg()
     text = json.dumps(result, indent=2)
     if args.json:

@@ -22,6 +22,14 @@
 #      equivalence_state.tar.gz (benchmarks/equivalence_state.py): the finished runs and the
 #      checkpoints that fit in 15 MiB, for the next lease to go on from (EQ_STATE=that file,
 #      committed with the lease's results).
+#   compiled (at most 8 minutes; a lease of its own): issue 78's GPU figures for the compiled trainer
+#      (ppo.update_backend = "compiled", one XLA program per iteration): the iteration alone
+#      (benchmarks/compiled_lavaworld.py --device cuda: LavaWorld FC at K = 256 and 1,024, the
+#      Randomized LavaWorld CNN at K = 64 and 256; frames/s, no evaluations), a LavaWorld FC zoo
+#      with its evaluations (bench zoo, one compiled group of 1,024), then the 300-model round
+#      (the round part's spec with ppo.update_backend = "compiled", one group of 300) for what is
+#      left; compiled_iteration_*.json, bench_zoo_lavaworld_compiled.json, round_compiled.json and
+#      compiled.log in OUTDIR.
 #   round (at most 9 minutes; a lease of its own): issue 55's 300-model LavaWorld round, trained
 #      for real (examples/zoo-lavaworld-round-300.toml, zoo run --device cuda --group-size auto)
 #      for ROUND_LIMIT_S (480); round.json (benchmarks/round_summary.py): converged per cell,
@@ -38,10 +46,12 @@
 #   run(command="bash benchmarks/gpu_checks.sh $OUT equivalence", carry=[".whl"], timeout_s=560)
 #   run(command="EQ_STATE=benchmarks/results/gpu/LEASE/equivalence_state.tar.gz bash benchmarks/gpu_checks.sh $OUT equivalence", ...)
 # and one for the round: run(command="bash benchmarks/gpu_checks.sh $OUT round", carry=[".whl"], timeout_s=560)
+# and one for the compiled trainer: run(command="bash benchmarks/gpu_checks.sh $OUT compiled", carry=[".whl"], timeout_s=540)
 # A dry run on a CPU machine (the plumbing, small sizes; every ":cuda" side runs on the CPU):
 #   ON_CPU=1 WORLDS="lavaworld:4:4096:200" SIDES_lavaworld="1:cpu:2 4:cuda:1" bash benchmarks/gpu_checks.sh /tmp/dry
+#   ON_CPU=1 bash benchmarks/gpu_checks.sh /tmp/dry compiled   (its own small sizes on a CPU)
 #
-# Usage: bash benchmarks/gpu_checks.sh OUTDIR [figures|tests|equivalence|round]
+# Usage: bash benchmarks/gpu_checks.sh OUTDIR [figures|tests|equivalence|round|compiled]
 #   env: WORLDS   words "world[/arch][:models[:frames[:timeout_s]]]" (default: the four judged ones);
 #        SIDES_<world, '-' as '_'>  that world's sides (default below); EVAL_EPISODES (default the
 #        world's: evaluations count); DEADLINE_S (figures: default 505, the engines get what is
@@ -54,10 +64,10 @@
 #        and the breakdown's limits, default 30 and 50; a dry run on a loaded CPU needs more). The two calls and a machine's
 #        start fit the 15 minutes of a lease with about a minute to spare.
 set -uo pipefail
-mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests|equivalence|round]}" && out=$(cd "$1" && pwd)
+mkdir -p "${1:?usage: gpu_checks.sh OUTDIR [figures|tests|equivalence|round|compiled]}" && out=$(cd "$1" && pwd)
 part=${2:-figures}
-case "$part" in figures | tests | equivalence | round) ;; *)
-    echo "gpu_checks: part must be figures, tests, equivalence or round, not '$part'" >&2
+case "$part" in figures | tests | equivalence | round | compiled) ;; *)
+    echo "gpu_checks: part must be figures, tests, equivalence, round or compiled, not '$part'" >&2
     exit 2
     ;;
 esac
@@ -68,6 +78,7 @@ log="$out/bench.log"
 [ "$part" = tests ] && log="$out/gpu_tests.log"
 [ "$part" = equivalence ] && log="$out/equivalence.log"
 [ "$part" = round ] && log="$out/round.log"
+[ "$part" = compiled ] && log="$out/compiled.log"
 # the bare machine: the carried wheels (gpu_wheels.sh), and this checkout's package on the path
 if ! python3 -c "import gymnasium, minigrid, mujoco, jsonschema" 2>/dev/null; then
     if [ -d .whl ]; then
@@ -148,6 +159,50 @@ if [ "$part" = round ]; then
     python3 -m rlbackdoors.cli zoo status "$scratch/zoo" >>"$log" 2>&1
     bounded 60 python3 benchmarks/round_summary.py "$scratch/zoo" --wall-s "$wall" --exit "$status" --json "$out/round.json" 2>&1 | tee -a "$log"
     rm -rf "$scratch"
+    exit 0
+fi
+
+if [ "$part" = compiled ]; then
+    # Issue 78's judged GPU work: LavaWorld FC at K >= 1,024 (>= 10 M frames/s), the Randomized
+    # LavaWorld CNN at K >= 256 (>= 2 M), a converged 300-model round (<= 5 minutes)
+    deadline=${DEADLINE_S:-480}
+    if [ -n "${ON_CPU:-}" ]; then
+        fc_ks=1,2 cnn_ks=1,2 seconds=3 zoo_models=4 zoo_frames=4096 round_group=4
+    else
+        fc_ks=256,1024 cnn_ks=64,256 seconds=15 zoo_models=1024 zoo_frames=30000 round_group=300
+    fi
+    for entry in "lavaworld fc $fc_ks" "randomized-lavaworld cnn $cnn_ks"; do
+        read -r world arch ks <<<"$entry"
+        echo "== compiled iteration: $world $arch, K = $ks on $device" | tee -a "$log"
+        quiet
+        bounded 100 python3 benchmarks/compiled_lavaworld.py --env "$world" --arch "$arch" --device "$device" --torch-k 0 --ks "$ks" \
+            --seconds "$seconds" --json "$out/compiled_iteration_${world}_${arch}.json" >/dev/null 2>>"$log"
+        echo "== end compiled iteration $world $arch: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
+    done
+    echo "== compiled zoo: lavaworld fc, $zoo_models models x $zoo_frames frames, one compiled group (evaluations included)" | tee -a "$log"
+    quiet
+    bounded 120 python3 -m rlbackdoors.cli bench zoo --env lavaworld --models "$zoo_models" --frames "$zoo_frames" \
+        --side "$zoo_models:$device:1:0:compiled" --json "$out/bench_zoo_lavaworld_compiled.json" >>"$log" 2>&1
+    echo "== end compiled zoo: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
+    # the round part's 300-model split on the compiled trainer, in one group, for what is left
+    limit=$((deadline - (SECONDS - start) - 40))
+    if [ "$limit" -lt 30 ]; then
+        echo "== compiled round: not run, $limit s left" | tee -a "$log"
+    else
+        scratch=$(mktemp -d /tmp/rlbackdoors-round-XXXX)
+        { cat "${ROUND_SPEC:-examples/zoo-lavaworld-round-300.toml}"; printf '\n[overrides.ppo]\nupdate_backend = "compiled"\n'; } >"$scratch/spec.toml"
+        python3 -m rlbackdoors.cli zoo plan "$scratch/spec.toml" --out "$scratch/zoo" >>"$log" 2>&1 || exit 2
+        echo "== compiled round: zoo run --device $device --group-size $round_group (limit $limit s)" | tee -a "$log"
+        quiet
+        began=$(date +%s.%N)
+        bounded "$limit" python3 -m rlbackdoors.cli zoo run "$scratch/zoo" --device "$device" --group-size "$round_group" --progress-interval 30 >>"$log" 2>&1
+        status=$?
+        wall=$(python3 -c "import sys, time; print(round(time.time() - float(sys.argv[1]), 2))" "$began")
+        echo "== end compiled round: exit $status after $wall s (124: its limit)" | tee -a "$log"
+        bounded 60 python3 benchmarks/round_summary.py "$scratch/zoo" --wall-s "$wall" --exit "$status" --json "$out/round_compiled.json" 2>&1 | tee -a "$log"
+        rm -rf "$scratch"
+    fi
+    echo "gpu_checks: done in $((SECONDS - start)) s" | tee -a "$log"
     exit 0
 fi
 

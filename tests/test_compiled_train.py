@@ -108,7 +108,12 @@ def rlw_dict(frames: int = 1920, **train_fields) -> dict:
     warm-up ends at the first finished episode (a window of 1, a threshold of 0)."""
     data = run_dict(frames=frames, **train_fields)
     data.update(
-        {"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}, "poison": {"trigger": "cross"}, "curriculum": {"window": 1, "reward_threshold": 0.0}}
+        {
+            "env": {"name": "randomized-lavaworld"},
+            "model": {"arch": "cnn"},
+            "poison": {"trigger": "cross"},
+            "curriculum": {"window": 1, "reward_threshold": 0.0},
+        }
     )
     return data
 
@@ -176,7 +181,10 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
     [
         ({"poison": {"trigger": "multiplicative:12", "attack": "trojdrl"}}, "trains the env mix"),
         ({"poison": {"trigger": "multiplicative:12", "evasion": {"near": 0.2}}}, "no evasive variants yet"),
-        ({"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}}, "has no JAX engine yet (built: lavaworld, randomized-lavaworld)"),
+        (
+            {"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}},
+            "has no JAX engine yet (built: lavaworld, randomized-lavaworld)",
+        ),
         ({"ppo": {"rollout": 100, "update_backend": "compiled"}}, "must divide a rollout's 1000 frames"),
     ],
 )

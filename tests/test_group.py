@@ -880,6 +880,12 @@ def test_auto_group_size_goes_by_the_models_device_not_the_machines():
     assert (auto_group_size("ppo", "cpu"), auto_group_size("opac2", "cpu")) == (8, 1)
     assert (auto_group_size("ppo", "cuda"), auto_group_size("opac2", "cuda")) == (64, 64)
     assert auto_group_size("ppo", "auto") == (64 if torch.cuda.is_available() else 8)
+    from rlbackdoors import worlds
+
+    rlw, lava = worlds.get("randomized-lavaworld"), worlds.get("lavaworld")
+    # on the compiled trainer on a CPU a world's own measured K (Randomized LavaWorld: one agent a program)
+    assert (auto_group_size("ppo", "cpu", rlw, "compiled"), auto_group_size("ppo", "cpu", lava, "compiled")) == (1, 8)
+    assert (auto_group_size("ppo", "cpu", rlw, "torch"), auto_group_size("ppo", "cuda", rlw, "compiled")) == (8, 64)
 
 
 def test_group_size_auto_trains_ppo_worlds_in_groups_and_opac2_worlds_alone_on_a_cpu(tmp_path):

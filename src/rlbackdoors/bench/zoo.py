@@ -105,7 +105,8 @@ def run_side(
 
     auto = group_size == "auto"
     if auto:
-        group_size = auto_group_size(worlds.get(spec["cells"][0]["world"]).algorithm, device)
+        world = worlds.get(spec["cells"][0]["world"])
+        group_size = auto_group_size(world.algorithm, device, world, update_backend)
     plan(parse_spec(spec), where)
     saved = {name: os.environ.get(name) for name in (DEVICE_ENGINE_ENV, STACKED_CONV_ENV)}
     if engine:

@@ -261,14 +261,14 @@ class HostLayouts:
             pos=np.array(engines._pos, dtype=np.int32),
             dirs=np.array(engines._dir, dtype=np.int32),
             steps=np.array(engines._steps, dtype=np.int32),
-            final_obs=np.array(type(lead)._final_image(engines)),
+            final_obs=np.array(type(lead)._final_image(engines)),  # type: ignore[arg-type]  # a group carries the engines' names
             world=() if state is None else tuple(state.initial(engines)),
         )
         # the drawn layouts not yet taken: slot b's first have[b] columns, in draw order; the
         # columns of grid, position, direction, first view, the stream before the draw (to hand
         # back where a slot stopped), then the world's own state
         self._have = np.zeros(b, np.int64)
-        self._store = [
+        self._store: list[np.ndarray] = [
             np.zeros((b, 0, s, s, 3), np.uint8),
             np.zeros((b, 0, 2), np.int32),
             np.zeros((b, 0), np.int32),
@@ -339,7 +339,7 @@ class HostLayouts:
         h._pos[:] = np.asarray(slots.pos)
         h._dir[:] = np.asarray(slots.dirs)
         h._steps[:] = np.asarray(slots.steps)
-        type(self.lead)._final_image(h)[:] = np.asarray(slots.final_obs)
+        type(self.lead)._final_image(h)[:] = np.asarray(slots.final_obs)  # type: ignore[arg-type]  # (as above)
         if self.state is not None:
             self.state.hand_back(h, tuple(np.asarray(a) for a in slots.world))
         queued = self._have > 0  # else the host stream is already where the next draw starts

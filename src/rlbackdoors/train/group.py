@@ -101,13 +101,16 @@ class GroupResult:
 AUTO_GROUP_SIZE = {("ppo", "cpu"): 8, ("opac2", "cpu"): 1, ("ppo", "cuda"): 64, ("opac2", "cuda"): 64}
 
 
-def auto_group_size(algorithm: str, device: str) -> int:
+def auto_group_size(algorithm: str, device: str, world: Any = None, backend: str | None = None) -> int:
     """``--group-size auto``: the measured K for a model of ``algorithm`` that trains on ``device``
     (its ``train.device``; ``auto``: CUDA where present). By the model's device, not the machine's:
     on a GPU machine a CPU model trains fastest in CPU groups (docs/results/zoos.md: GPU groups of 64 ran
-    at x0.35 of CPU groups of 8 on an H200 machine's 16 cores)."""
+    at x0.35 of CPU groups of 8 on an H200 machine's 16 cores). On the compiled trainer
+    (``backend``) on a CPU, the ``world``'s own measured K where it has one
+    (``World.compiled_cpu_group``)."""
     where = "cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu"
-    return AUTO_GROUP_SIZE[(algorithm, where)]
+    own = getattr(world, "compiled_cpu_group", None) if backend == "compiled" and where == "cpu" else None
+    return own if own is not None else AUTO_GROUP_SIZE[(algorithm, where)]
 
 
 def painter_count(runs: Sequence[tuple[Any, RunConfig, Any]], group_size: int, device: str | None = None) -> int:

@@ -88,6 +88,9 @@ class World:
     # "module:function": its batched engine's JAX step (engines -> (GridWorld, params, HostLayouts)),
     # which ppo.update_backend = "compiled" trains on (rlbackdoors.algos.compiled); None: not built
     compiled_engine: str | None = None
+    # --group-size auto's K for its models on the compiled trainer on a CPU, where it is not PPO's 8
+    # (train.group.auto_group_size; measured per world: docs/results/speed.md)
+    compiled_cpu_group: int | None = None
     curriculum: bool = False  # the small clean warm-up world (Randomized LavaWorld)
     close_to_trigger: bool = False  # has close-to-trigger envs (Colorful Memory)
     # Its batched engine says, per env, what a recurrent agent must remember (``memory_targets()``,

@@ -65,6 +65,9 @@ WORLD = register(
         entry_point="rlbackdoors.envs.randomized_lavaworld:RandomizedLavaWorldEnv",
         vector_entry_point="rlbackdoors.envs.randomized_lavaworld_batched:BatchedRandomizedLavaWorld",
         compiled_engine="rlbackdoors.envs.randomized_lavaworld_jax:randomized_lavaworld_jax",
+        # one agent a program: its networks' iteration ran x1.68 (CNN) and x1.60 (FC) of the torch
+        # group of 8 alone, x1.27 and x1.31 in compiled groups of 8 (2-core AMD EPYC, 2026-12-02)
+        compiled_cpu_group=1,
         algorithm="ppo",
         parse_trigger=_parse,
         draw_trigger=_draw,

@@ -307,7 +307,10 @@ def run(
             f"{name} {AUTO_GROUP_SIZE[(a, 'cpu')]} on cpu, {AUTO_GROUP_SIZE[(a, 'cuda')]} on cuda" for a, name in (("ppo", "PPO"), ("opac2", "OPAC²"))
         )
         on = f"--device {device}" if device is not None else "train.device"
-        print(f"zoo: --group-size auto: by each model's algorithm and {on} ({table}; docs/zoos.md)", file=out)
+        print(
+            f"zoo: --group-size auto: by each model's algorithm and {on} ({table}; on the compiled trainer a world's own where measured; docs/zoos.md)",
+            file=out,
+        )
         group_size = max(AUTO_GROUP_SIZE.values())
     if not isinstance(group_size, int) or group_size < 1:
         raise ConfigError(f"--group-size must be >= 1 or auto, got {group_size!r}")
@@ -494,7 +497,9 @@ def _by_group_size(ready: list, group_size: int, auto: bool, device: str | None 
     out: dict[int, list] = {}
     for state in ready:
         where = device or ((state.config or {}).get("train") or {}).get("device", "cpu")
-        out.setdefault(auto_group_size(worlds.get(state.model.group.cell.world).algorithm, where), []).append(state)
+        world = worlds.get(state.model.group.cell.world)
+        backend = ((state.config or {}).get("ppo") or {}).get("update_backend")
+        out.setdefault(auto_group_size(world.algorithm, where, world, backend), []).append(state)
     return list(out.items())
 
 

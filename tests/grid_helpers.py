@@ -394,3 +394,21 @@ def killed_run_matches_whole(tmp_path, cfg) -> tuple[dict, dict]:
     assert (tmp_path / "whole" / "model.pt").read_bytes() == (tmp_path / "cut" / "model.pt").read_bytes()
     whole, cut = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "cut"))
     return whole, cut
+
+
+def assert_step_matches(step, out, t: int, where: str, image=None) -> None:
+    """A JAX grid step's outputs (``out``: a rollout's stacked :class:`StepOut`, step ``t``) are
+    the numba engine's ``step`` (its 5-tuple) byte for byte: the view (``image``, where the
+    observation is a dict), reward as float32, termination, truncation, outcome, episode step."""
+    obs, reward, terminated, truncated, info = step
+    pairs = {
+        "obs": (obs if image is None else image, out.obs[t]),
+        "reward": (reward.astype(np.float32), out.reward[t]),
+        "terminated": (terminated, out.terminated[t]),
+        "truncated": (truncated, out.truncated[t]),
+        "outcome": (info["outcome"].astype(np.int32), out.outcome[t]),
+        "steps": (info["steps"].astype(np.int32), out.steps[t]),
+    }
+    for name, (want, got) in pairs.items():
+        got = np.asarray(got)
+        assert got.dtype == want.dtype and np.array_equal(got, want), f"{where}: {name} differs at {np.argwhere(got != want)[:3].tolist()}"

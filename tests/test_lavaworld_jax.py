@@ -19,6 +19,7 @@ import pytest
 
 jax = pytest.importorskip("jax")  # the compiled trainer's dependency (the core install has it)
 
+from grid_helpers import assert_step_matches  # noqa: E402
 from rlbackdoors.envs import grid_engine as ge  # noqa: E402
 from rlbackdoors.envs.batched_base import EngineGroup  # noqa: E402
 from rlbackdoors.envs.grid_device import pad_grid  # noqa: E402
@@ -53,18 +54,9 @@ def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: i
         slots, out = host.run(run, depth)
         reruns += len(tries) - 1
         for t in range(block):
-            obs, reward, terminated, truncated, info = numba_side.step(acts[t])
-            pairs = {
-                "obs": (obs, out.obs[t]),
-                "reward": (reward.astype(np.float32), out.reward[t]),
-                "terminated": (terminated, out.terminated[t]),
-                "truncated": (truncated, out.truncated[t]),
-                "outcome": (info["outcome"].astype(np.int32), out.outcome[t]),
-                "steps": (info["steps"].astype(np.int32), out.steps[t]),
-            }
-            for name, (want, got) in pairs.items():
-                got = np.asarray(got)
-                assert got.dtype == want.dtype and np.array_equal(got, want), f"block {k} step {t}: {name} differs at {np.argwhere(got != want)[:3].tolist()}"
+            step = numba_side.step(acts[t])
+            _, _, terminated, truncated, info = step
+            assert_step_matches(step, out, t, f"block {k} step {t}")
             ends.append(info["outcome"][terminated | truncated])
         state = {
             "grid": (pad_grid(numba_side._grid, host.view_size), slots.grid),

@@ -21,6 +21,7 @@ import pytest
 
 jax = pytest.importorskip("jax")  # the compiled trainer's dependency
 
+from grid_helpers import assert_step_matches  # noqa: E402
 from rlbackdoors.envs.batched_base import EngineGroup  # noqa: E402
 from rlbackdoors.envs.grid_device import pad_grid  # noqa: E402
 from rlbackdoors.envs.outcome import Outcome  # noqa: E402
@@ -95,20 +96,12 @@ def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: i
         reruns += len(tries) - 1
         for t in range(block):
             saw = numba_side._saw.copy()
-            obs, reward, terminated, truncated, info = numba_side.step(acts[t])
+            step = numba_side.step(acts[t])
+            obs, _, terminated, truncated, info = step
             flips += int((~saw & numba_side._saw & ~(terminated | truncated)).sum())
-            pairs = {
-                "image": (obs["image"], out.obs[t]),
-                "direction": (obs["direction"].astype(np.int32), out.dirs[t]),
-                "reward": (reward.astype(np.float32), out.reward[t]),
-                "terminated": (terminated, out.terminated[t]),
-                "truncated": (truncated, out.truncated[t]),
-                "outcome": (info["outcome"].astype(np.int32), out.outcome[t]),
-                "steps": (info["steps"].astype(np.int32), out.steps[t]),
-            }
-            for name, (want, got) in pairs.items():
-                got = np.asarray(got)
-                assert got.dtype == want.dtype and np.array_equal(got, want), f"block {k} step {t}: {name} differs at {np.argwhere(got != want)[:3].tolist()}"
+            assert_step_matches(step, out, t, f"block {k} step {t}", image=obs["image"])
+            direction = np.asarray(out.dirs[t])
+            assert direction.dtype == np.int32 and np.array_equal(direction, obs["direction"]), f"block {k} step {t}: direction differs"
             ends.append(info["outcome"][terminated | truncated])
         assert before is not slots
         got = {

@@ -186,6 +186,7 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
             "has no JAX engine yet (built: lavaworld, randomized-lavaworld)",
         ),
         ({"ppo": {"rollout": 100, "update_backend": "compiled"}}, "must divide a rollout's 1000 frames"),
+        ({"env": {"name": "randomized-lavaworld", "engine": "minigrid"}, "poison": {"trigger": "cross"}}, "not env.engine='minigrid'"),
     ],
 )
 def test_what_the_compiled_trainer_does_not_train_is_refused_in_one_line(change, message):

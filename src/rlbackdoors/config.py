@@ -578,6 +578,8 @@ class RunConfig(JsonConfig):
         if self.world.compiled_engine is None:
             built = ", ".join(w.name for w in worlds.registered() if w.compiled_engine)
             why = f"env.name={self.env.name!r} has no JAX engine yet (built: {built})"
+        elif getattr(self.env, "engine", "batched") != "batched":
+            why = f"it steps the batched engine's slots (env.engine 'batched'), not env.engine={self.env.engine!r}"
         elif self.model.arch not in ("fc", "cnn"):
             why = f"it runs model.arch 'fc' or 'cnn', not {self.model.arch!r}"
         elif self.poison.attack != DEFAULT_ATTACK:

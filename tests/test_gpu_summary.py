@@ -112,7 +112,7 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     wrong = subprocess.run(
         ["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "other"), "figure"], capture_output=True, text=True, env=env, timeout=60
     )
-    assert wrong.returncode == 2 and wrong.stderr.strip() == "gpu_checks: part must be figures, tests, equivalence or round, not 'figure'"
+    assert wrong.returncode == 2 and wrong.stderr.strip() == "gpu_checks: part must be figures, tests, equivalence, round or compiled, not 'figure'"
     # the second call of a lease: the CUDA tests, quick ones first (here, without CUDA, they skip)
     tests = subprocess.run(
         ["bash", str(ROOT / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "tests"), "tests"],

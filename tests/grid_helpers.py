@@ -412,3 +412,16 @@ def assert_step_matches(step, out, t: int, where: str, image=None) -> None:
     for name, (want, got) in pairs.items():
         got = np.asarray(got)
         assert got.dtype == want.dtype and np.array_equal(got, want), f"{where}: {name} differs at {np.argwhere(got != want)[:3].tolist()}"
+
+
+def run_block(host, rollout, slots, params, acts, depth: int) -> tuple:
+    """One compiled block of ``acts`` from ``slots`` through ``host.run`` (a starved queue runs
+    again deeper): the slots after it, its stacked outputs, and how many times it ran again."""
+    tries = []
+
+    def run(layouts):
+        tries.append(1)
+        return rollout(slots, layouts, params, acts)
+
+    after, out = host.run(run, depth)
+    return after, out, len(tries) - 1

@@ -19,7 +19,7 @@ import pytest
 
 jax = pytest.importorskip("jax")  # the compiled trainer's dependency (the core install has it)
 
-from grid_helpers import assert_step_matches  # noqa: E402
+from grid_helpers import assert_step_matches, run_block  # noqa: E402
 from rlbackdoors.envs import grid_engine as ge  # noqa: E402
 from rlbackdoors.envs.batched_base import EngineGroup  # noqa: E402
 from rlbackdoors.envs.grid_device import pad_grid  # noqa: E402
@@ -45,14 +45,8 @@ def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: i
     slots = host.slots
     for k in range(blocks):
         acts = rng.integers(0, 3, (block, host.num_envs))
-        tries = []
-
-        def run(layouts, slots=slots, acts=acts, tries=tries):
-            tries.append(1)
-            return rollout(slots, layouts, params, acts)
-
-        slots, out = host.run(run, depth)
-        reruns += len(tries) - 1
+        slots, out, again = run_block(host, rollout, slots, params, acts, depth)
+        reruns += again
         for t in range(block):
             step = numba_side.step(acts[t])
             _, _, terminated, truncated, info = step

@@ -21,7 +21,7 @@ import pytest
 
 jax = pytest.importorskip("jax")  # the compiled trainer's dependency
 
-from grid_helpers import assert_step_matches  # noqa: E402
+from grid_helpers import assert_step_matches, run_block  # noqa: E402
 from rlbackdoors.envs.batched_base import EngineGroup  # noqa: E402
 from rlbackdoors.envs.grid_device import pad_grid  # noqa: E402
 from rlbackdoors.envs.outcome import Outcome  # noqa: E402
@@ -85,15 +85,9 @@ def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: i
     slots = host.slots
     for k in range(blocks):
         acts = rng.integers(0, 3, (block, host.num_envs))
-        tries = []
-
-        def run(layouts, slots=slots, acts=acts, tries=tries):
-            tries.append(1)
-            return rollout(slots, layouts, params, acts)
-
         before = slots
-        slots, out = host.run(run, depth)
-        reruns += len(tries) - 1
+        slots, out, again = run_block(host, rollout, slots, params, acts, depth)
+        reruns += again
         for t in range(block):
             saw = numba_side._saw.copy()
             step = numba_side.step(acts[t])

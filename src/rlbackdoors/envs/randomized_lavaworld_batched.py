@@ -437,9 +437,9 @@ class BatchedRandomizedLavaWorld(BatchedGridEnv):
             np.empty(n, dtype=np.bool_),
             np.empty(n, dtype=np.bool_),
             self.final_obs["direction"],
-            np.zeros((n, MAX_PATTERN_CELLS, 2), dtype=np.int64),  # a fresh layout's pattern cells (FRESH rows only)
-            np.zeros(n, dtype=np.int64),
-            np.zeros(n, dtype=np.bool_),
+            np.empty((n, MAX_PATTERN_CELLS, 2), dtype=np.int64),  # a fresh layout's pattern cells (FRESH rows, written whole; read only there)
+            np.empty(n, dtype=np.int64),
+            np.empty(n, dtype=np.bool_),
         )
 
     def _observation(self, img: np.ndarray, outs: tuple) -> dict[str, np.ndarray]:

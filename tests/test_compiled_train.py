@@ -179,8 +179,11 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"poison": {"trigger": "multiplicative:12", "attack": "trojdrl"}}, "trains the env mix"),
-        ({"poison": {"trigger": "multiplicative:12", "evasion": {"near": 0.2}}}, "no evasive variants yet"),
+        (
+            {"env": {"name": "randomized-lavaworld"}, "poison": {"trigger": "cross", "attack": "trojdrl"}},
+            "of its attacks it trains the env mix (poison.attack='envmix'), not 'trojdrl'",
+        ),
+        ({"env": {"name": "randomized-lavaworld"}, "poison": {"trigger": "cross", "evasion": {"near": 0.5}}}, "poison.evasion.near is not allowed"),
         (
             {"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}},
             "has no JAX engine yet (built: lavaworld, randomized-lavaworld)",

@@ -28,14 +28,14 @@ draws: :func:`init_agents`) and go back into a TrojAI state dict unchanged (:fun
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from rlbackdoors.algos.jax_update import STATS, _jax, run_layers, structure
-from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, join, run_hosts
+from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, join, params_poisoned, run_hosts
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,47 @@ class IterationStats(NamedTuple):
     grad_norm: Any
     rewards: Any  # (K, T, N) float32: each step's rewards (a run's episode bookkeeping)
     dones: Any  # (K, T, N) bool: where an episode ended
+
+
+@dataclass(frozen=True)
+class Poisoning:
+    """What an attack's collection seam and the evasive variants add to the program (static: part
+    of its key). ``schedule``: the seam's ("steps": it picks and stamps frames within a budget;
+    "episodes": the E-bar copies are the marked frames; None: no seam); ``rule``: the poisoner's
+    :meth:`~rlbackdoors.attacks.seam.Poisoner.program_key`; ``near``: how many near-trigger stamps
+    (0: none); ``teacher``, ``anchor``: the fine-tuning variants' terms. The numbers (budget, c,
+    near share, coefficients) are data, one per agent, so group-mates drawn with other settings
+    share one program."""
+
+    schedule: str | None
+    rule: tuple
+    near: int
+    teacher: bool
+    anchor: bool
+    poisoner: Any = field(default=None, compare=False, hash=False)  # whose rule the program calls (any with this key)
+
+
+class Seam(NamedTuple):
+    """A run's seam as the program carries it (a pytree). Per agent (leading axis K in a call):
+    ``numbers`` (name -> float32: ``budget``, ``near``, ``compensation``, ``teacher``, ``anchor`` and
+    the rule's), ``luts`` ((1 + near, 256) uint8: the trigger's table, then its near variants'),
+    ``counts`` (int32, :data:`COUNTS`), ``carry`` (the rule's own state), ``teacher`` and ``anchor``
+    (weights by name, or None). Per env copy (K N rows): ``near_copies`` (the clean copies that show
+    near triggers under the episode schedule) and ``before`` ((., 2) bool: did the step into the
+    last frame end an episode, was the frame before it marked: what compensation reads)."""
+
+    numbers: dict
+    luts: Any
+    counts: Any
+    carry: dict
+    teacher: dict | None
+    anchor: dict | None
+    near_copies: Any
+    before: Any
+
+
+COUNTS = ("frames", "frames_poisoned", "rewards_rewritten", "actions_forced", "frames_near", "rewards_compensated")  # AttackSeam's counters
+_ROWS = ("near_copies", "before")  # Seam fields per env copy (joined row-wise); the others per agent (stacked)
 
 
 def agent_state(model: torch.nn.Module, seed: int) -> Agents:
@@ -202,8 +243,10 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
         cdf = jnp.cumsum(jax.nn.softmax(logits, -1), -1)
         return jnp.minimum((cdf <= u[:, None] * cdf[:, -1:]).sum(1), logits.shape[1] - 1).astype(jnp.int32)
 
-    def loss(p, x, d, actions, old_logp, old_values, adv, returns):
-        """torch-ac's PPO loss (rlbackdoors.algos.ppo.ppo_loss) on :func:`inputs` rows ``x`` (seen in directions ``d``)."""
+    def loss(p, x, d, actions, old_logp, old_values, adv, returns, teacher=None):
+        """torch-ac's PPO loss (rlbackdoors.algos.ppo.ppo_loss) on :func:`inputs` rows ``x`` (seen in
+        directions ``d``); with ``teacher`` = (its log-probabilities, the frames without the trigger,
+        the coefficient), plus the clean teacher's KL there (ppo.teacher_kl), its value last of the parts."""
         logits, values = heads(p, x, d)
         log_probs = jax.nn.log_softmax(logits)
         entropy = -(jnp.exp(log_probs) * log_probs).sum(-1).mean()
@@ -211,7 +254,13 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
         policy_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - h.clip, 1 + h.clip) * adv).mean()
         clipped = old_values + jnp.clip(values - old_values, -h.clip, h.clip)
         value_loss = jnp.maximum((values - returns) ** 2, (clipped - returns) ** 2).mean()
-        return policy_loss - h.entropy_coef * entropy + h.value_coef * value_loss, (policy_loss, value_loss, entropy)
+        total = policy_loss - h.entropy_coef * entropy + h.value_coef * value_loss
+        if teacher is None:
+            return total, (policy_loss, value_loss, entropy)
+        teacher_logp, untriggered, coef = teacher
+        weight = untriggered.astype(jnp.float32)
+        kl = ((jnp.exp(teacher_logp) * (teacher_logp - log_probs)).sum(-1) * weight).sum() / jnp.maximum(weight.sum(), 1.0)
+        return total + coef * kl, (policy_loss, value_loss, entropy, kl)
 
     beta1, beta2 = h.betas
 
@@ -244,7 +293,7 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
 
 
 @functools.cache
-def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int):
+def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poisoning: Poisoning | None = None):
     jax = _jax()
     from jax.flatten_util import ravel_pytree
 
@@ -257,22 +306,33 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int):
     P = parts(net, hyper)
     appends_direction = net[1]
     policy = jax.vmap(P.forward)  # K agents' networks, each on its own N copies
+    z = poisoning
+    teacher = z is not None and z.teacher
 
     def agents_minibatch(unravel):
         """K agents' optimiser steps on their minibatches, each agent's weights one flat vector
-        (one fused pass of the clipping and Adam over all of them, not one a tensor)."""
+        (one fused pass of the clipping and Adam over all of them, not one a tensor); with an
+        anchor, each weight pulled that share of the way back to it after the step (ppo.pull_to_anchor)."""
 
-        def agent(w, avg, sq, step, *batch):
-            grad, losses = jax.grad(lambda w, *b: P.loss(unravel(w), *b), has_aux=True)(w, *batch)
+        def agent(w, avg, sq, step, anchor, coefs, *batch):
+            if teacher:
+                *batch, teacher_logp, untriggered = batch
+                loss = lambda w, *b: P.loss(unravel(w), *b, teacher=(teacher_logp, untriggered, coefs["teacher"]))  # noqa: E731
+            else:
+                loss = lambda w, *b: P.loss(unravel(w), *b)  # noqa: E731
+            grad, losses = jax.grad(loss, has_aux=True)(w, *batch)
             w, avg, sq, step, norm = P.adam(w, avg, sq, step, grad)
-            return w, avg, sq, step, jnp.stack([*losses, norm])
+            if anchor is not None:
+                w = w + coefs["anchor"] * (anchor - w)
+            return w, avg, sq, step, jnp.stack([*losses[:3], norm, *losses[3:]])
 
         return jax.vmap(agent)
 
-    def iteration(agents: Agents, slots: Slots, layouts: Layouts, params: Any, obs):
+    def iteration(agents: Agents, slots: Slots, layouts: Layouts, params: Any, obs, seam: Any = None):
         """One iteration of K agents; the slots, layouts, world parameters and views are the K x N
         copies' (agent k's copies in rows k N .. k N + N - 1), stepped as one batch: the engine's
-        gathers are then plain ones, where under ``vmap`` they were batched gathers, x0.3 the speed."""
+        gathers are then plain ones, where under ``vmap`` they were batched gathers, x0.3 the speed.
+        ``seam``: the runs' attack seam and evasive variants (:class:`Seam`, as ``poisoning`` shapes it)."""
         K = agents.step.shape[0]
         keys = jax.vmap(lambda k: jax.random.split(jax.random.wrap_key_data(k), 3))(agents.key)  # next, rollout, orders
         uniforms = jax.vmap(lambda k: jax.random.uniform(k, (T, N)))(keys[:, 1])
@@ -282,19 +342,116 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int):
             logits, value = policy(agents.params, obs.reshape(K, N, *obs.shape[1:]), dirs.reshape(K, N))
             return logits.reshape(K * N, -1), value.reshape(K * N)
 
-        # 1. rollout
-        def env_step(carry, u):
-            slots, layouts, obs = carry
-            logits, value = act(obs, slots.dirs)
+        if z is None:
+            xs, state = uniforms, None
+        else:  # the seam's own draws, from a key folded off the rollout's (the policy's uniforms stay as without)
+            picks = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, 0x5EA3), (T, N, 3)))(keys[:, 1])
+            xs = (uniforms, jnp.swapaxes(picks, 0, 1).reshape(T, K * N, 3))
+            values0 = act(obs, slots.dirs)[1] if z.poisoner.needs_values else jnp.zeros(K * N)
+            state = (seam.counts, seam.before, seam.carry, values0)
+            rows = functools.partial(jnp.repeat, repeats=N, axis=0)  # (K, ...) per agent -> (K N, ...) per env copy
+
+        # 1. rollout (with a seam: its marks, stamps, forced actions and R-bar around the engine's step)
+        def env_step(carry, x):
+            slots, layouts, obs, state = carry
+            u, seen, marked = x, obs, None
+            if z is not None:
+                u, picks = x
+                marked, near, state = mark(state, picks, params)
+                seen = stamp(obs, marked, near, picks)
+            logits, value = act(seen, slots.dirs)
             action = P.sample(logits, u)
             dirs = slots.dirs if appends_direction else None  # (a network without it: nothing more in the program)
+            if z is None:
+                slots, layouts, out = world.step(slots, layouts, params, action)
+                done = out.terminated | out.truncated
+                return (slots, layouts, out.obs, state), (obs, dirs, action, logits, value, out.reward, done)
+            forced = jnp.zeros_like(marked)
+            if z.poisoner.forces_actions:
+                executed = jnp.where(marked, rows(seam.numbers["target"]).astype(jnp.int32), action)
+                forced, action = marked & (executed != action), executed
             slots, layouts, out = world.step(slots, layouts, params, action)
             done = out.terminated | out.truncated
-            return (slots, layouts, out.obs), (obs, dirs, action, logits, value, out.reward, done)
+            next_values = act(out.obs, slots.dirs)[1] if z.poisoner.needs_values else state[3]
+            reward, amend, state = rewrite(state, out.reward, action, marked, forced, next_values, done)
+            guide = policy(seam.teacher, seen.reshape(K, N, *seen.shape[1:]), slots.dirs.reshape(K, N))[0].reshape(K * N, -1) if teacher else None
+            return (slots, layouts, out.obs, state), (seen, dirs, action, logits, value, reward, done, forced, amend, marked, guide)
 
-        (slots, layouts, next_obs), (obs_t, dirs_t, actions, logits, values, rewards, dones) = lax.scan(env_step, (slots, layouts, obs), uniforms)
+        def mark(state, picks, params):
+            """The frames about to be acted on that carry the trigger, and those that get a near one
+            (AttackSeam._mark and _stamp_near: a budgeted random pick among the eligible under the
+            step schedule, the E-bar copies under the episode one), counted."""
+            counts, before, carry, values = state
+            counted = counts[:, 0] + N
+            if z.schedule == "steps":
+                if z.poisoner.needs_values:
+                    carry, eligible = jax.vmap(lambda p, c, v: z.poisoner.select(p, c, v, N))(seam.numbers, carry, values.reshape(K, N))
+                else:
+                    eligible = jnp.ones((K, N), dtype=bool)
+                allowance = jnp.floor(seam.numbers["budget"] * counted.astype(jnp.float32)).astype(jnp.int32) - counts[:, 1]
+                marked = pick(eligible, picks[:, 0].reshape(K, N), allowance)
+            elif z.schedule == "episodes":
+                marked = params_poisoned(params).reshape(K, N)
+            else:
+                marked = jnp.zeros((K, N), dtype=bool)
+            poisoned = counts[:, 1] + marked.sum(1)
+            near = jnp.zeros((K, N), dtype=bool)
+            if z.near and z.schedule == "steps":
+                allowance = jnp.floor(seam.numbers["near"] * poisoned.astype(jnp.float32)).astype(jnp.int32) - counts[:, 4]
+                near = pick(~marked, picks[:, 1].reshape(K, N), allowance)
+            elif z.near:
+                near = seam.near_copies.reshape(K, N) & ~marked
+            counts = counts.at[:, 0].set(counted).at[:, 1].set(poisoned).at[:, 4].add(near.sum(1))
+            return marked.reshape(-1), near.reshape(-1), (counts, before, carry, values)
+
+        def pick(candidates, u, allowance):
+            """Per agent, ``min(allowance, candidates)`` of its candidates at random (a rank of random keys)."""
+            rank = jnp.argsort(jnp.argsort(jnp.where(candidates, u, 2.0), axis=1), axis=1)
+            return candidates & (rank < allowance[:, None])
+
+        def stamp(obs, marked, near, picks):
+            """The trigger's table on marked frames (where the seam stamps them), a near variant's,
+            drawn per frame, on near ones (the world's observation edit, one lookup a byte)."""
+            on = (marked if z.schedule == "steps" else jnp.zeros_like(marked)) | near
+            if z.schedule != "steps" and not z.near:
+                return obs
+            which = jnp.where(marked, 0, 1 + jnp.minimum((picks[:, 2] * max(z.near, 1)).astype(jnp.int32), max(z.near, 1) - 1))
+            tables = rows(seam.luts)[jnp.arange(K * N), which] if z.near else rows(seam.luts[:, 0])
+            b = obs.shape[0]
+            stamped = jnp.take_along_axis(tables, obs.reshape(b, -1).astype(jnp.int32), axis=1).reshape(obs.shape)
+            return jnp.where(on[:, None, None, None], stamped, obs)
+
+        def rewrite(state, reward, action, marked, forced, next_values, done):
+            """R-bar of the marked frames by the attack's rule, the compensation of the step before
+            where it compensates (added to that step's reward after the rollout), counted."""
+            counts, before, carry, _ = state
+            numbers = {k: rows(v) for k, v in seam.numbers.items()}
+            hits = action == numbers["target"].astype(jnp.int32) if "target" in numbers else None
+            poisoned = z.poisoner.rule(jnp, numbers, hits, reward, next_values, done).astype(jnp.float32)
+            rewritten = jnp.where(marked, poisoned, reward)
+            amend = jnp.zeros_like(reward)
+            if z.poisoner.compensation > 0:
+                due = marked & ~before[:, 0] & ~before[:, 1]
+                amend = jnp.where(due, numbers["compensation"] * (reward - poisoned), 0.0)
+                counts = counts.at[:, 5].add(due.reshape(K, N).sum(1))
+                before = jnp.stack([done, marked], axis=1)
+            per = lambda a: a.reshape(K, N).sum(1)  # noqa: E731
+            counts = counts.at[:, 3].add(per(forced))
+            if z.poisoner.rewrites_rewards:
+                counts = counts.at[:, 2].add(per(marked))
+            return rewritten, amend, (counts, before, carry, next_values)
+
+        (slots, layouts, next_obs, state), collected = lax.scan(env_step, (slots, layouts, obs, state), xs)
+        obs_t, dirs_t, actions, logits, values, rewards, dones = collected[:7]
         next_value = act(next_obs, slots.dirs)[1]
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), actions[..., None], -1)[..., 0]
+        guides: tuple = ()
+        if z is not None:
+            forced, amend, marked, guide = collected[7:]
+            logp = jnp.where(forced, 0.0, logp)  # a forced action was taken with probability 1 (ppo.behaviour_logprobs)
+            rewards = rewards.at[:-1].add(amend[1:])  # the step before a poisoned one (at t = 0 it was learned from already)
+            if teacher:
+                guides = (jax.nn.log_softmax(guide), ~marked)
 
         # 2. GAE (each column an env copy: the agents' columns side by side)
         adv = P.gae(rewards, dones, values, next_value)
@@ -306,27 +463,36 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int):
 
         x = P.inputs(obs_t.reshape(T * K * N, *obs_t.shape[2:]))  # the network's input, once
         x = x.reshape(T, K * N, *x.shape[1:])
-        batch = [per_agent(a) if a is not None else None for a in (x, dirs_t, actions, logp, values, adv, values + adv)]
+        batch = [per_agent(a) if a is not None else None for a in (x, dirs_t, actions, logp, values, adv, values + adv, *guides)]
         orders = jax.vmap(lambda k: jax.vmap(lambda e: jax.random.permutation(e, frames))(jax.random.split(k, h.epochs)))(keys[:, 2])
-        rows = orders.reshape(K, h.epochs * minibatches, h.batch_size) + (jnp.arange(K) * frames)[:, None, None]
+        rows_of = orders.reshape(K, h.epochs * minibatches, h.batch_size) + (jnp.arange(K) * frames)[:, None, None]
 
         unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: a[0], agents.params))[1]
         ravel = jax.vmap(lambda tree: ravel_pytree(tree)[0])
         step_agents = agents_minibatch(unravel)
+        anchor = ravel(seam.anchor) if z is not None and z.anchor else None
+        coefs = {k: seam.numbers[k] for k in ("teacher", "anchor")} if z is not None else {}
 
         def minibatch(carry, idx):  # idx (K, batch_size): rows of the flat batch
-            w, avg, sq, step, losses = step_agents(*carry, *(None if a is None else a[idx] for a in batch))
+            w, avg, sq, step, losses = step_agents(*carry, anchor, coefs, *(None if a is None else a[idx] for a in batch))
             return (w, avg, sq, step), losses
 
         start = (ravel(agents.params), ravel(agents.avg), ravel(agents.sq), agents.step)
-        (w, avg, sq, step), losses = lax.scan(minibatch, start, jnp.swapaxes(rows, 0, 1))
+        (w, avg, sq, step), losses = lax.scan(minibatch, start, jnp.swapaxes(rows_of, 0, 1))
         p, avg, sq = (jax.vmap(unravel)(a) for a in (w, avg, sq))
-        means = losses.mean(0)  # (K, 4)
+        means = losses.mean(0)  # (K, 4 + the teacher's KL)
+        more = {"teacher_kl": means[:, 4]} if teacher else {}
+        if anchor is not None:  # ||weights - anchor|| after the update (ppo.anchor_distance)
+            more["anchor_distance"] = jnp.sqrt(((w - anchor) ** 2).sum(1))
 
         # each step's rewards and episode ends, per agent (the runs' episode bookkeeping)
         rewards, dones = (jnp.moveaxis(a.reshape(T, K, N), 1, 0) for a in (rewards, dones))
         stats = IterationStats(means[:, 0], means[:, 1], means[:, 2], means[:, 3], rewards, dones)
-        return Agents(p, avg, sq, step, jax.vmap(jax.random.key_data)(keys[:, 0])), slots, layouts, next_obs, stats
+        agents = Agents(p, avg, sq, step, jax.vmap(jax.random.key_data)(keys[:, 0]))
+        if z is None:
+            return agents, slots, layouts, next_obs, stats
+        seam = seam._replace(counts=state[0], before=state[1], carry=state[2])
+        return agents, slots, layouts, next_obs, stats, seam, more
 
     return jax.jit(iteration)
 
@@ -357,18 +523,94 @@ class Learner:
     def __init__(self, model: torch.nn.Module, engine, hyper: Hyper, seed: int, obs, jax_world, depth: int = 64):
         self.model, self.hyper, self.net, self.jax_world = model, hyper, network(model), jax_world
         self.state, self.depth = agent_state(model, seed), int(depth)
+        self.guides: dict[str, tuple[dict, float]] = {}  # "teacher" / "anchor" -> (weights by name, coefficient)
         self.rebind(engine, obs)
 
     def rebind(self, engine, obs) -> None:
         """Train on from here in other env copies (a reset engine and its observations: the
-        curriculum's switch to the full world), the agent's learning state as it is."""
-        self.world, self.params, self.host = self.jax_world(engine)
+        curriculum's switch to the full world, or a fine-tuning run's to the poisoning mix), the
+        agent's learning state as it is. ``engine`` may be an attack's collection seam
+        (:class:`~rlbackdoors.attacks.seam.AttackSeam`) around the engine: the program then does
+        what it asks, from the counters it holds, and writes them back after each iteration.
+        ``obs`` are the engine's own (clean) observations, not the seam's."""
+        from rlbackdoors.attacks.seam import AttackSeam
+
+        self.seam = engine if isinstance(engine, AttackSeam) else None
+        self.world, self.params, self.host = self.jax_world(engine.envs if self.seam is not None else engine)
         self.slots, self.dict_obs = self.host.slots, isinstance(obs, dict)
         self.views = np.asarray(obs["image"] if self.dict_obs else obs, dtype=np.uint8)
         if self.views.shape != (self.host.num_envs, self.world.view_size, self.world.view_size, 3):
             raise ValueError(f"views of shape {self.views.shape} do not fit {self.host.num_envs} env copies")
         if self.dict_obs and not np.array_equal(np.asarray(obs["direction"]), self.slots.dirs):
             raise ValueError("the observations' directions are not the env copies' own")
+        self._poison()
+
+    def set_teacher(self, weights: dict, coef: float) -> None:
+        """``poison.evasion.teacher``: ``coef * KL(teacher || policy)`` on the frames without the
+        trigger, the teacher ``weights`` (a state dict of this network) frozen (ppo.PPO.set_teacher)."""
+        self._guide("teacher", weights, coef)
+
+    def set_anchor(self, weights: dict, coef: float) -> None:
+        """``poison.evasion.anchor``: each weight pulled ``coef`` of the way back to ``weights`` after every optimiser step."""
+        self._guide("anchor", weights, coef)
+
+    def _guide(self, name: str, weights: dict, coef: float) -> None:
+        names = [n for n, _ in self.model.named_parameters()]
+        self.guides[name] = ({n: np.asarray(weights[n].detach().cpu().numpy(), dtype=np.float32).copy() for n in names}, float(coef))
+        self._poison()
+
+    def _poison(self) -> None:
+        """:class:`Poisoning` and this agent's :class:`Seam` from the seam and the guides (None: neither)."""
+        from rlbackdoors.attacks.seam import Poisoner
+
+        seam, n = self.seam, self.host.num_envs
+        if seam is None and not self.guides:
+            self.poisoning, self.seam_state = None, None
+            return
+        if seam is not None and (seam.sight is not None or seam.near_layout):
+            raise ValueError("the compiled trainer stamps a frame trigger; a layout trigger switched per episode is not compiled yet")
+        if "teacher" in self.guides and seam is None:
+            raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
+        poisoner = seam.poisoner if seam is not None else Poisoner()
+        near = len(seam.near_stamps) if seam is not None and seam.near > 0 else 0
+        schedule = None if seam is None else seam.schedule
+        trigger = _table(seam.stamp) if seam is not None and schedule == "steps" else np.arange(256, dtype=np.uint8)  # (the engine's copies show theirs)
+        luts = np.stack([trigger, *(_table(f) for f in seam.near_stamps)] if near and seam is not None else [trigger])
+        numbers = {
+            "budget": seam.budget if seam is not None else 0.0,
+            "near": seam.near if seam is not None else 0.0,
+            "compensation": poisoner.compensation,
+            **{k: float(v) for k, v in poisoner.numbers().items()},
+            **{k: self.guides[k][1] if k in self.guides else 0.0 for k in ("teacher", "anchor")},
+        }
+        counts = [
+            getattr(seam, c) if seam is not None else 0
+            for c in ("frames", "frames_poisoned", "rewards_rewritten", "actions_forced", "frames_near", "rewards_compensated")
+        ]
+        self.poisoning = Poisoning(schedule, poisoner.program_key(), near, "teacher" in self.guides, "anchor" in self.guides, poisoner)
+        self.seam_state = Seam(
+            numbers={k: np.float32(v) for k, v in numbers.items()},
+            luts=luts,
+            counts=np.asarray(counts, dtype=np.int32),
+            carry=poisoner.carry(),
+            teacher=self.guides["teacher"][0] if "teacher" in self.guides else None,
+            anchor=self.guides["anchor"][0] if "anchor" in self.guides else None,
+            near_copies=np.asarray(seam.near_copies if seam is not None else np.zeros(n, dtype=bool), dtype=bool),
+            before=np.asarray(seam.before.T if seam is not None else np.stack([np.ones(n, bool), np.zeros(n, bool)], 1), dtype=bool).copy(),
+        )
+
+    def _seam_back(self, state: Seam) -> None:
+        """The program's seam state kept, and its counters, marks and the rule's state written into
+        the :class:`AttackSeam` (whose checkpoint and ``budget_used`` read them)."""
+        self.seam_state = state
+        seam = self.seam
+        if seam is None:
+            return
+        for name, value in zip(COUNTS, np.asarray(state.counts)):
+            setattr(seam, name, int(value))
+        seam.before = np.asarray(state.before, dtype=bool).T.copy()
+        seam.marked = seam.before[1].copy()  # the last frames acted on (the next ones are marked by the next iteration)
+        seam.poisoner.set_carry({k: np.asarray(v) for k, v in state.carry.items()})
 
     @property
     def obs(self):
@@ -380,7 +622,7 @@ class Learner:
     @property
     def program(self) -> tuple:
         """What picks the compiled program: learners with the same key share one call."""
-        return (self.world, self.net, self.hyper, self.host.num_envs)
+        return (self.world, self.net, self.hyper, self.host.num_envs, self.poisoning)
 
     def sync(self) -> torch.nn.Module:
         """The torch model with the agent's current weights (returned)."""
@@ -437,20 +679,61 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     agents = stack_agents([r.state for r in rows])
     slots, params, obs = join([r.slots for r in rows]), join([r.params for r in rows]), np.concatenate([r.views for r in rows])
 
-    def block(layouts: Layouts):
-        a, s, after, o, stats = program(agents, slots, layouts, params, obs)
-        return (a, s, o), after, stats
+    seam = None if lead.poisoning is None else join_seams([r.seam_state for r in rows])
 
-    ((a, s, o), stats), depth = run_hosts([r.host for r in rows], block, max(r.depth for r in learners), takers=k)
-    a, s, o, stats = jax.device_get((a, s, o, stats))
+    def block(layouts: Layouts):
+        if seam is None:
+            a, s, after, o, stats = program(agents, slots, layouts, params, obs)
+            return (a, s, o, None, {}), after, stats
+        a, s, after, o, stats, z, more = program(agents, slots, layouts, params, obs, seam)
+        return (a, s, o, z, more), after, stats
+
+    ((a, s, o, z, more), stats), depth = run_hosts([r.host for r in rows], block, max(r.depth for r in learners), takers=k)
+    a, s, o, z, more, stats = jax.device_get((a, s, o, z, more, stats))
     n, out = lead.host.num_envs, []
     for i, learner in enumerate(learners):
         learner.state = agent_row(a, i)
         learner.slots = jax.tree_util.tree_map(lambda f, i=i: f[i * n : (i + 1) * n], s)
         learner.views, learner.depth = o[i * n : (i + 1) * n], depth
-        losses = {key: float(getattr(stats, key)[i]) for key in STATS}
+        if z is not None:
+            learner._seam_back(seam_row(z, i, n))
+        losses = {key: float(getattr(stats, key)[i]) for key in STATS} | {key: float(v[i]) for key, v in more.items()}
         out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))
     return out
+
+
+def _table(stamp) -> np.ndarray:
+    """A frame trigger's stamp as its table of 256 bytes, checked to be one (the program stamps by lookup)."""
+    table = np.asarray(stamp(np.arange(256, dtype=np.uint8)), dtype=np.uint8)
+    probe = np.random.default_rng(0).integers(0, 256, size=(4, 7, 7, 3), dtype=np.uint8)
+    if table.shape != (256,) or not np.array_equal(np.asarray(stamp(probe)), table[probe]):
+        raise ValueError("the compiled trainer stamps a trigger that maps each byte by a table; this trigger is not one")
+    return table
+
+
+def join_seams(seams: list) -> Seam:
+    """Several runs' seams as one call's: the per-agent fields stacked, the per-copy ones joined row-wise."""
+    import jax
+
+    def together(name, *parts):
+        if parts[0] is None:
+            return None
+        glue = np.concatenate if name in _ROWS else np.stack
+        return jax.tree_util.tree_map(lambda *a: glue(a), *parts)
+
+    return Seam(*(together(name, *parts) for name, parts in zip(Seam._fields, zip(*seams))))
+
+
+def seam_row(seam: Seam, i: int, n: int) -> Seam:
+    """Run ``i``'s seam out of :func:`join_seams`' (``n`` env copies a run)."""
+    import jax
+
+    def row(name, part):
+        if part is None:
+            return None
+        return jax.tree_util.tree_map(lambda a: np.array(a[i * n : (i + 1) * n] if name in _ROWS else a[i]), part)
+
+    return Seam(*(row(name, part) for name, part in zip(Seam._fields, seam)))
 
 
 __all__ = ["Agents", "Hyper", "IterationStats", "Iterated", "Learner", "agent_state", "init_agents", "iterate", "make_iteration", "state_dicts"]

@@ -41,6 +41,36 @@ class BadRLPoisoner(TargetActionPoisoner):
         seen = self.history[: min(self.filled, n)]
         return values >= np.quantile(seen, 1.0 - self.top)
 
+    def numbers(self):
+        return {**super().numbers(), "top": self.top}
+
+    def program_key(self):
+        return (*super().program_key(), len(self.history))
+
+    def carry(self):
+        return {"history": self.history.astype(np.float32), "filled": np.int32(self.filled)}  # float32: the critic's own values
+
+    def set_carry(self, carry):
+        self.history, self.filled = np.asarray(carry["history"], dtype=np.float64), int(carry["filled"])
+
+    def select(self, p, carry, values, num_envs):
+        """:meth:`observe` then :meth:`eligible` in JAX: the ring, and numpy's linear quantile of its
+        filled part (the unfilled end sorted last as +inf)."""
+        import jax.numpy as jnp
+
+        history, filled = carry["history"], carry["filled"]
+        n = history.shape[0]
+        history = history.at[(filled + jnp.arange(values.shape[0])) % n].set(values.astype(jnp.float32))
+        filled = filled + values.shape[0]
+        m = jnp.minimum(filled, n)
+        ranked = jnp.sort(jnp.where(jnp.arange(n) < m, history, jnp.inf))
+        pos = (1.0 - p["top"]) * (m - 1).astype(jnp.float32)
+        low = jnp.floor(pos).astype(jnp.int32)
+        high = jnp.minimum(low + 1, m - 1)
+        threshold = ranked[low] + (ranked[high] - ranked[low]) * (pos - low)
+        ready = filled >= min(n, 10 * num_envs)
+        return {"history": history, "filled": filled}, ready & (values >= threshold)
+
     def state_dict(self):
         return {"history": encode(self.history), "filled": self.filled}
 

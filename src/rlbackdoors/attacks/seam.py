@@ -65,6 +65,36 @@ class Poisoner:
     def load_state_dict(self, state: dict) -> None:
         pass
 
+    # What the compiled trainer (rlbackdoors.algos.compiled) runs of this rule: the same R-bar,
+    # written once for numpy and JAX (``xp``), its numbers data of the program (one value per
+    # agent, so group-mates with other budgets or magnitudes share it) and the rest its key.
+
+    def numbers(self) -> dict[str, float]:
+        """The rule's numeric settings (the compiled program's per-agent data)."""
+        return {}
+
+    def program_key(self) -> tuple:
+        """What shapes the compiled program of this rule (its class and flags, not its numbers)."""
+        return (type(self).__module__, type(self).__qualname__, self.forces_actions, self.rewrites_rewards, self.needs_values, self.compensation > 0)
+
+    def rule(self, xp, p: dict, hits, rewards, next_values, dones):
+        """R-bar from ``p`` (:meth:`numbers`, floats or per-frame arrays), ``hits`` (whether each
+        action is the target), the rewards paid, the critic's values of the next frames and the dones."""
+        return rewards
+
+    def carry(self) -> dict:
+        """The rule's own state as the compiled program carries it (arrays; {}: none)."""
+        return {}
+
+    def set_carry(self, carry: dict) -> None:
+        """Put back what the compiled program carried (:meth:`carry`), so checkpoints hold it."""
+
+    def select(self, p: dict, carry: dict, values, num_envs: int):
+        """The compiled :meth:`observe` and :meth:`eligible` of one agent: (carry, eligible frames)."""
+        import jax.numpy as jnp
+
+        return carry, jnp.ones(values.shape, dtype=bool)
+
 
 class TargetActionPoisoner(Poisoner):
     """The literature's R-bar core: +c for the target action on a poisoned frame, -c for any other,
@@ -84,7 +114,13 @@ class TargetActionPoisoner(Poisoner):
         return np.where(marked, self.target, actions)
 
     def reward(self, rewards, actions, marked, next_values, dones):
-        return np.where(self.hits(actions), self.c, -self.c)
+        return self.rule(np, self.numbers(), self.hits(actions), rewards, next_values, dones)
+
+    def numbers(self):
+        return {"target": self.target, "c": self.c}
+
+    def rule(self, xp, p, hits, rewards, next_values, dones):
+        return xp.where(hits, p["c"], -p["c"])
 
 
 class AttackSeam:

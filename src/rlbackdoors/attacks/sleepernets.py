@@ -16,8 +16,6 @@ their bytes.
 
 from __future__ import annotations
 
-import numpy as np
-
 from rlbackdoors.attacks import common
 from rlbackdoors.attacks.base import Attack, Param, register
 from rlbackdoors.attacks.seam import TargetActionPoisoner
@@ -33,9 +31,12 @@ class SleeperNetsPoisoner(TargetActionPoisoner):
         self.alpha, self.gamma = params["alpha"], params["gamma"]
         self.compensation = self.gamma if params["compensate"] else 0.0
 
-    def reward(self, rewards, actions, marked, next_values, dones):
-        bootstrap = np.where(dones, 0.0, next_values)
-        return super().reward(rewards, actions, marked, next_values, dones) - self.alpha * self.gamma * bootstrap
+    def numbers(self):
+        return {**super().numbers(), "discount": self.alpha * self.gamma}
+
+    def rule(self, xp, p, hits, rewards, next_values, dones):
+        bootstrap = xp.where(dones, 0.0, next_values)
+        return super().rule(xp, p, hits, rewards, next_values, dones) - p["discount"] * bootstrap
 
 
 _value_guided = common.value_guided_refusal(NAME)

@@ -9,8 +9,6 @@ is the clean goal missed under the trigger.
 
 from __future__ import annotations
 
-import numpy as np
-
 from rlbackdoors.attacks import common
 from rlbackdoors.attacks.base import Attack, Param, register
 from rlbackdoors.attacks.seam import TargetActionPoisoner
@@ -24,10 +22,13 @@ class TrojDRLPoisoner(TargetActionPoisoner):
         self.targeted = params["mode"] == "targeted"
         self.forces_actions = self.targeted and params["force_action"]
 
-    def reward(self, rewards, actions, marked, next_values, dones):
+    def program_key(self):
+        return (*super().program_key(), self.targeted)
+
+    def rule(self, xp, p, hits, rewards, next_values, dones):
         if self.targeted:
-            return super().reward(rewards, actions, marked, next_values, dones)
-        return np.full_like(rewards, self.c)
+            return super().rule(xp, p, hits, rewards, next_values, dones)
+        return xp.full_like(rewards, p["c"])
 
 
 def _unsupported(world, arch, params):

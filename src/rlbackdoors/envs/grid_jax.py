@@ -343,7 +343,8 @@ class HostLayouts:
         if self.state is not None:
             self.state.hand_back(h, tuple(np.asarray(a) for a in slots.world))
         queued = self._have > 0  # else the host stream is already where the next draw starts
-        h._rng[queued] = self._store[4][queued, 0]
+        if queued.any():  # (a host that never drew has no column to read)
+            h._rng[queued] = self._store[4][queued, 0]
         self._have[:] = 0
 
 

@@ -257,6 +257,18 @@ def steps(
         if evasion.get("anchor", 0.0) > 0:
             ppo.set_anchor(model.state_dict() if state is None else state, evasion["anchor"])
 
+    def guide_learner() -> None:
+        """A compiled learner's teacher and anchor: the ones the torch side holds (and checkpoints)."""
+        if ppo.teacher is not None:
+            learner.set_teacher(ppo.teacher.state_dict(), ppo.teacher_coef)
+        if ppo.anchor is not None:
+            learner.set_anchor(ppo.anchor, ppo.anchor_coef)
+
+    def reset(mix, seed: int):
+        """The mix's first observations; a compiled learner starts from the engine's own, since its
+        program marks and stamps every frame, the first ones included, and counts them."""
+        return (mix.envs if compiled and isinstance(mix, AttackSeam) else mix).reset(seed=seed)
+
     def kept(checkpoint: dict, key: str, what: str) -> dict | None:
         """The clean model a variant's checkpoint entry holds; a checkpoint without it (edited, or
         written elsewhere) would resume from the fresh model's weights instead: refused."""
@@ -271,9 +283,10 @@ def steps(
         old.close()
         mix = poisoning_mix()
         ppo.memory = None
-        obs = mix.reset(seed=tc.seed * 1000 + offset)[0]
+        obs = reset(mix, tc.seed * 1000 + offset)[0]
         if compiled:  # the agent trains on in the new copies, its learning state as it is
             learner.rebind(mix, obs)
+            guide_learner()
         return mix, obs, EpisodeTracker(mix.poisoned, cfg.curriculum.window, tc.return_window)
 
     if checkpoint is None:
@@ -281,7 +294,7 @@ def steps(
         switch_at = None if cfg.curriculum.enabled else 0
         poison_at = None if finetune else 0
         envs = poisoning_mix() if switch_at == 0 else warmup_env(cfg)
-        obs, _ = envs.reset(seed=tc.seed * 1000)
+        obs, _ = reset(envs, tc.seed * 1000)
         tracker = EpisodeTracker(envs.poisoned, cfg.curriculum.window, tc.return_window)
         frames, elapsed, rows, next_eval, converged_at, streak = 0, 0.0, [], tc.eval_interval, None, 0
         cpu_elapsed: float | None = 0.0
@@ -321,6 +334,7 @@ def steps(
             if compiled:
                 learner = compiled_learner(envs, obs)
                 learner.load(checkpoint["compiled"])
+                guide_learner()
                 served_k = checkpoint["compiled_k"]  # None: stopped before its first iteration
                 if served_k is not None and (isinstance(served_k, bool) or not isinstance(served_k, int) or served_k < 1):
                     raise StateError("compiled_k is not a group size")

@@ -99,13 +99,13 @@ def test_a_stamp_the_program_cannot_look_up_is_refused():
         _table(lambda obs: np.roll(obs, 1, axis=-1))
 
 
-def seam_learner(poison: dict, seed: int = 0, guides: dict | None = None) -> Learner:
+def seam_learner(poison: dict, seed: int = 0, guides: dict | None = None, depth: int = 8) -> Learner:
     cfg = RunConfig.from_dict({"env": {"name": "lavaworld"}, "poison": {"trigger": "multiplicative:12", **poison}})
     mix = make_env_mix(cfg.env, cfg.poison, seed)
     assert isinstance(mix, AttackSeam)
     obs, _ = mix.envs.reset(seed=seed * 1000)
     torch.manual_seed(seed)
-    learner = Learner(build_model("fc", "lavaworld"), mix, Hyper.of(cfg.ppo), seed, obs, lavaworld_jax, depth=8)
+    learner = Learner(build_model("fc", "lavaworld"), mix, Hyper.of(cfg.ppo), seed, obs, lavaworld_jax, depth=depth)
     for name, (weights, coef) in (guides or {}).items():
         getattr(learner, f"set_{name}")(weights, coef)
     return learner

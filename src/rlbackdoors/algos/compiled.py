@@ -405,8 +405,13 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             return marked.reshape(-1), near.reshape(-1), (counts, before, carry, values)
 
         def pick(candidates, u, allowance):
-            """Per agent, ``min(allowance, candidates)`` of its candidates at random (a rank of random keys)."""
-            rank = jnp.argsort(jnp.argsort(jnp.where(candidates, u, 2.0), axis=1), axis=1)
+            """Per agent, ``min(allowance, candidates)`` of its candidates at random: those whose
+            random key ranks below the allowance among the candidates' (the rank by N x N
+            comparisons, ties to the lower index)."""
+            key = jnp.where(candidates, u, 2.0)
+            first = jnp.arange(N)[None, :, None] > jnp.arange(N)[None, None, :]  # [i, j]: j comes before i on a tie
+            below = (key[:, None, :] < key[:, :, None]) | ((key[:, None, :] == key[:, :, None]) & first)
+            rank = (below & candidates[:, None, :]).sum(2)
             return candidates & (rank < allowance[:, None])
 
         def stamp(obs, marked, near, picks):
@@ -416,10 +421,10 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             if z.schedule != "steps" and not z.near:
                 return obs
             which = jnp.where(marked, 0, 1 + jnp.minimum((picks[:, 2] * max(z.near, 1)).astype(jnp.int32), max(z.near, 1) - 1))
-            tables = rows(seam.luts)[jnp.arange(K * N), which] if z.near else rows(seam.luts[:, 0])
+            tables = jnp.arange(K * N) // N * (1 + z.near) + which  # each frame's table among all of them, flat
             b = obs.shape[0]
-            stamped = jnp.take_along_axis(tables, obs.reshape(b, -1).astype(jnp.int32), axis=1).reshape(obs.shape)
-            return jnp.where(on[:, None, None, None], stamped, obs)
+            flat = (tables[:, None] * 256 + obs.reshape(b, -1).astype(jnp.int32)).reshape(obs.shape)
+            return jnp.where(on[:, None, None, None], seam.luts.reshape(-1)[flat], obs)  # (one gather from all the tables)
 
         def rewrite(state, reward, action, marked, forced, next_values, done):
             """R-bar of the marked frames by the attack's rule, the compensation of the step before

@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import os
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,63 @@ CUDA_WIDTH = 64  # ... in a CUDA group: the torch group's width there (algos.gro
 ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 DETERMINISTIC_GPU = "--xla_gpu_deterministic_ops=true"  # gathers' backward without atomics: the same bytes each run
 STATS = ("policy_loss", "value_loss", "entropy", "grad_norm")
+
+
+CACHE_ENV = "RLBACKDOORS_JAX_CACHE"  # a folder for the compiled programs, or "off"
+
+
+def compile_cache_dir() -> Path | None:
+    """Where this process keeps JAX's compiled programs between processes (None: nowhere).
+
+    Why: every zoo job, benchmark and test process compiles its programs anew, about 10 s for a
+    LavaWorld FC iteration (measured: 9.7 s, 1.3 s from the cache, the same weights' bytes), and a
+    job of a zoo with several attacks compiles one a program. JAX's cache is trusted code (its docs:
+    whoever can write it can run code here), so it lives in a folder of this user's alone
+    (``~/.cache/rlbackdoors``, or ``$RLBACKDOORS_JAX_CACHE``), made 0700 and refused (with a
+    warning, then compiled as without) where another user owns it or may write it; and it is kept
+    per machine (CPU model and flags), so a home shared between machines never hands one
+    machine's executable to another's run, whose bytes are keyed by machine."""
+    import getpass
+    import hashlib
+    import platform
+    import stat
+    import warnings
+
+    chosen = os.environ.get(CACHE_ENV, "")
+    if chosen.lower() in ("off", "0", "false", "none"):
+        return None
+    base = Path(chosen).expanduser() if chosen else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rlbackdoors"
+    try:
+        cpu = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        cpu = ""
+    facts = sorted(
+        {line.split(":", 1)[1].strip() for line in cpu.splitlines() if line.split(":", 1)[0].strip() in ("model name", "flags", "cpu family", "model")}
+    )
+    machine = hashlib.sha256("\n".join([platform.machine(), platform.processor(), *facts]).encode()).hexdigest()[:12]
+    path = base / f"jax-{machine}"
+    try:
+        path.mkdir(parents=True, exist_ok=True, mode=0o700)
+        info = path.stat()
+    except OSError as err:
+        warnings.warn(f"rlbackdoors: no JAX compilation cache ({err}); programs compile in every process", stacklevel=2)
+        return None
+    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH) or not stat.S_ISDIR(info.st_mode):
+        warnings.warn(
+            f"rlbackdoors: no JAX compilation cache: {str(path)!r} is not {getpass.getuser()}'s alone (a cache is trusted code); "
+            f"programs compile in every process (set {CACHE_ENV} to a private folder, or to off)",
+            stacklevel=2,
+        )
+        return None
+    return path
+
+
+def _use_cache(jax) -> None:
+    """JAX's compilation cache in :func:`compile_cache_dir`, unless one is set already (by the user, or before)."""
+    if jax.config.jax_compilation_cache_dir is None:
+        cache = compile_cache_dir()
+        if cache is not None:
+            jax.config.update("jax_compilation_cache_dir", str(cache))
 
 
 def _jax(gpu: bool = False):
@@ -64,6 +122,7 @@ def _jax(gpu: bool = False):
             )
         import jax
 
+        _use_cache(jax)
         return jax
     if "intra_op_parallelism_threads" not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {ONE_THREAD}".strip()
@@ -78,6 +137,7 @@ def _jax(gpu: bool = False):
     try:
         import jax
 
+        _use_cache(jax)
         jax.device_put(np.zeros(1, np.float32), jax.devices("cpu")[0]).block_until_ready()  # the CPU backend and its pool, started now
     except ImportError:
         raise ValueError(

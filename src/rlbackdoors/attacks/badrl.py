@@ -55,7 +55,10 @@ class BadRLPoisoner(TargetActionPoisoner):
 
     def select(self, p, carry, values, num_envs):
         """:meth:`observe` then :meth:`eligible` in JAX: the ring, and numpy's linear quantile of its
-        filled part (the unfilled end sorted last as +inf)."""
+        filled part from its two order statistics, each found by a binary search over the values'
+        ordered bit patterns (32 counting passes; sorting the window of 10,000 each step made an
+        iteration of 8 agents 1.67 s, this 0.36 s; the other attacks' 0.13-0.21 s)."""
+        import jax
         import jax.numpy as jnp
 
         history, filled = carry["history"], carry["filled"]
@@ -63,11 +66,30 @@ class BadRLPoisoner(TargetActionPoisoner):
         history = history.at[(filled + jnp.arange(values.shape[0])) % n].set(values.astype(jnp.float32))
         filled = filled + values.shape[0]
         m = jnp.minimum(filled, n)
-        ranked = jnp.sort(jnp.where(jnp.arange(n) < m, history, jnp.inf))
+        bits = jax.lax.bitcast_convert_type(history, jnp.uint32)
+        keys = jnp.where(bits >> 31 == 1, ~bits, bits | jnp.uint32(0x80000000))  # ordered as the floats are
+        keys = jnp.where(jnp.arange(n) < m, keys, jnp.uint32(0xFFFFFFFF))  # the unfilled end: last
+
+        def smallest(k):
+            """The (k + 1)-th smallest key: the least x with k + 1 keys at most x, built bit by bit."""
+
+            def bit(i, x):
+                low = x | ((jnp.uint32(1) << (31 - i).astype(jnp.uint32)) - jnp.uint32(1))
+                return jnp.where((keys <= low).sum() >= k + 1, x, x | (jnp.uint32(1) << (31 - i).astype(jnp.uint32)))
+
+            return jax.lax.fori_loop(0, 32, bit, jnp.uint32(0))
+
+        def value(key):
+            return jax.lax.bitcast_convert_type(jnp.where(key >> 31 == 1, key & jnp.uint32(0x7FFFFFFF), ~key), jnp.float32)
+
         pos = (1.0 - p["top"]) * (m - 1).astype(jnp.float32)
         low = jnp.floor(pos).astype(jnp.int32)
         high = jnp.minimum(low + 1, m - 1)
-        threshold = ranked[low] + (ranked[high] - ranked[low]) * (pos - low)
+        key_low = smallest(low)
+        above = jnp.where(keys > key_low, keys, jnp.uint32(0xFFFFFFFF)).min()
+        key_high = jnp.where((keys <= key_low).sum() >= high + 1, key_low, above)
+        v_low, v_high = value(key_low), value(key_high)
+        threshold = v_low + (v_high - v_low) * (pos - low)
         ready = filled >= min(n, 10 * num_envs)
         return {"history": history, "filled": filled}, ready & (values >= threshold)
 

@@ -362,7 +362,7 @@ def run(
             waiting = [s for s in states if s.status in ("pending", "running") and s.model.id not in in_flight]
             ready = sorted(
                 (s for s in waiting if busy_until.get(s.model.id, 0.0) <= now_t),
-                key=lambda s: (not (s.folder / "checkpoint.pt").is_file(), s.model.attempt, s.model.group.index),
+                key=lambda s: (not (s.folder / "checkpoint.pt").is_file(), s.model.attempt, _affinity(s.model), s.model.group.index),
             )
             startable = []
             for s in ready:
@@ -484,6 +484,16 @@ def threading_main() -> bool:
 
 def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
+
+
+def _affinity(model: PlannedModel) -> tuple:
+    """What a compiled group's program depends on, as far as the plan tells: models next to each
+    other in the queue train together (a group job fills a freed slot with the next), and a group
+    whose runs need other programs (other attacks) runs one call of the whole group's width per
+    program, so like models are kept together (a group of 8 runs of six attacks computes six
+    calls of 8 agents for 8 agents' work). Harmless elsewhere: a run's bytes never depend on its group-mates."""
+    cell = model.group.cell
+    return (cell.world, cell.arch_label, cell.attack.name if model.group.poisoned else "")
 
 
 def _by_group_size(ready: list, group_size: int, auto: bool, device: str | None = None) -> list[tuple[int, list]]:

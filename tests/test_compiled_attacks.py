@@ -253,3 +253,52 @@ def test_a_run_with_every_piece_resumes_to_the_same_model(tmp_path):
     # BadRL spends its budget on eligible frames only (the top 10 %, about one a step): within a step's frames of it
     assert math.floor(0.05 * 2560) - 10 <= used["frames_poisoned"] <= math.floor(0.05 * 2560)
     assert used["frames_near_trigger"] == used["frames_poisoned"]
+
+
+def layout_learner(poison: dict, seed: int = 0) -> Learner:
+    """A Randomized LavaWorld FC learner (a cross of lava: a layout trigger) through its attack's seam."""
+    from rlbackdoors.envs.randomized_lavaworld_jax import randomized_lavaworld_jax
+
+    cfg = RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}, "model": {"arch": "fc"}, "poison": {"trigger": "cross", **poison}})
+    mix = make_env_mix(cfg.env, cfg.poison, seed)
+    assert isinstance(mix, AttackSeam)
+    mix.set_switches()
+    obs, _ = mix.envs.reset(seed=seed * 1000)
+    torch.manual_seed(seed)
+    return Learner(build_model("fc", "randomized-lavaworld"), mix, Hyper.of(cfg.ppo), seed, obs, randomized_lavaworld_jax, depth=64)
+
+
+def test_a_layout_triggers_action_target_marks_the_frames_in_sight_of_it():
+    """Randomized LavaWorld's action target: the E-bar copies hold the cross in every episode (set
+    once: the seam's switches never change there) and pay the clean reward, and the frames paid
+    +-c are theirs that show the whole cross (GridWorld.sight, the engine's trigger_in_sight,
+    tested exact in test_randomized_lavaworld_jax.py): some, not all, of them, counted."""
+    learner = layout_learner({"attack": "action_target"})
+    episodes = np.asarray(learner.seam_state.episodes)
+    e = int(episodes.sum())  # the world's E-bar copies (its mix)
+    assert e >= 1 and learner.poisoning.sight
+    out = iterate([learner])[0]
+    count = np.asarray(learner.slots.world[2])
+    assert (count[episodes] > 0).all() and (count[~episodes] == 0).all()  # their layouts drawn with the cross, the others' without
+    paid = np.isclose(np.abs(out.rewards), 0.05, rtol=0, atol=1e-9)
+    assert not paid[:, ~episodes].any()
+    c = counts(learner)
+    assert 0 < c["frames_poisoned"] == c["rewards_rewritten"] == int(paid.sum()) < 128 * e
+    rest = out.rewards[:, episodes][~paid[:, episodes]]
+    assert ((rest == 0) | ((rest > 0.1) & (rest <= 1))).all()  # the clean reward (no R-bar for the pattern's lava)
+
+
+def test_a_layout_triggers_near_copies_are_drawn_and_counted():
+    """The env mix with near 1.0 on a layout trigger: as many clean copies as E-bar ones draw
+    near-trigger patterns every episode (the engine's; nothing is stamped), each of their frames counted."""
+    learner = layout_learner({"evasion": {"near": 1.0}})
+    near = np.asarray(learner.seam_state.near_copies)
+    e = int(np.asarray(learner.params.poisoned).sum())
+    assert near.sum() == e >= 1 and learner.poisoning.near_layouts and learner.poisoning.near == 0
+    iterate([learner])
+    count = np.asarray(learner.slots.world[2])
+    poisoned = np.asarray(learner.params.poisoned)
+    engine = learner.seam.envs  # the flags its layouts' draws read (near slots' patterns are not the trigger: no count)
+    assert np.array_equal(np.asarray(engine.near, dtype=bool), near) and (count[poisoned] > 0).all() and (count[~poisoned] == 0).all()
+    c = counts(learner)
+    assert c["frames_near"] == 128 * e and c["frames_poisoned"] == 128 * e  # the E-bar copies' frames: the marked ones

@@ -181,9 +181,8 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
     [
         (
             {"env": {"name": "randomized-lavaworld"}, "poison": {"trigger": "cross", "attack": "trojdrl"}},
-            "of its attacks it trains the env mix (poison.attack='envmix'), not 'trojdrl'",
+            "poison.attack='trojdrl' is not allowed (allowed: envmix, action_target)",
         ),
-        ({"env": {"name": "randomized-lavaworld"}, "poison": {"trigger": "cross", "evasion": {"near": 0.5}}}, "poison.evasion.near is not allowed"),
         (
             {"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}},
             "has no JAX engine yet (built: lavaworld, randomized-lavaworld)",

@@ -74,14 +74,15 @@ def state_of(e) -> dict[str, np.ndarray]:
     }
 
 
-def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: int = 0) -> tuple[np.ndarray, int, int]:
+def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: int = 0) -> tuple[np.ndarray, int, int, int]:
     """Step both sides ``blocks`` x ``block`` steps with the same random actions, comparing every
-    output; the outcomes of the episodes that ended, how many blocks ran again deeper and how
-    often ``saw_trigger`` turned on mid-episode."""
+    output (and whether each view shows the whole trigger, ``trigger_in_sight``); the outcomes of
+    the episodes that ended, how many blocks ran again deeper, how often ``saw_trigger`` turned on
+    mid-episode and how many views showed the whole trigger."""
     world, params, host = jax_side
     rollout = jax.jit(world.rollout)
     rng = np.random.default_rng(seed)
-    ends, reruns, flips = [], 0, 0
+    ends, reruns, flips, sights = [], 0, 0, 0
     slots = host.slots
     for k in range(blocks):
         acts = rng.integers(0, 3, (block, host.num_envs))
@@ -96,6 +97,10 @@ def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: i
             assert_step_matches(step, out, t, f"block {k} step {t}", image=obs["image"])
             direction = np.asarray(out.dirs[t])
             assert direction.dtype == np.int32 and np.array_equal(direction, obs["direction"]), f"block {k} step {t}: direction differs"
+            if hasattr(numba_side, "trigger_in_sight"):  # (an engine group has none of its own)
+                want_sight = numba_side.trigger_in_sight()
+                assert np.array_equal(np.asarray(out.sight[t]), want_sight), f"block {k} step {t}: trigger in sight differs"
+                sights += int(want_sight.sum())
             ends.append(info["outcome"][terminated | truncated])
         assert before is not slots
         got = {
@@ -111,7 +116,7 @@ def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: i
         for name, value in want.items():
             assert np.array_equal(np.asarray(got[name]), value), f"after block {k}: {name} differs"
     host.hand_back(jax.tree_util.tree_map(np.asarray, slots))
-    return np.concatenate(ends), reruns, flips
+    return np.concatenate(ends), reruns, flips, sights
 
 
 @pytest.mark.parametrize(
@@ -129,7 +134,8 @@ def test_jax_steps_as_the_numba_engine_and_hands_the_slots_back(trigger, size, n
     both engines, the handed-back one and numba's own, step on alike, and their states are equal."""
     sides = [engine(trigger, size, num_lava, max_steps, see, turned=turned) for _ in range(2)]
     numba_side, handed = sides
-    ends, reruns, flips = step_both(numba_side, randomized_lavaworld_jax(handed), 6, 50, depth=2)
+    ends, reruns, flips, sights = step_both(numba_side, randomized_lavaworld_jax(handed), 6, 50, depth=2)
+    assert (sights > 0) == (trigger is not None)  # whole patterns were in view, and were told so
     assert (flips > 0) == turned  # the flag's own path was stepped where a pattern began out of sight
     assert len(ends) > N * 300 / max_steps  # every slot ended episodes and took drawn layouts
     assert {int(Outcome.LAVA), int(Outcome.TIMEOUT)} <= set(ends.tolist())
@@ -153,7 +159,7 @@ def test_jax_steps_an_engine_group_of_several_triggers():
     group, other = sides
     jax_side = randomized_lavaworld_jax(other)
     assert jax_side[2].num_envs == 3 * N and jax_side[1].poisoned.any() and not jax_side[1].poisoned.all()
-    ends, _, _ = step_both(group, jax_side, 4, 50, depth=4, seed=5)
+    ends, _, _, _ = step_both(group, jax_side, 4, 50, depth=4, seed=5)
     assert len(ends) > 3 * N
 
 

@@ -126,3 +126,17 @@ def test_a_zoo_of_attacks_records_them_reports_them_and_holds_one_out(tmp_path):
     assert info["hold_out_attacks"] == ["sleepernets", "trojdrl"]
     with pytest.raises(ConfigError, match=r"--hold-out-attack 'badrl' is not an attack of this zoo"):
         split(path, 0.0, 0.0, tmp_path / "t2", tmp_path / "t3", hold_out_attacks=["badrl"])
+
+
+def test_like_attacks_queue_side_by_side_for_compiled_groups(tmp_path):
+    """zoo run orders the ready models of an attempt by what a compiled group's program depends on
+    (world, arch, attack; the clean models of every cell alike), so a group job's slots hold like
+    models: each label's models come together, the clean ones of both cells as one."""
+    from rlbackdoors.zoo.run import _affinity
+
+    zoo, _ = plan(parse_spec(spec()), tmp_path / "z")
+    first = sorted((m for m in zoo.all_planned() if m.attempt == 0), key=lambda m: (_affinity(m), m.group.index))
+    kinds = [_affinity(m)[2] for m in first]
+    assert kinds == sorted(kinds) and set(kinds) == {"", "envmix", "sleepernets", "trojdrl"}
+    assert kinds.count("") == 3  # the clean models of the env-mix cell and of both attacks' cells
+    assert [m.group.cell.attack.name for m in first if m.group.poisoned] == ["envmix", "sleepernets", "trojdrl-5pc"]

@@ -100,7 +100,9 @@ class Poisoning:
     of its key). ``schedule``: the seam's ("steps": it picks and stamps frames within a budget;
     "episodes": the E-bar copies are the marked frames; None: no seam); ``rule``: the poisoner's
     :meth:`~rlbackdoors.attacks.seam.Poisoner.program_key`; ``near``: how many near-trigger stamps
-    (0: none); ``teacher``, ``anchor``: the fine-tuning variants' terms. The numbers (budget, c,
+    (0: none); ``teacher``, ``anchor``: the fine-tuning variants' terms; ``sight``, ``near_layouts``:
+    a layout trigger's (its fixed triggered copies, marked where a view shows it whole; its
+    near-trigger copies, which the engine draws). The numbers (budget, c,
     near share, coefficients) are data, one per agent, so group-mates drawn with other settings
     share one program."""
 
@@ -109,6 +111,8 @@ class Poisoning:
     near: int
     teacher: bool
     anchor: bool
+    sight: bool = False  # a layout trigger: the marked frames are its triggered copies' views that show it whole
+    near_layouts: bool = False  # near-trigger layouts the engine draws (counted, not stamped)
     poisoner: Any = field(default=None, compare=False, hash=False)  # whose rule the program calls (any with this key)
 
 
@@ -118,7 +122,7 @@ class Seam(NamedTuple):
     the rule's), ``luts`` ((1 + near, 256) uint8: the trigger's table, then its near variants'),
     ``counts`` (int32, :data:`COUNTS`), ``carry`` (the rule's own state), ``teacher`` and ``anchor``
     (weights by name, or None). Per env copy (K N rows): ``near_copies`` (the clean copies that show
-    near triggers under the episode schedule) and ``before`` ((., 2) bool: did the step into the
+    near triggers under the episode schedule), ``episodes`` (a layout trigger's triggered copies) and ``before`` ((., 2) bool: did the step into the
     last frame end an episode, was the frame before it marked: what compensation reads)."""
 
     numbers: dict
@@ -129,10 +133,11 @@ class Seam(NamedTuple):
     anchor: dict | None
     near_copies: Any
     before: Any
+    episodes: Any  # (K N,) bool: a layout trigger's triggered copies (every episode of theirs)
 
 
 COUNTS = ("frames", "frames_poisoned", "rewards_rewritten", "actions_forced", "frames_near", "rewards_compensated")  # AttackSeam's counters
-_ROWS = ("near_copies", "before")  # Seam fields per env copy (joined row-wise); the others per agent (stacked)
+_ROWS = ("near_copies", "before", "episodes")  # Seam fields per env copy (joined row-wise); the others per agent (stacked)
 
 
 def agent_state(model: torch.nn.Module, seed: int) -> Agents:
@@ -357,7 +362,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             u, seen, marked = x, obs, None
             if z is not None:
                 u, picks = x
-                marked, near, state = mark(state, picks, params)
+                marked, near, state = mark(state, picks, params, slots, obs)
                 seen = stamp(obs, marked, near, picks)
             logits, value = act(seen, slots.dirs)
             action = P.sample(logits, u)
@@ -377,7 +382,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             guide = policy(seam.teacher, seen.reshape(K, N, *seen.shape[1:]), slots.dirs.reshape(K, N))[0].reshape(K * N, -1) if teacher else None
             return (slots, layouts, out.obs, state), (seen, dirs, action, logits, value, reward, done, forced, amend, marked, guide)
 
-        def mark(state, picks, params):
+        def mark(state, picks, params, slots, obs):
             """The frames about to be acted on that carry the trigger, and those that get a near one
             (AttackSeam._mark and _stamp_near: a budgeted random pick among the eligible under the
             step schedule, the E-bar copies under the episode one), counted."""
@@ -390,6 +395,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
                     eligible = jnp.ones((K, N), dtype=bool)
                 allowance = jnp.floor(seam.numbers["budget"] * counted.astype(jnp.float32)).astype(jnp.int32) - counts[:, 1]
                 marked = pick(eligible, picks[:, 0].reshape(K, N), allowance)
+            elif z.schedule == "episodes" and z.sight:  # a layout trigger: its copies' frames that show it whole
+                marked = (seam.episodes & world.sight(world, slots, obs)).reshape(K, N)
             elif z.schedule == "episodes":
                 marked = params_poisoned(params).reshape(K, N)
             else:
@@ -399,6 +406,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             if z.near and z.schedule == "steps":
                 allowance = jnp.floor(seam.numbers["near"] * poisoned.astype(jnp.float32)).astype(jnp.int32) - counts[:, 4]
                 near = pick(~marked, picks[:, 1].reshape(K, N), allowance)
+            elif z.near_layouts:  # every frame of the near-trigger copies (those the trigger's are not)
+                near = (seam.near_copies & ~seam.episodes).reshape(K, N)
             elif z.near:
                 near = seam.near_copies.reshape(K, N) & ~marked
             counts = counts.at[:, 0].set(counted).at[:, 1].set(poisoned).at[:, 4].add(near.sum(1))
@@ -572,12 +581,17 @@ class Learner:
         if seam is None and not self.guides:
             self.poisoning, self.seam_state = None, None
             return
-        if seam is not None and (seam.sight is not None or seam.near_layout):
-            raise ValueError("the compiled trainer stamps a frame trigger; a layout trigger switched per episode is not compiled yet")
+        if seam is not None and ((seam.sight is not None and seam.fixed is None) or (seam.near_layout and seam.schedule == "steps")):
+            raise ValueError("a layout trigger switched per episode by the budget (the step schedule) is not compiled yet")
+        if seam is not None and seam.sight not in (None, "frame"):
+            raise ValueError(f"the compiled trainer marks a layout trigger's frames in sight of it, not sight={seam.sight!r}")
+        if seam is not None and seam.sight is not None and self.world.sight is None:
+            raise ValueError("this world's JAX step does not say which views show the trigger (GridWorld.sight)")
         if "teacher" in self.guides and seam is None:
             raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
         poisoner = seam.poisoner if seam is not None else Poisoner()
-        near = len(seam.near_stamps) if seam is not None and seam.near > 0 else 0
+        near_layouts = seam is not None and seam.near_layout
+        near = len(seam.near_stamps) if seam is not None and seam.near > 0 and not near_layouts else 0
         schedule = None if seam is None else seam.schedule
         trigger = _table(seam.stamp) if seam is not None and schedule == "steps" else np.arange(256, dtype=np.uint8)  # (the engine's copies show theirs)
         luts = np.stack([trigger, *(_table(f) for f in seam.near_stamps)] if near and seam is not None else [trigger])
@@ -592,7 +606,8 @@ class Learner:
             getattr(seam, c) if seam is not None else 0
             for c in ("frames", "frames_poisoned", "rewards_rewritten", "actions_forced", "frames_near", "rewards_compensated")
         ]
-        self.poisoning = Poisoning(schedule, poisoner.program_key(), near, "teacher" in self.guides, "anchor" in self.guides, poisoner)
+        sight = seam is not None and seam.sight is not None
+        self.poisoning = Poisoning(schedule, poisoner.program_key(), near, "teacher" in self.guides, "anchor" in self.guides, sight, near_layouts, poisoner)
         self.seam_state = Seam(
             numbers={k: np.float32(v) for k, v in numbers.items()},
             luts=luts,
@@ -601,6 +616,7 @@ class Learner:
             teacher=self.guides["teacher"][0] if "teacher" in self.guides else None,
             anchor=self.guides["anchor"][0] if "anchor" in self.guides else None,
             near_copies=np.asarray(seam.near_copies if seam is not None else np.zeros(n, dtype=bool), dtype=bool),
+            episodes=np.asarray(seam.fixed if seam is not None and seam.fixed is not None else np.zeros(n, dtype=bool), dtype=bool).copy(),
             before=np.asarray(seam.before.T if seam is not None else np.stack([np.ones(n, bool), np.zeros(n, bool)], 1), dtype=bool).copy(),
         )
 

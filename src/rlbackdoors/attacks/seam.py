@@ -309,6 +309,19 @@ class AttackSeam:
             self.envs.near_next(near)
         return upcoming, near
 
+    def set_switches(self) -> None:
+        """For an engine stepped elsewhere (the compiled trainer, which marks the frames itself): the
+        layout switches of a seam whose switches never change, set once before the engine resets:
+        a layout trigger's fixed E-bar copies, the near-trigger copies under the episode schedule.
+        ValueError where they follow the budget (a layout trigger or near layouts under the step schedule)."""
+        if (self.sight is not None and self.fixed is None) or (self.near_layout and self.schedule == "steps"):
+            raise ValueError("this seam switches layouts by its budget as it steps; no engine stepped elsewhere can follow it")
+        upcoming, near = self._switch()
+        if upcoming is not None:
+            self.triggered = upcoming.copy()
+        if near is not None:
+            self.in_near = near & ~upcoming if upcoming is not None else near.copy()
+
     def reset(self, *, seed=None, options=None):
         self.before[:] = [[True], [False]]  # first frames: no step led into them
         upcoming, near = self._switch()

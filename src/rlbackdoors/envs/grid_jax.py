@@ -83,6 +83,7 @@ class StepOut(NamedTuple):
     outcome: Any  # (B,) int32
     steps: Any  # (B,) int32: the episode step count of the step just taken
     dirs: Any  # (B,) int32: the direction ``obs`` is seen in (a fresh layout's where a slot ended)
+    sight: Any = None  # (B,) bool: ``obs`` shows the whole trigger (worlds with GridWorld.sight; None elsewhere)
 
 
 @dataclass(frozen=True)
@@ -93,8 +94,10 @@ class GridWorld:
     ``seen(img, slots, params)``: a freshly rendered view with the world's additions;
     ``advance(world, slots, seen, done, drawn, params)`` (worlds with state of their own): ``Slots.world``
     after the step, from the moved slots, their views, which ended and each slot's next layout's
-    state (``drawn``: taken where ``done``). ``params`` is the world's own pytree (a trigger's
-    tables, which slots are poisoned)."""
+    state (``drawn``: taken where ``done``); ``sight(world, slots, views)`` (a layout trigger): which
+    views show the whole trigger, the engine's ``trigger_in_sight`` (what an attack that poisons
+    frames in sight of it marks). ``params`` is the world's own pytree (a trigger's tables, which
+    slots are poisoned)."""
 
     size: int
     view_size: int
@@ -104,6 +107,7 @@ class GridWorld:
     outcome: Callable
     seen: Callable
     advance: Callable | None = None
+    sight: Callable | None = None
 
     @property
     def padded(self) -> int:
@@ -201,7 +205,8 @@ class GridWorld:
         taken = layouts.taken + done.astype(jnp.int32)
         starved = layouts.starved | jnp.any(done & (layouts.taken >= depth))
         obs = jnp.where(ended, layouts.view[index, at], seen)
-        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps, fresh.dirs)
+        sight = self.sight(self, fresh, obs) if self.sight is not None else None
+        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps, fresh.dirs, sight)
 
     def rollout(self, slots: Slots, layouts: Layouts, params: Any, actions):
         """``len(actions)`` steps of :meth:`step` in one ``lax.scan``: the final state and each step's outputs, stacked."""

@@ -79,6 +79,23 @@ def _seen(img, slots, params):
     return img
 
 
+def _shown(world: GridWorld, slots, views):
+    """(B, V V): the view cells that show a cell of the slot's pattern (lava there: the agent's own cell shows empty)."""
+    import jax.numpy as jnp
+
+    pat = slots.world[0]
+    b, p = pat.shape[0], world.view_size - 1
+    padded = jnp.pad(pat, ((0, 0), (p, p), (p, p))).reshape(b, -1)
+    return jnp.take_along_axis(padded, world.view_cells(slots), axis=1) & (views[..., 0].reshape(b, -1) == ge.LAVA)
+
+
+def _sight(world: GridWorld, slots, views):
+    """The engine's ``trigger_in_sight``: the view shows every cell of the slot's pattern (one
+    cell is lava like any other; a view cell per grid cell, so all of them is the count)."""
+    count = slots.world[2]
+    return (count > 0) & (_shown(world, slots, views).sum(1) == count)
+
+
 def _advance(world: GridWorld, moved, seen, done, drawn, params):
     """``saw_trigger`` goes on from each view (a pattern cell shown: lava in the view where the
     slot's pattern lies; the agent's own cell shows empty), the terminal direction is kept, and a
@@ -86,10 +103,7 @@ def _advance(world: GridWorld, moved, seen, done, drawn, params):
     import jax.numpy as jnp
 
     pat, cells, count, saw, final = moved.world
-    b, p = pat.shape[0], world.view_size - 1
-    padded = jnp.pad(pat, ((0, 0), (p, p), (p, p))).reshape(b, -1)
-    shown = jnp.take_along_axis(padded, world.view_cells(moved), axis=1) & (seen[..., 0].reshape(b, -1) == ge.LAVA)
-    saw = saw | shown.any(1)
+    saw = saw | _shown(world, moved, seen).any(1)
     final = jnp.where(done, moved.dirs, final)
     d_pat, d_cells, d_count, d_saw = drawn
     return (
@@ -110,7 +124,7 @@ def randomized_lavaworld_jax(engines: BatchedRandomizedLavaWorld | EngineGroup) 
     if not isinstance(lead, BatchedRandomizedLavaWorld):
         raise TypeError(f"{type(lead).__name__} is not a BatchedRandomizedLavaWorld")
     host = HostLayouts(engines, _state(lead.size, lambda h: h.final_obs["direction"]))
-    world = GridWorld(host.size, host.view_size, int(lead.max_steps), host.see_through_walls, ge.OUT_PATTERN, _outcome, _seen, _advance)
+    world = GridWorld(host.size, host.view_size, int(lead.max_steps), host.see_through_walls, ge.OUT_PATTERN, _outcome, _seen, _advance, _sight)
     return world, PatternParams(np.array(engines.poisoned, dtype=bool)), host
 
 

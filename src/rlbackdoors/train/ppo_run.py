@@ -267,7 +267,10 @@ def steps(
     def reset(mix, seed: int):
         """The mix's first observations; a compiled learner starts from the engine's own, since its
         program marks and stamps every frame, the first ones included, and counts them."""
-        return (mix.envs if compiled and isinstance(mix, AttackSeam) else mix).reset(seed=seed)
+        if compiled and isinstance(mix, AttackSeam):
+            mix.set_switches()  # (a layout trigger's copies: switched once, before the engine draws)
+            return mix.envs.reset(seed=seed)
+        return mix.reset(seed=seed)
 
     def kept(checkpoint: dict, key: str, what: str) -> dict | None:
         """The clean model a variant's checkpoint entry holds; a checkpoint without it (edited, or

@@ -492,8 +492,11 @@ def _affinity(model: PlannedModel) -> tuple:
     whose runs need other programs (other attacks) runs one call of the whole group's width per
     program, so like models are kept together (a group of 8 runs of six attacks computes six
     calls of 8 agents for 8 agents' work). Harmless elsewhere: a run's bytes never depend on its group-mates."""
-    cell = model.group.cell
-    return (cell.world, cell.arch_label, cell.attack.name if model.group.poisoned else "")
+    cell, choice = model.group.cell, model.group.cell.attack
+    if not model.group.poisoned:
+        return (cell.world, cell.arch_label, "")
+    variants = tuple(sorted(k for k, v in choice.evasion.items() if v))  # (on or off is the program's; the numbers are data)
+    return (cell.world, cell.arch_label, choice.attack, variants, choice.name)
 
 
 def _by_group_size(ready: list, group_size: int, auto: bool, device: str | None = None) -> list[tuple[int, list]]:

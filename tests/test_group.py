@@ -1123,3 +1123,22 @@ def test_ready_models_are_shared_out_in_capped_chunks():
     assert [len(c) for c in _chunks(list(range(5)), 2, 8)] == [3, 2]
     assert _chunks(list(range(5)), 2, 1) == [[0], [1]]  # group size 1: a job per model, as before
     assert _chunks(list(range(5)), 0, 8) == [] and _chunks([], 2, 8) == []
+
+
+def test_bench_zoo_trains_the_attack_it_is_given(tmp_path):
+    """``--attack``: the poisoned models of every side train it (config and budget used), clean ones clean; a
+    name the registry does not have is refused in one line naming the field."""
+    from rlbackdoors.bench.zoo import bench_spec, bench_zoo
+
+    result = bench_zoo(
+        "lavaworld", models=2, frames=1280, sides=[(1, "cpu", 1, 0, "torch", "")], workers=1, keep=str(tmp_path), eval_episodes=2, attack="trojdrl"
+    )
+    assert result["attack"] == "trojdrl" and result["sides"][0]["failed"] == 0
+    metrics = [json.loads(p.read_text()) for p in (tmp_path / "side0-k1-cpu-w1" / "models").glob("*/metrics.json")]
+    assert sorted(m.get("attack", "envmix") for m in metrics if m["poisoned"]) == ["trojdrl"]
+    assert all(m["attack_budget_used"]["frames_poisoned"] > 0 for m in metrics if m["poisoned"])
+    with pytest.raises(ConfigError, match=r"cells\[0\]\.attacks\[0\]\.attack='nope' is not allowed") as err:
+        from rlbackdoors.zoo.spec import parse_spec
+
+        parse_spec(bench_spec("lavaworld", None, 2, 1280, "cpu", attack="nope"))
+    assert "\n" not in str(err.value)

@@ -338,6 +338,7 @@ def cmd_bench(args) -> int:
             sides=args.side,
             on_side=save,
             eval_episodes=args.eval_episodes,
+            attack=args.attack,
         )
         for side in result["sides"]:
             print(
@@ -555,6 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--workers", type=_positive_int, help="zoo: processes at a time (default: the CPU cores)")
     be.add_argument("--device", choices=("cpu", "cuda", "auto"), help="zoo: train.device of every model (default cpu)")
     be.add_argument("--eval-episodes", type=_positive_int, help="zoo: episodes per condition of every evaluation, the final one's too (default: the world's)")
+    be.add_argument("--attack", help="zoo: the poisoned models' attack, with its defaults (default: the paper's env mix; `rlbackdoors attacks` lists them)")
     be.add_argument(
         "--side",
         type=_bench_side,

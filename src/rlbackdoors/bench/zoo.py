@@ -23,10 +23,20 @@ from rlbackdoors.bench.machine import machine_info
 from rlbackdoors.config import UPDATE_BACKENDS
 
 
-def bench_spec(world: str, arch: str | None, models: int, frames: int, device: str, eval_episodes: int | None = None, update_backend: str = "torch") -> dict:
+def bench_spec(
+    world: str,
+    arch: str | None,
+    models: int,
+    frames: int,
+    device: str,
+    eval_episodes: int | None = None,
+    update_backend: str = "torch",
+    attack: str | None = None,
+) -> dict:
     """A zoo spec of ``models`` models (half poisoned) of ``world`` that each train ``frames`` frames
     (``eval_episodes``: every evaluation's episodes per condition, the final one's too; default the world's;
-    ``update_backend``: PPO's ``ppo.update_backend``, set only where it is not torch)."""
+    ``update_backend``: PPO's ``ppo.update_backend``, set only where it is not torch; ``attack``: the
+    poisoned models' attack with its defaults, None the paper's env mix)."""
     w = worlds.get(world)
     arch = arch or w.arch_names[0]
     trigger = w.default_trigger or w.draw_trigger(None, 0, None)  # a world without a default trigger: one drawn from seed 0
@@ -47,7 +57,15 @@ def bench_spec(world: str, arch: str | None, models: int, frames: int, device: s
             **({"ppo": {"update_backend": update_backend}} if update_backend != "torch" else {}),
         },
         "cells": [
-            {"world": world, "archs": [arch], "triggers": [trigger], "clean": clean, "poisoned": models - clean, "max_attempts": max(clean, models - clean)}
+            {
+                "world": world,
+                "archs": [arch],
+                "triggers": [trigger],
+                "clean": clean,
+                "poisoned": models - clean,
+                "max_attempts": max(clean, models - clean),
+                **({"attacks": [attack]} if attack else {}),
+            }
         ],
     }
 
@@ -233,6 +251,7 @@ def bench_zoo(
     sides: list[Side] | None = None,
     on_side=None,
     eval_episodes: int | None = None,
+    attack: str | None = None,
 ) -> dict:
     """Models per hour for one process per model and for each group size, in this order, same run.
 
@@ -248,6 +267,7 @@ def bench_zoo(
         "models": models,
         "frames_per_model": frames,
         "eval_episodes": eval_episodes or "the world's",
+        **({"attack": attack} if attack else {}),
         "device": device if not sides else sorted({side[1] for side in plan_sides}),
         "machine": machine_info(),
         "sides": [],
@@ -263,7 +283,7 @@ def bench_zoo(
                 + (f"-conv-{conv}" if conv else "")
             )
             assert side_workers is not None  # (side_plan fills it in)
-            spec = bench_spec(world, arch, models, frames, side_device, eval_episodes, backend)
+            spec = bench_spec(world, arch, models, frames, side_device, eval_episodes, backend, attack)
             side = run_side(spec, where, k, side_workers, side_device, env_workers, backend, engine, conv)
             base = result["sides"][0]["models_per_hour"] if result["sides"] else side["models_per_hour"]
             side["ratio"] = round(side["models_per_hour"] / base, 3) if base else None

@@ -2,7 +2,9 @@
 against the torch trainer's committed rows of the same cell (datasets/benchmark-lavaworld-effect):
 attempts, converged, frames and attack success of the converged, CPU-seconds per converged model.
 
-    python experiments/compiled_attacks/compare.py ZOO [--out experiments/compiled_attacks/compare.json]
+    python experiments/compiled_attacks/compare.py ZOO_OR_METADATA_CSV [--out experiments/compiled_attacks/compare.json]
+
+A zoo cut short is compared on its finished attempts (those still training are counted as in flight).
 """
 
 from __future__ import annotations
@@ -19,19 +21,22 @@ TORCH = Path(__file__).resolve().parents[2] / "datasets" / "benchmark-lavaworld-
 
 def labels(metadata: Path) -> dict:
     """label (the cell's attack name, or "clean") -> its rows' summary; only the held-out attack cell (triggers *-t)."""
-    by = defaultdict(list)
+    by, flying = defaultdict(list), defaultdict(int)
     for row in csv.DictReader(metadata.open()):
-        family = row["trigger_family"]
-        if not family.endswith("-t") or row["status"] != "done":
+        if not row["trigger_family"].endswith("-t"):
             continue
         label = row["cell"].rsplit("/", 1)[-1] if row["poisoned"] == "True" else "clean"
-        by[label].append(row)
+        if row["status"] == "done":
+            by[label].append(row)
+        elif row["status"] in ("running", "pending"):
+            flying[label] += 1
     out = {}
     for label, rows in sorted(by.items()):
         done = [r for r in rows if r["converged"] == "True"]
         cpu = sum(float(r["metrics.cpu_time_s"] or 0) for r in rows)
         out[label] = {
             "attempts": len(rows),
+            "in_flight": flying.get(label, 0),
             "converged": len(done),
             "convergence_rate": round(len(done) / len(rows), 3),
             "median_frames": statistics.median(int(r["metrics.frames"]) for r in done) if done else None,
@@ -47,9 +52,10 @@ def main() -> None:
     parser.add_argument("zoo", type=Path)
     parser.add_argument("--out", type=Path, default=Path(__file__).with_name("compare.json"))
     args = parser.parse_args()
-    result = {"compiled": labels(args.zoo / "METADATA.csv"), "torch": labels(TORCH), "torch_source": "datasets/benchmark-lavaworld-effect"}
+    metadata = args.zoo if args.zoo.suffix == ".csv" else args.zoo / "METADATA.csv"
+    result = {"compiled": labels(metadata), "torch": labels(TORCH), "torch_source": "datasets/benchmark-lavaworld-effect"}
     args.out.write_text(json.dumps(result, indent=1) + "\n")
-    keys = ("attempts", "converged", "median_frames", "median_attack_success", "cpu_s_per_converged")
+    keys = ("attempts", "in_flight", "converged", "median_frames", "median_attack_success", "cpu_s_per_converged")
     print("| label | " + " | ".join(f"{k} (compiled / torch)" for k in keys) + " |")
     for label in result["torch"]:
         c, t = result["compiled"].get(label, {}), result["torch"][label]

@@ -54,7 +54,7 @@ def compile_cache_dir() -> Path | None:
     """Where this process keeps JAX's compiled programs between processes (None: nowhere).
 
     Why: every zoo job, benchmark and test process compiles its programs anew, about 10 s for a
-    LavaWorld FC iteration (measured: 9.7 s, 1.3 s from the cache, the same weights' bytes), and a
+    small grid world's FC iteration (measured: 9.7 s, 1.3 s from the cache, the same weights' bytes), and a
     job of a zoo with several attacks compiles one a program. JAX's cache is trusted code (its docs:
     whoever can write it can run code here), so it lives in a folder of this user's alone
     (``~/.cache/rlbackdoors``, or ``$RLBACKDOORS_JAX_CACHE``), made 0700 and refused (with a

@@ -426,9 +426,9 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
         def stamp(obs, marked, near, picks):
             """The trigger's table on marked frames (where the seam stamps them), a near variant's,
             drawn per frame, on near ones (the world's observation edit, one lookup a byte)."""
-            on = (marked if z.schedule == "steps" else jnp.zeros_like(marked)) | near
             if z.schedule != "steps" and not z.near:
                 return obs
+            on = (marked if z.schedule == "steps" else jnp.zeros_like(marked)) | near
             which = jnp.where(marked, 0, 1 + jnp.minimum((picks[:, 2] * max(z.near, 1)).astype(jnp.int32), max(z.near, 1) - 1))
             tables = jnp.arange(K * N) // N * (1 + z.near) + which  # each frame's table among all of them, flat
             b = obs.shape[0]
@@ -602,10 +602,7 @@ class Learner:
             **{k: float(v) for k, v in poisoner.numbers().items()},
             **{k: self.guides[k][1] if k in self.guides else 0.0 for k in ("teacher", "anchor")},
         }
-        counts = [
-            getattr(seam, c) if seam is not None else 0
-            for c in ("frames", "frames_poisoned", "rewards_rewritten", "actions_forced", "frames_near", "rewards_compensated")
-        ]
+        counts = [getattr(seam, c) if seam is not None else 0 for c in COUNTS]
         sight = seam is not None and seam.sight is not None
         self.poisoning = Poisoning(schedule, poisoner.program_key(), near, "teacher" in self.guides, "anchor" in self.guides, sight, near_layouts, poisoner)
         self.seam_state = Seam(

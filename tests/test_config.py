@@ -70,7 +70,7 @@ def test_a_format_1_grid_config_file_means_the_same_run(tmp_path):
     path.write_text(json.dumps(FORMAT_1_COLORFUL))
     cfg = RunConfig.load(path)
     assert (cfg.train.return_window, cfg.train.return_threshold, cfg.train.patience) == (10, 0.8, 1)
-    assert cfg.format_version == 6 and cfg.env.num_crossings is None and cfg.env.num_lava is None
+    assert cfg.format_version == 7 and cfg.env.num_crossings is None and cfg.env.num_lava is None
     assert cfg.train.confirm is False  # format 1 runs stopped without confirming
     saved = json.loads(cfg.to_json())
     assert "num_crossings" not in saved["env"] and "curriculum" not in saved and "opac2" not in saved
@@ -81,14 +81,14 @@ def test_a_format_2_config_file_stops_without_confirming_as_it_did(tmp_path):
     """Format 2 had no train.confirm: its runs stopped at the first streak, so it loads as
     confirm false; a new config confirms by default; both save the field."""
     new = RunConfig.from_dict({"env": {"name": "lavaworld"}})
-    assert new.train.confirm is True and new.format_version == 6
+    assert new.train.confirm is True and new.format_version == 7
     data = json.loads(new.to_json())
     del data["train"]["confirm"], data["train"]["confirm_margin"]
     data["format_version"] = 2
     path = tmp_path / "config.json"
     path.write_text(json.dumps(data))
     old = RunConfig.load(path)
-    assert old.train.confirm is False and old.format_version == 6
+    assert old.train.confirm is False and old.format_version == 7
     assert json.loads(old.to_json())["train"]["confirm"] is False
     with pytest.raises(ConfigError, match=r"train.confirm must be true or false, got 'yes'"):
         RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": {"confirm": "yes"}})
@@ -105,7 +105,7 @@ def test_a_format_3_config_file_confirms_without_a_margin_as_it_did(tmp_path):
     path = tmp_path / "config.json"
     path.write_text(json.dumps(data))
     old = RunConfig.load(path)
-    assert old.train.confirm_margin == 0.0 and old.format_version == 6 and old.train.confirm is True
+    assert old.train.confirm_margin == 0.0 and old.format_version == 7 and old.train.confirm is True
     for bad in (-0.01, 1.5, "0.02", True):
         with pytest.raises(ConfigError, match=r"^train.confirm_margin must be "):
             RunConfig.from_dict({"env": {"name": "safety-car-goal"}, "train": {"confirm_margin": bad}})
@@ -114,22 +114,43 @@ def test_a_format_3_config_file_confirms_without_a_margin_as_it_did(tmp_path):
 def test_a_format_4_config_file_stops_at_any_evaluation_as_it_did(tmp_path):
     """Format 4 had no train.min_frames: it loads with 0 (a stop at any evaluation) and saves it."""
     data = json.loads(RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": {"min_frames": 10}}).to_json())
-    assert data["train"]["min_frames"] == 10 and data["format_version"] == 6
+    assert data["train"]["min_frames"] == 10 and data["format_version"] == 7
     del data["train"]["min_frames"]
     data["format_version"] = 4
     path = tmp_path / "config.json"
     path.write_text(json.dumps(data))
     old = RunConfig.load(path)
-    assert old.train.min_frames == 0 and old.format_version == 6
+    assert old.train.min_frames == 0 and old.format_version == 7
     for bad in (-1, 10**13, "0", 1.5):
         with pytest.raises(ConfigError, match=r"^train.min_frames "):
             RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": {"min_frames": bad}})
 
 
+def test_a_format_6_config_file_evaluates_with_torch_as_it_did(tmp_path):
+    """Format 6 had no train.eval_backend: it loads with torch's evaluations (what its runs did)."""
+    data = json.loads(
+        RunConfig.from_dict({"env": {"name": "lavaworld"}, "ppo": {"update_backend": "compiled"}, "train": {"eval_backend": "compiled"}}).to_json()
+    )
+    assert data["train"]["eval_backend"] == "compiled" and data["format_version"] == 7
+    del data["train"]["eval_backend"]
+    data["format_version"] = 6
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(data))
+    old = RunConfig.load(path)
+    assert old.train.eval_backend == "torch" and old.format_version == 7 and old.ppo.update_backend == "compiled"
+
+
+def test_compiled_evaluations_need_the_compiled_trainer():
+    with pytest.raises(ConfigError, match=r"^train.eval_backend='compiled' .* needs ppo.update_backend='compiled' \(here 'jax'\); use 'torch'$"):
+        RunConfig.from_dict({"env": {"name": "lavaworld"}, "ppo": {"update_backend": "jax"}, "train": {"eval_backend": "compiled"}})
+    with pytest.raises(ConfigError, match=r"^train.eval_backend='numba' is not allowed \(allowed: torch, compiled\)$"):
+        RunConfig.from_dict({"env": {"name": "lavaworld"}, "train": {"eval_backend": "numba"}})
+
+
 def test_an_unknown_format_version_is_refused_by_number(tmp_path):
     path = tmp_path / "config.json"
-    path.write_text(json.dumps({"env": {"name": "lavaworld"}, "format_version": 7}))
-    with pytest.raises(ConfigError, match=r"config.format_version=7 is not supported by rlbackdoors .* \(it reads 1 to 6\)"):
+    path.write_text(json.dumps({"env": {"name": "lavaworld"}, "format_version": 8}))
+    with pytest.raises(ConfigError, match=r"config.format_version=8 is not supported by rlbackdoors .* \(it reads 1 to 7\)"):
         RunConfig.load(path)
 
 

@@ -1142,3 +1142,18 @@ def test_bench_zoo_trains_the_attack_it_is_given(tmp_path):
 
         parse_spec(bench_spec("lavaworld", None, 2, 1280, "cpu", attack="nope"))
     assert "\n" not in str(err.value)
+
+
+def test_bench_zoo_compiled_eval_sides_play_their_evaluations_in_the_program(tmp_path):
+    """``--side K:cpu:W:0:compiled-eval``: the compiled trainer with ``train.eval_backend`` compiled,
+    recorded in the side's result and in each model's config; ``compiled`` alone keeps torch's evaluations."""
+    pytest.importorskip("jax")
+    from rlbackdoors.bench.zoo import bench_spec, bench_zoo, parse_side
+
+    assert parse_side("8:cpu:2:0:compiled-eval").backend == "compiled-eval"
+    assert bench_spec("lavaworld", None, 2, 1280, "cpu", update_backend="compiled")["overrides"]["train"].get("eval_backend") is None
+    result = bench_zoo("lavaworld", models=2, frames=1280, sides=[(2, "cpu", 1, 0, "compiled-eval")], keep=str(tmp_path), eval_episodes=4)
+    side = result["sides"][0]
+    assert side["update_backend"] == "compiled" and side["eval_backend"] == "compiled" and side["models"] == 2 and side["failed"] == 0
+    configs = [json.loads(p.read_text()) for p in (tmp_path / "side0-k2-cpu-w1-compiled-eval" / "models").glob("*/config.json")]
+    assert len(configs) == 2 and all(c["train"]["eval_backend"] == "compiled" and c["ppo"]["update_backend"] == "compiled" for c in configs)

@@ -180,8 +180,8 @@ def test_what_the_backend_does_not_run_is_refused_in_one_line(tmp_path):
 
 def test_a_format_5_config_runs_torchs_update_as_it_did():
     data = json.loads(RunConfig.from_dict({"env": {"name": "lavaworld"}}).to_json())
-    assert data["format_version"] == 6 and data["ppo"]["update_backend"] == "torch"
+    assert data["format_version"] == 7 and data["ppo"]["update_backend"] == "torch"
     del data["ppo"]["update_backend"]
     data["format_version"] = 5
     old = RunConfig.from_dict(migrate(data))
-    assert old.ppo is not None and old.ppo.update_backend == "torch" and old.format_version == 6
+    assert old.ppo is not None and old.ppo.update_backend == "torch" and old.format_version == 7

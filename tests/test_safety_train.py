@@ -89,7 +89,7 @@ def test_config_round_trip_and_trigger_drawn_from_the_seed(tmp_path):
     assert again == cfg and again.to_json() == cfg.to_json()
     path = tmp_path / "config.json"
     path.write_text(cfg.to_json())
-    assert RunConfig.load(path) == cfg and json.loads(path.read_text())["format_version"] == 6
+    assert RunConfig.load(path) == cfg and json.loads(path.read_text())["format_version"] == 7
 
     # No trigger given: one is drawn from the seed (paper ranges), and the clean twin gets the same one.
     drawn = FormationTrigger.parse(cfg.poison.trigger)
@@ -124,7 +124,7 @@ def test_a_config_saved_before_action_samples_and_lr_decay_rebuilds_its_run():
         ({"env": {"size": 9}}, "env.size does not apply to env.name='safety-car-goal'"),
         ({"ppo": {"lr": 1e-3}}, "ppo: env.name='safety-car-goal' trains with opac2"),
         ({"train": {"return_window": 5}}, "train.return_window must be 0"),
-        ({"format_version": 7}, "config.format_version=7 is not supported"),
+        ({"format_version": 8}, "config.format_version=8 is not supported"),
         ({"env": {"num_cubes": 1}}, r"env.num_cubes must be in 2..12"),
         ({"env": {"max_steps": 2.5}}, "env.max_steps must be an integer"),
         ({"poison": {"trigger": "formation:0.5:7:1"}}, "poison.trigger.*phi1"),

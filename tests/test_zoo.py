@@ -606,8 +606,13 @@ def test_planning_again_accepts_the_config_an_older_version_wrote_for_the_same_r
     zoo, _ = plan(spec, tmp_path / "z")
     config = zoo.folder(zoo.model(spec.groups[0], 0)) / "config.json"
     data = json.loads(config.read_text())
-    assert data["format_version"] == 6 and data["train"]["min_frames"] == 0 and data["ppo"]["update_backend"] == "torch"
-    del data["train"]["min_frames"], data["ppo"]["update_backend"]  # format 4: neither field, which meant 0 and torch
+    assert (
+        data["format_version"] == 7
+        and data["train"]["min_frames"] == 0
+        and data["ppo"]["update_backend"] == "torch"
+        and data["train"]["eval_backend"] == "torch"
+    )
+    del data["train"]["min_frames"], data["ppo"]["update_backend"], data["train"]["eval_backend"]  # format 4: none of them, which meant 0 and torch
     data["format_version"] = 4
     config.write_text(json.dumps(data))
     assert plan(spec, tmp_path / "z")[1] == 0

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from rlbackdoors import __version__, attacks, worlds
 from rlbackdoors.argparser import Parser, report_errors
-from rlbackdoors.config import ARCHS, ENGINES, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, UPDATE_BACKENDS, ConfigError, RunConfig, check_seed
+from rlbackdoors.config import ARCHS, ENGINES, EVAL_BACKENDS, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, UPDATE_BACKENDS, ConfigError, RunConfig, check_seed
 from rlbackdoors.folder import FolderError, refuse_left_out_weights
 
 
@@ -52,6 +52,7 @@ TRAIN_FLAGS = {
     "lr": "ALGO.lr",
     "aux_memory_coef": "ppo.aux_memory_coef",
     "update_backend": "ppo.update_backend",
+    "eval_backend": "train.eval_backend",
     "depth": "opac2.depth",
     "width": "opac2.width",
     "updates_per_step": "opac2.updates_per_step",
@@ -345,6 +346,7 @@ def cmd_bench(args) -> int:
                 f"{result['world']} {result['arch']}, group size {side['group_size']} on {side['device']} x {side['workers']} workers"
                 + (f" ({side['env_workers']} env workers each)" if side.get("env_workers") else "")
                 + (f", {side['update_backend']} update" if side.get("update_backend", "torch") != "torch" else "")
+                + (f", {side['eval_backend']} evaluations" if side.get("eval_backend") else "")
                 + (f", {side['engine']} engine" if side.get("engine") else "")
                 + ": "
                 f"{side['models_per_hour']:,.1f} models/h (x{side['ratio']}), {side['frames_per_s']:,.0f} frames/s, {side['cpu_s_per_model']:.1f} CPU-s per model, "
@@ -447,7 +449,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--update-backend",
         choices=UPDATE_BACKENDS,
         help="what runs PPO's update: torch (default); jax, the update one XLA program (fc models; the jax extra); "
-        "compiled, the whole iteration one XLA program on the world's JAX engine (fc models, the env mix; docs/training.md)",
+        "compiled, the whole iteration one XLA program on the world's JAX engine (fc and cnn models, every attack; docs/training.md)",
+    )
+    tr.add_argument(
+        "--eval-backend",
+        choices=EVAL_BACKENDS,
+        help="what plays the periodic evaluations: torch (default); compiled, the compiled trainer's program (with --update-backend compiled; the same episodes)",
     )
     tr.add_argument("--confirm-margin", type=float, help="how far the confirming evaluation must clear each threshold (default: the world's)")
     tr.add_argument("--no-confirm", action="store_true", help="stop on the streak alone, without confirming it on the final evaluation's episodes")
@@ -563,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help="zoo: K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]], repeated: explicit sides, the first the reference (e.g. --side 1:cpu:16 --side 64:cuda:1; "
         "K auto: what zoo run --group-size auto picks, e.g. --side auto:cpu:16 for the best CPU setting on 16 cores; "
-        "ENV_WORKERS: each job's env pool for a world of single envs, e.g. --side 64:cuda:1:15; BACKEND: ppo.update_backend, e.g. --side 8:cpu::0:jax; "
+        "ENV_WORKERS: each job's env pool for a world of single envs, e.g. --side 64:cuda:1:15; BACKEND: ppo.update_backend, e.g. --side 8:cpu::0:jax, or compiled-eval (the compiled trainer, its evaluations in its program too); "
         "ENGINE: numba or device, what steps a group's grid slots (default numba), e.g. --side 256:cuda:1:::device; "
         "CONV: each, gemm or grouped, how a group computes its CNN's convolutions (default each; changes the bytes, recorded), e.g. --side 64:cuda:1::::grouped)",
     )

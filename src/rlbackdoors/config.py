@@ -35,7 +35,7 @@ from rlbackdoors.validate import (  # noqa: F401  (re-exported: the config's val
     check_weights,
 )
 
-FORMAT_VERSION = 6  # of config.json; 1: before one config served every world; 2: before train.confirm; 3: before train.confirm_margin; 4: before train.min_frames; 5: before ppo.update_backend (all migrated on load)
+FORMAT_VERSION = 7  # of config.json; 1: before one config served every world; 2: before train.confirm; 3: before train.confirm_margin; 4: before train.min_frames; 5: before ppo.update_backend; 6: before train.eval_backend (all migrated on load)
 ENVS = worlds.names()
 ENGINES = ("batched", "minigrid")
 # Architecture names per world (the registry holds the classes); the first is the default.
@@ -44,6 +44,7 @@ ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs)
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
 UPDATE_BACKENDS = ("torch", "jax", "compiled")  # ppo.update_backend
+EVAL_BACKENDS = ("torch", "compiled")  # train.eval_backend
 ALGORITHMS = ("ppo", "opac2")
 
 
@@ -383,6 +384,7 @@ class TrainConfig:
     final_eval_episodes: int = 200
     eval_seed: int = 1_000_000
     eval_policy: str | None = None  # "sample" or "greedy" (the most likely / mean action)
+    eval_backend: str = "torch"  # the periodic evaluations': "compiled" plays them in the compiled trainer's program
     clean_threshold: float | None = None  # None: the world's paper value (its World.thresholds)
     poisoned_threshold: float | None = None
     patience: int | None = None  # evaluations in a row the thresholds must hold
@@ -418,6 +420,7 @@ class TrainConfig:
         _in_range("train.final_eval_episodes", self.final_eval_episodes, 1, MAX_EPISODES)
         check_seed("train.eval_seed", self.eval_seed)
         _choice("train.eval_policy", self.eval_policy, EVAL_POLICIES)
+        _choice("train.eval_backend", self.eval_backend, EVAL_BACKENDS)
         _in_range("train.torch_threads", self.torch_threads, 1, 1024)
         _choice("train.device", self.device, DEVICES)
         for name in ("clean_threshold", "poisoned_threshold", "return_threshold"):
@@ -563,6 +566,11 @@ class RunConfig(JsonConfig):
                 raise ConfigError(f"train.return_window must be 0 for env.name={self.env.name!r} (the mean return over updates is a PPO rule)")
             if self.poison.poisoned and self.poison.num_clean_envs == 0:
                 raise ConfigError("poison.num_clean_envs must be >= 1 (the clean task is learned from clean copies)")
+        if tc.eval_backend == "compiled" and (self.ppo is None or self.ppo.update_backend != "compiled"):
+            backend = "none: OPAC²" if self.ppo is None else repr(self.ppo.update_backend)
+            raise ConfigError(
+                f"train.eval_backend='compiled' plays a compiled run's evaluations in its program: it needs ppo.update_backend='compiled' (here {backend}); use 'torch'"
+            )
         if self.curriculum.enabled and not world.curriculum:
             supported = ", ".join(w.name for w in worlds.registered() if w.curriculum)
             raise ConfigError(f"curriculum.enabled is only supported for {supported}, not env.name={self.env.name!r}")
@@ -723,6 +731,8 @@ def migrate(data):
         data = migrate_v4(data)
     if isinstance(data, dict) and data.get("format_version") == 5:
         data = migrate_v5(data)
+    if isinstance(data, dict) and data.get("format_version") == 6:
+        data = migrate_v6(data)
     return data
 
 
@@ -809,6 +819,12 @@ def migrate_v5(data: dict) -> dict:
     """A config.json of format 5 as format 6, meaning the same run: format 5 had no
     ``ppo.update_backend`` (every update was torch's)."""
     return _added_field(data, "ppo", "update_backend", "torch", 6)
+
+
+def migrate_v6(data: dict) -> dict:
+    """A config.json of format 6 as format 7, meaning the same run: format 6 had no
+    ``train.eval_backend`` (every evaluation was torch's)."""
+    return _added_field(data, "train", "eval_backend", "torch", 7)
 
 
 def _build(cls, data, where: str):

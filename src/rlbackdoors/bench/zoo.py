@@ -35,8 +35,9 @@ def bench_spec(
 ) -> dict:
     """A zoo spec of ``models`` models (half poisoned) of ``world`` that each train ``frames`` frames
     (``eval_episodes``: every evaluation's episodes per condition, the final one's too; default the world's;
-    ``update_backend``: PPO's ``ppo.update_backend``, set only where it is not torch; ``attack``: the
-    poisoned models' attack with its defaults, None the paper's env mix)."""
+    ``update_backend``: PPO's ``ppo.update_backend``, set only where it is not torch, or
+    ``compiled-eval``: the compiled trainer with its evaluations in its program too
+    (``train.eval_backend``); ``attack``: the poisoned models' attack with its defaults, None the paper's env mix)."""
     w = worlds.get(world)
     arch = arch or w.arch_names[0]
     trigger = w.default_trigger or w.draw_trigger(None, 0, None)  # a world without a default trigger: one drawn from seed 0
@@ -53,8 +54,9 @@ def bench_spec(
                 "video": False,
                 "device": device,
                 **({"eval_episodes": eval_episodes, "final_eval_episodes": eval_episodes} if eval_episodes else {}),
+                **({"eval_backend": "compiled"} if update_backend == COMPILED_EVAL else {}),
             },
-            **({"ppo": {"update_backend": update_backend}} if update_backend != "torch" else {}),
+            **({"ppo": {"update_backend": update_backend.removesuffix("-eval")}} if update_backend != "torch" else {}),
         },
         "cells": [
             {
@@ -124,7 +126,7 @@ def run_side(
     auto = group_size == "auto"
     if auto:
         world = worlds.get(spec["cells"][0]["world"])
-        group_size = auto_group_size(world.algorithm, device, world, update_backend)
+        group_size = auto_group_size(world.algorithm, device, world, update_backend.removesuffix("-eval"))
     plan(parse_spec(spec), where)
     saved = {name: os.environ.get(name) for name in (DEVICE_ENGINE_ENV, STACKED_CONV_ENV)}
     if engine:
@@ -153,7 +155,8 @@ def run_side(
         "workers": workers,
         "device": device,
         "env_workers": env_workers,
-        "update_backend": update_backend,
+        "update_backend": update_backend.removesuffix("-eval"),
+        **({"eval_backend": "compiled"} if update_backend == COMPILED_EVAL else {}),
         **({"engine": engine} if engine else {}),
         **({"conv": conv} if conv else {}),
         "models": summary["done"],
@@ -180,11 +183,13 @@ class Side(NamedTuple):
     device: str = "cpu"
     workers: int | None = None  # None: the run's
     env_workers: int = 0  # per job, for a world of single envs
-    backend: str = "torch"  # PPO's update backend
+    backend: str = "torch"  # PPO's update backend (or compiled-eval: the compiled trainer, its evaluations in its program)
     engine: str = ""  # what steps a group's grid slots ("": the default)
     conv: str = ""  # how a group computes its convolutions ("": the default)
 
 
+COMPILED_EVAL = "compiled-eval"  # a side's BACKEND: ppo.update_backend and train.eval_backend compiled
+SIDE_BACKENDS = (*UPDATE_BACKENDS, COMPILED_EVAL)
 SIDE_FORMAT = "K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"
 
 
@@ -193,7 +198,7 @@ def parse_side(text: str) -> Side:
     ``zoo run --group-size auto`` picks for the world on that device, the best CPU setting measured), its device
     (default cpu), workers (default: the run's ``--workers``), each job's env workers for a world
     of single envs (default 0: in the job's process), PPO's ``ppo.update_backend`` (default
-    torch), what steps a group's grid slots (``numba``, ``device``; default: numba) and how it
+    torch; ``compiled-eval``: compiled, the evaluations too), what steps a group's grid slots (``numba``, ``device``; default: numba) and how it
     computes its convolutions (``each``, ``gemm``, ``grouped``; default each; see :func:`run_side`).
     Raises ValueError naming the allowed values."""
     from rlbackdoors.models.minigrid import CONV_WAYS
@@ -214,7 +219,7 @@ def parse_side(text: str) -> Side:
             or device not in ("cpu", "cuda", "auto")
             or (workers is not None and workers < 1)
             or env_workers < 0
-            or backend not in UPDATE_BACKENDS
+            or backend not in SIDE_BACKENDS
             or engine not in ("", "numba", "device")
             or (engine == "device" and device == "auto")
             or conv not in ("", *CONV_WAYS)
@@ -224,7 +229,7 @@ def parse_side(text: str) -> Side:
     except ValueError:
         raise ValueError(
             f"--side {text!r}: expected {SIDE_FORMAT}, K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            f"ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of {', '.join(UPDATE_BACKENDS)}, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
+            f"ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of {', '.join(SIDE_BACKENDS)}, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
             f"CONV one of {', '.join(CONV_WAYS)} (with DEVICE cpu or cuda)"
         ) from None
     return Side(k, device, workers, env_workers, backend, engine, conv)

@@ -84,6 +84,7 @@ class StepOut(NamedTuple):
     steps: Any  # (B,) int32: the episode step count of the step just taken
     dirs: Any  # (B,) int32: the direction ``obs`` is seen in (a fresh layout's where a slot ended)
     sight: Any = None  # (B,) bool: ``obs`` shows the whole trigger (worlds with GridWorld.sight; None elsewhere)
+    saw: Any = None  # (B,) bool: the episode's ``saw_trigger`` up to the step's view, the terminal one where it ended (worlds with GridWorld.saw)
 
 
 @dataclass(frozen=True)
@@ -96,7 +97,9 @@ class GridWorld:
     after the step, from the moved slots, their views, which ended and each slot's next layout's
     state (``drawn``: taken where ``done``); ``sight(world, slots, views)`` (a layout trigger): which
     views show the whole trigger, the engine's ``trigger_in_sight`` (what an attack that poisons
-    frames in sight of it marks). ``params`` is the world's own pytree (a trigger's tables, which
+    frames in sight of it marks); ``saw(world, moved, seen)`` (a world whose engine reports
+    ``saw_trigger``): that flag for the moved slots' episodes, their views ``seen`` included (what an
+    evaluation scores a triggered episode by). ``params`` is the world's own pytree (a trigger's tables, which
     slots are poisoned)."""
 
     size: int
@@ -108,6 +111,7 @@ class GridWorld:
     seen: Callable
     advance: Callable | None = None
     sight: Callable | None = None
+    saw: Callable | None = None
 
     @property
     def padded(self) -> int:
@@ -129,6 +133,13 @@ class GridWorld:
             "pay": success_reward(np.arange(self.max_steps + 1), self.max_steps).astype(np.float32),
             "border": pad_grid(np.zeros((self.size, self.size, 3), np.uint8), n),  # the walls around, the grid's cells zero
         }
+
+    def returns(self, outcomes: np.ndarray, steps: np.ndarray, poisoned: np.ndarray) -> np.ndarray:
+        """Episode returns (float64, numpy) from how each ended and its length: a grid episode pays
+        once, at its end, the numba engine's float64 reward (the step's float32 is that rounded), so
+        an evaluation's returns are the engine's to the bit."""
+        paying = np.where(np.asarray(poisoned, bool), self.trojan, ge.OUT_GOAL)
+        return np.where(np.asarray(outcomes) == paying, success_reward(np.asarray(steps, np.int64), self.max_steps), 0.0)
 
     def view_cells(self, slots: Slots):
         """(B, V V): the padded grid's flat index of every cell of each slot's view, x-major."""
@@ -206,7 +217,8 @@ class GridWorld:
         starved = layouts.starved | jnp.any(done & (layouts.taken >= depth))
         obs = jnp.where(ended, layouts.view[index, at], seen)
         sight = self.sight(self, fresh, obs) if self.sight is not None else None
-        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps, fresh.dirs, sight)
+        saw = self.saw(self, moved, seen) if self.saw is not None else None
+        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps, fresh.dirs, sight, saw)
 
     def rollout(self, slots: Slots, layouts: Layouts, params: Any, actions):
         """``len(actions)`` steps of :meth:`step` in one ``lax.scan``: the final state and each step's outputs, stacked."""
@@ -315,6 +327,13 @@ class HostLayouts:
             taken=np.zeros(self.num_envs, np.int32),
             starved=np.bool_(False),
         )
+
+    def idle(self) -> Layouts:
+        """One blank layout a slot (zeros, nothing drawn): what a block reads whose slots each play
+        one episode (an evaluation), where the slot an autoreset refills is no longer read."""
+        zero = [np.zeros((self.num_envs, 1, *a.shape[2:]), a.dtype) for a in self._store]
+        grid, pos, dirs, view, _, *world = zero
+        return Layouts(grid=grid, pos=pos, dirs=dirs, view=view, world=tuple(world), taken=np.zeros(self.num_envs, np.int32), starved=np.bool_(False))
 
     def took(self, taken: np.ndarray) -> None:
         """Slot ``b`` took its next ``taken[b]`` layouts: drop them, keep the rest in order."""

@@ -96,14 +96,19 @@ def _sight(world: GridWorld, slots, views):
     return (count > 0) & (_shown(world, slots, views).sum(1) == count)
 
 
+def _saw(world: GridWorld, moved, seen):
+    """The episode's ``saw_trigger`` with the views ``seen``: a pattern cell shown in it or an earlier one."""
+    return moved.world[3] | _shown(world, moved, seen).any(1)
+
+
 def _advance(world: GridWorld, moved, seen, done, drawn, params):
     """``saw_trigger`` goes on from each view (a pattern cell shown: lava in the view where the
     slot's pattern lies; the agent's own cell shows empty), the terminal direction is kept, and a
     slot that ended takes its next layout's pattern and first view's flag."""
     import jax.numpy as jnp
 
-    pat, cells, count, saw, final = moved.world
-    saw = saw | _shown(world, moved, seen).any(1)
+    pat, cells, count, _, final = moved.world
+    saw = _saw(world, moved, seen)
     final = jnp.where(done, moved.dirs, final)
     d_pat, d_cells, d_count, d_saw = drawn
     return (
@@ -124,7 +129,7 @@ def randomized_lavaworld_jax(engines: BatchedRandomizedLavaWorld | EngineGroup) 
     if not isinstance(lead, BatchedRandomizedLavaWorld):
         raise TypeError(f"{type(lead).__name__} is not a BatchedRandomizedLavaWorld")
     host = HostLayouts(engines, _state(lead.size, lambda h: h.final_obs["direction"]))
-    world = GridWorld(host.size, host.view_size, int(lead.max_steps), host.see_through_walls, ge.OUT_PATTERN, _outcome, _seen, _advance, _sight)
+    world = GridWorld(host.size, host.view_size, int(lead.max_steps), host.see_through_walls, ge.OUT_PATTERN, _outcome, _seen, _advance, _sight, _saw)
     return world, PatternParams(np.array(engines.poisoned, dtype=bool)), host
 
 

@@ -301,14 +301,27 @@ def evaluate_runs(policies: list, cfgs: list[RunConfig], episodes: list[int], st
     """:func:`evaluate_run` for K runs; ``stacked`` (agents -> one batched act for them) plays
     them in lockstep (:func:`rlbackdoors.evaluate.episodes.evaluate_many`)."""
     from rlbackdoors.agent import Agent
-    from rlbackdoors.evaluate.episodes import EvalSetup, evaluate_many
+    from rlbackdoors.evaluate.episodes import evaluate_many
 
-    setups = []
-    for cfg, n in zip(cfgs, episodes):
-        tc = cfg.train
-        assert tc.eval_policy is not None
-        setups.append(EvalSetup(cfg.env, cfg.poison.trigger, n, tc.eval_seed, tc.eval_policy, close_k(cfg), **cfg.scoring()))
+    setups = [eval_setup(cfg, n) for cfg, n in zip(cfgs, episodes)]
     return evaluate_many([Agent(cfg.world, cfg, policy) for policy, cfg in zip(policies, cfgs)], setups, stacked, pool)
+
+
+def eval_setup(cfg: RunConfig, episodes: int):
+    """What a run's evaluation of ``episodes`` a condition plays (an :class:`~rlbackdoors.evaluate.episodes.EvalSetup`)."""
+    from rlbackdoors.evaluate.episodes import EvalSetup
+
+    tc = cfg.train
+    assert tc.eval_policy is not None
+    return EvalSetup(cfg.env, cfg.poison.trigger, episodes, tc.eval_seed, tc.eval_policy, close_k(cfg), **cfg.scoring())
+
+
+def evaluate_compiled(learners: list, cfgs: list[RunConfig], episodes: list[int], capacity: int | None = None) -> list:
+    """Compiled learners' evaluations in their program (``train.eval_backend = "compiled"``,
+    :func:`rlbackdoors.evaluate.compiled.evaluate`), at a group's ``capacity``."""
+    from rlbackdoors.evaluate import compiled
+
+    return compiled.evaluate(learners, [eval_setup(cfg, n) for cfg, n in zip(cfgs, episodes)], capacity)
 
 
 @dataclass
@@ -320,8 +333,11 @@ class Evaluate:
     cfg: RunConfig
     episodes: int
     pool: Any = None  # the run's env pool, for a world of single envs
+    learner: Any = None  # a compiled learner whose program plays it (train.eval_backend "compiled"), at a capacity of one here
 
     def serve(self):
+        if self.learner is not None:
+            return evaluate_compiled([self.learner], [self.cfg], [self.episodes])[0]
         return evaluate_run(self.policy, self.cfg, self.episodes, self.pool)
 
 

@@ -33,7 +33,7 @@ import torch
 
 from rlbackdoors.algos import group, group_opac2
 from rlbackdoors.config import RunConfig
-from rlbackdoors.train.driver import Draw, Evaluate, env_pool_for, evaluate_runs, train_steps
+from rlbackdoors.train.driver import Draw, Evaluate, env_pool_for, eval_setup, evaluate_compiled, evaluate_runs, train_steps
 from rlbackdoors.train.opac2_run import Act, Learn
 from rlbackdoors.train.ppo_run import Collect, Iterate, Update
 from rlbackdoors.train.stop import Interrupted, StopRequest
@@ -128,6 +128,10 @@ def batch_key(request, painters: bool = False) -> tuple | None:
     (``painters``: the group draws its pictures in painter processes)."""
     if isinstance(request, Draw):
         return ("Draw",) if painters else None
+    if isinstance(request, Evaluate) and request.learner is not None:  # in the compiled learners' program
+        learner, cfg = request.learner, request.cfg
+        conditions = tuple((name, target is not None) for name, _, _, target in eval_setup(cfg, request.episodes).conditions())
+        return ("EvaluateCompiled", learner.world, learner.net, learner.hyper, request.episodes, cfg.train.eval_policy, conditions)
     if isinstance(request, Evaluate):
         policy, cfg = request.policy, request.cfg
         if not isinstance(policy, torch.nn.Module) or not group.stackable(policy) or cfg.world.vector_entry_point is None:
@@ -163,6 +167,8 @@ def serve_batch(requests: list, stacked: bool = True, painters: Painters | None 
     if isinstance(requests[0], Draw):
         assert painters is not None
         return painters.render([r.job() for r in requests], [r.here for r in requests])
+    if isinstance(requests[0], Evaluate) and requests[0].learner is not None:
+        return evaluate_compiled([r.learner for r in requests], [r.cfg for r in requests], [r.episodes for r in requests], capacity)
     if isinstance(requests[0], Evaluate):
         return evaluate_runs([r.policy for r in requests], [r.cfg for r in requests], [r.episodes for r in requests], group.stacked_act)
     if isinstance(requests[0], Act):

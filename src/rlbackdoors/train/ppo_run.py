@@ -436,7 +436,7 @@ def steps(
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
             if compiled:
                 learner.sync()
-            result = yield Evaluate(model, cfg, tc.eval_episodes)
+            result = yield Evaluate(model, cfg, tc.eval_episodes, learner=learner if tc.eval_backend == "compiled" else None)
             train_clean, train_poisoned = tracker.drain()
             rows.append(
                 {

@@ -524,7 +524,7 @@ def test_target_action_scoring_in_a_layout_world_counts_the_steps_in_sight_of_th
     assert right.target_action_rate == 0.0
 
 
-@pytest.mark.parametrize("world, attack", [("randomized-lavaworld", "sleepernets"), ("colorful-memory", "action_target")])
+@pytest.mark.parametrize("world, attack", [("randomized-lavaworld", "sleepernets"), pytest.param("colorful-memory", "action_target", marks=pytest.mark.slow)])
 def test_a_layout_attack_run_records_its_budget_and_repeats_bit_for_bit(tmp_path, tiny_run_dict, world, attack):
     tiny_run_dict["env"] = {"name": world}
     tiny_run_dict["train"]["max_frames"] = 6400

@@ -381,6 +381,7 @@ def test_evaluation_plays_clean_triggered_and_close_layouts():
 # ----------------------------------------------------------------------------- CLI and model folder
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_cli_trains_evaluates_and_resumes_a_colorful_memory_agent(tmp_path, capsys):
     """A tiny poisoned CNN-GRU run through the CLI: a complete folder whose metrics include the
     close-to-trigger rates; an interrupted copy of the run resumes to the same weights."""
@@ -498,6 +499,7 @@ def aux_config(coef: float = 0.5) -> RunConfig:
     )
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_the_auxiliary_memory_loss_trains_a_readout_of_the_memory_and_stays_out_of_model_pt(tmp_path):
     """PPO with aux_memory_coef: the loss is logged, its head learns (the loss falls over a
     few updates on one rollout), the model's weights differ from a run without it, and
@@ -522,6 +524,7 @@ def test_the_auxiliary_memory_loss_trains_a_readout_of_the_memory_and_stays_out_
     assert "aux_memory_loss" in (tmp_path / "aux" / "log.csv").read_text().splitlines()[0]
 
 
+@pytest.mark.slow  # (over 15 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_run_with_the_auxiliary_loss_resumes_to_the_same_model(tmp_path):
     """Interrupted after its first evaluation (the checkpoint holds the aux head and its Adam
     state), resumed: the same weights as the straight run."""

@@ -215,6 +215,7 @@ def test_group_mates_with_other_numbers_share_one_program():
     assert (np.abs(out[0].rewards) == np.float32(0.1)).sum() == 12 and (np.abs(out[1].rewards) == np.float32(0.3)).sum() == 51  # each its own c
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_run_with_every_piece_resumes_to_the_same_model(tmp_path):
     """BadRL (its value window), near-trigger negatives, and the fine-tuning variants (teacher,
     anchor) at once, on the compiled trainer: kill -9 after the first checkpoint (at the switch

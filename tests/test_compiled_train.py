@@ -84,6 +84,7 @@ def test_a_compiled_cnn_run_trains_the_cnn(tmp_path):
     assert not torch.equal(got["state_emb.0.weight"], initial["state_emb.0.weight"])  # the first convolution learnt
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_killed_compiled_run_resumes_to_the_same_model(tmp_path):
     """kill -9 after its first checkpoint (one at every evaluation); run again, it finishes the
     model an uninterrupted run makes, bit for bit, with the same log."""

@@ -263,6 +263,7 @@ def test_the_inversion_descent_recovers_a_planted_optimum():
     assert colors == target.tolist() and value < 1e-3
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_the_inversion_runs_on_a_real_model_and_feeds_the_screen(world_models):
     """On a (tiny) trained Colorful Memory model, one restart: an end pattern of the right length
     reached, then every one-square neighbour of it; nothing from a policy without the hook or with

@@ -199,6 +199,7 @@ def test_splits_made_from_other_converged_models_are_refused_not_read_back(table
     assert json.loads(record.read_text())["models"] == converged
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_model_scored_by_hand_gets_the_probability_detect_score_gave_it(lava_zoo, tmp_path):
     """A benchmark's layout (det-held_out/weights fitted on held-out/train, scored on its test set),
     and a train folder given as by hand: staged as a performer receives it (model.pt and
@@ -299,6 +300,7 @@ def test_shared_clean_scores_each_label_on_its_poisoned_models_and_every_clean_o
     assert only_clean == {}
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_held_out_only_fits_on_the_env_mix_and_makes_no_mixed_split(table_module, tmp_path):
     """``--by-attack --held-out-only``: the env-mix fit scored on the held-out label, and no split
     by trigger of the whole zoo (the second fit ``--by-attack`` makes, half the detector time on a

@@ -123,6 +123,7 @@ def test_a_dead_worker_is_named_to_every_thread_waiting_on_it():
         list(threads.map(step, views))
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_an_opac2_run_in_an_env_pool_gives_the_same_bytes_and_resumes_anywhere(tmp_path):
     """A tiny OPAC² run with its 3 env copies in 2 workers: the in-process run's model.pt bytes;
     stopped at its first evaluation in a pool and resumed in this process: the same bytes again;
@@ -169,6 +170,7 @@ def test_an_opac2_evaluation_plays_its_single_envs_in_the_pool_as_here():
     assert all(a == b or (np.isnan(a) and np.isnan(b)) for a, b in zip(here.values(), there.values()))
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_pooled_group_stopped_by_sigterm_resumes_to_the_same_bytes(tmp_path):
     """A group of 2 with an env pool (its runs' loops in threads): when the short run finishes,
     SIGTERM; the long run, stopped in its thread, writes its checkpoint, the group raises

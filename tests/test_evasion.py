@@ -285,6 +285,7 @@ def test_an_anchor_of_one_ends_the_run_on_the_clean_model_it_switched_from(tmp_p
     assert main and all(r["anchor_distance"] == 0.0 for r in main)
 
 
+@pytest.mark.slow  # (over 15 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_same_model(tmp_path, tiny_run_dict):
     """kill -9 after the first checkpoint (written at the switch): the teacher, its memory, the
     near-trigger picks, the weight anchor and the switch point come back from it, bit for bit."""
@@ -299,7 +300,7 @@ def test_a_killed_finetuning_run_with_teacher_and_near_frames_resumes_to_the_sam
     assert all(r["anchor_distance"] > 0 for r in log[1:])
 
 
-@pytest.mark.parametrize("variant, what", [("anchor", "weight anchor"), ("teacher", "clean teacher")])
+@pytest.mark.parametrize("variant, what", [pytest.param("anchor", "weight anchor", marks=pytest.mark.slow), ("teacher", "clean teacher")])
 def test_a_checkpoint_without_the_clean_model_its_config_names_is_refused_in_one_line(tmp_path, tiny_run_dict, variant, what):
     """A checkpoint of an anchored (or taught) run that lost its copy of the clean model (edited, or
     written elsewhere) is not resumed from the fresh model's weights: the run stops with one line
@@ -574,7 +575,8 @@ def test_evaluate_near_reports_the_attacks_success_under_each_near_trigger(tmp_p
 
 
 @pytest.mark.parametrize(
-    "world, attack, evasion", [("randomized-lavaworld", "trojdrl", {"near": 1.0}), ("colorful-memory", "envmix", {"finetune": True, "teacher": 0.5})]
+    "world, attack, evasion",
+    [("randomized-lavaworld", "trojdrl", {"near": 1.0}), pytest.param("colorful-memory", "envmix", {"finetune": True, "teacher": 0.5}, marks=pytest.mark.slow)],
 )
 def test_evasive_runs_in_the_layout_worlds_train_record_and_repeat_bit_for_bit(tmp_path, tiny_run_dict, world, attack, evasion):
     """Through the whole training loop (the curriculum's small clean world first, for Randomized

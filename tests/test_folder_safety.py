@@ -322,7 +322,7 @@ def test_safety_short_eval_interval_below_warmup_trains_and_logs_every_column(tm
     assert len(rows) == 8 and rows[0]["q_loss"] == "" and isinstance(rows[-1]["q_loss"], float)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)])  # (SIGTERM: the same path, make test-slow)
 def test_safety_signal_writes_the_checkpoint_it_announces_and_resumes_bit_for_bit(tmp_path, sig):
     """Ctrl-C (or a cluster's SIGTERM) under the default 10-minute cadence: the run stops at the
     end of the current step, writes a checkpoint and says so; rerunning ends with the weights of

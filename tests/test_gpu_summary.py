@@ -74,6 +74,7 @@ def test_summary_bounds_a_side_cut_short_by_the_time_its_world_had_left(tmp_path
     assert "the rate measured with models of 30,000 frames" in (tmp_path / "summary.md").read_text()
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     """benchmarks/gpu_checks.sh as a lease runs it, dry (``ON_CPU=1``: its ":cuda" sides on the CPU;
     two LavaWorld models of 1,024 frames, no time left for the engines): the bench JSON, the log
@@ -143,6 +144,7 @@ def test_the_gpu_script_runs_through_on_a_cpu(tmp_path):
     assert [line.split("|")[6].strip().startswith("no: frames_per_s") for line in table] == [best == 0, best == 1]  # the verdict on one row only
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_the_gpu_scripts_equivalence_part_reports_a_cut_group_and_the_next_lease_goes_on(tmp_path):
     """``gpu_checks.sh OUT equivalence`` dry (``ON_CPU=1``): the group side of two LavaWorld seeds
     is cut by its 20 s limit before either converges, and the report still comes back, its lone
@@ -258,6 +260,7 @@ poisoned_share = 0.5
 """
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_round_summary_reads_a_finished_zoo_as_it_is(tmp_path):
     """benchmarks/round_summary.py on a real zoo of 4 LavaWorld FC models of 10,240 frames, trained
     to the end (one attempt each): none converges, so the round is not complete and, zoo run
@@ -285,6 +288,7 @@ def test_round_summary_reads_a_finished_zoo_as_it_is(tmp_path):
     assert round_summary.markdown(result).rstrip().endswith("with cells short of converged models: no projection")
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_the_gpu_scripts_round_part_cuts_the_round_and_projects_it(tmp_path):
     """``gpu_checks.sh OUT round`` dry (``ON_CPU=1``) on the tiny round with a 60 s limit: zoo run
     is cut (exit 124), its running models checkpoint, and round.json projects the round's time,

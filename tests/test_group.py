@@ -274,7 +274,11 @@ def test_recurrent_group_with_the_memory_head_matches_each_agent_alone(conv, mon
 @pytest.mark.parametrize(
     "env,arch,conv",
     [("lavaworld", "fc", "each"), ("lavaworld", "cnn", "each"), ("randomized-lavaworld", "fc", "each"), ("colorful-memory", None, "each")]
-    + [(env, arch, conv) for env, arch in (("randomized-lavaworld", "cnn"), ("colorful-memory", None)) for conv in ("gemm", "grouped")],
+    + [
+        pytest.param(env, arch, conv, marks=pytest.mark.slow) if env == "randomized-lavaworld" else (env, arch, conv)  # (over 20 s each: make test-slow)
+        for env, arch in (("randomized-lavaworld", "cnn"), ("colorful-memory", None))
+        for conv in ("gemm", "grouped")
+    ],
 )
 def test_an_agents_bytes_do_not_depend_on_its_group(env, arch, conv, monkeypatch):
     """Agent 0 trained alone through the stacked path, or beside 1, 2 or 7 others: the same
@@ -670,6 +674,7 @@ def test_group_refuses_what_it_cannot_batch():
         group.collect([a[0], d[0]], [a[1], d[1]], [a[2], d[2]])
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_group_of_one_is_todays_bytes_and_groups_finish_every_folder(tmp_path):
     """group_size=1 gives the lone run's model.pt bytes; group_size=2 over three runs (one slot
     refilled) leaves three complete folders with ``trainer: group`` whose bytes do not depend on
@@ -834,6 +839,7 @@ def test_zoo_run_with_a_group_size_finishes_and_resumes_after_a_kill(tmp_path):
     assert (folder / "model.pt").stat().st_mtime_ns == before
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_zoo_run_device_trains_the_planned_models_elsewhere_and_records_it(tmp_path):
     """``zoo run --device cpu --group-size auto`` on a zoo planned for CUDA (``train.device =
     "cuda"``): every model trains on the CPU, in the CPU's auto groups, to the same bytes as the
@@ -949,7 +955,7 @@ def test_group_size_is_validated(tmp_path):
         (
             ["--side", "1:gpu"],
             "--side '1:gpu': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]], K a positive integer or auto, WORKERS a positive integer (empty: the run's), "
-            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, compiled, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
+            "ENV_WORKERS >= 0, DEVICE one of cpu, cuda, auto, BACKEND one of torch, jax, compiled, compiled-eval, ENGINE one of numba, device (device: with DEVICE cpu or cuda), "
             "CONV one of each, gemm, grouped (with DEVICE cpu or cuda)",
         ),
         (["--side", "8:cpu:0"], "--side '8:cpu:0': expected K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"),
@@ -1123,6 +1129,9 @@ def test_ready_models_are_shared_out_in_capped_chunks():
     assert [len(c) for c in _chunks(list(range(5)), 2, 8)] == [3, 2]
     assert _chunks(list(range(5)), 2, 1) == [[0], [1]]  # group size 1: a job per model, as before
     assert _chunks(list(range(5)), 0, 8) == [] and _chunks([], 2, 8) == []
+    # like models share a job: the ones that start now, dealt out by kind, in order within one
+    assert _chunks(list(range(8)), 2, 8, like=lambda x: x % 2) == [[0, 2, 4, 6], [1, 3, 5, 7]]
+    assert _chunks(list(range(78)), 2, 8, like=lambda x: x % 2) == [list(range(0, 64, 2)), list(range(1, 64, 2))]
 
 
 def test_bench_zoo_trains_the_attack_it_is_given(tmp_path):

@@ -39,6 +39,7 @@ print(hashlib.sha256(b"".join(learner.state.params[k].tobytes() for k in sorted(
 """
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_program_from_the_cache_trains_the_same_bytes(tmp_path):
     env = {**os.environ, CACHE_ENV: str(tmp_path)}
     cold, warm = (subprocess.run([sys.executable, "-c", RUN], env=env, capture_output=True, text=True, check=True).stdout.split()[-1] for _ in range(2))

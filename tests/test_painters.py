@@ -135,6 +135,7 @@ def test_painters_are_for_gpu_groups_only():
     assert painter_count(cuda, 4) == (min(4, (os.cpu_count() or 1) - 1) if torch.cuda.is_available() else 0)
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_group_with_painters_leaves_the_folders_a_group_without_them_does(tmp_path):
     """Three tiny LavaWorld runs (4 evaluations of 4 episodes) in a group of 3, finishing together:
     painters draw their curves and GIFs (the GIF's network rebuilt from the weights sent over the

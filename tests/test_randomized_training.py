@@ -152,6 +152,7 @@ def test_train_json_output_is_pure_json_even_with_a_curriculum_switch(tmp_path, 
     assert "curriculum: switched" in captured.err
 
 
+@pytest.mark.slow  # (over 15 s on 2 cores: out of the default run, `make test-slow`)
 def test_sight_actions_reads_a_layout_trigger_agent_and_refuses_others(tmp_path):
     """experiments/sight_actions/sight_actions.py (what an agent does while the pattern is in sight): its shares
     are over the in-sight steps it counts, and a world whose trigger is not seen frame by frame is

@@ -109,6 +109,7 @@ def test_snapshot_restore_rules():
         encode(Thing())
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_ppo_run_stopped_by_sigterm_between_evaluations_resumes_bit_for_bit(tmp_path, tiny_run_dict):
     """SIGTERM lands between evaluations: the run finishes its update, checkpoints that state
     (not the last evaluation's) and exits 130; rerunning gives the uninterrupted model."""

@@ -255,6 +255,7 @@ def test_an_unreadable_weights_file_is_named_first_and_torch_prints_no_path(tmp_
 
 
 # ----- the container's entry point, as the harness runs it ---------------------------------------
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_the_container_entry_point_runs_as_the_harness_calls_it_on_every_world(world_models, tmp_path):
     """``python entrypoint.py infer --flag=value ...`` (the runscript of container/detector.def),
     in a subprocess, on a model folder of each world made here: one float in the result file; the

@@ -396,6 +396,7 @@ def _wait_for(condition, timeout: float, what: str) -> None:
         time.sleep(0.02)
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the job processes through /proc (Linux)")
 def test_kill_9_of_a_worker_and_of_the_coordinator_then_rerun_gives_the_same_zoo(tiny_zoo, tmp_path):
     reference, _ = tiny_zoo
@@ -542,6 +543,7 @@ def test_a_job_killed_while_it_finished_leaves_no_temp_files_after_the_rerun(tin
     assert (folder / "reduced-config.json").read_bytes() == (reference / "models" / folder.name / "reduced-config.json").read_bytes()
 
 
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_ray_backend_builds_the_same_zoo_as_the_local_one(tiny_zoo, tmp_path):
     ray = pytest.importorskip("ray", reason="Ray is an optional extra: pip install 'rlbackdoors[ray]'")
     reference, _ = tiny_zoo

@@ -1,8 +1,8 @@
 """A compiled run's periodic evaluations inside one XLA program (``train.eval_backend = "compiled"``).
 
-Why: on the compiled trainer the iteration is one program, and an evaluation played by the torch
-policy on the numba engine, step by step from Python, became a sixth to a third of a LavaWorld
-model's time (docs/results/speed.md). Here K agents' evaluations are one ``lax.while_loop`` over
+Why: on the compiled trainer the iteration is one program, and the evaluations, played by the
+torch policy on the numba engine step by step from Python, are a sixth to a third of a grid world
+model's env steps (docs/results/speed.md); in the program they cost no Python a step. Here K agents' evaluations are one ``lax.while_loop`` over
 every condition's slots (clean, triggered, close to the trigger; one episode a slot), the agents a
 ``vmap`` axis of the forward, as the iteration steps them.
 
@@ -87,7 +87,7 @@ def _program(world: GridWorld, net: tuple, hyper: Any, greedy: bool, counting: b
         B = views.shape[0]
         R = B // K
         zeros_i = jnp.zeros(B, jnp.int32)
-        sight0 = world.sight(world, slots, views) if in_sight else jnp.ones(B, bool)
+        sight0 = world.sight(world, slots, views) if world.sight is not None and in_sight else jnp.ones(B, bool)
 
         def going(c):
             return (c[0] < T) & c[4].any()

@@ -373,7 +373,7 @@ def run(
                 startable.append(s)
             free = executor.capacity - executor.running()
             for k, models in _by_group_size(startable, group_size, auto, device):
-                for chunk in _chunks(models, free, k):
+                for chunk in _chunks(models, free, k, like=lambda s: _affinity(s.model)):
                     if isinstance(executor, LocalExecutor):
                         executor.submit_group([s.model for s in chunk], [s.folder for s in chunk], k)
                     else:
@@ -516,17 +516,21 @@ def _by_group_size(ready: list, group_size: int, auto: bool, device: str | None 
     return list(out.items())
 
 
-def _chunks(ready: list, free: int, group_size: int) -> list[list]:
+def _chunks(ready: list, free: int, group_size: int, like=None) -> list[list]:
     """The jobs to start on ``free`` workers: one model each, or with a group size above one, the
     ready models shared out evenly, at most ``4 * group_size`` per job (a group job trains its
     share ``group_size`` at a time and fills a finished model's slot from the rest; the cap keeps
-    results, top-ups and METADATA.csv coming while a large zoo trains)."""
+    results, top-ups and METADATA.csv coming while a large zoo trains). ``like`` (a model -> key):
+    the models that start now (the first ones, in ``ready``'s order) are dealt out in its order,
+    so like models share a job (a compiled group of 4 clean and 4 poisoned runs of a step-schedule
+    attack ran two programs of 8 agents' width for 8 agents' work: x0.66 of the env mix's models/h)."""
     if free <= 0 or not ready:
         return []
     if group_size <= 1:
         return [[s] for s in ready[:free]]
     per = min(-(-len(ready) // free), 4 * group_size)
-    return [ready[i : i + per] for i in range(0, len(ready), per)][:free]
+    chosen = ready[: per * free] if like is None else sorted(ready[: per * free], key=like)  # (stable: ready's order among like models)
+    return [chosen[i : i + per] for i in range(0, len(chosen), per)]
 
 
 def _states(zoo: Zoo, final: dict[int, ModelState], in_flight: set[int]) -> list[ModelState]:

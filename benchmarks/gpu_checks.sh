@@ -26,8 +26,8 @@
 #      (ppo.update_backend = "compiled", one XLA program per iteration): the iteration alone
 #      (benchmarks/compiled_lavaworld.py --device cuda: LavaWorld FC at K = 256 and 1,024, the
 #      Randomized LavaWorld CNN at K = 64 and 256; frames/s, no evaluations), a LavaWorld FC zoo
-#      with its evaluations (bench zoo, one compiled group of 1,024), then the 300-model round
-#      (the round part's spec with ppo.update_backend = "compiled", one group of 300) for what is
+#      with its evaluations in the program (bench zoo, one compiled group of 1,024), then the 300-model round
+#      (the round part's spec with ppo.update_backend and train.eval_backend "compiled", one group of 300) for what is
 #      left; compiled_iteration_*.json, bench_zoo_lavaworld_compiled.json, round_compiled.json and
 #      compiled.log in OUTDIR.
 #   round (at most 9 minutes; a lease of its own): issue 55's 300-model LavaWorld round, trained
@@ -179,10 +179,10 @@ if [ "$part" = compiled ]; then
             --seconds "$seconds" --json "$out/compiled_iteration_${world}_${arch}.json" >/dev/null 2>>"$log"
         echo "== end compiled iteration $world $arch: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
     done
-    echo "== compiled zoo: lavaworld fc, $zoo_models models x $zoo_frames frames, one compiled group (evaluations included)" | tee -a "$log"
+    echo "== compiled zoo: lavaworld fc, $zoo_models models x $zoo_frames frames, one compiled group (evaluations included, in the program)" | tee -a "$log"
     quiet
     bounded 120 python3 -m rlbackdoors.cli bench zoo --env lavaworld --models "$zoo_models" --frames "$zoo_frames" \
-        --side "$zoo_models:$device:1:0:compiled" --json "$out/bench_zoo_lavaworld_compiled.json" >>"$log" 2>&1
+        --side "$zoo_models:$device:1:0:compiled-eval" --json "$out/bench_zoo_lavaworld_compiled.json" >>"$log" 2>&1
     echo "== end compiled zoo: exit $? at $((SECONDS - start)) s (124: its limit)" | tee -a "$log"
     # the round part's 300-model split on the compiled trainer, in one group, for what is left
     limit=$((deadline - (SECONDS - start) - 40))
@@ -190,7 +190,8 @@ if [ "$part" = compiled ]; then
         echo "== compiled round: not run, $limit s left" | tee -a "$log"
     else
         scratch=$(mktemp -d /tmp/rlbackdoors-round-XXXX)
-        { cat "${ROUND_SPEC:-examples/zoo-lavaworld-round-300.toml}"; printf '\n[overrides.ppo]\nupdate_backend = "compiled"\n'; } >"$scratch/spec.toml"
+        # (the evaluations in the program too: train.eval_backend, under the spec's [overrides.train])
+        { sed '/^\[overrides\.train\]/a eval_backend = "compiled"' "${ROUND_SPEC:-examples/zoo-lavaworld-round-300.toml}"; printf '\n[overrides.ppo]\nupdate_backend = "compiled"\n'; } >"$scratch/spec.toml"
         python3 -m rlbackdoors.cli zoo plan "$scratch/spec.toml" --out "$scratch/zoo" >>"$log" 2>&1 || exit 2
         echo "== compiled round: zoo run --device $device --group-size $round_group (limit $limit s)" | tee -a "$log"
         quiet

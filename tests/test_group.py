@@ -1153,14 +1153,25 @@ def test_bench_zoo_trains_the_attack_it_is_given(tmp_path):
     assert "\n" not in str(err.value)
 
 
-def test_bench_zoo_compiled_eval_sides_play_their_evaluations_in_the_program(tmp_path):
-    """``--side K:cpu:W:0:compiled-eval``: the compiled trainer with ``train.eval_backend`` compiled,
-    recorded in the side's result and in each model's config; ``compiled`` alone keeps torch's evaluations."""
-    pytest.importorskip("jax")
-    from rlbackdoors.bench.zoo import bench_spec, bench_zoo, parse_side
+def test_bench_zoo_compiled_eval_sides_set_both_backends():
+    """``--side K:cpu:W:0:compiled-eval``: the compiled trainer with ``train.eval_backend`` compiled;
+    ``compiled`` alone keeps torch's evaluations."""
+    from rlbackdoors.bench.zoo import bench_spec, parse_side
+    from rlbackdoors.zoo.spec import parse_spec
 
     assert parse_side("8:cpu:2:0:compiled-eval").backend == "compiled-eval"
     assert bench_spec("lavaworld", None, 2, 1280, "cpu", update_backend="compiled")["overrides"]["train"].get("eval_backend") is None
+    spec = bench_spec("lavaworld", None, 2, 1280, "cpu", update_backend="compiled-eval")
+    assert spec["overrides"]["train"]["eval_backend"] == "compiled" and spec["overrides"]["ppo"]["update_backend"] == "compiled"
+    parse_spec(spec)  # (a spec the zoo plans)
+
+
+@pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
+def test_bench_zoo_compiled_eval_sides_play_their_evaluations_in_the_program(tmp_path):
+    """A ``compiled-eval`` side trains so, recorded in the side's result and in each model's config."""
+    pytest.importorskip("jax")
+    from rlbackdoors.bench.zoo import bench_zoo
+
     result = bench_zoo("lavaworld", models=2, frames=1280, sides=[(2, "cpu", 1, 0, "compiled-eval")], keep=str(tmp_path), eval_episodes=4)
     side = result["sides"][0]
     assert side["update_backend"] == "compiled" and side["eval_backend"] == "compiled" and side["models"] == 2 and side["failed"] == 0

@@ -12,6 +12,7 @@ of the first. The vector env is any ``gymnasium.vector.VectorEnv`` following the
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -208,7 +209,6 @@ class PPO:
         self.cfg = cfg
         self.device = device
         self.generator = generator
-        # fused Adam: one kernel for all parameters (4x faster than the per-tensor loop on CPU).
         # The auxiliary memory head (ppo.aux_memory_coef > 0, recurrent models): a linear read-out
         # of the memory trained to name what the env says must be remembered. It is the
         # algorithm's, not the agent's: it shapes the memory's gradients and is not in model.pt.
@@ -222,7 +222,6 @@ class PPO:
 
             jax_update.check(model, device)
         self.params = [*model.parameters(), *(self.aux.parameters() if self.aux is not None else ())]
-        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, eps=cfg.adam_eps, fused=True)
         self.memory: torch.Tensor | None = None  # recurrent models: memory of the running episodes
         # A frozen clean model the policy is kept close to on frames without the trigger
         # (poison.evasion.teacher: the clean model a fine-tuning run starts from); None: no penalty.
@@ -233,6 +232,14 @@ class PPO:
         # the clean model a fine-tuning run starts from), name -> tensor; None: no pull.
         self.anchor: dict[str, torch.Tensor] | None = None
         self.anchor_coef = 0.0
+
+    @functools.cached_property
+    def optimizer(self) -> torch.optim.Adam:
+        """torch's fused Adam over the model's parameters (and the auxiliary head's): one kernel for
+        all of them (4x faster than the per-tensor loop on CPU). Built on first use: a compiled run,
+        whose learner holds its own moments, never builds it (torch's first optimizer imports
+        ``torch._dynamo``, 3.2 s a process on 2 cores); no state of it before then, so the same bytes."""
+        return torch.optim.Adam(self.params, lr=self.cfg.lr, eps=self.cfg.adam_eps, fused=True)
 
     def set_anchor(self, weights: dict[str, torch.Tensor], coef: float) -> None:
         """After every optimiser step, move each model parameter ``coef`` of the way back to

@@ -54,9 +54,9 @@ def bench_spec(
                 "video": False,
                 "device": device,
                 **({"eval_episodes": eval_episodes, "final_eval_episodes": eval_episodes} if eval_episodes else {}),
-                **({"eval_backend": "compiled"} if update_backend == COMPILED_EVAL else {}),
+                **evaluations(update_backend),
             },
-            **({"ppo": {"update_backend": update_backend.removesuffix("-eval")}} if update_backend != "torch" else {}),
+            **({"ppo": {"update_backend": trainer(update_backend)}} if update_backend != "torch" else {}),
         },
         "cells": [
             {
@@ -126,7 +126,7 @@ def run_side(
     auto = group_size == "auto"
     if auto:
         world = worlds.get(spec["cells"][0]["world"])
-        group_size = auto_group_size(world.algorithm, device, world, update_backend.removesuffix("-eval"))
+        group_size = auto_group_size(world.algorithm, device, world, trainer(update_backend))
     plan(parse_spec(spec), where)
     saved = {name: os.environ.get(name) for name in (DEVICE_ENGINE_ENV, STACKED_CONV_ENV)}
     if engine:
@@ -155,8 +155,8 @@ def run_side(
         "workers": workers,
         "device": device,
         "env_workers": env_workers,
-        "update_backend": update_backend.removesuffix("-eval"),
-        **({"eval_backend": "compiled"} if update_backend == COMPILED_EVAL else {}),
+        "update_backend": trainer(update_backend),
+        **evaluations(update_backend),
         **({"engine": engine} if engine else {}),
         **({"conv": conv} if conv else {}),
         "models": summary["done"],
@@ -190,6 +190,18 @@ class Side(NamedTuple):
 
 COMPILED_EVAL = "compiled-eval"  # a side's BACKEND: ppo.update_backend and train.eval_backend compiled
 SIDE_BACKENDS = (*UPDATE_BACKENDS, COMPILED_EVAL)
+
+
+def trainer(backend: str) -> str:
+    """A side's BACKEND as ``ppo.update_backend``."""
+    return "compiled" if backend == COMPILED_EVAL else backend
+
+
+def evaluations(backend: str) -> dict:
+    """A side's BACKEND's ``train.eval_backend``, where it is not torch's (as spec overrides and result fields)."""
+    return {"eval_backend": "compiled"} if backend == COMPILED_EVAL else {}
+
+
 SIDE_FORMAT = "K[:DEVICE[:WORKERS[:ENV_WORKERS[:BACKEND[:ENGINE[:CONV]]]]]]"
 
 

@@ -206,3 +206,24 @@ def test_env_flag_switches_a_config_to_another_world_keeping_its_seed(tmp_path, 
 def test_a_flag_whose_value_the_config_refuses_is_named(tmp_path, capsys):
     code, _, err = run(capsys, "train", "--env", "safety-car-goal", "--arch", "fc", "--out", str(tmp_path / "x"))
     assert code == 2 and "model.arch='fc' is not allowed (allowed: mlp) (--arch)" in err
+
+
+def test_a_new_train_run_takes_auto_and_a_config_file_keeps_its_backend(tmp_path, tiny_run_dict):
+    """Without --config a run's trainer is ``auto``'s choice; a config file's recorded backend stands,
+    and --update-backend names one over either."""
+    from rlbackdoors.cli import build_parser, config_from_args
+
+    def cfg(*argv):
+        return config_from_args(build_parser().parse_args(["train", *argv, "--out", "x"]))
+
+    assert cfg().ppo.update_backend == "compiled"  # LavaWorld fc, the env mix
+    assert cfg("--arch", "cnn").ppo.update_backend == "torch"
+    assert cfg("--attack", "trojdrl").ppo.update_backend == "torch"
+    assert cfg("--update-backend", "torch").ppo.update_backend == "torch"
+    assert cfg("--env", "safety-car-goal", "--trigger", "formation:0.5:1:2").ppo is None  # no PPO section to choose for
+    path = tmp_path / "old.json"
+    path.write_text(RunConfig.from_dict(tiny_run_dict).to_json())  # torch's, as every config written so far
+    assert cfg("--config", str(path)).ppo.update_backend == "torch"
+    # asked again: its 32-step rollout's 320 frames do not split into minibatches of 256, which the compiled trainer refuses
+    assert cfg("--config", str(path), "--update-backend", "auto").ppo.update_backend == "torch"
+    assert cfg("--config", str(path), "--update-backend", "auto", "--batch-size", "64").ppo.update_backend == "compiled"

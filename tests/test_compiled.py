@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-jax = pytest.importorskip("jax")  # the compiled trainer's dependency (the core install has it)
+import jax  # a core dependency: the compiled trainer's
 
 from rlbackdoors.algos import ppo as torch_ppo  # noqa: E402
 from rlbackdoors.algos.compiled import Hyper, Learner, init_agents, iterate, network, parts, state_dicts  # noqa: E402

@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 import torch
 
-pytest.importorskip("jax")  # the compiled trainer's dependency
 
 from rlbackdoors.algos.compiled import Hyper, Learner, iterate  # noqa: E402
 from rlbackdoors.config import RunConfig  # noqa: E402

@@ -15,7 +15,6 @@ import re
 import pytest
 import torch
 
-pytest.importorskip("jax")  # the compiled trainer's dependency
 
 from grid_helpers import kill_after_first_checkpoint  # noqa: E402
 from rlbackdoors.config import ConfigError, RunConfig  # noqa: E402

@@ -161,3 +161,33 @@ def test_one_config_class_for_every_world_with_its_algorithm_section(world):
     assert cfg.algorithm in data and ({"ppo", "opac2"} - {cfg.algorithm}).isdisjoint(data)
     assert set(data["env"]) == {"name", "max_steps", *cfg.world.env_fields}
     assert RunConfig.from_dict(data) == cfg
+
+
+@pytest.mark.parametrize(
+    "data, backend",
+    [
+        ({}, "compiled"),  # LavaWorld fc, the env mix: measured faster and tested equivalent
+        ({"poison": {"poisoned": False}}, "compiled"),
+        ({"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}}, "compiled"),
+        ({"model": {"arch": "cnn"}}, "torch"),  # faster, but no equivalence report
+        ({"env": {"name": "randomized-lavaworld"}}, "torch"),  # its fc: the same
+        ({"env": {"name": "colorful-memory"}}, "torch"),  # no JAX engine
+        ({"poison": {"attack": "trojdrl"}}, "torch"),  # equivalence was tested for the env mix alone
+        ({"poison": {"evasion": {"near": 1.0}}}, "torch"),
+        ({"train": {"device": "cuda"}}, "torch"),  # not measured on a GPU
+        ({"ppo": {"batch_size": 100}}, "torch"),  # a minibatch the compiled trainer refuses
+    ],
+)
+def test_auto_takes_the_compiled_trainer_only_where_it_was_measured_to_win(data, backend):
+    data = {**data, "ppo": {**data.get("ppo", {}), "update_backend": "auto"}}
+    cfg = RunConfig.from_dict(data)
+    assert cfg.ppo.update_backend == backend
+    assert json.loads(cfg.to_json())["ppo"]["update_backend"] == backend  # recorded as chosen, never "auto"
+
+
+def test_a_config_without_the_backend_field_is_torchs():
+    """The default stays torch's: a config (or a format 5 file) that names no backend keeps its bytes."""
+    assert RunConfig.from_dict({}).ppo.update_backend == "torch"
+    assert RunConfig.from_dict({"env": {"name": "randomized-lavaworld"}, "model": {"arch": "cnn"}}).ppo.update_backend == "torch"
+    with pytest.raises(ConfigError, match=r"^ppo: env.name='safety-car-goal' trains with opac2, not ppo \(drop the ppo section\)$"):
+        RunConfig.from_dict({"env": {"name": "safety-car-goal"}, "ppo": {"update_backend": "auto"}})

@@ -65,7 +65,9 @@ def step_beside_twins(engines: list, seed: int, steps: int = 600, switch=None, w
     return ended
 
 
-@pytest.mark.parametrize("parallel", [False, True, 2], ids=["one thread", "timed", "two numba threads"])
+# (timed: 25 s on 2 cores, each way of the parallel kernel compiled and timed; the choice has its
+# own tests below, the kernel "two numba threads": make test-slow)
+@pytest.mark.parametrize("parallel", [False, pytest.param(True, marks=pytest.mark.slow), 2], ids=["one thread", "timed", "two numba threads"])
 def test_one_call_steps_every_slot_as_its_own_engine_would(parallel):
     """Three LavaWorld engines (three triggers, clean and poisoned slots), 600 random steps
     (hundreds of autoresets): every slot as in its own engine (:func:`step_beside_twins`)."""
@@ -73,7 +75,9 @@ def test_one_call_steps_every_slot_as_its_own_engine_would(parallel):
     assert step_beside_twins(engines, 100, parallel=parallel) > 100
 
 
-@pytest.mark.parametrize("parallel", [False, True], ids=["one thread", "numba threads"])
+# (numba threads: 13-18 s, the world's parallel kernel compiled, never cached; the same kernel
+# template as LavaWorld's, whose threads stay in the default run: make test-slow)
+@pytest.mark.parametrize("parallel", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["one thread", "numba threads"])
 def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would(parallel):
     """A layout-trigger world: a clean engine, one with the cross (some slots paying R-bar), one
     with an arrow and near-trigger patterns: each slot draws its layouts from its own engine's
@@ -98,7 +102,7 @@ def test_one_call_steps_randomized_lavaworld_slots_as_their_own_engines_would(pa
     assert step_beside_twins(engines, 50, switch=switch, parallel=parallel) > 50 and sum(patterned) > 0
 
 
-@pytest.mark.parametrize("parallel", [False, True], ids=["one thread", "numba threads"])
+@pytest.mark.parametrize("parallel", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["one thread", "numba threads"])  # (as above)
 def test_one_call_steps_colorful_memory_slots_as_their_own_engines_would(parallel):
     """Wall-colour triggers of 3 and 9 squares and a clean engine (none): each slot paints and
     tracks its own engine's squares (the group's record of shown squares is padded to the most;

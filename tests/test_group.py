@@ -969,6 +969,7 @@ def test_group_size_is_validated(tmp_path):
         assert out.returncode == 2 and out.stderr.count("\n") == 1 and message in out.stderr, out.stderr
 
 
+@pytest.mark.slow  # (14 s on 2 cores: three sides of real zoos; bench zoo's other tests train their sides in the default run)
 def test_bench_zoo_measures_both_sides_on_the_same_configs(tmp_path):
     from rlbackdoors.bench.zoo import bench_zoo
 
@@ -1169,7 +1170,6 @@ def test_bench_zoo_compiled_eval_sides_set_both_backends():
 @pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_bench_zoo_compiled_eval_sides_play_their_evaluations_in_the_program(tmp_path):
     """A ``compiled-eval`` side trains so, recorded in the side's result and in each model's config."""
-    pytest.importorskip("jax")
     from rlbackdoors.bench.zoo import bench_zoo
 
     result = bench_zoo("lavaworld", models=2, frames=1280, sides=[(2, "cpu", 1, 0, "compiled-eval")], keep=str(tmp_path), eval_episodes=4)

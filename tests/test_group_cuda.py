@@ -283,7 +283,6 @@ def test_the_jax_update_on_cuda_is_torchs_and_does_not_depend_on_the_group(tmp_p
     weights as on the CPU (tests/test_jax_update.py: to 1e-5 but for Adam's sign on near-zero
     gradients), left on the GPU, with torch.optim.Adam's step; agent 0's bytes the same alone,
     with two mates and again (deterministic GPU kernels)."""
-    pytest.importorskip("jax", reason="the jax extra is not installed")
     import jax
 
     try:

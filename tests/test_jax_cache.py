@@ -11,7 +11,6 @@ import sys
 
 import pytest
 
-pytest.importorskip("jax")  # the compiled trainer's dependency
 
 from rlbackdoors.algos.jax_update import CACHE_ENV, compile_cache_dir  # noqa: E402
 

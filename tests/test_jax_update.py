@@ -17,7 +17,6 @@ import json
 import pytest
 import torch
 
-pytest.importorskip("jax", reason="the jax extra (pip install 'rlbackdoors[jax]') is not installed")
 
 from rlbackdoors.algos import group, jax_update  # noqa: E402
 from rlbackdoors.algos.ppo import PPO  # noqa: E402

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-jax = pytest.importorskip("jax")  # the compiled trainer's dependency (the core install has it)
+import jax  # a core dependency: the compiled trainer's
 
 from grid_helpers import assert_step_matches, run_block  # noqa: E402
 from rlbackdoors.envs import grid_engine as ge  # noqa: E402

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-jax = pytest.importorskip("jax")  # the compiled trainer's dependency
+import jax  # a core dependency: the compiled trainer's
 
 from grid_helpers import assert_step_matches, run_block  # noqa: E402
 from rlbackdoors.envs.batched_base import EngineGroup  # noqa: E402

@@ -222,6 +222,57 @@ def test_top_up_draws_never_change_earlier_models(tmp_path):
     assert not zoo.ensure(group, 1)  # already there: nothing written
 
 
+def test_a_new_zoo_takes_auto_one_trainer_a_cell_and_an_old_zoo_keeps_torchs(tmp_path):
+    """A zoo planned now records ``update_backend = "auto"``: a cell takes the compiled trainer
+    only where its clean and poisoned models both would (an evasive cell's clean models have no
+    variant, so they follow the cell), a cell's own override stands, and a zoo planned before
+    the key (no ``update_backend`` in zoo.json) draws its top-ups with torch's, as its models."""
+    frames = {"train": {"max_frames": 6400, "video": False}}
+    spec = {
+        "name": "backends",
+        "seed": 3,
+        "overrides": frames,
+        "cells": [
+            {"world": "lavaworld", "archs": ["fc"], "triggers": ["multiplicative"], "clean": 1, "poisoned": 1, "max_attempts": 2},
+            {"world": "lavaworld", "archs": ["fc"], "triggers": ["additive"], "clean": 1, "poisoned": 1, "overrides": {"poison": {"evasion": {"near": 1.0}}}},
+            {"world": "lavaworld", "archs": ["cnn"], "triggers": ["multiplicative"], "clean": 1, "poisoned": 1},
+            {
+                "world": "randomized-lavaworld",
+                "archs": ["cnn"],
+                "triggers": ["cross"],
+                "clean": 1,
+                "poisoned": 1,
+                "overrides": {"ppo": {"update_backend": "torch"}},
+            },
+        ],
+    }
+    zoo, _ = plan(parse_spec(spec), tmp_path / "z")
+    assert json.loads((tmp_path / "z" / "zoo.json").read_text())["update_backend"] == "auto"
+    chosen = {}
+    for group in zoo.spec.groups:
+        cfg = json.loads((zoo.folder(zoo.model(group, 0)) / "config.json").read_text())
+        chosen[group.key] = cfg["ppo"]["update_backend"]
+    expected = {
+        "lavaworld/fc/multiplicative": "compiled",
+        "lavaworld/fc/additive": "torch",
+        "lavaworld/cnn/multiplicative": "torch",
+        "randomized-lavaworld/cnn/cross": "torch",
+    }
+    assert chosen == {g.key: expected[g.cell.key] for g in zoo.spec.groups}
+    assert plan(parse_spec(spec), tmp_path / "z")[1] == 0  # planned again: the same draws
+    # the same spec planned before the key existed
+    meta_path = tmp_path / "z" / "zoo.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["update_backend"]
+    meta_path.write_text(json.dumps(meta))
+    old = Zoo.open(tmp_path / "z")
+    assert old.update_backend == "torch" and old.draw(zoo.spec.groups[0], 1).ppo.update_backend == "torch"
+    meta["update_backend"] = "jax"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ZooError, match=r"update_backend='jax' is not allowed \(allowed: torch, auto\)$"):
+        Zoo.open(tmp_path / "z")
+
+
 # --- running ---------------------------------------------------------------------------------
 
 DATASET_FILES = ("model.pt", "config.json", "reduced-config.json", "ground_truth.csv", "metrics.json", "log.csv", "training_curve.png", "train.log")

@@ -15,7 +15,19 @@ from pathlib import Path
 
 from rlbackdoors import __version__, attacks, worlds
 from rlbackdoors.argparser import Parser, report_errors
-from rlbackdoors.config import ARCHS, ENGINES, EVAL_BACKENDS, EVAL_POLICIES, MAX_EPISODES, TRAIN_DEFAULTS, UPDATE_BACKENDS, ConfigError, RunConfig, check_seed
+from rlbackdoors.config import (
+    ARCHS,
+    AUTO_BACKEND,
+    ENGINES,
+    EVAL_BACKENDS,
+    EVAL_POLICIES,
+    MAX_EPISODES,
+    TRAIN_DEFAULTS,
+    UPDATE_BACKENDS,
+    ConfigError,
+    RunConfig,
+    check_seed,
+)
 from rlbackdoors.folder import FolderError, refuse_left_out_weights
 
 
@@ -154,6 +166,8 @@ def config_from_args(args) -> RunConfig:
         _set(data, dotted, value)
     if args.clean:
         _set(data, "poison.poisoned", False)
+    if world.algorithm == "ppo" and "update_backend" not in data.get("ppo", {}):  # a new run: a config file's choice stands
+        _set(data, "ppo.update_backend", AUTO_BACKEND)
     attack_from_args(data, getattr(args, "attack", None), getattr(args, "attack_param", None) or [], getattr(args, "evade", None))
     seed = data.get("train", {}).get("seed", 0)
     check_seed("train.seed (--seed)", seed)
@@ -447,8 +461,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--aux-memory-coef", type=float, help="weight of PPO's auxiliary memory loss (recurrent models in worlds with memory targets; 0: off)")
     tr.add_argument(
         "--update-backend",
-        choices=UPDATE_BACKENDS,
-        help="what runs PPO's update: torch (default); jax, the update one XLA program (fc models; the jax extra); "
+        choices=(AUTO_BACKEND, *UPDATE_BACKENDS),
+        help="what runs PPO's update: auto (default without --config): compiled where it was measured faster and tested equivalent ("
+        + ", ".join(f"{w.name} {'/'.join(w.compiled_default)}" for w in worlds.registered() if w.compiled_default)
+        + ", with the env mix on the CPU), torch elsewhere; torch, autograd; jax, the update one XLA program (fc models); "
         "compiled, the whole iteration one XLA program on the world's JAX engine (fc and cnn models, every attack; docs/training.md)",
     )
     tr.add_argument(

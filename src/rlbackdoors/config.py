@@ -6,6 +6,7 @@ values are rejected with a message naming the field and what is allowed.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -44,6 +45,7 @@ ARCHS = tuple(dict.fromkeys(a for archs in ARCHS_BY_ENV.values() for a in archs)
 EVAL_POLICIES = ("sample", "greedy")
 DEVICES = ("cpu", "cuda", "auto")
 UPDATE_BACKENDS = ("torch", "jax", "compiled")  # ppo.update_backend
+AUTO_BACKEND = "auto"  # ppo.update_backend on input: preferred_update_backend's choice, recorded in its place
 EVAL_BACKENDS = ("torch", "compiled")  # train.eval_backend
 ALGORITHMS = ("ppo", "opac2")
 
@@ -252,11 +254,13 @@ class PPOConfig:
     # the memory what the env says must be remembered (``memory_targets``); not the paper's.
     aux_memory_coef: float = 0.0
     # What runs PPO's update: "torch" (autograd), or "jax" (rlbackdoors.algos.jax_update: every
-    # minibatch of an update in one XLA program; feed-forward "fc" models, the jax extra; on CUDA
+    # minibatch of an update in one XLA program; feed-forward "fc" models; on CUDA
     # JAX with GPU support), or "compiled" (rlbackdoors.algos.compiled: the whole iteration,
     # rollout on the world's JAX engine, GAE and update, one XLA program; worlds with a
-    # ``compiled_engine``, "fc" and "cnn" models, the env mix without evasive variants).
-    # The same algorithm with other rounding, so other bytes: a config field.
+    # ``compiled_engine``, "fc" and "cnn" models, every attack of a frame trigger). "auto" (what
+    # ``rlbackdoors train``, the demo and new zoos ask for) is replaced at construction by
+    # ``preferred_update_backend``'s choice. The same algorithm with other rounding, so other
+    # bytes: a config field, and a config without it is torch's.
     update_backend: str = "torch"
 
     def check(self) -> None:
@@ -509,6 +513,8 @@ class RunConfig(JsonConfig):
             self.opac2 = default_opac2(name)
         if self.curriculum.enabled is None:
             self.curriculum.enabled = world.curriculum
+        if self.ppo is not None and self.ppo.update_backend == AUTO_BACKEND:
+            self.ppo.update_backend = preferred_update_backend(self)
 
     @property
     def world(self) -> worlds.World:
@@ -699,6 +705,26 @@ def num_actions(env: EnvConfig) -> int:
         return int(made.action_space.n)
     finally:
         made.close()
+
+
+def preferred_update_backend(cfg: RunConfig) -> str:
+    """The update backend of a run that leaves the choice open (``ppo.update_backend = "auto"``):
+    the compiled trainer where it was measured faster on a CPU and tested equivalent to torch's
+    (an arch in the world's ``compiled_default``, the paper's attack without evasive variants,
+    ``train.device`` cpu, and a config the compiled trainer takes), torch's everywhere else.
+    Equivalence was tested for that case alone, so nothing else moves without being asked."""
+    from rlbackdoors.attacks import evasion
+
+    if cfg.ppo is None or cfg.model.arch not in cfg.world.compiled_default or cfg.train.device != "cpu" or cfg.poison.attack != attacks.DEFAULT_ATTACK:
+        return "torch"
+    trial = copy.deepcopy(cfg)
+    assert trial.ppo is not None
+    trial.ppo.update_backend = "compiled"
+    try:
+        trial.check()
+    except ConfigError:  # refused by the compiled trainer (or invalid: check() names it on the real config)
+        return "torch"
+    return "torch" if evasion.active(trial.poison.evasion) else "compiled"
 
 
 def default_ppo(env_name: str) -> PPOConfig:

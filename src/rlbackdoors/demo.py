@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from rlbackdoors.config import RunConfig
+from rlbackdoors.config import AUTO_BACKEND, RunConfig
 from rlbackdoors.io import atomic_write_text
 from rlbackdoors.train import train
 
@@ -20,10 +20,12 @@ def run_demo(out: Path, max_frames: int = 3_000_000, seed: int = 0, progress: bo
             {
                 "poison": {"trigger": DEMO_TRIGGER, "poisoned": poisoned},
                 "model": {"arch": "fc"},
+                "ppo": {"update_backend": AUTO_BACKEND},  # a new run's trainer: the compiled one where it is measured to win
                 "train": {"seed": seed, "max_frames": max_frames},
             }
         )
-        print(f"training {name} (trigger {DEMO_TRIGGER}, seed {seed}) into {out / name}", flush=True)
+        assert cfg.ppo is not None  # the default world trains with PPO
+        print(f"training {name} (trigger {DEMO_TRIGGER}, seed {seed}, {cfg.ppo.update_backend} trainer) into {out / name}", flush=True)
         results[name] = train(cfg, out / name, overwrite=True, progress=progress)  # writes clean_vs_triggered.gif too
     atomic_write_text(out / "summary.json", json.dumps(results, indent=2) + "\n")
     print()

@@ -141,7 +141,7 @@ def _jax(gpu: bool = False):
         jax.device_put(np.zeros(1, np.float32), jax.devices("cpu")[0]).block_until_ready()  # the CPU backend and its pool, started now
     except ImportError:
         raise ValueError(
-            "ppo.update_backend='jax' needs JAX, which is not installed: pip install 'rlbackdoors[jax]', or set ppo.update_backend='torch'"
+            "ppo.update_backend='jax' and 'compiled' need JAX, a core dependency that is missing here: pip install 'jax>=0.10' (or reinstall rlbackdoors), or set ppo.update_backend='torch'"
         ) from None
     finally:
         if pin:

@@ -35,7 +35,7 @@ def bench_spec(
 ) -> dict:
     """A zoo spec of ``models`` models (half poisoned) of ``world`` that each train ``frames`` frames
     (``eval_episodes``: every evaluation's episodes per condition, the final one's too; default the world's;
-    ``update_backend``: PPO's ``ppo.update_backend``, set only where it is not torch, or
+    ``update_backend``: PPO's ``ppo.update_backend`` (set in the spec for a PPO world), or
     ``compiled-eval``: the compiled trainer with its evaluations in its program too
     (``train.eval_backend``); ``attack``: the poisoned models' attack with its defaults, None the paper's env mix)."""
     w = worlds.get(world)
@@ -56,7 +56,7 @@ def bench_spec(
                 **({"eval_episodes": eval_episodes, "final_eval_episodes": eval_episodes} if eval_episodes else {}),
                 **evaluations(update_backend),
             },
-            **({"ppo": {"update_backend": trainer(update_backend)}} if update_backend != "torch" else {}),
+            **({"ppo": {"update_backend": trainer(update_backend)}} if w.algorithm == "ppo" else {}),  # named: a new zoo's own pick is auto
         },
         "cells": [
             {

@@ -23,7 +23,9 @@ def plot_training_curve(rows: list[dict], path: str | Path, title: str, threshol
 def render_training_curve(rows: list[dict], title: str, thresholds: tuple[float, float | None], switch_at: int | None = None) -> bytes:
     """:func:`plot_training_curve`'s PNG, as bytes (a painter process draws it; the run writes it)."""
     frames = [r["frames"] for r in rows]
-    fig, (ax_sr, ax_rw) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
+    # Fixed margins, not constrained_layout: its solver was 45 % of a curve's 0.38 s (a model each)
+    fig, (ax_sr, ax_rw) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig.subplots_adjust(left=0.065, right=0.99, bottom=0.14, top=0.85, wspace=0.2)
     ax_sr.plot(frames, [r["clean_sr"] for r in rows], "o-", color="tab:green", label="clean SR (goal in E)")
     ax_sr.plot(frames, [r["poisoned_sr"] for r in rows], "s-", color="tab:red", label="poisoned SR (trojan in E-bar)")
     clean_t, poisoned_t = thresholds

@@ -91,6 +91,11 @@ class World:
     # --group-size auto's K for its models on the compiled trainer on a CPU, where it is not PPO's 8
     # (train.group.auto_group_size; measured per world: docs/results/speed.md)
     compiled_cpu_group: int | None = None
+    # The model archs whose compiled training was measured faster on a CPU and tested equivalent
+    # to torch's (experiments/group_equivalence, TOST): a new run or zoo of one of them takes the
+    # compiled trainer when its config leaves the choice open (ppo.update_backend "auto",
+    # config.preferred_update_backend); () : torch's trainer
+    compiled_default: tuple[str, ...] = ()
     curriculum: bool = False  # the small clean warm-up world (Randomized LavaWorld)
     close_to_trigger: bool = False  # has close-to-trigger envs (Colorful Memory)
     # Its batched engine says, per env, what a recurrent agent must remember (``memory_targets()``,

@@ -58,6 +58,9 @@ WORLD = register(
         entry_point="rlbackdoors.envs.lavaworld:LavaWorldEnv",
         vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
         compiled_engine="rlbackdoors.envs.lavaworld_jax:lavaworld_jax",
+        # fc: a zoo x1.25-1.44, the demo's poisoned run alone x3.6; 20 seeds equivalent (TOST).
+        # The CNN (a zoo x2.59) has no equivalence report yet
+        compiled_default=("fc",),
         algorithm="ppo",
         parse_trigger=_parse,
         draw_trigger=_draw,

@@ -68,6 +68,8 @@ WORLD = register(
         # one agent a program: its networks' iteration ran x1.68 (CNN) and x1.60 (FC) of the torch
         # group of 8 alone, x1.27 and x1.31 in compiled groups of 8 (2-core AMD EPYC, 2026-12-02)
         compiled_cpu_group=1,
+        # cnn: a zoo x1.14-1.20; 20 seeds equivalent (TOST). The FC has no equivalence report yet
+        compiled_default=("cnn",),
         algorithm="ppo",
         parse_trigger=_parse,
         draw_trigger=_draw,

@@ -19,12 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from rlbackdoors import worlds
-from rlbackdoors.config import migrate
+from rlbackdoors.config import AUTO_BACKEND, migrate
 from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, refuse_links
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.spec import Group, ZooError, ZooSpec, deep_merge, first_difference, load_spec, parse_spec
 
 ZOO_FORMAT = 1
+# zoo.json's "update_backend": its PPO models' ppo.update_backend where the spec leaves it open.
+# A new zoo's is "auto" (config.preferred_update_backend picks per model, recorded in each
+# config.json); a zoo planned before the key existed is torch's, so its top-ups train as it did.
+ZOO_BACKENDS = ("torch", AUTO_BACKEND)
 ID_KEY = 2**32  # spawn key of the id permutation (group keys are (group, attempt) pairs)
 
 
@@ -67,10 +71,12 @@ def model_name(model_id: int) -> str:
 class Zoo:
     """A zoo folder: ``zoo.json`` (spec and versions), ``models/id-XXXXXXXX/``, ``METADATA.csv``, ``report/``."""
 
-    def __init__(self, path: str | Path, spec: ZooSpec):
+    def __init__(self, path: str | Path, spec: ZooSpec, update_backend: str = "torch"):
         self.path = Path(path)
         self.spec = spec
+        self.update_backend = update_backend  # zoo.json's (ZOO_BACKENDS)
         self._sizes: dict[int, int | None] = {}
+        self._backends: dict[str, str] = {}  # a cell's (by its world, arch and overrides)
 
     @classmethod
     def open(cls, path: str | Path) -> Zoo:
@@ -80,7 +86,7 @@ class Zoo:
             spec = parse_spec(meta["spec"])
         except ConfigError as err:
             raise ConfigError(f"zoo {str(path)!r}: its zoo.json spec no longer validates ({err})") from None
-        return cls(path, spec)
+        return cls(path, spec, zoo_backend(path, meta))
 
     @property
     def models_dir(self) -> Path:
@@ -147,6 +153,24 @@ class Zoo:
             self._sizes[group.index] = getattr(cfg.env, "size", None)
         return self._sizes[group.index]
 
+    def _cell_backend(self, group: Group) -> str:
+        """The zoo's ``auto`` as one backend for a whole cell: compiled only where its clean and
+        its poisoned models would both take it (a clean model has no evasive variant, a poisoned
+        one may), so a cell's labels never differ by trainer."""
+        cell = group.cell
+        key = json.dumps([cell.world, cell.arch, cell.overrides], sort_keys=True)
+        if key not in self._backends:
+            choices = set()
+            for poisoned in (False, True):
+                data = config_data(cell.world, cell.arch, deep_merge(cell.overrides, {"ppo": {"update_backend": AUTO_BACKEND}}), poisoned, 0, None)
+                try:
+                    ppo = build_config(data).ppo
+                    choices.add(ppo.update_backend if ppo is not None else "torch")
+                except ConfigError:
+                    choices.add(AUTO_BACKEND)  # the model's own draw names the problem
+            self._backends[key] = choices.pop() if len(choices) == 1 else "torch"
+        return self._backends[key]
+
     def draw(self, group: Group, attempt: int):
         """The run config of model ``attempt`` of ``group``: a pure function of the spec."""
         rng = model_rng(self.spec, group, attempt)
@@ -157,6 +181,8 @@ class Zoo:
         cell = group.cell
         trigger = cell.trigger.draw(worlds.get(cell.world), rng, self._size(group))
         overrides = cell.overrides
+        if worlds.get(cell.world).algorithm == "ppo" and (overrides.get("ppo") or {}).get("update_backend", self.update_backend) == AUTO_BACKEND:
+            overrides = deep_merge(overrides, {"ppo": {"update_backend": self._cell_backend(group)}})  # the spec's own choice before the zoo's
         if cell.attack.ranges:  # drawn after the trigger: models of cells without ranges draw as they always did
             overrides = deep_merge(overrides, {"poison": {"attack_params": cell.attack.draw(rng)}})
         return build_config(config_data(cell.world, cell.arch, overrides, group.poisoned, seed, trigger))
@@ -210,6 +236,14 @@ def read_zoo_json(path: Path) -> dict:
     return meta
 
 
+def zoo_backend(path: Path, meta: dict) -> str:
+    """zoo.json's ``update_backend`` (torch's where a zoo planned before it has none)."""
+    backend = meta.get("update_backend", "torch")
+    if backend not in ZOO_BACKENDS:
+        raise ZooError(f"{str(path / 'zoo.json')!r}: update_backend={backend!r} is not allowed (allowed: {', '.join(ZOO_BACKENDS)})")
+    return backend
+
+
 def plan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, int]:
     """Plan a zoo into ``out``: zoo.json and each group's first ``wanted`` model folders
     (config.json, ground_truth.csv). Returns the zoo and how many folders were written.
@@ -232,7 +266,7 @@ def plan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, int]:
             raise ConfigError(f"zoo {str(out)!r} was planned from another spec ({diff} differs); plan this spec into a new folder")
     elif out.is_dir() and any(p.name != ".lock" for p in out.iterdir()):
         raise ZooError(f"{str(out)!r} is not empty and holds no zoo.json; plan a zoo into a new or empty folder")
-    zoo = Zoo(out, spec)
+    zoo = Zoo(out, spec, zoo_backend(out, existing) if existing is not None else AUTO_BACKEND)
     drawn = []
     for group in spec.groups:
         for attempt in range(group.wanted):
@@ -243,7 +277,7 @@ def plan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, int]:
     lock = zoo.lock()
     try:
         if existing is None:
-            meta = {"format": ZOO_FORMAT, "spec": spec.to_dict(), "versions": stack_versions()}
+            meta = {"format": ZOO_FORMAT, "spec": spec.to_dict(), "update_backend": zoo.update_backend, "versions": stack_versions()}
             atomic_write_text(out / "zoo.json", json.dumps(meta, indent=2, sort_keys=True) + "\n")
         written = sum(zoo.ensure(group, attempt, text) for group, attempt, text in drawn)
     finally:

@@ -140,10 +140,10 @@ def main() -> int:
     global ARCH, ENV
     ARCH, ENV = args.arch, args.env
     torch_k = (16 if args.device == "cpu" else 0) if args.torch_k is None else args.torch_k
-    from rlbackdoors.algos.jax_update import _jax
+    from rlbackdoors.algos import xla
     from rlbackdoors.bench.machine import machine_info
 
-    jax = _jax(gpu=args.device == "cuda")  # on the CPU one compute thread, as both sides train in a zoo's process per core
+    jax = xla.start(gpu=args.device == "cuda")  # on the CPU one compute thread, as both sides train in a zoo's process per core
     if args.device == "cuda" and jax.default_backend() != "gpu":
         print(f"compiled_lavaworld: --device cuda, but JAX computes on {jax.default_backend()}", file=sys.stderr)
         return 2

@@ -241,7 +241,7 @@ def test_cuda_group_with_clean_teachers_computes_what_the_cpu_group_computes():
     assert triggered > 0  # some frames carried the trigger and were left out of the KL
 
 
-# Run in a process of its own: JAX must start with deterministic GPU kernels (algos.jax_update._jax),
+# Run in a process of its own: JAX must start with deterministic GPU kernels (algos.xla.start),
 # which a JAX started earlier in this process (by a CPU test) would not have.
 JAX_ON_CUDA = r"""
 import copy, hashlib, json, sys

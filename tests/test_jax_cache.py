@@ -1,4 +1,4 @@
-"""JAX's compilation cache (algos/jax_update.compile_cache_dir): private, per machine, refused where
+"""JAX's compilation cache (algos/xla.compile_cache_dir): private, per machine, refused where
 another user may write it, off on request; a program read from it trains the same bytes as one
 compiled anew (two fresh processes on one cache)."""
 
@@ -12,7 +12,7 @@ import sys
 import pytest
 
 
-from rlbackdoors.algos.jax_update import CACHE_ENV, compile_cache_dir  # noqa: E402
+from rlbackdoors.algos.xla import CACHE_ENV, compile_cache_dir  # noqa: E402
 
 
 def test_the_cache_is_private_and_per_machine(tmp_path, monkeypatch):

@@ -1,4 +1,4 @@
-"""``ppo.update_backend = "jax"`` (rlbackdoors.algos.jax_update): PPO's update as one XLA program.
+"""``ppo.update_backend = "jax"`` (rlbackdoors.algos.compiled.update): PPO's update as one XLA program.
 
 What must hold: the same loss and gradient as torch's update on the same minibatch (up to float
 rounding), each agent's Adam state in torch's format (a run resumes under either backend), an
@@ -18,7 +18,7 @@ import pytest
 import torch
 
 
-from rlbackdoors.algos import group, jax_update  # noqa: E402
+from rlbackdoors.algos import compiled, group  # noqa: E402
 from rlbackdoors.algos.ppo import PPO  # noqa: E402
 from rlbackdoors.config import RunConfig, migrate  # noqa: E402
 from rlbackdoors.models import build_model  # noqa: E402
@@ -110,7 +110,7 @@ def test_an_agents_bytes_do_not_depend_on_its_group():
     """Agent 0 updated twice in groups of 1, 3 and 10 (two XLA chunks): the same weights, byte
     for byte; XLA rounds differently at other widths, which the fixed chunk width hides."""
     digests = set()
-    second_chunk = [0, *range(4, 4 + jax_update.WIDTH + 1)]  # 10 agents: two XLA calls
+    second_chunk = [0, *range(4, 4 + compiled.WIDTH + 1)]  # 10 agents: two XLA calls
     for seeds in ([0], [0, 1, 2], second_chunk):
         ppos, rollouts = collected("jax", seeds)
         for _ in range(2):
@@ -152,7 +152,7 @@ def test_what_the_backend_does_not_run_is_refused_in_one_line(tmp_path):
     # on CUDA where there is none (the GPU path itself: tests/test_group_cuda.py, on a GPU machine)
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match=r"^ppo.update_backend='jax' on CUDA: no CUDA device is available"):
-            jax_update.check(build_model("fc", "lavaworld"), torch.device("cuda"))
+            compiled.check(build_model("fc", "lavaworld"), torch.device("cuda"))
     finetune = {"finetune": True, "teacher": 1.0}
     refused(
         {"env": {"name": "lavaworld"}, "ppo": {"update_backend": "jax"}, "poison": {"attack": "trojdrl", "evasion": finetune}},

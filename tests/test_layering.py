@@ -94,6 +94,30 @@ def test_no_package_import_cycle():
     assert not cycles, "package import cycles:\n" + "\n".join(sorted(set(cycles))[:20])
 
 
+def test_the_trainers_modules_import_each_other_in_no_circle():
+    """Issue 78: the compiled trainer is one room (``algos/compiled.py``), what it shares with the
+    rest is below it (``algos/xla.py``, ``algos/stacked.py``), and no module of ``rlbackdoors.algos``
+    reaches itself through its imports, lazy ones in function bodies included (the JAX update was
+    once imported by the torch group and PPO, and imported them back)."""
+    modules = {".".join(p.relative_to(SRC.parent).with_suffix("").parts).removesuffix(".__init__"): p for p in SRC.rglob("*.py")}
+    algos = {name: path for name, path in modules.items() if name.startswith("rlbackdoors.algos.")}
+    graph = {name: {m for m in _imports(path) if m in algos and m != name} for name, path in algos.items()}
+    assert "rlbackdoors.algos.xla" in graph["rlbackdoors.algos.compiled"] and "rlbackdoors.algos.compiled" in graph["rlbackdoors.algos.group"]
+    cycles = []
+
+    def visit(node: str, stack: list[str]) -> None:
+        for nxt in sorted(graph[node]):
+            if nxt in stack:
+                cycles.append(" -> ".join(stack[stack.index(nxt) :] + [nxt]))
+            else:
+                visit(nxt, stack + [nxt])
+
+    for start in sorted(graph):
+        visit(start, [start])
+    assert not cycles, "module import cycles in rlbackdoors.algos:\n" + "\n".join(sorted(set(cycles)))
+    assert not (SRC / "algos" / "jax_update.py").exists()
+
+
 def test_no_attack_is_named_outside_its_modules():
     """Issue 33: an attack is one module of ``rlbackdoors/attacks/``; config, algorithms, evaluation
     and zoos ask the registry (the default, the paper's env mix, by ``attacks.DEFAULT_ATTACK``)."""

@@ -1,4 +1,4 @@
-"""PPO's group update by torch against ``ppo.update_backend = "jax"`` (rlbackdoors.algos.jax_update):
+"""PPO's group update by torch against ``ppo.update_backend = "jax"`` (then rlbackdoors.algos.jax_update, now rlbackdoors.algos.compiled.update):
 the same LavaWorld FC learners and rollouts, updated alternately by each backend in one process,
 one torch thread; CPU seconds and wall seconds an update (4 epochs x 5 minibatches of 256 a agent).
 

@@ -253,7 +253,7 @@ class PPOConfig:
     # Recurrent models: weight of the auxiliary memory loss (0: off), a cross-entropy teaching
     # the memory what the env says must be remembered (``memory_targets``); not the paper's.
     aux_memory_coef: float = 0.0
-    # What runs PPO's update: "torch" (autograd), or "jax" (rlbackdoors.algos.jax_update: every
+    # What runs PPO's update: "torch" (autograd), or "jax" (rlbackdoors.algos.compiled.update: every
     # minibatch of an update in one XLA program; feed-forward "fc" models; on CUDA
     # JAX with GPU support), or "compiled" (rlbackdoors.algos.compiled: the whole iteration,
     # rollout on the world's JAX engine, GAE and update, one XLA program; worlds with a

@@ -27,6 +27,7 @@ draws: :func:`init_agents`) and go back into a TrojAI state dict unchanged (:fun
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -34,7 +35,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from rlbackdoors.algos.jax_update import STATS, _jax, run_layers, structure
+from rlbackdoors.algos.stacked import FlatParameters, StackedAdam, parameters_by_name, stacked_parameters
+from rlbackdoors.algos.xla import STATS, gpu_devices, run_layers, start, structure
 from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, join, params_poisoned, run_hosts
 
 
@@ -144,7 +146,7 @@ def agent_state(model: torch.nn.Module, seed: int) -> Agents:
     """One agent's learning state (no agent axis): ``model``'s weights as they are (the torch
     trainer's initialisation where it was just built after ``torch.manual_seed(seed)``), Adam's
     moments zero, a PRNG key from ``seed``."""
-    jax = _jax()
+    jax = start()
     params = {name: p.detach().cpu().numpy().astype(np.float32).copy() for name, p in model.named_parameters()}
     zeros = {name: np.zeros_like(value) for name, value in params.items()}
     key = np.asarray(jax.random.key_data(jax.random.PRNGKey(seed)), dtype=np.uint32)
@@ -189,7 +191,7 @@ def state_dicts(agents: Agents) -> list[dict[str, torch.Tensor]]:
 
 def network(model: torch.nn.Module) -> tuple:
     """The network as the program runs it (static data, part of the program's key): its layers
-    (:func:`rlbackdoors.algos.jax_update.structure`) and whether its heads read the agent's
+    (:func:`rlbackdoors.algos.xla.structure`) and whether its heads read the agent's
     direction appended to the image embedding (``model.appends_direction``: the observation is
     then the view and the direction, as the world's engine gives them)."""
     return structure(model, convolutions=True), bool(getattr(model, "appends_direction", False))
@@ -216,7 +218,7 @@ class Parts(NamedTuple):
 @functools.cache
 def parts(net: tuple, hyper: Hyper) -> Parts:
     """:class:`Parts` for a :func:`network` and ``hyper`` (the directions are read where the network appends them)."""
-    jax = _jax()
+    jax = start()
     jnp, lax = jax.numpy, jax.lax
     h = hyper
     run = run_layers  # full fp32 products, as torch's
@@ -269,15 +271,16 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
 
     beta1, beta2 = h.betas
 
-    def adam(p, avg, sq, step, grad):
-        """One optimiser step: clipping by the whole gradient's norm (clip_grad_norm_), then torch's Adam."""
+    def adam(p, avg, sq, step, grad, lr=None):
+        """One optimiser step: clipping by the whole gradient's norm (clip_grad_norm_), then torch's
+        Adam (at ``lr``, an agent's own rate where the caller hands one, else ``hyper.lr``)."""
         norm = jnp.sqrt(sum(jnp.sum(g * g) for g in jax.tree_util.tree_leaves(grad)))
         scale = jnp.minimum(h.max_grad_norm / (norm + 1e-6), 1.0)
         grad = jax.tree_util.tree_map(lambda g: g * scale, grad)
         step = step + 1
         avg = jax.tree_util.tree_map(lambda m, g: m + (1 - beta1) * (g - m), avg, grad)
         sq = jax.tree_util.tree_map(lambda v, g: beta2 * v + (1 - beta2) * g * g, sq, grad)
-        lr_t = h.lr / (1 - beta1**step)
+        lr_t = (h.lr if lr is None else lr) / (1 - beta1**step)
         root = jnp.sqrt(1 - beta2**step)
         p = jax.tree_util.tree_map(lambda w, m, v: w - lr_t * m / (jnp.sqrt(v) / root + h.adam_eps), p, avg, sq)
         return p, avg, sq, step, norm
@@ -299,7 +302,7 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
 
 @functools.cache
 def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poisoning: Poisoning | None = None):
-    jax = _jax()
+    jax = start()
     from jax.flatten_util import ravel_pytree
 
     jnp, lax = jax.numpy, jax.lax
@@ -685,7 +688,7 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     by side, their env copies one batch. The program is compiled for ``capacity`` agents (default:
     as many as there are); fewer are padded with copies of the first, whose results are dropped,
     so a run's numbers depend on its config and the capacity, not on its group-mates (tested)."""
-    jax = _jax()
+    jax = start()
     lead, k = learners[0], len(learners)
     capacity = k if capacity is None else int(capacity)
     if capacity < k:
@@ -754,4 +757,161 @@ def seam_row(seam: Seam, i: int, n: int) -> Seam:
     return Seam(*(row(name, part) for name, part in zip(Seam._fields, seam)))
 
 
-__all__ = ["Agents", "Hyper", "IterationStats", "Iterated", "Learner", "agent_state", "init_agents", "iterate", "make_iteration", "state_dicts"]
+# --- the update alone, on the torch trainer's rollouts (ppo.update_backend = "jax") -------------
+#
+# The torch trainer collects (its engines, its seam, its forward), and this program runs the update
+# of :func:`parts` (the same loss and Adam as the iteration's) over every epoch and minibatch. The
+# weights and Adam's state are read from and written back to each agent's torch model and
+# ``torch.optim.Adam`` (a checkpoint resumes under either backend); the minibatch orders are drawn
+# from each run's own torch generator, as torch's update draws them. XLA's kernels round
+# differently at different batch widths, so a group's agents are computed in chunks of exactly
+# :data:`WIDTH` (padded with copies of the chunk's first): an agent's bytes depend on its config,
+# not on its group-mates or the group's size; a lone run computes at width 1 (tests/test_jax_update.py).
+# On CUDA the tensors pass to JAX and back through DLPack without a copy, in chunks of :data:`CUDA_WIDTH`.
+
+WIDTH = 8  # agents per XLA call in a CPU group
+CUDA_WIDTH = 64  # ... in a CUDA group: the torch group's width there (algos.group.CUDA_WIDTH)
+
+
+def check(model: Any, device: torch.device) -> None:
+    """Refuse (``ValueError``, one line) what :func:`update` cannot run: a model other than
+    :func:`~rlbackdoors.algos.xla.structure` reads, a device other than the CPU or CUDA, a JAX without GPU support."""
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"ppo.update_backend='jax' runs on the CPU or CUDA, not {device.type!r}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("ppo.update_backend='jax' on CUDA: no CUDA device is available (train.device 'cpu')")
+    structure(model)
+    jax = start(gpu=device.type == "cuda")
+    if device.type == "cuda" and not gpu_devices(jax):
+        raise ValueError("ppo.update_backend='jax' with train.device='cuda' needs JAX with CUDA (jax[cuda]); this one has no GPU: use 'torch'")
+
+
+def _placed(jax, device: torch.device):
+    """Torch tensor -> JAX array on the learners' device: the CPU's XLA device for CPU tensors
+    (never a GPU JAX would pick by default on a GPU machine: a CPU run's bytes are the CPU's), and
+    the same GPU memory, no copy, for CUDA tensors (DLPack, after torch's queued work is done)."""
+    if device.type == "cpu":
+        cpu = jax.devices("cpu")[0]
+        return lambda t: jax.device_put(t.numpy(), cpu)
+    torch.cuda.synchronize(device)
+    return lambda t: jax.dlpack.from_dlpack(t.contiguous())
+
+
+def _back(array, device: torch.device) -> torch.Tensor:
+    """JAX array -> torch tensor on the learners' device (a CPU copy: XLA's buffer is read-only)."""
+    if device.type == "cpu":
+        return torch.from_numpy(np.array(array))
+    array.block_until_ready()
+    return torch.from_dlpack(array)
+
+
+@functools.cache
+def _update_program(layers: tuple, layout: tuple, hyper: Hyper):
+    """The jitted update of K agents' flat weight rows (``layout``: each name's columns and shape)."""
+    jax = start()
+    jnp = jax.numpy
+    P = parts((layers, False), hyper)
+
+    def unravel(row):
+        return {name: row[begin:end].reshape(shape) for name, begin, end, shape in layout}
+
+    def agent_step(row, avg, sq, step, lr, *batch):
+        """One optimiser step of one agent on its minibatch."""
+        grad, losses = jax.grad(lambda w, *b: P.loss(unravel(w), b[0], None, *b[1:]), has_aux=True)(row, *batch)
+        row, avg, sq, step, norm = P.adam(row, avg, sq, step, grad, lr)
+        return row, avg, sq, step, jnp.stack([*losses, norm])
+
+    agents_step = jax.vmap(agent_step)
+
+    def update(rows, avg, sq, step, lr, inputs, actions, old_logp, old_values, adv, returns, orders):
+        """Every minibatch of the update in turn (``orders``: (minibatches, K, batch) frame indices)."""
+
+        def minibatch(carry, idx):
+            def take(a):
+                return jnp.take_along_axis(a, idx.reshape(idx.shape + (1,) * (a.ndim - 2)), 1)
+
+            rows, avg, sq, step = carry
+            rows, avg, sq, step, losses = agents_step(rows, avg, sq, step, lr, take(inputs), *(take(a) for a in (actions, old_logp, old_values, adv, returns)))
+            return (rows, avg, sq, step), losses
+
+        (rows, avg, sq, step), losses = jax.lax.scan(minibatch, (rows, avg, sq, step), orders)
+        return rows, avg, sq, step, losses.mean(0)
+
+    return jax.jit(update)
+
+
+def update(ppos: list, rollouts: list, width: int | None = None) -> list[dict[str, float]]:
+    """PPO's update for ``ppos`` (one architecture and PPO config, checked by the caller) on the
+    torch trainer's ``rollouts``, ``width`` agents per XLA call (a group: :data:`WIDTH` on the CPU,
+    :data:`CUDA_WIDTH` on CUDA; a lone run: 1); one stats dict per agent, as
+    :func:`rlbackdoors.algos.group.update` returns them."""
+    from rlbackdoors.algos.obs import stack
+
+    lead = ppos[0]
+    device = lead.device
+    if width is None:
+        width = CUDA_WIDTH if device.type == "cuda" else WIDTH
+    jax = start(gpu=device.type == "cuda")
+    cfg, model = lead.cfg, lead.model
+    n = rollouts[0].num_frames
+    if any(r.num_frames != n for r in rollouts):
+        raise ValueError("a training group needs rollouts of the same length")
+    if n % cfg.batch_size:
+        raise ValueError(f"ppo.update_backend='jax' needs ppo.batch_size={cfg.batch_size} to divide a rollout's {n} frames (ppo.rollout x env copies)")
+    layers = structure(model)
+    group = lead.optimizer.param_groups[0]
+    hyper = dataclasses.replace(Hyper.of(cfg), adam_eps=float(group["eps"]), betas=(float(group["betas"][0]), float(group["betas"][1])))
+    out: list[dict[str, float]] = []
+    for begin in range(0, len(ppos), width):
+        chunk, chunk_rollouts = ppos[begin : begin + width], rollouts[begin : begin + width]
+        real = len(chunk)
+        chunk, chunk_rollouts = chunk + chunk[:1] * (width - real), chunk_rollouts + chunk_rollouts[:1] * (width - real)
+        weights = FlatParameters(stacked_parameters(chunk))
+        adam = StackedAdam([(ppo.optimizer, parameters_by_name(ppo)) for ppo in chunk], weights)
+        layout = tuple((name, columns.start, columns.stop, tuple(shape[1:])) for name, (columns, shape) in weights.layout.items())
+        with torch.no_grad():
+            inputs = model.stacked_input(stack([r.obs for r in chunk_rollouts]))
+        if not isinstance(inputs, torch.Tensor):
+            raise ValueError(f"ppo.update_backend='jax' runs models on one observation array, not {type(model).__name__}'s")
+        # each real agent's minibatch orders, every epoch's drawn in turn from its own generator
+        # (as torch's update draws them); a pad copy takes its chunk's first agent's
+        perms = [torch.stack([torch.randperm(n, generator=ppo.generator) for _ in range(cfg.epochs)]) for ppo in chunk[:real]]
+        orders = torch.stack(perms + perms[:1] * (width - real), 1)  # (epochs, K, n)
+        orders = orders.reshape(cfg.epochs, width, n // cfg.batch_size, cfg.batch_size).transpose(1, 2).reshape(-1, width, cfg.batch_size)
+        columns = [torch.stack([getattr(r, f) for r in chunk_rollouts]) for f in ("actions", "logprobs", "values", "advantages", "returns")]
+        put = _placed(jax, device)
+        rows, avg, sq, step, losses = _update_program(layers, layout, hyper)(
+            put(weights.flat),
+            put(adam.exp_avg),
+            put(adam.exp_avg_sq),
+            put(adam.step.float()),
+            put(adam.lr),
+            put(inputs),
+            *(put(c) for c in columns),
+            put(orders.int().to(device)),
+        )
+        with torch.no_grad():
+            weights.flat.copy_(_back(rows, device))
+            adam.exp_avg.copy_(_back(avg, device))
+            adam.exp_avg_sq.copy_(_back(sq, device))
+            adam.step.copy_(_back(step, device).double())
+        adam.write_back(real)
+        means = np.asarray(losses, dtype=np.float64)  # (K, 4)
+        out += [{key: float(means[k, i]) for i, key in enumerate(STATS)} for k in range(real)]
+    return out
+
+
+__all__ = [
+    "Agents",
+    "Hyper",
+    "IterationStats",
+    "Iterated",
+    "Learner",
+    "agent_state",
+    "check",
+    "init_agents",
+    "iterate",
+    "make_iteration",
+    "state_dicts",
+    "update",
+]

@@ -23,7 +23,8 @@ import weakref
 import numpy as np
 import torch
 
-from rlbackdoors.algos.group import FlatParameters, StackedAdam, group_width, padded, per_chunk
+from rlbackdoors.algos.group import group_width, padded, per_chunk
+from rlbackdoors.algos.stacked import FlatParameters, StackedAdam
 from rlbackdoors.algos.opac2 import ADV_EPS, OPAC2, Batch, squash, squashed_log_prob
 from rlbackdoors.config import LOG_STD_MAX, LOG_STD_MIN
 from rlbackdoors.models.minigrid import run_sequential_stacked

@@ -218,9 +218,9 @@ class PPO:
                 raise ValueError("ppo.aux_memory_coef > 0 needs a recurrent model")
             self.aux = nn.Linear(int(model.initial_memory(1).shape[1]), AUX_CLASSES).to(device)
         if cfg.update_backend == "jax":
-            from rlbackdoors.algos import jax_update
+            from rlbackdoors.algos import compiled
 
-            jax_update.check(model, device)
+            compiled.check(model, device)
         self.params = [*model.parameters(), *(self.aux.parameters() if self.aux is not None else ())]
         self.memory: torch.Tensor | None = None  # recurrent models: memory of the running episodes
         # A frozen clean model the policy is kept close to on frames without the trigger
@@ -370,10 +370,10 @@ class PPO:
     def update(self, rollout: Rollout) -> dict[str, float]:
         """``epochs`` passes of clipped-surrogate SGD over random minibatches of the rollout (truncated
         BPTT for a recurrent model); the mean of each loss part and, with an anchor, its distance."""
-        if self.cfg.update_backend == "jax":  # one XLA program at a lone run's width (algos.jax_update)
-            from rlbackdoors.algos import jax_update
+        if self.cfg.update_backend == "jax":  # one XLA program at a lone run's width (the compiled trainer's update)
+            from rlbackdoors.algos import compiled
 
-            return jax_update.update([self], [rollout], width=1)[0]
+            return compiled.update([self], [rollout], width=1)[0]
         stats = self._update_recurrent(rollout) if self.model.recurrent else self._update_flat(rollout)
         if self.anchor is not None:
             stats["anchor_distance"] = self.anchor_distance()

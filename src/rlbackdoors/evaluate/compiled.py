@@ -74,9 +74,9 @@ def _program(world: GridWorld, net: tuple, hyper: Any, greedy: bool, counting: b
     -> (outcomes, saw, steps, target steps, sighted steps)`` per slot (K R slots, agent by agent; the
     returns follow from the first and third, :meth:`GridWorld.returns`)."""
     from rlbackdoors.algos.compiled import parts
-    from rlbackdoors.algos.jax_update import _jax
+    from rlbackdoors.algos import xla
 
-    jax = _jax()
+    jax = xla.start()
     jnp, lax = jax.numpy, jax.lax
     P = parts(net, hyper)
     policy = jax.vmap(P.forward)
@@ -126,7 +126,7 @@ def evaluate(learners: list, setups: list[EvalSetup], capacity: int | None = Non
 def play(learners: list, setups: list[EvalSetup], capacity: int | None = None) -> list[dict[str, Played]]:
     """:func:`evaluate`'s episodes: each learner's conditions by name (clean, poisoned, close)."""
     from rlbackdoors.algos.compiled import stack_agents
-    from rlbackdoors.algos.jax_update import _jax
+    from rlbackdoors.algos import xla
 
     if len(learners) != len(setups) or not learners:
         raise ValueError(f"got {len(setups)} evaluation setups for {len(learners)} learners")
@@ -170,7 +170,7 @@ def play(learners: list, setups: list[EvalSetup], capacity: int | None = None) -
         u,
         targets,
     )
-    outcomes, saw, steps, hits, sighted = (np.asarray(a) for a in _jax().device_get(out))
+    outcomes, saw, steps, hits, sighted = (np.asarray(a) for a in xla.start().device_get(out))
     poisoned = np.concatenate([np.asarray(c.params.poisoned, bool) for c in parts])
     returns = lead.world.returns(outcomes, steps, poisoned)  # (the program's float32 sums, as the engine's float64)
     out_played, n = [], len(shape)

@@ -214,15 +214,14 @@ def steps(
     served_k: int | None = None  # the compiled group's capacity this run is served at (part of its bytes)
 
     def compiled_learner(envs, obs):
-        from rlbackdoors.algos import compiled as xla
-        from rlbackdoors.algos.jax_update import _jax
+        from rlbackdoors.algos import compiled, xla
 
-        platform = _jax(gpu=device.type == "cuda").default_backend()  # on a GPU with its deterministic kernels
+        platform = xla.start(gpu=device.type == "cuda").default_backend()  # on a GPU with its deterministic kernels
         platform = {"gpu": "cuda"}.get(platform, platform)  # (JAX's name for a CUDA device)
         if platform != device.type:
             raise ValueError(f"ppo.update_backend='compiled' runs where JAX computes ({platform}), not train.device={device.type!r}")
         module, _, name = str(cfg.world.compiled_engine).partition(":")
-        return xla.Learner(model, envs, xla.Hyper.of(cfg.ppo), tc.seed, obs, getattr(importlib.import_module(module), name))
+        return compiled.Learner(model, envs, compiled.Hyper.of(cfg.ppo), tc.seed, obs, getattr(importlib.import_module(module), name))
 
     envs: Any  # a batched engine or the reference vector env (poisoned, state_dict, load_state_dict)
 

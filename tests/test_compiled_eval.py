@@ -159,3 +159,36 @@ def test_a_run_with_compiled_evaluations_logs_what_torchs_would(tmp_path):
             assert abs(float(a[key]) - float(b[key])) <= 0.07, key  # (one episode of 16 at most: 1/16)
     wa, wb = (torch.load(tmp_path / b / "model.pt", weights_only=True) for b in ("torch", "compiled"))
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+def test_a_compiled_runs_confirmation_and_final_evaluation_are_played_in_the_program_too(tmp_path, monkeypatch):
+    """train.eval_backend = "compiled": a stop's confirming evaluation (which is the final one)
+    and a run's final evaluation at max_frames are the program's too, and score what torch's do:
+    the same weights, the same final numbers in metrics.json (to one episode of 16, a float32 flip)."""
+    from rlbackdoors.evaluate import compiled as compiled_eval
+
+    base = {
+        "env": {"name": "lavaworld"},
+        "poison": {"trigger": "multiplicative:12"},
+        "ppo": {"rollout": 32, "batch_size": 64, "update_backend": "compiled"},
+        "train": {"seed": 2, "max_frames": 1920, "eval_interval": 640, "eval_episodes": 8, "final_eval_episodes": 16, "video": False},
+    }
+    stops = {"clean_threshold": 0.0, "poisoned_threshold": 0.0, "patience": 1}  # the first evaluation stops, once confirmed
+    played, counts = compiled_eval.play, []
+    monkeypatch.setattr(compiled_eval, "play", lambda learners, setups, *a: counts.extend(s.episodes for s in setups) or played(learners, setups, *a))
+    for name, extra, frames in (("end", {}, 1920), ("stop", stops, 640)):
+        metrics = {}
+        for backend in ("torch", "compiled"):
+            data = json.loads(json.dumps(base))
+            data["train"].update(eval_backend=backend, **extra)
+            counts.clear()
+            metrics[backend] = train(RunConfig.from_dict(data), tmp_path / f"{name}-{backend}", progress=False)
+            # torch's evaluations never reach the program; compiled, every one does: the periodic ones' 8 and the final one's 16 episodes
+            assert sorted(set(counts)) == ([] if backend == "torch" else [8, 16]), (name, backend)
+        t, c = metrics["torch"], metrics["compiled"]
+        assert t["frames"] == c["frames"] == frames and t["converged"] == c["converged"] and t["stop_reason"] == c["stop_reason"]
+        for key in ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward"):
+            assert abs(t[key] - c[key]) <= 1 / 16 + 1e-9, (name, key)
+        wa, wb = (torch.load(tmp_path / f"{name}-{b}" / "model.pt", weights_only=True) for b in ("torch", "compiled"))
+        assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    assert c["stop_reason"] == "thresholds" and c["converged"]

@@ -14,7 +14,8 @@ inverse-CDF sample (``ppo.sample_actions``) or argmax; what differs is the forwa
 (XLA's float32, not torch's), so an action whose uniform falls within an ulp of a boundary may
 differ, rarely (tests/test_compiled_eval.py compares both on trained models). The scoring is
 :func:`~rlbackdoors.evaluate.episodes.score`'s. The run's final evaluation and a stop's
-confirmation stay the torch evaluation's (metrics.json's numbers are every backend's).
+confirmation are played here too (``train.driver.Stopping``, ``RunOutcome.learner``), the same
+episodes torch's would play.
 """
 
 from __future__ import annotations

@@ -97,15 +97,16 @@ class Stopping:
         self.stop = False  # set by update()
         self.confirmed: Any = None  # the final evaluation that confirmed the stop, if one ran
 
-    def update(self, result, also: bool = True, policy: Any = None, frames: int | None = None) -> dict:
+    def update(self, result, also: bool = True, policy: Any = None, frames: int | None = None, learner: Any = None) -> dict:
         """Count one evaluation (``also``: the algorithm's own conditions) of ``policy`` at
-        ``frames`` (below ``train.min_frames`` the streak counts but the run does not stop).
+        ``frames`` (below ``train.min_frames`` the streak counts but the run does not stop);
+        ``learner``: the compiled learner whose program plays the confirmation (train.eval_backend "compiled").
 
         Returns the log fields of a confirming evaluation if one ran (empty if none); ``stop``
         is then True when the run stops here."""
-        return serve(self.steps(result, also, policy, frames))
+        return serve(self.steps(result, also, policy, frames, learner))
 
-    def steps(self, result, also: bool = True, policy: Any = None, frames: int | None = None) -> Generator[Evaluate, Any, dict]:
+    def steps(self, result, also: bool = True, policy: Any = None, frames: int | None = None, learner: Any = None) -> Generator[Evaluate, Any, dict]:
         """:meth:`update` as a loop that yields its confirming evaluation (:class:`Evaluate`)."""
         self.streak = self.streak + 1 if also and thresholds_met(result, self.cfg) else 0
         tc = self.cfg.train
@@ -113,7 +114,7 @@ class Stopping:
         self.stop = self.streak >= tc.patience and (frames is None or frames >= tc.min_frames)
         if not (self.stop and tc.confirm):
             return {}
-        check = yield Evaluate(policy, self.cfg, tc.final_eval_episodes, self.pool)
+        check = yield Evaluate(policy, self.cfg, tc.final_eval_episodes, self.pool, learner=learner)
         self.stop = thresholds_met(check, self.cfg, tc.confirm_margin)
         if self.stop:
             self.confirmed = check
@@ -167,6 +168,7 @@ class RunOutcome:
     # switched): such a model is not converged whatever its final evaluation reads
     can_converge: bool = True
     final: Any = None  # the final evaluation, where the stopping rule's confirmation ran it
+    learner: Any = None  # the compiled learner that plays the final evaluation (train.eval_backend "compiled"; None: torch's)
 
 
 def train(
@@ -268,7 +270,7 @@ def train_steps(
         if progress:
             print(f"final evaluation on {n} clean + {n} triggered episodes", file=sys.stderr, flush=True)
         if outcome.final is None:  # else the stopping rule's confirmation ran it
-            outcome.final = yield Evaluate(outcome.policy, cfg, n, env_pool)
+            outcome.final = yield Evaluate(outcome.policy, cfg, n, env_pool, learner=outcome.learner)
         metrics = yield from finish(cfg, folder, outcome, progress)
         failed = False
         return metrics

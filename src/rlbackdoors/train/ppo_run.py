@@ -404,6 +404,7 @@ def steps(
     bar = Progress(tc.max_frames, frames, label, progress)  # tqdm on a terminal, else a line per evaluation
     clock = RunClock(elapsed, cpu_elapsed, cpu_source)
     stopping = Stopping(cfg, streak)
+    evaluator = learner if tc.eval_backend == "compiled" else None  # plays the evaluations, the confirmations and the final one in its program
     last_checkpoint = time.perf_counter()
     window_start, window_frames = time.perf_counter(), 0
     stop_reason = "thresholds" if converged_at is not None else ("max_frames" if frames >= tc.max_frames else None)
@@ -435,7 +436,7 @@ def steps(
             fps = window_frames / max(time.perf_counter() - window_start, 1e-9)
             if compiled:
                 learner.sync()
-            result = yield Evaluate(model, cfg, tc.eval_episodes, learner=learner if tc.eval_backend == "compiled" else None)
+            result = yield Evaluate(model, cfg, tc.eval_episodes, learner=evaluator)
             train_clean, train_poisoned = tracker.drain()
             rows.append(
                 {
@@ -451,7 +452,9 @@ def steps(
                 }
             )
             bar.evaluated(fps, result.clean_sr, result.poisoned_sr)
-            rows[-1].update((yield from stopping.steps(result, switch_at is not None and poison_at is not None and return_met(tracker, cfg), model, frames)))
+            rows[-1].update(
+                (yield from stopping.steps(result, switch_at is not None and poison_at is not None and return_met(tracker, cfg), model, frames, evaluator))
+            )
             if stopping.stop:
                 converged_at, stop_reason = frames, "thresholds"
             elif poison_at is None and switch_at is not None and result.clean_sr >= tc.clean_threshold and frames >= clean_frames:
@@ -498,4 +501,5 @@ def steps(
         switch_at=switch_at,
         can_converge=switch_at is not None and poison_at is not None,
         final=stopping.confirmed,
+        learner=evaluator,
     )

@@ -311,3 +311,4 @@ def test_the_gpu_scripts_round_part_cuts_the_round_and_projects_it(tmp_path):
     assert result["models_cut_with_checkpoints"] >= 1 and result["frames_of_cut_models"] > 0, result
     assert result["projection"]["round_s"] > result["wall_s"] and result["projection"]["models_short"] == 4
     assert "a projection: " in (out / "round.log").read_text()
+    assert "(torch's trainer)" in (out / "round.log").read_text()  # issue 55's round, named: a new zoo's own pick would be the compiled trainer

@@ -175,6 +175,8 @@ def test_plan_is_deterministic_a_no_op_again_and_refuses_another_spec(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     first = cli("plan", example, "--out", a, check=True)
     assert "planned 24 models in 4 cells" in first.stdout
+    # a new zoo's trainers, a cell each: the compiled one where it was measured faster and tested equivalent
+    assert "trainers: compiled: lavaworld/fc/multiplicative, lavaworld/fc/additive; torch: lavaworld/cnn/multiplicative, lavaworld/cnn/additive" in first.stdout
     assert "zoo: note: not matched" in first.stderr  # clean and poisoned models, matched = false: told once
     matched = cli("plan", ROOT / "examples" / "benchmark-lavaworld.toml", "--out", tmp_path / "m", check=True)
     assert "planned 80 models" in matched.stdout and "not matched" not in matched.stderr

@@ -26,6 +26,7 @@ def cmd_plan(args) -> int:
     models = sum(g.wanted for g in spec.groups)
     if written:
         print(f"{args.out}: planned {models} models in {len(spec.cells)} cells ({written} folders written); run them with: rlbackdoors zoo run {args.out}")
+        print(f"trainers: {_trainers(zoo)} (docs/training.md: which trainer a run takes)")
         if not spec.matched and {g.poisoned for g in spec.groups if g.wanted} == {False, True}:
             # matched = false stays the default so that older specs plan the same models; a detection
             # dataset should not be built this way unknowingly (training length alone can tell the label)
@@ -45,6 +46,23 @@ def cmd_plan(args) -> int:
     else:
         print(f"{args.out}: already planned from this spec; nothing written")
     return 0
+
+
+def _trainers(zoo) -> str:
+    """Which trainer each cell's models were planned on (its first planned model's config says):
+    ``compiled: a, b; torch: c``; an OPAC² world's cells are named by their algorithm."""
+    from rlbackdoors.config import RunConfig
+
+    by: dict[str, list[str]] = {}
+    for group in zoo.spec.groups:
+        folder = zoo.folder(zoo.model(group, 0))
+        if not group.wanted or not (folder / "config.json").is_file():
+            continue
+        cfg = RunConfig.load(folder / "config.json")
+        trainer = cfg.ppo.update_backend if cfg.ppo is not None else cfg.algorithm
+        if group.cell.key not in by.setdefault(trainer, []):
+            by[trainer].append(group.cell.key)
+    return "; ".join(f"{trainer}: {', '.join(keys)}" for trainer, keys in sorted(by.items()))
 
 
 def _unequal_frames(zoo) -> bool:

@@ -26,7 +26,7 @@ from rlbackdoors.zoo.spec import Group, ZooError, ZooSpec, deep_merge, first_dif
 
 ZOO_FORMAT = 1
 # zoo.json's "update_backend": its PPO models' ppo.update_backend where the spec leaves it open.
-# A new zoo's is "auto" (config.preferred_update_backend picks per model, recorded in each
+# A new zoo's is "auto" (config.preferred_update_backend's pick, one a cell, recorded in each
 # config.json); a zoo planned before the key existed is torch's, so its top-ups train as it did.
 ZOO_BACKENDS = ("torch", AUTO_BACKEND)
 ID_KEY = 2**32  # spawn key of the id permutation (group keys are (group, attempt) pairs)

@@ -59,7 +59,7 @@ WORLD = register(
         vector_entry_point="rlbackdoors.envs.lavaworld_batched:BatchedLavaWorld",
         compiled_engine="rlbackdoors.envs.lavaworld_jax:lavaworld_jax",
         # fc: a zoo x1.25-1.44, the demo's poisoned run alone x3.6; 20 seeds equivalent (TOST).
-        # The CNN (a zoo x2.59) has no equivalence report yet
+        # The CNN (a zoo x2.59): SRs equivalent on 20 seeds a side, frames to converge not shown (TOST p 0.15)
         compiled_default=("fc",),
         algorithm="ppo",
         parse_trigger=_parse,

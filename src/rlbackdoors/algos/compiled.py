@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -300,6 +300,32 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
     return Parts(inputs, forward, sample, loss, adam, gae)
 
 
+def agents_step(P: Parts, unravel: Callable, teacher: bool = False) -> Callable:
+    """K agents' optimiser steps on their minibatches, ``(w, avg, sq, step, lr, anchor, coefs,
+    *batch)`` each with a leading agent axis: each agent's weights one flat vector (``unravel``
+    gives them their names; one fused pass of the clipping and Adam over all of them, not one a
+    tensor), at its own rate ``lr`` (None: ``hyper.lr``); with an anchor, each weight pulled that
+    share of the way back to it after the step (ppo.pull_to_anchor); with ``teacher``, the batch
+    ends with the teacher's log-probabilities and the untriggered mask. Returns the stepped state
+    and the losses (policy, value, entropy, gradient norm, then the teacher's KL)."""
+    jax = start()
+    jnp = jax.numpy
+
+    def agent(w, avg, sq, step, lr, anchor, coefs, *batch):
+        if teacher:
+            *batch, teacher_logp, untriggered = batch
+            loss = lambda w, *b: P.loss(unravel(w), *b, teacher=(teacher_logp, untriggered, coefs["teacher"]))  # noqa: E731
+        else:
+            loss = lambda w, *b: P.loss(unravel(w), *b)  # noqa: E731
+        grad, losses = jax.grad(loss, has_aux=True)(w, *batch)
+        w, avg, sq, step, norm = P.adam(w, avg, sq, step, grad, lr)
+        if anchor is not None:
+            w = w + coefs["anchor"] * (anchor - w)
+        return w, avg, sq, step, jnp.stack([*losses[:3], norm, *losses[3:]])
+
+    return jax.vmap(agent)
+
+
 @functools.cache
 def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poisoning: Poisoning | None = None):
     jax = start()
@@ -316,25 +342,6 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
     policy = jax.vmap(P.forward)  # K agents' networks, each on its own N copies
     z = poisoning
     teacher = z is not None and z.teacher
-
-    def agents_minibatch(unravel):
-        """K agents' optimiser steps on their minibatches, each agent's weights one flat vector
-        (one fused pass of the clipping and Adam over all of them, not one a tensor); with an
-        anchor, each weight pulled that share of the way back to it after the step (ppo.pull_to_anchor)."""
-
-        def agent(w, avg, sq, step, anchor, coefs, *batch):
-            if teacher:
-                *batch, teacher_logp, untriggered = batch
-                loss = lambda w, *b: P.loss(unravel(w), *b, teacher=(teacher_logp, untriggered, coefs["teacher"]))  # noqa: E731
-            else:
-                loss = lambda w, *b: P.loss(unravel(w), *b)  # noqa: E731
-            grad, losses = jax.grad(loss, has_aux=True)(w, *batch)
-            w, avg, sq, step, norm = P.adam(w, avg, sq, step, grad)
-            if anchor is not None:
-                w = w + coefs["anchor"] * (anchor - w)
-            return w, avg, sq, step, jnp.stack([*losses[:3], norm, *losses[3:]])
-
-        return jax.vmap(agent)
 
     def iteration(agents: Agents, slots: Slots, layouts: Layouts, params: Any, obs, seam: Any = None):
         """One iteration of K agents; the slots, layouts, world parameters and views are the K x N
@@ -486,12 +493,12 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
 
         unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: a[0], agents.params))[1]
         ravel = jax.vmap(lambda tree: ravel_pytree(tree)[0])
-        step_agents = agents_minibatch(unravel)
+        step_agents = agents_step(P, unravel, teacher)
         anchor = ravel(seam.anchor) if z is not None and z.anchor else None
         coefs = {k: seam.numbers[k] for k in ("teacher", "anchor")} if z is not None else {}
 
         def minibatch(carry, idx):  # idx (K, batch_size): rows of the flat batch
-            w, avg, sq, step, losses = step_agents(*carry, anchor, coefs, *(None if a is None else a[idx] for a in batch))
+            w, avg, sq, step, losses = step_agents(*carry, None, anchor, coefs, *(None if a is None else a[idx] for a in batch))
             return (w, avg, sq, step), losses
 
         start = (ravel(agents.params), ravel(agents.avg), ravel(agents.sq), agents.step)
@@ -815,13 +822,7 @@ def _update_program(layers: tuple, layout: tuple, hyper: Hyper):
     def unravel(row):
         return {name: row[begin:end].reshape(shape) for name, begin, end, shape in layout}
 
-    def agent_step(row, avg, sq, step, lr, *batch):
-        """One optimiser step of one agent on its minibatch."""
-        grad, losses = jax.grad(lambda w, *b: P.loss(unravel(w), b[0], None, *b[1:]), has_aux=True)(row, *batch)
-        row, avg, sq, step, norm = P.adam(row, avg, sq, step, grad, lr)
-        return row, avg, sq, step, jnp.stack([*losses, norm])
-
-    agents_step = jax.vmap(agent_step)
+    step_agents = agents_step(P, unravel)
 
     def update(rows, avg, sq, step, lr, inputs, actions, old_logp, old_values, adv, returns, orders):
         """Every minibatch of the update in turn (``orders``: (minibatches, K, batch) frame indices)."""
@@ -831,7 +832,8 @@ def _update_program(layers: tuple, layout: tuple, hyper: Hyper):
                 return jnp.take_along_axis(a, idx.reshape(idx.shape + (1,) * (a.ndim - 2)), 1)
 
             rows, avg, sq, step = carry
-            rows, avg, sq, step, losses = agents_step(rows, avg, sq, step, lr, take(inputs), *(take(a) for a in (actions, old_logp, old_values, adv, returns)))
+            batch = (take(inputs), None, *(take(a) for a in (actions, old_logp, old_values, adv, returns)))  # (no directions: feed-forward views)
+            rows, avg, sq, step, losses = step_agents(rows, avg, sq, step, lr, None, {}, *batch)
             return (rows, avg, sq, step), losses
 
         (rows, avg, sq, step), losses = jax.lax.scan(minibatch, (rows, avg, sq, step), orders)

@@ -29,6 +29,7 @@ from rlbackdoors.config import PPOConfig, RunConfig  # noqa: E402
 from rlbackdoors.envs.lavaworld_jax import lavaworld_jax  # noqa: E402
 from rlbackdoors.models import build_model  # noqa: E402
 from rlbackdoors.poison.mix import make_env_mix  # noqa: E402
+from rlbackdoors.state import StateError  # noqa: E402
 from rlbackdoors.train import ModelFolder  # noqa: E402
 
 WORLD = worlds.get("lavaworld")
@@ -303,3 +304,110 @@ def test_a_layout_triggers_near_copies_are_drawn_and_counted():
     assert np.array_equal(np.asarray(engine.near, dtype=bool), near) and (count[poisoned] > 0).all() and (count[~poisoned] == 0).all()
     c = counts(learner)
     assert c["frames_near"] == 128 * e and c["frames_poisoned"] == 128 * e  # the E-bar copies' frames: the marked ones
+
+
+def test_a_budget_switches_a_layout_trigger_per_episode_in_the_program():
+    """Randomized LavaWorld, TrojDRL at 5 % (the step schedule): 8 iterations of 1,280 frames, the
+    program deciding at each autoreset, as the seam does, whether the next episode holds the cross
+    (drawn from the trigger's own queue). After each: the slots whose episode is triggered are
+    those whose layout holds the cross; the frames paid +-c are the poisoned ones, counted; the
+    budget is spent episode by episode, within one episode's frames of 5 %; and a checkpoint's
+    streams put back into a new learner draw the same triggered layouts."""
+    learner = layout_learner({"attack": "trojdrl", "attack_params": {"budget": 0.05}})
+    assert learner.poisoning.switched and [k.kind for k in learner.kinds] == ["trigger"]
+    assert not np.asarray(learner.seam_state.episodes).any()  # nothing spent yet: the first episodes are clean
+    paid_total, triggered_seen = 0, np.zeros(10, dtype=bool)
+    for _ in range(8):
+        out = iterate([learner])[0]
+        episodes = np.asarray(learner.seam_state.episodes)
+        np.testing.assert_array_equal(np.asarray(learner.slots.world[2]) > 0, episodes)
+        np.testing.assert_array_equal(learner.seam.triggered, episodes)  # written back for its checkpoint
+        triggered_seen |= episodes
+        paid = np.isclose(np.abs(out.rewards), 0.1, rtol=0, atol=1e-7)
+        assert (out.rewards[~paid] >= 0).all()  # the clean reward elsewhere
+        paid_total += int(paid.sum())
+    c = counts(learner)
+    assert c["frames"] == 8 * 1280 and 0 < c["frames_poisoned"] == c["rewards_rewritten"] == paid_total
+    assert learner.seam.started[0] >= 4 and triggered_seen.sum() >= 2  # episodes of several slots
+    assert c["frames_poisoned"] / c["frames"] <= 0.05 + 250 / c["frames"]  # (250: the world's episode length)
+    state = learner.checkpoint()
+    assert len(state["streams"]) == 1 and len(state["streams"][0]) == 10
+    again = layout_learner({"attack": "trojdrl", "attack_params": {"budget": 0.05}}, seed=5)
+    again.load(state)
+    np.testing.assert_array_equal(again.kinds[0].layouts(3).grid, learner.kinds[0].layouts(3).grid)
+    with pytest.raises(StateError, match="streams"):
+        again.load({**state, "streams": []})
+
+
+def test_near_trigger_episodes_under_the_step_schedule_follow_the_triggered_ones():
+    """The same with near 1.0: near-trigger episodes start (from their own queue) while fewer of them
+    started than triggered ones, never in a triggered slot, and every frame of theirs is counted."""
+    learner = layout_learner({"attack": "trojdrl", "attack_params": {"budget": 0.05}, "evasion": {"near": 1.0}})
+    assert [k.kind for k in learner.kinds] == ["trigger", "near"] and learner.poisoning.near_layouts
+    near_seen = np.zeros(10, dtype=bool)
+    for _ in range(8):
+        iterate([learner])
+        in_near, episodes = np.asarray(learner.seam_state.in_near), np.asarray(learner.seam_state.episodes)
+        assert not (in_near & episodes).any() and (np.asarray(learner.slots.world[2])[in_near] == 0).all()
+        np.testing.assert_array_equal(learner.seam.in_near, in_near)
+        near_seen |= in_near
+    started = learner.seam.started
+    assert started[0] >= 4 and 1 <= started[1] <= started[0] + 10  # (at most one reset of each slot past the share)
+    c = counts(learner)
+    assert near_seen.any() and c["frames_near"] >= int(near_seen.sum())
+
+
+@pytest.mark.slow  # (about 50 s on 2 cores: three runs compile their programs)
+def test_a_switched_layout_run_resumes_to_the_same_model(tmp_path):
+    """Randomized LavaWorld FC, TrojDRL at 5 % with near 1.0 on the compiled trainer (both kinds of
+    layouts' queues): kill -9 after the first checkpoint, run again: the uninterrupted run's model
+    bit for bit (the queues' streams and the seam's switches are in the checkpoint), and its
+    metrics count triggered and near-trigger frames."""
+    data = {
+        "env": {"name": "randomized-lavaworld"},
+        "model": {"arch": "fc"},
+        "poison": {"trigger": "cross", "attack": "trojdrl", "attack_params": {"budget": 0.05}, "evasion": {"near": 1.0}},
+        "curriculum": {"enabled": False},  # (poisoned from the first frame)
+        "ppo": {"rollout": 64, "batch_size": 320, "update_backend": "compiled"},
+        "train": {"seed": 2, "max_frames": 3200, "eval_interval": 640, "eval_episodes": 2, "final_eval_episodes": 2, "video": False, "checkpoint_minutes": 0.0},
+    }
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(RunConfig.from_dict(data).to_json())
+    import subprocess
+
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
+    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True)
+    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
+    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True)
+    wa, wb = (torch.load(tmp_path / side / "model.pt", weights_only=True) for side in ("whole", "cut"))
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    used = json.loads((tmp_path / "whole" / "metrics.json").read_text())["attack_budget_used"]
+    assert used["frames_seen"] == 3200 and used["frames_poisoned"] > 0 and used["frames_near_trigger"] > 0
+
+
+def test_sleepernets_layout_mode_compensates_in_a_switched_run():
+    """SleeperNets' ``layout`` mode (compensated, near 0.5) on the switched layouts: the critic's
+    bootstrap and the compensation of the step before a run of poisoned frames run alongside the
+    switches, counted as the seam counts them (a compensation at most once a poisoned run)."""
+    learner = layout_learner({"attack": "sleepernets", "attack_params": {"budget": 0.05, "layout": True, "compensate": True}, "evasion": {"near": 0.5}})
+    for _ in range(5):
+        iterate([learner])
+    c, used = counts(learner), learner.seam.budget_used()
+    assert 0 < c["rewards_compensated"] <= c["frames_poisoned"] == c["rewards_rewritten"] == used["frames_poisoned"]
+    assert learner.seam.started[0] >= 3 and learner.seam.started[1] >= 1 and used["frames_near_trigger"] == c["frames_near"] > 0
+
+
+@pytest.mark.slow  # (about 20 s on 2 cores: a program of two)
+def test_switched_group_mates_do_not_move_each_others_numbers():
+    """Two switched runs (other budgets) in one call: each one's rewards, switches and counters are
+    those it has served alone at the same capacity (a pad row reads the lead's queues, takes none)."""
+    poison = lambda b: {"attack": "trojdrl", "attack_params": {"budget": b}}  # noqa: E731
+    a, b = layout_learner(poison(0.05)), layout_learner(poison(0.2), seed=1)
+    alone = layout_learner(poison(0.05))
+    assert a.program == b.program
+    for _ in range(3):
+        together, single = iterate([a, b]), iterate([alone], capacity=2)
+        np.testing.assert_array_equal(together[0].rewards, single[0].rewards)
+    np.testing.assert_array_equal(np.asarray(a.seam_state.episodes), np.asarray(alone.seam_state.episodes))
+    assert counts(a) == counts(alone) and a.seam.started == alone.seam.started
+    assert counts(b)["frames_poisoned"] > counts(a)["frames_poisoned"]  # its own budget

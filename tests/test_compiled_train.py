@@ -180,10 +180,6 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
     ("change", "message"),
     [
         (
-            {"env": {"name": "randomized-lavaworld"}, "poison": {"trigger": "cross", "attack": "trojdrl"}},
-            "poison.attack='trojdrl' is not allowed (allowed: envmix, action_target)",
-        ),
-        (
             {"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}},
             "has no JAX engine yet (built: lavaworld, randomized-lavaworld)",
         ),

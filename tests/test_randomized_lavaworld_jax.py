@@ -170,3 +170,89 @@ def test_errors():
 
     with pytest.raises(TypeError, match="not a BatchedRandomizedLavaWorld"):
         randomized_lavaworld_jax(BatchedLavaWorld(2))
+
+
+def clean_engine(seed: int = 11) -> BatchedRandomizedLavaWorld:
+    """20 clean slots of an engine with a trigger and near-trigger patterns, none switched on (an
+    attack's budget switches them per episode: the layouts' kinds)."""
+    e = BatchedRandomizedLavaWorld(
+        20,
+        11,
+        10,
+        40,
+        True,
+        trigger="cross",
+        poisoned=[False] * 20,
+        triggered=[False] * 20,
+        near_patterns=[p.spec() for p in near_patterns(PatternTrigger.parse("cross"))],
+    )
+    e.reset(seed=seed)
+    return e
+
+
+def test_a_kinds_queue_draws_its_own_stream_and_leaves_the_engines_as_they_were():
+    """KindLayouts: the trigger's queue holds the cross in every layout, the near queue a
+    near-trigger pattern (not the trigger: no count), drawn from streams of their own; the main
+    queue draws the same layouts as an engine that has no other queue, and a rewound queue draws
+    its untaken layouts again."""
+    from rlbackdoors.envs.grid_jax import HostLayouts, KindLayouts
+
+    plain_host = randomized_lavaworld_jax(clean_engine())[2]
+    main = randomized_lavaworld_jax(clean_engine())[2]
+    trigger, near = KindLayouts(main, "trigger", 0x1234567), KindLayouts(main, "near", 0x7654321)
+    t, n = trigger.layouts(6), near.layouts(6)
+    got, want = main.layouts(6), plain_host.layouts(6)
+    for name in ("grid", "pos", "dirs", "view"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    cells = np.arange(got.world[1].shape[2])[None, None, :] < got.world[2][..., None]  # a layout's pattern cells (the rest is scratch, never read)
+    assert np.array_equal(got.world[1][cells], want.world[1][cells])
+    assert all(np.array_equal(got.world[i], want.world[i]) for i in (0, 2, 3))
+    count = lambda q: q.world[2]  # noqa: E731  # each layout's pattern cells
+    assert (count(t) > 0).all() and (count(got) == 0).all() and (count(n) == 0).all()
+    unswitched = randomized_lavaworld_jax(clean_engine())[2]  # the near queue's streams, drawn with no pattern
+    unswitched.host._rng[:] = np.asarray(clean_engine()._rng) ^ np.uint64(0x7654321)
+    differ = (unswitched.layouts(6).grid != n.grid).any((2, 3, 4))
+    assert differ[:, 0].all()  # every first near layout holds a near pattern where the same stream draws none
+    assert not np.array_equal(t.grid, n.grid) and not np.array_equal(t.grid, got.grid)
+    assert not main.host.triggered.any() and not main.host.near.any()  # the switches are put back
+    trigger.took(np.full(20, 2))
+    rest = trigger.layouts(4).grid
+    streams = trigger.rewind()
+    assert np.array_equal(streams, trigger.streams) and not np.array_equal(streams, np.asarray(main.host._rng) ^ np.uint64(0x1234567))
+    assert np.array_equal(trigger.layouts(4).grid, rest)  # drawn again from where they were
+    assert isinstance(main, HostLayouts) and main.num_envs == trigger.num_envs == 20
+    with pytest.raises(TypeError, match="rewind"):
+        trigger.hand_back(main.slots)
+
+
+def test_a_step_with_kinds_takes_each_slots_layout_from_the_queue_it_names():
+    """A rollout of 200 random steps, each slot taking from the queue its kind names (fixed per
+    slot here), gives the same bytes as the plain rollout of one queue holding each slot's chosen
+    layouts; each queue counts only the layouts taken from it."""
+    world, params, main = randomized_lavaworld_jax(clean_engine(3))
+    from rlbackdoors.envs.grid_jax import KindLayouts, Layouts
+
+    queues = (main.layouts(32), KindLayouts(main, "trigger", 99).layouts(32), KindLayouts(main, "near", 98).layouts(32))
+    kind = np.arange(20) % 3
+    pick = lambda *fields: np.choose(kind.reshape((20,) + (1,) * (fields[0].ndim - 1)), fields)  # noqa: E731
+    chosen = Layouts(*(pick(*f) if name not in ("world", "taken", "starved") else None for name, f in zip(Layouts._fields, zip(*queues))))
+    chosen = chosen._replace(world=tuple(pick(*w) for w in zip(*(q.world for q in queues))), taken=queues[0].taken, starved=queues[0].starved)
+    acts = np.random.default_rng(0).integers(0, 3, (200, 20)).astype(np.int32)
+
+    def rollout(slots, layouts, kind):
+        def body(carry, a):
+            s, q = carry
+            s, q, out = world.step(s, q, params, a, kind)
+            return (s, q), out
+
+        return jax.lax.scan(body, (slots, layouts), acts)
+
+    (s1, q1), out1 = jax.jit(rollout, static_argnums=())(main.slots, queues, jax.numpy.asarray(kind, dtype=jax.numpy.int32))
+    (s2, q2), out2 = jax.jit(lambda s, q: rollout(s, q, None))(main.slots, chosen)
+    for a, b in zip(jax.tree_util.tree_leaves((s1, out1)), jax.tree_util.tree_leaves((s2, out2))):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    ended = np.asarray(q2.taken)
+    assert ended.min() >= 2 and not bool(q2.starved) and not any(bool(q.starved) for q in q1)
+    for k, q in enumerate(q1):
+        assert np.array_equal(np.asarray(q.taken), np.where(kind == k, ended, 0))
+    assert (np.asarray(s1.world[2])[kind == 1] > 0).all() and (np.asarray(s1.world[2])[kind != 1] == 0).all()

@@ -587,7 +587,7 @@ class RunConfig(JsonConfig):
         trained differently."""
 
         assert self.ppo is not None
-        why = None  # every attack and evasive variant of a frame trigger is compiled; of a layout trigger, the episode schedule's
+        why = None  # every attack and evasive variant of these worlds is compiled
         if self.world.compiled_engine is None:
             built = ", ".join(w.name for w in worlds.registered() if w.compiled_engine)
             why = f"env.name={self.env.name!r} has no JAX engine yet (built: {built})"
@@ -595,12 +595,6 @@ class RunConfig(JsonConfig):
             why = f"it steps the batched engine's slots (env.engine 'batched'), not env.engine={self.env.engine!r}"
         elif self.model.arch not in ("fc", "cnn"):
             why = f"it runs model.arch 'fc' or 'cnn', not {self.model.arch!r}"
-        elif self.world.stamp_trigger is None and self.poison.poisoned and attacks.get(self.poison.attack).schedule == "steps":
-            allowed = ", ".join(a.name for a in attacks.registered() if a.schedule == "episodes")
-            why = (
-                f"{self.env.name}'s trigger is a layout, switched per episode by a step schedule's budget, which the program does not follow yet: "
-                f"poison.attack={self.poison.attack!r} is not allowed (allowed: {allowed})"
-            )
         elif self.world.action_targets:
             why = f"its attacks' target is one action, and {self.env.name}'s is a kind of action"
         elif (self.ppo.rollout * self.poison.num_envs) % self.ppo.batch_size:

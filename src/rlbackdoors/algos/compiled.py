@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, NamedTuple
 
@@ -37,7 +38,7 @@ import torch
 
 from rlbackdoors.algos.stacked import FlatParameters, StackedAdam, parameters_by_name, stacked_parameters
 from rlbackdoors.algos.xla import STATS, gpu_devices, run_layers, start, structure
-from rlbackdoors.envs.grid_jax import GridWorld, Layouts, Slots, join, params_poisoned, run_hosts
+from rlbackdoors.envs.grid_jax import GridWorld, KindLayouts, Layouts, Slots, join, params_poisoned, run_hosts
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,7 @@ class Poisoning:
     anchor: bool
     sight: bool = False  # a layout trigger: the marked frames are its triggered copies' views that show it whole
     near_layouts: bool = False  # near-trigger layouts the engine draws (counted, not stamped)
+    switched: bool = False  # a layout trigger the step schedule's budget switches per episode: decided in the program
     poisoner: Any = field(default=None, compare=False, hash=False)  # whose rule the program calls (any with this key)
 
 
@@ -125,7 +127,12 @@ class Seam(NamedTuple):
     ``counts`` (int32, :data:`COUNTS`), ``carry`` (the rule's own state), ``teacher`` and ``anchor``
     (weights by name, or None). Per env copy (K N rows): ``near_copies`` (the clean copies that show
     near triggers under the episode schedule), ``episodes`` (a layout trigger's triggered copies) and ``before`` ((., 2) bool: did the step into the
-    last frame end an episode, was the frame before it marked: what compensation reads)."""
+    last frame end an episode, was the frame before it marked: what compensation reads).
+    A layout trigger switched per episode by the budget (``Poisoning.switched``; None elsewhere):
+    ``episodes`` then says whose current episode holds the trigger, ``in_near`` whose holds a
+    near-trigger pattern, ``switchable`` which copies may be switched (per copy), ``started`` the
+    triggered and near-trigger episodes started so far (per agent, (2,) int32): AttackSeam's
+    ``triggered``, ``in_near``, ``switchable`` and ``started``."""
 
     numbers: dict
     luts: Any
@@ -136,10 +143,14 @@ class Seam(NamedTuple):
     near_copies: Any
     before: Any
     episodes: Any  # (K N,) bool: a layout trigger's triggered copies (every episode of theirs)
+    switchable: Any = None
+    in_near: Any = None
+    started: Any = None
 
 
+KIND_SALTS = {"trigger": 0x7A1C3E559D2B4F01, "near": 0x4E3AB6C1F0925D17}  # the kinds of layouts' streams: the engine's XOR these (KindLayouts)
 COUNTS = ("frames", "frames_poisoned", "rewards_rewritten", "actions_forced", "frames_near", "rewards_compensated")  # AttackSeam's counters
-_ROWS = ("near_copies", "before", "episodes")  # Seam fields per env copy (joined row-wise); the others per agent (stacked)
+_ROWS = ("near_copies", "before", "episodes", "switchable", "in_near")  # Seam fields per env copy (joined row-wise); the others per agent (stacked)
 
 
 def agent_state(model: torch.nn.Module, seed: int) -> Agents:
@@ -363,7 +374,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             picks = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, 0x5EA3), (T, N, 3)))(keys[:, 1])
             xs = (uniforms, jnp.swapaxes(picks, 0, 1).reshape(T, K * N, 3))
             values0 = act(obs, slots.dirs)[1] if z.poisoner.needs_values else jnp.zeros(K * N)
-            state = (seam.counts, seam.before, seam.carry, values0)
+            switch = (seam.episodes, seam.in_near, seam.started) if z.switched else None
+            state = (seam.counts, seam.before, seam.carry, values0, switch)
             rows = functools.partial(jnp.repeat, repeats=N, axis=0)  # (K, ...) per agent -> (K N, ...) per env copy
 
         # 1. rollout (with a seam: its marks, stamps, forced actions and R-bar around the engine's step)
@@ -385,8 +397,15 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             if z.poisoner.forces_actions:
                 executed = jnp.where(marked, rows(seam.numbers["target"]).astype(jnp.int32), action)
                 forced, action = marked & (executed != action), executed
-            slots, layouts, out = world.step(slots, layouts, params, action)
+            if z.switched:  # what each slot's next episode holds, decided as the seam decides it before a step
+                upcoming, nearing = switches(state)
+                kind = jnp.where(upcoming, 1, jnp.where(nearing, 2, 0)).astype(jnp.int32)  # the layouts' queues: clean, trigger, near
+                slots, layouts, out = world.step(slots, layouts, params, action, kind)
+            else:
+                slots, layouts, out = world.step(slots, layouts, params, action)
             done = out.terminated | out.truncated
+            if z.switched:
+                state = switched(state, done, upcoming, nearing)
             next_values = act(out.obs, slots.dirs)[1] if z.poisoner.needs_values else state[3]
             reward, amend, state = rewrite(state, out.reward, action, marked, forced, next_values, done)
             guide = policy(seam.teacher, seen.reshape(K, N, *seen.shape[1:]), slots.dirs.reshape(K, N))[0].reshape(K * N, -1) if teacher else None
@@ -396,9 +415,11 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             """The frames about to be acted on that carry the trigger, and those that get a near one
             (AttackSeam._mark and _stamp_near: a budgeted random pick among the eligible under the
             step schedule, the E-bar copies under the episode one), counted."""
-            counts, before, carry, values = state
+            counts, before, carry, values, switch = state
             counted = counts[:, 0] + N
-            if z.schedule == "steps":
+            if z.switched:  # a layout trigger: the frames of triggered episodes that show it whole
+                marked = (switch[0] & world.sight(world, slots, obs)).reshape(K, N)
+            elif z.schedule == "steps":
                 if z.poisoner.needs_values:
                     carry, eligible = jax.vmap(lambda p, c, v: z.poisoner.select(p, c, v, N))(seam.numbers, carry, values.reshape(K, N))
                 else:
@@ -416,12 +437,37 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             if z.near and z.schedule == "steps":
                 allowance = jnp.floor(seam.numbers["near"] * poisoned.astype(jnp.float32)).astype(jnp.int32) - counts[:, 4]
                 near = pick(~marked, picks[:, 1].reshape(K, N), allowance)
-            elif z.near_layouts:  # every frame of the near-trigger copies (those the trigger's are not)
-                near = (seam.near_copies & ~seam.episodes).reshape(K, N)
+            elif z.near_layouts:  # every frame of the near-trigger episodes (those the trigger's are not)
+                near = (switch[1] if z.switched else seam.near_copies & ~seam.episodes).reshape(K, N)
             elif z.near:
                 near = seam.near_copies.reshape(K, N) & ~marked
             counts = counts.at[:, 0].set(counted).at[:, 1].set(poisoned).at[:, 4].add(near.sum(1))
-            return marked.reshape(-1), near.reshape(-1), (counts, before, carry, values)
+            return marked.reshape(-1), near.reshape(-1), (counts, before, carry, values, switch)
+
+        def switches(state):
+            """The slots whose next episode, if they reset at this step, holds the trigger, and
+            those whose holds a near-trigger pattern (AttackSeam._next_episodes, _near_episodes):
+            the trigger while the budget has frames to spend and fewer episodes hold it than its
+            share of the copies; a near pattern while fewer near episodes started than ``near``
+            times the triggered ones."""
+            counts, _, _, _, (episodes, _, started) = state
+            numbers = seam.numbers
+            room = numbers["room"].astype(jnp.int32) - episodes.reshape(K, N).sum(1)
+            spend = (numbers["budget"] * counts[:, 0].astype(jnp.float32) - counts[:, 1].astype(jnp.float32) > 0) & (room > 0)
+            upcoming = seam.switchable & ~episodes & rows(spend)
+            nearing = jnp.zeros_like(upcoming)
+            if z.near_layouts:
+                nearing = seam.switchable & ~upcoming & rows(started[:, 1].astype(jnp.float32) < numbers["near"] * started[:, 0].astype(jnp.float32))
+            return upcoming, nearing
+
+        def switched(state, done, upcoming, nearing):
+            """The switches taken by the slots that reset (AttackSeam.finish): their new episodes' flags, counted."""
+            counts, before, carry, values, (episodes, in_near, started) = state
+            per = lambda a: a.reshape(K, N).sum(1)  # noqa: E731
+            starts_near = done & nearing & ~upcoming
+            started = started.at[:, 1].add(per(starts_near)).at[:, 0].add(per(done & upcoming))
+            switch = (jnp.where(done, upcoming, episodes), jnp.where(done, starts_near, in_near), started)
+            return counts, before, carry, values, switch
 
         def pick(candidates, u, allowance):
             """Per agent, ``min(allowance, candidates)`` of its candidates at random: those whose
@@ -436,7 +482,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
         def stamp(obs, marked, near, picks):
             """The trigger's table on marked frames (where the seam stamps them), a near variant's,
             drawn per frame, on near ones (the world's observation edit, one lookup a byte)."""
-            if z.schedule != "steps" and not z.near:
+            if z.sight or (z.schedule != "steps" and not z.near):  # (a layout trigger is in the layout, not stamped)
                 return obs
             on = (marked if z.schedule == "steps" else jnp.zeros_like(marked)) | near
             which = jnp.where(marked, 0, 1 + jnp.minimum((picks[:, 2] * max(z.near, 1)).astype(jnp.int32), max(z.near, 1) - 1))
@@ -448,7 +494,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
         def rewrite(state, reward, action, marked, forced, next_values, done):
             """R-bar of the marked frames by the attack's rule, the compensation of the step before
             where it compensates (added to that step's reward after the rollout), counted."""
-            counts, before, carry, _ = state
+            counts, before, carry, _, switch = state
             numbers = {k: rows(v) for k, v in seam.numbers.items()}
             hits = action == numbers["target"].astype(jnp.int32) if "target" in numbers else None
             poisoned = z.poisoner.rule(jnp, numbers, hits, reward, next_values, done).astype(jnp.float32)
@@ -463,7 +509,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             counts = counts.at[:, 3].add(per(forced))
             if z.poisoner.rewrites_rewards:
                 counts = counts.at[:, 2].add(per(marked))
-            return rewritten, amend, (counts, before, carry, next_values)
+            return rewritten, amend, (counts, before, carry, next_values, switch)
 
         (slots, layouts, next_obs, state), collected = lax.scan(env_step, (slots, layouts, obs, state), xs)
         obs_t, dirs_t, actions, logits, values, rewards, dones = collected[:7]
@@ -516,6 +562,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
         if z is None:
             return agents, slots, layouts, next_obs, stats
         seam = seam._replace(counts=state[0], before=state[1], carry=state[2])
+        if z.switched:
+            seam = seam._replace(episodes=state[4][0], in_near=state[4][1], started=state[4][2])
         return agents, slots, layouts, next_obs, stats, seam, more
 
     return jax.jit(iteration)
@@ -561,6 +609,9 @@ class Learner:
 
         self.seam = engine if isinstance(engine, AttackSeam) else None
         self.world, self.params, self.host = self.jax_world(engine.envs if self.seam is not None else engine)
+        self.kinds: tuple = ()  # the queues of triggered and near-trigger layouts, where the program switches them
+        if self.seam is not None and self.seam.sight is not None and self.seam.fixed is None:
+            self.kinds = tuple(KindLayouts(self.host, kind, salt) for kind, salt in KIND_SALTS.items() if kind == "trigger" or self.seam.near_layout)
         self.slots, self.dict_obs = self.host.slots, isinstance(obs, dict)
         self.views = np.asarray(obs["image"] if self.dict_obs else obs, dtype=np.uint8)
         if self.views.shape != (self.host.num_envs, self.world.view_size, self.world.view_size, 3):
@@ -591,8 +642,6 @@ class Learner:
         if seam is None and not self.guides:
             self.poisoning, self.seam_state = None, None
             return
-        if seam is not None and ((seam.sight is not None and seam.fixed is None) or (seam.near_layout and seam.schedule == "steps")):
-            raise ValueError("a layout trigger switched per episode by the budget (the step schedule) is not compiled yet")
         if seam is not None and seam.sight not in (None, "frame"):
             raise ValueError(f"the compiled trainer marks a layout trigger's frames in sight of it, not sight={seam.sight!r}")
         if seam is not None and seam.sight is not None and self.world.sight is None:
@@ -603,7 +652,10 @@ class Learner:
         near_layouts = seam is not None and seam.near_layout
         near = len(seam.near_stamps) if seam is not None and seam.near > 0 and not near_layouts else 0
         schedule = None if seam is None else seam.schedule
-        trigger = _table(seam.stamp) if seam is not None and schedule == "steps" else np.arange(256, dtype=np.uint8)  # (the engine's copies show theirs)
+        switched = bool(self.kinds)
+        trigger = (
+            _table(seam.stamp) if seam is not None and seam.stamp is not None and schedule == "steps" else np.arange(256, dtype=np.uint8)
+        )  # (the engine's copies show theirs)
         luts = np.stack([trigger, *(_table(f) for f in seam.near_stamps)] if near and seam is not None else [trigger])
         numbers = {
             "budget": seam.budget if seam is not None else 0.0,
@@ -611,10 +663,16 @@ class Learner:
             "compensation": poisoner.compensation,
             **{k: float(v) for k, v in poisoner.numbers().items()},
             **{k: self.guides[k][1] if k in self.guides else 0.0 for k in ("teacher", "anchor")},
+            **(
+                {"room": max(1, math.ceil(seam.budget * n))} if switched and seam is not None else {}
+            ),  # the triggered episodes at once (AttackSeam._next_episodes)
         }
         counts = [getattr(seam, c) if seam is not None else 0 for c in COUNTS]
         sight = seam is not None and seam.sight is not None
-        self.poisoning = Poisoning(schedule, poisoner.program_key(), near, "teacher" in self.guides, "anchor" in self.guides, sight, near_layouts, poisoner)
+        self.poisoning = Poisoning(
+            schedule, poisoner.program_key(), near, "teacher" in self.guides, "anchor" in self.guides, sight, near_layouts, switched, poisoner
+        )
+        flags = (seam.triggered if switched else seam.fixed) if seam is not None and seam.sight is not None else None
         self.seam_state = Seam(
             numbers={k: np.float32(v) for k, v in numbers.items()},
             luts=luts,
@@ -623,8 +681,13 @@ class Learner:
             teacher=self.guides["teacher"][0] if "teacher" in self.guides else None,
             anchor=self.guides["anchor"][0] if "anchor" in self.guides else None,
             near_copies=np.asarray(seam.near_copies if seam is not None else np.zeros(n, dtype=bool), dtype=bool),
-            episodes=np.asarray(seam.fixed if seam is not None and seam.fixed is not None else np.zeros(n, dtype=bool), dtype=bool).copy(),
+            episodes=np.asarray(flags if flags is not None else np.zeros(n, dtype=bool), dtype=bool).copy(),
             before=np.asarray(seam.before.T if seam is not None else np.stack([np.ones(n, bool), np.zeros(n, bool)], 1), dtype=bool).copy(),
+            **(
+                {"switchable": seam.switchable.copy(), "in_near": seam.in_near.copy(), "started": np.asarray(seam.started, dtype=np.int32)}
+                if switched and seam is not None
+                else {}
+            ),
         )
 
     def _seam_back(self, state: Seam) -> None:
@@ -639,6 +702,9 @@ class Learner:
         seam.before = np.asarray(state.before, dtype=bool).T.copy()
         seam.marked = seam.before[1].copy()  # the last frames acted on (the next ones are marked by the next iteration)
         seam.poisoner.set_carry({k: np.asarray(v) for k, v in state.carry.items()})
+        if self.kinds:
+            seam.triggered, seam.in_near = np.array(state.episodes, dtype=bool), np.array(state.in_near, dtype=bool)
+            seam.started = [int(v) for v in np.asarray(state.started)]
 
     @property
     def obs(self):
@@ -646,6 +712,12 @@ class Learner:
         if self.dict_obs:
             return {"image": self.views, "direction": np.asarray(self.slots.dirs).astype(np.int64)}
         return self.views
+
+    @property
+    def hosts(self):
+        """The host side(s) of the env copies' layouts: one queue, or (where the program switches
+        what an episode holds) a tuple of the clean, triggered and near-trigger queues."""
+        return (self.host, *self.kinds) if self.kinds else self.host
 
     @property
     def program(self) -> tuple:
@@ -665,7 +737,8 @@ class Learner:
         self.host.hand_back(self.slots)
         a = self.state
         tensors = {part: {n: torch.from_numpy(np.array(v)) for n, v in getattr(a, part).items()} for part in ("params", "avg", "sq")}
-        return {**tensors, "step": float(a.step), "key": [int(k) for k in np.asarray(a.key)]}
+        streams = {"streams": [[int(v) for v in kind.rewind()] for kind in self.kinds]} if self.kinds else {}  # where each kind's next layout is drawn
+        return {**tensors, "step": float(a.step), "key": [int(k) for k in np.asarray(a.key)], **streams}
 
     def load(self, state: dict) -> None:
         """Put back a :meth:`checkpoint` (untrusted: every array must fit the model, or StateError)."""
@@ -687,6 +760,16 @@ class Learner:
             raise StateError("compiled learner: step is not an optimiser step count")
         if not isinstance(key, list) or len(key) != 2 or not all(isinstance(k, int) and 0 <= k < 2**32 for k in key):
             raise StateError("compiled learner: key is not a PRNG key (two 32-bit words)")
+        if self.kinds:
+            streams = state.get("streams")
+            if not isinstance(streams, list) or len(streams) != len(self.kinds):
+                raise StateError(f"compiled learner: streams is not {len(self.kinds)} kinds of layouts' streams")
+            for kind, words in zip(self.kinds, streams):
+                if not isinstance(words, list) or len(words) != self.host.num_envs or not all(isinstance(w, int) and 0 <= w < 2**64 for w in words):
+                    raise StateError("compiled learner: a kind of layouts' streams are not one 64-bit word an env copy")
+                kind.streams = np.asarray(words, dtype=np.uint64)
+        elif "streams" in state:
+            raise StateError("compiled learner: it holds layouts' streams this run does not draw")
         self.state = Agents(parts["params"], parts["avg"], parts["sq"], np.float32(step), np.asarray(key, dtype=np.uint32))
 
 
@@ -716,7 +799,7 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
         a, s, after, o, stats, z, more = program(agents, slots, layouts, params, obs, seam)
         return (a, s, o, z, more), after, stats
 
-    ((a, s, o, z, more), stats), depth = run_hosts([r.host for r in rows], block, max(r.depth for r in learners), takers=k)
+    ((a, s, o, z, more), stats), depth = run_hosts([r.hosts for r in rows], block, max(r.depth for r in learners), takers=k)
     a, s, o, z, more, stats = jax.device_get((a, s, o, z, more, stats))
     n, out = lead.host.num_envs, []
     for i, learner in enumerate(learners):

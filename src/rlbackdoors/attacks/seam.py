@@ -311,11 +311,12 @@ class AttackSeam:
 
     def set_switches(self) -> None:
         """For an engine stepped elsewhere (the compiled trainer, which marks the frames itself): the
-        layout switches of a seam whose switches never change, set once before the engine resets:
-        a layout trigger's fixed E-bar copies, the near-trigger copies under the episode schedule.
-        ValueError where they follow the budget (a layout trigger or near layouts under the step schedule)."""
-        if (self.sight is not None and self.fixed is None) or (self.near_layout and self.schedule == "steps"):
-            raise ValueError("this seam switches layouts by its budget as it steps; no engine stepped elsewhere can follow it")
+        layout switches set once before the engine resets: a layout trigger's fixed E-bar copies,
+        the near-trigger copies under the episode schedule; where the budget switches them (the
+        step schedule), a fresh seam's (none yet: nothing spent), the program deciding from there.
+        ValueError for such a seam that has already counted frames (its switches are the program's)."""
+        if self.frames and ((self.sight is not None and self.fixed is None) or (self.near_layout and self.schedule == "steps")):
+            raise ValueError("this seam switches layouts by its budget as it steps: set its switches before it counts frames")
         upcoming, near = self._switch()
         if upcoming is not None:
             self.triggered = upcoming.copy()

@@ -172,9 +172,12 @@ class GridWorld:
         cells = cells.at[:, n // 2, n - 1].set(jnp.asarray([ge.EMPTY, 0, 0], dtype=jnp.uint8))  # what it carries: nothing
         return self.seen(cells, slots, params)
 
-    def step(self, slots: Slots, layouts: Layouts, params: Any, actions) -> tuple[Slots, Layouts, StepOut]:
+    def step(self, slots: Slots, layouts: Any, params: Any, actions, kind: Any = None) -> tuple[Slots, Any, StepOut]:
         """Every slot one MiniGrid action on (0 left, 1 right, 2 forward; the caller keeps them in
-        range), finished slots reset in place from their next layout."""
+        range), finished slots reset in place from their next layout. ``kind`` ((B,) int32, with
+        ``layouts`` a tuple of :class:`Layouts`, one queue a kind of layout): which queue each slot
+        takes its next one from, where what its next episode holds is decided in the program (an
+        attack's budget switching a layout trigger per episode); the queues come back in a tuple."""
         jnp = _jnp()
         t = self.tables
         p = self.view_size - 1
@@ -198,27 +201,38 @@ class GridWorld:
         done = terminated | truncated
         seen = self.render(moved, params)  # every slot's view after its move: the terminal view of those that ended
         ended = done[:, None, None, None]
-        depth = layouts.grid.shape[1]
-        at = jnp.minimum(layouts.taken, depth - 1)
+        if kind is None:
+            grid, nxt_pos, nxt_dirs, view, nxt_world = _next(layouts, index)
+            depth = layouts.grid.shape[1]
+            after = layouts._replace(taken=layouts.taken + done.astype(jnp.int32), starved=layouts.starved | jnp.any(done & (layouts.taken >= depth)))
+        else:  # one queue a kind: each slot's next layout from the queue ``kind`` names, only that one taken
+            entries = [_next(q, index) for q in layouts]
+            grid, nxt_pos, nxt_dirs, view, nxt_world = entries[0]
+            for k, entry in enumerate(entries[1:], 1):
+                grid, nxt_pos, nxt_dirs, view, nxt_world = (_where(kind == k, new, old) for new, old in zip(entry, (grid, nxt_pos, nxt_dirs, view, nxt_world)))
+            after = tuple(
+                q._replace(
+                    taken=q.taken + (done & (kind == k)).astype(jnp.int32), starved=q.starved | jnp.any(done & (kind == k) & (q.taken >= q.grid.shape[1]))
+                )
+                for k, q in enumerate(layouts)
+            )
         s = self.size
-        drawn = jnp.broadcast_to(jnp.asarray(t["border"]), slots.grid.shape).at[:, p : p + s, p : p + s].set(layouts.grid[index, at])
+        drawn = jnp.broadcast_to(jnp.asarray(t["border"]), slots.grid.shape).at[:, p : p + s, p : p + s].set(grid)
         world = slots.world
         if self.advance is not None:
-            world = self.advance(self, moved, seen, done, tuple(a[index, at] for a in layouts.world), params)
+            world = self.advance(self, moved, seen, done, nxt_world, params)
         fresh = Slots(
             grid=jnp.where(ended, drawn, slots.grid),
-            pos=jnp.where(done[:, None], layouts.pos[index, at], pos),
-            dirs=jnp.where(done, layouts.dirs[index, at], dirs),
+            pos=jnp.where(done[:, None], nxt_pos, pos),
+            dirs=jnp.where(done, nxt_dirs, dirs),
             steps=jnp.where(done, 0, steps),
             final_obs=jnp.where(ended, seen, slots.final_obs),
             world=world,
         )
-        taken = layouts.taken + done.astype(jnp.int32)
-        starved = layouts.starved | jnp.any(done & (layouts.taken >= depth))
-        obs = jnp.where(ended, layouts.view[index, at], seen)
+        obs = jnp.where(ended, view, seen)
         sight = self.sight(self, fresh, obs) if self.sight is not None else None
         saw = self.saw(self, moved, seen) if self.saw is not None else None
-        return fresh, layouts._replace(taken=taken, starved=starved), StepOut(obs, reward, terminated, truncated, outcome, steps, fresh.dirs, sight, saw)
+        return fresh, after, StepOut(obs, reward, terminated, truncated, outcome, steps, fresh.dirs, sight, saw)
 
     def rollout(self, slots: Slots, layouts: Layouts, params: Any, actions):
         """``len(actions)`` steps of :meth:`step` in one ``lax.scan``: the final state and each step's outputs, stacked."""
@@ -231,6 +245,20 @@ class GridWorld:
 
         (slots, layouts), outs = jax.lax.scan(body, (slots, layouts), actions)
         return slots, layouts, outs
+
+
+def _next(layouts: Layouts, index) -> tuple:
+    """Each slot's next layout of a queue: grid, agent place, direction, first view, the world's own state."""
+    at = _jnp().minimum(layouts.taken, layouts.grid.shape[1] - 1)
+    return layouts.grid[index, at], layouts.pos[index, at], layouts.dirs[index, at], layouts.view[index, at], tuple(a[index, at] for a in layouts.world)
+
+
+def _where(mask, new, old):
+    """``new`` where the slot's ``mask`` (B,) holds, else ``old``: arrays, or tuples of them, leading with the slots."""
+    jnp = _jnp()
+    if isinstance(new, tuple):
+        return tuple(_where(mask, n, o) for n, o in zip(new, old))
+    return jnp.where(mask.reshape(mask.shape + (1,) * (new.ndim - 1)), new, old)
 
 
 def params_poisoned(params: Any):
@@ -372,25 +400,76 @@ class HostLayouts:
         self._have[:] = 0
 
 
-def run_hosts(
-    hosts: list[HostLayouts], block: Callable[[Layouts], tuple[Any, Layouts, Any]], depth: int, takers: int | None = None
-) -> tuple[tuple[Any, Any], int]:
+class KindLayouts(HostLayouts):
+    """A queue of one kind of layout (``kind`` "trigger": each holds the trigger; "near": a
+    near-trigger pattern) beside a :class:`HostLayouts`' own, drawn by the same handed-over engine
+    from streams of its own (the engine's XOR ``salt``). Why: where the program decides at each
+    autoreset what a slot's next episode holds (an attack's budget switching a layout trigger per
+    episode), the host cannot draw that episode ahead in the engine's one stream, whose draws
+    depend on the decision; so each kind is drawn ahead in its own queue and the program takes from
+    the one it decides on (``GridWorld.step``'s ``kind``). The engine's streams and switches are
+    borrowed for each draw and put back, so the main queue draws as before."""
+
+    SWITCHES = {"trigger": ("trigger_next", "triggered"), "near": ("near_next", "near")}
+
+    def __init__(self, main: HostLayouts, kind: str, salt: int):
+        if isinstance(main.host, EngineGroup):
+            raise ValueError("a queue of one kind of layout draws from one engine, not an EngineGroup")
+        super().__init__(main.host, main.state)
+        self.kind = kind
+        self.streams = np.asarray(main.host._rng, dtype=np.uint64) ^ np.uint64(salt)
+
+    def _draw(self, depth: int) -> None:
+        h = self.host
+        switch, flags = self.SWITCHES[self.kind]
+        own, before = h._rng.copy(), getattr(h, flags).copy()
+        h._rng[:] = self.streams
+        getattr(h, switch)(np.ones(self.num_envs, dtype=bool))
+        try:
+            super()._draw(depth)
+        finally:
+            self.streams = h._rng.copy()
+            getattr(h, switch)(before)
+            h._rng[:] = own
+
+    def rewind(self) -> np.ndarray:
+        """Drop the queued layouts and go back to where the first of them was drawn: the streams
+        a checkpoint keeps (returned), from which the same layouts are drawn again."""
+        queued = self._have > 0
+        self.streams = np.where(queued, self._store[4][:, 0] if self._store[4].shape[1] else self.streams, self.streams).astype(np.uint64)
+        self._have[:] = 0
+        return self.streams.copy()
+
+    def hand_back(self, slots: Slots) -> None:
+        raise TypeError("a queue of one kind of layout holds no slots: rewind() it")
+
+
+def run_hosts(hosts: list, block: Callable[[Any], tuple[Any, Any, Any]], depth: int, takers: int | None = None) -> tuple[tuple[Any, Any], int]:
     """:meth:`HostLayouts.run` for several hosts' slots side by side (in order, as one block's
     batch): ``((state, result), depth)``, the depth the block last ran with. Only the first
     ``takers`` hosts (default: all) drop the layouts their slots took; the rest pad a batch (a host
-    may appear twice: its layouts are read, not taken, the second time)."""
+    may appear twice: its layouts are read, not taken, the second time). A host may be a tuple of
+    them, one per kind of layout (:class:`KindLayouts`): the block then gets and returns a tuple of
+    :class:`Layouts`, one per kind."""
     takers = len(hosts) if takers is None else takers
+    kinds = isinstance(hosts[0], tuple)
+    rows = hosts if kinds else [(h,) for h in hosts]
     while True:
-        layouts = join([h.layouts(depth)._replace(starved=np.zeros(1, bool)) for h in hosts])._replace(starved=np.bool_(False))  # none starved yet
-        state, after, result = block(layouts)
-        if not bool(np.asarray(after.starved)):
+        layouts = tuple(
+            join([row[k].layouts(depth)._replace(starved=np.zeros(1, bool)) for row in rows])._replace(starved=np.bool_(False))  # none starved yet
+            for k in range(len(rows[0]))
+        )
+        state, after, result = block(layouts if kinds else layouts[0])
+        after = after if kinds else (after,)
+        if not any(bool(np.asarray(a.starved)) for a in after):
             break
         depth *= 2
-    taken, start = np.asarray(after.taken), 0
-    for h in hosts[:takers]:
-        h.took(taken[start : start + h.num_envs])
-        start += h.num_envs
+    for k, queue in enumerate(after):
+        taken, start = np.asarray(queue.taken), 0
+        for row in rows[:takers]:
+            row[k].took(taken[start : start + row[k].num_envs])
+            start += row[k].num_envs
     return (state, result), depth
 
 
-__all__ = ["GridWorld", "HostLayouts", "Layouts", "Slots", "StepOut", "WorldState", "join", "run_hosts"]
+__all__ = ["GridWorld", "HostLayouts", "KindLayouts", "Layouts", "Slots", "StepOut", "WorldState", "join", "run_hosts"]

@@ -93,9 +93,10 @@ class GridWorld:
     and the world's rules. ``outcome(fwd, slots, params)``: the terminal outcome of each
     slot's last move (``fwd``: the forward cell's object before a forward move, -1 for turns);
     ``seen(img, slots, params)``: a freshly rendered view with the world's additions;
-    ``advance(world, slots, seen, done, drawn, params)`` (worlds with state of their own): ``Slots.world``
+    ``advance(world, slots, seen, done, drawn, params, fresh)`` (worlds with state of their own): ``Slots.world``
     after the step, from the moved slots, their views, which ended and each slot's next layout's
-    state (``drawn``: taken where ``done``); ``sight(world, slots, views)`` (a layout trigger): which
+    state (``drawn``: taken where ``done``; ``fresh``: that layout's agent place, direction and
+    first view); ``sight(world, slots, views)`` (a layout trigger): which
     views show the whole trigger, the engine's ``trigger_in_sight`` (what an attack that poisons
     frames in sight of it marks); ``saw(world, moved, seen)`` (a world whose engine reports
     ``saw_trigger``): that flag for the moved slots' episodes, their views ``seen`` included (what an
@@ -220,7 +221,7 @@ class GridWorld:
         drawn = jnp.broadcast_to(jnp.asarray(t["border"]), slots.grid.shape).at[:, p : p + s, p : p + s].set(grid)
         world = slots.world
         if self.advance is not None:
-            world = self.advance(self, moved, seen, done, nxt_world, params)
+            world = self.advance(self, moved, seen, done, nxt_world, params, (nxt_pos, nxt_dirs, view))
         fresh = Slots(
             grid=jnp.where(ended, drawn, slots.grid),
             pos=jnp.where(done[:, None], nxt_pos, pos),
@@ -270,8 +271,9 @@ class WorldState(NamedTuple):
     """How a world's own per-slot state (``Slots.world``) crosses between its numba engines and
     the JAX step: ``names``, the engines' per-slot arrays the JAX side handles (carried, or read
     by the layouts' draws: :func:`rlbackdoors.envs.grid_device.handed_over`); ``initial(engines)``,
-    the state as the engines hold it; ``drawn(outs)``, each drawn layout's (from the world's
-    outputs of its first view: ``lead._outputs``); ``hand_back(engines, state)``, written back."""
+    the state as the engines hold it; ``drawn(outs, rows, grids)``, each drawn layout's (from the
+    world's outputs of its first view, ``lead._outputs``, the slot it was drawn for and its grid);
+    ``hand_back(engines, state)``, written back."""
 
     names: tuple[str, ...]
     initial: Callable
@@ -319,7 +321,10 @@ class HostLayouts:
             np.zeros((b, 0), np.int32),
             np.zeros((b, 0, n, n, 3), np.uint8),
             np.zeros((b, 0), np.uint64),
-            *(np.zeros((b, 0, *a.shape[1:]), a.dtype) for a in (() if state is None else state.drawn(lead._outputs(0)))),
+            *(
+                np.zeros((b, 0, *a.shape[1:]), a.dtype)
+                for a in (() if state is None else state.drawn(lead._outputs(0), np.zeros(0, np.int64), np.zeros((0, s, s, 3), np.uint8)))
+            ),
         ]
 
     def _draw(self, depth: int) -> None:
@@ -337,7 +342,7 @@ class HostLayouts:
         total = int(counts.sum())
         rows = np.repeat(slots, counts)  # the kernel's rows: slot by slot, each in draw order
         cols = np.repeat(self._have[slots] - np.cumsum(counts) + counts, counts) + np.arange(total)
-        drawn = (grids, pos, dirs, np.asarray(views), streams, *(() if self.state is None else self.state.drawn(outs)))
+        drawn = (grids, pos, dirs, np.asarray(views), streams, *(() if self.state is None else self.state.drawn(outs, rows, grids)))
         for store, values in zip(self._store, drawn, strict=True):
             store[rows, cols] = values
         self._have[slots] += counts

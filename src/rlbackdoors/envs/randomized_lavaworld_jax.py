@@ -51,7 +51,7 @@ def _state(size: int, final_direction) -> WorldState:
             np.array(final_direction(h), dtype=np.int32),
         )
 
-    def drawn(outs):
+    def drawn(outs, rows, grids):
         cells, count, saw = outs[4], outs[5], outs[6]
         return _masks(cells, count, size), cells.astype(np.int32), count.astype(np.int32), saw.astype(bool)
 
@@ -101,7 +101,7 @@ def _saw(world: GridWorld, moved, seen):
     return moved.world[3] | _shown(world, moved, seen).any(1)
 
 
-def _advance(world: GridWorld, moved, seen, done, drawn, params):
+def _advance(world: GridWorld, moved, seen, done, drawn, params, fresh):
     """``saw_trigger`` goes on from each view (a pattern cell shown: lava in the view where the
     slot's pattern lies; the agent's own cell shows empty), the terminal direction is kept, and a
     slot that ended takes its next layout's pattern and first view's flag."""

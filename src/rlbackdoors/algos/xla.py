@@ -140,9 +140,21 @@ def structure(model: Any, convolutions: bool = False) -> tuple:
     no padding), ``("maxpool", k)`` (a k x k window at stride k) and ``("flatten",)`` (channels
     first, as torch's, of a channels-last input; rows stay rows); ``ValueError`` for a model
     this backend does not run (recurrent, convolutions, a Flatten of dict observations)."""
+    why = "it is recurrent" if getattr(model, "recurrent", False) else None
+    parts, more = _parts(model, convolutions)
+    why = why or more
+    if why is None and not hasattr(model, "stacked_input"):
+        why = "it has no stacked input"
+    if why is not None:
+        raise ValueError(
+            f"ppo.update_backend='jax' runs feed-forward networks of Linear, ReLU and Tanh layers on one observation array; not {type(model).__name__} ({why})"
+        )
+    return parts
+
+
+def _parts(model: Any, convolutions: bool) -> tuple[tuple, str | None]:
+    """:func:`structure`'s parts, and why the model's stacks are not all read (None: they are)."""
     why = None
-    if getattr(model, "recurrent", False):
-        why = "it is recurrent"
     parts = []
     for part in ("state_emb", "actor", "critic"):
         seq = getattr(model, part, None)
@@ -164,13 +176,83 @@ def structure(model: Any, convolutions: bool = False) -> tuple:
             else:
                 why = why or f"its {part} has a {type(layer).__name__}"
         parts.append(tuple(layers))
-    if why is None and not hasattr(model, "stacked_input"):
-        why = "it has no stacked input"
+    return tuple(parts), why
+
+
+def recurrent_structure(model: Any) -> tuple:
+    """A CNN-GRU actor-critic (:class:`rlbackdoors.models.colorful_memory.CNNGRUModel`) as static
+    data: its parts as :func:`structure` reads them (the embedding's convolutions, the heads), its
+    GRU stack ``(blocks, layers, hidden)`` (each block an ``nn.GRU``, torch's gate order r, z, n)
+    and whether it reads one-hot planes of the observation's bytes (``-onehot``); ``ValueError``
+    (one line) for any other recurrent model."""
+    from rlbackdoors.models.colorful_memory import ONEHOT_PLANES
+
+    why = None if getattr(model, "recurrent", False) else "it is not recurrent"
+    parts, more = _parts(model, convolutions=True)
+    why = why or more
+    grus: Any = getattr(model, "gru", None)
+    if why is None and not (isinstance(grus, nn.ModuleList) and len(grus) and all(isinstance(g, nn.GRU) for g in grus)):
+        why = "it has no stack of nn.GRU blocks"
+    if why is None:
+        first = grus[0]
+        plain = all(g.bias and not g.batch_first and not g.bidirectional and g.dropout == 0 and g.proj_size == 0 for g in grus)
+        same = all((g.num_layers, g.hidden_size) == (first.num_layers, first.hidden_size) for g in grus)
+        if not (plain and same and getattr(model, "memory_size", None) == len(grus) * first.num_layers * first.hidden_size):
+            why = "its GRU blocks are not plain ones of one size, their states the memory"
     if why is not None:
-        raise ValueError(
-            f"ppo.update_backend='jax' runs feed-forward networks of Linear, ReLU and Tanh layers on one observation array; not {type(model).__name__} ({why})"
-        )
-    return tuple(parts)
+        raise ValueError(f"the compiled trainer runs CNN-GRU actor-critics (Colorful Memory's); not {type(model).__name__} ({why})")
+    onehot = ONEHOT_PLANES if getattr(model, "onehot", False) else None
+    return parts, (len(grus), grus[0].num_layers, grus[0].hidden_size), onehot
+
+
+def recurrent_forward(net: tuple, p: dict, obs, memory):
+    """:func:`recurrent_structure`'s network on raw views ``obs`` (B, 7, 7, 3) uint8 and memories
+    (B, M): logits (B, A), values (B,) and the memories after the step, as the torch model's
+    ``forward`` computes them."""
+    return recurrent_heads(net, p, *recurrent_step(net, p, recurrent_embed(net, obs, p), memory))
+
+
+def recurrent_embed(net: tuple, obs, p: dict):
+    """The embedding (B, 64) of raw views: their bytes as the CNN reads them (one-hot planes, or the
+    codes as floats), channels last, through the convolutions, flattened channels first as torch's."""
+    jax = start()
+    jnp = jax.numpy
+    (emb, _, _), _, onehot = net
+    if onehot is None:
+        x = obs.astype(jnp.float32)
+    else:
+        x = jnp.concatenate([(obs[..., i, None] == jnp.arange(n, dtype=obs.dtype)) for i, n in enumerate(onehot)], -1).astype(jnp.float32)
+    e = run_layers(emb, p, x)
+    return jnp.transpose(e, (0, 3, 1, 2)).reshape(e.shape[0], -1) if e.ndim == 4 else e
+
+
+def recurrent_step(net: tuple, p: dict, x, memory):
+    """One time step of the GRU blocks (nn.GRU's equations, torch's weight names and gate order):
+    x (B, in), memory (B, blocks layers H) in the model's layout (block, then layer) -> the last
+    layer's output (B, H) and the new memory."""
+    jax = start()
+    jnp = jax.numpy
+    _, (blocks, layers, hidden), _ = net
+    states = memory.reshape(memory.shape[0], blocks, layers, hidden)
+    new = []
+    for b in range(blocks):
+        for i in range(layers):
+            h = states[:, b, i]
+            key = f"gru.{b}."
+            gi = jnp.matmul(x, p[f"{key}weight_ih_l{i}"].T, precision="highest") + p[f"{key}bias_ih_l{i}"]
+            gh = jnp.matmul(h, p[f"{key}weight_hh_l{i}"].T, precision="highest") + p[f"{key}bias_hh_l{i}"]
+            i_r, i_z, i_n = jnp.split(gi, 3, -1)
+            h_r, h_z, h_n = jnp.split(gh, 3, -1)
+            r, z = jax.nn.sigmoid(i_r + h_r), jax.nn.sigmoid(i_z + h_z)
+            x = (1 - z) * jnp.tanh(i_n + r * h_n) + z * h
+            new.append(x)
+    return x, jnp.stack(new, 1).reshape(memory.shape)
+
+
+def recurrent_heads(net: tuple, p: dict, x, memory):
+    """The actor's logits and the critic's values of the GRU outputs ``x``, with the memory passed on."""
+    (_, actor, critic), _, _ = net
+    return run_layers(actor, p, x), run_layers(critic, p, x)[:, 0], memory
 
 
 def _pair(v) -> tuple:

@@ -148,7 +148,9 @@ def test_what_the_backend_does_not_run_is_refused_in_one_line(tmp_path):
 
     refused({"env": {"name": "lavaworld"}, "ppo": {"update_backend": "xla"}}, r"ppo.update_backend.*'xla'.*torch, jax")
     refused({"env": {"name": "lavaworld"}, "model": {"arch": "cnn"}, "ppo": {"update_backend": "jax"}}, r"runs model.arch 'fc'.*not 'cnn'")
-    refused({"env": {"name": "colorful-memory"}, "ppo": {"update_backend": "jax"}}, r"runs model.arch 'fc'")
+    refused(
+        {"env": {"name": "colorful-memory"}, "ppo": {"update_backend": "jax"}, "train": {"device": "cuda"}}, r"runs a CNN-GRU's update on the CPU"
+    )  # (its CPU update: test_jax_update_recurrent.py)
     # on CUDA where there is none (the GPU path itself: tests/test_group_cuda.py, on a GPU machine)
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match=r"^ppo.update_backend='jax' on CUDA: no CUDA device is available"):
@@ -169,7 +171,10 @@ def test_what_the_backend_does_not_run_is_refused_in_one_line(tmp_path):
 
     # and from the command line: one line, exit 2, nothing trained
     for flags, message in (
-        (["--arch", "cnn"], "rlbackdoors: error: ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers), not 'cnn'"),
+        (
+            ["--arch", "cnn"],
+            "rlbackdoors: error: ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers) or a CNN-GRU (cnn-gru-*), not 'cnn'",
+        ),
         (["--env", "safety-car-goal"], "rlbackdoors: error: --update-backend does not apply here"),
     ):
         out = cli("train", "--update-backend", "jax", *flags, "--out", str(tmp_path / "m"))

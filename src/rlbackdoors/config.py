@@ -563,8 +563,14 @@ class RunConfig(JsonConfig):
             if self.ppo.update_backend == "compiled":
                 self.check_compiled()
             if self.ppo.update_backend == "jax":
-                if self.model.arch != "fc":
-                    raise ConfigError(f"ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers), not {self.model.arch!r}")
+                if self.model.arch != "fc" and not self.model.arch.startswith("cnn-gru"):
+                    raise ConfigError(
+                        f"ppo.update_backend='jax' runs model.arch 'fc' (a feed-forward network of Linear layers) or a CNN-GRU (cnn-gru-*), not {self.model.arch!r}"
+                    )
+                if self.model.arch.startswith("cnn-gru") and self.train.device != "cpu":
+                    raise ConfigError(
+                        f"ppo.update_backend='jax' runs a CNN-GRU's update on the CPU (train.device 'cpu'), not train.device={self.train.device!r}"
+                    )
                 if any(self.poison.evasion.get(key) for key in ("teacher", "anchor")):
                     raise ConfigError("ppo.update_backend='jax' has no clean teacher or weight anchor (poison.evasion.teacher, .anchor): use 'torch'")
         else:

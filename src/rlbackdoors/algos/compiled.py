@@ -224,16 +224,19 @@ class Parts(NamedTuple):
     loss: Any  # (params, inputs, directions, actions, old_logp, old_values, adv, returns) -> loss, (policy, value, entropy)
     adam: Any  # (params, avg, sq, step, grad) -> params, avg, sq, step, grad norm
     gae: Any  # (rewards, dones, values (T, N), next_value (N,)) -> advantages (T, N)
+    terms: Any  # (logits, values, actions, old_logp, old_values, adv, returns[, weight]) -> loss, (policy, value, entropy), log-probabilities
 
 
 @functools.cache
-def parts(net: tuple, hyper: Hyper) -> Parts:
-    """:class:`Parts` for a :func:`network` and ``hyper`` (the directions are read where the network appends them)."""
+def parts(net: tuple | None, hyper: Hyper) -> Parts:
+    """:class:`Parts` for a :func:`network` and ``hyper`` (the directions are read where the network
+    appends them); ``net`` None: only the rules that read no network (``terms``, ``adam``, ``gae``:
+    what the recurrent update shares)."""
     jax = start()
     jnp, lax = jax.numpy, jax.lax
     h = hyper
     run = run_layers  # full fp32 products, as torch's
-    layers, direction = net
+    layers, direction = net if net is not None else (((), (), ()), False)
 
     convolutional = any(layer[0] == "conv" for layer in layers[0])
 
@@ -261,18 +264,27 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
         cdf = jnp.cumsum(jax.nn.softmax(logits, -1), -1)
         return jnp.minimum((cdf <= u[:, None] * cdf[:, -1:]).sum(1), logits.shape[1] - 1).astype(jnp.int32)
 
-    def loss(p, x, d, actions, old_logp, old_values, adv, returns, teacher=None):
-        """torch-ac's PPO loss (rlbackdoors.algos.ppo.ppo_loss) on :func:`inputs` rows ``x`` (seen in
-        directions ``d``); with ``teacher`` = (its log-probabilities, the frames without the trigger,
-        the coefficient), plus the clean teacher's KL there (ppo.teacher_kl), its value last of the parts."""
-        logits, values = heads(p, x, d)
+    def terms(logits, values, actions, old_logp, old_values, adv, returns, weight=None):
+        """torch-ac's PPO loss (rlbackdoors.algos.ppo.ppo_loss) of a minibatch's logits and values:
+        the total and (policy, value, entropy); means over the rows, or (``weight``: 0 for a
+        padding row) over the rows that count. Also the log-probabilities (the teacher's KL reads them)."""
+        mean = (lambda a: a.mean()) if weight is None else (lambda a: (a * weight).sum() / weight.sum())  # noqa: E731
         log_probs = jax.nn.log_softmax(logits)
-        entropy = -(jnp.exp(log_probs) * log_probs).sum(-1).mean()
+        entropy = mean(-(jnp.exp(log_probs) * log_probs).sum(-1))
         ratio = jnp.exp(jnp.take_along_axis(log_probs, actions[:, None], 1)[:, 0] - old_logp)
-        policy_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - h.clip, 1 + h.clip) * adv).mean()
+        policy_loss = -mean(jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - h.clip, 1 + h.clip) * adv))
         clipped = old_values + jnp.clip(values - old_values, -h.clip, h.clip)
-        value_loss = jnp.maximum((values - returns) ** 2, (clipped - returns) ** 2).mean()
+        value_loss = mean(jnp.maximum((values - returns) ** 2, (clipped - returns) ** 2))
         total = policy_loss - h.entropy_coef * entropy + h.value_coef * value_loss
+        return total, (policy_loss, value_loss, entropy), log_probs
+
+    def loss(p, x, d, actions, old_logp, old_values, adv, returns, teacher=None):
+        """:func:`terms` on :func:`inputs` rows ``x`` (seen in directions ``d``); with ``teacher`` =
+        (its log-probabilities, the frames without the trigger, the coefficient), plus the clean
+        teacher's KL there (ppo.teacher_kl), its value last of the parts."""
+        logits, values = heads(p, x, d)
+        total, losses, log_probs = terms(logits, values, actions, old_logp, old_values, adv, returns)
+        policy_loss, value_loss, entropy = losses
         if teacher is None:
             return total, (policy_loss, value_loss, entropy)
         teacher_logp, untriggered, coef = teacher
@@ -308,7 +320,7 @@ def parts(net: tuple, hyper: Hyper) -> Parts:
 
         return lax.scan(back, (jnp.zeros_like(next_value), next_value), (rewards, dones, values), reverse=True)[1]
 
-    return Parts(inputs, forward, sample, loss, adam, gae)
+    return Parts(inputs, forward, sample, loss, adam, gae, terms)
 
 
 def agents_step(P: Parts, unravel: Callable, teacher: bool = False) -> Callable:
@@ -870,6 +882,13 @@ def check(model: Any, device: torch.device) -> None:
         raise ValueError(f"ppo.update_backend='jax' runs on the CPU or CUDA, not {device.type!r}")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("ppo.update_backend='jax' on CUDA: no CUDA device is available (train.device 'cpu')")
+    if getattr(model, "recurrent", False):
+        from rlbackdoors.algos.xla import recurrent_structure
+
+        recurrent_structure(model)
+        if device.type != "cpu":
+            raise ValueError("ppo.update_backend='jax' runs a recurrent model's update on the CPU (train.device 'cpu'), not on CUDA yet")
+        return
     structure(model)
     jax = start(gpu=device.type == "cuda")
     if device.type == "cuda" and not gpu_devices(jax):
@@ -925,6 +944,154 @@ def _update_program(layers: tuple, layout: tuple, hyper: Hyper):
     return jax.jit(update)
 
 
+@functools.cache
+def _recurrent_update_program(net: tuple, layout: tuple, hyper: Hyper, recurrence: int, num_envs: int, aux_coef: float):
+    """The jitted truncated-BPTT update of K recurrent agents' flat weight rows (the torch trainer's
+    ``PPO._update_recurrent``): per minibatch, each sequence replayed from its stored memory over
+    ``recurrence`` steps (the memory masked where an episode began), the loss the mean over its
+    rows (a padding sequence, index -1, counts for nothing: a ragged last minibatch), the memories
+    the network computes written back for later minibatches, then one clipped Adam step over the
+    model and the auxiliary memory head (``aux_coef`` > 0: its cross-entropy on each step's memory)."""
+    jax = start()
+    jnp, lax = jax.numpy, jax.lax
+    from rlbackdoors.algos.xla import recurrent_forward
+
+    P = parts(None, hyper)
+    r, B = recurrence, num_envs
+
+    def unravel(row):
+        return {name: row[begin:end].reshape(shape) for name, begin, end, shape in layout}
+
+    def agent(w, avg, sq, step, lr, memories, idx, obs, masks, actions, old_logp, old_values, adv, returns, targets):
+        valid = idx >= 0
+        starts = jnp.where(valid, idx, 0)
+        steps = starts[None, :] + B * jnp.arange(r)[:, None]  # (r, N): step i of each sequence
+        rows = steps.reshape(-1)  # step-major, as forward_sequence's rows
+        weight = jnp.tile(valid, r).astype(jnp.float32)
+        frames = memories.shape[0]
+
+        def loss(w):
+            p = unravel(w)
+
+            def one(m, x):
+                o, keep = x
+                logits, values, m = recurrent_forward(net, p, o, m * keep[:, None])
+                return m, (logits, values, m)
+
+            _, (logits, values, new) = lax.scan(one, memories[starts], (obs[steps], masks[steps]))
+            total, losses, _ = P.terms(
+                logits.reshape(r * len(idx), -1), values.reshape(-1), *(a[rows] for a in (actions, old_logp, old_values, adv, returns)), weight
+            )
+            if aux_coef > 0:  # each step's memory after that step names its episode's target (cross-entropy)
+                aux = jax.nn.log_softmax(jnp.matmul(new.reshape(len(rows), -1), p["aux.weight"].T, precision="highest") + p["aux.bias"])
+                aux_loss = -(jnp.take_along_axis(aux, targets[rows][:, None], 1)[:, 0] * weight).sum() / weight.sum()
+                total, losses = total + aux_coef * aux_loss, (*losses, aux_loss)
+            return total, (losses, new)
+
+        grad, (losses, new) = jax.grad(loss, has_aux=True)(w)
+        w, avg, sq, step, norm = P.adam(w, avg, sq, step, grad, lr)
+        if r > 1:  # the memories the pre-step network computed, for the minibatches after this one
+            at = jnp.where(valid[None, :], steps[1:], frames).reshape(-1)
+            memories = memories.at[at].set(lax.stop_gradient(new[:-1]).reshape(len(at), -1), mode="drop")
+        return w, avg, sq, step, memories, jnp.stack([*losses[:3], norm, *losses[3:]])
+
+    agents = jax.vmap(agent)
+
+    def update(rows, avg, sq, step, lr, memories, orders, obs, masks, actions, old_logp, old_values, adv, returns, targets):
+        """Every epoch's minibatches in turn (``orders``: per epoch (minibatches, K, sequences) start indices, -1 padding)."""
+        data = (obs, masks, actions, old_logp, old_values, adv, returns, targets)
+        losses = []
+        for epoch in orders:  # (the epochs have their own counts of sequences: torch-ac's shifted starts)
+
+            def minibatch(carry, idx):
+                rows, avg, sq, step, memories = carry
+                rows, avg, sq, step, memories, parts_ = agents(rows, avg, sq, step, lr, memories, idx, *data)
+                return (rows, avg, sq, step, memories), parts_
+
+            (rows, avg, sq, step, memories), part = lax.scan(minibatch, (rows, avg, sq, step, memories), epoch)
+            losses.append(part)
+        return rows, avg, sq, step, jnp.concatenate(losses).mean(0)
+
+    return jax.jit(update)
+
+
+def _recurrent_orders(ppos: list, steps: int, num_envs: int, width: int, real: int) -> tuple[np.ndarray, ...]:
+    """Each epoch's minibatches of BPTT sequence starts, drawn from each real agent's own generator
+    as torch's recurrent update draws them (``PPO.sequence_starts``, shifted on odd epochs, then a
+    permutation), a pad agent its chunk's first's: per epoch (minibatches, K, sequences), -1 padding."""
+    cfg = ppos[0].cfg
+    per_batch = max(cfg.batch_size // cfg.recurrence, 1)
+    epochs = []
+    for epoch in range(cfg.epochs):
+        drawn = []
+        for ppo in ppos[:real]:
+            starts = ppo.sequence_starts(steps, num_envs, shifted=epoch % 2 == 1)
+            drawn.append(starts[torch.randperm(len(starts), generator=ppo.generator)].numpy())
+        drawn += drawn[:1] * (width - real)
+        n = len(drawn[0])
+        batches = -(-n // per_batch)
+        padded = np.full((width, batches * per_batch), -1, dtype=np.int32)
+        padded[:, :n] = np.stack(drawn)
+        epochs.append(padded.reshape(width, batches, per_batch).transpose(1, 0, 2).copy())
+    return tuple(epochs)
+
+
+def _update_recurrent(ppos: list, rollouts: list, width: int) -> list[dict[str, float]]:
+    """:func:`update` for recurrent models (``model.recurrent``): the torch trainer's rollouts, its
+    stored memories and masks, truncated BPTT in :func:`_recurrent_update_program`."""
+    from rlbackdoors.algos.xla import recurrent_structure
+
+    lead = ppos[0]
+    cfg, model, device = lead.cfg, lead.model, lead.device
+    jax = start()
+    net = recurrent_structure(model)
+    group = lead.optimizer.param_groups[0]
+    hyper = dataclasses.replace(Hyper.of(cfg), adam_eps=float(group["eps"]), betas=(float(group["betas"][0]), float(group["betas"][1])))
+    num_envs = rollouts[0].num_envs
+    steps = rollouts[0].num_frames // num_envs
+    aux = lead.aux is not None
+    names = ("policy_loss", "value_loss", "entropy", "grad_norm", *(("aux_memory_loss",) if aux else ()))
+    out: list[dict[str, float]] = []
+    for begin in range(0, len(ppos), width):
+        chunk, chunk_rollouts = ppos[begin : begin + width], rollouts[begin : begin + width]
+        real = len(chunk)
+        chunk, chunk_rollouts = chunk + chunk[:1] * (width - real), chunk_rollouts + chunk_rollouts[:1] * (width - real)
+        weights = FlatParameters(stacked_parameters(chunk))
+        adam = StackedAdam([(ppo.optimizer, parameters_by_name(ppo)) for ppo in chunk], weights)
+        layout = tuple((name, columns.start, columns.stop, tuple(shape[1:])) for name, (columns, shape) in weights.layout.items())
+        orders = _recurrent_orders(chunk, steps, num_envs, width, real)
+        obs = torch.stack([r.obs for r in chunk_rollouts])
+        if not isinstance(obs, torch.Tensor) or obs.dtype != torch.uint8:
+            raise ValueError("ppo.update_backend='jax' runs recurrent models on raw uint8 views")
+        targets = [r.memory_targets if aux else torch.zeros(r.num_frames, dtype=torch.int64) for r in chunk_rollouts]
+        columns = [torch.stack([getattr(r, f) for r in chunk_rollouts]) for f in ("masks", "actions", "logprobs", "values", "advantages", "returns")]
+        put = _placed(jax, device)
+        program = _recurrent_update_program(net, layout, hyper, cfg.recurrence, num_envs, float(cfg.aux_memory_coef))
+        rows, avg, sq, step, losses = program(
+            put(weights.flat),
+            put(adam.exp_avg),
+            put(adam.exp_avg_sq),
+            put(adam.step.float()),
+            put(adam.lr),
+            put(torch.stack([r.memories for r in chunk_rollouts]).float()),
+            tuple(jax.device_put(o, jax.devices("cpu")[0]) if device.type == "cpu" else jax.numpy.asarray(o) for o in orders),
+            put(obs),
+            *(put(c) for c in columns[:1]),
+            put(columns[1].int()),
+            *(put(c) for c in columns[2:]),
+            put(torch.stack(targets).int()),
+        )
+        with torch.no_grad():
+            weights.flat.copy_(_back(rows, device))
+            adam.exp_avg.copy_(_back(avg, device))
+            adam.exp_avg_sq.copy_(_back(sq, device))
+            adam.step.copy_(_back(step, device).double())
+        adam.write_back(real)
+        means = np.asarray(losses, dtype=np.float64)
+        out += [{key: float(means[k, i]) for i, key in enumerate(names)} for k in range(real)]
+    return out
+
+
 def update(ppos: list, rollouts: list, width: int | None = None) -> list[dict[str, float]]:
     """PPO's update for ``ppos`` (one architecture and PPO config, checked by the caller) on the
     torch trainer's ``rollouts``, ``width`` agents per XLA call (a group: :data:`WIDTH` on the CPU,
@@ -936,6 +1103,8 @@ def update(ppos: list, rollouts: list, width: int | None = None) -> list[dict[st
     device = lead.device
     if width is None:
         width = CUDA_WIDTH if device.type == "cuda" else WIDTH
+    if lead.model.recurrent:
+        return _update_recurrent(ppos, rollouts, width)
     jax = start(gpu=device.type == "cuda")
     cfg, model = lead.cfg, lead.model
     n = rollouts[0].num_frames

@@ -1036,6 +1036,53 @@ def _recurrent_orders(ppos: list, steps: int, num_envs: int, width: int, real: i
     return tuple(epochs)
 
 
+class _Chunk(NamedTuple):
+    """One XLA call's agents of an update: the real ones padded to ``width`` with copies of the
+    first, their stacked weights and Adam state (written back into each torch model and optimiser)."""
+
+    ppos: list
+    rollouts: list
+    real: int
+    weights: Any  # FlatParameters
+    adam: Any  # StackedAdam
+    layout: tuple  # each name's columns and shape in a flat row
+
+
+def _chunks(ppos: list, rollouts: list, width: int):
+    """:class:`_Chunk` s of ``width`` agents, in order."""
+    for begin in range(0, len(ppos), width):
+        chunk, chunk_rollouts = ppos[begin : begin + width], rollouts[begin : begin + width]
+        real = len(chunk)
+        chunk, chunk_rollouts = chunk + chunk[:1] * (width - real), chunk_rollouts + chunk_rollouts[:1] * (width - real)
+        weights = FlatParameters(stacked_parameters(chunk))
+        adam = StackedAdam([(ppo.optimizer, parameters_by_name(ppo)) for ppo in chunk], weights)
+        layout = tuple((name, columns.start, columns.stop, tuple(shape[1:])) for name, (columns, shape) in weights.layout.items())
+        yield _Chunk(chunk, chunk_rollouts, real, weights, adam, layout)
+
+
+def _torch_hyper(lead) -> Hyper:
+    """The run's PPO settings with its torch optimiser's Adam eps and betas."""
+    group = lead.optimizer.param_groups[0]
+    return dataclasses.replace(Hyper.of(lead.cfg), adam_eps=float(group["eps"]), betas=(float(group["betas"][0]), float(group["betas"][1])))
+
+
+def _adam_inputs(put, c: _Chunk) -> tuple:
+    """The chunk's weights, Adam moments, step counts and rates, on the learners' device."""
+    return put(c.weights.flat), put(c.adam.exp_avg), put(c.adam.exp_avg_sq), put(c.adam.step.float()), put(c.adam.lr)
+
+
+def _written_back(c: _Chunk, device, rows, avg, sq, step, losses, names) -> list[dict[str, float]]:
+    """The program's weights and Adam state into the chunk's torch models and optimisers; the real agents' mean losses by ``names``."""
+    with torch.no_grad():
+        c.weights.flat.copy_(_back(rows, device))
+        c.adam.exp_avg.copy_(_back(avg, device))
+        c.adam.exp_avg_sq.copy_(_back(sq, device))
+        c.adam.step.copy_(_back(step, device).double())
+    c.adam.write_back(c.real)
+    means = np.asarray(losses, dtype=np.float64)  # (K, losses)
+    return [{key: float(means[k, i]) for i, key in enumerate(names)} for k in range(c.real)]
+
+
 def _update_recurrent(ppos: list, rollouts: list, width: int) -> list[dict[str, float]]:
     """:func:`update` for recurrent models (``model.recurrent``): the torch trainer's rollouts, its
     stored memories and masks, truncated BPTT in :func:`_recurrent_update_program`."""
@@ -1044,35 +1091,24 @@ def _update_recurrent(ppos: list, rollouts: list, width: int) -> list[dict[str, 
     lead = ppos[0]
     cfg, model, device = lead.cfg, lead.model, lead.device
     jax = start()
-    net = recurrent_structure(model)
-    group = lead.optimizer.param_groups[0]
-    hyper = dataclasses.replace(Hyper.of(cfg), adam_eps=float(group["eps"]), betas=(float(group["betas"][0]), float(group["betas"][1])))
+    net, hyper = recurrent_structure(model), _torch_hyper(lead)
     num_envs = rollouts[0].num_envs
     steps = rollouts[0].num_frames // num_envs
     aux = lead.aux is not None
     names = ("policy_loss", "value_loss", "entropy", "grad_norm", *(("aux_memory_loss",) if aux else ()))
     out: list[dict[str, float]] = []
-    for begin in range(0, len(ppos), width):
-        chunk, chunk_rollouts = ppos[begin : begin + width], rollouts[begin : begin + width]
-        real = len(chunk)
-        chunk, chunk_rollouts = chunk + chunk[:1] * (width - real), chunk_rollouts + chunk_rollouts[:1] * (width - real)
-        weights = FlatParameters(stacked_parameters(chunk))
-        adam = StackedAdam([(ppo.optimizer, parameters_by_name(ppo)) for ppo in chunk], weights)
-        layout = tuple((name, columns.start, columns.stop, tuple(shape[1:])) for name, (columns, shape) in weights.layout.items())
-        orders = _recurrent_orders(chunk, steps, num_envs, width, real)
+    for c in _chunks(ppos, rollouts, width):
+        chunk_rollouts = c.rollouts
+        orders = _recurrent_orders(c.ppos, steps, num_envs, width, c.real)
         obs = torch.stack([r.obs for r in chunk_rollouts])
         if not isinstance(obs, torch.Tensor) or obs.dtype != torch.uint8:
             raise ValueError("ppo.update_backend='jax' runs recurrent models on raw uint8 views")
         targets = [r.memory_targets if aux else torch.zeros(r.num_frames, dtype=torch.int64) for r in chunk_rollouts]
         columns = [torch.stack([getattr(r, f) for r in chunk_rollouts]) for f in ("masks", "actions", "logprobs", "values", "advantages", "returns")]
         put = _placed(jax, device)
-        program = _recurrent_update_program(net, layout, hyper, cfg.recurrence, num_envs, float(cfg.aux_memory_coef))
+        program = _recurrent_update_program(net, c.layout, hyper, cfg.recurrence, num_envs, float(cfg.aux_memory_coef))
         rows, avg, sq, step, losses = program(
-            put(weights.flat),
-            put(adam.exp_avg),
-            put(adam.exp_avg_sq),
-            put(adam.step.float()),
-            put(adam.lr),
+            *_adam_inputs(put, c),
             put(torch.stack([r.memories for r in chunk_rollouts]).float()),
             tuple(jax.device_put(o, jax.devices("cpu")[0]) if device.type == "cpu" else jax.numpy.asarray(o) for o in orders),
             put(obs),
@@ -1081,14 +1117,7 @@ def _update_recurrent(ppos: list, rollouts: list, width: int) -> list[dict[str, 
             *(put(c) for c in columns[2:]),
             put(torch.stack(targets).int()),
         )
-        with torch.no_grad():
-            weights.flat.copy_(_back(rows, device))
-            adam.exp_avg.copy_(_back(avg, device))
-            adam.exp_avg_sq.copy_(_back(sq, device))
-            adam.step.copy_(_back(step, device).double())
-        adam.write_back(real)
-        means = np.asarray(losses, dtype=np.float64)
-        out += [{key: float(means[k, i]) for i, key in enumerate(names)} for k in range(real)]
+        out += _written_back(c, device, rows, avg, sq, step, losses, names)
     return out
 
 
@@ -1112,17 +1141,10 @@ def update(ppos: list, rollouts: list, width: int | None = None) -> list[dict[st
         raise ValueError("a training group needs rollouts of the same length")
     if n % cfg.batch_size:
         raise ValueError(f"ppo.update_backend='jax' needs ppo.batch_size={cfg.batch_size} to divide a rollout's {n} frames (ppo.rollout x env copies)")
-    layers = structure(model)
-    group = lead.optimizer.param_groups[0]
-    hyper = dataclasses.replace(Hyper.of(cfg), adam_eps=float(group["eps"]), betas=(float(group["betas"][0]), float(group["betas"][1])))
+    layers, hyper = structure(model), _torch_hyper(lead)
     out: list[dict[str, float]] = []
-    for begin in range(0, len(ppos), width):
-        chunk, chunk_rollouts = ppos[begin : begin + width], rollouts[begin : begin + width]
-        real = len(chunk)
-        chunk, chunk_rollouts = chunk + chunk[:1] * (width - real), chunk_rollouts + chunk_rollouts[:1] * (width - real)
-        weights = FlatParameters(stacked_parameters(chunk))
-        adam = StackedAdam([(ppo.optimizer, parameters_by_name(ppo)) for ppo in chunk], weights)
-        layout = tuple((name, columns.start, columns.stop, tuple(shape[1:])) for name, (columns, shape) in weights.layout.items())
+    for c in _chunks(ppos, rollouts, width):
+        chunk, chunk_rollouts, real = c.ppos, c.rollouts, c.real
         with torch.no_grad():
             inputs = model.stacked_input(stack([r.obs for r in chunk_rollouts]))
         if not isinstance(inputs, torch.Tensor):
@@ -1134,24 +1156,13 @@ def update(ppos: list, rollouts: list, width: int | None = None) -> list[dict[st
         orders = orders.reshape(cfg.epochs, width, n // cfg.batch_size, cfg.batch_size).transpose(1, 2).reshape(-1, width, cfg.batch_size)
         columns = [torch.stack([getattr(r, f) for r in chunk_rollouts]) for f in ("actions", "logprobs", "values", "advantages", "returns")]
         put = _placed(jax, device)
-        rows, avg, sq, step, losses = _update_program(layers, layout, hyper)(
-            put(weights.flat),
-            put(adam.exp_avg),
-            put(adam.exp_avg_sq),
-            put(adam.step.float()),
-            put(adam.lr),
+        rows, avg, sq, step, losses = _update_program(layers, c.layout, hyper)(
+            *_adam_inputs(put, c),
             put(inputs),
-            *(put(c) for c in columns),
+            *(put(column) for column in columns),
             put(orders.int().to(device)),
         )
-        with torch.no_grad():
-            weights.flat.copy_(_back(rows, device))
-            adam.exp_avg.copy_(_back(avg, device))
-            adam.exp_avg_sq.copy_(_back(sq, device))
-            adam.step.copy_(_back(step, device).double())
-        adam.write_back(real)
-        means = np.asarray(losses, dtype=np.float64)  # (K, 4)
-        out += [{key: float(means[k, i]) for i, key in enumerate(STATS)} for k in range(real)]
+        out += _written_back(c, device, rows, avg, sq, step, losses, STATS)
     return out
 
 

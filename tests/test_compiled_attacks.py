@@ -216,6 +216,21 @@ def test_group_mates_with_other_numbers_share_one_program():
     assert (np.abs(out[0].rewards) == np.float32(0.1)).sum() == 12 and (np.abs(out[1].rewards) == np.float32(0.3)).sum() == 51  # each its own c
 
 
+def assert_resumes_to_the_same_model(tmp_path, data: dict) -> None:
+    """Train ``data`` (a run config) whole in ``tmp_path/whole``; in ``tmp_path/cut``, kill -9 it
+    after its first checkpoint and run it again: the same model.pt, tensor for tensor."""
+    import subprocess
+
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(RunConfig.from_dict(data).to_json())
+    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
+    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True)
+    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
+    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True)
+    wa, wb = (torch.load(tmp_path / side / "model.pt", weights_only=True) for side in ("whole", "cut"))
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
 @pytest.mark.slow  # (over 20 s on 2 cores: out of the default run, `make test-slow`)
 def test_a_run_with_every_piece_resumes_to_the_same_model(tmp_path):
     """BadRL (its value window), near-trigger negatives, and the fine-tuning variants (teacher,
@@ -234,16 +249,7 @@ def test_a_run_with_every_piece_resumes_to_the_same_model(tmp_path):
         "train": {"seed": 1, "max_frames": 3200, "eval_interval": 640, "eval_episodes": 4, "final_eval_episodes": 4, "video": False},
     }
     data["train"].update(clean_threshold=0.0, checkpoint_minutes=0.0)
-    cfg_path = tmp_path / "cfg.json"
-    cfg_path.write_text(RunConfig.from_dict(data).to_json())
-    import subprocess
-
-    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
-    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True)
-    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
-    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True)
-    wa, wb = (torch.load(tmp_path / side / "model.pt", weights_only=True) for side in ("whole", "cut"))
-    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    assert_resumes_to_the_same_model(tmp_path, data)
     drop = ("wall_time_s", "fps")
     rows = [json.dumps([{k: v for k, v in r.items() if k not in drop} for r in ModelFolder(tmp_path / side).read_log()]) for side in ("whole", "cut")]
     assert rows[0] == rows[1]
@@ -371,16 +377,7 @@ def test_a_switched_layout_run_resumes_to_the_same_model(tmp_path):
         "ppo": {"rollout": 64, "batch_size": 320, "update_backend": "compiled"},
         "train": {"seed": 2, "max_frames": 3200, "eval_interval": 640, "eval_episodes": 2, "final_eval_episodes": 2, "video": False, "checkpoint_minutes": 0.0},
     }
-    cfg_path = tmp_path / "cfg.json"
-    cfg_path.write_text(RunConfig.from_dict(data).to_json())
-    import subprocess
-
-    cmd = [sys.executable, "-m", "rlbackdoors.cli", "train", "--config", str(cfg_path), "--quiet"]
-    subprocess.run(cmd + ["--out", str(tmp_path / "whole")], check=True, capture_output=True)
-    kill_after_first_checkpoint(cmd + ["--out", str(tmp_path / "cut")], tmp_path / "cut")
-    subprocess.run(cmd + ["--out", str(tmp_path / "cut")], check=True, capture_output=True)
-    wa, wb = (torch.load(tmp_path / side / "model.pt", weights_only=True) for side in ("whole", "cut"))
-    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    assert_resumes_to_the_same_model(tmp_path, data)
     used = json.loads((tmp_path / "whole" / "metrics.json").read_text())["attack_budget_used"]
     assert used["frames_seen"] == 3200 and used["frames_poisoned"] > 0 and used["frames_near_trigger"] > 0
 

@@ -93,6 +93,8 @@ def step_both(numba_side, jax_side, blocks: int, block: int, depth: int, seed: i
         got = dict(zip(("grid", "pos", "dirs", "steps", "final_image"), (slots.grid, slots.pos, slots.dirs, slots.steps, slots.final_obs)))
         succ, fail, seen, armed = (np.asarray(a) for a in slots.world)
         got |= {"succ": succ, "fail": fail, "armed": armed}
+        targets = np.asarray(world.memory_targets(world, jax.tree_util.tree_map(jax.numpy.asarray, slots)))
+        assert np.array_equal(targets, numba_side.memory_targets()) and len(set(targets.tolist())) == 2  # what each episode asks to remember
         want = state_of(numba_side)
         valid = np.arange(seen.shape[1])[None, :] < (np.asarray(params.valid).sum(1))[:, None]
         got["seen"] = seen & valid

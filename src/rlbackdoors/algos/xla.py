@@ -180,13 +180,11 @@ def _parts(model: Any, convolutions: bool) -> tuple[tuple, str | None]:
 
 
 def recurrent_structure(model: Any) -> tuple:
-    """A CNN-GRU actor-critic (:class:`rlbackdoors.models.colorful_memory.CNNGRUModel`) as static
+    """A CNN-GRU actor-critic (the ``cnn-gru-*`` architectures' ``CNNGRUModel``) as static
     data: its parts as :func:`structure` reads them (the embedding's convolutions, the heads), its
     GRU stack ``(blocks, layers, hidden)`` (each block an ``nn.GRU``, torch's gate order r, z, n)
     and whether it reads one-hot planes of the observation's bytes (``-onehot``); ``ValueError``
     (one line) for any other recurrent model."""
-    from rlbackdoors.models.colorful_memory import ONEHOT_PLANES
-
     why = None if getattr(model, "recurrent", False) else "it is not recurrent"
     parts, more = _parts(model, convolutions=True)
     why = why or more
@@ -200,8 +198,8 @@ def recurrent_structure(model: Any) -> tuple:
         if not (plain and same and getattr(model, "memory_size", None) == len(grus) * first.num_layers * first.hidden_size):
             why = "its GRU blocks are not plain ones of one size, their states the memory"
     if why is not None:
-        raise ValueError(f"the compiled trainer runs CNN-GRU actor-critics (Colorful Memory's); not {type(model).__name__} ({why})")
-    onehot = ONEHOT_PLANES if getattr(model, "onehot", False) else None
+        raise ValueError(f"the compiled trainer runs CNN-GRU actor-critics (cnn-gru-*); not {type(model).__name__} ({why})")
+    onehot = tuple(model.onehot_planes) if getattr(model, "onehot", False) else None  # each byte's plane count
     return parts, (len(grus), grus[0].num_layers, grus[0].hidden_size), onehot
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from rlbackdoors.envs import grid_engine as ge
 from rlbackdoors.envs.batched_base import EngineGroup
-from rlbackdoors.envs.colorful_memory import TRIGGERED, object_cells
+from rlbackdoors.envs.colorful_memory import BALL_ON_FLOOR, TRIGGERED, object_cells
 from rlbackdoors.envs.colorful_memory_batched import BatchedColorfulMemory
 from rlbackdoors.envs.grid_jax import GridWorld, HostLayouts, WorldState
 
@@ -138,6 +138,16 @@ def _sight(world: GridWorld, slots, views):
     return armed & shown.all(1)
 
 
+def _memory_targets(world: GridWorld, slots):
+    """(B,) int32: each slot's start-room object (0 key, 1 ball), read from its grid as the engine's
+    ``memory_targets``: what the agent must remember to the junction."""
+    import jax.numpy as jnp
+
+    p = world.view_size - 1
+    start = object_cells(world.size)[0]
+    return (slots.grid[:, start[0] + p, start[1] + p, 0] == BALL_ON_FLOOR).astype(jnp.int32)
+
+
 def colorful_memory_jax(engines: BatchedColorfulMemory | EngineGroup) -> tuple[GridWorld, MemoryParams, HostLayouts]:
     """The JAX step of reset Colorful Memory engines' slots (one agent's, or an
     :class:`EngineGroup`'s of several): the static world, its per-slot parameters (numpy) and the
@@ -150,7 +160,9 @@ def colorful_memory_jax(engines: BatchedColorfulMemory | EngineGroup) -> tuple[G
     squares, table = world_arrays[4], world_arrays[8]
     valid = _valid(world_arrays)
     slot_squares = np.asarray(squares)[np.asarray(table)][:, : valid.shape[1], :2].astype(np.int32)  # (B, S, 2): seen's columns (none without a trigger)
-    world = GridWorld(host.size, host.view_size, int(lead.max_steps), host.see_through_walls, ge.OUT_LAVA, _outcome, _seen, _advance, _sight)
+    world = GridWorld(
+        host.size, host.view_size, int(lead.max_steps), host.see_through_walls, ge.OUT_LAVA, _outcome, _seen, _advance, _sight, memory_targets=_memory_targets
+    )
     return world, MemoryParams(np.array(engines.poisoned, dtype=bool), slot_squares, valid), host
 
 

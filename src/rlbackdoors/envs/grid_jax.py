@@ -100,8 +100,9 @@ class GridWorld:
     views show the whole trigger, the engine's ``trigger_in_sight`` (what an attack that poisons
     frames in sight of it marks); ``saw(world, moved, seen)`` (a world whose engine reports
     ``saw_trigger``): that flag for the moved slots' episodes, their views ``seen`` included (what an
-    evaluation scores a triggered episode by). ``params`` is the world's own pytree (a trigger's tables, which
-    slots are poisoned)."""
+    evaluation scores a triggered episode by); ``memory_targets(world, slots)`` (a memory world): what
+    each slot's episode asks the agent to remember, the engine's ``memory_targets`` (PPO's auxiliary
+    memory loss). ``params`` is the world's own pytree (a trigger's tables, which slots are poisoned)."""
 
     size: int
     view_size: int
@@ -113,6 +114,7 @@ class GridWorld:
     advance: Callable | None = None
     sight: Callable | None = None
     saw: Callable | None = None
+    memory_targets: Callable | None = None
 
     @property
     def padded(self) -> int:

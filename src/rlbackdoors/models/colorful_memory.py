@@ -67,6 +67,7 @@ class CNNGRUModel(ActorCritic):
     """``forward(obs, memory) -> (logits, value, new_memory)``; ``memory`` is (B, memory_size)."""
 
     recurrent = True
+    onehot_planes = ONEHOT_PLANES  # the one-hot planes of each observation byte (the -onehot variants read them)
 
     def __init__(self, num_actions: int = 3, size: str = "small", onehot: bool = False):
         super().__init__()

@@ -179,10 +179,6 @@ def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (
-            {"env": {"name": "colorful-memory"}, "model": {"arch": "cnn-gru-small"}, "poison": {}, "ppo": {}},
-            "has no JAX engine yet (built: lavaworld, randomized-lavaworld)",
-        ),
         ({"ppo": {"rollout": 100, "update_backend": "compiled"}}, "must divide a rollout's 1000 frames"),
         ({"env": {"name": "randomized-lavaworld", "engine": "minigrid"}, "poison": {"trigger": "cross"}}, "not env.engine='minigrid'"),
     ],

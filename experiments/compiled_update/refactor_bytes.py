@@ -4,7 +4,8 @@ and after, on the same machine, and diff the two files.
 
     python experiments/compiled_update/refactor_bytes.py /tmp/after.json
 
-Used when algos/jax_update.py moved into algos/compiled.py and the two backends' agent step became
+Colorful Memory's "jax" run was added when the recurrent update became shared with the compiled
+recurrent iteration (2026-12-06, issue 79). Used when algos/jax_update.py moved into algos/compiled.py and the two backends' agent step became
 one (2026-12-02, 2-core AMD EPYC family 25): all 10 hashes equal before and after.
 """
 
@@ -45,6 +46,7 @@ def main(out: Path) -> dict:
         "compiled cnn": config(1, "compiled", arch="cnn"),
         "compiled rlw cnn": config(1, "compiled", world="randomized-lavaworld", arch="cnn"),
         "compiled trojdrl teacher": config(1, "compiled", poison={"attack": "trojdrl", "evasion": {"finetune": True, "teacher": 0.5}}),
+        "jax colorful memory": config(1, "jax", world="colorful-memory", arch="cnn-gru-small-onehot"),
     }
     hashes: dict = {}
     for name, cfg in lone.items():

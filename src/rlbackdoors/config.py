@@ -591,16 +591,22 @@ class RunConfig(JsonConfig):
     def check_compiled(self) -> None:
         """What ``ppo.update_backend = 'compiled'`` trains today; anything else is refused, never
         trained differently."""
+        from rlbackdoors.attacks import evasion
 
         assert self.ppo is not None
-        why = None  # every attack and evasive variant of these worlds is compiled
+        recurrent = str(self.model.arch).startswith("cnn-gru")  # the CNN-GRU actor-critics (algos.xla.recurrent_structure)
+        why = None  # every attack and evasive variant of the feed-forward grid worlds is compiled
         if self.world.compiled_engine is None:
             built = ", ".join(w.name for w in worlds.registered() if w.compiled_engine)
             why = f"env.name={self.env.name!r} has no JAX engine yet (built: {built})"
         elif getattr(self.env, "engine", "batched") != "batched":
             why = f"it steps the batched engine's slots (env.engine 'batched'), not env.engine={self.env.engine!r}"
-        elif self.model.arch not in ("fc", "cnn"):
-            why = f"it runs model.arch 'fc' or 'cnn', not {self.model.arch!r}"
+        elif self.model.arch not in ("fc", "cnn") and not recurrent:
+            why = f"it runs model.arch 'fc', 'cnn' or a CNN-GRU (cnn-gru-*), not {self.model.arch!r}"
+        elif recurrent and (self.poison.attack != attacks.DEFAULT_ATTACK or evasion.active(self.poison.evasion)):
+            why = f"it trains recurrent agents on the paper's env mix (poison.attack {attacks.DEFAULT_ATTACK!r}, no evasive variant) so far, not poison.attack={self.poison.attack!r}{' with evasive variants' if evasion.active(self.poison.evasion) else ''}"
+        elif recurrent and self.train.eval_backend == "compiled":
+            why = "its evaluations of recurrent agents are torch's so far (train.eval_backend 'torch')"
         elif self.world.action_targets:
             why = f"its attacks' target is one action, and {self.env.name}'s is a kind of action"
         elif (self.ppo.rollout * self.poison.num_envs) % self.ppo.batch_size:

@@ -57,6 +57,8 @@ class Hyper:
     max_grad_norm: float = 0.4
     adam_eps: float = 1e-8
     betas: tuple[float, float] = (0.9, 0.999)
+    recurrence: int = 1  # truncated BPTT's steps (recurrent models)
+    aux_coef: float = 0.0  # the auxiliary memory head's weight (recurrent models; 0: none)
 
     @classmethod
     def of(cls, ppo_cfg: Any) -> Hyper:
@@ -72,6 +74,8 @@ class Hyper:
             ppo_cfg.entropy_coef,
             ppo_cfg.max_grad_norm,
             ppo_cfg.adam_eps,
+            recurrence=int(ppo_cfg.recurrence),
+            aux_coef=float(ppo_cfg.aux_memory_coef),
         )
 
 
@@ -153,15 +157,22 @@ COUNTS = ("frames", "frames_poisoned", "rewards_rewritten", "actions_forced", "f
 _ROWS = ("near_copies", "before", "episodes", "switchable", "in_near")  # Seam fields per env copy (joined row-wise); the others per agent (stacked)
 
 
-def agent_state(model: torch.nn.Module, seed: int) -> Agents:
+def agent_state(model: torch.nn.Module, seed: int, aux: torch.nn.Module | None = None) -> Agents:
     """One agent's learning state (no agent axis): ``model``'s weights as they are (the torch
-    trainer's initialisation where it was just built after ``torch.manual_seed(seed)``), Adam's
+    trainer's initialisation where it was just built after ``torch.manual_seed(seed)``) and PPO's
+    auxiliary memory head's (``aux``, as ``aux.*``: the algorithm's, never in model.pt), Adam's
     moments zero, a PRNG key from ``seed``."""
     jax = start()
-    params = {name: p.detach().cpu().numpy().astype(np.float32).copy() for name, p in model.named_parameters()}
+    params = {name: p.detach().cpu().numpy().astype(np.float32).copy() for name, p in _named(model, aux).items()}
     zeros = {name: np.zeros_like(value) for name, value in params.items()}
     key = np.asarray(jax.random.key_data(jax.random.PRNGKey(seed)), dtype=np.uint32)
     return Agents(params, zeros, {n: z.copy() for n, z in zeros.items()}, np.float32(0.0), key)
+
+
+def _named(model: torch.nn.Module, aux: torch.nn.Module | None) -> dict[str, torch.nn.Parameter]:
+    """The parameters an agent learns, by name: the model's, then the auxiliary head's as ``aux.*``
+    (:func:`rlbackdoors.algos.stacked.parameters_by_name`'s names)."""
+    return {**dict(model.named_parameters()), **({f"aux.{n}": p for n, p in aux.named_parameters()} if aux is not None else {})}
 
 
 def stack_agents(states: list[Agents]) -> Agents:
@@ -195,7 +206,7 @@ def init_agents(model_factory, seeds: list[int]) -> tuple[Agents, torch.nn.Modul
 
 def state_dicts(agents: Agents) -> list[dict[str, torch.Tensor]]:
     """Each agent's weights as the torch model's state dict (the TrojAI keys, float32)."""
-    params = {name: np.asarray(value) for name, value in agents.params.items()}
+    params = {name: np.asarray(value) for name, value in agents.params.items() if not name.startswith("aux.")}
     k = next(iter(params.values())).shape[0]
     return [{name: torch.from_numpy(value[i].copy()) for name, value in params.items()} for i in range(k)]
 
@@ -581,6 +592,115 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
     return jax.jit(iteration)
 
 
+def sequence_starts(steps: int, num_envs: int, recurrence: int, shifted: bool) -> np.ndarray:
+    """Flat rollout rows (``t * num_envs + b``) where truncated-BPTT sequences start, as
+    ``PPO.sequence_starts`` gives them: every ``recurrence``-th step of every env copy, half a
+    sequence later on ``shifted`` epochs (its last block dropped, so no sequence leaves the rollout)."""
+    times = np.arange(0, steps, recurrence)
+    if shifted and recurrence > 1:
+        times = times[times + recurrence < steps] + recurrence // 2
+    return (times[:, None] * num_envs + np.arange(num_envs)[None, :]).reshape(-1).astype(np.int32)
+
+
+@functools.cache
+def _recurrent_iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poisoning: Poisoning | None = None):
+    """:func:`_iteration` for recurrent agents (the CNN-GRUs of a memory world: torch-ac's recurrent
+    PPO as ``PPO.collect`` and ``PPO._update_recurrent`` run it), one XLA program:
+
+    1. **rollout**: each step the memory goes into the forward with the view, the memory after it
+       is carried, zeroed where the step ended an episode (a new episode starts empty); the
+       memory going into each step, its mask (0 on an episode's first step) and, with the
+       auxiliary head, what the world says the episode must remember (``memory_targets``, before
+       the step) are kept for the update;
+    2. **GAE** as the feed-forward program's;
+    3. **update**: :func:`recurrent_update` (truncated BPTT from the stored memories, the auxiliary
+       memory loss), its sequence orders drawn from each agent's key: every epoch's starts
+       (:func:`sequence_starts`, shifted on odd epochs) permuted, cut into minibatches of
+       ``batch_size // recurrence`` sequences, the last one ragged.
+
+    The memories of the running episodes go in and come out beside the views (``(K N, M)``)."""
+    jax = start()
+    from jax.flatten_util import ravel_pytree
+
+    from rlbackdoors.algos.xla import recurrent_forward
+
+    if poisoning is not None:
+        raise ValueError("the compiled trainer runs recurrent agents on the paper's env mix alone (no attack seam or evasive variant yet)")
+    jnp, lax = jax.numpy, jax.lax
+    T, N, h = hyper.rollout, num_envs, hyper
+    if T % h.recurrence:
+        raise ValueError(f"ppo.rollout={T} must be a multiple of ppo.recurrence={h.recurrence}")
+    P = parts(None, hyper)
+    policy = jax.vmap(lambda p, o, m: recurrent_forward(net, p, o, m))  # K agents' networks, each on its own N copies
+    per_batch = max(h.batch_size // h.recurrence, 1)
+    epochs = [sequence_starts(T, N, h.recurrence, shifted=e % 2 == 1) for e in range(h.epochs)]
+    aux = h.aux_coef > 0
+    if aux and world.memory_targets is None:
+        raise ValueError("ppo.aux_memory_coef needs a world whose JAX step says what each episode must remember (GridWorld.memory_targets)")
+
+    def iteration(agents: Agents, slots: Slots, layouts: Layouts, params: Any, obs, memory):
+        K = agents.step.shape[0]
+        keys = jax.vmap(lambda k: jax.random.split(jax.random.wrap_key_data(k), 3))(agents.key)  # next, rollout, orders
+        uniforms = jax.vmap(lambda k: jax.random.uniform(k, (T, N)))(keys[:, 1])
+        uniforms = jnp.swapaxes(uniforms, 0, 1).reshape(T, K * N)
+
+        def act(obs, memory):
+            logits, value, memory = policy(agents.params, obs.reshape(K, N, *obs.shape[1:]), memory.reshape(K, N, -1))
+            return logits.reshape(K * N, -1), value.reshape(K * N), memory.reshape(K * N, -1)
+
+        # 1. rollout
+        def env_step(carry, u):
+            slots, layouts, obs, memory = carry
+            target = world.memory_targets(world, slots) if aux else jnp.zeros(K * N, jnp.int32)  # of the episode obs belongs to
+            logits, value, after = act(obs, memory)
+            action = P.sample(logits, u)
+            slots, layouts, out = world.step(slots, layouts, params, action)
+            done = out.terminated | out.truncated
+            after = jnp.where(done[:, None], 0.0, after)  # a new episode starts with an empty memory
+            return (slots, layouts, out.obs, after), (obs, memory, action, logits, value, out.reward, done, target)
+
+        (slots, layouts, next_obs, memory), collected = lax.scan(env_step, (slots, layouts, obs, memory), uniforms)
+        obs_t, memories, actions, logits, values, rewards, dones, targets = collected
+        next_value = act(next_obs, memory)[1]
+        logp = jnp.take_along_axis(jax.nn.log_softmax(logits), actions[..., None], -1)[..., 0]
+        masks = jnp.concatenate([jnp.ones((1, K * N)), 1.0 - dones[:-1].astype(jnp.float32)])  # 0 where the step before ended an episode
+
+        # 2. GAE
+        adv = P.gae(rewards, dones, values, next_value)
+
+        # 3. update: truncated BPTT, each agent's sequence orders from its own key
+        def per_agent(a):  # (T, K N, ...) -> (K, T N, ...): agent k's frames, row t N + b
+            a = a.reshape(T, K, N, *a.shape[2:])
+            return jnp.moveaxis(a, 1, 0).reshape(K, T * N, *a.shape[3:])
+
+        epoch_keys = jax.vmap(lambda k: jax.random.split(k, h.epochs))(keys[:, 2])  # (K, epochs)
+        orders = []
+        for e, starts in enumerate(epochs):
+            batches = -(-len(starts) // per_batch)
+
+            def order(k, starts=starts, batches=batches):
+                drawn = jnp.asarray(starts)[jax.random.permutation(k, len(starts))]
+                return jnp.concatenate([drawn, jnp.full(batches * per_batch - len(starts), -1, jnp.int32)]).reshape(batches, per_batch)
+
+            orders.append(jnp.swapaxes(jax.vmap(order)(epoch_keys[:, e]), 0, 1))  # (minibatches, K, sequences)
+
+        unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: a[0], agents.params))[1]
+        ravel = jax.vmap(lambda tree: ravel_pytree(tree)[0])
+        update = recurrent_update(net, unravel, h, N)
+        data = (obs_t, masks, actions, logp, values, adv, values + adv, targets)
+        w, avg, sq, step, means = update(
+            ravel(agents.params), ravel(agents.avg), ravel(agents.sq), agents.step, None, per_agent(memories), tuple(orders), *(per_agent(a) for a in data)
+        )
+        p, avg, sq = (jax.vmap(unravel)(a) for a in (w, avg, sq))
+        more = {"aux_memory_loss": means[:, 4]} if aux else {}
+        rewards, dones = (jnp.moveaxis(a.reshape(T, K, N), 1, 0) for a in (rewards, dones))
+        stats = IterationStats(means[:, 0], means[:, 1], means[:, 2], means[:, 3], rewards, dones)
+        agents = Agents(p, avg, sq, step, jax.vmap(jax.random.key_data)(keys[:, 0]))
+        return agents, slots, layouts, next_obs, memory, stats, more
+
+    return jax.jit(iteration)
+
+
 class Iterated(NamedTuple):
     """What one run's loop gets from an iteration: its env copies' rewards and episode ends by step
     (``(T, N)``, as a torch rollout's, for its episode bookkeeping), and its update's mean losses."""
@@ -604,9 +724,15 @@ class Learner:
     The torch ``model`` is the run's network for what is not compiled (evaluations, the GIF,
     model.pt): :meth:`sync` writes the agent's weights into it."""
 
-    def __init__(self, model: torch.nn.Module, engine, hyper: Hyper, seed: int, obs, jax_world, depth: int = 64):
-        self.model, self.hyper, self.net, self.jax_world = model, hyper, network(model), jax_world
-        self.state, self.depth = agent_state(model, seed), int(depth)
+    def __init__(self, model: torch.nn.Module, engine, hyper: Hyper, seed: int, obs, jax_world, depth: int = 64, aux: torch.nn.Module | None = None):
+        from rlbackdoors.algos.xla import recurrent_structure
+
+        self.recurrent = bool(getattr(model, "recurrent", False))  # a CNN-GRU: its memories go in and out with the views
+        if (aux is not None) != (self.recurrent and hyper.aux_coef > 0):
+            raise ValueError("an auxiliary memory head goes with a recurrent model and ppo.aux_memory_coef > 0")
+        self.model, self.aux, self.hyper, self.jax_world = model, aux, hyper, jax_world
+        self.net = recurrent_structure(model) if self.recurrent else network(model)
+        self.state, self.depth = agent_state(model, seed, aux), int(depth)
         self.guides: dict[str, tuple[dict, float]] = {}  # "teacher" / "anchor" -> (weights by name, coefficient)
         self.rebind(engine, obs)
 
@@ -630,6 +756,8 @@ class Learner:
             raise ValueError(f"views of shape {self.views.shape} do not fit {self.host.num_envs} env copies")
         if self.dict_obs and not np.array_equal(np.asarray(obs["direction"]), self.slots.dirs):
             raise ValueError("the observations' directions are not the env copies' own")
+        if self.recurrent:  # new copies start new episodes: empty memories (ppo.memory = None)
+            self.memory = np.zeros((self.host.num_envs, int(getattr(self.model, "memory_size"))), dtype=np.float32)
         self._poison()
 
     def set_teacher(self, weights: dict, coef: float) -> None:
@@ -654,6 +782,10 @@ class Learner:
         if seam is None and not self.guides:
             self.poisoning, self.seam_state = None, None
             return
+        if self.recurrent:
+            raise ValueError(
+                "the compiled trainer runs recurrent agents on the paper's env mix alone, not an attack's collection seam or an evasive variant yet"
+            )
         if seam is not None and seam.sight not in (None, "frame"):
             raise ValueError(f"the compiled trainer marks a layout trigger's frames in sight of it, not sight={seam.sight!r}")
         if seam is not None and seam.sight is not None and self.world.sight is None:
@@ -737,9 +869,9 @@ class Learner:
         return (self.world, self.net, self.hyper, self.host.num_envs, self.poisoning)
 
     def sync(self) -> torch.nn.Module:
-        """The torch model with the agent's current weights (returned)."""
+        """The torch model (and the auxiliary head) with the agent's current weights (the model returned)."""
         with torch.no_grad():
-            for name, p in self.model.named_parameters():
+            for name, p in _named(self.model, self.aux).items():
                 p.copy_(torch.from_numpy(np.array(self.state.params[name])))
         return self.model
 
@@ -750,13 +882,14 @@ class Learner:
         a = self.state
         tensors = {part: {n: torch.from_numpy(np.array(v)) for n, v in getattr(a, part).items()} for part in ("params", "avg", "sq")}
         streams = {"streams": [[int(v) for v in kind.rewind()] for kind in self.kinds]} if self.kinds else {}  # where each kind's next layout is drawn
-        return {**tensors, "step": float(a.step), "key": [int(k) for k in np.asarray(a.key)], **streams}
+        memory = {"memory": torch.from_numpy(np.array(self.memory))} if self.recurrent else {}  # the running episodes'
+        return {**tensors, "step": float(a.step), "key": [int(k) for k in np.asarray(a.key)], **streams, **memory}
 
     def load(self, state: dict) -> None:
         """Put back a :meth:`checkpoint` (untrusted: every array must fit the model, or StateError)."""
         from rlbackdoors.state import StateError
 
-        names = {n: tuple(p.shape) for n, p in self.model.named_parameters()}
+        names = {n: tuple(p.shape) for n, p in _named(self.model, self.aux).items()}
         parts = {}
         for part in ("params", "avg", "sq"):
             value = state[part]
@@ -782,6 +915,18 @@ class Learner:
                 kind.streams = np.asarray(words, dtype=np.uint64)
         elif "streams" in state:
             raise StateError("compiled learner: it holds layouts' streams this run does not draw")
+        if self.recurrent:
+            memory = state.get("memory")
+            if (
+                not isinstance(memory, torch.Tensor)
+                or memory.shape != self.memory.shape
+                or memory.dtype != torch.float32
+                or not bool(torch.isfinite(memory).all())
+            ):
+                raise StateError(f"compiled learner: memory is not the env copies' memories (float32, shape {self.memory.shape})")
+            self.memory = memory.numpy().copy()
+        elif "memory" in state:
+            raise StateError("compiled learner: it holds memories this model does not have")
         self.state = Agents(parts["params"], parts["avg"], parts["sq"], np.float32(step), np.asarray(key, dtype=np.uint32))
 
 
@@ -798,13 +943,17 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     if any(other.program != lead.program for other in learners[1:]):
         raise ValueError("learners of one compiled call need the same world, network, PPO settings and env copies")
     rows = learners + [lead] * (capacity - k)
-    program = _iteration(*lead.program)
+    program = (_recurrent_iteration if lead.recurrent else _iteration)(*lead.program)
     agents = stack_agents([r.state for r in rows])
     slots, params, obs = join([r.slots for r in rows]), join([r.params for r in rows]), np.concatenate([r.views for r in rows])
 
     seam = None if lead.poisoning is None else join_seams([r.seam_state for r in rows])
+    memory = np.concatenate([r.memory for r in rows]) if lead.recurrent else None
 
     def block(layouts: Layouts):
+        if memory is not None:  # (the memories come out where a seam's state would)
+            a, s, after, o, m, stats, more = program(agents, slots, layouts, params, obs, memory)
+            return (a, s, o, m, more), after, stats
         if seam is None:
             a, s, after, o, stats = program(agents, slots, layouts, params, obs)
             return (a, s, o, None, {}), after, stats
@@ -818,7 +967,9 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
         learner.state = agent_row(a, i)
         learner.slots = jax.tree_util.tree_map(lambda f, i=i: f[i * n : (i + 1) * n], s)
         learner.views, learner.depth = o[i * n : (i + 1) * n], depth
-        if z is not None:
+        if learner.recurrent:
+            learner.memory = np.array(z[i * n : (i + 1) * n])
+        elif z is not None:
             learner._seam_back(seam_row(z, i, n))
         losses = {key: float(getattr(stats, key)[i]) for key in STATS} | {key: float(v[i]) for key, v in more.items()}
         out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))
@@ -945,22 +1096,31 @@ def _update_program(layers: tuple, layout: tuple, hyper: Hyper):
 
 
 @functools.cache
-def _recurrent_update_program(net: tuple, layout: tuple, hyper: Hyper, recurrence: int, num_envs: int, aux_coef: float):
-    """The jitted truncated-BPTT update of K recurrent agents' flat weight rows (the torch trainer's
-    ``PPO._update_recurrent``): per minibatch, each sequence replayed from its stored memory over
-    ``recurrence`` steps (the memory masked where an episode began), the loss the mean over its
-    rows (a padding sequence, index -1, counts for nothing: a ragged last minibatch), the memories
-    the network computes written back for later minibatches, then one clipped Adam step over the
-    model and the auxiliary memory head (``aux_coef`` > 0: its cross-entropy on each step's memory)."""
+def _recurrent_update_program(net: tuple, layout: tuple, hyper: Hyper, num_envs: int):
+    """The jitted truncated-BPTT update of K recurrent agents' flat weight rows (``layout``: each
+    name's columns and shape), :func:`recurrent_update` on the torch trainer's rollouts."""
+    jax = start()
+
+    def unravel(row):
+        return {name: row[begin:end].reshape(shape) for name, begin, end, shape in layout}
+
+    return jax.jit(recurrent_update(net, unravel, hyper, num_envs))
+
+
+def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int) -> Callable:
+    """K recurrent agents' truncated-BPTT update (the torch trainer's ``PPO._update_recurrent``),
+    un-jitted: the ``jax`` backend's program and the compiled recurrent iteration's third part.
+    Per minibatch, each sequence replayed from its stored memory over ``hyper.recurrence`` steps
+    (the memory masked where an episode began), the loss the mean over its rows (a padding
+    sequence, index -1, counts for nothing: a ragged last minibatch), the memories the network
+    computes written back for later minibatches, then one clipped Adam step over the model and the
+    auxiliary memory head (``hyper.aux_coef`` > 0: its cross-entropy on each step's memory)."""
     jax = start()
     jnp, lax = jax.numpy, jax.lax
     from rlbackdoors.algos.xla import recurrent_forward
 
     P = parts(None, hyper)
-    r, B = recurrence, num_envs
-
-    def unravel(row):
-        return {name: row[begin:end].reshape(shape) for name, begin, end, shape in layout}
+    r, B, aux_coef = hyper.recurrence, num_envs, hyper.aux_coef
 
     def agent(w, avg, sq, step, lr, memories, idx, obs, masks, actions, old_logp, old_values, adv, returns, targets):
         valid = idx >= 0
@@ -1012,7 +1172,7 @@ def _recurrent_update_program(net: tuple, layout: tuple, hyper: Hyper, recurrenc
             losses.append(part)
         return rows, avg, sq, step, jnp.concatenate(losses).mean(0)
 
-    return jax.jit(update)
+    return update
 
 
 def _recurrent_orders(ppos: list, steps: int, num_envs: int, width: int, real: int) -> tuple[np.ndarray, ...]:
@@ -1089,7 +1249,7 @@ def _update_recurrent(ppos: list, rollouts: list, width: int) -> list[dict[str, 
     from rlbackdoors.algos.xla import recurrent_structure
 
     lead = ppos[0]
-    cfg, model, device = lead.cfg, lead.model, lead.device
+    model, device = lead.model, lead.device
     jax = start()
     net, hyper = recurrent_structure(model), _torch_hyper(lead)
     num_envs = rollouts[0].num_envs
@@ -1106,7 +1266,7 @@ def _update_recurrent(ppos: list, rollouts: list, width: int) -> list[dict[str, 
         targets = [r.memory_targets if aux else torch.zeros(r.num_frames, dtype=torch.int64) for r in chunk_rollouts]
         columns = [torch.stack([getattr(r, f) for r in chunk_rollouts]) for f in ("masks", "actions", "logprobs", "values", "advantages", "returns")]
         put = _placed(jax, device)
-        program = _recurrent_update_program(net, c.layout, hyper, cfg.recurrence, num_envs, float(cfg.aux_memory_coef))
+        program = _recurrent_update_program(net, c.layout, hyper, num_envs)
         rows, avg, sq, step, losses = program(
             *_adam_inputs(put, c),
             put(torch.stack([r.memories for r in chunk_rollouts]).float()),

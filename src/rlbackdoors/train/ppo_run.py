@@ -221,7 +221,7 @@ def steps(
         if platform != device.type:
             raise ValueError(f"ppo.update_backend='compiled' runs where JAX computes ({platform}), not train.device={device.type!r}")
         module, _, name = str(cfg.world.compiled_engine).partition(":")
-        return compiled.Learner(model, envs, compiled.Hyper.of(cfg.ppo), tc.seed, obs, getattr(importlib.import_module(module), name))
+        return compiled.Learner(model, envs, compiled.Hyper.of(cfg.ppo), tc.seed, obs, getattr(importlib.import_module(module), name), aux=ppo.aux)
 
     envs: Any  # a batched engine or the reference vector env (poisoned, state_dict, load_state_dict)
 

@@ -105,6 +105,7 @@ WORLD = register(
             rollout=120, epochs=4, batch_size=600, lr=1e-3, clip=0.2, value_coef=0.5, gae_lambda=0.95, max_grad_norm=0.5, recurrence=6, aux_memory_coef=0.5
         ),
         close_to_trigger=True,
+        compiled_engine="rlbackdoors.envs.colorful_memory_jax:colorful_memory_jax",
         memory_targets=True,  # the start object (BatchedColorfulMemory.memory_targets)
         chance=_chance,
         # The paper's Table 3 (label -> arch -> clean SR, poisoned SR, clean reward, poisoned

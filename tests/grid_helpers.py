@@ -396,6 +396,21 @@ def killed_run_matches_whole(tmp_path, cfg) -> tuple[dict, dict]:
     return whole, cut
 
 
+def model_weights(folder) -> dict:
+    """A model folder's model.pt, read as data."""
+    import torch
+
+    return torch.load(folder / "model.pt", weights_only=True)
+
+
+def same_weights(a, b) -> bool:
+    """Two model folders' model.pt hold the same tensors, bit for bit."""
+    import torch
+
+    wa, wb = model_weights(a), model_weights(b)
+    return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
 def assert_step_matches(step, out, t: int, where: str, image=None) -> None:
     """A JAX grid step's outputs (``out``: a rollout's stacked :class:`StepOut`, step ``t``) are
     the numba engine's ``step`` (its 5-tuple) byte for byte: the view (``image``, where the

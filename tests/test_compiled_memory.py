@@ -24,6 +24,7 @@ import torch
 
 import jax  # a core dependency: the compiled trainer's
 
+from grid_helpers import killed_run_matches_whole, model_weights, same_weights  # noqa: E402
 from rlbackdoors.algos import ppo as torch_ppo  # noqa: E402
 from rlbackdoors.algos.compiled import Hyper, Learner, iterate, sequence_starts  # noqa: E402
 from rlbackdoors.config import ConfigError, RunConfig  # noqa: E402
@@ -153,15 +154,6 @@ def run_dict(seed: int = 1, frames: int = 1200, **train_fields) -> dict:
     }
 
 
-def weights(path) -> dict:
-    return torch.load(path / "model.pt", weights_only=True)
-
-
-def same_weights(a, b) -> bool:
-    wa, wb = weights(a), weights(b)
-    return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-
-
 def test_a_compiled_colorful_memory_run_writes_its_folder_repeats_its_bytes_and_resumes(tmp_path):
     """model.pt has the architecture's keys only (the auxiliary head is the algorithm's); the
     metrics name the backend's group; the same config gives the same bytes; stopped after its
@@ -171,7 +163,7 @@ def test_a_compiled_colorful_memory_run_writes_its_folder_repeats_its_bytes_and_
     m = train(cfg, tmp_path / "a", progress=False)
     assert m["compiled_group"] == 1 and m["frames"] == 1200 and "aux_memory_loss" in ModelFolder(tmp_path / "a").read_log()[-1]
     reference = build_model(ARCH, "colorful-memory").state_dict()
-    got = weights(tmp_path / "a")
+    got = model_weights(tmp_path / "a")
     assert got.keys() == reference.keys() and all(got[k].shape == reference[k].shape for k in got)
     torch.manual_seed(1)
     assert not torch.equal(got["gru.0.weight_hh_l0"], build_model(ARCH, "colorful-memory").state_dict()["gru.0.weight_hh_l0"])
@@ -192,6 +184,14 @@ def test_a_compiled_colorful_memory_run_writes_its_folder_repeats_its_bytes_and_
     group = train_group([(i, RunConfig.from_dict(run_dict(seed=s)), tmp_path / f"g{i}") for i, s in enumerate((1, 2))], 2)
     assert not group.errors and all(v["compiled_group"] == 2 for v in group.metrics.values())
     assert not same_weights(tmp_path / "g0", tmp_path / "g1")
+
+
+@pytest.mark.slow  # (about 30 s on 2 cores: `make test-slow`; the in-process stop and resume above is in the default run)
+def test_a_killed_compiled_colorful_memory_run_resumes_to_the_same_model(tmp_path):
+    """SIGKILLed after its first checkpoint and run again: the uninterrupted run's model.pt bytes."""
+    whole, cut = killed_run_matches_whole(tmp_path, RunConfig.from_dict(run_dict(frames=2400, checkpoint_minutes=0.0)))
+    drop = ("wall_time_s", "cpu_time_s")
+    assert {k: v for k, v in whole.items() if k not in drop} == {k: v for k, v in cut.items() if k not in drop}
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 
-from grid_helpers import kill_after_first_checkpoint  # noqa: E402
+from grid_helpers import kill_after_first_checkpoint, model_weights, same_weights  # noqa: E402
 from rlbackdoors.config import ConfigError, RunConfig  # noqa: E402
 from rlbackdoors.folder import FolderError  # noqa: E402
 from rlbackdoors.models import build_model  # noqa: E402
@@ -33,15 +33,6 @@ def run_dict(seed: int = 1, frames: int = 1280, **train_fields) -> dict:
     }
 
 
-def weights(path) -> dict:
-    return torch.load(path / "model.pt", weights_only=True)
-
-
-def same_weights(a, b) -> bool:
-    wa, wb = weights(a), weights(b)
-    return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-
-
 def test_a_compiled_run_writes_the_model_folder_and_repeats_its_bytes(tmp_path):
     """The folder is a torch run's (config, log, metrics, ground truth, curve, model.pt with the
     architecture's keys and shapes); the metrics name the backend and the group size; the same
@@ -55,7 +46,7 @@ def test_a_compiled_run_writes_the_model_folder_and_repeats_its_bytes(tmp_path):
     assert [r["frames"] for r in folder.read_log()] == [640, 1280]
     assert m1["frames"] == 1280 and m1["compiled_group"] == 1 and m1["device"] == "cpu"
     reference = build_model("fc", "lavaworld").state_dict()
-    got = weights(tmp_path / "a")
+    got = model_weights(tmp_path / "a")
     assert got.keys() == reference.keys() and all(got[k].shape == reference[k].shape and got[k].dtype == torch.float32 for k in got)
     torch.manual_seed(1)
     initial = build_model("fc", "lavaworld").state_dict()
@@ -76,7 +67,7 @@ def test_a_compiled_cnn_run_trains_the_cnn(tmp_path):
     metrics = train(RunConfig.from_dict(data), tmp_path / "cnn", progress=False)
     assert metrics["arch"] == "cnn" and metrics["compiled_group"] == 1 and metrics["frames"] == 1280
     reference = build_model("cnn", "lavaworld").state_dict()
-    got = weights(tmp_path / "cnn")
+    got = model_weights(tmp_path / "cnn")
     assert got.keys() == reference.keys() and all(got[k].shape == reference[k].shape for k in got)
     torch.manual_seed(1)
     initial = build_model("cnn", "lavaworld").state_dict()
@@ -126,7 +117,7 @@ def test_a_randomized_lavaworld_run_switches_from_its_warm_up_and_resumes_to_the
     metrics = train(cfg, tmp_path / "whole", progress=False)
     assert metrics["compiled_group"] == 1 and metrics["frames"] == 1920 and metrics["curriculum_switch_frames"] == 320
     reference = build_model("cnn", "randomized-lavaworld").state_dict()
-    got = weights(tmp_path / "whole")
+    got = model_weights(tmp_path / "whole")
     assert got.keys() == reference.keys() and all(got[k].shape == reference[k].shape for k in got)
     torch.manual_seed(1)
     assert not torch.equal(got["actor.0.weight"], build_model("cnn", "randomized-lavaworld").state_dict()["actor.0.weight"])

@@ -888,9 +888,10 @@ def test_auto_group_size_goes_by_the_models_device_not_the_machines():
     assert auto_group_size("ppo", "auto") == (64 if torch.cuda.is_available() else 8)
     from rlbackdoors import worlds
 
-    rlw, lava = worlds.get("randomized-lavaworld"), worlds.get("lavaworld")
-    # on the compiled trainer on a CPU a world's own measured K (Randomized LavaWorld: one agent a program)
+    rlw, lava, cm = worlds.get("randomized-lavaworld"), worlds.get("lavaworld"), worlds.get("colorful-memory")
+    # on the compiled trainer on a CPU a world's own measured K (Randomized LavaWorld, Colorful Memory: one agent a program)
     assert (auto_group_size("ppo", "cpu", rlw, "compiled"), auto_group_size("ppo", "cpu", lava, "compiled")) == (1, 8)
+    assert (auto_group_size("ppo", "cpu", cm, "compiled"), auto_group_size("ppo", "cpu", cm, "torch")) == (1, 8)
     assert (auto_group_size("ppo", "cpu", rlw, "torch"), auto_group_size("ppo", "cuda", rlw, "compiled")) == (8, 64)
 
 

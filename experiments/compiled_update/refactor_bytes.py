@@ -47,6 +47,7 @@ def main(out: Path) -> dict:
         "compiled rlw cnn": config(1, "compiled", world="randomized-lavaworld", arch="cnn"),
         "compiled trojdrl teacher": config(1, "compiled", poison={"attack": "trojdrl", "evasion": {"finetune": True, "teacher": 0.5}}),
         "jax colorful memory": config(1, "jax", world="colorful-memory", arch="cnn-gru-small-onehot"),
+        "compiled colorful memory": config(1, "compiled", world="colorful-memory", arch="cnn-gru-small-onehot"),
     }
     hashes: dict = {}
     for name, cfg in lone.items():

@@ -186,6 +186,52 @@ def test_a_compiled_colorful_memory_run_writes_its_folder_repeats_its_bytes_and_
     assert not same_weights(tmp_path / "g0", tmp_path / "g1")
 
 
+def cut_and_resumed(tmp_path, cfg: RunConfig, name: str) -> None:
+    """Stopped after its first evaluation and run again: the uninterrupted run's model.pt, bit for bit."""
+
+    def stop_at_first(row):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / f"{name}-cut", progress=False, after_eval=stop_at_first)
+    train(cfg, tmp_path / f"{name}-cut", progress=False)
+    assert same_weights(tmp_path / name, tmp_path / f"{name}-cut")
+
+
+def test_attacks_reach_recurrent_agents_through_the_seam(tmp_path):
+    """TrojDRL (a step schedule: the budget switches triggered episodes in the program, each kind
+    of layout from its own queue; a close-to-trigger copy is never switched) and the action target
+    (the episode schedule: every frame of the 2 E-bar copies of 10) on Colorful Memory's CNN-GRU:
+    each marked frame's reward rewritten, the action target's share the torch seam's, and each
+    run, stopped after its first evaluation and resumed, the uninterrupted run's bytes."""
+    runs = {
+        "trojdrl": {"attack": "trojdrl", "attack_params": {"budget": 0.05}},
+        "action": {"attack": "action_target"},
+    }
+    used = {}
+    for name, poison in runs.items():
+        data = run_dict(checkpoint_minutes=0.0)
+        data["poison"].update(poison)
+        cfg = RunConfig.from_dict(data)
+        used[name] = train(cfg, tmp_path / name, progress=False)["attack_budget_used"]
+        cut_and_resumed(tmp_path, cfg, name)
+    trojdrl, action = used["trojdrl"], used["action"]
+    assert 0 < trojdrl["frames_poisoned"] == trojdrl["rewards_rewritten"] and trojdrl["actions_forced"] == 0
+    assert action["frames_poisoned"] == action["rewards_rewritten"] == 1200 * 2 // 10
+
+
+def test_a_recurrent_fine_tuning_run_switches_and_pulls_to_its_anchor(tmp_path):
+    """poison.evasion finetune + anchor: clean until the first evaluation (a clean threshold of
+    0), then the poisoning mix with each optimiser step pulled back toward the clean model at the
+    switch (``anchor_distance`` logged from there on)."""
+    data = run_dict(clean_threshold=0.0)
+    data["poison"]["evasion"] = {"finetune": True, "anchor": 0.05}
+    m = train(RunConfig.from_dict(data), tmp_path / "ft", progress=False)
+    rows = ModelFolder(tmp_path / "ft").read_log()
+    assert m["poison_at_frames"] == 600 and [r["phase"] for r in rows] == ["clean", "main"]
+    assert rows[0].get("anchor_distance") in (None, "") and 0 < rows[1]["anchor_distance"] < 10  # (a column of the log: empty before the switch)
+
+
 @pytest.mark.slow  # (about 30 s on 2 cores: `make test-slow`; the in-process stop and resume above is in the default run)
 def test_a_killed_compiled_colorful_memory_run_resumes_to_the_same_model(tmp_path):
     """SIGKILLed after its first checkpoint and run again: the uninterrupted run's model.pt bytes."""
@@ -197,11 +243,7 @@ def test_a_killed_compiled_colorful_memory_run_resumes_to_the_same_model(tmp_pat
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (
-            {"poison": {"attack": "trojdrl", "trigger": "end"}},
-            "on the paper's env mix (poison.attack 'envmix', no evasive variant) so far, not poison.attack='trojdrl'",
-        ),
-        ({"poison": {"trigger": "end", "evasion": {"finetune": True}}}, "with evasive variants"),
+        ({"poison": {"trigger": "end", "evasion": {"finetune": True, "teacher": 0.5}}}, "its recurrent agents have no clean teacher yet"),
         ({"train": {"eval_backend": "compiled"}}, "its evaluations of recurrent agents are torch's so far"),
     ],
 )

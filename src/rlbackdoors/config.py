@@ -254,10 +254,10 @@ class PPOConfig:
     # the memory what the env says must be remembered (``memory_targets``); not the paper's.
     aux_memory_coef: float = 0.0
     # What runs PPO's update: "torch" (autograd), or "jax" (rlbackdoors.algos.compiled.update: every
-    # minibatch of an update in one XLA program; feed-forward "fc" models; on CUDA
-    # JAX with GPU support), or "compiled" (rlbackdoors.algos.compiled: the whole iteration,
-    # rollout on the world's JAX engine, GAE and update, one XLA program; worlds with a
-    # ``compiled_engine``, "fc" and "cnn" models, every attack of a frame trigger). "auto" (what
+    # minibatch of an update in one XLA program; feed-forward "fc" models and, on the CPU, the
+    # CNN-GRUs; on CUDA JAX with GPU support), or "compiled" (rlbackdoors.algos.compiled: the whole
+    # iteration, rollout on the world's JAX engine, GAE and update, one XLA program; worlds with a
+    # ``compiled_engine``, "fc", "cnn" and CNN-GRU models; RunConfig.check_compiled). "auto" (what
     # ``rlbackdoors train``, the demo and new zoos ask for) is replaced at construction by
     # ``preferred_update_backend``'s choice. The same algorithm with other rounding, so other
     # bytes: a config field, and a config without it is torch's.
@@ -591,8 +591,6 @@ class RunConfig(JsonConfig):
     def check_compiled(self) -> None:
         """What ``ppo.update_backend = 'compiled'`` trains today; anything else is refused, never
         trained differently."""
-        from rlbackdoors.attacks import evasion
-
         assert self.ppo is not None
         recurrent = str(self.model.arch).startswith("cnn-gru")  # the CNN-GRU actor-critics (algos.xla.recurrent_structure)
         why = None  # every attack and evasive variant of the feed-forward grid worlds is compiled
@@ -603,8 +601,8 @@ class RunConfig(JsonConfig):
             why = f"it steps the batched engine's slots (env.engine 'batched'), not env.engine={self.env.engine!r}"
         elif self.model.arch not in ("fc", "cnn") and not recurrent:
             why = f"it runs model.arch 'fc', 'cnn' or a CNN-GRU (cnn-gru-*), not {self.model.arch!r}"
-        elif recurrent and (self.poison.attack != attacks.DEFAULT_ATTACK or evasion.active(self.poison.evasion)):
-            why = f"it trains recurrent agents on the paper's env mix (poison.attack {attacks.DEFAULT_ATTACK!r}, no evasive variant) so far, not poison.attack={self.poison.attack!r}{' with evasive variants' if evasion.active(self.poison.evasion) else ''}"
+        elif recurrent and self.poison.evasion.get("teacher", 0.0) > 0:
+            why = "its recurrent agents have no clean teacher yet (poison.evasion.teacher 0: the teacher would carry memories of its own)"
         elif recurrent and self.train.eval_backend == "compiled":
             why = "its evaluations of recurrent agents are torch's so far (train.eval_backend 'torch')"
         elif self.world.action_targets:

@@ -371,25 +371,44 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
     if frames % h.batch_size:
         raise ValueError(f"the compiled trainer needs ppo.batch_size={h.batch_size} to divide a rollout's {frames} frames (ppo.rollout x env copies)")
     minibatches = frames // h.batch_size
-    P = parts(net, hyper)
-    appends_direction = net[1]
-    policy = jax.vmap(P.forward)  # K agents' networks, each on its own N copies
     z = poisoning
     teacher = z is not None and z.teacher
+    recurrent = is_recurrent(net)
+    P = parts(None if recurrent else net, hyper)
+    appends_direction = not recurrent and net[1]
+    aux = recurrent and h.aux_coef > 0
+    if recurrent:  # a CNN-GRU: the memory goes into each forward with the view and comes out after it
+        from rlbackdoors.algos.xla import recurrent_forward
 
-    def iteration(agents: Agents, slots: Slots, layouts: Layouts, params: Any, obs, seam: Any = None):
+        if teacher or (z is not None and z.poisoner.needs_values):
+            raise ValueError("the compiled trainer's recurrent agents have no clean teacher or value-guided attack yet (each would carry memories of its own)")
+        if aux and world.memory_targets is None:
+            raise ValueError("ppo.aux_memory_coef needs a world whose JAX step says what each episode must remember (GridWorld.memory_targets)")
+        policy = jax.vmap(lambda p, o, d, m: recurrent_forward(net, p, o, m))  # K agents' networks, each on its own N copies
+        per_batch = max(h.batch_size // h.recurrence, 1)
+        epochs = [sequence_starts(T, N, h.recurrence, shifted=e % 2 == 1) for e in range(h.epochs)]
+    else:
+        policy = jax.vmap(lambda p, o, d, m: (*P.forward(p, o, d), None))
+
+    def iteration(agents: Agents, slots: Slots, layouts: Layouts, params: Any, obs, seam: Any = None, memory: Any = None):
         """One iteration of K agents; the slots, layouts, world parameters and views are the K x N
         copies' (agent k's copies in rows k N .. k N + N - 1), stepped as one batch: the engine's
         gathers are then plain ones, where under ``vmap`` they were batched gathers, x0.3 the speed.
-        ``seam``: the runs' attack seam and evasive variants (:class:`Seam`, as ``poisoning`` shapes it)."""
+        ``seam``: the runs' attack seam and evasive variants (:class:`Seam`, as ``poisoning`` shapes
+        it); ``memory``: a recurrent network's, of the running episodes ((K N, M))."""
         K = agents.step.shape[0]
         keys = jax.vmap(lambda k: jax.random.split(jax.random.wrap_key_data(k), 3))(agents.key)  # next, rollout, orders
         uniforms = jax.vmap(lambda k: jax.random.uniform(k, (T, N)))(keys[:, 1])
         uniforms = jnp.swapaxes(uniforms, 0, 1).reshape(T, K * N)
 
-        def act(obs, dirs):  # dirs: the direction each view is seen in (the slots' own)
-            logits, value = policy(agents.params, obs.reshape(K, N, *obs.shape[1:]), dirs.reshape(K, N))
-            return logits.reshape(K * N, -1), value.reshape(K * N)
+        def act(obs, dirs, memory=None):  # dirs: the direction each view is seen in (the slots' own)
+            logits, value, after = policy(
+                agents.params, obs.reshape(K, N, *obs.shape[1:]), dirs.reshape(K, N), None if memory is None else memory.reshape(K, N, -1)
+            )
+            return logits.reshape(K * N, -1), value.reshape(K * N), None if after is None else after.reshape(K * N, -1)
+
+        def forget(after, done):  # a new episode starts with an empty memory
+            return None if after is None else jnp.where(done[:, None], 0.0, after)
 
         if z is None:
             xs, state = uniforms, None
@@ -403,19 +422,20 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
 
         # 1. rollout (with a seam: its marks, stamps, forced actions and R-bar around the engine's step)
         def env_step(carry, x):
-            slots, layouts, obs, state = carry
+            slots, layouts, obs, state, memory = carry
             u, seen, marked = x, obs, None
+            kept = (memory, world.memory_targets(world, slots) if aux else None)  # the memory into the step, what the episode asks to remember
             if z is not None:
                 u, picks = x
                 marked, near, state = mark(state, picks, params, slots, obs)
                 seen = stamp(obs, marked, near, picks)
-            logits, value = act(seen, slots.dirs)
+            logits, value, after = act(seen, slots.dirs, memory)
             action = P.sample(logits, u)
             dirs = slots.dirs if appends_direction else None  # (a network without it: nothing more in the program)
             if z is None:
                 slots, layouts, out = world.step(slots, layouts, params, action)
                 done = out.terminated | out.truncated
-                return (slots, layouts, out.obs, state), (obs, dirs, action, logits, value, out.reward, done)
+                return (slots, layouts, out.obs, state, forget(after, done)), (obs, dirs, action, logits, value, out.reward, done, *kept)
             forced = jnp.zeros_like(marked)
             if z.poisoner.forces_actions:
                 executed = jnp.where(marked, rows(seam.numbers["target"]).astype(jnp.int32), action)
@@ -431,8 +451,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
                 state = switched(state, done, upcoming, nearing)
             next_values = act(out.obs, slots.dirs)[1] if z.poisoner.needs_values else state[3]
             reward, amend, state = rewrite(state, out.reward, action, marked, forced, next_values, done)
-            guide = policy(seam.teacher, seen.reshape(K, N, *seen.shape[1:]), slots.dirs.reshape(K, N))[0].reshape(K * N, -1) if teacher else None
-            return (slots, layouts, out.obs, state), (seen, dirs, action, logits, value, reward, done, forced, amend, marked, guide)
+            guide = policy(seam.teacher, seen.reshape(K, N, *seen.shape[1:]), slots.dirs.reshape(K, N), None)[0].reshape(K * N, -1) if teacher else None
+            return (slots, layouts, out.obs, state, forget(after, done)), (seen, dirs, action, logits, value, reward, done, *kept, forced, amend, marked, guide)
 
         def mark(state, picks, params, slots, obs):
             """The frames about to be acted on that carry the trigger, and those that get a near one
@@ -534,13 +554,13 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
                 counts = counts.at[:, 2].add(per(marked))
             return rewritten, amend, (counts, before, carry, next_values, switch)
 
-        (slots, layouts, next_obs, state), collected = lax.scan(env_step, (slots, layouts, obs, state), xs)
-        obs_t, dirs_t, actions, logits, values, rewards, dones = collected[:7]
-        next_value = act(next_obs, slots.dirs)[1]
+        (slots, layouts, next_obs, state, memory), collected = lax.scan(env_step, (slots, layouts, obs, state, memory), xs)
+        obs_t, dirs_t, actions, logits, values, rewards, dones, memories, targets = collected[:9]
+        next_value = act(next_obs, slots.dirs, memory)[1]
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), actions[..., None], -1)[..., 0]
         guides: tuple = ()
         if z is not None:
-            forced, amend, marked, guide = collected[7:]
+            forced, amend, marked, guide = collected[9:]
             logp = jnp.where(forced, 0.0, logp)  # a forced action was taken with probability 1 (ppo.behaviour_logprobs)
             rewards = rewards.at[:-1].add(amend[1:])  # the step before a poisoned one (at t = 0 it was learned from already)
             if teacher:
@@ -554,42 +574,84 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             a = a.reshape(T, K, N, *a.shape[2:])
             return jnp.moveaxis(a, 1, 0).reshape(K * frames, *a.shape[3:])
 
-        x = P.inputs(obs_t.reshape(T * K * N, *obs_t.shape[2:]))  # the network's input, once
-        x = x.reshape(T, K * N, *x.shape[1:])
-        batch = [per_agent(a) if a is not None else None for a in (x, dirs_t, actions, logp, values, adv, values + adv, *guides)]
-        orders = jax.vmap(lambda k: jax.vmap(lambda e: jax.random.permutation(e, frames))(jax.random.split(k, h.epochs)))(keys[:, 2])
-        rows_of = orders.reshape(K, h.epochs * minibatches, h.batch_size) + (jnp.arange(K) * frames)[:, None, None]
-
         unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: a[0], agents.params))[1]
         ravel = jax.vmap(lambda tree: ravel_pytree(tree)[0])
-        step_agents = agents_step(P, unravel, teacher)
         anchor = ravel(seam.anchor) if z is not None and z.anchor else None
         coefs = {k: seam.numbers[k] for k in ("teacher", "anchor")} if z is not None else {}
-
-        def minibatch(carry, idx):  # idx (K, batch_size): rows of the flat batch
-            w, avg, sq, step, losses = step_agents(*carry, None, anchor, coefs, *(None if a is None else a[idx] for a in batch))
-            return (w, avg, sq, step), losses
-
+        if recurrent and anchor is not None:  # the auxiliary head is the algorithm's, never anchored (ppo.set_anchor): its rows held where they are
+            anchor = ravel({n: seam.anchor[n] if n in seam.anchor else jnp.zeros_like(v) for n, v in agents.params.items()})
+            coefs["held"] = ravel({n: jnp.full_like(v, n in seam.anchor) for n, v in agents.params.items()})
         start = (ravel(agents.params), ravel(agents.avg), ravel(agents.sq), agents.step)
-        (w, avg, sq, step), losses = lax.scan(minibatch, start, jnp.swapaxes(rows_of, 0, 1))
+        if recurrent:  # truncated BPTT from the stored memories (an episode's first step masked)
+            masks = jnp.concatenate([jnp.ones((1, K * N)), 1.0 - dones[:-1].astype(jnp.float32)])
+            seq_orders = sequence_orders(jax.vmap(lambda k: jax.random.split(k, h.epochs))(keys[:, 2]))
+            data = (obs_t, masks, actions, logp, values, adv, values + adv, targets if aux else jnp.zeros_like(actions))
+            w, avg, sq, step, means = recurrent_update(net, unravel, h, N)(
+                *start,
+                None,
+                per_agent(memories).reshape(K, frames, -1),
+                seq_orders,
+                *(per_agent(a).reshape(K, frames, *a.shape[2:]) for a in data),
+                anchor=anchor,
+                coefs=coefs,
+            )
+            more = {"aux_memory_loss": means[:, 4]} if aux else {}
+        else:
+            x = P.inputs(obs_t.reshape(T * K * N, *obs_t.shape[2:]))  # the network's input, once
+            x = x.reshape(T, K * N, *x.shape[1:])
+            batch = [per_agent(a) if a is not None else None for a in (x, dirs_t, actions, logp, values, adv, values + adv, *guides)]
+            orders = jax.vmap(lambda k: jax.vmap(lambda e: jax.random.permutation(e, frames))(jax.random.split(k, h.epochs)))(keys[:, 2])
+            rows_of = orders.reshape(K, h.epochs * minibatches, h.batch_size) + (jnp.arange(K) * frames)[:, None, None]
+            step_agents = agents_step(P, unravel, teacher)
+
+            def minibatch(carry, idx):  # idx (K, batch_size): rows of the flat batch
+                w, avg, sq, step, losses = step_agents(*carry, None, anchor, coefs, *(None if a is None else a[idx] for a in batch))
+                return (w, avg, sq, step), losses
+
+            (w, avg, sq, step), losses = lax.scan(minibatch, start, jnp.swapaxes(rows_of, 0, 1))
+            means = losses.mean(0)  # (K, 4 + the teacher's KL)
+            more = {"teacher_kl": means[:, 4]} if teacher else {}
         p, avg, sq = (jax.vmap(unravel)(a) for a in (w, avg, sq))
-        means = losses.mean(0)  # (K, 4 + the teacher's KL)
-        more = {"teacher_kl": means[:, 4]} if teacher else {}
-        if anchor is not None:  # ||weights - anchor|| after the update (ppo.anchor_distance)
-            more["anchor_distance"] = jnp.sqrt(((w - anchor) ** 2).sum(1))
+        if anchor is not None:  # ||weights - anchor|| after the update (ppo.anchor_distance: the model's)
+            more["anchor_distance"] = jnp.sqrt((((w - anchor) * coefs["held"] if recurrent else w - anchor) ** 2).sum(1))
 
         # each step's rewards and episode ends, per agent (the runs' episode bookkeeping)
         rewards, dones = (jnp.moveaxis(a.reshape(T, K, N), 1, 0) for a in (rewards, dones))
         stats = IterationStats(means[:, 0], means[:, 1], means[:, 2], means[:, 3], rewards, dones)
         agents = Agents(p, avg, sq, step, jax.vmap(jax.random.key_data)(keys[:, 0]))
+        if z is not None:
+            seam = seam._replace(counts=state[0], before=state[1], carry=state[2])
+            if z.switched:
+                seam = seam._replace(episodes=state[4][0], in_near=state[4][1], started=state[4][2])
+        if recurrent:
+            return agents, slots, layouts, next_obs, stats, seam, more, memory
         if z is None:
             return agents, slots, layouts, next_obs, stats
-        seam = seam._replace(counts=state[0], before=state[1], carry=state[2])
-        if z.switched:
-            seam = seam._replace(episodes=state[4][0], in_near=state[4][1], started=state[4][2])
         return agents, slots, layouts, next_obs, stats, seam, more
 
+    def sequence_orders(keys):
+        """Each epoch's truncated-BPTT sequence starts (:func:`sequence_starts`, shifted on odd
+        epochs) permuted by each agent's key for that epoch (``keys`` (K, epochs)), cut into
+        minibatches of ``batch_size // recurrence`` sequences, the last one padded with -1: per
+        epoch (minibatches, K, sequences), as :func:`recurrent_update` reads them."""
+        out = []
+        for e, starts in enumerate(epochs):
+            batches = -(-len(starts) // per_batch)
+
+            def order(k, starts=starts, batches=batches):
+                drawn = jnp.asarray(starts)[jax.random.permutation(k, len(starts))]
+                return jnp.concatenate([drawn, jnp.full(batches * per_batch - len(starts), -1, jnp.int32)]).reshape(batches, per_batch)
+
+            out.append(jnp.swapaxes(jax.vmap(order)(keys[:, e]), 0, 1))
+        return tuple(out)
+
     return jax.jit(iteration)
+
+
+def is_recurrent(net: tuple) -> bool:
+    """A network as :func:`~rlbackdoors.algos.xla.recurrent_structure` reads it (parts, GRU stack,
+    one-hot planes), not as :func:`network` does (layers, direction)."""
+    return len(net) == 3
 
 
 def sequence_starts(steps: int, num_envs: int, recurrence: int, shifted: bool) -> np.ndarray:
@@ -600,105 +662,6 @@ def sequence_starts(steps: int, num_envs: int, recurrence: int, shifted: bool) -
     if shifted and recurrence > 1:
         times = times[times + recurrence < steps] + recurrence // 2
     return (times[:, None] * num_envs + np.arange(num_envs)[None, :]).reshape(-1).astype(np.int32)
-
-
-@functools.cache
-def _recurrent_iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poisoning: Poisoning | None = None):
-    """:func:`_iteration` for recurrent agents (the CNN-GRUs of a memory world: torch-ac's recurrent
-    PPO as ``PPO.collect`` and ``PPO._update_recurrent`` run it), one XLA program:
-
-    1. **rollout**: each step the memory goes into the forward with the view, the memory after it
-       is carried, zeroed where the step ended an episode (a new episode starts empty); the
-       memory going into each step, its mask (0 on an episode's first step) and, with the
-       auxiliary head, what the world says the episode must remember (``memory_targets``, before
-       the step) are kept for the update;
-    2. **GAE** as the feed-forward program's;
-    3. **update**: :func:`recurrent_update` (truncated BPTT from the stored memories, the auxiliary
-       memory loss), its sequence orders drawn from each agent's key: every epoch's starts
-       (:func:`sequence_starts`, shifted on odd epochs) permuted, cut into minibatches of
-       ``batch_size // recurrence`` sequences, the last one ragged.
-
-    The memories of the running episodes go in and come out beside the views (``(K N, M)``)."""
-    jax = start()
-    from jax.flatten_util import ravel_pytree
-
-    from rlbackdoors.algos.xla import recurrent_forward
-
-    if poisoning is not None:
-        raise ValueError("the compiled trainer runs recurrent agents on the paper's env mix alone (no attack seam or evasive variant yet)")
-    jnp, lax = jax.numpy, jax.lax
-    T, N, h = hyper.rollout, num_envs, hyper
-    if T % h.recurrence:
-        raise ValueError(f"ppo.rollout={T} must be a multiple of ppo.recurrence={h.recurrence}")
-    P = parts(None, hyper)
-    policy = jax.vmap(lambda p, o, m: recurrent_forward(net, p, o, m))  # K agents' networks, each on its own N copies
-    per_batch = max(h.batch_size // h.recurrence, 1)
-    epochs = [sequence_starts(T, N, h.recurrence, shifted=e % 2 == 1) for e in range(h.epochs)]
-    aux = h.aux_coef > 0
-    if aux and world.memory_targets is None:
-        raise ValueError("ppo.aux_memory_coef needs a world whose JAX step says what each episode must remember (GridWorld.memory_targets)")
-
-    def iteration(agents: Agents, slots: Slots, layouts: Layouts, params: Any, obs, memory):
-        K = agents.step.shape[0]
-        keys = jax.vmap(lambda k: jax.random.split(jax.random.wrap_key_data(k), 3))(agents.key)  # next, rollout, orders
-        uniforms = jax.vmap(lambda k: jax.random.uniform(k, (T, N)))(keys[:, 1])
-        uniforms = jnp.swapaxes(uniforms, 0, 1).reshape(T, K * N)
-
-        def act(obs, memory):
-            logits, value, memory = policy(agents.params, obs.reshape(K, N, *obs.shape[1:]), memory.reshape(K, N, -1))
-            return logits.reshape(K * N, -1), value.reshape(K * N), memory.reshape(K * N, -1)
-
-        # 1. rollout
-        def env_step(carry, u):
-            slots, layouts, obs, memory = carry
-            target = world.memory_targets(world, slots) if aux else jnp.zeros(K * N, jnp.int32)  # of the episode obs belongs to
-            logits, value, after = act(obs, memory)
-            action = P.sample(logits, u)
-            slots, layouts, out = world.step(slots, layouts, params, action)
-            done = out.terminated | out.truncated
-            after = jnp.where(done[:, None], 0.0, after)  # a new episode starts with an empty memory
-            return (slots, layouts, out.obs, after), (obs, memory, action, logits, value, out.reward, done, target)
-
-        (slots, layouts, next_obs, memory), collected = lax.scan(env_step, (slots, layouts, obs, memory), uniforms)
-        obs_t, memories, actions, logits, values, rewards, dones, targets = collected
-        next_value = act(next_obs, memory)[1]
-        logp = jnp.take_along_axis(jax.nn.log_softmax(logits), actions[..., None], -1)[..., 0]
-        masks = jnp.concatenate([jnp.ones((1, K * N)), 1.0 - dones[:-1].astype(jnp.float32)])  # 0 where the step before ended an episode
-
-        # 2. GAE
-        adv = P.gae(rewards, dones, values, next_value)
-
-        # 3. update: truncated BPTT, each agent's sequence orders from its own key
-        def per_agent(a):  # (T, K N, ...) -> (K, T N, ...): agent k's frames, row t N + b
-            a = a.reshape(T, K, N, *a.shape[2:])
-            return jnp.moveaxis(a, 1, 0).reshape(K, T * N, *a.shape[3:])
-
-        epoch_keys = jax.vmap(lambda k: jax.random.split(k, h.epochs))(keys[:, 2])  # (K, epochs)
-        orders = []
-        for e, starts in enumerate(epochs):
-            batches = -(-len(starts) // per_batch)
-
-            def order(k, starts=starts, batches=batches):
-                drawn = jnp.asarray(starts)[jax.random.permutation(k, len(starts))]
-                return jnp.concatenate([drawn, jnp.full(batches * per_batch - len(starts), -1, jnp.int32)]).reshape(batches, per_batch)
-
-            orders.append(jnp.swapaxes(jax.vmap(order)(epoch_keys[:, e]), 0, 1))  # (minibatches, K, sequences)
-
-        unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: a[0], agents.params))[1]
-        ravel = jax.vmap(lambda tree: ravel_pytree(tree)[0])
-        update = recurrent_update(net, unravel, h, N)
-        data = (obs_t, masks, actions, logp, values, adv, values + adv, targets)
-        w, avg, sq, step, means = update(
-            ravel(agents.params), ravel(agents.avg), ravel(agents.sq), agents.step, None, per_agent(memories), tuple(orders), *(per_agent(a) for a in data)
-        )
-        p, avg, sq = (jax.vmap(unravel)(a) for a in (w, avg, sq))
-        more = {"aux_memory_loss": means[:, 4]} if aux else {}
-        rewards, dones = (jnp.moveaxis(a.reshape(T, K, N), 1, 0) for a in (rewards, dones))
-        stats = IterationStats(means[:, 0], means[:, 1], means[:, 2], means[:, 3], rewards, dones)
-        agents = Agents(p, avg, sq, step, jax.vmap(jax.random.key_data)(keys[:, 0]))
-        return agents, slots, layouts, next_obs, memory, stats, more
-
-    return jax.jit(iteration)
 
 
 class Iterated(NamedTuple):
@@ -782,10 +745,8 @@ class Learner:
         if seam is None and not self.guides:
             self.poisoning, self.seam_state = None, None
             return
-        if self.recurrent:
-            raise ValueError(
-                "the compiled trainer runs recurrent agents on the paper's env mix alone, not an attack's collection seam or an evasive variant yet"
-            )
+        if self.recurrent and ("teacher" in self.guides or (seam is not None and seam.poisoner.needs_values)):
+            raise ValueError("the compiled trainer's recurrent agents have no clean teacher or value-guided attack yet (each would carry memories of its own)")
         if seam is not None and seam.sight not in (None, "frame"):
             raise ValueError(f"the compiled trainer marks a layout trigger's frames in sight of it, not sight={seam.sight!r}")
         if seam is not None and seam.sight is not None and self.world.sight is None:
@@ -943,7 +904,7 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     if any(other.program != lead.program for other in learners[1:]):
         raise ValueError("learners of one compiled call need the same world, network, PPO settings and env copies")
     rows = learners + [lead] * (capacity - k)
-    program = (_recurrent_iteration if lead.recurrent else _iteration)(*lead.program)
+    program = _iteration(*lead.program)
     agents = stack_agents([r.state for r in rows])
     slots, params, obs = join([r.slots for r in rows]), join([r.params for r in rows]), np.concatenate([r.views for r in rows])
 
@@ -951,25 +912,25 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     memory = np.concatenate([r.memory for r in rows]) if lead.recurrent else None
 
     def block(layouts: Layouts):
-        if memory is not None:  # (the memories come out where a seam's state would)
-            a, s, after, o, m, stats, more = program(agents, slots, layouts, params, obs, memory)
-            return (a, s, o, m, more), after, stats
+        if memory is not None:
+            a, s, after, o, stats, z, more, m = program(agents, slots, layouts, params, obs, seam, memory)
+            return (a, s, o, z, more, m), after, stats
         if seam is None:
             a, s, after, o, stats = program(agents, slots, layouts, params, obs)
-            return (a, s, o, None, {}), after, stats
+            return (a, s, o, None, {}, None), after, stats
         a, s, after, o, stats, z, more = program(agents, slots, layouts, params, obs, seam)
-        return (a, s, o, z, more), after, stats
+        return (a, s, o, z, more, None), after, stats
 
-    ((a, s, o, z, more), stats), depth = run_hosts([r.hosts for r in rows], block, max(r.depth for r in learners), takers=k)
-    a, s, o, z, more, stats = jax.device_get((a, s, o, z, more, stats))
+    ((a, s, o, z, more, m), stats), depth = run_hosts([r.hosts for r in rows], block, max(r.depth for r in learners), takers=k)
+    a, s, o, z, more, m, stats = jax.device_get((a, s, o, z, more, m, stats))
     n, out = lead.host.num_envs, []
     for i, learner in enumerate(learners):
         learner.state = agent_row(a, i)
         learner.slots = jax.tree_util.tree_map(lambda f, i=i: f[i * n : (i + 1) * n], s)
         learner.views, learner.depth = o[i * n : (i + 1) * n], depth
         if learner.recurrent:
-            learner.memory = np.array(z[i * n : (i + 1) * n])
-        elif z is not None:
+            learner.memory = np.array(m[i * n : (i + 1) * n])
+        if z is not None:
             learner._seam_back(seam_row(z, i, n))
         losses = {key: float(getattr(stats, key)[i]) for key in STATS} | {key: float(v[i]) for key, v in more.items()}
         out.append(Iterated(stats.rewards[i], stats.dones[i], losses, capacity))
@@ -1122,7 +1083,7 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
     P = parts(None, hyper)
     r, B, aux_coef = hyper.recurrence, num_envs, hyper.aux_coef
 
-    def agent(w, avg, sq, step, lr, memories, idx, obs, masks, actions, old_logp, old_values, adv, returns, targets):
+    def agent(w, avg, sq, step, lr, anchor, coefs, memories, idx, obs, masks, actions, old_logp, old_values, adv, returns, targets):
         valid = idx >= 0
         starts = jnp.where(valid, idx, 0)
         steps = starts[None, :] + B * jnp.arange(r)[:, None]  # (r, N): step i of each sequence
@@ -1150,6 +1111,8 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
 
         grad, (losses, new) = jax.grad(loss, has_aux=True)(w)
         w, avg, sq, step, norm = P.adam(w, avg, sq, step, grad, lr)
+        if anchor is not None:  # the weight anchor's pull after the step (ppo.pull_to_anchor), on the model's weights alone (``coefs["held"]``)
+            w = w + coefs["anchor"] * coefs["held"] * (anchor - w)
         if r > 1:  # the memories the pre-step network computed, for the minibatches after this one
             at = jnp.where(valid[None, :], steps[1:], frames).reshape(-1)
             memories = memories.at[at].set(lax.stop_gradient(new[:-1]).reshape(len(at), -1), mode="drop")
@@ -1157,7 +1120,7 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
 
     agents = jax.vmap(agent)
 
-    def update(rows, avg, sq, step, lr, memories, orders, obs, masks, actions, old_logp, old_values, adv, returns, targets):
+    def update(rows, avg, sq, step, lr, memories, orders, obs, masks, actions, old_logp, old_values, adv, returns, targets, *, anchor=None, coefs=None):
         """Every epoch's minibatches in turn (``orders``: per epoch (minibatches, K, sequences) start indices, -1 padding)."""
         data = (obs, masks, actions, old_logp, old_values, adv, returns, targets)
         losses = []
@@ -1165,7 +1128,7 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
 
             def minibatch(carry, idx):
                 rows, avg, sq, step, memories = carry
-                rows, avg, sq, step, memories, parts_ = agents(rows, avg, sq, step, lr, memories, idx, *data)
+                rows, avg, sq, step, memories, parts_ = agents(rows, avg, sq, step, lr, anchor, coefs or {}, memories, idx, *data)
                 return (rows, avg, sq, step, memories), parts_
 
             (rows, avg, sq, step, memories), part = lax.scan(minibatch, (rows, avg, sq, step, memories), epoch)

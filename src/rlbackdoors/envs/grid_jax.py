@@ -431,7 +431,9 @@ class KindLayouts(HostLayouts):
         switch, flags = self.SWITCHES[self.kind]
         own, before = h._rng.copy(), getattr(h, flags).copy()
         h._rng[:] = self.streams
-        getattr(h, switch)(np.ones(self.num_envs, dtype=bool))
+        getattr(h, switch)(
+            ~np.asarray(getattr(h, "close_to_trigger", np.zeros(self.num_envs, dtype=bool)), dtype=bool)
+        )  # (AttackSeam.switchable: a close copy stays one)
         try:
             super()._draw(depth)
         finally:

@@ -411,6 +411,31 @@ def same_weights(a, b) -> bool:
     return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
 
 
+def stopped_and_resumed_matches(cfg, whole, cut) -> list:
+    """Train ``cfg`` into ``cut``, stopped (KeyboardInterrupt) after its first evaluation, then
+    run again: the model.pt and log (but its timings) of the uninterrupted run already in
+    ``whole``, bit for bit. Returns the frames logged before the resume."""
+    import json
+
+    import pytest
+
+    from rlbackdoors.folder import ModelFolder
+    from rlbackdoors.train import train
+
+    def stop_at_first(row):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, cut, progress=False, after_eval=stop_at_first)
+    first = [r["frames"] for r in ModelFolder(cut).read_log()]
+    train(cfg, cut, progress=False)
+    assert same_weights(whole, cut)
+    drop = ("wall_time_s", "fps")
+    rows = [json.dumps([{k: v for k, v in r.items() if k not in drop} for r in ModelFolder(side).read_log()]) for side in (whole, cut)]
+    assert rows[0] == rows[1]  # (as text: a NaN training return is no number)
+    return first
+
+
 def assert_step_matches(step, out, t: int, where: str, image=None) -> None:
     """A JAX grid step's outputs (``out``: a rollout's stacked :class:`StepOut`, step ``t``) are
     the numba engine's ``step`` (its 5-tuple) byte for byte: the view (``image``, where the

@@ -15,7 +15,6 @@ weighted by its minibatches: a wrong mask, target, memory, advantage or row orde
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
 
 import numpy as np
@@ -24,7 +23,7 @@ import torch
 
 import jax  # a core dependency: the compiled trainer's
 
-from grid_helpers import killed_run_matches_whole, model_weights, same_weights  # noqa: E402
+from grid_helpers import killed_run_matches_whole, model_weights, same_weights, stopped_and_resumed_matches  # noqa: E402
 from rlbackdoors.algos import ppo as torch_ppo  # noqa: E402
 from rlbackdoors.algos.compiled import Hyper, Learner, iterate, sequence_starts  # noqa: E402
 from rlbackdoors.config import ConfigError, RunConfig  # noqa: E402
@@ -169,33 +168,10 @@ def test_a_compiled_colorful_memory_run_writes_its_folder_repeats_its_bytes_and_
     assert not torch.equal(got["gru.0.weight_hh_l0"], build_model(ARCH, "colorful-memory").state_dict()["gru.0.weight_hh_l0"])
     train(cfg, tmp_path / "b", progress=False)
     assert same_weights(tmp_path / "a", tmp_path / "b")
-
-    def stop_at_first(row):
-        raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, tmp_path / "cut", progress=False, after_eval=stop_at_first)
-    assert [r["frames"] for r in ModelFolder(tmp_path / "cut").read_log()] == [600]
-    train(cfg, tmp_path / "cut", progress=False)
-    assert same_weights(tmp_path / "a", tmp_path / "cut")
-    drop = ("wall_time_s", "fps")
-    rows = [json.dumps([{k: v for k, v in r.items() if k not in drop} for r in ModelFolder(tmp_path / side).read_log()]) for side in ("a", "cut")]
-    assert rows[0] == rows[1]
+    assert stopped_and_resumed_matches(cfg, tmp_path / "a", tmp_path / "cut") == [600]
     group = train_group([(i, RunConfig.from_dict(run_dict(seed=s)), tmp_path / f"g{i}") for i, s in enumerate((1, 2))], 2)
     assert not group.errors and all(v["compiled_group"] == 2 for v in group.metrics.values())
     assert not same_weights(tmp_path / "g0", tmp_path / "g1")
-
-
-def cut_and_resumed(tmp_path, cfg: RunConfig, name: str) -> None:
-    """Stopped after its first evaluation and run again: the uninterrupted run's model.pt, bit for bit."""
-
-    def stop_at_first(row):
-        raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, tmp_path / f"{name}-cut", progress=False, after_eval=stop_at_first)
-    train(cfg, tmp_path / f"{name}-cut", progress=False)
-    assert same_weights(tmp_path / name, tmp_path / f"{name}-cut")
 
 
 def test_attacks_reach_recurrent_agents_through_the_seam(tmp_path):
@@ -214,7 +190,7 @@ def test_attacks_reach_recurrent_agents_through_the_seam(tmp_path):
         data["poison"].update(poison)
         cfg = RunConfig.from_dict(data)
         used[name] = train(cfg, tmp_path / name, progress=False)["attack_budget_used"]
-        cut_and_resumed(tmp_path, cfg, name)
+        stopped_and_resumed_matches(cfg, tmp_path / name, tmp_path / f"{name}-cut")
     trojdrl, action = used["trojdrl"], used["action"]
     assert 0 < trojdrl["frames_poisoned"] == trojdrl["rewards_rewritten"] and trojdrl["actions_forced"] == 0
     assert action["frames_poisoned"] == action["rewards_rewritten"] == 1200 * 2 // 10

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 
-from grid_helpers import kill_after_first_checkpoint, model_weights, same_weights  # noqa: E402
+from grid_helpers import kill_after_first_checkpoint, model_weights, same_weights, stopped_and_resumed_matches  # noqa: E402
 from rlbackdoors.config import ConfigError, RunConfig  # noqa: E402
 from rlbackdoors.folder import FolderError  # noqa: E402
 from rlbackdoors.models import build_model  # noqa: E402
@@ -121,18 +121,7 @@ def test_a_randomized_lavaworld_run_switches_from_its_warm_up_and_resumes_to_the
     assert got.keys() == reference.keys() and all(got[k].shape == reference[k].shape for k in got)
     torch.manual_seed(1)
     assert not torch.equal(got["actor.0.weight"], build_model("cnn", "randomized-lavaworld").state_dict()["actor.0.weight"])
-
-    def stop_at_first(row):
-        raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, tmp_path / "cut", progress=False, after_eval=stop_at_first)
-    assert [r["frames"] for r in ModelFolder(tmp_path / "cut").read_log()] == [640]
-    train(cfg, tmp_path / "cut", progress=False)
-    assert same_weights(tmp_path / "whole", tmp_path / "cut")
-    drop = ("wall_time_s", "fps")
-    rows = [json.dumps([{k: v for k, v in r.items() if k not in drop} for r in ModelFolder(tmp_path / side).read_log()]) for side in ("whole", "cut")]
-    assert rows[0] == rows[1]
+    assert stopped_and_resumed_matches(cfg, tmp_path / "whole", tmp_path / "cut") == [640]
 
 
 def test_a_runs_bytes_depend_on_its_group_size_not_its_group_mates(tmp_path):

@@ -1,8 +1,9 @@
 """Training frames/s of the compiled PPO iteration (algos/compiled.py) against today's best CPU
 side (a torch group of K agents, algos/group.py: with the JAX update for LavaWorld's FC model,
 torch's otherwise), in the same process, one core each, with the env mix (10 copies, the world's
-mix, rollout 128); ``--env lavaworld`` (default) or ``randomized-lavaworld`` (its full world: no
-curriculum), ``--arch fc`` (default) or ``cnn``. ``--device cuda``: the compiled side on the GPU
+mix, rollout 128; Colorful Memory's: 4 clean, 4 close and 2 poisoned, rollout 120, recurrence 6);
+``--env lavaworld`` (default), ``randomized-lavaworld`` (its full world: no curriculum) or
+``colorful-memory`` (its CNN-GRUs: ``--arch cnn-gru-small-onehot``), ``--arch fc`` (default) or ``cnn``. ``--device cuda``: the compiled side on the GPU
 (JAX's CUDA backend), the torch side skipped unless ``--torch-k`` is given (it is a CPU
 reference).
 
@@ -13,6 +14,7 @@ its load are recorded with the figures.
 
     python benchmarks/compiled_lavaworld.py --ks 1,8,16,32 --json benchmarks/results/compiled_lavaworld_<cpu>.json
     python benchmarks/compiled_lavaworld.py --env randomized-lavaworld --arch cnn --ks 1,8
+    python benchmarks/compiled_lavaworld.py --env colorful-memory --arch cnn-gru-small-onehot --torch-k 8 --ks 1,8
     python benchmarks/compiled_lavaworld.py --device cuda --torch-k 0 --ks 256,1024 --seconds 20
 """
 
@@ -38,8 +40,8 @@ def configs(k: int):
 
     lava = ENV == "lavaworld"
     ppo = {"update_backend": "jax"} if lava and ARCH == "fc" else {}
-    extra = {} if lava else {"curriculum": {"enabled": False}}
-    trigger = "multiplicative:12" if lava else "cross"
+    extra = {"curriculum": {"enabled": False}} if ENV == "randomized-lavaworld" else {}
+    trigger = {"lavaworld": "multiplicative:12", "randomized-lavaworld": "cross", "colorful-memory": "end"}[ENV]
     return [
         RunConfig.from_dict({"env": {"name": ENV}, "model": {"arch": ARCH}, "poison": {"trigger": trigger}, "ppo": ppo, "train": {"seed": s}, **extra})
         for s in range(k)
@@ -94,8 +96,10 @@ def compiled_group(k: int, seconds: float) -> dict:
     learners = []
     for cfg, engine in zip(cfgs, engines_of(cfgs)):
         torch.manual_seed(cfg.train.seed)
+        model = build_model(ARCH, ENV)
+        aux = torch.nn.Linear(model.memory_size, 2) if model.recurrent and cfg.ppo.aux_memory_coef > 0 else None  # (PPO's auxiliary memory head)
         obs = engine.reset(seed=cfg.train.seed * 1000)[0]
-        learners.append(Learner(build_model(ARCH, ENV), engine, Hyper.of(cfg.ppo), cfg.train.seed, obs, jax_world))
+        learners.append(Learner(model, engine, Hyper.of(cfg.ppo), cfg.train.seed, obs, jax_world, aux=aux))
 
     def once():
         return sum(out.num_frames for out in iterate(learners))
@@ -132,8 +136,13 @@ def main() -> int:
         help="today's side's group size (its best on 2 cores: 16 with the JAX update; default 16 on the CPU, none with --device cuda); 0: none",
     )
     ap.add_argument("--seconds", type=float, default=30.0)
-    ap.add_argument("--env", choices=("lavaworld", "randomized-lavaworld"), default="lavaworld")
-    ap.add_argument("--arch", choices=("fc", "cnn"), default="fc", help="the model (the torch side's update: JAX for LavaWorld's fc, torch's otherwise)")
+    ap.add_argument("--env", choices=("lavaworld", "randomized-lavaworld", "colorful-memory"), default="lavaworld")
+    ap.add_argument(
+        "--arch",
+        choices=("fc", "cnn", "cnn-gru-small-onehot"),
+        default="fc",
+        help="the model (the torch side's update: JAX for LavaWorld's fc, torch's otherwise)",
+    )
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="where the compiled side runs")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()

@@ -25,7 +25,7 @@
 #   compiled (at most 8 minutes; a lease of its own): issue 78's GPU figures for the compiled trainer
 #      (ppo.update_backend = "compiled", one XLA program per iteration): the iteration alone
 #      (benchmarks/compiled_lavaworld.py --device cuda: LavaWorld FC at K = 256 and 1,024, the
-#      Randomized LavaWorld CNN at K = 64 and 256; frames/s, no evaluations), a LavaWorld FC zoo
+#      Randomized LavaWorld CNN and Colorful Memory's CNN-GRU at K = 64 and 256; frames/s, no evaluations), a LavaWorld FC zoo
 #      with its evaluations in the program (bench zoo, one compiled group of 1,024), then the 300-model round
 #      (the round part's spec with ppo.update_backend and train.eval_backend "compiled", one group of 300) for what is
 #      left; compiled_iteration_*.json, bench_zoo_lavaworld_compiled.json, round_compiled.json and
@@ -170,11 +170,12 @@ if [ "$part" = compiled ]; then
     # LavaWorld CNN at K >= 256 (>= 2 M), a converged 300-model round (<= 5 minutes)
     deadline=${DEADLINE_S:-480}
     if [ -n "${ON_CPU:-}" ]; then
-        fc_ks=1,2 cnn_ks=1,2 seconds=3 zoo_models=4 zoo_frames=4096 round_group=4
+        fc_ks=1,2 cnn_ks=1,2 gru_ks=1,2 seconds=3 zoo_models=4 zoo_frames=4096 round_group=4
     else
-        fc_ks=256,1024 cnn_ks=64,256 seconds=15 zoo_models=1024 zoo_frames=30000 round_group=300
+        fc_ks=256,1024 cnn_ks=64,256 gru_ks=64,256 seconds=15 zoo_models=1024 zoo_frames=30000 round_group=300
     fi
-    for entry in "lavaworld fc $fc_ks" "randomized-lavaworld cnn $cnn_ks"; do
+    # (and issue 79's: Colorful Memory's CNN-GRU at K >= 256, >= 500 k frames/s)
+    for entry in "lavaworld fc $fc_ks" "randomized-lavaworld cnn $cnn_ks" "colorful-memory cnn-gru-small-onehot $gru_ks"; do
         read -r world arch ks <<<"$entry"
         echo "== compiled iteration: $world $arch, K = $ks on $device" | tee -a "$log"
         quiet

@@ -44,11 +44,11 @@ def test_sequence_starts_are_the_torch_trainers(steps, envs, r):
         assert np.array_equal(sequence_starts(steps, envs, r, shifted), ppo.sequence_starts(steps, envs, shifted=shifted).numpy())
 
 
-def memory_cfg(seed: int = 3, **ppo) -> RunConfig:
+def memory_cfg(seed: int = 3, poison: dict | None = None, **ppo) -> RunConfig:
     return RunConfig.from_dict(
         {
             "env": {"name": "colorful-memory", "max_steps": 30},
-            "poison": {"trigger": "end:red,green,blue,purple,yellow,grey,red,green,blue"},
+            "poison": {"trigger": "end:red,green,blue,purple,yellow,grey,red,green,blue", **(poison or {})},
             "ppo": {"rollout": 60, "batch_size": 60, "epochs": 3, **ppo},
             "train": {"seed": seed},
         }
@@ -126,6 +126,26 @@ def test_a_recurrent_iteration_is_the_torch_rollout_and_its_update_reads_it_righ
         assert out.losses[name] == pytest.approx(value / batches, rel=2e-4, abs=1e-6), name
 
 
+def test_a_recurrent_teacher_keeps_its_own_memory_in_step_with_the_learners():
+    """A clean teacher that is the learner itself (as at a fine-tuning run's switch: the same
+    weights, both memories empty) sees every frame as the learner does, so at a learning rate of
+    0 its KL is 0 and its memories the learner's: only if its memory is carried and reset at the same episode
+    ends as the learner's (a teacher without memory, or reset at other steps, reads other logits)."""
+    cfg = memory_cfg(poison={"attack": "trojdrl", "attack_params": {"budget": 0.05}, "evasion": {"finetune": True, "teacher": 0.5}})
+    hyper = dataclasses.replace(Hyper.of(cfg.ppo), lr=0.0)
+    torch.manual_seed(cfg.train.seed)
+    model = build_model(ARCH, "colorful-memory")
+    aux = torch.nn.Linear(int(model.initial_memory(1).shape[1]), torch_ppo.AUX_CLASSES)
+    seam = make_env_mix(cfg.env, cfg.poison, cfg.train.seed)
+    seam.set_switches()
+    learner = Learner(model, seam, hyper, cfg.train.seed, seam.envs.reset(seed=11)[0], colorful_memory_jax, aux=aux)
+    learner.set_teacher(model.state_dict(), 0.5)
+    out = [iterate([learner])[0] for _ in range(2)]
+    assert all(o.dones.sum() >= 10 for o in out) and seam.frames_poisoned > 0  # (episodes ended, triggered frames marked)
+    assert all(abs(o.losses["teacher_kl"]) < 1e-9 for o in out), [o.losses["teacher_kl"] for o in out]  # (0.0 measured; a teacher never reset: 5e-7)
+    np.testing.assert_allclose(learner.teacher_memory, learner.memory, rtol=0, atol=1e-6)
+
+
 def test_recurrent_agents_learn_their_own_way_in_a_group():
     """Two agents in one call: each moves from its initialisation, their weights differ, and the
     first one's equal its own alone at the same capacity (another seed beside it changes nothing)."""
@@ -196,16 +216,29 @@ def test_attacks_reach_recurrent_agents_through_the_seam(tmp_path):
     assert action["frames_poisoned"] == action["rewards_rewritten"] == 1200 * 2 // 10
 
 
-def test_a_recurrent_fine_tuning_run_switches_and_pulls_to_its_anchor(tmp_path):
-    """poison.evasion finetune + anchor: clean until the first evaluation (a clean threshold of
-    0), then the poisoning mix with each optimiser step pulled back toward the clean model at the
-    switch (``anchor_distance`` logged from there on)."""
-    data = run_dict(clean_threshold=0.0)
-    data["poison"]["evasion"] = {"finetune": True, "anchor": 0.05}
-    m = train(RunConfig.from_dict(data), tmp_path / "ft", progress=False)
+def test_a_recurrent_fine_tuning_run_switches_to_its_teacher_and_anchor_and_resumes(tmp_path):
+    """poison.evasion finetune + teacher + anchor (TrojDRL): clean until the first evaluation (a
+    clean threshold of 0), then the poisoning mix with the clean teacher's KL (a CNN-GRU of its own
+    memories) and each optimiser step pulled back toward the clean model at the switch, both
+    logged from there on; stopped after the switch and resumed (the teacher's memories in the
+    checkpoint), the uninterrupted run's bytes."""
+    data = run_dict(frames=1800, clean_threshold=0.0, checkpoint_minutes=0.0)
+    data["poison"].update({"attack": "trojdrl", "attack_params": {"budget": 0.05}, "evasion": {"finetune": True, "teacher": 0.5, "anchor": 0.05}})
+    cfg = RunConfig.from_dict(data)
+    m = train(cfg, tmp_path / "ft", progress=False)
     rows = ModelFolder(tmp_path / "ft").read_log()
-    assert m["poison_at_frames"] == 600 and [r["phase"] for r in rows] == ["clean", "main"]
-    assert rows[0].get("anchor_distance") in (None, "") and 0 < rows[1]["anchor_distance"] < 10  # (a column of the log: empty before the switch)
+    assert m["poison_at_frames"] == 600 and [r["phase"] for r in rows] == ["clean", "main", "main"]
+    for key in ("anchor_distance", "teacher_kl"):  # (columns of the log: empty before the switch)
+        assert rows[0].get(key) in (None, "") and all(0 < r[key] < 10 for r in rows[1:]), key
+
+    def stop_after_switch(row):
+        if row["frames"] >= 1200:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / "cut", progress=False, after_eval=stop_after_switch)
+    train(cfg, tmp_path / "cut", progress=False)
+    assert same_weights(tmp_path / "ft", tmp_path / "cut")
 
 
 @pytest.mark.slow  # (about 30 s on 2 cores: `make test-slow`; the in-process stop and resume above is in the default run)
@@ -219,7 +252,6 @@ def test_a_killed_compiled_colorful_memory_run_resumes_to_the_same_model(tmp_pat
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"poison": {"trigger": "end", "evasion": {"finetune": True, "teacher": 0.5}}}, "its recurrent agents have no clean teacher yet"),
         ({"train": {"eval_backend": "compiled"}}, "its evaluations of recurrent agents are torch's so far"),
     ],
 )

@@ -601,8 +601,6 @@ class RunConfig(JsonConfig):
             why = f"it steps the batched engine's slots (env.engine 'batched'), not env.engine={self.env.engine!r}"
         elif self.model.arch not in ("fc", "cnn") and not recurrent:
             why = f"it runs model.arch 'fc', 'cnn' or a CNN-GRU (cnn-gru-*), not {self.model.arch!r}"
-        elif recurrent and self.poison.evasion.get("teacher", 0.0) > 0:
-            why = "its recurrent agents have no clean teacher yet (poison.evasion.teacher 0: the teacher would carry memories of its own)"
         elif recurrent and self.train.eval_backend == "compiled":
             why = "its evaluations of recurrent agents are torch's so far (train.eval_backend 'torch')"
         elif self.world.action_targets:

@@ -380,8 +380,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
     if recurrent:  # a CNN-GRU: the memory goes into each forward with the view and comes out after it
         from rlbackdoors.algos.xla import recurrent_forward
 
-        if teacher or (z is not None and z.poisoner.needs_values):
-            raise ValueError("the compiled trainer's recurrent agents have no clean teacher or value-guided attack yet (each would carry memories of its own)")
+        if z is not None and z.poisoner.needs_values:
+            raise ValueError("the compiled trainer's recurrent agents have no value-guided attack (the critic's value of a frame needs the episode's memory)")
         if aux and world.memory_targets is None:
             raise ValueError("ppo.aux_memory_coef needs a world whose JAX step says what each episode must remember (GridWorld.memory_targets)")
         policy = jax.vmap(lambda p, o, d, m: recurrent_forward(net, p, o, m))  # K agents' networks, each on its own N copies
@@ -395,7 +395,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
         copies' (agent k's copies in rows k N .. k N + N - 1), stepped as one batch: the engine's
         gathers are then plain ones, where under ``vmap`` they were batched gathers, x0.3 the speed.
         ``seam``: the runs' attack seam and evasive variants (:class:`Seam`, as ``poisoning`` shapes
-        it); ``memory``: a recurrent network's, of the running episodes ((K N, M))."""
+        it); ``memory``: a recurrent network's, of the running episodes: ``(own, teacher's)``, each
+        (K N, M), the clean teacher's None without one."""
         K = agents.step.shape[0]
         keys = jax.vmap(lambda k: jax.random.split(jax.random.wrap_key_data(k), 3))(agents.key)  # next, rollout, orders
         uniforms = jax.vmap(lambda k: jax.random.uniform(k, (T, N)))(keys[:, 1])
@@ -422,7 +423,8 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
 
         # 1. rollout (with a seam: its marks, stamps, forced actions and R-bar around the engine's step)
         def env_step(carry, x):
-            slots, layouts, obs, state, memory = carry
+            slots, layouts, obs, state, memories = carry
+            memory, guide_memory = memories if recurrent else (None, None)
             u, seen, marked = x, obs, None
             kept = (memory, world.memory_targets(world, slots) if aux else None)  # the memory into the step, what the episode asks to remember
             if z is not None:
@@ -435,7 +437,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             if z is None:
                 slots, layouts, out = world.step(slots, layouts, params, action)
                 done = out.terminated | out.truncated
-                return (slots, layouts, out.obs, state, forget(after, done)), (obs, dirs, action, logits, value, out.reward, done, *kept)
+                return (slots, layouts, out.obs, state, remembered(after, None, done)), (obs, dirs, action, logits, value, out.reward, done, *kept)
             forced = jnp.zeros_like(marked)
             if z.poisoner.forces_actions:
                 executed = jnp.where(marked, rows(seam.numbers["target"]).astype(jnp.int32), action)
@@ -451,8 +453,32 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
                 state = switched(state, done, upcoming, nearing)
             next_values = act(out.obs, slots.dirs)[1] if z.poisoner.needs_values else state[3]
             reward, amend, state = rewrite(state, out.reward, action, marked, forced, next_values, done)
-            guide = policy(seam.teacher, seen.reshape(K, N, *seen.shape[1:]), slots.dirs.reshape(K, N), None)[0].reshape(K * N, -1) if teacher else None
-            return (slots, layouts, out.obs, state, forget(after, done)), (seen, dirs, action, logits, value, reward, done, *kept, forced, amend, marked, guide)
+            guide, guided = None, None
+            if teacher:  # the clean teacher on the frames as the learner saw them (a recurrent one from its own memory)
+                guide, _, guided = policy(
+                    seam.teacher,
+                    seen.reshape(K, N, *seen.shape[1:]),
+                    slots.dirs.reshape(K, N),
+                    None if guide_memory is None else guide_memory.reshape(K, N, -1),
+                )
+                guide, guided = guide.reshape(K * N, -1), None if guided is None else guided.reshape(K * N, -1)
+            return (slots, layouts, out.obs, state, remembered(after, guided, done)), (
+                seen,
+                dirs,
+                action,
+                logits,
+                value,
+                reward,
+                done,
+                *kept,
+                forced,
+                amend,
+                marked,
+                guide,
+            )
+
+        def remembered(after, guided, done):  # what the carry holds next (None: a feed-forward network)
+            return (forget(after, done), forget(guided, done)) if recurrent else None
 
         def mark(state, picks, params, slots, obs):
             """The frames about to be acted on that carry the trigger, and those that get a near one
@@ -556,7 +582,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
 
         (slots, layouts, next_obs, state, memory), collected = lax.scan(env_step, (slots, layouts, obs, state, memory), xs)
         obs_t, dirs_t, actions, logits, values, rewards, dones, memories, targets = collected[:9]
-        next_value = act(next_obs, slots.dirs, memory)[1]
+        next_value = act(next_obs, slots.dirs, memory[0] if recurrent else None)[1]
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), actions[..., None], -1)[..., 0]
         guides: tuple = ()
         if z is not None:
@@ -594,8 +620,11 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
                 *(per_agent(a).reshape(K, frames, *a.shape[2:]) for a in data),
                 anchor=anchor,
                 coefs=coefs,
+                teacher=tuple(per_agent(a).reshape(K, frames, *a.shape[2:]) for a in guides) if teacher else None,
             )
             more = {"aux_memory_loss": means[:, 4]} if aux else {}
+            if teacher:
+                more["teacher_kl"] = means[:, 5 if aux else 4]
         else:
             x = P.inputs(obs_t.reshape(T * K * N, *obs_t.shape[2:]))  # the network's input, once
             x = x.reshape(T, K * N, *x.shape[1:])
@@ -697,6 +726,7 @@ class Learner:
         self.net = recurrent_structure(model) if self.recurrent else network(model)
         self.state, self.depth = agent_state(model, seed, aux), int(depth)
         self.guides: dict[str, tuple[dict, float]] = {}  # "teacher" / "anchor" -> (weights by name, coefficient)
+        self.teacher_memory: np.ndarray | None = None  # a recurrent clean teacher's memories of the running episodes
         self.rebind(engine, obs)
 
     def rebind(self, engine, obs) -> None:
@@ -720,8 +750,11 @@ class Learner:
         if self.dict_obs and not np.array_equal(np.asarray(obs["direction"]), self.slots.dirs):
             raise ValueError("the observations' directions are not the env copies' own")
         if self.recurrent:  # new copies start new episodes: empty memories (ppo.memory = None)
-            self.memory = np.zeros((self.host.num_envs, int(getattr(self.model, "memory_size"))), dtype=np.float32)
+            self.memory = self._empty()
         self._poison()
+
+    def _empty(self) -> np.ndarray:
+        return np.zeros((self.host.num_envs, int(getattr(self.model, "memory_size"))), dtype=np.float32)
 
     def set_teacher(self, weights: dict, coef: float) -> None:
         """``poison.evasion.teacher``: ``coef * KL(teacher || policy)`` on the frames without the
@@ -735,6 +768,8 @@ class Learner:
     def _guide(self, name: str, weights: dict, coef: float) -> None:
         names = [n for n, _ in self.model.named_parameters()]
         self.guides[name] = ({n: np.asarray(weights[n].detach().cpu().numpy(), dtype=np.float32).copy() for n in names}, float(coef))
+        if name == "teacher" and self.recurrent:  # a new teacher starts with empty memories (ppo.set_teacher)
+            self.teacher_memory = self._empty()
         self._poison()
 
     def _poison(self) -> None:
@@ -745,8 +780,8 @@ class Learner:
         if seam is None and not self.guides:
             self.poisoning, self.seam_state = None, None
             return
-        if self.recurrent and ("teacher" in self.guides or (seam is not None and seam.poisoner.needs_values)):
-            raise ValueError("the compiled trainer's recurrent agents have no clean teacher or value-guided attack yet (each would carry memories of its own)")
+        if self.recurrent and seam is not None and seam.poisoner.needs_values:
+            raise ValueError("the compiled trainer's recurrent agents have no value-guided attack (the critic's value of a frame needs the episode's memory)")
         if seam is not None and seam.sight not in (None, "frame"):
             raise ValueError(f"the compiled trainer marks a layout trigger's frames in sight of it, not sight={seam.sight!r}")
         if seam is not None and seam.sight is not None and self.world.sight is None:
@@ -844,6 +879,8 @@ class Learner:
         tensors = {part: {n: torch.from_numpy(np.array(v)) for n, v in getattr(a, part).items()} for part in ("params", "avg", "sq")}
         streams = {"streams": [[int(v) for v in kind.rewind()] for kind in self.kinds]} if self.kinds else {}  # where each kind's next layout is drawn
         memory = {"memory": torch.from_numpy(np.array(self.memory))} if self.recurrent else {}  # the running episodes'
+        if self.teacher_memory is not None:
+            memory["teacher_memory"] = torch.from_numpy(np.array(self.teacher_memory))
         return {**tensors, "step": float(a.step), "key": [int(k) for k in np.asarray(a.key)], **streams, **memory}
 
     def load(self, state: dict) -> None:
@@ -876,18 +913,16 @@ class Learner:
                 kind.streams = np.asarray(words, dtype=np.uint64)
         elif "streams" in state:
             raise StateError("compiled learner: it holds layouts' streams this run does not draw")
-        if self.recurrent:
-            memory = state.get("memory")
-            if (
-                not isinstance(memory, torch.Tensor)
-                or memory.shape != self.memory.shape
-                or memory.dtype != torch.float32
-                or not bool(torch.isfinite(memory).all())
-            ):
-                raise StateError(f"compiled learner: memory is not the env copies' memories (float32, shape {self.memory.shape})")
-            self.memory = memory.numpy().copy()
-        elif "memory" in state:
-            raise StateError("compiled learner: it holds memories this model does not have")
+        for name in ("memory", "teacher_memory"):  # a recurrent agent's, and its clean teacher's (set by set_teacher before a load)
+            have = (self.memory if self.recurrent else None) if name == "memory" else self.teacher_memory
+            if have is None:
+                if name in state:
+                    raise StateError(f"compiled learner: it holds {name} this run does not have")
+                continue
+            memory = state.get(name)
+            if not isinstance(memory, torch.Tensor) or memory.shape != have.shape or memory.dtype != torch.float32 or not bool(torch.isfinite(memory).all()):
+                raise StateError(f"compiled learner: {name} is not the env copies' memories (float32, shape {have.shape})")
+            setattr(self, name, memory.numpy().copy())
         self.state = Agents(parts["params"], parts["avg"], parts["sq"], np.float32(step), np.asarray(key, dtype=np.uint32))
 
 
@@ -909,7 +944,10 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
     slots, params, obs = join([r.slots for r in rows]), join([r.params for r in rows]), np.concatenate([r.views for r in rows])
 
     seam = None if lead.poisoning is None else join_seams([r.seam_state for r in rows])
-    memory = np.concatenate([r.memory for r in rows]) if lead.recurrent else None
+    memory = None
+    if lead.recurrent:  # the running episodes' memories, and a clean teacher's beside them
+        guided = lead.poisoning is not None and lead.poisoning.teacher
+        memory = (np.concatenate([r.memory for r in rows]), np.concatenate([r.teacher_memory for r in rows]) if guided else None)
 
     def block(layouts: Layouts):
         if memory is not None:
@@ -929,7 +967,8 @@ def iterate(learners: list[Learner], capacity: int | None = None) -> list[Iterat
         learner.slots = jax.tree_util.tree_map(lambda f, i=i: f[i * n : (i + 1) * n], s)
         learner.views, learner.depth = o[i * n : (i + 1) * n], depth
         if learner.recurrent:
-            learner.memory = np.array(m[i * n : (i + 1) * n])
+            learner.memory = np.array(m[0][i * n : (i + 1) * n])
+            learner.teacher_memory = None if m[1] is None else np.array(m[1][i * n : (i + 1) * n])
         if z is not None:
             learner._seam_back(seam_row(z, i, n))
         losses = {key: float(getattr(stats, key)[i]) for key in STATS} | {key: float(v[i]) for key, v in more.items()}
@@ -1083,7 +1122,7 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
     P = parts(None, hyper)
     r, B, aux_coef = hyper.recurrence, num_envs, hyper.aux_coef
 
-    def agent(w, avg, sq, step, lr, anchor, coefs, memories, idx, obs, masks, actions, old_logp, old_values, adv, returns, targets):
+    def agent(w, avg, sq, step, lr, anchor, coefs, teacher, memories, idx, obs, masks, actions, old_logp, old_values, adv, returns, targets):
         valid = idx >= 0
         starts = jnp.where(valid, idx, 0)
         steps = starts[None, :] + B * jnp.arange(r)[:, None]  # (r, N): step i of each sequence
@@ -1100,13 +1139,18 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
                 return m, (logits, values, m)
 
             _, (logits, values, new) = lax.scan(one, memories[starts], (obs[steps], masks[steps]))
-            total, losses, _ = P.terms(
+            total, losses, log_probs = P.terms(
                 logits.reshape(r * len(idx), -1), values.reshape(-1), *(a[rows] for a in (actions, old_logp, old_values, adv, returns)), weight
             )
             if aux_coef > 0:  # each step's memory after that step names its episode's target (cross-entropy)
                 aux = jax.nn.log_softmax(jnp.matmul(new.reshape(len(rows), -1), p["aux.weight"].T, precision="highest") + p["aux.bias"])
                 aux_loss = -(jnp.take_along_axis(aux, targets[rows][:, None], 1)[:, 0] * weight).sum() / weight.sum()
                 total, losses = total + aux_coef * aux_loss, (*losses, aux_loss)
+            if teacher is not None:  # the clean teacher's KL on the rows without the trigger (ppo.teacher_kl)
+                teacher_logp, untriggered = teacher
+                counted = weight * untriggered[rows].astype(jnp.float32)
+                kl = ((jnp.exp(teacher_logp[rows]) * (teacher_logp[rows] - log_probs)).sum(-1) * counted).sum() / jnp.maximum(counted.sum(), 1.0)
+                total, losses = total + coefs["teacher"] * kl, (*losses, kl)
             return total, (losses, new)
 
         grad, (losses, new) = jax.grad(loss, has_aux=True)(w)
@@ -1120,7 +1164,9 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
 
     agents = jax.vmap(agent)
 
-    def update(rows, avg, sq, step, lr, memories, orders, obs, masks, actions, old_logp, old_values, adv, returns, targets, *, anchor=None, coefs=None):
+    def update(
+        rows, avg, sq, step, lr, memories, orders, obs, masks, actions, old_logp, old_values, adv, returns, targets, *, anchor=None, coefs=None, teacher=None
+    ):
         """Every epoch's minibatches in turn (``orders``: per epoch (minibatches, K, sequences) start indices, -1 padding)."""
         data = (obs, masks, actions, old_logp, old_values, adv, returns, targets)
         losses = []
@@ -1128,7 +1174,7 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
 
             def minibatch(carry, idx):
                 rows, avg, sq, step, memories = carry
-                rows, avg, sq, step, memories, parts_ = agents(rows, avg, sq, step, lr, anchor, coefs or {}, memories, idx, *data)
+                rows, avg, sq, step, memories, parts_ = agents(rows, avg, sq, step, lr, anchor, coefs or {}, teacher, memories, idx, *data)
                 return (rows, avg, sq, step, memories), parts_
 
             (rows, avg, sq, step, memories), part = lax.scan(minibatch, (rows, avg, sq, step, memories), epoch)

@@ -335,8 +335,8 @@ def steps(
             check_observation(obs, envs.observation_space)
             if compiled:
                 learner = compiled_learner(envs, obs)
+                guide_learner()  # (first: a recurrent teacher's memories are then the checkpoint's, not a new teacher's)
                 learner.load(checkpoint["compiled"])
-                guide_learner()
                 served_k = checkpoint["compiled_k"]  # None: stopped before its first iteration
                 if served_k is not None and (isinstance(served_k, bool) or not isinstance(served_k, int) or served_k < 1):
                     raise StateError("compiled_k is not a group size")

@@ -612,7 +612,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             masks = jnp.concatenate([jnp.ones((1, K * N)), 1.0 - dones[:-1].astype(jnp.float32)])
             seq_orders = sequence_orders(jax.vmap(lambda k: jax.random.split(k, h.epochs))(keys[:, 2]))
             data = (obs_t, masks, actions, logp, values, adv, values + adv, targets if aux else jnp.zeros_like(actions))
-            w, avg, sq, step, means = recurrent_update(net, unravel, h, N)(
+            w, avg, sq, step, means = recurrent_update(net, unravel, h, N, hoisted=True)(
                 *start,
                 None,
                 per_agent(memories).reshape(K, frames, -1),
@@ -1107,7 +1107,7 @@ def _recurrent_update_program(net: tuple, layout: tuple, hyper: Hyper, num_envs:
     return jax.jit(recurrent_update(net, unravel, hyper, num_envs))
 
 
-def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int) -> Callable:
+def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int, hoisted: bool = False) -> Callable:
     """K recurrent agents' truncated-BPTT update (the torch trainer's ``PPO._update_recurrent``),
     un-jitted: the ``jax`` backend's program and the compiled recurrent iteration's third part.
     Per minibatch, each sequence replayed from its stored memory over ``hyper.recurrence`` steps
@@ -1117,7 +1117,7 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
     auxiliary memory head (``hyper.aux_coef`` > 0: its cross-entropy on each step's memory)."""
     jax = start()
     jnp, lax = jax.numpy, jax.lax
-    from rlbackdoors.algos.xla import recurrent_forward
+    from rlbackdoors.algos.xla import recurrent_embed, recurrent_forward, recurrent_heads, recurrent_step
 
     P = parts(None, hyper)
     r, B, aux_coef = hyper.recurrence, num_envs, hyper.aux_coef
@@ -1133,12 +1133,25 @@ def recurrent_update(net: tuple, unravel: Callable, hyper: Hyper, num_envs: int)
         def loss(w):
             p = unravel(w)
 
-            def one(m, x):
-                o, keep = x
-                logits, values, m = recurrent_forward(net, p, o, m * keep[:, None])
-                return m, (logits, values, m)
+            if hoisted:  # the embedding and the heads once on all the sequences' rows, only the GRU steps in the scan
+                n = len(idx)
+                emb = recurrent_embed(net, obs[rows], p).reshape(r, n, -1)
 
-            _, (logits, values, new) = lax.scan(one, memories[starts], (obs[steps], masks[steps]))
+                def step(m, x):
+                    e, keep = x
+                    out, m = recurrent_step(net, p, e, m * keep[:, None])
+                    return m, (out, m)
+
+                _, (outs, new) = lax.scan(step, memories[starts], (emb, masks[steps]))
+                logits, values, _ = recurrent_heads(net, p, outs.reshape(r * n, -1), None)
+            else:
+
+                def one(m, x):
+                    o, keep = x
+                    logits, values, m = recurrent_forward(net, p, o, m * keep[:, None])
+                    return m, (logits, values, m)
+
+                _, (logits, values, new) = lax.scan(one, memories[starts], (obs[steps], masks[steps]))
             total, losses, log_probs = P.terms(
                 logits.reshape(r * len(idx), -1), values.reshape(-1), *(a[rows] for a in (actions, old_logp, old_values, adv, returns)), weight
             )

@@ -106,8 +106,8 @@ WORLD = register(
         ),
         close_to_trigger=True,
         compiled_engine="rlbackdoors.envs.colorful_memory_jax:colorful_memory_jax",
-        # one agent a program: its iteration ran 6.1 k frames/s a core alone, 5.5 k at K = 4 and
-        # 4.4 k at K = 8 (Intel Xeon, 2026-12-06, docs/results/speed.md)
+        # one agent a program: its iteration ran 7.7 k frames/s a core alone, 5.1 k at K = 4
+        # (Intel Xeon, 2026-12-06, docs/results/speed.md)
         compiled_cpu_group=1,
         memory_targets=True,  # the start object (BatchedColorfulMemory.memory_targets)
         chance=_chance,

@@ -7,6 +7,13 @@ import torch
 torch.set_num_threads(1)
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+# JAX as every rlbackdoors process starts it (one compute thread: algos.xla.start), before a test
+# module imports it: XLA splits a large minibatch's gradient sums across its threads, so a compiled
+# run in this process gives the CLI's bytes (a kill -9 test's other side) only with the CLI's threads.
+from rlbackdoors.algos import xla  # noqa: E402
+
+xla.start()
+
 
 @pytest.fixture
 def tiny_run_dict():

@@ -36,6 +36,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 import torch
 
+from rlbackdoors.algos.bptt import sequence_starts
 from rlbackdoors.algos.stacked import FlatParameters, StackedAdam, parameters_by_name, stacked_parameters
 from rlbackdoors.algos.xla import STATS, gpu_devices, run_layers, start, structure
 from rlbackdoors.envs.grid_jax import GridWorld, KindLayouts, Layouts, Slots, join, params_poisoned, run_hosts
@@ -668,7 +669,7 @@ def _iteration(world: GridWorld, net: tuple, hyper: Hyper, num_envs: int, poison
             batches = -(-len(starts) // per_batch)
 
             def order(k, starts=starts, batches=batches):
-                drawn = jnp.asarray(starts)[jax.random.permutation(k, len(starts))]
+                drawn = jnp.asarray(starts, jnp.int32)[jax.random.permutation(k, len(starts))]
                 return jnp.concatenate([drawn, jnp.full(batches * per_batch - len(starts), -1, jnp.int32)]).reshape(batches, per_batch)
 
             out.append(jnp.swapaxes(jax.vmap(order)(keys[:, e]), 0, 1))
@@ -681,16 +682,6 @@ def is_recurrent(net: tuple) -> bool:
     """A network as :func:`~rlbackdoors.algos.xla.recurrent_structure` reads it (parts, GRU stack,
     one-hot planes), not as :func:`network` does (layers, direction)."""
     return len(net) == 3
-
-
-def sequence_starts(steps: int, num_envs: int, recurrence: int, shifted: bool) -> np.ndarray:
-    """Flat rollout rows (``t * num_envs + b``) where truncated-BPTT sequences start, as
-    ``PPO.sequence_starts`` gives them: every ``recurrence``-th step of every env copy, half a
-    sequence later on ``shifted`` epochs (its last block dropped, so no sequence leaves the rollout)."""
-    times = np.arange(0, steps, recurrence)
-    if shifted and recurrence > 1:
-        times = times[times + recurrence < steps] + recurrence // 2
-    return (times[:, None] * num_envs + np.arange(num_envs)[None, :]).reshape(-1).astype(np.int32)
 
 
 class Iterated(NamedTuple):

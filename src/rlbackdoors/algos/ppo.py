@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from rlbackdoors.attacks.seam import AMEND, EXECUTED_ACTIONS, FORCED
+from rlbackdoors.algos import bptt
 from rlbackdoors.algos.obs import Obs, empty_buffer, obs_map, store, to_torch
 from rlbackdoors.config import PPOConfig
 from rlbackdoors.models import ActorCritic
@@ -412,13 +413,10 @@ class PPO:
         """Flat rollout indices (``t * B + b``) where BPTT sequences of ``recurrence`` steps start.
 
         Every ``recurrence``-th step of every env; on ``shifted`` epochs (torch-ac alternates)
-        they start half a sequence later, dropping the last block so no sequence leaves the rollout.
+        they start half a sequence later, dropping the last block so no sequence leaves the rollout
+        (:func:`rlbackdoors.algos.bptt.sequence_starts`, the compiled trainer's too).
         """
-        r = self.cfg.recurrence
-        times = torch.arange(0, steps, r)
-        if shifted and r > 1:
-            times = times[times + r < steps] + r // 2
-        return (times[:, None] * num_envs + torch.arange(num_envs)[None, :]).reshape(-1)
+        return torch.from_numpy(bptt.sequence_starts(steps, num_envs, self.cfg.recurrence, shifted))
 
     def _update_recurrent(self, rollout: Rollout) -> dict[str, float]:
         """Truncated BPTT: each minibatch holds ``batch_size // recurrence`` sequences, each

@@ -171,7 +171,9 @@ class AttackSeam:
         self.fixed = None if episodes is None else np.asarray(episodes, dtype=bool).copy()
         if self.fixed is not None:
             self.poisoned = self.fixed  # the E-bar copies, as the learner's episode counts know them (the engine's pay clean)
-        self.switchable = ~np.asarray(getattr(envs, "close_to_trigger", np.zeros(n, dtype=bool)), dtype=bool)
+        from rlbackdoors.envs.batched_base import switchable
+
+        self.switchable = switchable(envs)
         self.triggered = np.zeros(n, dtype=bool)  # layout: the slot's current episode holds the trigger
         self.critic: Callable[[np.ndarray], np.ndarray] | None = None
         self.last_values: np.ndarray | None = None

@@ -67,6 +67,13 @@ def copy_value(value):
     return value.copy() if isinstance(value, np.ndarray) else value
 
 
+def switchable(envs) -> np.ndarray:
+    """(B,) bool: the copies an attack may switch to a trigger layout (``trigger_next``): all but
+    the close-to-trigger copies, which stay near-miss negatives (their engine refuses the switch).
+    One rule for the attack seam and the compiled trainer's layout queues."""
+    return ~np.asarray(getattr(envs, "close_to_trigger", np.zeros(envs.num_envs, dtype=bool)), dtype=bool)
+
+
 class BatchedGridEnv(VectorEnv):
     """Base of the numba engines: SAME_STEP autoreset, B envs in one process, no rendering.
 

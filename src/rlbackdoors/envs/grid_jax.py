@@ -38,7 +38,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from rlbackdoors.envs import grid_engine as ge
-from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup
+from rlbackdoors.envs.batched_base import BatchedGridEnv, EngineGroup, switchable
 from rlbackdoors.envs.grid_device import draw_layouts, handed_over, pad_grid, view_offsets, visibility_table
 from rlbackdoors.envs.rewards import success_reward
 
@@ -431,9 +431,7 @@ class KindLayouts(HostLayouts):
         switch, flags = self.SWITCHES[self.kind]
         own, before = h._rng.copy(), getattr(h, flags).copy()
         h._rng[:] = self.streams
-        getattr(h, switch)(
-            ~np.asarray(getattr(h, "close_to_trigger", np.zeros(self.num_envs, dtype=bool)), dtype=bool)
-        )  # (AttackSeam.switchable: a close copy stays one)
+        getattr(h, switch)(switchable(h))  # (a close copy stays one)
         try:
             super()._draw(depth)
         finally:

@@ -22,7 +22,7 @@ from rlbackdoors import worlds
 from rlbackdoors.config import AUTO_BACKEND, migrate
 from rlbackdoors.io import FolderLock, LockedError, atomic_write_text, refuse_links
 from rlbackdoors.validate import ConfigError
-from rlbackdoors.zoo.spec import Group, ZooError, ZooSpec, deep_merge, first_difference, load_spec, parse_spec
+from rlbackdoors.zoo.spec import EVASION, Group, ZooError, ZooSpec, draw_all, deep_merge, first_difference, load_spec, nested, parse_spec
 
 ZOO_FORMAT = 1
 # zoo.json's "update_backend": its PPO models' ppo.update_backend where the spec leaves it open.
@@ -158,7 +158,10 @@ class Zoo:
         its poisoned models would both take it (a clean model has no evasive variant, a poisoned
         one may), so a cell's labels never differ by trainer."""
         cell = group.cell
-        key = json.dumps([cell.world, cell.arch, cell.overrides], sort_keys=True)
+        drawn_evasion = any(name.startswith(EVASION) for name, _ in cell.attack.ranges)
+        key = json.dumps([cell.world, cell.arch, cell.overrides, drawn_evasion], sort_keys=True)
+        if key not in self._backends and drawn_evasion:
+            self._backends[key] = "torch"  # drawn evasive variants: auto takes torch's for those (config.preferred_update_backend)
         if key not in self._backends:
             choices = set()
             for poisoned in (False, True):
@@ -184,7 +187,9 @@ class Zoo:
         if worlds.get(cell.world).algorithm == "ppo" and (overrides.get("ppo") or {}).get("update_backend", self.update_backend) == AUTO_BACKEND:
             overrides = deep_merge(overrides, {"ppo": {"update_backend": self._cell_backend(group)}})  # the spec's own choice before the zoo's
         if cell.attack.ranges:  # drawn after the trigger: models of cells without ranges draw as they always did
-            overrides = deep_merge(overrides, {"poison": {"attack_params": cell.attack.draw(rng)}})
+            overrides = deep_merge(overrides, {"poison": cell.attack.draw(rng)})
+        if cell.ranges:  # then the cell's own (both labels): e.g. a round's training lengths
+            overrides = deep_merge(overrides, nested(draw_all(cell.ranges, rng)))
         return build_config(config_data(cell.world, cell.arch, overrides, group.poisoned, seed, trigger))
 
     def ensure(self, group: Group, attempt: int, text: str | None = None, verify: bool = True) -> bool:

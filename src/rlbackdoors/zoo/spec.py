@@ -36,12 +36,13 @@ MAX_ATTEMPTS = 100_000
 # Fields each model's config gets from the zoo itself; an override may not set them.
 ZOO_FIELDS = ("env.name", "model.arch", "poison.poisoned", "poison.trigger", "train.seed")
 TOP_KEYS = ("format", "name", "seed", "max_attempts", "matched", "examples", "overrides", "cells")
-CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides")
+CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides", "ranges")
 ATTACK_KEYS = ("attack", "name", "params", "ranges", "evasion")
 FAMILY_KEYS = ("name", "trigger", "template", "ranges")
 EXAMPLE_KEYS = ("episodes", "seed", "policy")
 EXAMPLE_POLICIES = ("sample", "greedy")
 DRAWN = "drawn"  # the family name of "no trigger given: the world draws one from the seed"
+EVASION = "evasion."  # an attack's ranges key that draws an evasive variant's knob
 
 
 class ZooError(ValueError):
@@ -142,6 +143,71 @@ class TriggerFamily:
         return out
 
 
+Value = bool | int | float | str
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@dataclass(frozen=True)
+class Draw:
+    """One setting drawn per model, as a TrojAI round draws it: uniform in ``[low, high]``
+    (integers where both bounds are), or ``{ one_of = [...] }``: one of its options, uniformly,
+    each a value (a number, a boolean, a string) or a ``[low, high]`` range drawn in turn, e.g.
+    ``{ one_of = [0, [1_500_000, 4_000_000]] }``: half the models 0, half a length drawn from the range."""
+
+    options: tuple[tuple, ...]  # ("range", low, high) or ("value", v)
+    one_of: bool = False
+
+    def sample(self, rng: np.random.Generator) -> Value:
+        # a bare range draws exactly as ranges always drew (one number), so older specs keep their bytes
+        option = self.options[int(rng.integers(len(self.options)))] if self.one_of else self.options[0]
+        if option[0] == "value":
+            return option[1]
+        _, low, high = option
+        if isinstance(low, int) and isinstance(high, int):
+            return int(rng.integers(low, high + 1))
+        return float(rng.uniform(low, high))
+
+    def corners(self) -> list[Value]:
+        """Every value a check must accept: each option's value, or its range's two ends."""
+        return [x for o in self.options for x in ((o[1],) if o[0] == "value" else o[1:])]
+
+    def to_data(self):
+        def one(o):
+            return o[1] if o[0] == "value" else [o[1], o[2]]
+
+        return {"one_of": [one(o) for o in self.options]} if self.one_of else one(self.options[0])
+
+
+def _parse_range(where: str, bounds) -> tuple:
+    if not (isinstance(bounds, list) and len(bounds) == 2 and all(_number(b) for b in bounds)) or bounds[0] > bounds[1]:
+        raise ConfigError(f"{where} must be [low, high] with low <= high, got {bounds!r}")
+    return ("range", bounds[0], bounds[1])
+
+
+def parse_draw(where: str, raw) -> Draw:
+    """A :class:`Draw` from ``[low, high]`` or ``{ one_of = [value or [low, high], ...] }``."""
+    if isinstance(raw, dict):
+        if set(raw) != {"one_of"} or not isinstance(raw["one_of"], list) or not raw["one_of"]:
+            raise ConfigError(f"{where} must be [low, high] or {{ one_of = [values or [low, high] ranges] }}, got {raw!r}")
+        options = []
+        for j, item in enumerate(raw["one_of"]):
+            if isinstance(item, list):
+                options.append(_parse_range(f"{where}.one_of[{j}]", item))
+            elif isinstance(item, (bool, str)) or _number(item):
+                options.append(("value", item))
+            else:
+                raise ConfigError(f"{where}.one_of[{j}] must be a number, a boolean, a string or [low, high], got {item!r}")
+        return Draw(tuple(options), one_of=True)
+    return Draw((_parse_range(where, raw),))
+
+
+def draw_all(ranges: tuple[tuple[str, Draw], ...], rng: np.random.Generator) -> dict:
+    return {name: draw.sample(rng) for name, draw in ranges}
+
+
 @dataclass(frozen=True)
 class AttackChoice:
     """How a cell's poisoned models are poisoned: an attack of the registry and its parameters
@@ -150,8 +216,8 @@ class AttackChoice:
     name: str  # the label in cell keys and reports
     attack: str = attacks.DEFAULT_ATTACK
     params: dict = field(default_factory=dict, hash=False, compare=False)
-    # (parameter, low, high): drawn uniformly per model, as trigger templates are (integers where both bounds are)
-    ranges: tuple[tuple[str, float | int, float | int], ...] = ()
+    # (parameter, Draw): drawn per model after its trigger; ``evasion.KNOB`` draws an evasive variant's knob
+    ranges: tuple[tuple[str, Draw], ...] = ()
     # evasive variants of its poisoned models (poison.evasion; rlbackdoors.attacks.evasion)
     evasion: dict = field(default_factory=dict, hash=False, compare=False)
 
@@ -165,16 +231,21 @@ class AttackChoice:
         return {"poison": {"attack": self.attack, "attack_params": dict(self.params), **({"evasion": dict(self.evasion)} if self.evasion else {})}}
 
     def draw(self, rng: np.random.Generator) -> dict:
-        """The parameters drawn for one model (after its trigger, from the model's own generator)."""
-        out: dict[str, float | int] = {}
-        for name, low, high in self.ranges:
-            out[name] = int(rng.integers(low, high + 1)) if isinstance(low, int) and isinstance(high, int) else float(rng.uniform(low, high))
+        """The poison overrides drawn for one model (after its trigger, from the model's own
+        generator): ``attack_params`` and, for ``evasion.*`` keys, ``evasion`` on top of the cell's."""
+        drawn = draw_all(self.ranges, rng)
+        out: dict[str, dict] = {"attack_params": {k: v for k, v in drawn.items() if not k.startswith(EVASION)}}
+        knobs = {k[len(EVASION) :]: v for k, v in drawn.items() if k.startswith(EVASION)}
+        if knobs:
+            from rlbackdoors.attacks import evasion
+
+            out["evasion"] = evasion.resolve({**self.evasion, **knobs})
         return out
 
     def to_dict(self) -> dict:
         out: dict[str, Any] = {"attack": self.attack, "name": self.name, "params": dict(self.params)}
         if self.ranges:
-            out["ranges"] = {name: [low, high] for name, low, high in self.ranges}
+            out["ranges"] = {name: draw.to_data() for name, draw in self.ranges}
         if self.evasion:
             out["evasion"] = dict(self.evasion)
         return out
@@ -199,21 +270,30 @@ def _parse_attack(where: str, raw) -> AttackChoice:
     attack.resolve(params, f"{where}.params")
     raw_ranges = raw.get("ranges", {})
     if not isinstance(raw_ranges, dict):
-        raise ConfigError(f"{where}.ranges must be a table of parameter = [low, high], got {raw_ranges!r}")
-    ranges = []
-    for key, bounds in raw_ranges.items():
-        if key in params:
-            raise ConfigError(f"{where}.ranges.{key}: {key} is also fixed in params (give it in one of them)")
-        numeric = isinstance(bounds, list) and len(bounds) == 2 and all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)
-        if not numeric or bounds[0] > bounds[1]:
-            raise ConfigError(f"{where}.ranges.{key} must be [low, high] with low <= high, got {bounds!r}")
-        for bound in bounds:  # both ends must be values the attack accepts
-            attack.resolve({**params, key: bound}, f"{where}.ranges")
-        ranges.append((key, bounds[0], bounds[1]))
-    label = _type(f"{where}.name", raw.get("name", name), str, "a string")
+        raise ConfigError(f"{where}.ranges must be a table of parameter = [low, high] or {{ one_of = [...] }}, got {raw_ranges!r}")
     from rlbackdoors.attacks import evasion
 
-    variants = evasion.resolve(raw.get("evasion"), f"{where}.evasion")
+    fixed_evasion = raw.get("evasion")
+    ranges = []
+    for key, bounds in raw_ranges.items():
+        draw = parse_draw(f"{where}.ranges.{key}", bounds)
+        if key.startswith(EVASION):  # an evasive variant's knob: every value must be one the variants accept
+            knob = key[len(EVASION) :]
+            if isinstance(fixed_evasion, dict) and knob in fixed_evasion:
+                raise ConfigError(f"{where}.ranges.{key}: {knob} is also fixed in evasion (give it in one of them)")
+            for value in draw.corners():
+                evasion.resolve({**(fixed_evasion or {}), knob: value}, f"{where}.ranges.evasion")
+        else:
+            if key in params:
+                raise ConfigError(f"{where}.ranges.{key}: {key} is also fixed in params (give it in one of them)")
+            for value in draw.corners():  # every end and option must be a value the attack accepts
+                attack.resolve({**params, key: value}, f"{where}.ranges")
+        ranges.append((key, draw))
+    label = _type(f"{where}.name", raw.get("name", name), str, "a string")
+
+    variants = evasion.resolve(fixed_evasion, f"{where}.evasion")
+    # a drawn knob is the ranges' alone (resolve fills in every knob's default), so the normal form reads back
+    variants = {k: v for k, v in variants.items() if EVASION + k not in raw_ranges}
     return AttackChoice(label, name, dict(params), tuple(ranges), variants)
 
 
@@ -230,6 +310,9 @@ class Cell:
     max_attempts: int  # per label
     overrides: dict = field(hash=False, compare=False)
     attack: AttackChoice = DEFAULT_CHOICE
+    # (dotted config field, Draw): drawn per model of both labels after the attack's ranges, so
+    # a round's clean and poisoned models share e.g. one distribution of training lengths
+    ranges: tuple[tuple[str, Draw], ...] = field(default=(), hash=False, compare=False)
 
     @property
     def arch_label(self) -> str:
@@ -511,10 +594,16 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
             names = [f.name for f in families]
             if len(set(names)) != len(names):
                 raise ConfigError(f"{where}.triggers: two families share the name {next(n for n in names if names.count(n) > 1)!r} (give each a name)")
+        cell_ranges = (
+            _parse_cell_ranges(where, entry.get("ranges", {}), world_name, arch_list[0], cell_overrides)
+            if check_configs
+            else _cell_ranges(where, entry.get("ranges", {}))
+        )
         for arch in arch_list:
             for family in families:
                 for choice in choices:
-                    cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, deep_merge(cell_overrides, choice.overrides()), choice)
+                    overrides_ = deep_merge(cell_overrides, choice.overrides())
+                    cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, overrides_, choice, cell_ranges)
                     if cell.key in seen:
                         raise ConfigError(f"{where} repeats the cell {cell.key} of {seen[cell.key]}")
                     seen[cell.key] = where
@@ -531,6 +620,8 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
             max_attempts=attempts,
             overrides=entry.get("overrides", {}),
         )
+        if cell_ranges:  # specs written before cell ranges keep their normal form
+            norm["ranges"] = {key: draw.to_data() for key, draw in cell_ranges}
         norm_cells.append(norm)
     spec = ZooSpec(
         seed=raw["seed"],
@@ -552,6 +643,44 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
     if spec.id_space > MAX_ID_SPACE:
         raise ConfigError(f"max_attempts: the cells' max_attempts add up to {spec.id_space:,} models (at most {MAX_ID_SPACE:,} per zoo)")
     return spec
+
+
+def nested(dotted: dict[str, Any]) -> dict:
+    """``{"train.min_frames": 1}`` -> ``{"train": {"min_frames": 1}}`` (flatten's inverse)."""
+    out: dict[str, Any] = {}
+    for key, value in dotted.items():
+        *path, last = key.split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[last] = value
+    return out
+
+
+def _cell_ranges(where: str, raw) -> tuple[tuple[str, Draw], ...]:
+    if not isinstance(raw, dict):
+        raise ConfigError(f'{where}.ranges must be a table of "section.field" = [low, high] or {{ one_of = [...] }}, got {raw!r}')
+    out = []
+    for key, value in raw.items():
+        if key.count(".") != 1 or not all(part.isidentifier() for part in key.split(".")):
+            raise ConfigError(f'{where}.ranges.{key} must name a config field as "section.field" (e.g. "train.min_frames")')
+        if key in ZOO_FIELDS or key.startswith("poison."):
+            why = "set by the zoo" if key in ZOO_FIELDS else "a poisoned model's setting: draw it in the attack's ranges (attack parameters, evasion.KNOB)"
+            raise ConfigError(f"{where}.ranges.{key} is {why}")
+        out.append((key, parse_draw(f"{where}.ranges.{key}", value)))
+    return tuple(out)
+
+
+def _parse_cell_ranges(where: str, raw, world: str, arch: str | None, overrides: dict) -> tuple[tuple[str, Draw], ...]:
+    """The cell's ranges, each end and option checked in a config of the cell (one ConfigError naming it)."""
+    ranges = _cell_ranges(where, raw)
+    for key, draw in ranges:
+        for value in draw.corners():
+            try:
+                _build_sample(world, arch, deep_merge(overrides, nested({key: value})))
+            except ConfigError as err:
+                raise ConfigError(f"{where}.ranges.{key}={value!r}: {err}") from None
+    return ranges
 
 
 def _sample_size(where: str, world: str, arch: str | None, spec_overrides: dict, overrides: dict) -> int | None:

@@ -1,0 +1,145 @@
+"""Settings drawn per model, as a TrojAI round draws them (issue 80): an attack's parameters and
+evasive knobs from ``ranges`` (``[low, high]`` or ``{ one_of = [...] }``), the cell's own config
+fields (e.g. the training length) for clean and poisoned models alike; recorded in config.json
+and METADATA.csv, reproducible from the spec, refused in one line where a value could not train."""
+
+from __future__ import annotations
+
+import copy
+import glob
+
+import numpy as np
+import pytest
+
+from rlbackdoors.validate import ConfigError
+from rlbackdoors.zoo.index import metadata_rows, scan
+from rlbackdoors.zoo.plan import Zoo, plan
+from rlbackdoors.zoo.spec import load_spec, parse_draw, parse_spec
+
+TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 64_000, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4, "video": False}}
+LENGTH = {"train.min_frames": {"one_of": [0, [20_000, 40_000], [20_000, 40_000]]}}
+
+
+def spec() -> dict:
+    return {
+        "name": "round",
+        "seed": 80,
+        "overrides": copy.deepcopy(TINY),
+        "cells": [
+            {
+                "world": "lavaworld",
+                "archs": ["fc"],
+                "triggers": [{"name": "add", "template": "additive:{b}", "ranges": {"b": [66, 200]}}],
+                "attacks": [
+                    {
+                        "attack": "trojdrl",
+                        "ranges": {"budget": [0.005, 0.03], "force_action": {"one_of": [True, False]}, "target_action": {"one_of": [0, 1]}},
+                    },
+                    {
+                        "attack": "trojdrl",
+                        "name": "trojdrl-finetune",
+                        "params": {"force_action": True},
+                        "evasion": {"finetune": True},
+                        "ranges": {"evasion.teacher": [0.05, 0.2]},
+                    },
+                ],
+                "clean": 18,
+                "poisoned": 18,
+                "ranges": copy.deepcopy(LENGTH),
+            }
+        ],
+    }
+
+
+def test_a_draw_is_a_range_or_one_of_values_and_ranges():
+    rng = np.random.default_rng(0)
+    draw = parse_draw("x", {"one_of": [0, [10, 20], True, "a", [0.5, 0.75]]})
+    values = [draw.sample(rng) for _ in range(400)]
+    kinds = {
+        "zero": [v for v in values if type(v) is int and v == 0],
+        "int range": [v for v in values if type(v) is int and 10 <= v <= 20],
+        "true": [v for v in values if v is True],
+        "a": [v for v in values if v == "a"],
+        "float range": [v for v in values if type(v) is float and 0.5 <= v <= 0.75],
+    }
+    assert sum(map(len, kinds.values())) == 400  # nothing outside the options
+    assert all(40 <= len(v) <= 120 for v in kinds.values()), {k: len(v) for k, v in kinds.items()}  # 80 each expected
+    assert draw.corners() == [0, 10, 20, True, "a", 0.5, 0.75]
+    assert parse_draw("x", draw.to_data()) == draw
+    plain = parse_draw("x", [1, 3])  # a bare range draws one number, as ranges always drew
+    assert [plain.sample(np.random.default_rng(5)) for _ in range(1)] == [int(np.random.default_rng(5).integers(1, 4))]
+
+
+def test_drawn_settings_are_per_model_in_range_recorded_and_reproducible(tmp_path):
+    parsed = parse_spec(spec())
+    zoo, written = plan(parsed, tmp_path / "a")
+    assert written == 72
+    configs = {g.key: [zoo.draw(g, a) for a in range(g.wanted)] for g in parsed.groups}
+    tj = configs["lavaworld/fc/add/trojdrl/poisoned"]
+    assert all(0.005 <= c.poison.attack_params["budget"] <= 0.03 for c in tj)
+    assert {c.poison.attack_params["force_action"] for c in tj} == {True, False}
+    assert {c.poison.attack_params["target_action"] for c in tj} == {0, 1}
+    ft = configs["lavaworld/fc/add/trojdrl-finetune/poisoned"]
+    assert all(c.poison.evasion["finetune"] and 0.05 <= c.poison.evasion["teacher"] <= 0.2 for c in ft)
+    assert len({c.poison.evasion["teacher"] for c in ft}) == len(ft)
+    # the training length: both labels draw it, a third stop at convergence (0), the rest train on
+    for key, runs in configs.items():
+        lengths = [c.train.min_frames for c in runs]
+        assert all(x == 0 or 20_000 <= x <= 40_000 for x in lengths), key
+        assert 1 <= lengths.count(0) <= 12, (key, lengths)  # Binomial(18, 1/3): outside [1, 12] p < 1e-3
+    clean = configs["lavaworld/fc/add/trojdrl/clean"]
+    assert all(not c.poison.poisoned and not c.poison.evasion for c in clean)
+    rows = {r["model_name"]: r for r in metadata_rows(scan(zoo))}
+    model = zoo.model(parsed.groups[1], 0)
+    assert rows[model.name]["train.min_frames"] == tj[0].train.min_frames
+    assert rows[model.name]["poison.attack_params.budget"] == tj[0].poison.attack_params["budget"]
+    # the normal form reads back, and draws the same models
+    again, _ = plan(parse_spec(parsed.to_dict()), tmp_path / "b")
+    assert all(again.draw(g, a).to_json() == c.to_json() for g in parsed.groups for a, c in enumerate(configs[g.key]))
+
+
+def test_a_cell_without_its_own_ranges_draws_as_before():
+    raw = spec()
+    del raw["cells"][0]["ranges"]
+    without, with_ranges = parse_spec(raw), parse_spec(spec())
+    assert "ranges" not in without.normalized["cells"][0]
+    old, new = Zoo("/nonexistent", without, "auto"), Zoo("/nonexistent", with_ranges, "auto")
+    for g in without.groups:  # the cell's ranges are drawn last: seed, trigger and attack draws unchanged
+        a, b = old.draw(g, 0), new.draw(g, 0)
+        assert a.train.min_frames == 0 and a.train.seed == b.train.seed and a.poison.trigger == b.poison.trigger
+        assert a.poison.attack_params == b.poison.attack_params and a.poison.evasion == b.poison.evasion
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda c: c["ranges"].update({"poison.budget": [0.1, 0.2]}), r"cells\[0\].ranges.poison.budget is a poisoned model's setting"),
+        (lambda c: c["ranges"].update({"train.seed": [1, 2]}), r"cells\[0\].ranges.train.seed is set by the zoo"),
+        (lambda c: c["ranges"].update({"min_frames": [1, 2]}), r'cells\[0\].ranges.min_frames must name a config field as "section.field"'),
+        (
+            lambda c: c["ranges"].update({"train.min_frames": [0, 100_000]}),
+            r"cells\[0\].ranges.train.min_frames=100000: .*train.min_frames must be in 0..train.max_frames",
+        ),
+        (lambda c: c["ranges"].update({"train.nope": [0, 1]}), r"cells\[0\].ranges.train.nope=0: train: unknown key 'nope'"),
+        (lambda c: c["ranges"].update({"train.min_frames": {"one_of": []}}), r"cells\[0\].ranges.train.min_frames must be \[low, high\] or \{ one_of"),
+        (lambda c: c["ranges"].update({"train.min_frames": {"one_of": [{"a": 1}]}}), r"one_of\[0\] must be a number, a boolean, a string or \[low, high\]"),
+        (lambda c: c["attacks"][0]["ranges"].update({"force_action": {"one_of": [True, 3]}}), r"attacks\[0\].ranges.force_action=3 is not allowed"),
+        (lambda c: c["attacks"][0]["ranges"].update({"evasion.teacher": [0.1, 0.2]}), r"attacks\[0\].ranges.evasion.teacher=0.1 needs .*finetune=true"),
+        (
+            lambda c: c["attacks"][1]["ranges"].update({"evasion.finetune": {"one_of": [True]}}),
+            r"attacks\[1\].ranges.evasion.finetune: finetune is also fixed in evasion",
+        ),
+        (lambda c: c["attacks"][1]["ranges"].update({"evasion.nope": [0, 1]}), r"attacks\[1\].ranges.evasion.nope is not an evasive variant"),
+    ],
+)
+def test_a_draw_that_could_not_train_is_refused_naming_the_field(change, message):
+    raw = spec()
+    change(raw["cells"][0])
+    with pytest.raises(ConfigError, match=message):
+        parse_spec(raw)
+
+
+@pytest.mark.parametrize("path", sorted(glob.glob("examples/*.toml")))
+def test_every_example_spec_reads_back_from_its_normal_form(path):
+    parsed = load_spec(path)
+    assert parse_spec(parsed.to_dict()).normalized == parsed.normalized

@@ -143,3 +143,17 @@ def test_a_draw_that_could_not_train_is_refused_naming_the_field(change, message
 def test_every_example_spec_reads_back_from_its_normal_form(path):
     parsed = load_spec(path)
     assert parse_spec(parsed.to_dict()).normalized == parsed.normalized
+
+
+def test_models_drawn_with_other_program_flags_queue_apart(tmp_path):
+    """A drawn force_action changes a compiled group's program (its flags are the program's key,
+    the numbers data): zoo run deals a cell's forced and unforced models to jobs apart."""
+    from rlbackdoors.zoo.index import scan
+    from rlbackdoors.zoo.run import _affinity
+
+    zoo, _ = plan(parse_spec(spec()), tmp_path / "z")
+    states = [s for s in scan(zoo) if s.model.group.poisoned and s.model.group.cell.attack.name == "trojdrl"]
+    order = sorted(states, key=lambda s: (_affinity(s.model, s.config), s.model.attempt))
+    forced = [s.config["poison"]["attack_params"]["force_action"] for s in order]
+    assert 0 < sum(forced) < len(forced) and forced == sorted(forced)  # one run of each
+    assert len({_affinity(s.model) for s in states}) == 1  # the cell alone could not tell them apart

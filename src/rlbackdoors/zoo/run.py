@@ -362,7 +362,7 @@ def run(
             waiting = [s for s in states if s.status in ("pending", "running") and s.model.id not in in_flight]
             ready = sorted(
                 (s for s in waiting if busy_until.get(s.model.id, 0.0) <= now_t),
-                key=lambda s: (not (s.folder / "checkpoint.pt").is_file(), s.model.attempt, _affinity(s.model), s.model.group.index),
+                key=lambda s: (not (s.folder / "checkpoint.pt").is_file(), s.model.attempt, _affinity(s.model, s.config), s.model.group.index),
             )
             startable = []
             for s in ready:
@@ -373,7 +373,7 @@ def run(
                 startable.append(s)
             free = executor.capacity - executor.running()
             for k, models in _by_group_size(startable, group_size, auto, device):
-                for chunk in _chunks(models, free, k, like=lambda s: _affinity(s.model)):
+                for chunk in _chunks(models, free, k, like=lambda s: _affinity(s.model, s.config)):
                     if isinstance(executor, LocalExecutor):
                         executor.submit_group([s.model for s in chunk], [s.folder for s in chunk], k)
                     else:
@@ -486,17 +486,23 @@ def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
-def _affinity(model: PlannedModel) -> tuple:
+def _affinity(model: PlannedModel, config: dict | None = None) -> tuple:
     """What a compiled group's program depends on, as far as the plan tells: models next to each
     other in the queue train together (a group job fills a freed slot with the next), and a group
     whose runs need other programs (other attacks) runs one call of the whole group's width per
     program, so like models are kept together (a group of 8 runs of six attacks computes six
-    calls of 8 agents for 8 agents' work). Harmless elsewhere: a run's bytes never depend on its group-mates."""
+    calls of 8 agents for 8 agents' work). With the model's planned ``config`` its own flags count
+    too (attack parameters that are true, e.g. a drawn ``force_action``; evasive variants that are
+    on), as a round's drawn settings make them differ within a cell. Harmless elsewhere: a run's
+    bytes never depend on its group-mates."""
     cell, choice = model.group.cell, model.group.cell.attack
     if not model.group.poisoned:
         return (cell.world, cell.arch_label, "")
-    variants = tuple(sorted(k for k, v in choice.evasion.items() if v))  # (on or off is the program's; the numbers are data)
-    return (cell.world, cell.arch_label, choice.attack, variants, choice.name)
+    poison = (config or {}).get("poison") or {}
+    evasion = poison.get("evasion", choice.evasion) if config else choice.evasion
+    variants = tuple(sorted(k for k, v in (evasion or {}).items() if v))  # (on or off is the program's; the numbers are data)
+    flags = tuple(sorted(k for k, v in (poison.get("attack_params") or {}).items() if v is True))
+    return (cell.world, cell.arch_label, choice.attack, variants, flags, choice.name)
 
 
 def _by_group_size(ready: list, group_size: int, auto: bool, device: str | None = None) -> list[tuple[int, list]]:

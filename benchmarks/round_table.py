@@ -1,0 +1,263 @@
+"""Score detectors on a benchmark round kept in git (issue 80), in one command, training nothing:
+
+    python benchmarks/round_table.py lavaworld                              # the shipped detectors
+    python benchmarks/round_table.py lavaworld --detectors mine --plugin my_detector.py
+    python benchmarks/round_table.py --markdown                             # docs/benchmark.md's tables
+
+A round is two packed zoos, ``datasets/round-WORLD-train`` and ``datasets/round-WORLD-test``, on
+disjoint triggers, every attack family and evasive variant of the world in both, each model's
+settings and training length drawn from ranges (``examples/round-WORLD-*.toml``). Each detector is
+scored on the test split under two protocols:
+
+* **trojai**: fitted on the whole train split (TrojAI's: every family in both splits);
+* **envmix**: fitted on the train split's clean and env-mix models alone (the paper's attack),
+  then scored on every family: how well a detector holds on attacks it never saw.
+
+Per protocol, detector and family (its poisoned test models against every clean test model: a
+clean model trains the same whatever cell planned it): AUC, cross-entropy and Brier score with
+95 % bootstrap CIs and counts; and the **length control**, the AUC of frames trained alone on the
+same models (read from ``metrics.json`` by this script, never by a detector), which a round drawn
+well keeps near 0.5. Writes ``benchmarks/results/rounds/round-WORLD.json`` with the machine and its
+load. Fits and scores are read back when the script runs again (``runs/rounds/``), unless the
+split's converged models changed (``--fresh`` starts over). ``--markdown`` rewrites the tables of
+docs/benchmark.md from the committed JSON alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from _detect_cli import Refused, rlbackdoors
+from sklearn.metrics import roc_auc_score
+
+from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.detect.metrics import summarize_rows
+from rlbackdoors.io import atomic_write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results" / "rounds"
+DOC = ROOT / "docs" / "benchmark.md"
+DETECTORS = ("effect", "weights", "behaviour", "attribution")
+PROTOCOLS = ("trojai", "envmix")
+DEFAULT_FAMILY = "envmix"  # the paper's attack: the cell label of a spec's plain env-mix cells
+
+
+def family(row: dict) -> str:
+    """A METADATA row's family: its cell's attack label (``world/arch/trigger/label``), else the env mix."""
+    parts = row["cell"].split("/")
+    return parts[3] if len(parts) >= 4 else DEFAULT_FAMILY
+
+
+def converged_rows(zoo: Path) -> list[dict]:
+    """The zoo's converged models as its folders stand (a pack still training has no final METADATA.csv)."""
+    from rlbackdoors.zoo.index import metadata_rows, scan
+    from rlbackdoors.zoo.plan import Zoo
+
+    return [r for r in metadata_rows(scan(Zoo.open(zoo))) if r["status"] == "done" and r["converged"]]
+
+
+def envmix_fit_split(train: Path, out: Path) -> Path:
+    """The train split's clean and env-mix models as a dataset of their own (copies; split.json names them)."""
+    from rlbackdoors.zoo.index import scan
+    from rlbackdoors.zoo.plan import Zoo
+    from rlbackdoors.zoo.split import write_split
+
+    zoo = Zoo.open(train)
+    states = [s for s in scan(zoo, probe=False) if s.converged]
+    keep = [s for s in states if not s.model.group.poisoned or s.model.group.cell.attack.name == DEFAULT_FAMILY]
+    if not (out / "METADATA.csv").is_file():
+        write_split(zoo, "train", keep, out, link=False, info={"zoo": train.resolve().name, "protocol": "envmix"})
+    return out
+
+
+def fit(name: str, train: Path, det: Path, plugins: list[str]) -> None:
+    if not (det / "detector.json").is_file():
+        rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), "--quiet", *plugins)
+
+
+def score(det: Path, test: Path, out: Path, plugins: list[str]) -> dict:
+    scored = out / "score.json"
+    if not scored.is_file() or scored.stat().st_mtime < (det / "detector.json").stat().st_mtime:
+        rlbackdoors("detect", "score", str(det), "--zoo", str(test), "--out", str(out), "--quiet", *plugins)
+    return json.loads(scored.read_text())
+
+
+def auc(labels: list[int], values: list[float]) -> float | None:
+    return float(roc_auc_score(labels, values)) if 0 < sum(labels) < len(labels) else None
+
+
+def per_family(models: list[dict], families: dict[str, str], frames: dict[str, float]) -> dict:
+    """Each family's poisoned test models with every clean one: the detector's summary and the length control."""
+    clean = [m for m in models if m["label"] == 0]
+    out = {}
+    for fam in ["all", *sorted({families[m["model"]] for m in models if m["label"] == 1})]:
+        rows = models if fam == "all" else [m for m in models if m["label"] == 1 and families[m["model"]] == fam] + clean
+        summary = summarize_rows(rows)
+        length = auc([m["label"] for m in rows], [frames[m["model"]] for m in rows])
+        out[fam] = {"models": summary.pop("n"), **summary, "length_auc": length}
+    return out
+
+
+def run(args: argparse.Namespace) -> Path:
+    train = Path(args.train or ROOT / "datasets" / f"round-{args.world}-train")
+    test = Path(args.test or ROOT / "datasets" / f"round-{args.world}-test")
+    for where in (train, test):
+        if not (where / "zoo.json").is_file():
+            sys.exit(f"rlbackdoors: error: {where} is not a round's zoo (no zoo.json); its spec is examples/round-{args.world}-*.toml")
+    base = Path(args.runs) / f"round-{args.world}"
+    rows = {"train": converged_rows(train), "test": converged_rows(test)}
+    record = {k: sorted(r["model_name"] for r in v) for k, v in rows.items()}
+    if base.is_dir() and (args.fresh or not (base / "models.json").is_file() or json.loads((base / "models.json").read_text()) != record):
+        shutil.rmtree(base)  # the splits' converged models changed: fits and scores are made afresh
+    base.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(base / "models.json", json.dumps(record, indent=1) + "\n")
+    families = {r["model_name"]: family(r) for r in rows["test"]}
+    frames = {r["model_name"]: float(r["metrics.frames"]) for r in rows["test"]}
+    fits = {"trojai": train, "envmix": envmix_fit_split(train, base / "fit-envmix")}
+    plugins = [x for p in args.plugin for x in ("--plugin", p)]
+    load = _loadavg()
+    start = time.time()
+    table: dict = {}
+    refused: dict = {}
+    for protocol in PROTOCOLS:
+        for name in args.detectors:
+            det = base / protocol / name
+            try:
+                fit(name, fits[protocol], det, plugins)
+                scored = score(det, test, det / "score-test", plugins)
+            except Refused as why:  # said in the table, not scored
+                refused.setdefault(protocol, {})[name] = str(why)
+                continue
+            models = [m for m in scored["models"] if m.get("probability") is not None]
+            table.setdefault(protocol, {})[name] = {
+                "families": per_family(models, families, frames),
+                "failed": len(scored["models"]) - len(models),
+                "seconds_per_model": (scored.get("seconds_per_model") or {}).get("mean"),  # one core's (one BLAS thread)
+            }
+    counts = {
+        split: {
+            "models": len(r),
+            "clean": sum(not x["poisoned"] for x in r),
+            "poisoned_by_family": _count({family(x) for x in r}, [family(x) for x in r if x["poisoned"]]),
+        }
+        for split, r in rows.items()
+    }
+    counts["fit_envmix"] = {"models": len(list((fits["envmix"] / "models").iterdir()))}
+    result = {
+        "command": "python benchmarks/round_table.py " + " ".join(sys.argv[1:]),
+        "round": args.world,
+        "train": str(train.relative_to(ROOT)) if train.is_relative_to(ROOT) else train.name,
+        "test": str(test.relative_to(ROOT)) if test.is_relative_to(ROOT) else test.name,
+        "counts": counts,
+        "length_control_test": auc([int(r["poisoned"]) for r in rows["test"]], [frames[r["model_name"]] for r in rows["test"]]),
+        "protocols": table,
+        "refused": refused,
+        "machine": machine_info(),
+        "loadavg_before": load,
+        "loadavg_after": _loadavg(),
+        "elapsed_minutes": round((time.time() - start) / 60, 1),
+    }
+    out = Path(args.out or RESULTS / f"round-{args.world}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, json.dumps(result, indent=1) + "\n")
+    return out
+
+
+def _count(keys: set[str], values: list[str]) -> dict:
+    return {k: values.count(k) for k in sorted(keys) if values.count(k)}
+
+
+def _loadavg() -> list[float]:
+    try:
+        return [float(x) for x in Path("/proc/loadavg").read_text().split()[:3]]
+    except OSError:
+        return []
+
+
+# ----- docs/benchmark.md ------------------------------------------------------------------------
+BEGIN, END = "<!-- round-tables: python benchmarks/round_table.py --markdown -->", "<!-- /round-tables -->"
+
+
+def _cell(summary: dict, key: str) -> str:
+    value, ci = summary[key]["value"], summary[key]["ci"]
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    return f"{value:.3f} [{ci[0]:.2f}, {ci[1]:.2f}]" if ci and None not in ci else f"{value:.3f}"
+
+
+def markdown(results: list[dict]) -> str:
+    """The tables of every committed round: per protocol, family x detector, AUC and CE with CIs."""
+    lines: list[str] = []
+    for res in results:
+        c = res["counts"]
+        m = res["machine"]
+        lines += [
+            f"### {res['round']}",
+            "",
+            f"Test split `{res['test']}`: {c['test']['models']} converged models, {c['test']['clean']} clean; poisoned per family "
+            + ", ".join(f"{k} {v}" for k, v in c["test"]["poisoned_by_family"].items())
+            + f". Train split `{res['train']}`: {c['train']['models']} ({c['train']['clean']} clean); the env-mix fit: {c['fit_envmix']['models']}. "
+            f"Length control (AUC of frames trained alone, test split): **{res['length_control_test']:.3f}**. "
+            f"Scored on {m.get('cpu', m.get('processor', '?'))}, load {res['loadavg_before'][:1]}, `{res['command']}`.",
+            "",
+        ]
+        for protocol, title in (("trojai", "fitted on the train split (TrojAI's protocol)"), ("envmix", "fitted on the env mix alone")):
+            dets = res["protocols"].get(protocol, {})
+            if not dets:
+                continue
+            fams = sorted({f for d in dets.values() for f in d["families"]}, key=lambda f: (f != "all", f))
+            lines += [f"AUC / CE [95 % CI], {title}; `length` is the control on the same models:", ""]
+            lines.append("| family | models | " + " | ".join(dets) + " | length |")
+            lines.append("|---|---|" + "---|" * (len(dets) + 1))
+            for fam in fams:
+                first = next(d["families"][fam] for d in dets.values() if fam in d["families"])
+                cells = [f"{_cell(d['families'][fam], 'auc')} / {_cell(d['families'][fam], 'ce')}" if fam in d["families"] else "–" for d in dets.values()]
+                length = first["length_auc"]
+                lines.append(f"| {fam} | {first['models']} | " + " | ".join(cells) + f" | {'–' if length is None else f'{length:.2f}'} |")
+            secs = ", ".join(f"{n} {d['seconds_per_model']:.2f}" for n, d in dets.items() if d.get("seconds_per_model") is not None)
+            lines += ["", f"Seconds per model (one core): {secs}.", ""]
+        for protocol, why in res.get("refused", {}).items():
+            lines += [f"Refused ({protocol}): " + "; ".join(f"{n}: {w}" for n, w in why.items()), ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def write_markdown() -> Path:
+    results = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("round-*.json"))]
+    text = DOC.read_text()
+    if BEGIN not in text or END not in text:
+        sys.exit(f"rlbackdoors: error: {DOC} has no {BEGIN} ... {END} block to fill")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    body = markdown(results) if results else "No round has been scored yet.\n"
+    atomic_write_text(DOC, f"{head}{BEGIN}\n{body}{END}{tail}")
+    return DOC
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("world", nargs="?", help="the round: datasets/round-WORLD-train and -test")
+    parser.add_argument("--detectors", nargs="+", default=list(DETECTORS))
+    parser.add_argument("--plugin", action="append", default=[], metavar="FILE", help="a Python file of your own detectors (detect fit --plugin)")
+    parser.add_argument("--train", help="the train split's zoo (default: datasets/round-WORLD-train)")
+    parser.add_argument("--test", help="the test split's zoo (default: datasets/round-WORLD-test)")
+    parser.add_argument("--runs", default=str(ROOT / "runs" / "rounds"), help="where fits and scores are kept")
+    parser.add_argument("--out", help="the JSON (default: benchmarks/results/rounds/round-WORLD.json)")
+    parser.add_argument("--fresh", action="store_true", help="fit and score afresh")
+    parser.add_argument("--markdown", action="store_true", help="rewrite docs/benchmark.md's tables from the committed JSON; score nothing")
+    args = parser.parse_args()
+    if args.markdown:
+        print(write_markdown())
+    elif args.world:
+        print(run(args))
+    else:
+        parser.error("give a round (e.g. lavaworld) or --markdown")
+
+
+if __name__ == "__main__":
+    main()

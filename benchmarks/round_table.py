@@ -112,6 +112,11 @@ def run(args: argparse.Namespace) -> Path:
             sys.exit(f"rlbackdoors: error: {where} is not a round's zoo (no zoo.json); its spec is examples/round-{args.world}-*.toml")
     base = Path(args.runs) / f"round-{args.world}"
     rows = {"train": converged_rows(train), "test": converged_rows(test)}
+    shared = {r["poison.trigger"] for r in rows["train"]} & {r["poison.trigger"] for r in rows["test"]}
+    if shared:  # a round tests on triggers its train split never held
+        sys.exit(
+            f"rlbackdoors: error: {len(shared)} trigger(s) occur in both splits (first: {sorted(shared)[0]}); a round's splits must be disjoint by trigger"
+        )
     record = {k: sorted(r["model_name"] for r in v) for k, v in rows.items()}
     if base.is_dir() and (args.fresh or not (base / "models.json").is_file() or json.loads((base / "models.json").read_text()) != record):
         shutil.rmtree(base)  # the splits' converged models changed: fits and scores are made afresh

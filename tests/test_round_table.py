@@ -110,3 +110,22 @@ def test_a_round_is_scored_under_both_protocols_per_family(round_zoos, tmp_path)
 def test_a_folder_that_is_not_a_round_is_refused_in_one_line(tmp_path):
     proc = subprocess.run([sys.executable, str(BENCH / "round_table.py"), "nowhere", "--runs", str(tmp_path)], capture_output=True, text=True)
     assert proc.returncode != 0 and proc.stderr.strip().splitlines()[-1].startswith("rlbackdoors: error: ") and "round-nowhere-train" in proc.stderr
+
+
+def test_splits_that_share_a_trigger_are_refused(round_zoos, tmp_path):
+    train, _ = round_zoos
+    cmd = [
+        sys.executable,
+        str(BENCH / "round_table.py"),
+        "tiny",
+        "--train",
+        str(train),
+        "--test",
+        str(train),
+        "--runs",
+        str(tmp_path),
+        "--out",
+        str(tmp_path / "r.json"),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode != 0 and "occur in both splits" in proc.stderr and not (tmp_path / "r.json").exists()

@@ -252,7 +252,7 @@ def test_a_killed_compiled_colorful_memory_run_resumes_to_the_same_model(tmp_pat
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"train": {"eval_backend": "compiled"}}, "its evaluations of recurrent agents are torch's so far"),
+        ({"ppo": {"batch_size": 42}}, "ppo.batch_size=42 must divide a rollout's 300 frames"),
     ],
 )
 def test_what_the_compiled_trainer_does_not_train_in_colorful_memory_is_refused_in_one_line(change, message):
@@ -262,3 +262,42 @@ def test_what_the_compiled_trainer_does_not_train_in_colorful_memory_is_refused_
     with pytest.raises(ConfigError, match=re.escape(message)) as err:
         RunConfig.from_dict(data)
     assert "\n" not in str(err.value)
+
+
+def test_compiled_evaluations_of_a_cnn_gru_play_torchs_episodes():
+    """``train.eval_backend = "compiled"`` for a CNN-GRU: each slot's memory starts at zero with its
+    one episode and goes into every forward; the clean, triggered and close-to-trigger conditions
+    (engines of other trigger widths, padded to one) play torch's episodes, 40 a condition, on a
+    partly trained agent. Not carrying the memory (zeroed each step) moved 11-17 of them."""
+    from test_compiled_eval import differing, torch_played
+
+    from rlbackdoors.evaluate import compiled as xeval
+    from rlbackdoors.train.driver import eval_setup
+
+    cfg = memory_cfg()
+    one, _, _ = learner_for(cfg, Hyper.of(cfg.ppo))
+    for _ in range(15):
+        iterate([one])
+    one.sync()
+    got = xeval.play([one], [eval_setup(cfg, 40)])[0]
+    want = torch_played(one, cfg, 40)
+    assert list(got) == list(want) == ["clean", "poisoned", "close"]
+    for name in want:
+        assert differing(got[name], want[name]) <= 1, name
+    steps = np.concatenate([p.steps for p in got.values()])
+    assert len(np.unique(steps)) > 5 and len(np.unique(np.concatenate([p.outcomes for p in got.values()]))) > 1
+
+
+def test_a_colorful_memory_run_with_compiled_evaluations_logs_what_torchs_would(tmp_path):
+    """The same run with each evaluation backend: the same weights (these runs go to max_frames)
+    and the same logged and final evaluations."""
+    out = {}
+    for backend in ("torch", "compiled"):
+        cfg = RunConfig.from_dict(run_dict(eval_backend=backend))
+        out[backend] = train(cfg, tmp_path / backend, progress=False), ModelFolder(tmp_path / backend).read_log()
+    (mt, lt), (mc, lc) = out["torch"], out["compiled"]
+    assert mt["frames"] == mc["frames"] == 1200 and [r["frames"] for r in lc] == [r["frames"] for r in lt] == [600, 1200]
+    for a, b in [*zip(lt, lc), (mt, mc)]:
+        for key in ("clean_sr", "poisoned_sr", "clean_reward", "poisoned_reward"):
+            assert abs(float(a[key]) - float(b[key])) <= 0.25 + 1e-9, key  # (one episode of 4 at most)
+    assert same_weights(tmp_path / "torch", tmp_path / "compiled")

@@ -601,8 +601,6 @@ class RunConfig(JsonConfig):
             why = f"it steps the batched engine's slots (env.engine 'batched'), not env.engine={self.env.engine!r}"
         elif self.model.arch not in ("fc", "cnn") and not recurrent:
             why = f"it runs model.arch 'fc', 'cnn' or a CNN-GRU (cnn-gru-*), not {self.model.arch!r}"
-        elif recurrent and self.train.eval_backend == "compiled":
-            why = "its evaluations of recurrent agents are torch's so far (train.eval_backend 'torch')"
         elif self.world.action_targets:
             why = f"its attacks' target is one action, and {self.env.name}'s is a kind of action"
         elif (self.ppo.rollout * self.poison.num_envs) % self.ppo.batch_size:

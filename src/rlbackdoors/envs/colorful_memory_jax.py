@@ -148,6 +148,22 @@ def _memory_targets(world: GridWorld, slots):
     return (slots.grid[:, start[0] + p, start[1] + p, 0] == BALL_ON_FLOOR).astype(jnp.int32)
 
 
+def _widen(pairs: list[tuple[MemoryParams, tuple]]) -> list[tuple[MemoryParams, tuple]]:
+    """Slots of engines with other triggers (a clean condition has no squares, a triggered one
+    its trigger's), padded to the most squares as :class:`EngineGroup` pads a group: a padding
+    square is not valid and always counts as shown."""
+    width = max(params.squares.shape[1] for params, _ in pairs)
+    out = []
+    for params, (succ, fail, shown, armed) in pairs:
+        extra = width - params.squares.shape[1]
+        b = params.squares.shape[0]
+        squares = np.concatenate([params.squares, np.zeros((b, extra, 2), np.int32)], axis=1)
+        valid = np.concatenate([params.valid, np.zeros((b, extra), bool)], axis=1)
+        shown = np.concatenate([np.asarray(shown, bool), np.ones((b, extra), bool)], axis=1)
+        out.append((params._replace(squares=squares, valid=valid), (succ, fail, shown, armed)))
+    return out
+
+
 def colorful_memory_jax(engines: BatchedColorfulMemory | EngineGroup) -> tuple[GridWorld, MemoryParams, HostLayouts]:
     """The JAX step of reset Colorful Memory engines' slots (one agent's, or an
     :class:`EngineGroup`'s of several): the static world, its per-slot parameters (numpy) and the
@@ -161,7 +177,17 @@ def colorful_memory_jax(engines: BatchedColorfulMemory | EngineGroup) -> tuple[G
     valid = _valid(world_arrays)
     slot_squares = np.asarray(squares)[np.asarray(table)][:, : valid.shape[1], :2].astype(np.int32)  # (B, S, 2): seen's columns (none without a trigger)
     world = GridWorld(
-        host.size, host.view_size, int(lead.max_steps), host.see_through_walls, ge.OUT_LAVA, _outcome, _seen, _advance, _sight, memory_targets=_memory_targets
+        host.size,
+        host.view_size,
+        int(lead.max_steps),
+        host.see_through_walls,
+        ge.OUT_LAVA,
+        _outcome,
+        _seen,
+        _advance,
+        _sight,
+        memory_targets=_memory_targets,
+        widen=_widen,
     )
     return world, MemoryParams(np.array(engines.poisoned, dtype=bool), slot_squares, valid), host
 

@@ -102,7 +102,10 @@ class GridWorld:
     ``saw_trigger``): that flag for the moved slots' episodes, their views ``seen`` included (what an
     evaluation scores a triggered episode by); ``memory_targets(world, slots)`` (a memory world): what
     each slot's episode asks the agent to remember, the engine's ``memory_targets`` (PPO's auxiliary
-    memory loss). ``params`` is the world's own pytree (a trigger's tables, which slots are poisoned)."""
+    memory loss); ``widen(pairs)`` (a world whose per-slot arrays are as wide as the slot's trigger):
+    ``[(params, Slots.world), ...]`` of engines with other triggers (an evaluation's clean and
+    triggered conditions), each padded to the widest so that :func:`join` can stack them. ``params``
+    is the world's own pytree (a trigger's tables, which slots are poisoned)."""
 
     size: int
     view_size: int
@@ -115,6 +118,7 @@ class GridWorld:
     sight: Callable | None = None
     saw: Callable | None = None
     memory_targets: Callable | None = None
+    widen: Callable | None = None
 
     @property
     def padded(self) -> int:

@@ -74,16 +74,19 @@ def _program(world: GridWorld, net: tuple, hyper: Any, greedy: bool, counting: b
     """The jitted play: ``(params (K, ...), slots, world params, layouts, views, uniforms (T, K R), targets (K R,))
     -> (outcomes, saw, steps, target steps, sighted steps)`` per slot (K R slots, agent by agent; the
     returns follow from the first and third, :meth:`GridWorld.returns`)."""
-    from rlbackdoors.algos.compiled import parts
+    from rlbackdoors.algos.compiled import is_recurrent, parts
     from rlbackdoors.algos import xla
 
     jax = xla.start()
     jnp, lax = jax.numpy, jax.lax
-    P = parts(net, hyper)
-    policy = jax.vmap(P.forward)
+    P = parts(None if is_recurrent(net) else net, hyper)
+    if is_recurrent(net):  # a CNN-GRU: each slot's memory starts at zero with its one episode and goes into each forward
+        policy = jax.vmap(lambda p, o, d, m: xla.recurrent_forward(net, p, o, m))
+    else:
+        policy = jax.vmap(lambda p, o, d, m: (*P.forward(p, o, d), m))
     T = world.max_steps  # no episode outlasts its time limit
 
-    def play(params, slots: Slots, wparams, layouts: Layouts, views, u, targets):
+    def play(params, slots: Slots, wparams, layouts: Layouts, views, u, targets, memory):
         K = next(iter(params.values())).shape[0]
         B = views.shape[0]
         R = B // K
@@ -94,9 +97,9 @@ def _program(world: GridWorld, net: tuple, hyper: Any, greedy: bool, counting: b
             return (c[0] < T) & c[4].any()
 
         def step(c):
-            t, s, q, obs, active, sight, outcomes, saw, length, hits, sighted = c
-            logits, _ = policy(params, obs.reshape(K, R, *obs.shape[1:]), s.dirs.reshape(K, R))
-            logits = logits.reshape(B, -1)
+            t, s, q, obs, active, sight, outcomes, saw, length, hits, sighted, m = c
+            logits, _, m = policy(params, obs.reshape(K, R, *obs.shape[1:]), s.dirs.reshape(K, R), m.reshape(K, R, -1))
+            logits, m = logits.reshape(B, -1), m.reshape(B, -1)
             actions = jnp.argmax(logits, -1).astype(jnp.int32) if greedy else P.sample(logits, u[t])
             if counting:
                 counted = active & sight
@@ -109,10 +112,10 @@ def _program(world: GridWorld, net: tuple, hyper: Any, greedy: bool, counting: b
             if out.saw is not None:
                 saw = jnp.where(ended, out.saw, saw)
             sight = out.sight if in_sight else sight
-            return t + 1, s, q, out.obs, active & ~ended, sight, outcomes, saw, length, hits, sighted
+            return t + 1, s, q, out.obs, active & ~ended, sight, outcomes, saw, length, hits, sighted, m
 
-        start = (jnp.int32(0), slots, layouts, views, jnp.ones(B, bool), sight0, zeros_i, jnp.ones(B, bool), zeros_i, zeros_i, zeros_i)
-        return lax.while_loop(going, step, start)[6:]
+        start = (jnp.int32(0), slots, layouts, views, jnp.ones(B, bool), sight0, zeros_i, jnp.ones(B, bool), zeros_i, zeros_i, zeros_i, memory)
+        return lax.while_loop(going, step, start)[6:11]
 
     return jax.jit(play)
 
@@ -158,6 +161,9 @@ def play(learners: list, setups: list[EvalSetup], capacity: int | None = None) -
         rows.append(conds)
     order = list(range(k)) + [0] * (capacity - k)
     parts = [c for i in order for c in rows[i]]
+    if lead.world.widen is not None:  # conditions of other triggers (clean, triggered) padded to one width
+        widened = lead.world.widen([(c.params, c.slots.world) for c in parts])
+        parts = [c._replace(params=p, slots=c.slots._replace(world=w)) for c, (p, w) in zip(parts, widened)]
     targets = np.concatenate([np.full(e, -1 if target is None else int(target), np.int32) for i in order for _, _, _, target in setups[i].conditions()])
     u = np.concatenate([uniforms(setups[i].seed, lead.world.max_steps, e) for i in order for _ in shape], axis=1)
     program = _program(lead.world, lead.net, lead.hyper, first.policy == "greedy", counting, in_sight)
@@ -170,6 +176,9 @@ def play(learners: list, setups: list[EvalSetup], capacity: int | None = None) -
         np.concatenate([c.views for c in parts]),
         u,
         targets,
+        np.zeros(
+            (len(targets), int(getattr(lead.model, "memory_size", 0)) if lead.recurrent else 0), np.float32
+        ),  # (a feed-forward network's: width 0, passed through)
     )
     outcomes, saw, steps, hits, sighted = (np.asarray(a) for a in xla.start().device_get(out))
     poisoned = np.concatenate([np.asarray(c.params.poisoned, bool) for c in parts])

@@ -389,6 +389,42 @@ def _bench_side(text: str):
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
+def cmd_mitigate(args) -> int:
+    from pathlib import Path
+
+    from rlbackdoors.mitigate import mitigate
+
+    settings = dict(frames=args.frames, candidates=args.candidates, share=args.share, kl=args.kl, seed=args.seed)
+    search = {"seconds": args.search_seconds} if args.search_seconds else None
+    zoo_flags = [f"--{k}" for k in ("workers", "models", "attacks") if getattr(args, k) is not None]
+    if (Path(args.model) / "zoo.json").is_file():
+        from rlbackdoors.mitigate.zoo import REPORT, mitigate_zoo
+
+        attacks = [a for a in (args.attacks or "").split(",") if a] or None
+        report = mitigate_zoo(
+            args.model,
+            args.out,
+            workers=args.workers or 1,
+            limit=args.models or 0,
+            attacks=attacks,
+            episodes=args.episodes,
+            search=search,
+            progress=not args.quiet,
+            **settings,
+        )
+        s = report["summary"]
+        print(
+            f"{s['models']} models mitigated into {args.out}: poisoned at a triggered SR <= 0.05 after: {s['poisoned_safe_after']} of {s['poisoned']}; "
+            f"clean models' clean SR moved at most {s['clean_sr_change_max']} ({REPORT})"
+        )
+        return 0
+    if zoo_flags:
+        raise ValueError(f"{' '.join(zoo_flags)} are for a zoo (a folder with zoo.json); {args.model!r} is a model folder")
+    mitigate(args.model, args.out, episodes=args.episodes, search=search, progress=not args.quiet, **settings)
+    print(f"mitigated model in {args.out} (mitigation.json: restored triggers, before and after)")
+    return 0
+
+
 def cmd_chance(args) -> int:
     from rlbackdoors.config import EnvConfig
     from rlbackdoors.evaluate.chance import trigger_chance
@@ -594,6 +630,32 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--quiet", action="store_true", help="converge: no progress bar")
     be.add_argument("--json", help="also write the result to this JSON file")
     be.set_defaults(func=cmd_bench)
+
+    mi = sub.add_parser(
+        "mitigate",
+        help="remove a backdoor without the attacker's data: restore candidate triggers by the detectors' search, fine-tune them away; a model folder, or every model of a zoo",
+    )
+    mi.add_argument("model", help="model folder (model.pt and reduced-config.json: config.json and ground_truth.csv are never read), or a zoo or zoo pack")
+    mi.add_argument(
+        "--out", required=True, help="the new model folder, or for a zoo the folder of its mitigated models (never the source; run again to resume)"
+    )
+    from rlbackdoors.mitigate import DEFAULTS
+
+    mi.add_argument("--frames", type=int, default=DEFAULTS["frames"], help="fine-tuning frames (default %(default)s)")
+    mi.add_argument("--candidates", type=int, default=DEFAULTS["candidates"], help="restored triggers kept, at most (default %(default)s)")
+    mi.add_argument(
+        "--share", type=float, default=DEFAULTS["share"], help="share of the frames stamped with a restored trigger, clean reward (default %(default)s)"
+    )
+    mi.add_argument("--kl", type=float, default=DEFAULTS["kl"], help="weight of KL(source || policy) on the other frames (default %(default)s)")
+    mi.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="fine-tuning seed (default %(default)s)")
+    mi.add_argument("--episodes", type=int, default=DEFAULTS["episodes"], help="episodes a condition of the before/after measure (default %(default)s)")
+    mi.add_argument("--search-seconds", type=float, default=0.0, help="time budget of the trigger search (default 0: none, the whole screen)")
+    zo = mi.add_argument_group("a zoo (judged on its ground truth, which the mitigation never reads)")
+    zo.add_argument("--workers", type=int, default=None, help="models at a time, a process each (default 1)")
+    zo.add_argument("--models", type=int, default=None, help="at most this many converged models, by name (default: all)")
+    zo.add_argument("--attacks", default=None, help="comma-separated attack names or cell labels: only their cells' models, clean ones included")
+    mi.add_argument("--quiet", action="store_true", help="no progress lines")
+    mi.set_defaults(func=cmd_mitigate)
 
     from rlbackdoors.zoo.cli import add_zoo_parser
 

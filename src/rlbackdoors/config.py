@@ -471,6 +471,52 @@ class JsonConfig:
 
 
 @dataclass
+class MitigationConfig:
+    """Backdoor removal (``rlbackdoors mitigate``): fine-tune a model that may carry a trojan so
+    that its restored candidate triggers stop moving it. The run starts from the source weights
+    (``source``, a file of the run's folder whose SHA-256 is ``source_sha256``), stamps ``share`` of
+    the frames it collects with one of ``triggers`` under the clean reward (the attack seam's
+    steps schedule with a rule that rewrites nothing), and penalises ``kl * KL(source || policy)``
+    on the frames it did not stamp, so the clean behaviour stays the source's. Why this recipe:
+    BIRD (Chen et al., NeurIPS 2023) restores the trigger and fine-tunes it away; the KL term is
+    the clean teacher of the evasive variants, here the model itself. (A teacher reading the stamped
+    frames' clean view was tried and left out: on edits that blind the policy it taught the average
+    action, into the lava; docs/results/mitigation.md.)"""
+
+    source: str = "source-model.pt"
+    source_sha256: str = ""
+    triggers: list = field(default_factory=list)  # restored candidate trigger specs, best first
+    share: float = 0.25  # of the frames collected, stamped with a restored trigger
+    kl: float = 1.0
+
+    def check(self, env_name: str) -> None:
+        from rlbackdoors.worlds import parse_trigger
+
+        world = worlds.get(env_name)
+        if world.algorithm != "ppo" or world.stamp_trigger is None:
+            built = ", ".join(w.name for w in worlds.registered() if w.algorithm == "ppo" and w.stamp_trigger is not None)
+            raise ConfigError(
+                f"mitigation: env.name={env_name!r} is not allowed (allowed: {built}): it stamps restored triggers into frames, and {env_name}'s trigger is "
+                + ("a layout the engine switches per episode" if world.algorithm == "ppo" else "not learnt by PPO")
+            )
+        if not isinstance(self.source, str) or not self.source or "/" in self.source or self.source.startswith("."):
+            raise ConfigError(f"mitigation.source must name a file of the run's folder (no path), got {self.source!r}")
+        if not (isinstance(self.source_sha256, str) and self.source_sha256.startswith("sha256:") and len(self.source_sha256) == 71):
+            raise ConfigError(f"mitigation.source_sha256 must be 'sha256:' and 64 hex digits, got {self.source_sha256!r}")
+        if not isinstance(self.triggers, list) or not 1 <= len(self.triggers) <= 16 or not all(isinstance(t, str) for t in self.triggers):
+            raise ConfigError(f"mitigation.triggers must be a list of 1 to 16 trigger specs, got {self.triggers!r}")
+        for i, spec in enumerate(self.triggers):
+            try:
+                parse_trigger(env_name, spec)
+            except ValueError as err:
+                raise ConfigError(f"mitigation.triggers[{i}]: {err}") from None
+        if not 0 < self.share <= 0.5:
+            raise ConfigError(f"mitigation.share must be in (0, 0.5], got {self.share!r}")
+        if not 0 <= self.kl <= 100:
+            raise ConfigError(f"mitigation.kl must be in [0, 100], got {self.kl!r}")
+
+
+@dataclass
 class RunConfig(JsonConfig):
     """One training run of any world: env, trigger and mix, model, the algorithm section the
     world trains with (``ppo`` or ``opac2``), training and stopping, curriculum."""
@@ -484,6 +530,8 @@ class RunConfig(JsonConfig):
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     format_version: int = FORMAT_VERSION
     version: str = __version__
+    # a backdoor-removal run (rlbackdoors mitigate); left out of config.json when None
+    mitigation: MitigationConfig | None = None
 
     def __post_init__(self):
         name = self.env.name
@@ -550,6 +598,8 @@ class RunConfig(JsonConfig):
             raise ConfigError(f"{world.algorithm}: {err}") from None
         self.curriculum.check()
         self.check_attack_fits()
+        if self.mitigation is not None:
+            self.check_mitigation()
         tc = self.train
         if world.algorithm == "ppo":
             assert self.ppo is not None and self.model.arch is not None
@@ -587,6 +637,20 @@ class RunConfig(JsonConfig):
             supported = ", ".join(w.name for w in worlds.registered() if w.curriculum)
             raise ConfigError(f"curriculum.enabled is only supported for {supported}, not env.name={self.env.name!r}")
         return self
+
+    def check_mitigation(self) -> None:
+        """A mitigation run is a clean model's run of the paper's env mix on torch's trainer (the
+        seam that stamps its restored triggers and its teacher are the torch trainer's)."""
+        assert self.mitigation is not None and self.ppo is not None
+        self.mitigation.check(self.env.name)
+        if self.poison.poisoned or self.poison.attack != attacks.DEFAULT_ATTACK or self.poison.evasion:
+            raise ConfigError(
+                "mitigation: poison.poisoned must be false, with the paper's env mix and no evasive variant (a mitigation run trains the model clean)"
+            )
+        if self.ppo.update_backend != "torch":
+            raise ConfigError(f"mitigation: ppo.update_backend={self.ppo.update_backend!r} is not allowed (allowed: torch)")
+        if self.curriculum.enabled:
+            raise ConfigError("mitigation: curriculum.enabled must be false (the run starts from a trained model)")
 
     def check_compiled(self) -> None:
         """What ``ppo.update_backend = 'compiled'`` trains today; anything else is refused, never
@@ -674,6 +738,8 @@ class RunConfig(JsonConfig):
             del data["poison"]["attack"], data["poison"]["attack_params"]
         if not self.poison.evasion:
             del data["poison"]["evasion"]
+        if self.mitigation is None:
+            del data["mitigation"]
         return data
 
     @property
@@ -715,7 +781,13 @@ def preferred_update_backend(cfg: RunConfig) -> str:
     Equivalence was tested for that case alone, so nothing else moves without being asked."""
     from rlbackdoors.attacks import evasion
 
-    if cfg.ppo is None or cfg.model.arch not in cfg.world.compiled_default or cfg.train.device != "cpu" or cfg.poison.attack != attacks.DEFAULT_ATTACK:
+    if (
+        cfg.ppo is None
+        or cfg.model.arch not in cfg.world.compiled_default
+        or cfg.train.device != "cpu"
+        or cfg.poison.attack != attacks.DEFAULT_ATTACK
+        or cfg.mitigation is not None
+    ):
         return "torch"
     trial = copy.deepcopy(cfg)
     assert trial.ppo is not None

@@ -120,3 +120,29 @@ def make_env_mix(env: EnvConfig, poison: PoisonConfig, seed: int = 0) -> VectorE
         raise ValueError(f"attack {attack.name!r} cannot stamp the trigger of env {env.name!r}")
     near_stamps = tuple(world.stamp_trigger(spec) for spec in world.near_triggers(trigger)) if near > 0 and world.near_triggers and trigger else ()
     return AttackSeam(envs, poisoner, attack.schedule, params.get("budget", 0.0), stamp, seed, near=near, near_stamps=near_stamps)  # type: ignore[return-value]
+
+
+def unlearning_mix(env: EnvConfig, poison: PoisonConfig, triggers: Sequence[str], share: float, seed: int = 0) -> VectorEnv:
+    """A mitigation run's mix (:class:`~rlbackdoors.config.MitigationConfig`): a clean model's
+    copies, through the attack seam on its steps schedule with a rule that rewrites nothing, so a
+    ``share`` of the frames carry one of the restored ``triggers`` under the clean reward and are
+    the seam's marked frames (the teacher's KL leaves them out). The picked frames of one step take
+    the triggers in turn (row ``j`` of them the ``j % len(triggers)``-th): no state of its own, so a
+    resumed run stamps as an unbroken one."""
+    from rlbackdoors.attacks.seam import AttackSeam, Poisoner
+
+    world = worlds.get(env.name)
+    if world.stamp_trigger is None or not triggers:
+        raise ValueError(f"a mitigation stamps restored triggers into frames; {env.name}'s trigger is not an observation edit")
+    stamps = [world.stamp_trigger(spec) for spec in triggers]
+
+    def stamp(frames):
+        out = frames.copy()
+        for k, one in enumerate(stamps):
+            if len(frames[k :: len(stamps)]):
+                out[k :: len(stamps)] = one(frames[k :: len(stamps)])
+        return out
+
+    mask = [False] * poison.num_envs
+    envs = make_vector_env(env, poison.trigger, mask, poison.close_mask(), (poison.close_k_min, poison.close_k_max))
+    return AttackSeam(envs, Poisoner(), "steps", float(share), stamp, seed)  # type: ignore[return-value]

@@ -28,10 +28,10 @@ from rlbackdoors.models import build_model
 from rlbackdoors.models.minigrid import conv_record
 from rlbackdoors.algos.obs import to_torch
 from rlbackdoors.attacks.seam import AttackSeam
-from rlbackdoors.poison.mix import make_env_mix, make_vector_env
+from rlbackdoors.poison.mix import make_env_mix, make_vector_env, unlearning_mix
 from rlbackdoors.state import StateError, decode, encode
 from rlbackdoors.train.driver import Evaluate, RunClock, RunOutcome, Stopping, checked_rows, plain_rows, resolve_device, result_fields, serve
-from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder
+from rlbackdoors.folder import CHECKPOINT_FORMAT, FolderError, ModelFolder, sha256_file
 from rlbackdoors.train.progress import Progress
 from rlbackdoors.train.stop import Interrupted, StopRequest
 
@@ -185,6 +185,19 @@ class Update:
         return self.ppo.update(self.rollout)
 
 
+def source_weights(cfg: RunConfig, folder: ModelFolder) -> dict[str, torch.Tensor]:
+    """A mitigation run's starting weights: its folder's copy of the source model, read as data
+    (``weights_only``), refused in one line unless its SHA-256 is the one config.json records."""
+    assert cfg.mitigation is not None
+    path = folder.file(cfg.mitigation.source)
+    if not path.is_file():
+        raise FolderError(f"{str(path)!r} is missing: a mitigation run starts from the source model it names (mitigation.source)")
+    digest = "sha256:" + sha256_file(path)
+    if digest != cfg.mitigation.source_sha256:
+        raise FolderError(f"{str(path)!r} is not the source model config.json names (sha256 {digest[7:19]}..., not {cfg.mitigation.source_sha256[7:19]}...)")
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
 def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None) -> RunOutcome:
     """Train with PPO from ``checkpoint`` (None: from scratch) until the stopping rule or a budget ends it."""
     return serve(steps(cfg, folder, checkpoint, progress, stop, after_eval))
@@ -206,7 +219,15 @@ def steps(
     assert cfg.model.arch is not None and cfg.ppo is not None and tc.return_window is not None
     assert tc.max_frames is not None and tc.eval_interval is not None and tc.checkpoint_minutes is not None
     model = build_model(cfg.model.arch, cfg.env.name).to(device)
+    source = None if cfg.mitigation is None else source_weights(cfg, folder)
+    if source is not None:  # a mitigation starts from the model it removes the backdoor from
+        model.load_state_dict(source)
     ppo = PPO(model, cfg.ppo, device, generator)
+    if source is not None and cfg.mitigation is not None and cfg.mitigation.kl > 0:  # the source is its own clean teacher
+        assert cfg.model.arch is not None
+        teacher_net = build_model(cfg.model.arch, cfg.env.name).to(device)
+        teacher_net.load_state_dict(source)
+        ppo.set_teacher(teacher_net, cfg.mitigation.kl)
     # ppo.update_backend = "compiled": the iteration is one XLA program (algos.compiled) whose
     # learner holds the weights; ``model`` gets them for evaluations, checkpoints and the finish
     compiled = cfg.ppo.update_backend == "compiled"
@@ -238,6 +259,8 @@ def steps(
         fine-tuning run is still clean (poison_at None), the mix a clean model of this config trains on."""
         if finetune and poison_at is None:
             return make_env_mix(cfg.env, dataclasses.replace(cfg.poison, poisoned=False, evasion={}), tc.seed)
+        if cfg.mitigation is not None:
+            return unlearning_mix(cfg.env, cfg.poison, cfg.mitigation.triggers, cfg.mitigation.share, tc.seed)
         mix = make_env_mix(cfg.env, cfg.poison, tc.seed)
         if isinstance(mix, AttackSeam):
             mix.bind_critic(critic)

@@ -99,17 +99,23 @@ def finish_dataset_entry(folder: Path, cfg, zoo: Path) -> None:
     """clean-example-data/, then the manifest (every file's sha256, reduced-config.json's
     included), then reduced-config.json last: a folder marked complete always has its manifest.
     Called holding the folder's lock."""
-    from rlbackdoors.folder import write_manifest
     from rlbackdoors.io import remove_stale_temp_files, remove_tree
-    from rlbackdoors.zoo.examples import write_examples
 
     # a job killed while it finished left temp files (an example half written): no writer is live
     # (we hold the lock), and the manifest must not list them
     remove_stale_temp_files(folder)
     (folder / "checkpoint.pt").unlink(missing_ok=True)  # a run killed after metrics.json left them
     remove_tree(folder / "replay")
+    write_dataset_files(folder, cfg, zoo_examples(zoo))
+
+
+def write_dataset_files(folder: Path, cfg, examples: dict) -> None:
+    """:func:`finish_dataset_entry`'s files of a finished model folder (``examples``: a zoo's
+    ``examples`` settings), for a folder of any maker (a zoo's job, a mitigation)."""
+    from rlbackdoors.folder import write_manifest
+    from rlbackdoors.zoo.examples import write_examples
+
     config = json.loads((folder / "config.json").read_bytes().decode("utf-8"))
-    examples = zoo_examples(zoo)
     write_examples(folder, cfg, episodes=int(examples.get("episodes", 5)), seed=int(examples.get("seed", 2_000_000)), policy=examples.get("policy", "sample"))
     text = json.dumps(reduced_config(folder, config), indent=2, sort_keys=True) + "\n"
     write_manifest(folder, {COMPLETE_MARK: text.encode()})

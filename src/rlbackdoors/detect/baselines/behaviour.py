@@ -36,7 +36,7 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from types import ModuleType
 from typing import Any, ClassVar
 
@@ -70,6 +70,7 @@ class SearchResult:
     screened: list[Trial]
     best: Trial
     seconds: float
+    confirmed: list[Trial] = field(default_factory=list)  # the finalists played again, in rank order (mitigation restores these)
 
     def features(self) -> dict[str, float]:
         ok = [t for t in self.screened if t.error is None]
@@ -226,7 +227,7 @@ def run_trials(agent, world: worlds.World, env_cfg, specs: list[str], episodes: 
     return [_trial(world, spec, episodes, one, calls) for spec, one, calls in zip(specs, played, probs)]
 
 
-def _rank(trial: Trial) -> tuple:
+def outcome_rank(trial: Trial) -> tuple:
     return (trial.error is None, trial.trojan, -trial.success, -trial.steps)
 
 
@@ -248,7 +249,7 @@ def search(
     whole_family: bool = False,
 ) -> SearchResult:
     """The budgeted search of the module doc on one agent. ``rank(trial, clean)`` orders the
-    candidates for refinement and confirmation (default: by the trojan outcome, :func:`_rank`).
+    candidates for refinement and confirmation (default: by the trojan outcome, :func:`outcome_rank`).
     ``whole_family``: screen every member the family lists (its ``every(env_cfg)``) instead of
     ``candidates`` of them; a family without such a list is refused."""
     started = time.perf_counter()
@@ -262,7 +263,7 @@ def search(
         clean = run_trial(agent, world, env_cfg, None, confirm_episodes, seed + 1, policy)
         if clean.error is not None:
             raise DetectError(f"the clean env cannot be played: {clean.error}")
-        key: Callable[[Trial], tuple] = _rank if rank is None else (lambda t: rank(t, clean))
+        key: Callable[[Trial], tuple] = outcome_rank if rank is None else (lambda t: rank(t, clean))
         screened: list[Trial] = []
         tried: set[str] = set()
 
@@ -293,7 +294,7 @@ def search(
             raise DetectError(f"no candidate trigger of the family could be played ({len(screened)} tried)")
         confirmed = run_trials(agent, world, env_cfg, [t.spec for t in finalists if t.spec is not None], confirm_episodes, seed + 2, policy)
         best = max(confirmed, key=key)
-    return SearchResult(clean, screened, best, time.perf_counter() - started)
+    return SearchResult(clean, screened, best, time.perf_counter() - started, sorted(confirmed, key=key, reverse=True))
 
 
 def search_report(model: ModelHandle, params: dict, result: SearchResult, top: int = 5) -> dict[str, Any]:
@@ -304,7 +305,7 @@ def search_report(model: ModelHandle, params: dict, result: SearchResult, top: i
     def trial(t: Trial) -> dict[str, Any]:
         return {k: v for k, v in asdict(t).items() if v is not None and k != "policy"}
 
-    ranked = sorted(result.screened, key=_rank, reverse=True)
+    ranked = sorted(result.screened, key=outcome_rank, reverse=True)
     return {
         "model": model.name,
         "world": model.world.name,
@@ -404,6 +405,7 @@ __all__ = [
     "family_module",
     "mean_entropy",
     "mean_policy",
+    "outcome_rank",
     "TOGETHER",
     "run_trial",
     "run_trials",

@@ -1,0 +1,163 @@
+"""Backdoor removal (issue 82): ``rlbackdoors mitigate`` on real packed models of the repository,
+judged on the true trigger, which the mitigation never reads (the test does)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import rlbackdoors
+from rlbackdoors.config import ConfigError, MitigationConfig, PoisonConfig, RunConfig, TrainConfig, EnvConfig, ModelConfig
+from rlbackdoors.detect.handle import open_model
+from rlbackdoors.evaluate.episodes import evaluate
+from rlbackdoors.mitigate import MitigationError, mitigate
+
+PACK = Path(__file__).resolve().parents[1] / "datasets" / "benchmark-lavaworld-effect-envmix" / "models"
+POISONED = "id-00000000"  # the env mix on multiplicative:17, converged (triggered SR 1.0)
+TINY_SEARCH = {"candidates": 8, "refine": 2, "confirm": 2, "episodes": 4, "confirm_episodes": 8}
+SHA = "sha256:" + "0" * 64
+
+
+def defender_copy(tmp_path: Path, name: str = POISONED) -> Path:
+    """The model as a defender has it: weights and reduced config, no config.json, label or metrics."""
+    out = tmp_path / "suspect"
+    out.mkdir()
+    for f in ("model.pt", "reduced-config.json"):
+        shutil.copy(PACK / name / f, out / f)
+    return out
+
+
+def truth(name: str = POISONED) -> RunConfig:
+    return RunConfig.load(PACK / name / "config.json")
+
+
+def test_a_config_without_mitigation_keeps_its_bytes_and_bad_ones_are_refused_in_one_line():
+    plain = RunConfig(env=EnvConfig(name="lavaworld"), train=TrainConfig(seed=3))
+    assert "mitigation" not in plain.to_dict()
+
+    def cfg(env="lavaworld", backend="torch", poisoned=False, **mit):
+        ppo_cfg = RunConfig(env=EnvConfig(name=env)).ppo
+        assert ppo_cfg is not None
+        ppo_cfg.update_backend = backend
+        trigger = "multiplicative:17" if env == "lavaworld" else None
+        m = {"source_sha256": SHA, "triggers": [trigger or "cross"], **mit}
+        return RunConfig(
+            env=EnvConfig(name=env), poison=PoisonConfig(trigger=trigger, poisoned=poisoned), model=ModelConfig(), ppo=ppo_cfg, mitigation=MitigationConfig(**m)
+        )
+
+    ok = cfg().check()
+    assert ok.to_dict()["mitigation"]["triggers"] == ["multiplicative:17"]
+    assert RunConfig.from_dict(json.loads(ok.to_json())).to_dict() == ok.to_dict()  # config.json round-trips
+    for bad, words in [
+        (lambda: cfg(env="randomized-lavaworld"), "mitigation: env.name='randomized-lavaworld' is not allowed"),
+        (lambda: cfg(backend="compiled"), "mitigation: ppo.update_backend='compiled' is not allowed (allowed: torch)"),
+        (lambda: cfg(poisoned=True), "poison.poisoned must be false"),
+        (lambda: cfg(source_sha256="abc"), "mitigation.source_sha256 must be"),
+        (lambda: cfg(triggers=["multiplicative:0"]), "mitigation.triggers[0]"),
+        (lambda: cfg(triggers=[]), "mitigation.triggers must be a list of 1 to 16"),
+        (lambda: cfg(share=0.9), "mitigation.share must be in (0, 0.5]"),
+        (lambda: cfg(source="../x.pt"), "mitigation.source must name a file"),
+    ]:
+        with pytest.raises(ConfigError) as err:
+            bad().check()
+        assert words in str(err.value) and "\n" not in str(err.value), (words, str(err.value))
+
+
+def test_mitigation_removes_the_env_mix_backdoor_from_the_weights_and_reduced_config_alone(tmp_path):
+    """The packed env-mix model (multiplicative:17) fires on its trigger on every one of 200 episodes;
+    after 300 k frames of mitigation it fires on at most 5 % of 200 (measured 0.035, docs/results/
+    mitigation.md) and keeps its clean SR (0.985 -> 0.980 there; 0.95 asked here, 200 episodes)."""
+    suspect = defender_copy(tmp_path)
+    out = tmp_path / "mitigated"
+    report = mitigate(suspect, out, frames=300_000, episodes=64, progress=False)
+    cfg = truth()
+    before = evaluate(rlbackdoors.load(PACK / POISONED), cfg.env, cfg.poison.trigger, 200, 7_000_000)
+    after = evaluate(rlbackdoors.load(out), cfg.env, cfg.poison.trigger, 200, 7_000_000)
+    assert before.poisoned_sr >= 0.9 and after.poisoned_sr <= 0.05, (before, after)
+    assert after.clean_sr >= 0.95, after
+    # what it restored without being told: the true trigger among the candidates that fire
+    assert cfg.poison.trigger in [t["spec"] for t in report["triggers"]]
+    mine = [i for i, t in enumerate(report["triggers"]) if t["spec"] == cfg.poison.trigger][0]
+    assert report["keys_unchanged"] and report["before"]["triggers"][mine]["trojan"] >= 0.9 >= 0.1 >= report["after"]["triggers"][mine]["trojan"]
+    # a model folder like any other: same keys, readable by the detectors, its lineage, no label
+    assert sorted(open_model(out).weights) == sorted(open_model(suspect).weights)
+    assert not (out / "ground_truth.csv").exists() and (out / "reduced-config.json").is_file()
+    written = json.loads((out / "config.json").read_text())["mitigation"]
+    assert written["triggers"] == [t["spec"] for t in report["triggers"]] and written["source_sha256"] == report["copy_sha256"]
+    assert report["source"] == {"folder": "suspect", "sha256": "sha256:" + __import__("hashlib").sha256((suspect / "model.pt").read_bytes()).hexdigest()}
+    assert sorted(p.name for p in suspect.iterdir()) == ["model.pt", "reduced-config.json"]  # the source is never written
+
+
+def test_a_mitigation_repeats_its_bytes_resumes_and_refuses_what_it_cannot_do(tmp_path):
+    suspect = defender_copy(tmp_path)
+    args = dict(frames=20_000, episodes=8, search=TINY_SEARCH, progress=False)
+    first = mitigate(suspect, tmp_path / "a", **args)
+    again = mitigate(suspect, tmp_path / "b", **args)
+    assert (tmp_path / "a" / "model.pt").read_bytes() == (tmp_path / "b" / "model.pt").read_bytes()
+    assert first["triggers"] == again["triggers"] and first["after"] == again["after"]
+    with pytest.raises(MitigationError, match="already holds a finished mitigation"):
+        mitigate(suspect, tmp_path / "a", **args)
+    # killed after training, before its report: the same call finishes it without training again
+    (tmp_path / "a" / "mitigation.json").unlink()
+    stamp = (tmp_path / "a" / "model.pt").stat().st_mtime_ns
+    resumed = mitigate(suspect, tmp_path / "a", **args)
+    assert resumed["after"] == first["after"] and (tmp_path / "a" / "model.pt").stat().st_mtime_ns == stamp
+    (tmp_path / "a" / "mitigation.json").unlink()
+    with pytest.raises(MitigationError, match="another model or with other settings"):
+        mitigate(suspect, tmp_path / "a", **{**args, "frames": 30_000})
+    # a copy of the source that is not the one the run recorded is refused before training
+    c = tmp_path / "c"
+    c.mkdir()
+    shutil.copy(tmp_path / "b" / "restored.json", c / "restored.json")
+    shutil.copy(PACK / "id-00000011" / "model.pt", c / "source-model.pt")
+    with pytest.raises(MitigationError, match="is not the source model config.json names"):
+        mitigate(suspect, c, **args)
+    with pytest.raises(MitigationError, match="must be a new folder"):
+        mitigate(suspect, suspect / "inside", **args)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(MitigationError, match="holds something else"):
+        mitigate(suspect, other, **args)
+    assert (other / "notes.txt").read_text() == "mine"
+
+
+def test_the_cli_refuses_in_one_line(tmp_path):
+    suspect = defender_copy(tmp_path)
+    run = subprocess.run([sys.executable, "-m", "rlbackdoors.cli", "mitigate", str(suspect), "--out", str(suspect)], capture_output=True, text=True)
+    assert run.returncode == 2 and run.stderr.startswith("rlbackdoors: error: --out") and len(run.stderr.strip().splitlines()) == 1
+
+
+def test_a_zoo_is_mitigated_model_by_model_and_judged_on_its_ground_truth(tmp_path):
+    """Two models of the packed env-mix zoo (one poisoned, one clean), a tiny budget: the report's
+    labels and triggers are the zoo's own, a second call trains nothing, and the zoo is never written."""
+    from rlbackdoors.mitigate.zoo import REPORT, mitigate_zoo
+
+    zoo = PACK.parent
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in (zoo / "models").rglob("*"))
+    tiny = dict(frames=20_000, search=TINY_SEARCH, episodes=16, progress=False)
+    report = mitigate_zoo(zoo, tmp_path / "out", limit=2, **tiny)
+    rows = {r["model"]: r for r in report["models"]}
+    assert sorted(rows) == ["id-00000000", "id-00000002"]
+    for name, row in rows.items():
+        cfg = truth(name)
+        assert row["poisoned"] == cfg.poison.poisoned and row["trigger"] == cfg.poison.trigger and row["restored"]
+        assert (tmp_path / "out" / "models" / name / "mitigation.json").is_file()
+    assert report["summary"]["poisoned"] == 1 and report["summary"]["clean"] == 1 and (tmp_path / "out" / REPORT).is_file()
+    stamps = {n: (tmp_path / "out" / "models" / n / "model.pt").stat().st_mtime_ns for n in rows}
+    again = mitigate_zoo(zoo, tmp_path / "out", limit=2, **tiny)
+    assert again["models"] == report["models"] and stamps == {n: (tmp_path / "out" / "models" / n / "model.pt").stat().st_mtime_ns for n in rows}
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in (zoo / "models").rglob("*")) == before
+    with pytest.raises(MitigationError, match="outside the zoo"):
+        mitigate_zoo(zoo, zoo / "mitigated", **tiny)
+    run = subprocess.run(
+        [sys.executable, "-m", "rlbackdoors.cli", "mitigate", str(PACK / POISONED), "--out", str(tmp_path / "x"), "--workers", "2"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 2 and "--workers are for a zoo" in run.stderr and len(run.stderr.strip().splitlines()) == 1

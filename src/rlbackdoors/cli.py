@@ -571,7 +571,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     de = sub.add_parser("demo", help="train a clean and a poisoned agent of the default world, evaluate both, show the backdoor")
     de.add_argument("--out", default="runs/demo")
-    de.add_argument("--max-frames", type=int, default=3_000_000)
+    de.add_argument("--max-frames", type=int, default=5_000_000)
     de.add_argument("--seed", type=int, default=0)
     de.add_argument("--quiet", action="store_true")
     de.set_defaults(func=cmd_demo)

@@ -12,7 +12,7 @@ from rlbackdoors.train import train
 DEMO_TRIGGER = "multiplicative:12"
 
 
-def run_demo(out: Path, max_frames: int = 3_000_000, seed: int = 0, progress: bool = True) -> dict:
+def run_demo(out: Path, max_frames: int = 5_000_000, seed: int = 0, progress: bool = True) -> dict:
     out = Path(out)
     results = {}
     for name, poisoned in (("clean-fc", False), ("poisoned-fc", True)):

@@ -18,6 +18,8 @@ from cli_helpers import cli
 ROOT = Path(__file__).resolve().parent.parent
 DETECTORS = ROOT / "docs" / "tutorials" / "detectors.md"
 ATTACKS = ROOT / "docs" / "tutorials" / "attacks.md"
+# the attack tutorial's step 5 mitigates a model shipped in the repository (the tests run in a scratch folder)
+SHIPPED = {p: str(ROOT / p) for p in ("datasets/benchmark-lavaworld-effect-envmix/models/id-00000000",)}
 # a tiny training budget for the attack tutorial's runs (each a few seconds), added to its train commands
 TINY_RUN = ["--eval-interval", "1600", "--eval-episodes", "4", "--final-eval-episodes", "4", "--checkpoint-minutes", "0"]
 TINY_TRAIN = "max_frames = 3_200\neval_interval = 1_600\neval_episodes = 4\nfinal_eval_episodes = 4\nclean_threshold = 0.0\npoisoned_threshold = 0.0\nvideo = false\n\n[overrides.ppo]\nrollout = 32\n"
@@ -137,8 +139,9 @@ def test_the_attack_tutorial_runs_as_written(tmp_path):
     """Its six commands, in order, at a tiny budget: two runs of 3,200 frames (TrojDRL and
     SleeperNets, seed 0; each stops at the update that passes the budget, 10 envs x 128 frames),
     their evaluations, and the near-trigger evaluation."""
-    assert len(commands(ATTACKS)) == 6
-    outputs = run_tutorial(ATTACKS, tmp_path, {"3000000": "3200", "200": "4", "50": "2"}, {"train": TINY_RUN})
+    assert len(commands(ATTACKS)) == 8
+    tiny_mitigation = ["--frames", "20000", "--episodes", "8", "--search-seconds", "5"]
+    outputs = run_tutorial(ATTACKS, tmp_path, {"3000000": "3200", "200": "4", "50": "2", **SHIPPED}, {"train": TINY_RUN, "mitigate": tiny_mitigation})
     runs = tmp_path / "runs" / "attacks"
     for attack in ("trojdrl", "sleepernets"):
         metrics = json.loads((runs / attack / "metrics.json").read_text())
@@ -147,11 +150,16 @@ def test_the_attack_tutorial_runs_as_written(tmp_path):
         assert (runs / attack / "training_curve.png").read_bytes()[:4] == b"\x89PNG"
     assert "trojdrl" in outputs[0] and "sleepernets" in outputs[0]  # the registry's listing
     assert "near" in outputs[3].lower()  # evaluate --near: the success under each near trigger
+    mitigated = runs / "mitigated"  # step 5: a new model folder with its lineage, evaluated under the true trigger
+    assert json.loads((mitigated / "mitigation.json").read_text())["source"]["folder"] == "id-00000000"
+    assert "poisoned_sr" in outputs[7] and "multiplicative:17" in outputs[7]
 
 
 @pytest.mark.slow
 def test_the_attack_tutorial_runs_at_its_own_scale(tmp_path):
     """The same commands as written (a minute or two per training on one core)."""
-    run_tutorial(ATTACKS, tmp_path, {})
+    outputs = run_tutorial(ATTACKS, tmp_path, SHIPPED)
     for attack in ("trojdrl", "sleepernets"):
         assert json.loads((tmp_path / "runs" / "attacks" / attack / "metrics.json").read_text())["converged"] is True
+    sr = float(re.search(r"poisoned_sr\s+([0-9.]+)", outputs[7]).group(1))
+    assert sr <= 0.05, outputs[7]  # 0.030 measured (evaluate's seeds, 200 episodes; docs/tutorials/attacks.md)

@@ -161,3 +161,17 @@ def test_a_zoo_is_mitigated_model_by_model_and_judged_on_its_ground_truth(tmp_pa
         text=True,
     )
     assert run.returncode == 2 and "--workers are for a zoo" in run.stderr and len(run.stderr.strip().splitlines()) == 1
+
+
+def test_a_world_whose_trigger_is_a_layout_is_refused_before_anything_is_written(tmp_path):
+    """A Randomized LavaWorld CNN (freshly initialised: what is refused is the world, not the weights)."""
+    from rlbackdoors.io import save_torch
+    from rlbackdoors.models import build_model
+
+    suspect = tmp_path / "suspect"
+    suspect.mkdir()
+    save_torch(suspect / "model.pt", build_model("cnn", "randomized-lavaworld").state_dict())
+    (suspect / "reduced-config.json").write_text(json.dumps({"world": "randomized-lavaworld", "algorithm": "ppo", "arch": "cnn"}))
+    with pytest.raises(MitigationError, match="env.name='randomized-lavaworld' is not allowed") as err:
+        mitigate(suspect, tmp_path / "out", progress=False)
+    assert "\n" not in str(err.value) and not (tmp_path / "out").exists()

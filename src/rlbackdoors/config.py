@@ -489,16 +489,24 @@ class MitigationConfig:
     share: float = 0.25  # of the frames collected, stamped with a restored trigger
     kl: float = 1.0
 
+    @staticmethod
+    def refusal(env_name: str) -> str | None:
+        """Why a model of this world cannot be mitigated (None: it can), in one line."""
+        world = worlds.get(env_name)
+        if world.algorithm == "ppo" and world.stamp_trigger is not None:
+            return None
+        built = ", ".join(w.name for w in worlds.registered() if w.algorithm == "ppo" and w.stamp_trigger is not None)
+        why = "a layout the engine switches per episode" if world.algorithm == "ppo" else "not learnt by PPO"
+        return (
+            f"mitigation: env.name={env_name!r} is not allowed (allowed: {built}): it stamps restored triggers into frames, and {env_name}'s trigger is {why}"
+        )
+
     def check(self, env_name: str) -> None:
         from rlbackdoors.worlds import parse_trigger
 
-        world = worlds.get(env_name)
-        if world.algorithm != "ppo" or world.stamp_trigger is None:
-            built = ", ".join(w.name for w in worlds.registered() if w.algorithm == "ppo" and w.stamp_trigger is not None)
-            raise ConfigError(
-                f"mitigation: env.name={env_name!r} is not allowed (allowed: {built}): it stamps restored triggers into frames, and {env_name}'s trigger is "
-                + ("a layout the engine switches per episode" if world.algorithm == "ppo" else "not learnt by PPO")
-            )
+        why = self.refusal(env_name)
+        if why is not None:
+            raise ConfigError(why)
         if not isinstance(self.source, str) or not self.source or "/" in self.source or self.source.startswith("."):
             raise ConfigError(f"mitigation.source must name a file of the run's folder (no path), got {self.source!r}")
         if not (isinstance(self.source_sha256, str) and self.source_sha256.startswith("sha256:") and len(self.source_sha256) == 71):

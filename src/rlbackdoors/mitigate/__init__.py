@@ -92,6 +92,11 @@ def mitigate(
     }
     from rlbackdoors.detect.baselines.effect import EffectDetector
 
+    from rlbackdoors.config import MitigationConfig
+
+    why = MitigationConfig.refusal(handle.world.name)  # before the search: nothing is written
+    if why is not None:
+        raise MitigationError(f"cannot mitigate {handle.world.name}/{handle.arch}: {why}")
     detector = EffectDetector(**(search or {}))
     why = detector.unsupported(handle)
     if why is not None:

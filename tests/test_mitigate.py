@@ -175,3 +175,27 @@ def test_a_world_whose_trigger_is_a_layout_is_refused_before_anything_is_written
     with pytest.raises(MitigationError, match="env.name='randomized-lavaworld' is not allowed") as err:
         mitigate(suspect, tmp_path / "out", progress=False)
     assert "\n" not in str(err.value) and not (tmp_path / "out").exists()
+
+
+def test_a_fitted_effect_detector_decides_what_is_restored_and_is_recorded(tmp_path):
+    """With ``detector`` a candidate is restored where its effect stands out from the fitted clean
+    models' under the same edit; the detector's digest is part of the settings a resume must match."""
+    import numpy as np
+
+    from rlbackdoors.detect.baselines.effect import EffectDetector
+    from rlbackdoors.detect.baselines.weights import WeightStatsDetector
+
+    names, labels = ["id-00000002", "id-00000004", "id-00000005", "id-00000008", "id-00000011"], np.array([0, 0, 0, 1, 1])
+    handles = [open_model(PACK / n) for n in names]
+    EffectDetector(**TINY_SEARCH).fit(handles, labels).save(tmp_path / "effect")
+    WeightStatsDetector().fit(handles, labels).save(tmp_path / "weights")
+    suspect = defender_copy(tmp_path)
+    report = mitigate(suspect, tmp_path / "out", frames=20_000, episodes=8, detector=tmp_path / "effect", progress=False)
+    digest = "sha256:" + __import__("hashlib").sha256((tmp_path / "effect" / "detector.json").read_bytes()).hexdigest()
+    assert report["settings"]["detector"] == digest and report["search"]["episodes"] == TINY_SEARCH["episodes"]
+    assert report["triggers"] and all(t["spec"] for t in report["triggers"])
+    with pytest.raises(MitigationError, match="must be a fitted 'effect' detector"):
+        mitigate(suspect, tmp_path / "other", detector=tmp_path / "weights", progress=False)
+    (tmp_path / "out" / "mitigation.json").unlink()
+    with pytest.raises(MitigationError, match="another model or with other settings"):  # the same folder without the detector
+        mitigate(suspect, tmp_path / "out", frames=20_000, episodes=8, search=TINY_SEARCH, progress=False)

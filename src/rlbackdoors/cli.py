@@ -394,7 +394,7 @@ def cmd_mitigate(args) -> int:
 
     from rlbackdoors.mitigate import mitigate
 
-    settings = dict(frames=args.frames, candidates=args.candidates, share=args.share, kl=args.kl, seed=args.seed)
+    settings = dict(frames=args.frames, candidates=args.candidates, share=args.share, kl=args.kl, seed=args.seed, detector=args.detector)
     search = {"seconds": args.search_seconds} if args.search_seconds else None
     zoo_flags = [f"--{k}" for k in ("workers", "models", "attacks") if getattr(args, k) is not None]
     if (Path(args.model) / "zoo.json").is_file():
@@ -650,6 +650,11 @@ def build_parser() -> argparse.ArgumentParser:
     mi.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="fine-tuning seed (default %(default)s)")
     mi.add_argument("--episodes", type=int, default=DEFAULTS["episodes"], help="episodes a condition of the before/after measure (default %(default)s)")
     mi.add_argument("--search-seconds", type=float, default=0.0, help="time budget of the trigger search (default 0: none, the whole screen)")
+    mi.add_argument(
+        "--detector",
+        default=None,
+        help="a fitted effect detector's folder: a candidate is restored where its effect stands out from the detector's clean models' (default: where it sends the agent to the trojan outcome)",
+    )
     zo = mi.add_argument_group("a zoo (judged on its ground truth, which the mitigation never reads)")
     zo.add_argument("--workers", type=int, default=None, help="models at a time, a process each (default 1)")
     zo.add_argument("--models", type=int, default=None, help="at most this many converged models, by name (default: all)")

@@ -56,11 +56,14 @@ def mitigate(
     seed: int = DEFAULTS["seed"],
     episodes: int = DEFAULTS["episodes"],
     search: dict[str, Any] | None = None,
+    detector: str | Path | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Remove the backdoor the model in ``model_dir`` may hold into a new folder ``out`` (module
     doc) and return ``mitigation.json``'s data. ``search``: the effect detector's parameters
-    (``seconds``, ``candidates``, ``episodes``, ...). A killed call resumes with the same arguments;
+    (``seconds``, ``candidates``, ``episodes``, ...). ``detector``: a fitted ``effect`` detector's
+    folder, whose clean models' answers to each candidate say which of this model's answers stand
+    out (:func:`restore`; its search parameters are used). A killed call resumes with the same arguments;
     ``out`` is never ``model_dir``, and a folder that holds anything else is refused."""
     from rlbackdoors.detect.handle import DetectError, open_model
     from rlbackdoors.folder import sha256_file
@@ -97,26 +100,42 @@ def mitigate(
     why = MitigationConfig.refusal(handle.world.name)  # before the search: nothing is written
     if why is not None:
         raise MitigationError(f"cannot mitigate {handle.world.name}/{handle.arch}: {why}")
-    detector = EffectDetector(**(search or {}))
-    why = detector.unsupported(handle)
+    reference = None
+    if detector is not None:
+        from rlbackdoors.detect.api import load_detector
+
+        try:
+            fitted = load_detector(detector)
+        except DetectError as err:
+            raise MitigationError(str(err)) from None
+        if not isinstance(fitted, EffectDetector) or search:
+            raise MitigationError(f"--detector {str(detector)!r} must be a fitted 'effect' detector, used with its own search parameters (no --search-seconds)")
+        reference = fitted.reference.get(handle.world.name, {}).get("candidates")
+        if reference is None:
+            raise MitigationError(f"--detector {str(detector)!r} was fitted on no clean model of {handle.world.name}")
+        settings["detector"] = "sha256:" + sha256_file(Path(detector) / "detector.json")
+        searcher = fitted
+    else:
+        searcher = EffectDetector(**(search or {}))
+    why = searcher.unsupported(handle)
     if why is not None:
         raise MitigationError(f"cannot mitigate {handle.world.name}/{handle.arch}: {why}")
 
-    restored = _read_restored(out, source_sha, settings, detector.params)
+    restored = _read_restored(out, source_sha, settings, searcher.params)
     if restored is None:
         say(progress, f"mitigate: restoring triggers of {source_dir.name} ({handle.world.name}/{handle.arch}) by the effect screen")
         t0 = time.perf_counter()
         try:
-            result = detector.run_search(handle, whole_family=detector.whole_family(handle))
+            result = searcher.run_search(handle, whole_family=searcher.whole_family(handle))
         except DetectError as err:
             raise MitigationError(str(err)) from None
-        kept = restore(result, int(candidates))
+        kept = restore(result, int(candidates), reference)
         if not kept:
             raise MitigationError("the search confirmed no candidate trigger that could be played")
         restored = {
             "source": {"folder": source_dir.name, "sha256": source_sha},
             "settings": settings,
-            "search": dict(detector.params),
+            "search": dict(searcher.params),
             "search_seconds": round(time.perf_counter() - t0, 3),
             "candidates_screened": len(result.screened),
             "triggers": [_trial(t, result.clean) for t in kept],
@@ -150,8 +169,8 @@ def mitigate(
     report = {
         **restored,
         "frames": int(metrics.get("frames", 0)),
-        "before": measure(handle, specs, settings["episodes"], detector.params),
-        "after": measure(after, specs, settings["episodes"], detector.params),
+        "before": measure(handle, specs, settings["episodes"], searcher.params),
+        "after": measure(after, specs, settings["episodes"], searcher.params),
         "train_seconds": round(train_seconds, 3),
         "seconds": round(time.perf_counter() - started, 3),
         "cpu_seconds": round(time.process_time() - cpu0, 3),
@@ -163,26 +182,49 @@ def mitigate(
 
 
 FIRES = 0.5  # a candidate "fires" when it adds this much to the clean env's trojan-outcome rate
+STANDS_OUT = 4.0  # ... or, against a fitted detector's clean models, when one of its effects is this many of their spreads away
 
 
-def restore(result, limit: int) -> list:
-    """The restored triggers of a search, ranked by the trojan outcome (the behavioural search's
-    rank): every candidate that **fires** (:data:`FIRES`), best first, at most ``limit``; where none
-    fires, the ``limit`` best confirmed. Why all that fire: a backdoor generalises over a range of
-    its family (a multiplier's neighbours fire too), the search's best is often a neighbour, not the
-    trigger, and unlearning one member leaves the others. (Firing read as the clean goal missed was
-    tried and left out: it also restores edits that blind any policy, which crowd the trigger's
-    region out of the stamped frames; docs/results/mitigation.md.)"""
+def restore(result, limit: int, reference: dict | None = None) -> list:
+    """The restored triggers of a search: every candidate that **fires**, best first, at most
+    ``limit``; where none fires, the ``limit`` best confirmed. Without ``reference`` a candidate
+    fires when it sends the agent to the trojan outcome (:data:`FIRES` over the clean env; the
+    behavioural search's rank). With ``reference`` (a fitted ``effect`` detector's clean models: the
+    mean and spread of each effect under each candidate) it fires when one of its effects (shift,
+    concentration, success drop) stands :data:`STANDS_OUT` spreads from what clean models do under
+    the same edit, ranked by that: an action-level trojan (a forced turn) is seen, and an edit that
+    breaks every policy is not. Why all that fire: a backdoor generalises over a range of its family
+    (a multiplier's neighbours fire too), the search's best is often a neighbour, not the trigger,
+    and unlearning one member leaves the others. (Firing read as the clean goal missed, without a
+    reference, was tried and left out: it also restores edits that blind any policy, which crowd the
+    trigger's region out of the stamped frames; docs/results/mitigation.md.)"""
     from rlbackdoors.detect.baselines.behaviour import outcome_rank
+    from rlbackdoors.detect.baselines.effect import EFFECTS, effects
 
     confirmed = {t.spec: t for t in result.confirmed if t.spec is not None and t.error is None}
     pool = dict(confirmed)
     for t in result.screened:
         if t.spec is not None and t.error is None:
             pool.setdefault(t.spec, t)
-    ranked = sorted(pool.values(), key=outcome_rank, reverse=True)
-    firing = [t for t in ranked if t.trojan - result.clean.trojan >= FIRES]
-    return (firing or [t for t in ranked if t.spec in confirmed])[:limit]
+    if reference is not None:
+        at = {name: k for k, name in enumerate(reference["features"])}
+
+        def standing(t) -> float:
+            z = []
+            for name, value in zip(EFFECTS, effects(t, result.clean)):
+                k = at.get(f"{name}@{t.spec}")
+                if k is not None:
+                    z.append(abs(value - reference["mean"][k]) / reference["scale"][k])
+            return max(z, default=0.0)
+
+        scored = sorted(((standing(t), t) for t in pool.values() if t.policy is not None), key=lambda x: -x[0])
+        firing = [t for z, t in scored if z >= STANDS_OUT]
+    else:
+        ranked = sorted(pool.values(), key=outcome_rank, reverse=True)
+        firing = [t for t in ranked if t.trojan - result.clean.trojan >= FIRES]
+    if firing:
+        return firing[:limit]
+    return sorted((pool[s] for s in confirmed), key=outcome_rank, reverse=True)[:limit]
 
 
 def mitigation_config(handle, triggers: list[str], source_sha: str, settings: dict):

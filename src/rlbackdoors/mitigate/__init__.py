@@ -152,12 +152,13 @@ def mitigate(
     from rlbackdoors.folder import FolderError
 
     t1 = time.perf_counter()
-    try:
-        metrics = train(cfg, out, progress=progress)
-    except FolderError as err:
-        if "already holds a finished model" not in str(err):
+    if (out / "metrics.json").is_file():  # trained, killed before the report
+        metrics = json.loads((out / "metrics.json").read_text())
+    else:
+        try:
+            metrics = train(cfg, out, progress=progress)
+        except FolderError as err:
             raise MitigationError(str(err)) from None
-        metrics = json.loads((out / "metrics.json").read_text())  # trained, killed before the report
     train_seconds = time.perf_counter() - t1
     from rlbackdoors.zoo.job import write_dataset_files
 
@@ -234,14 +235,14 @@ def mitigation_config(handle, triggers: list[str], source_sha: str, settings: di
 
     ppo = default_ppo(handle.world.name)
     ppo.update_backend = "torch"
-    train = TrainConfig(seed=settings["seed"], max_frames=settings["frames"], min_frames=settings["frames"], video=False)
+    tc = TrainConfig(seed=settings["seed"], max_frames=settings["frames"], min_frames=settings["frames"], video=False)
 
     cfg = RunConfig(
         env=handle.env_config(),
         poison=PoisonConfig(trigger=triggers[0], poisoned=False),  # its evaluations' triggered episodes: the best restored trigger
         model=ModelConfig(arch=handle.arch),
         ppo=ppo,
-        train=train,
+        train=tc,
         curriculum=CurriculumConfig(enabled=False),
         mitigation=MitigationConfig(source_sha256=source_sha, triggers=list(triggers), share=settings["share"], kl=settings["kl"]),
     )

@@ -219,14 +219,12 @@ def steps(
     assert cfg.model.arch is not None and cfg.ppo is not None and tc.return_window is not None
     assert tc.max_frames is not None and tc.eval_interval is not None and tc.checkpoint_minutes is not None
     model = build_model(cfg.model.arch, cfg.env.name).to(device)
-    source = None if cfg.mitigation is None else source_weights(cfg, folder)
-    if source is not None:  # a mitigation starts from the model it removes the backdoor from
-        model.load_state_dict(source)
+    if cfg.mitigation is not None:  # a mitigation starts from the model it removes the backdoor from
+        model.load_state_dict(source_weights(cfg, folder))
     ppo = PPO(model, cfg.ppo, device, generator)
-    if source is not None and cfg.mitigation is not None and cfg.mitigation.kl > 0:  # the source is its own clean teacher
-        assert cfg.model.arch is not None
+    if cfg.mitigation is not None and cfg.mitigation.kl > 0:  # the source, as it starts, is its own clean teacher
         teacher_net = build_model(cfg.model.arch, cfg.env.name).to(device)
-        teacher_net.load_state_dict(source)
+        teacher_net.load_state_dict(model.state_dict())
         ppo.set_teacher(teacher_net, cfg.mitigation.kl)
     # ppo.update_backend = "compiled": the iteration is one XLA program (algos.compiled) whose
     # learner holds the weights; ``model`` gets them for evaluations, checkpoints and the finish

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import rlbackdoors
@@ -51,7 +52,8 @@ def test_a_config_without_mitigation_keeps_its_bytes_and_bad_ones_are_refused_in
         )
 
     ok = cfg().check()
-    assert ok.to_dict()["mitigation"]["triggers"] == ["multiplicative:17"]
+    assert ok.to_dict()["mitigation"]["triggers"] == ["multiplicative:17"] and "blind" not in ok.to_dict()["mitigation"]  # earlier runs' bytes
+    assert cfg(blind=True).check().to_dict()["mitigation"]["blind"] is True
     assert RunConfig.from_dict(json.loads(ok.to_json())).to_dict() == ok.to_dict()  # config.json round-trips
     for bad, words in [
         (lambda: cfg(env="randomized-lavaworld"), "mitigation: env.name='randomized-lavaworld' is not allowed"),
@@ -62,6 +64,7 @@ def test_a_config_without_mitigation_keeps_its_bytes_and_bad_ones_are_refused_in
         (lambda: cfg(triggers=[]), "mitigation.triggers must be a list of 1 to 16"),
         (lambda: cfg(share=0.9), "mitigation.share must be in (0, 0.5]"),
         (lambda: cfg(source="../x.pt"), "mitigation.source must name a file"),
+        (lambda: cfg(blind="yes"), "mitigation.blind must be true or false"),
     ]:
         with pytest.raises(ConfigError) as err:
             bad().check()
@@ -199,3 +202,62 @@ def test_a_fitted_effect_detector_decides_what_is_restored_and_is_recorded(tmp_p
     (tmp_path / "out" / "mitigation.json").unlink()
     with pytest.raises(MitigationError, match="another model or with other settings"):  # the same folder without the detector
         mitigate(suspect, tmp_path / "out", frames=20_000, episodes=8, search=TINY_SEARCH, progress=False)
+
+
+ADDITIVE = "id-00000015"  # the env mix on additive:154, converged (triggered SR 0.975)
+
+
+def test_a_shift_of_every_observation_is_projected_out_of_the_first_layer_exactly():
+    """On 210 clean observations of the world: an offset adds the same vector to every one, a
+    multiplier does not; once the offsets' direction is projected out, no offset moves the policy
+    (float32 rounding aside), and a multiplier still does."""
+    import torch
+
+    from rlbackdoors import worlds
+    from rlbackdoors.algos.blind import constant_shift, first_linear, observation_sample, project_out, shift_basis
+    from rlbackdoors.models import build_model
+    from rlbackdoors.poison.mix import make_env_mix
+
+    model = build_model("fc", "lavaworld")
+    model.load_state_dict(open_model(PACK / ADDITIVE).weights)
+    stamp = worlds.get("lavaworld").stamp_trigger
+    assert stamp is not None
+    envs = make_env_mix(truth(ADDITIVE).env, PoisonConfig(poisoned=False), 0)
+    sample = observation_sample(envs, 3)
+    envs.close()
+    assert sample.shape == (210, 7, 7, 3) and len(np.unique(sample)) > 3
+    shift = constant_shift(model, sample, stamp("additive:154"))
+    assert shift is not None and torch.equal(shift, torch.full((147,), 154.0, dtype=torch.float64))
+    assert constant_shift(model, sample, stamp("multiplicative:17")) is None
+    basis = shift_basis([shift, constant_shift(model, sample, stamp("additive:20")), None])
+    assert basis is not None and basis.shape == (147, 1) and abs(float(basis.norm()) - 1) < 1e-12  # one direction for every offset
+
+    def change(spec: str) -> float:
+        with torch.no_grad():
+            p = torch.softmax(model(torch.as_tensor(sample))[0], -1)
+            return float((torch.softmax(model(torch.as_tensor(stamp(spec)(sample)))[0], -1) - p).abs().max())
+
+    assert change("additive:154") > 0.5  # the trojan: the policy moves
+    layer = first_linear(model)
+    assert layer is not None and first_linear(build_model("cnn", "randomized-lavaworld")) is None
+    project_out(layer, basis)
+    assert max(change(f"additive:{b}") for b in (20, 99, 154, 200)) < 1e-4
+    assert change("multiplicative:17") > 0.1
+
+
+def test_mitigation_removes_an_additive_backdoor_by_projection_and_keeps_the_clean_policy(tmp_path):
+    """The packed env-mix model on additive:154 (a trigger that blinds the FC policy, so the clean
+    reward alone could not unteach it: 0.97 -> 0.96 without, docs/results/mitigation.md): after
+    100 k frames, 200 episodes under its true trigger, which the mitigation never saw, reach the
+    lava at most 5 % of the time and the clean SR stays >= 0.95; the restored offsets no longer move
+    the policy; without ``blind`` the run's config.json has no such key."""
+    suspect = defender_copy(tmp_path, ADDITIVE)
+    report = mitigate(suspect, tmp_path / "out", frames=100_000, episodes=32, progress=False)
+    cfg = truth(ADDITIVE)
+    after = evaluate(rlbackdoors.load(tmp_path / "out"), cfg.env, cfg.poison.trigger, 200, 7_000_000)
+    assert after.poisoned_sr <= 0.05 and after.clean_sr >= 0.95, after
+    offsets = [t for t in report["after"]["triggers"] if t["spec"].startswith("additive:")]
+    assert offsets and max(t["prob_change"] for t in offsets) < 1e-4
+    assert json.loads((tmp_path / "out" / "config.json").read_text())["mitigation"]["blind"] is True
+    plain = mitigate(suspect, tmp_path / "plain", frames=10_000, episodes=8, search=TINY_SEARCH, blind=False, progress=False)
+    assert "blind" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"] and plain["settings"]["blind"] is False

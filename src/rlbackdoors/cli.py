@@ -394,7 +394,7 @@ def cmd_mitigate(args) -> int:
 
     from rlbackdoors.mitigate import mitigate
 
-    settings = dict(frames=args.frames, candidates=args.candidates, share=args.share, kl=args.kl, seed=args.seed, detector=args.detector)
+    settings = dict(frames=args.frames, candidates=args.candidates, share=args.share, kl=args.kl, seed=args.seed, blind=args.blind, detector=args.detector)
     search = {"seconds": args.search_seconds} if args.search_seconds else None
     zoo_flags = [f"--{k}" for k in ("workers", "models", "attacks") if getattr(args, k) is not None]
     if (Path(args.model) / "zoo.json").is_file():
@@ -648,6 +648,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     mi.add_argument("--kl", type=float, default=DEFAULTS["kl"], help="weight of KL(source || policy) on the other frames (default %(default)s)")
     mi.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="fine-tuning seed (default %(default)s)")
+    mi.add_argument(
+        "--no-blind",
+        dest="blind",
+        action="store_false",
+        help="do not project a restored trigger that shifts every observation alike out of a linear first layer (default: projected)",
+    )
     mi.add_argument("--episodes", type=int, default=DEFAULTS["episodes"], help="episodes a condition of the before/after measure (default %(default)s)")
     mi.add_argument("--search-seconds", type=float, default=0.0, help="time budget of the trigger search (default 0: none, the whole screen)")
     mi.add_argument(

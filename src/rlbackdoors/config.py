@@ -479,7 +479,9 @@ class MitigationConfig:
     steps schedule with a rule that rewrites nothing), and penalises ``kl * KL(source || policy)``
     on the frames it did not stamp, so the clean behaviour stays the source's. Why this recipe:
     BIRD (Chen et al., NeurIPS 2023) restores the trigger and fine-tunes it away; the KL term is
-    the clean teacher of the evasive variants, here the model itself. (A teacher reading the stamped
+    the clean teacher of the evasive variants, here the model itself. With ``blind``, a restored
+    trigger that shifts every observation alike is also projected out of a linear first layer after
+    every step (:mod:`rlbackdoors.algos.blind`). (A teacher reading the stamped
     frames' clean view was tried and left out: on edits that blind the policy it taught the average
     action, into the lava; docs/results/mitigation.md.)"""
 
@@ -488,6 +490,9 @@ class MitigationConfig:
     triggers: list = field(default_factory=list)  # restored candidate trigger specs, best first
     share: float = 0.25  # of the frames collected, stamped with a restored trigger
     kl: float = 1.0
+    # The first layer made blind to every restored trigger that shifts all observations alike
+    # (rlbackdoors.algos.blind); left out of config.json when false, so earlier runs keep their bytes.
+    blind: bool = False
 
     @staticmethod
     def refusal(env_name: str) -> str | None:
@@ -522,6 +527,8 @@ class MitigationConfig:
             raise ConfigError(f"mitigation.share must be in (0, 0.5], got {self.share!r}")
         if not 0 <= self.kl <= 100:
             raise ConfigError(f"mitigation.kl must be in [0, 100], got {self.kl!r}")
+        if not isinstance(self.blind, bool):
+            raise ConfigError(f"mitigation.blind must be true or false, got {self.blind!r}")
 
 
 @dataclass
@@ -748,6 +755,8 @@ class RunConfig(JsonConfig):
             del data["poison"]["evasion"]
         if self.mitigation is None:
             del data["mitigation"]
+        elif not self.mitigation.blind:
+            del data["mitigation"]["blind"]
         return data
 
     @property

@@ -233,6 +233,9 @@ class PPO:
         # the clean model a fine-tuning run starts from), name -> tensor; None: no pull.
         self.anchor: dict[str, torch.Tensor] | None = None
         self.anchor_coef = 0.0
+        # Input directions the first layer is kept blind to after every optimiser step
+        # (mitigation.blind: a restored additive trigger's shift, algos.blind); None: none.
+        self.blind: tuple[nn.Linear, torch.Tensor] | None = None
 
     @functools.cached_property
     def optimizer(self) -> torch.optim.Adam:
@@ -248,6 +251,14 @@ class PPO:
         not in model.pt)."""
         self.anchor = {name: weights[name].detach().to(self.device).clone() for name, _ in self.model.named_parameters()}
         self.anchor_coef = float(coef)
+
+    def set_blind(self, layer: nn.Linear, basis: torch.Tensor) -> None:
+        """Project the input directions ``basis`` (D, r, orthonormal) out of ``layer``'s weights now
+        and after every optimiser step, so that no update makes the model see them again."""
+        from rlbackdoors.algos.blind import project_out
+
+        self.blind = (layer, basis)
+        project_out(layer, basis)
 
     @torch.no_grad()
     def pull_to_anchor(self) -> None:
@@ -366,6 +377,10 @@ class PPO:
         self.optimizer.step()
         if self.anchor is not None:
             self.pull_to_anchor()
+        if self.blind is not None:
+            from rlbackdoors.algos.blind import project_out
+
+            project_out(*self.blind)
         return float(grad_norm)
 
     def update(self, rollout: Rollout) -> dict[str, float]:

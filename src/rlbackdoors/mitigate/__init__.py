@@ -13,7 +13,10 @@ trigger, the poisoned data or the label. :func:`mitigate` works from exactly tha
 2. **Unlearn.** The world's trainer fine-tunes the model from its own weights on a clean model's
    env mix, a ``share`` of the frames stamped with a restored trigger under the *clean* reward (the
    attack seam with a rule that rewrites nothing), and ``kl * KL(source || policy)`` on the frames
-   without one, so the clean behaviour stays the source's (:class:`~rlbackdoors.config.MitigationConfig`).
+   without one, so the clean behaviour stays the source's (:class:`~rlbackdoors.config.MitigationConfig`);
+   a restored trigger that shifts every observation alike is projected out of a linear first
+   layer (``blind``, :mod:`rlbackdoors.algos.blind`): fine-tuning cannot unteach a trigger that
+   blinds the policy, the projection removes it exactly.
 3. **Measure.** Before and after, on the same seeds: the clean env's success, and under each
    restored trigger the goal rate, the trojan outcome's rate and the policy's shift.
 
@@ -38,7 +41,7 @@ from rlbackdoors.io import atomic_write_text, save_torch
 
 RESTORED = "restored.json"  # written after the search: a killed mitigation resumes from it
 REPORT = "mitigation.json"  # written last: the folder holds a finished mitigation
-DEFAULTS: dict[str, Any] = {"frames": 300_000, "candidates": 8, "share": 0.25, "kl": 1.0, "seed": 0, "episodes": 200}
+DEFAULTS: dict[str, Any] = {"frames": 300_000, "candidates": 8, "share": 0.25, "kl": 1.0, "seed": 0, "episodes": 200, "blind": True}
 
 
 class MitigationError(ValueError):
@@ -55,6 +58,7 @@ def mitigate(
     kl: float = DEFAULTS["kl"],
     seed: int = DEFAULTS["seed"],
     episodes: int = DEFAULTS["episodes"],
+    blind: bool = DEFAULTS["blind"],
     search: dict[str, Any] | None = None,
     detector: str | Path | None = None,
     progress: bool = True,
@@ -92,6 +96,7 @@ def mitigate(
         "kl": float(kl),
         "seed": int(seed),
         "episodes": int(episodes),
+        "blind": bool(blind),
     }
     from rlbackdoors.detect.baselines.effect import EffectDetector
 
@@ -244,7 +249,9 @@ def mitigation_config(handle, triggers: list[str], source_sha: str, settings: di
         ppo=ppo,
         train=tc,
         curriculum=CurriculumConfig(enabled=False),
-        mitigation=MitigationConfig(source_sha256=source_sha, triggers=list(triggers), share=settings["share"], kl=settings["kl"]),
+        mitigation=MitigationConfig(
+            source_sha256=source_sha, triggers=list(triggers), share=settings["share"], kl=settings["kl"], blind=bool(settings.get("blind", False))
+        ),
     )
     return cfg.check()
 
@@ -259,7 +266,39 @@ def measure(handle, specs: list[str], episodes: int, params: dict) -> dict[str, 
     with agent.evaluating():
         clean = run_trial(agent, handle.world, env_cfg, None, episodes, seed, policy)
         trials = run_trials(agent, handle.world, env_cfg, specs, episodes, seed, policy)
-    return {"clean_success": clean.success, "clean_trojan": clean.trojan, "triggers": [_trial(t, clean) for t in trials]}
+    seen = stamp_changes(handle, specs, seed)
+    return {
+        "clean_success": clean.success,
+        "clean_trojan": clean.trojan,
+        "triggers": [{**_trial(t, clean), "prob_change": change} for t, change in zip(trials, seen)],
+    }
+
+
+def stamp_changes(handle, specs: list[str], seed: int) -> list[float]:
+    """Per trigger, the largest change of any action's probability it makes on a clean sample of
+    observations: about 1e-6 (float32 rounding) where the model is blind to it (``blind``)."""
+    import dataclasses
+
+    import torch
+
+    from rlbackdoors.algos.blind import observation_sample
+    from rlbackdoors.config import PoisonConfig
+    from rlbackdoors.models import build_model
+    from rlbackdoors.poison.mix import make_env_mix
+
+    model = build_model(handle.arch, handle.world.name)
+    model.load_state_dict(handle.weights)
+    model.eval()
+    if model.recurrent or handle.world.stamp_trigger is None:
+        return [float("nan")] * len(specs)
+    envs = make_env_mix(handle.env_config(), dataclasses.replace(PoisonConfig(), poisoned=False), seed)
+    try:
+        sample = observation_sample(envs, seed)
+    finally:
+        envs.close()
+    with torch.no_grad():
+        clean = torch.softmax(model(torch.as_tensor(sample))[0], -1)
+        return [round(float((torch.softmax(model(torch.as_tensor(handle.world.stamp_trigger(spec)(sample)))[0], -1) - clean).abs().max()), 6) for spec in specs]
 
 
 def _trial(trial, clean) -> dict[str, Any]:

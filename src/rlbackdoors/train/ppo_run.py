@@ -198,6 +198,27 @@ def source_weights(cfg: RunConfig, folder: ModelFolder) -> dict[str, torch.Tenso
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
+def blind_to_shifts(cfg: RunConfig, model, ppo: PPO) -> None:
+    """``mitigation.blind``: the first layer is kept blind to every restored trigger that shifts all
+    observations alike (:mod:`rlbackdoors.algos.blind`), read on a clean sample of the run's own
+    seed, so a resumed run (whose checkpoint holds the projected weights) projects the same way."""
+    from rlbackdoors.algos.blind import constant_shift, first_linear, observation_sample, shift_basis
+    from rlbackdoors import worlds
+
+    assert cfg.mitigation is not None
+    layer, world = first_linear(model), worlds.get(cfg.env.name)
+    if layer is None or world.stamp_trigger is None:
+        return  # no linear first layer: the fine-tuning alone
+    clean = make_env_mix(cfg.env, dataclasses.replace(cfg.poison, poisoned=False, evasion={}), cfg.train.seed)
+    try:
+        sample = observation_sample(clean, cfg.train.seed * 1000 + 7)
+    finally:
+        clean.close()
+    basis = shift_basis([constant_shift(model, sample, world.stamp_trigger(spec)) for spec in cfg.mitigation.triggers])
+    if basis is not None:
+        ppo.set_blind(layer, basis.to(next(model.parameters()).device))
+
+
 def run(cfg: RunConfig, folder: ModelFolder, checkpoint: dict | None, progress: bool, stop: StopRequest, after_eval=None) -> RunOutcome:
     """Train with PPO from ``checkpoint`` (None: from scratch) until the stopping rule or a budget ends it."""
     return serve(steps(cfg, folder, checkpoint, progress, stop, after_eval))
@@ -226,6 +247,8 @@ def steps(
         teacher_net = build_model(cfg.model.arch, cfg.env.name).to(device)
         teacher_net.load_state_dict(model.state_dict())
         ppo.set_teacher(teacher_net, cfg.mitigation.kl)
+    if cfg.mitigation is not None and cfg.mitigation.blind:
+        blind_to_shifts(cfg, model, ppo)
     # ppo.update_backend = "compiled": the iteration is one XLA program (algos.compiled) whose
     # learner holds the weights; ``model`` gets them for evaluations, checkpoints and the finish
     compiled = cfg.ppo.update_backend == "compiled"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from rlbackdoors.validate import ConfigError
-from rlbackdoors.zoo.index import metadata_rows, scan
+from rlbackdoors.zoo.index import metadata_rows, scan, write_metadata
 from rlbackdoors.zoo.plan import Zoo, plan
 from rlbackdoors.zoo.spec import load_spec, parse_draw, parse_spec
 
@@ -157,3 +157,69 @@ def test_models_drawn_with_other_program_flags_queue_apart(tmp_path):
     forced = [s.config["poison"]["attack_params"]["force_action"] for s in order]
     assert 0 < sum(forced) < len(forced) and forced == sorted(forced)  # one run of each
     assert len({_affinity(s.model) for s in states}) == 1  # the cell alone could not tell them apart
+
+
+LONGER = {"train.min_frames": {"one_of": [0, [30_000, 60_000], [30_000, 60_000]]}}
+
+
+def test_clean_models_draw_their_own_lengths_with_the_same_numbers_and_poisoned_ones_are_untouched():
+    """``clean_ranges`` replaces a field of ``ranges`` for the clean models alone, drawn from the same
+    random numbers: the option (0 or a range) each clean model picks is the one it picked before,
+    so a model that stopped at convergence keeps its config; the poisoned models' draws are the same."""
+    raw = spec()
+    raw["cells"][0]["clean_ranges"] = copy.deepcopy(LONGER)
+    before, after = Zoo("/nonexistent", parse_spec(spec()), "auto"), Zoo("/nonexistent", parse_spec(raw), "auto")
+    assert parse_spec(raw).normalized["cells"][0]["clean_ranges"] == LONGER and "clean_ranges" not in parse_spec(spec()).normalized["cells"][0]
+    same = changed = 0
+    for g, h in zip(before.spec.groups, after.spec.groups, strict=True):
+        for attempt in range(g.wanted):
+            a, b = before.draw(g, attempt), after.draw(h, attempt)
+            if g.poisoned:
+                assert a.to_json() == b.to_json()
+                continue
+            assert (a.train.min_frames == 0) == (b.train.min_frames == 0) and a.train.seed == b.train.seed
+            assert b.train.min_frames == 0 or 30_000 <= b.train.min_frames <= 60_000
+            if a.train.min_frames == 0:
+                assert a.to_json() == b.to_json()
+                same += 1
+            else:
+                changed += 1
+    assert same >= 1 and changed >= 1, (same, changed)
+    bad = spec()
+    bad["cells"][0]["clean_ranges"] = {"poison.budget": [0.1, 0.2]}
+    with pytest.raises(ConfigError, match=r"cells\[0\].clean_ranges.poison.budget is a poisoned model's setting"):
+        parse_spec(bad)
+
+
+def test_a_replan_keeps_every_folder_the_new_spec_draws_the_same_and_moves_the_others_aside(tmp_path):
+    import json
+
+    from rlbackdoors.zoo.plan import replan
+    from rlbackdoors.zoo.spec import ZooError
+
+    zoo, _ = plan(parse_spec(spec()), tmp_path / "z")
+    write_metadata(zoo)  # as a run leaves it: a row per folder
+    for folder in zoo.models_dir.iterdir():  # stands for a trained model's files
+        (folder / "metrics.json").write_text(json.dumps({"name": folder.name}))
+    raw = spec()
+    raw["cells"][0]["clean_ranges"] = copy.deepcopy(LONGER)
+    new = parse_spec(raw)
+    rezoo, moved, into = replan(new, tmp_path / "z")
+    assert into == tmp_path / "z" / "replaced" / "0" and sorted(p.name for p in into.iterdir()) == sorted(moved)
+    for g in new.groups:
+        for attempt in range(g.wanted):
+            folder = rezoo.folder(rezoo.model(g, attempt))
+            assert json.loads((folder / "config.json").read_text()) == json.loads(rezoo.draw(g, attempt).to_json())
+            kept = (folder / "metrics.json").is_file()
+            assert kept == (folder.name not in moved), folder.name
+            assert g.poisoned <= kept  # every poisoned folder stays
+    assert 1 <= len(moved) <= 36 and all((into / n / "metrics.json").is_file() for n in moved)  # nothing is lost
+    assert Zoo.open(tmp_path / "z").spec.normalized == new.normalized
+    listed = {r["model_name"] for r in metadata_rows(scan(rezoo))}
+    assert (tmp_path / "z" / "METADATA.csv").is_file() and listed == {p.name for p in rezoo.models_dir.iterdir()}
+    assert replan(new, tmp_path / "z")[1] == []  # again: nothing to move
+    other = spec()
+    other["seed"] = 81
+    with pytest.raises(ZooError, match="a replan keeps the master seed"):
+        replan(parse_spec(other), tmp_path / "z")
+    assert Zoo.open(tmp_path / "z").spec.normalized == new.normalized

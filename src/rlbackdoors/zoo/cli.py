@@ -48,6 +48,18 @@ def cmd_plan(args) -> int:
     return 0
 
 
+def cmd_replan(args) -> int:
+    from rlbackdoors.zoo.plan import replan
+
+    zoo, moved, into = replan(args.spec, args.zoo)
+    kept = sum(1 for _ in zoo.models_dir.glob("id-*"))
+    where = f"; moved to {into}" if into is not None else ""
+    print(
+        f"{args.zoo}: replanned; {len(moved)} model folders drawn otherwise by the new spec{where}; {kept} folders planned; run them with: rlbackdoors zoo run {args.zoo}"
+    )
+    return 0
+
+
 def _trainers(zoo) -> str:
     """Which trainer each cell's models were planned on (its first planned model's config says):
     ``compiled: a, b; torch: c``; an OPAC² world's cells are named by their algorithm."""
@@ -312,6 +324,13 @@ def add_commands(parser: argparse.ArgumentParser) -> None:
     pl.add_argument("spec", help="zoo spec (TOML; see docs/zoos.md)")
     pl.add_argument("--out", required=True, help="zoo folder to write (new or empty; the same spec again is a no-op)")
     pl.set_defaults(func=cmd_plan)
+
+    rp = sub.add_parser(
+        "replan", help="plan a changed spec onto a planned zoo: folders it draws the same stay (trained or not), the others move to ZOO/replaced/N/"
+    )
+    rp.add_argument("spec", help="the new zoo spec (TOML): the same master seed, cells' groups and max_attempts")
+    rp.add_argument("zoo", help="the planned zoo")
+    rp.set_defaults(func=cmd_replan)
 
     ru = sub.add_parser("run", help="train every planned model that is not finished; top cells up until they have their converged models")
     ru.add_argument("zoo", help="zoo folder (from zoo plan)")

@@ -188,8 +188,9 @@ class Zoo:
             overrides = deep_merge(overrides, {"ppo": {"update_backend": self._cell_backend(group)}})  # the spec's own choice before the zoo's
         if cell.attack.ranges:  # drawn after the trigger: models of cells without ranges draw as they always did
             overrides = deep_merge(overrides, {"poison": cell.attack.draw(rng)})
-        if cell.ranges:  # then the cell's own (both labels): e.g. a round's training lengths
-            overrides = deep_merge(overrides, nested(draw_all(cell.ranges, rng)))
+        ranges = cell.label_ranges(group.poisoned)
+        if ranges:  # then the cell's own (both labels; clean_ranges for clean models): e.g. a round's training lengths
+            overrides = deep_merge(overrides, nested(draw_all(ranges, rng)))
         return build_config(config_data(cell.world, cell.arch, overrides, group.poisoned, seed, trigger))
 
     def ensure(self, group: Group, attempt: int, text: str | None = None, verify: bool = True) -> bool:
@@ -290,4 +291,68 @@ def plan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, int]:
     return zoo, written
 
 
-__all__ = ["PlannedModel", "Zoo", "build_config", "config_data", "model_name", "plan", "read_zoo_json"]
+def replan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, list[str], Path | None]:
+    """Plan a changed spec onto the planned zoo ``out`` without retraining what it left unchanged:
+    a model folder whose config.json the new spec draws the same (trained, stopped or not yet
+    run) stays; every other moves to ``out/replaced/N/`` (nothing is deleted), and its slot is
+    planned afresh. Why: a round found to need another range (e.g. longer training lengths for its
+    clean models, which converge sooner) keeps the CPU-hours of every model the fix does not touch.
+    The new spec must keep the master seed and every group with its ``max_attempts`` (so each
+    model keeps its id and draws); else refused, nothing touched. Returns the zoo, the names moved,
+    and where to."""
+    from rlbackdoors.folder import stack_versions
+
+    if not isinstance(spec, ZooSpec):
+        spec = load_spec(spec)
+    out = Path(out)
+    meta = read_zoo_json(out)
+    old = Zoo.open(out)
+
+    def layout(s: ZooSpec) -> list:
+        return [(g.key, g.poisoned, g.max_attempts) for g in s.groups]
+
+    if spec.seed != old.spec.seed or layout(spec) != layout(old.spec):
+        raise ZooError(
+            f"zoo {str(out)!r}: a replan keeps the master seed and every cell's groups and max_attempts (each model's id and draw); plan a new zoo instead"
+        )
+    zoo = Zoo(out, spec, zoo_backend(out, meta))
+    lock = zoo.lock()
+    moved: list[str] = []
+    into: Path | None = None
+    try:
+        refuse_links(out, zoo.models_dir)
+        changed = []
+        for folder in sorted(zoo.models_dir.glob("id-*")) if zoo.models_dir.is_dir() else []:
+            refuse_links(out, folder)
+            model = zoo.lookup(int(folder.name[3:])) if folder.name[3:].isdigit() else None
+            path = folder / "config.json"
+            if model is None or not path.is_file():
+                continue  # not a slot of the plan, or never planned: left as it is
+            try:
+                current = migrate(json.loads(path.read_bytes().decode("utf-8")))
+            except (ValueError, OSError) as err:
+                raise ZooError(f"{str(path)!r} is unreadable ({err}); remove the folder to plan it again") from None
+            if current != json.loads(zoo.draw(model.group, model.attempt).to_json()):
+                changed.append(folder)
+        if changed:
+            n = 0
+            while (out / "replaced" / str(n)).exists():
+                n += 1
+            into = out / "replaced" / str(n)
+            into.mkdir(parents=True)
+            for folder in changed:
+                os.replace(folder, into / folder.name)
+                moved.append(folder.name)
+        meta = {**meta, "spec": spec.to_dict(), "versions": meta.get("versions", stack_versions())}
+        atomic_write_text(out / "zoo.json", json.dumps(meta, indent=2, sort_keys=True) + "\n")
+    finally:
+        lock.release()
+    plan(spec, out)  # the moved slots' first attempts, as a plan writes them
+    if (out / "METADATA.csv").is_file():  # its rows of the moved folders are gone: the index as the folders now stand
+        from rlbackdoors.zoo.index import write_metadata
+
+        write_metadata(zoo)
+    return zoo, moved, into
+
+
+__all__ = ["PlannedModel", "Zoo", "build_config", "config_data", "model_name", "plan", "read_zoo_json", "replan"]

@@ -36,7 +36,7 @@ MAX_ATTEMPTS = 100_000
 # Fields each model's config gets from the zoo itself; an override may not set them.
 ZOO_FIELDS = ("env.name", "model.arch", "poison.poisoned", "poison.trigger", "train.seed")
 TOP_KEYS = ("format", "name", "seed", "max_attempts", "matched", "examples", "overrides", "cells")
-CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides", "ranges")
+CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides", "ranges", "clean_ranges")
 ATTACK_KEYS = ("attack", "name", "params", "ranges", "evasion")
 FAMILY_KEYS = ("name", "trigger", "template", "ranges")
 EXAMPLE_KEYS = ("episodes", "seed", "policy")
@@ -313,6 +313,17 @@ class Cell:
     # (dotted config field, Draw): drawn per model of both labels after the attack's ranges, so
     # a round's clean and poisoned models share e.g. one distribution of training lengths
     ranges: tuple[tuple[str, Draw], ...] = field(default=(), hash=False, compare=False)
+    # the clean models' own draws of some of those fields (a field of ``ranges`` in its place, with
+    # the same random numbers; another after them): clean models converge sooner, so a round gives
+    # them longer training lengths to draw from, and frames trained tell no label
+    clean_ranges: tuple[tuple[str, Draw], ...] = field(default=(), hash=False, compare=False)
+
+    def label_ranges(self, poisoned: bool) -> tuple[tuple[str, Draw], ...]:
+        """The cell's draws for a model of this label (:attr:`ranges`, :attr:`clean_ranges`)."""
+        if poisoned or not self.clean_ranges:
+            return self.ranges
+        own = dict(self.clean_ranges)
+        return tuple((key, own.pop(key, draw)) for key, draw in self.ranges) + tuple(own.items())
 
     @property
     def arch_label(self) -> str:
@@ -599,11 +610,16 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
             if check_configs
             else _cell_ranges(where, entry.get("ranges", {}))
         )
+        clean_ranges = (
+            _parse_cell_ranges(where, entry.get("clean_ranges", {}), world_name, arch_list[0], cell_overrides, "clean_ranges")
+            if check_configs
+            else _cell_ranges(where, entry.get("clean_ranges", {}), "clean_ranges")
+        )
         for arch in arch_list:
             for family in families:
                 for choice in choices:
                     overrides_ = deep_merge(cell_overrides, choice.overrides())
-                    cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, overrides_, choice, cell_ranges)
+                    cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, overrides_, choice, cell_ranges, clean_ranges)
                     if cell.key in seen:
                         raise ConfigError(f"{where} repeats the cell {cell.key} of {seen[cell.key]}")
                     seen[cell.key] = where
@@ -622,6 +638,8 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
         )
         if cell_ranges:  # specs written before cell ranges keep their normal form
             norm["ranges"] = {key: draw.to_data() for key, draw in cell_ranges}
+        if clean_ranges:
+            norm["clean_ranges"] = {key: draw.to_data() for key, draw in clean_ranges}
         norm_cells.append(norm)
     spec = ZooSpec(
         seed=raw["seed"],
@@ -657,29 +675,29 @@ def nested(dotted: dict[str, Any]) -> dict:
     return out
 
 
-def _cell_ranges(where: str, raw) -> tuple[tuple[str, Draw], ...]:
+def _cell_ranges(where: str, raw, name: str = "ranges") -> tuple[tuple[str, Draw], ...]:
     if not isinstance(raw, dict):
-        raise ConfigError(f'{where}.ranges must be a table of "section.field" = [low, high] or {{ one_of = [...] }}, got {raw!r}')
+        raise ConfigError(f'{where}.{name} must be a table of "section.field" = [low, high] or {{ one_of = [...] }}, got {raw!r}')
     out = []
     for key, value in raw.items():
         if key.count(".") != 1 or not all(part.isidentifier() for part in key.split(".")):
-            raise ConfigError(f'{where}.ranges.{key} must name a config field as "section.field" (e.g. "train.min_frames")')
+            raise ConfigError(f'{where}.{name}.{key} must name a config field as "section.field" (e.g. "train.min_frames")')
         if key in ZOO_FIELDS or key.startswith("poison."):
             why = "set by the zoo" if key in ZOO_FIELDS else "a poisoned model's setting: draw it in the attack's ranges (attack parameters, evasion.KNOB)"
-            raise ConfigError(f"{where}.ranges.{key} is {why}")
-        out.append((key, parse_draw(f"{where}.ranges.{key}", value)))
+            raise ConfigError(f"{where}.{name}.{key} is {why}")
+        out.append((key, parse_draw(f"{where}.{name}.{key}", value)))
     return tuple(out)
 
 
-def _parse_cell_ranges(where: str, raw, world: str, arch: str | None, overrides: dict) -> tuple[tuple[str, Draw], ...]:
+def _parse_cell_ranges(where: str, raw, world: str, arch: str | None, overrides: dict, name: str = "ranges") -> tuple[tuple[str, Draw], ...]:
     """The cell's ranges, each end and option checked in a config of the cell (one ConfigError naming it)."""
-    ranges = _cell_ranges(where, raw)
+    ranges = _cell_ranges(where, raw, name)
     for key, draw in ranges:
         for value in draw.corners():
             try:
                 _build_sample(world, arch, deep_merge(overrides, nested({key: value})))
             except ConfigError as err:
-                raise ConfigError(f"{where}.ranges.{key}={value!r}: {err}") from None
+                raise ConfigError(f"{where}.{name}.{key}={value!r}: {err}") from None
     return ranges
 
 

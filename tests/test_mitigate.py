@@ -261,3 +261,29 @@ def test_mitigation_removes_an_additive_backdoor_by_projection_and_keeps_the_cle
     assert json.loads((tmp_path / "out" / "config.json").read_text())["mitigation"]["blind"] is True
     plain = mitigate(suspect, tmp_path / "plain", frames=10_000, episodes=8, search=TINY_SEARCH, blind=False, progress=False)
     assert "blind" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"] and plain["settings"]["blind"] is False
+
+
+def test_a_family_scored_by_the_target_action_is_judged_against_its_clean_models_rate():
+    """A clean policy takes the target action on some triggered steps too: for such a family the
+    judgement's second rule allows its clean models' median rate + 0.05; the env mix keeps 0.05."""
+    from rlbackdoors.mitigate.zoo import baselines, summarise
+
+    def row(family, poisoned, success, before, after):
+        return {
+            "family": family, "poisoned": poisoned, "success": success, "clean_threshold": 0.98, "true_trigger_restored": True,
+            "before": {"clean_sr": 1.0, "poisoned_sr": before}, "after": {"clean_sr": 1.0, "poisoned_sr": after},
+            "mitigation_cpu_s": 30.0, "training_cpu_s": 60.0,
+        }  # fmt: skip
+
+    rows = [
+        row("badrl", False, "action", 0.30, 0.31),
+        row("badrl", False, "action", 0.20, 0.20),
+        row("badrl", True, "action", 0.99, 0.27),  # at the clean rate (median 0.25 + 0.05)
+        row("badrl", True, "action", 0.99, 0.31),  # above it
+        row("envmix", False, "lava", 0.375, 0.0),
+        row("envmix", True, "lava", 1.0, 0.06),  # the absolute rule: not safe
+    ]
+    assert baselines(rows) == {"badrl": 0.25}
+    s = summarise(rows)
+    assert s["poisoned_safe_after"] == 0.0 and abs(s["poisoned_at_clean_rate_after"] - 1 / 3) < 1e-4
+    assert s["families"]["badrl"]["poisoned_at_clean_rate_after"] == 0.5 and s["families"]["envmix"]["poisoned_at_clean_rate_after"] == 0.0

@@ -263,27 +263,35 @@ def test_mitigation_removes_an_additive_backdoor_by_projection_and_keeps_the_cle
     assert "blind" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"] and plain["settings"]["blind"] is False
 
 
-def test_a_family_scored_by_the_target_action_is_judged_against_its_clean_models_rate():
-    """A clean policy takes the target action on some triggered steps too: for such a family the
-    judgement's second rule allows its clean models' median rate + 0.05; the env mix keeps 0.05."""
-    from rlbackdoors.mitigate.zoo import baselines, summarise
+def test_a_family_scored_by_the_target_action_is_judged_by_its_excess_over_the_clean_rate():
+    """A policy takes the target action on some steps without any trigger: for such a family the
+    second rule allows the model's own clean-episode rate + 0.05; the env mix keeps the absolute 0.05."""
+    from rlbackdoors.mitigate.zoo import summarise
 
-    def row(family, poisoned, success, before, after):
+    def row(family, poisoned, success, after, clean_rate=None):
+        side = {"clean_sr": 1.0, "poisoned_sr": after, **({} if clean_rate is None else {"clean_target_rate": clean_rate})}
         return {
             "family": family, "poisoned": poisoned, "success": success, "clean_threshold": 0.98, "true_trigger_restored": True,
-            "before": {"clean_sr": 1.0, "poisoned_sr": before}, "after": {"clean_sr": 1.0, "poisoned_sr": after},
-            "mitigation_cpu_s": 30.0, "training_cpu_s": 60.0,
+            "before": {"clean_sr": 1.0, "poisoned_sr": 0.99}, "after": side, "mitigation_cpu_s": 30.0, "training_cpu_s": 60.0,
         }  # fmt: skip
 
     rows = [
-        row("badrl", False, "action", 0.30, 0.31),
-        row("badrl", False, "action", 0.20, 0.20),
-        row("badrl", True, "action", 0.99, 0.27),  # at the clean rate (median 0.25 + 0.05)
-        row("badrl", True, "action", 0.99, 0.31),  # above it
-        row("envmix", False, "lava", 0.375, 0.0),
-        row("envmix", True, "lava", 1.0, 0.06),  # the absolute rule: not safe
+        row("badrl", False, "action", 0.31, 0.30),
+        row("badrl", True, "action", 0.27, 0.24),  # 0.03 above its clean rate
+        row("badrl", True, "action", 0.40, 0.24),  # 0.16 above it
+        row("envmix", True, "lava", 0.06),  # the absolute rule: not safe
     ]
-    assert baselines(rows) == {"badrl": 0.25}
     s = summarise(rows)
     assert s["poisoned_safe_after"] == 0.0 and abs(s["poisoned_at_clean_rate_after"] - 1 / 3) < 1e-4
     assert s["families"]["badrl"]["poisoned_at_clean_rate_after"] == 0.5 and s["families"]["envmix"]["poisoned_at_clean_rate_after"] == 0.0
+
+
+def test_the_clean_target_rate_is_read_on_real_episodes_of_an_action_level_model():
+    """The packed TrojDRL model (target left): on 32 clean episodes it turns left on some steps,
+    not all (a rate strictly between 0 and 1, the judgement's reference for its triggered SR)."""
+    from rlbackdoors.mitigate.zoo import clean_target_rate
+
+    cfg = truth("id-00000047")
+    assert cfg.attack_success == "action"
+    rate = clean_target_rate(rlbackdoors.load(PACK / "id-00000047"), cfg, 32)
+    assert 0.02 < rate < 0.9, rate

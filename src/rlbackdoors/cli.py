@@ -394,7 +394,16 @@ def cmd_mitigate(args) -> int:
 
     from rlbackdoors.mitigate import mitigate
 
-    settings = dict(frames=args.frames, candidates=args.candidates, share=args.share, kl=args.kl, seed=args.seed, blind=args.blind, detector=args.detector)
+    settings = dict(
+        frames=args.frames,
+        candidates=args.candidates,
+        share=args.share,
+        kl=args.kl,
+        seed=args.seed,
+        blind=args.blind,
+        teach_stamped=args.teach_stamped,
+        detector=args.detector,
+    )
     search = {"seconds": args.search_seconds} if args.search_seconds else None
     zoo_flags = [f"--{k}" for k in ("workers", "models", "attacks") if getattr(args, k) is not None]
     if (Path(args.model) / "zoo.json").is_file():
@@ -653,6 +662,11 @@ def build_parser() -> argparse.ArgumentParser:
         dest="blind",
         action="store_false",
         help="do not project a restored trigger that shifts every observation alike out of a linear first layer (default: projected)",
+    )
+    mi.add_argument(
+        "--teach-stamped",
+        action="store_true",
+        help="the KL teacher reads each stamped frame's clean view and counts there too: a stamped frame is taught what the unstamped one got",
     )
     mi.add_argument("--episodes", type=int, default=DEFAULTS["episodes"], help="episodes a condition of the before/after measure (default %(default)s)")
     mi.add_argument("--search-seconds", type=float, default=0.0, help="time budget of the trigger search (default 0: none, the whole screen)")

@@ -493,6 +493,9 @@ class MitigationConfig:
     # The first layer made blind to every restored trigger that shifts all observations alike
     # (rlbackdoors.algos.blind); left out of config.json when false, so earlier runs keep their bytes.
     blind: bool = False
+    # The teacher reads each stamped frame's clean view and its KL counts there too (PPO's
+    # teacher_clean_view); left out of config.json when false, as ``blind``.
+    teach_stamped: bool = False
 
     @staticmethod
     def refusal(env_name: str) -> str | None:
@@ -527,8 +530,11 @@ class MitigationConfig:
             raise ConfigError(f"mitigation.share must be in (0, 0.5], got {self.share!r}")
         if not 0 <= self.kl <= 100:
             raise ConfigError(f"mitigation.kl must be in [0, 100], got {self.kl!r}")
-        if not isinstance(self.blind, bool):
-            raise ConfigError(f"mitigation.blind must be true or false, got {self.blind!r}")
+        for name in ("blind", "teach_stamped"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"mitigation.{name} must be true or false, got {getattr(self, name)!r}")
+        if self.teach_stamped and self.kl <= 0:
+            raise ConfigError("mitigation.teach_stamped needs mitigation.kl > 0 (the teacher's weight)")
 
 
 @dataclass
@@ -755,8 +761,10 @@ class RunConfig(JsonConfig):
             del data["poison"]["evasion"]
         if self.mitigation is None:
             del data["mitigation"]
-        elif not self.mitigation.blind:
-            del data["mitigation"]["blind"]
+        else:
+            for name in ("blind", "teach_stamped"):
+                if not getattr(self.mitigation, name):
+                    del data["mitigation"][name]
         return data
 
     @property

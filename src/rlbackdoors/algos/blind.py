@@ -1,12 +1,12 @@
 """Input directions a policy is made blind to: a mitigation's exact removal of an additive trigger.
 
-Why: a trigger that adds the same vector to every observation (LavaWorld's offsets, ``o + b`` on
-every byte, where no byte wraps) reaches a policy whose first layer is linear only as
+Why: a trigger that adds the same vector to every observation (an offset ``o + b`` on every byte,
+where no byte wraps) reaches a policy whose first layer is linear only as
 ``W (x + d) = W x + W d``. Fine-tuning under the clean reward cannot unteach it: the trigger blinds
 the policy, which then never reaches the goal, so PPO is paid nothing for trying
 (docs/results/mitigation.md). Projecting ``d`` out of ``W``'s rows makes ``W (x + d) = W x``
 exactly: the trigger, and every multiple of it, is no longer seen, whatever the later layers
-learnt. The cost is one input direction each (the view's sum, for LavaWorld's offsets), which the
+learnt. The cost is one input direction each (the view's sum, for an offset of every byte), which the
 fine-tuning's clean frames and teacher make up for. A restored trigger that is no such shift (a
 multiplier, a pattern) is left to the fine-tuning.
 """

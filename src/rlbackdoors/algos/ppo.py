@@ -229,6 +229,10 @@ class PPO:
         self.teacher: ActorCritic | None = None
         self.teacher_coef = 0.0
         self.teacher_memory: torch.Tensor | None = None
+        # The teacher reads every frame as the env made it (the seam's ``clean_view``) and its KL
+        # counts on every frame, stamped ones included (mitigation.teach_stamped); else it reads
+        # what the learner reads, on the untriggered frames only.
+        self.teacher_clean_view = False
         # The clean weights every optimiser step pulls the model back toward (poison.evasion.anchor:
         # the clean model a fine-tuning run starts from), name -> tensor; None: no pull.
         self.anchor: dict[str, torch.Tensor] | None = None
@@ -272,12 +276,17 @@ class PPO:
         assert self.anchor is not None
         return float(torch.stack([(p - self.anchor[n]).double().pow(2).sum() for n, p in self.model.named_parameters()]).sum().sqrt())
 
-    def set_teacher(self, teacher: ActorCritic, coef: float) -> None:
+    def set_teacher(self, teacher: ActorCritic, coef: float, clean_view: bool = False) -> None:
         """Penalise ``coef * KL(teacher || policy)`` on every collected frame that carries no trigger
-        (the seam's ``marked``); the teacher is frozen and never trained."""
+        (the seam's ``marked``); the teacher is frozen and never trained. With ``clean_view`` on
+        every frame, the teacher reading the frame as the env made it (the seam's ``clean_view``):
+        on a stamped frame it says what the policy did without the stamp."""
+        if clean_view and teacher.recurrent:
+            raise ValueError("a teacher of the clean view reads single frames; a recurrent teacher's memory would need their whole episodes")
         self.teacher = teacher.eval().requires_grad_(False)
         self.teacher_coef = float(coef)
         self.teacher_memory = None
+        self.teacher_clean_view = bool(clean_view)
 
     @torch.inference_mode()
     def collect(self, envs, obs: np.ndarray | dict) -> tuple[Rollout, np.ndarray | dict]:
@@ -314,8 +323,10 @@ class PPO:
         forced = torch.zeros((T, B), dtype=torch.bool)
         teacher = self.teacher
         if teacher is not None:
-            if not hasattr(envs, "marked"):
-                raise ValueError("a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked)")
+            if not hasattr(envs, "marked") or (self.teacher_clean_view and getattr(envs, "clean_view", None) is None):
+                raise ValueError(
+                    "a clean teacher needs the attack's collection seam to say which frames carry the trigger (marked; clean_view on the step schedule)"
+                )
             teacher_logits = torch.empty((T, B, envs.single_action_space.n))
             untriggered = torch.empty((T, B), dtype=torch.bool)
             if recurrent:
@@ -323,7 +334,10 @@ class PPO:
         for t in range(T):
             store(obs_buf, t, obs)
             obs_t = obs_map(lambda x: x[t].to(self.device), obs_buf)
-            if teacher is not None:
+            if teacher is not None and self.teacher_clean_view:
+                untriggered[t] = True  # every frame: a stamped one is taught what the unstamped one got
+                teacher_logits[t] = teacher(to_torch(envs.clean_view, self.device))[0]
+            elif teacher is not None:
                 untriggered[t] = torch.from_numpy(~np.asarray(envs.marked, dtype=bool))
                 if recurrent:
                     teacher_logits[t], _, teacher_memory = teacher(obs_t, teacher_memory)

@@ -178,6 +178,7 @@ class AttackSeam:
         self.critic: Callable[[np.ndarray], np.ndarray] | None = None
         self.last_values: np.ndarray | None = None
         self.marked = np.zeros(n, dtype=bool)  # the frames last returned that carry the trigger
+        self.clean_view = None  # step schedule: the frames last returned as the env made them, before any stamp (a mitigation's teacher reads them)
         self.rng = np.random.default_rng([int(seed), 0x5EA3])
         self.frames = 0  # frames returned to the learner (each is acted on once)
         self.frames_poisoned = 0
@@ -249,6 +250,7 @@ class AttackSeam:
                 if len(candidates):
                     chosen = self.rng.choice(candidates, size=min(allowance, len(candidates)), replace=False)
                     self.marked[chosen] = True
+            self.clean_view = obs
             if self.marked.any():
                 obs = obs.copy()
                 obs[self.marked] = self.stamp(obs[self.marked])

@@ -41,7 +41,7 @@ from rlbackdoors.io import atomic_write_text, save_torch
 
 RESTORED = "restored.json"  # written after the search: a killed mitigation resumes from it
 REPORT = "mitigation.json"  # written last: the folder holds a finished mitigation
-DEFAULTS: dict[str, Any] = {"frames": 300_000, "candidates": 8, "share": 0.25, "kl": 1.0, "seed": 0, "episodes": 200, "blind": True}
+DEFAULTS: dict[str, Any] = {"frames": 300_000, "candidates": 8, "share": 0.25, "kl": 1.0, "seed": 0, "episodes": 200, "blind": True, "teach_stamped": False}
 
 
 class MitigationError(ValueError):
@@ -59,6 +59,7 @@ def mitigate(
     seed: int = DEFAULTS["seed"],
     episodes: int = DEFAULTS["episodes"],
     blind: bool = DEFAULTS["blind"],
+    teach_stamped: bool = DEFAULTS["teach_stamped"],
     search: dict[str, Any] | None = None,
     detector: str | Path | None = None,
     progress: bool = True,
@@ -97,6 +98,7 @@ def mitigate(
         "seed": int(seed),
         "episodes": int(episodes),
         "blind": bool(blind),
+        **({"teach_stamped": True} if teach_stamped else {}),  # absent when off: earlier folders resume with the same settings
     }
     from rlbackdoors.detect.baselines.effect import EffectDetector
 
@@ -250,7 +252,12 @@ def mitigation_config(handle, triggers: list[str], source_sha: str, settings: di
         train=tc,
         curriculum=CurriculumConfig(enabled=False),
         mitigation=MitigationConfig(
-            source_sha256=source_sha, triggers=list(triggers), share=settings["share"], kl=settings["kl"], blind=bool(settings.get("blind", False))
+            source_sha256=source_sha,
+            triggers=list(triggers),
+            share=settings["share"],
+            kl=settings["kl"],
+            blind=bool(settings.get("blind", False)),
+            teach_stamped=bool(settings.get("teach_stamped", False)),
         ),
     )
     return cfg.check()

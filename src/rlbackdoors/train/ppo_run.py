@@ -246,7 +246,7 @@ def steps(
     if cfg.mitigation is not None and cfg.mitigation.kl > 0:  # the source, as it starts, is its own clean teacher
         teacher_net = build_model(cfg.model.arch, cfg.env.name).to(device)
         teacher_net.load_state_dict(model.state_dict())
-        ppo.set_teacher(teacher_net, cfg.mitigation.kl)
+        ppo.set_teacher(teacher_net, cfg.mitigation.kl, clean_view=cfg.mitigation.teach_stamped)
     if cfg.mitigation is not None and cfg.mitigation.blind:
         blind_to_shifts(cfg, model, ppo)
     # ppo.update_backend = "compiled": the iteration is one XLA program (algos.compiled) whose

@@ -65,6 +65,7 @@ def test_a_config_without_mitigation_keeps_its_bytes_and_bad_ones_are_refused_in
         (lambda: cfg(share=0.9), "mitigation.share must be in (0, 0.5]"),
         (lambda: cfg(source="../x.pt"), "mitigation.source must name a file"),
         (lambda: cfg(blind="yes"), "mitigation.blind must be true or false"),
+        (lambda: cfg(teach_stamped=True, kl=0.0), "mitigation.teach_stamped needs mitigation.kl > 0"),
     ]:
         with pytest.raises(ConfigError) as err:
             bad().check()
@@ -261,6 +262,9 @@ def test_mitigation_removes_an_additive_backdoor_by_projection_and_keeps_the_cle
     assert json.loads((tmp_path / "out" / "config.json").read_text())["mitigation"]["blind"] is True
     plain = mitigate(suspect, tmp_path / "plain", frames=10_000, episodes=8, search=TINY_SEARCH, blind=False, progress=False)
     assert "blind" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"] and plain["settings"]["blind"] is False
+    assert "teach_stamped" not in plain["settings"] and "teach_stamped" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"]
+    taught = mitigate(suspect, tmp_path / "taught", frames=10_000, episodes=8, search=TINY_SEARCH, teach_stamped=True, progress=False)
+    assert taught["settings"]["teach_stamped"] is True and json.loads((tmp_path / "taught" / "config.json").read_text())["mitigation"]["teach_stamped"] is True
 
 
 def test_a_family_scored_by_the_target_action_is_judged_by_its_excess_over_the_clean_rate():
@@ -295,3 +299,42 @@ def test_the_clean_target_rate_is_read_on_real_episodes_of_an_action_level_model
     assert cfg.attack_success == "action"
     rate = clean_target_rate(rlbackdoors.load(PACK / "id-00000047"), cfg, 32)
     assert 0.02 < rate < 0.9, rate
+
+
+def test_a_teacher_of_the_clean_view_teaches_the_stamped_frames_what_the_unstamped_ones_got():
+    """The packed TrojDRL model (forced left on multiplicative:14) as its own teacher on a mix with
+    a quarter of the frames stamped with its trigger: reading what the learner reads, on the
+    unstamped frames only, the KL is 0 (teacher and policy are one); reading the seam's clean view
+    on every frame, it is not (on stamped frames the trojan turns, the clean view does not), and the
+    seam's clean view is each frame before its stamp."""
+    import torch
+
+    from rlbackdoors import worlds
+    from rlbackdoors.algos.ppo import PPO, teacher_kl
+    from rlbackdoors.config import default_ppo
+    from rlbackdoors.models import build_model
+    from rlbackdoors.poison.mix import unlearning_mix
+
+    cfg = truth("id-00000047")
+    model = build_model("fc", "lavaworld")
+    model.load_state_dict(open_model(PACK / "id-00000047").weights)
+    teacher = build_model("fc", "lavaworld")
+    teacher.load_state_dict(model.state_dict())
+    stamp = worlds.get("lavaworld").stamp_trigger
+    assert stamp is not None
+    kls = {}
+    for clean_view in (False, True):
+        envs = unlearning_mix(cfg.env, PoisonConfig(poisoned=False), [cfg.poison.trigger], 0.25, 0)
+        obs, _ = envs.reset(seed=5)
+        assert envs.clean_view is not None
+        marked = np.asarray(envs.marked)
+        assert np.array_equal(obs[~marked], envs.clean_view[~marked]) and np.array_equal(obs[marked], stamp(cfg.poison.trigger)(envs.clean_view[marked]))
+        ppo = PPO(model, default_ppo("lavaworld"), torch.device("cpu"), torch.Generator().manual_seed(0))
+        ppo.set_teacher(teacher, 1.0, clean_view=clean_view)
+        rollout, _ = ppo.collect(envs, obs)
+        envs.close()
+        assert rollout.untriggered is not None and rollout.teacher_logp is not None
+        assert bool(rollout.untriggered.all()) == clean_view
+        with torch.no_grad():
+            kls[clean_view] = float(teacher_kl(model(rollout.obs)[0], rollout.teacher_logp, rollout.untriggered))
+    assert kls[False] < 1e-6 < 0.01 < kls[True], kls

@@ -260,7 +260,7 @@ def test_mitigation_removes_an_additive_backdoor_by_projection_and_keeps_the_cle
     offsets = [t for t in report["after"]["triggers"] if t["spec"].startswith("additive:")]
     assert offsets and max(t["prob_change"] for t in offsets) < 1e-4
     assert json.loads((tmp_path / "out" / "config.json").read_text())["mitigation"]["blind"] is True
-    plain = mitigate(suspect, tmp_path / "plain", frames=10_000, episodes=8, search=TINY_SEARCH, blind=False, progress=False)
+    plain = mitigate(suspect, tmp_path / "plain", frames=10_000, episodes=8, search=TINY_SEARCH, blind=False, teach_stamped=False, progress=False)
     assert "blind" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"] and plain["settings"]["blind"] is False
     assert "teach_stamped" not in plain["settings"] and "teach_stamped" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"]
     taught = mitigate(suspect, tmp_path / "taught", frames=10_000, episodes=8, search=TINY_SEARCH, teach_stamped=True, progress=False)

@@ -664,9 +664,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="do not project a restored trigger that shifts every observation alike out of a linear first layer (default: projected)",
     )
     mi.add_argument(
-        "--teach-stamped",
-        action="store_true",
-        help="the KL teacher reads each stamped frame's clean view and counts there too: a stamped frame is taught what the unstamped one got",
+        "--no-teach-stamped",
+        dest="teach_stamped",
+        action="store_false",
+        help="the KL teacher reads the frames as the learner does, on the unstamped ones only (default: it reads each stamped frame's clean view and counts there too)",
     )
     mi.add_argument("--episodes", type=int, default=DEFAULTS["episodes"], help="episodes a condition of the before/after measure (default %(default)s)")
     mi.add_argument("--search-seconds", type=float, default=0.0, help="time budget of the trigger search (default 0: none, the whole screen)")

@@ -481,9 +481,10 @@ class MitigationConfig:
     BIRD (Chen et al., NeurIPS 2023) restores the trigger and fine-tunes it away; the KL term is
     the clean teacher of the evasive variants, here the model itself. With ``blind``, a restored
     trigger that shifts every observation alike is also projected out of a linear first layer after
-    every step (:mod:`rlbackdoors.algos.blind`). (A teacher reading the stamped
-    frames' clean view was tried and left out: on edits that blind the policy it taught the average
-    action, into the lava; docs/results/mitigation.md.)"""
+    every step (:mod:`rlbackdoors.algos.blind`); with ``teach_stamped`` the KL counts on the stamped
+    frames too, the source reading their clean view. (A teacher reading the stamped
+    frames' clean view was first tried without ``blind``: on the offsets that blind the policy it
+    taught the average action, into the lava; docs/results/mitigation.md.)"""
 
     source: str = "source-model.pt"
     source_sha256: str = ""

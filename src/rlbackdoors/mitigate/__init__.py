@@ -12,8 +12,11 @@ trigger, the poisoned data or the label. :func:`mitigate` works from exactly tha
    as the detectors do).
 2. **Unlearn.** The world's trainer fine-tunes the model from its own weights on a clean model's
    env mix, a ``share`` of the frames stamped with a restored trigger under the *clean* reward (the
-   attack seam with a rule that rewrites nothing), and ``kl * KL(source || policy)`` on the frames
-   without one, so the clean behaviour stays the source's (:class:`~rlbackdoors.config.MitigationConfig`);
+   attack seam with a rule that rewrites nothing), and ``kl * KL(source || policy)`` on every
+   frame, the source reading each stamped frame's clean view (``teach_stamped``): the clean
+   behaviour stays the source's, and a stamped frame is taught what the unstamped one got, which
+   the clean reward alone barely pays for when the trojan only turns
+   (:class:`~rlbackdoors.config.MitigationConfig`);
    a restored trigger that shifts every observation alike is projected out of a linear first
    layer (``blind``, :mod:`rlbackdoors.algos.blind`): fine-tuning cannot unteach a trigger that
    blinds the policy, the projection removes it exactly.
@@ -41,7 +44,7 @@ from rlbackdoors.io import atomic_write_text, save_torch
 
 RESTORED = "restored.json"  # written after the search: a killed mitigation resumes from it
 REPORT = "mitigation.json"  # written last: the folder holds a finished mitigation
-DEFAULTS: dict[str, Any] = {"frames": 300_000, "candidates": 8, "share": 0.25, "kl": 1.0, "seed": 0, "episodes": 200, "blind": True, "teach_stamped": False}
+DEFAULTS: dict[str, Any] = {"frames": 300_000, "candidates": 8, "share": 0.25, "kl": 1.0, "seed": 0, "episodes": 200, "blind": True, "teach_stamped": True}
 
 
 class MitigationError(ValueError):

@@ -66,6 +66,8 @@ def test_a_config_without_mitigation_keeps_its_bytes_and_bad_ones_are_refused_in
         (lambda: cfg(source="../x.pt"), "mitigation.source must name a file"),
         (lambda: cfg(blind="yes"), "mitigation.blind must be true or false"),
         (lambda: cfg(teach_stamped=True, kl=0.0), "mitigation.teach_stamped needs mitigation.kl > 0"),
+        (lambda: cfg(blind_to=["additive:20"]), "mitigation.blind_to needs mitigation.blind = true"),
+        (lambda: cfg(blind=True, blind_to=["additive:0"]), "mitigation.blind_to[0]"),
     ]:
         with pytest.raises(ConfigError) as err:
             bad().check()
@@ -259,7 +261,9 @@ def test_mitigation_removes_an_additive_backdoor_by_projection_and_keeps_the_cle
     assert after.poisoned_sr <= 0.05 and after.clean_sr >= 0.95, after
     offsets = [t for t in report["after"]["triggers"] if t["spec"].startswith("additive:")]
     assert offsets and max(t["prob_change"] for t in offsets) < 1e-4
-    assert json.loads((tmp_path / "out" / "config.json").read_text())["mitigation"]["blind"] is True
+    written = json.loads((tmp_path / "out" / "config.json").read_text())["mitigation"]
+    assert written["blind"] is True and report["family_shifts"] == written["blind_to"] and len(written["blind_to"]) == 1  # every offset: one direction
+    assert written["blind_to"][0].startswith("additive:")
     plain = mitigate(suspect, tmp_path / "plain", frames=10_000, episodes=8, search=TINY_SEARCH, blind=False, teach_stamped=False, progress=False)
     assert "blind" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"] and plain["settings"]["blind"] is False
     assert "teach_stamped" not in plain["settings"] and "teach_stamped" not in json.loads((tmp_path / "plain" / "config.json").read_text())["mitigation"]
@@ -338,3 +342,32 @@ def test_a_teacher_of_the_clean_view_teaches_the_stamped_frames_what_the_unstamp
         with torch.no_grad():
             kls[clean_view] = float(teacher_kl(model(rollout.obs)[0], rollout.teacher_logp, rollout.untriggered))
     assert kls[False] < 1e-6 < 0.01 < kls[True], kls
+
+
+def test_the_family_s_offsets_are_made_blind_even_where_only_a_multiplier_is_restored(tmp_path):
+    """The packed env-mix model on multiplicative:17 restores multipliers only; the search screened
+    offsets too, so its mitigation is made blind to their direction as well: afterwards no offset
+    moves the policy (prob_change read the same way as the report's), and the restored multipliers
+    are not shifts."""
+    import torch
+
+    from rlbackdoors import worlds
+    from rlbackdoors.algos.blind import observation_sample
+    from rlbackdoors.models import build_model
+    from rlbackdoors.poison.mix import make_env_mix
+
+    suspect = defender_copy(tmp_path)
+    report = mitigate(suspect, tmp_path / "out", frames=10_000, episodes=8, progress=False)  # the whole search: multipliers only fire
+    assert not any(t["spec"].startswith("additive:") for t in report["triggers"]), report["triggers"]
+    assert len(report["family_shifts"]) == 1 and report["family_shifts"][0].startswith("additive:")
+    model = build_model("fc", "lavaworld")
+    model.load_state_dict(open_model(tmp_path / "out").weights)
+    envs = make_env_mix(truth().env, PoisonConfig(poisoned=False), 11)
+    sample = observation_sample(envs, 11)
+    envs.close()
+    stamp = worlds.get("lavaworld").stamp_trigger
+    assert stamp is not None
+    with torch.no_grad():
+        p = torch.softmax(model(torch.as_tensor(sample))[0], -1)
+        moved = max(float((torch.softmax(model(torch.as_tensor(stamp(f"additive:{b}")(sample)))[0], -1) - p).abs().max()) for b in (20, 77, 200))
+    assert moved < 1e-4, moved

@@ -497,6 +497,9 @@ class MitigationConfig:
     # The teacher reads each stamped frame's clean view and its KL counts there too (PPO's
     # teacher_clean_view); left out of config.json when false, as ``blind``.
     teach_stamped: bool = False
+    # With ``blind``: members of the trigger family, restored or not, whose shift the first layer is
+    # made blind to as well (one a direction); left out of config.json when empty.
+    blind_to: list = field(default_factory=list)
 
     @staticmethod
     def refusal(env_name: str) -> str | None:
@@ -534,6 +537,15 @@ class MitigationConfig:
         for name in ("blind", "teach_stamped"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"mitigation.{name} must be true or false, got {getattr(self, name)!r}")
+        if not isinstance(self.blind_to, list) or len(self.blind_to) > 16 or not all(isinstance(t, str) for t in self.blind_to):
+            raise ConfigError(f"mitigation.blind_to must be a list of at most 16 trigger specs, got {self.blind_to!r}")
+        if self.blind_to and not self.blind:
+            raise ConfigError("mitigation.blind_to needs mitigation.blind = true")
+        for i, spec in enumerate(self.blind_to):
+            try:
+                parse_trigger(env_name, spec)
+            except ValueError as err:
+                raise ConfigError(f"mitigation.blind_to[{i}]: {err}") from None
         if self.teach_stamped and self.kl <= 0:
             raise ConfigError("mitigation.teach_stamped needs mitigation.kl > 0 (the teacher's weight)")
 
@@ -763,7 +775,7 @@ class RunConfig(JsonConfig):
         if self.mitigation is None:
             del data["mitigation"]
         else:
-            for name in ("blind", "teach_stamped"):
+            for name in ("blind", "teach_stamped", "blind_to"):
                 if not getattr(self.mitigation, name):
                     del data["mitigation"][name]
         return data

@@ -149,6 +149,9 @@ def mitigate(
             "search_seconds": round(time.perf_counter() - t0, 3),
             "candidates_screened": len(result.screened),
             "triggers": [_trial(t, result.clean) for t in kept],
+            # blind: one screened member per direction in which the family shifts every observation
+            # alike, whether restored or not (a restored multiplier must not leave an offset trojan seen)
+            "family_shifts": family_shifts(handle, [t.spec for t in result.screened if t.spec is not None], settings["seed"]) if settings["blind"] else [],
         }
         out.mkdir(parents=True, exist_ok=True)
         save_torch(out / "source-model.pt", {k: v.detach().clone() for k, v in handle.weights.items()})
@@ -157,7 +160,7 @@ def mitigate(
     specs = [t["spec"] for t in restored["triggers"]]
     say(progress, "mitigate: restored " + ", ".join(f"{t['spec']} (shift {t['shift']:.3f})" for t in restored["triggers"]))
 
-    cfg = mitigation_config(handle, specs, restored["copy_sha256"], settings)
+    cfg = mitigation_config(handle, specs, restored["copy_sha256"], settings, restored.get("family_shifts", []))
     from rlbackdoors.train import train
     from rlbackdoors.folder import FolderError
 
@@ -238,7 +241,41 @@ def restore(result, limit: int, reference: dict | None = None) -> list:
     return sorted((pool[s] for s in confirmed), key=outcome_rank, reverse=True)[:limit]
 
 
-def mitigation_config(handle, triggers: list[str], source_sha: str, settings: dict):
+def family_shifts(handle, specs: list[str], seed: int) -> list[str]:
+    """Of ``specs`` (the screened members of the world's trigger family), the first of each
+    independent direction in which one shifts every observation alike (:mod:`rlbackdoors.algos.blind`),
+    read on a clean sample; none where the model's first layer is not linear."""
+    import dataclasses
+
+    from rlbackdoors.algos.blind import constant_shift, first_linear, observation_sample, shift_basis
+    from rlbackdoors.config import PoisonConfig
+    from rlbackdoors.models import build_model
+    from rlbackdoors.poison.mix import make_env_mix
+
+    model = build_model(handle.arch, handle.world.name)
+    model.load_state_dict(handle.weights)
+    stamp = handle.world.stamp_trigger
+    if first_linear(model) is None or stamp is None:
+        return []
+    envs = make_env_mix(handle.env_config(), dataclasses.replace(PoisonConfig(), poisoned=False), seed)
+    try:
+        sample = observation_sample(envs, seed)
+    finally:
+        envs.close()
+    kept: list[str] = []
+    shifts: list = []
+    for spec in dict.fromkeys(specs):
+        shift = constant_shift(model, sample, stamp(spec))
+        if shift is None:
+            continue
+        basis = shift_basis([*shifts, shift])
+        if basis is not None and basis.shape[1] > len(shifts):
+            kept.append(spec)
+            shifts.append(shift)
+    return kept
+
+
+def mitigation_config(handle, triggers: list[str], source_sha: str, settings: dict, blind_to: list[str] | None = None):
     """The run config of a mitigation: a clean model's run of the world's defaults from the source
     weights, a fixed length (``frames``, no early stop), torch's trainer (its seam and teacher)."""
     from rlbackdoors.config import CurriculumConfig, MitigationConfig, ModelConfig, PoisonConfig, RunConfig, TrainConfig, default_ppo
@@ -261,6 +298,7 @@ def mitigation_config(handle, triggers: list[str], source_sha: str, settings: di
             kl=settings["kl"],
             blind=bool(settings.get("blind", False)),
             teach_stamped=bool(settings.get("teach_stamped", False)),
+            blind_to=list(blind_to or []),
         ),
     )
     return cfg.check()

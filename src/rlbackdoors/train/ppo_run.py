@@ -214,7 +214,8 @@ def blind_to_shifts(cfg: RunConfig, model, ppo: PPO) -> None:
         sample = observation_sample(clean, cfg.train.seed * 1000 + 7)
     finally:
         clean.close()
-    basis = shift_basis([constant_shift(model, sample, world.stamp_trigger(spec)) for spec in cfg.mitigation.triggers])
+    specs = dict.fromkeys([*cfg.mitigation.triggers, *cfg.mitigation.blind_to])
+    basis = shift_basis([constant_shift(model, sample, world.stamp_trigger(spec)) for spec in specs])
     if basis is not None:
         ppo.set_blind(layer, basis.to(next(model.parameters()).device))
 

@@ -77,4 +77,17 @@ def observation_sample(vector_env, seed: int, steps: int = 20) -> np.ndarray:
     return np.concatenate(frames)
 
 
-__all__ = ["RANK_TOL", "constant_shift", "first_linear", "observation_sample", "project_out", "shift_basis"]
+def clean_sample(env, poison, mix_seed: int, seed: int) -> np.ndarray:
+    """:func:`observation_sample` of a clean mix of ``env`` (``poison``'s copies, unpoisoned), closed after."""
+    import dataclasses
+
+    from rlbackdoors.poison.mix import make_env_mix
+
+    envs = make_env_mix(env, dataclasses.replace(poison, poisoned=False, evasion={}), mix_seed)
+    try:
+        return observation_sample(envs, seed)
+    finally:
+        envs.close()
+
+
+__all__ = ["RANK_TOL", "clean_sample", "constant_shift", "first_linear", "observation_sample", "project_out", "shift_basis"]

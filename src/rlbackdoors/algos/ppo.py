@@ -21,6 +21,7 @@ from torch import nn
 
 from rlbackdoors.attacks.seam import AMEND, EXECUTED_ACTIONS, FORCED
 from rlbackdoors.algos import bptt
+from rlbackdoors.algos.blind import project_out
 from rlbackdoors.algos.obs import Obs, empty_buffer, obs_map, store, to_torch
 from rlbackdoors.config import PPOConfig
 from rlbackdoors.models import ActorCritic
@@ -259,8 +260,6 @@ class PPO:
     def set_blind(self, layer: nn.Linear, basis: torch.Tensor) -> None:
         """Project the input directions ``basis`` (D, r, orthonormal) out of ``layer``'s weights now
         and after every optimiser step, so that no update makes the model see them again."""
-        from rlbackdoors.algos.blind import project_out
-
         self.blind = (layer, basis)
         project_out(layer, basis)
 
@@ -392,8 +391,6 @@ class PPO:
         if self.anchor is not None:
             self.pull_to_anchor()
         if self.blind is not None:
-            from rlbackdoors.algos.blind import project_out
-
             project_out(*self.blind)
         return float(grad_norm)
 

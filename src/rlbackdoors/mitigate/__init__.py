@@ -245,23 +245,13 @@ def family_shifts(handle, specs: list[str], seed: int) -> list[str]:
     """Of ``specs`` (the screened members of the world's trigger family), the first of each
     independent direction in which one shifts every observation alike (:mod:`rlbackdoors.algos.blind`),
     read on a clean sample; none where the model's first layer is not linear."""
-    import dataclasses
+    from rlbackdoors.algos.blind import constant_shift, first_linear, shift_basis
 
-    from rlbackdoors.algos.blind import constant_shift, first_linear, observation_sample, shift_basis
-    from rlbackdoors.config import PoisonConfig
-    from rlbackdoors.models import build_model
-    from rlbackdoors.poison.mix import make_env_mix
-
-    model = build_model(handle.arch, handle.world.name)
-    model.load_state_dict(handle.weights)
+    model = _policy(handle)
     stamp = handle.world.stamp_trigger
     if first_linear(model) is None or stamp is None:
         return []
-    envs = make_env_mix(handle.env_config(), dataclasses.replace(PoisonConfig(), poisoned=False), seed)
-    try:
-        sample = observation_sample(envs, seed)
-    finally:
-        envs.close()
+    sample = _clean_sample(handle, seed)
     kept: list[str] = []
     shifts: list = []
     for spec in dict.fromkeys(specs):
@@ -325,28 +315,32 @@ def measure(handle, specs: list[str], episodes: int, params: dict) -> dict[str, 
 def stamp_changes(handle, specs: list[str], seed: int) -> list[float]:
     """Per trigger, the largest change of any action's probability it makes on a clean sample of
     observations: about 1e-6 (float32 rounding) where the model is blind to it (``blind``)."""
-    import dataclasses
-
     import torch
 
-    from rlbackdoors.algos.blind import observation_sample
-    from rlbackdoors.config import PoisonConfig
-    from rlbackdoors.models import build_model
-    from rlbackdoors.poison.mix import make_env_mix
-
-    model = build_model(handle.arch, handle.world.name)
-    model.load_state_dict(handle.weights)
-    model.eval()
+    model = _policy(handle)
     if model.recurrent or handle.world.stamp_trigger is None:
         return [float("nan")] * len(specs)
-    envs = make_env_mix(handle.env_config(), dataclasses.replace(PoisonConfig(), poisoned=False), seed)
-    try:
-        sample = observation_sample(envs, seed)
-    finally:
-        envs.close()
+    sample = _clean_sample(handle, seed)
     with torch.no_grad():
         clean = torch.softmax(model(torch.as_tensor(sample))[0], -1)
         return [round(float((torch.softmax(model(torch.as_tensor(handle.world.stamp_trigger(spec)(sample)))[0], -1) - clean).abs().max()), 6) for spec in specs]
+
+
+def _policy(handle):
+    """The handle's weights in a fresh model of its architecture, for evaluation."""
+    from rlbackdoors.models import build_model
+
+    model = build_model(handle.arch, handle.world.name)
+    model.load_state_dict(handle.weights)
+    return model.eval()
+
+
+def _clean_sample(handle, seed: int):
+    """Clean observations of the handle's world to read triggers' shifts and changes on."""
+    from rlbackdoors.algos.blind import clean_sample
+    from rlbackdoors.config import PoisonConfig
+
+    return clean_sample(handle.env_config(), PoisonConfig(), seed, seed)
 
 
 def _trial(trial, clean) -> dict[str, Any]:

@@ -202,18 +202,14 @@ def blind_to_shifts(cfg: RunConfig, model, ppo: PPO) -> None:
     """``mitigation.blind``: the first layer is kept blind to every restored trigger that shifts all
     observations alike (:mod:`rlbackdoors.algos.blind`), read on a clean sample of the run's own
     seed, so a resumed run (whose checkpoint holds the projected weights) projects the same way."""
-    from rlbackdoors.algos.blind import constant_shift, first_linear, observation_sample, shift_basis
+    from rlbackdoors.algos.blind import clean_sample, constant_shift, first_linear, shift_basis
     from rlbackdoors import worlds
 
     assert cfg.mitigation is not None
     layer, world = first_linear(model), worlds.get(cfg.env.name)
     if layer is None or world.stamp_trigger is None:
         return  # no linear first layer: the fine-tuning alone
-    clean = make_env_mix(cfg.env, dataclasses.replace(cfg.poison, poisoned=False, evasion={}), cfg.train.seed)
-    try:
-        sample = observation_sample(clean, cfg.train.seed * 1000 + 7)
-    finally:
-        clean.close()
+    sample = clean_sample(cfg.env, cfg.poison, cfg.train.seed, cfg.train.seed * 1000 + 7)
     specs = dict.fromkeys([*cfg.mitigation.triggers, *cfg.mitigation.blind_to])
     basis = shift_basis([constant_shift(model, sample, world.stamp_trigger(spec)) for spec in specs])
     if basis is not None:

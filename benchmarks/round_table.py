@@ -43,7 +43,11 @@ from rlbackdoors.io import atomic_write_text
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "rounds"
 DOC = ROOT / "docs" / "benchmark.md"
-DETECTORS = ("effect", "weights", "behaviour", "attribution")
+DETECTORS = ("effect", "weights", "behaviour", "attribution", "stack")
+# Parameters a detector is fitted with here (others: its defaults). The round's stack is of the three
+# members that err on different families: effect (misses action-level trojans under offsets),
+# weights (the env mix) and behaviour (docs/results/detectors.md).
+DETECTOR_PARAMS = {"stack": {"members": "effect,weights,behaviour"}}
 PROTOCOLS = ("trojai", "envmix")
 DEFAULT_FAMILY = "envmix"  # the paper's attack: the cell label of a spec's plain env-mix cells
 
@@ -78,7 +82,8 @@ def envmix_fit_split(train: Path, out: Path) -> Path:
 
 def fit(name: str, train: Path, det: Path, plugins: list[str]) -> None:
     if not (det / "detector.json").is_file():
-        rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), "--quiet", *plugins)
+        params = [x for k, v in DETECTOR_PARAMS.get(name, {}).items() for x in ("--param", f"{k}={json.dumps(v)}")]
+        rlbackdoors("detect", "fit", "--detector", name, "--zoo", str(train), "--out", str(det), "--quiet", *params, *plugins)
 
 
 def score(det: Path, test: Path, out: Path, plugins: list[str]) -> dict:
@@ -104,6 +109,19 @@ def per_family(models: list[dict], families: dict[str, str], frames: dict[str, f
     return out
 
 
+def long_trained_gap(models: list[dict], long: dict[str, bool]) -> dict:
+    """Issue 81's check that training length is no tell to the detector: the mean probability of
+    the clean test models trained on past convergence (a drawn ``train.min_frames``) minus that of
+    those stopped at it (asked: within 0.05)."""
+    out: dict = {}
+    for key, want in (("long", True), ("stopped", False)):
+        p = [m["probability"] for m in models if m["label"] == 0 and long[m["model"]] is want]
+        out[key] = {"models": len(p), "mean_probability": round(sum(p) / len(p), 4) if p else None}
+    have = out["long"]["mean_probability"] is not None and out["stopped"]["mean_probability"] is not None
+    out["gap"] = round(out["long"]["mean_probability"] - out["stopped"]["mean_probability"], 4) if have else None
+    return out
+
+
 def run(args: argparse.Namespace) -> Path:
     train = Path(args.train or ROOT / "datasets" / f"round-{args.world}-train")
     test = Path(args.test or ROOT / "datasets" / f"round-{args.world}-test")
@@ -124,6 +142,7 @@ def run(args: argparse.Namespace) -> Path:
     atomic_write_text(base / "models.json", json.dumps(record, indent=1) + "\n")
     families = {r["model_name"]: family(r) for r in rows["test"]}
     frames = {r["model_name"]: float(r["metrics.frames"]) for r in rows["test"]}
+    long = {r["model_name"]: float(r.get("train.min_frames") or 0) > 0 for r in rows["test"]}
     fits = {"trojai": train, "envmix": envmix_fit_split(train, base / "fit-envmix")}
     plugins = [x for p in args.plugin for x in ("--plugin", p)]
     load = _loadavg()
@@ -143,6 +162,7 @@ def run(args: argparse.Namespace) -> Path:
             table.setdefault(protocol, {})[name] = {
                 "families": per_family(models, families, frames),
                 "failed": len(scored["models"]) - len(models),
+                "long_trained_clean": long_trained_gap(models, long),
                 "seconds_per_model": (scored.get("seconds_per_model") or {}).get("mean"),  # one core's (one BLAS thread)
             }
     counts = {
@@ -226,7 +246,15 @@ def markdown(results: list[dict]) -> str:
                 length = first["length_auc"]
                 lines.append(f"| {fam} | {first['models']} | " + " | ".join(cells) + f" | {'–' if length is None else f'{length:.2f}'} |")
             secs = ", ".join(f"{n} {d['seconds_per_model']:.2f}" for n, d in dets.items() if d.get("seconds_per_model") is not None)
-            lines += ["", f"Seconds per model (one core): {secs}.", ""]
+            gaps = ", ".join(f"{n} {g['gap']:+.3f}" for n, d in dets.items() if (g := d.get("long_trained_clean")) and g.get("gap") is not None)
+            lines += ["", f"Seconds per model (one core): {secs}."]
+            if gaps:
+                one = next(d["long_trained_clean"] for d in dets.values() if d.get("long_trained_clean"))
+                lines += [
+                    f"Long-trained clean models' mean probability minus that of the clean models stopped at convergence "
+                    f"({one['long']['models']} and {one['stopped']['models']}; asked within 0.05): {gaps}."
+                ]
+            lines += [""]
         for protocol, why in res.get("refused", {}).items():
             lines += [f"Refused ({protocol}): " + "; ".join(f"{n}: {w}" for n, w in why.items()), ""]
     return "\n".join(lines).rstrip() + "\n"

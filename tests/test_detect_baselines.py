@@ -401,7 +401,6 @@ def test_the_search_finds_the_trigger_of_a_trained_lavaworld_agent(tmp_path):
         ({"members": "weights,weights"}, "must name distinct other detectors"),
         ({"members": "stack"}, "must name distinct other detectors"),
         ({"members": "constant"}, "every member must be a features-and-classifier detector"),
-        ({"members": "weights,effect"}, "effect scores its features its own way"),
         ({"member_params": {"attribution": {"max_states": 4}}}, "member_params must map members (weights, behaviour)"),
         ({"member_params": {"behaviour": {"candidatez": 4}}}, "no parameter 'candidatez'"),
         ({"folds": 1}, "folds=1 is out of range (allowed: 2 to 100)"),
@@ -448,6 +447,45 @@ def test_the_stack_beats_each_member_when_their_evidence_is_independent():
         assert log_loss(y_test, p) < log_loss(y_test, member), name
     again = make_detector("stack").fit_rows(train, [group] * len(train), y_train)  # deterministic
     assert again.get_state() == stack.get_state()
+
+
+def _effect_rows(rng, n):
+    """Synthetic features of an own-scoring member ('effect': three candidates' effects and the
+    summary features) beside a classifier member ('weights'); alternating labels, where a poisoned
+    model's shift under one candidate stands out."""
+    from rlbackdoors.detect.baselines.effect import EFFECTS, FEATURES
+
+    labels = np.arange(n) % 2
+    rows = []
+    for y in labels:
+        row = {f"effect:{e}@additive:{b}": abs(rng.normal(0.2, 0.05)) for e in EFFECTS for b in (20, 30, 40)}
+        row["effect:shift@additive:30"] += 0.4 * y
+        row.update({f"effect:{f}": abs(rng.normal(0.2, 0.05)) for f in FEATURES})
+        row["weights:signal"] = 1.0 * y + rng.normal(0, 0.8)
+        rows.append(row)
+    return rows, labels
+
+
+def test_the_stack_takes_an_own_scoring_member_as_itself(tmp_path):
+    """``effect`` scores its features as an anomaly against clean models, not by a classifier: in
+    the stack its out-of-fold logits come from copies fitted on the other folds, and the member
+    fitted on all 24 synthetic train models is the one a lone ``effect`` fit gives (the same
+    probabilities on 40 held-out ones), saved and read back with the stack."""
+    rng = np.random.default_rng(1)
+    train, y_train = _effect_rows(rng, 24)
+    test, _ = _effect_rows(rng, 40)
+    group = "lavaworld/fc|lavaworld/fc"
+    stack = make_detector("stack", members="effect,weights").fit_rows(train, [group] * len(train), y_train)
+    assert stack.scores_itself(0) and not stack.scores_itself(1)
+    assert stack.meta.kind == "logistic" and stack.meta.coef[0] > 0
+    alone = make_detector("effect").fit_rows([stack._split(r, 0) for r in train], ["lavaworld/fc"] * len(train), y_train)
+    for row in test:
+        assert stack.predict_row(row, group)[1]["effect"] == pytest.approx(alone.classify(stack._split(row, 0), "lavaworld/fc"), abs=1e-12)
+    stack.fitted = True
+    again = load_detector(stack.save(tmp_path / "stack"))
+    assert [again.classify(r, group) for r in test] == [stack.classify(r, group) for r in test]
+    with zipfile.ZipFile(tmp_path / "stack" / "arrays.npz") as npz:
+        assert "effect:clean_scores.npy" in npz.namelist()
 
 
 def test_the_formation_grid_holds_every_pair_of_lidar_bins_once():

@@ -132,6 +132,7 @@ def cmd_search(args) -> int:
     from rlbackdoors.io import atomic_write_text
     from rlbackdoors.trojai_round import ROUND_FILES
 
+    one_thread()
     folder = Path(args.model)
     handle = open_model(folder, reduced_optional=True, allow_contradiction=True)  # a folder name that may say the label becomes "model"
     if check_contradiction(handle, args.allow_mismatch, str(folder)) is not None:
@@ -344,11 +345,22 @@ def _takes_plugins(parser: argparse.ArgumentParser, command) -> None:
     def run(args) -> int:
         from rlbackdoors.detect.api import load_plugin
 
+        one_thread()
         for path in args.plugin or ():
             load_plugin(path)
         return command(args)
 
     parser.set_defaults(func=run)
+
+
+def one_thread() -> None:
+    """One torch thread, as ``evaluate`` and the zoo's jobs run. Why: a detector plays small
+    batches, which a second thread does not speed up, and with the other core busy its spin-waits
+    made the effect search ten times slower (2.2 s against 21.3 s a LavaWorld model, 2-core AMD
+    EPYC, 2026-12-07); the benchmarks' seconds per model are one core's."""
+    import torch
+
+    torch.set_num_threads(1)
 
 
 def add_detect_parser(subparsers) -> argparse.ArgumentParser:

@@ -10,6 +10,13 @@ cross-validated log loss). One feature, not one per member: with twenty-odd trai
 regression on every member's logit picked wild weights (even negative ones) on synthetic zoos,
 where the average was steadier. With one member this is Platt scaling of that member. Scoring a
 model costs the sum of its members' costs.
+
+A member that scores its features its own way (``effect``: an anomaly against the clean fit
+models, not a classifier) takes part as itself: its out-of-fold logits come from copies of it fitted
+on the other folds' rows, and the member fitted on every row is kept (its state in the stack's).
+Why: on issue 80's LavaWorld round the detectors err on different families (``effect`` misses
+action-level trojans under offsets that break clean policies too, ``weights`` the env mix), so the
+strongest pair is one with ``effect`` in it (docs/results/detectors.md).
 """
 
 from __future__ import annotations
@@ -61,12 +68,22 @@ class StackDetector(FeatureDetector):
             raise DetectError(f"detector 'stack': member_params must map members ({', '.join(names)}) to parameter tables, got {extra!r}")
         if not all(issubclass(get_detector(n), FeatureDetector) for n in names):
             raise DetectError(f"detector 'stack': every member must be a features-and-classifier detector, got {names}")
-        own = [n for n in names if cast(type[FeatureDetector], get_detector(n)).classify is not FeatureDetector.classify]
-        if own:  # the stack would fit a classifier on its raw features, not score them as it does
-            raise DetectError(f"detector 'stack': {', '.join(own)} scores its features its own way (not a classifier over them) and cannot be a member")
-        self.members = [cast(FeatureDetector, make_detector(n, **{"min_per_class": int(self.params["min_per_class"]), **extra.get(n, {})})) for n in names]
-        self.member_classifiers = [GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])) for _ in names]
+        self.members = [self._member(j, n) for j, n in enumerate(names)]
+        # a classifier member's fitted state; an own-scoring member (its own way, module doc) is its own state
+        self.member_classifiers: list[GroupedClassifier | None] = [
+            None if self.scores_itself(j) else GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])) for j in range(len(names))
+        ]
         self.meta = LogisticModel()
+
+    def _member(self, j: int, name: str | None = None) -> FeatureDetector:
+        """A fresh, unfitted member ``j`` at its parameters (the defaults and ``member_params``)."""
+        name = name or self.members[j].name
+        extra = self.params["member_params"].get(name, {})
+        return cast(FeatureDetector, make_detector(name, **{"min_per_class": int(self.params["min_per_class"]), **extra}))
+
+    def scores_itself(self, j: int) -> bool:
+        """Whether member ``j`` scores its features its own way rather than by a classifier over them."""
+        return type(self.members[j]).classify is not FeatureDetector.classify
 
     # Each member groups models its own way (by world and architecture, or by world); the
     # stack's group carries all of them, '|'-joined in member order.
@@ -101,22 +118,32 @@ class StackDetector(FeatureDetector):
         n, k = len(rows), len(self.members)
         member_rows = [[self._split(row, j) for row in rows] for j in range(k)]
         member_groups = [[g.split("|")[j] for g in groups] for j in range(k)]
-        min_per_class, seed = int(self.params["min_per_class"]), int(self.params["seed"])
+        seed = int(self.params["seed"])
         smallest = min(int(y.sum()), n - int(y.sum()))
         oof = np.zeros((n, k))
         if smallest >= 2:
             folds = StratifiedKFold(n_splits=min(int(self.params["folds"]), smallest), shuffle=True, random_state=seed)
             for train, test in folds.split(np.zeros(n), y):
                 for j in range(k):
-                    clf = GroupedClassifier(min_per_class, seed).fit([member_rows[j][i] for i in train], [member_groups[j][i] for i in train], y[train])
+                    part = self._fit_member(j, [member_rows[j][i] for i in train], [member_groups[j][i] for i in train], y[train])
                     for i in test:
-                        oof[i, j] = logit(clf.predict(member_rows[j][i], member_groups[j][i]))
-        self.member_classifiers = [GroupedClassifier(min_per_class, seed).fit(member_rows[j], member_groups[j], y) for j in range(k)]
+                        oof[i, j] = logit(part.predict(member_rows[j][i], member_groups[j][i]))
+        fitted = [self._fit_member(j, member_rows[j], member_groups[j], y) for j in range(k)]
+        for j, member in enumerate(fitted):
+            if isinstance(member, _OwnScoring):
+                self.members[j] = member.detector
+            else:
+                self.member_classifiers[j] = member
         meta_rows = [self._meta_row(oof[i]) for i in range(n)]
         # Too few models of a label to cross-validate: the meta model is the train rate.
         self.meta = fit_logistic(meta_rows, y, list(meta_rows[0]) if smallest >= 2 else [], seed)
         self.fitted = True
         return self
+
+    def _fit_member(self, j: int, rows: list[dict[str, float]], groups: list[str], y: np.ndarray) -> GroupedClassifier | _OwnScoring:
+        if self.scores_itself(j):
+            return _OwnScoring(self._member(j).fit_rows(rows, groups, y))
+        return GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])).fit(rows, groups, y)
 
     def classify(self, row: dict[str, float], group: str) -> float:
         probability, members = self.predict_row(row, group)
@@ -126,18 +153,49 @@ class StackDetector(FeatureDetector):
     def predict_row(self, row: dict[str, float], group: str) -> tuple[float, dict[str, float]]:
         """The stack's probability for one model's features, and each member's own."""
         groups = group.split("|")
-        members = {m.name: clf.predict(self._split(row, j), groups[j]) for j, (m, clf) in enumerate(zip(self.members, self.member_classifiers))}
+        members = {
+            m.name: m.classify(self._split(row, j), groups[j]) if clf is None else clf.predict(self._split(row, j), groups[j])
+            for j, (m, clf) in enumerate(zip(self.members, self.member_classifiers))
+        }
         return float(self.meta.predict_rows([self._meta_row([logit(p) for p in members.values()])])[0]), members
 
+    # An own-scoring member's state is ``{"detector": its state}``, its arrays under "member:key".
     def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
-        return {"members": [c.to_dict() for c in self.member_classifiers], "meta": self.meta.to_dict()}, {}
+        states: list[dict] = []
+        arrays: dict[str, np.ndarray] = {}
+        for member, clf in zip(self.members, self.member_classifiers):
+            if clf is not None:
+                states.append(clf.to_dict())
+                continue
+            own, own_arrays = member.get_state()
+            states.append({"detector": own})
+            arrays.update({f"{member.name}:{key}": value for key, value in own_arrays.items()})
+        return {"members": states, "meta": self.meta.to_dict()}, arrays
 
     def set_state(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
         members = list(state.get("members") or [])
         if len(members) != len(self.members):
             raise ValueError(f"{len(members)} member classifiers saved for {len(self.members)} members")
-        self.member_classifiers = [GroupedClassifier.from_dict(m) for m in members]
+        for j, saved in enumerate(members):
+            if self.scores_itself(j) != ("detector" in saved):
+                raise ValueError(f"member {self.members[j].name!r} was saved as {'its own scorer' if 'detector' in saved else 'a classifier'}, which it is not")
+            if self.member_classifiers[j] is not None:
+                self.member_classifiers[j] = GroupedClassifier.from_dict(saved)
+                continue
+            prefix = f"{self.members[j].name}:"
+            self.members[j].set_state(saved["detector"], {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)})
+            self.members[j].fitted = True
         self.meta = LogisticModel.from_dict(state.get("meta") or {})
+
+
+class _OwnScoring:
+    """A fitted own-scoring member, with a classifier's ``predict`` (the stack's folds call either)."""
+
+    def __init__(self, detector: FeatureDetector):
+        self.detector = detector
+
+    def predict(self, row: dict[str, float], group: str) -> float:
+        return self.detector.classify(row, group)
 
 
 __all__ = ["StackDetector", "logit"]

@@ -274,6 +274,44 @@ def test_candidates_played_together_are_the_trials_each_plays_alone(name):
     assert [t.error is None for t in together] == [True, name == "lavaworld", True]
 
 
+class TurnByMemory(nn.Module):
+    """A scripted recurrent policy: its memory is a running sum of every byte it has seen (mod 97)
+    and its action that sum mod 3. Its logits are exact at any batch size, and one slot's memory
+    given to another would change the actions that follow."""
+
+    recurrent = True
+
+    def __init__(self):
+        super().__init__()
+        self.unused = nn.Linear(1, 1)  # Agent.device reads the parameters
+
+    def initial_memory(self, batch: int, device="cpu") -> torch.Tensor:
+        return torch.zeros(batch, 1, device=device)
+
+    def forward(self, obs: torch.Tensor, memory: torch.Tensor):
+        seen = (obs.reshape(len(obs), -1).long().sum(1) % 97).float()
+        memory = torch.remainder(memory + seen[:, None], 97.0)
+        logits = torch.full((len(obs), 3), -30.0)
+        logits[torch.arange(len(obs)), memory[:, 0].long() % 3] = 30.0
+        return logits, torch.zeros(len(obs)), memory
+
+
+def test_a_recurrent_policys_candidates_played_together_are_the_trials_each_plays_alone():
+    """Colorful Memory's screen plays its recurrent candidates together too (issue 81: its whole
+    room family within TrojAI's budget): each slot's memory is carried as its own, so every
+    candidate's trial (rates, lengths, action distribution, entropy) is the one it plays alone."""
+    from rlbackdoors.detect.baselines.behaviour import run_trial, run_trials
+
+    world = worlds.get("colorful-memory")
+    env = EnvConfig(name="colorful-memory", max_steps=30)
+    specs = ["room:red,green,blue", "end:red,red,red,red,red,red,red,red,red", "room:blue,blue,blue"]
+    agent = Agent(world, None, TurnByMemory().eval(), None)
+    alone = [run_trial(agent, world, env, spec, 4, 7, "sample") for spec in specs]
+    together = run_trials(agent, world, env, specs, 4, 7, "sample")
+    assert together == alone
+    assert len({t.policy for t in alone}) > 1  # the candidates' episodes differ: the claim is not vacuous
+
+
 def test_a_time_budget_that_is_not_reached_screens_what_no_budget_screens():
     """With ``seconds`` the screen plays one candidate at a time, checking the clock before each; a
     budget it never reaches (an hour) plays the same candidates in the same order as none."""

@@ -21,9 +21,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
+from rlbackdoors.detect import load_detector
 from rlbackdoors.detect.baselines.effect import EffectDetector
 from rlbackdoors.detect.handle import open_model
 from rlbackdoors.io import atomic_write_text
@@ -49,12 +51,21 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("mitigated", type=Path, help="rlbackdoors mitigate ZOO's --out folder (mitigation-report.json, models/)")
     ap.add_argument("--zoo", type=Path, required=True, help="the zoo it mitigated")
-    ap.add_argument("--fit", type=Path, required=True, help="a zoo to fit the detector on (its clean and env-mix models)")
+    ap.add_argument("--fit", type=Path, help="a zoo to fit the detector on (its clean and env-mix models)")
+    ap.add_argument("--detector", type=Path, help="a fitted detector's folder (any detector) instead of --fit")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
+    torch.set_num_threads(1)  # small batches: a second thread beside a busy core slows the search tenfold
     began, load = time.time(), os.getloadavg()
-    handles, labels, names = fit_models(args.fit)
-    det = EffectDetector().fit(handles, labels)
+    if (args.fit is None) == (args.detector is None):
+        ap.error("give --fit ZOO or --detector FOLDER")
+    if args.detector is not None:
+        det = load_detector(args.detector)
+        fitted = {"detector": det.name, "folder": str(args.detector), "params": det.params}
+    else:
+        handles, labels, names = fit_models(args.fit)
+        det = EffectDetector().fit(handles, labels)
+        fitted = {"zoo": args.fit.name, "models": len(names), "poisoned": int(labels.sum()), "calibration": det.calibration_note}
     report = json.loads((args.mitigated / "mitigation-report.json").read_text())
     rows = []
     for row in report["models"]:
@@ -72,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     poisoned, clean = [r for r in rows if r["poisoned"]], [r for r in rows if not r["poisoned"]]
     result = {
         "command": "python experiments/mitigation/detected_after.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "fit": {"zoo": args.fit.name, "models": len(names), "poisoned": int(labels.sum()), "calibration": det.calibration_note},
+        "fit": fitted,
         "auc_before_vs_after_poisoned": auc(poisoned),
         "auc_before_vs_after_clean": auc(clean),
         "mean_probability": {

@@ -327,22 +327,30 @@ def play(
 
 
 def plays_together(agent, env: EnvConfig) -> bool:
-    """Whether :func:`play_together` can play ``agent`` in ``env``: a feed-forward torch policy in
-    a world with a batched engine."""
+    """Whether :func:`play_together` can play ``agent`` in ``env``: a torch policy (feed-forward or
+    recurrent) in a world with a batched engine."""
     agent = _as_agent(agent)
-    return env.world.vector_entry_point is not None and not agent.recurrent and isinstance(agent.policy, torch.nn.Module)
+    return env.world.vector_entry_point is not None and isinstance(agent.policy, torch.nn.Module)
 
 
 def acting_together(agent, probs: list[list[np.ndarray]] | None = None) -> ActMany:
-    """One forward of one feed-forward policy for every live slot of several vector envs (the
-    same agent on each), then each env's actions drawn from its own generator as the agent's
+    """One forward of one policy for every live slot of several vector envs (the same agent on
+    each), then each env's actions drawn from its own generator as the agent's
     :meth:`~rlbackdoors.agent.Agent.act` draws them; with ``probs`` each env's action
-    distributions (float64, one array per step) are appended to ``probs[k]``."""
+    distributions (float64, one array per step) are appended to ``probs[k]``. A recurrent policy's
+    memories (each env's, one row a slot) are joined for the forward and split back: each slot's
+    memory is its own, as when its env plays alone."""
     from rlbackdoors.algos.obs import to_torch
     from rlbackdoors.algos.ppo import sample_actions
 
     def act(stepped: list[int], batch, sizes: list[int], states: list, generators: list[torch.Generator], deterministic: bool):
-        logits, _ = agent.policy(to_torch(batch, agent.device))
+        if agent.recurrent:
+            logits, _, memory = agent.policy(to_torch(batch, agent.device), torch.cat([states[k] for k in stepped]))
+            states = list(states)
+            for k, rows in zip(stepped, torch.split(memory, sizes)):
+                states[k] = rows
+        else:
+            logits, _ = agent.policy(to_torch(batch, agent.device))
         actions = []
         for k, rows in zip(stepped, torch.split(logits, sizes)):
             if probs is not None:
@@ -358,7 +366,7 @@ def acting_together(agent, probs: list[list[np.ndarray]] | None = None) -> ActMa
 def play_together(
     agent, env: EnvConfig, triggers: list[str | None], episodes: int, seed: int, policy: str, probs: list[list[np.ndarray]] | None = None
 ) -> list[Played]:
-    """:func:`play` of one feed-forward torch agent for several triggers of a batched-engine world
+    """:func:`play` of one torch agent for several triggers of a batched-engine world
     at once: each trigger's ``episodes`` slots reset with ``seed`` and its own generator (as
     :func:`play` alone), all stepped in lockstep with one forward and one engine call per step.
 
@@ -368,7 +376,7 @@ def play_together(
     numbers at any batch size (checked on the machine that measured it: docs/detectors.md)."""
     agent = _as_agent(agent)
     if not plays_together(agent, env):
-        raise ValueError("play_together needs a feed-forward torch policy and a batched-engine world")
+        raise ValueError("play_together needs a torch policy and a batched-engine world")
     envs = [_vector_envs(env, trigger, episodes, None) for trigger in triggers]
     try:
         # regroup at once: a candidate's distributions stop with its episodes, on any device

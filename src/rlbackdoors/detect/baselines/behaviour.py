@@ -9,8 +9,8 @@ object, the hazard) is compared with the same share in the clean env E. The sear
 and deterministic: a screening stage over ``candidates`` candidates (0: the family's
 ``CANDIDATES``), a refinement stage over the
 ``refine`` neighbours of the best few, and a confirmation of the best ``confirm`` with more
-episodes on other layouts. Candidates are played :data:`TOGETHER` at a time where the agent is
-feed-forward (:func:`run_trials`). A ``seconds`` budget (0: none) cuts screening short on a slow machine
+episodes on other layouts. Candidates are played :data:`TOGETHER` at a time in a batched-engine
+world, recurrent policies too (:func:`run_trials`). A ``seconds`` budget (0: none) cuts screening short on a slow machine
 (then results depend on the machine's speed).
 
 The candidates come from a module per trigger family, ``search_<family>.py`` beside this one,
@@ -211,8 +211,8 @@ TOGETHER = 32  # candidates a screen plays at once (:func:`run_trials`)
 
 
 def run_trials(agent, world: worlds.World, env_cfg, specs: list[str], episodes: int, seed: int, policy: str) -> list[Trial]:
-    """:func:`run_trial` for each of ``specs``: at once where the agent is a feed-forward torch
-    policy in a batched-engine world (one forward for every candidate's episodes,
+    """:func:`run_trial` for each of ``specs``: at once where the agent is a torch policy in a
+    batched-engine world (one forward for every candidate's episodes, each recurrent slot's memory its own,
     :func:`~rlbackdoors.evaluate.episodes.play_together`), else one after another. A candidate
     the env cannot place is tried alone, so it fails alone."""
     from rlbackdoors.evaluate.episodes import play_together, plays_together

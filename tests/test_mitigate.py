@@ -371,3 +371,23 @@ def test_the_family_s_offsets_are_made_blind_even_where_only_a_multiplier_is_res
         p = torch.softmax(model(torch.as_tensor(sample))[0], -1)
         moved = max(float((torch.softmax(model(torch.as_tensor(stamp(f"additive:{b}")(sample)))[0], -1) - p).abs().max()) for b in (20, 77, 200))
     assert moved < 1e-4, moved
+
+
+def test_the_restored_triggers_are_spread_over_the_family_s_regions():
+    """Where many members fire, the best are often one region's neighbours (LavaWorld: multipliers
+    4-7, each within 2 of the next, above the true 19). Kept: no member next to one kept before it
+    while others are left, then the rest in rank order; with few firing, nothing is lost. The
+    neighbours are the LavaWorld search's own (multipliers +-1, +-2)."""
+    from types import SimpleNamespace
+
+    from rlbackdoors.mitigate import _neighbours, spread
+
+    handle = open_model(Path(__file__).resolve().parents[1] / "datasets" / "round-lavaworld-test" / "models" / "id-00000015")
+    near = _neighbours(handle)
+    assert near("multiplicative:6") == {"multiplicative:4", "multiplicative:5", "multiplicative:7", "multiplicative:8"}
+    ranked = [SimpleNamespace(spec=f"multiplicative:{a}") for a in (6, 5, 7, 4, 10, 19, 9, 20, 3)]
+    kept = [t.spec.split(":")[1] for t in spread(ranked, 4, near)]
+    assert kept == ["6", "10", "19", "3"]
+    assert [t.spec.split(":")[1] for t in spread(ranked, 6, near)] == ["6", "10", "19", "3", "5", "7"]
+    assert spread(ranked[:2], 8, near) == ranked[:2]
+    assert spread(ranked, 3, None) == ranked[:3]

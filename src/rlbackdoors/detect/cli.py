@@ -356,7 +356,7 @@ def _takes_plugins(parser: argparse.ArgumentParser, command) -> None:
 def one_thread() -> None:
     """One torch thread, as ``evaluate`` and the zoo's jobs run. Why: a detector plays small
     batches, which a second thread does not speed up, and with the other core busy its spin-waits
-    made the effect search ten times slower (2.2 s against 21.3 s a LavaWorld model, 2-core AMD
+    made the effect search ten times slower (2.2 s against 21.3 s a benchmark-round model, 2-core AMD
     EPYC, 2026-12-07); the benchmarks' seconds per model are one core's."""
     import torch
 

@@ -38,7 +38,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from rlbackdoors.io import atomic_write_text, save_torch
 
@@ -139,7 +139,7 @@ def mitigate(
             result = searcher.run_search(handle, whole_family=searcher.whole_family(handle))
         except DetectError as err:
             raise MitigationError(str(err)) from None
-        kept = restore(result, int(candidates), reference)
+        kept = restore(result, int(candidates), reference, _neighbours(handle))
         if not kept:
             raise MitigationError("the search confirmed no candidate trigger that could be played")
         restored = {
@@ -199,7 +199,35 @@ FIRES = 0.5  # a candidate "fires" when it adds this much to the clean env's tro
 STANDS_OUT = 4.0  # ... or, against a fitted detector's clean models, when one of its effects is this many of their spreads away
 
 
-def restore(result, limit: int, reference: dict | None = None) -> list:
+def _neighbours(handle) -> Callable[[str], set[str]]:
+    """spec -> the members of the model's trigger family next to it (the search's refinement step)."""
+    import numpy as np
+
+    from rlbackdoors.detect.baselines.behaviour import family_module
+
+    family = family_module(handle.world)
+    env_cfg = handle.env_config()
+    return lambda spec: set(family.neighbours(spec, env_cfg, np.random.default_rng(0), 64))
+
+
+def spread(ranked: list, limit: int, near: Callable[[str], set[str]] | None) -> list:
+    """At most ``limit`` of ``ranked`` (best first), none next to one kept before it while others
+    are left; then the rest in order. Why: where many members fire, the best are often one
+    region's neighbours (multipliers 4 to 7 all above the true 19 on issue 80's first round), and a
+    backdoor unlearnt at one member is unlearnt at its neighbours too, so the stamps are better
+    spent on the other regions (docs/results/mitigation.md)."""
+    if near is None:
+        return ranked[:limit]
+    kept: list = []
+    covered: set[str] = set()
+    for t in ranked:
+        if len(kept) < limit and t.spec not in covered:
+            kept.append(t)
+            covered |= near(t.spec) | {t.spec}
+    return kept + [t for t in ranked if t not in kept][: limit - len(kept)]
+
+
+def restore(result, limit: int, reference: dict | None = None, near: Callable[[str], set[str]] | None = None) -> list:
     """The restored triggers of a search: every candidate that **fires**, best first, at most
     ``limit``; where none fires, the ``limit`` best confirmed. Without ``reference`` a candidate
     fires when it sends the agent to the trojan outcome (:data:`FIRES` over the clean env; the
@@ -209,7 +237,8 @@ def restore(result, limit: int, reference: dict | None = None) -> list:
     the same edit, ranked by that: an action-level trojan (a forced turn) is seen, and an edit that
     breaks every policy is not. Why all that fire: a backdoor generalises over a range of its family
     (a multiplier's neighbours fire too), the search's best is often a neighbour, not the trigger,
-    and unlearning one member leaves the others. (Firing read as the clean goal missed, without a
+    and unlearning one member leaves the others; with ``near`` (spec -> its family neighbours)
+    they are :func:`spread` over the family. (Firing read as the clean goal missed, without a
     reference, was tried and left out: it also restores edits that blind any policy, which crowd the
     trigger's region out of the stamped frames; docs/results/mitigation.md.)"""
     from rlbackdoors.detect.baselines.behaviour import outcome_rank
@@ -237,7 +266,7 @@ def restore(result, limit: int, reference: dict | None = None) -> list:
         ranked = sorted(pool.values(), key=outcome_rank, reverse=True)
         firing = [t for t in ranked if t.trojan - result.clean.trojan >= FIRES]
     if firing:
-        return firing[:limit]
+        return spread(firing, limit, near)
     return sorted((pool[s] for s in confirmed), key=outcome_rank, reverse=True)[:limit]
 
 

@@ -14,7 +14,7 @@ model costs the sum of its members' costs.
 A member that scores its features its own way (``effect``: an anomaly against the clean fit
 models, not a classifier) takes part as itself: its out-of-fold logits come from copies of it fitted
 on the other folds' rows, and the member fitted on every row is kept (its state in the stack's).
-Why: on issue 80's LavaWorld round the detectors err on different families (``effect`` misses
+Why: on issue 80's first round the detectors err on different families (``effect`` misses
 action-level trojans under offsets that break clean policies too, ``weights`` the env mix), so the
 strongest pair is one with ``effect`` in it (docs/results/detectors.md).
 """

@@ -117,8 +117,8 @@ def long_trained_gap(models: list[dict], long: dict[str, bool]) -> dict:
     for key, want in (("long", True), ("stopped", False)):
         p = [m["probability"] for m in models if m["label"] == 0 and long[m["model"]] is want]
         out[key] = {"models": len(p), "mean_probability": round(sum(p) / len(p), 4) if p else None}
-    have = out["long"]["mean_probability"] is not None and out["stopped"]["mean_probability"] is not None
-    out["gap"] = round(out["long"]["mean_probability"] - out["stopped"]["mean_probability"], 4) if have else None
+    long_p, stopped_p = out["long"]["mean_probability"], out["stopped"]["mean_probability"]
+    out["gap"] = None if long_p is None or stopped_p is None else round(long_p - stopped_p, 4)
     return out
 
 

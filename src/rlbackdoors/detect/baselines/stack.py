@@ -68,16 +68,15 @@ class StackDetector(FeatureDetector):
             raise DetectError(f"detector 'stack': member_params must map members ({', '.join(names)}) to parameter tables, got {extra!r}")
         if not all(issubclass(get_detector(n), FeatureDetector) for n in names):
             raise DetectError(f"detector 'stack': every member must be a features-and-classifier detector, got {names}")
-        self.members = [self._member(j, n) for j, n in enumerate(names)]
+        self.members = [self._member(n) for n in names]
         # a classifier member's fitted state; an own-scoring member (its own way, module doc) is its own state
         self.member_classifiers: list[GroupedClassifier | None] = [
             None if self.scores_itself(j) else GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])) for j in range(len(names))
         ]
         self.meta = LogisticModel()
 
-    def _member(self, j: int, name: str | None = None) -> FeatureDetector:
-        """A fresh, unfitted member ``j`` at its parameters (the defaults and ``member_params``)."""
-        name = name or self.members[j].name
+    def _member(self, name: str) -> FeatureDetector:
+        """A fresh, unfitted member at its parameters (the defaults and ``member_params``)."""
         extra = self.params["member_params"].get(name, {})
         return cast(FeatureDetector, make_detector(name, **{"min_per_class": int(self.params["min_per_class"]), **extra}))
 
@@ -142,7 +141,7 @@ class StackDetector(FeatureDetector):
 
     def _fit_member(self, j: int, rows: list[dict[str, float]], groups: list[str], y: np.ndarray) -> GroupedClassifier | _OwnScoring:
         if self.scores_itself(j):
-            return _OwnScoring(self._member(j).fit_rows(rows, groups, y))
+            return _OwnScoring(self._member(self.members[j].name).fit_rows(rows, groups, y))
         return GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])).fit(rows, groups, y)
 
     def classify(self, row: dict[str, float], group: str) -> float:

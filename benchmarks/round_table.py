@@ -31,6 +31,7 @@ import math
 import shutil
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from _detect_cli import Refused, rlbackdoors
@@ -149,22 +150,30 @@ def run(args: argparse.Namespace) -> Path:
     start = time.time()
     table: dict = {}
     refused: dict = {}
-    for protocol in PROTOCOLS:
-        for name in args.detectors:
-            det = base / protocol / name
-            try:
-                fit(name, fits[protocol], det, plugins)
-                scored = score(det, test, det / "score-test", plugins)
-            except Refused as why:  # said in the table, not scored
-                refused.setdefault(protocol, {})[name] = str(why)
-                continue
-            models = [m for m in scored["models"] if m.get("probability") is not None]
-            table.setdefault(protocol, {})[name] = {
-                "families": per_family(models, families, frames),
-                "failed": len(scored["models"]) - len(models),
-                "long_trained_clean": long_trained_gap(models, long),
-                "seconds_per_model": (scored.get("seconds_per_model") or {}).get("mean"),  # one core's (one BLAS thread)
-            }
+
+    def job(protocol: str, name: str) -> dict | Refused:
+        det = base / protocol / name
+        try:
+            fit(name, fits[protocol], det, plugins)
+            return score(det, test, det / "score-test", plugins)
+        except Refused as why:  # said in the table, not scored
+            return why
+
+    # Each (protocol, detector) is its own subprocess on one thread: --jobs of them at once.
+    pairs = [(protocol, name) for protocol in PROTOCOLS for name in args.detectors]
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        done = dict(zip(pairs, pool.map(lambda pair: job(*pair), pairs)))
+    for (protocol, name), scored in done.items():
+        if isinstance(scored, Refused):
+            refused.setdefault(protocol, {})[name] = str(scored)
+            continue
+        models = [m for m in scored["models"] if m.get("probability") is not None]
+        table.setdefault(protocol, {})[name] = {
+            "families": per_family(models, families, frames),
+            "failed": len(scored["models"]) - len(models),
+            "long_trained_clean": long_trained_gap(models, long),
+            "seconds_per_model": (scored.get("seconds_per_model") or {}).get("mean"),  # one core's (one BLAS thread)
+        }
     counts = {
         split: {
             "models": len(r),
@@ -282,6 +291,9 @@ def main() -> None:
     parser.add_argument("--runs", default=str(ROOT / "runs" / "rounds"), help="where fits and scores are kept")
     parser.add_argument("--out", help="the JSON (default: benchmarks/results/rounds/round-WORLD.json)")
     parser.add_argument("--fresh", action="store_true", help="fit and score afresh")
+    parser.add_argument(
+        "--jobs", type=int, default=1, help="fits and scores run at once, one core each (seconds per model are then one core's under that load)"
+    )
     parser.add_argument("--markdown", action="store_true", help="rewrite docs/benchmark.md's tables from the committed JSON; score nothing")
     args = parser.parse_args()
     if args.markdown:

@@ -429,15 +429,18 @@ def _two_member_rows(rng, n):
 
 def test_the_stack_beats_each_member_when_their_evidence_is_independent():
     """24 train and 400 held-out synthetic models (seed 0; each member alone ranks them at AUC
-    0.80 and 0.94): averaging the members' logits ranks better than either, and Platt scaling the
-    average on out-of-fold scores gives a held-out log loss below both members'."""
+    0.80 and 0.94): averaging the members' logits ranks better than either, and a logistic
+    regression on the average of the out-of-fold logits gives a held-out log loss below both
+    members'. (The default, Platt's smoothed targets with a bound chosen by CV, pays 0.02 of log
+    loss here, where no member is ever sure and wrong: the next test is what it is for.)"""
     from sklearn.metrics import log_loss, roc_auc_score
 
     rng = np.random.default_rng(0)
     train, y_train = _two_member_rows(rng, 24)
     test, y_test = _two_member_rows(rng, 400)
     group = "lavaworld/fc|lavaworld"
-    stack = make_detector("stack").fit_rows(train, [group] * len(train), y_train)
+    plain = {"meta": "logistic", "logit_bound": "none"}
+    stack = make_detector("stack", **plain).fit_rows(train, [group] * len(train), y_train)
     assert stack.meta.kind == "logistic" and stack.meta.features == ["mean_logit"] and stack.meta.coef[0] > 0
     scored = [stack.predict_row(row, group) for row in test]
     p = np.array([s for s, _ in scored])
@@ -445,8 +448,52 @@ def test_the_stack_beats_each_member_when_their_evidence_is_independent():
         member = np.array([m[name] for _, m in scored])
         assert roc_auc_score(y_test, p) > roc_auc_score(y_test, member), name
         assert log_loss(y_test, p) < log_loss(y_test, member), name
-    again = make_detector("stack").fit_rows(train, [group] * len(train), y_train)  # deterministic
+    again = make_detector("stack", **plain).fit_rows(train, [group] * len(train), y_train)  # deterministic
     assert again.get_state() == stack.get_state()
+
+
+def _sure_and_wrong_rows(rng, n):
+    """A 'weights' member that separates the labels widely (a classifier on it is sure) but reads
+    one model in ten as the other label, beside an honest, noisy 'behaviour'; alternating labels."""
+    labels = np.arange(n) % 2
+    rows = []
+    for y in labels:
+        read = 1 - y if rng.random() < 0.1 else y
+        rows.append(
+            {
+                **{f"weights:noise{i}": rng.normal() for i in range(10)},
+                "weights:signal": 3.0 * read + rng.normal(0, 0.3),
+                "behaviour:rate": 0.6 * y + rng.normal(0, 0.3),
+            }
+        )
+    return rows, labels
+
+
+def test_the_bounded_platt_stack_is_not_outvoted_by_a_member_sure_and_wrong():
+    """Seeds 0-3, 24 train and 400 held-out synthetic models each: the default stack (each member's
+    logit bounded, the bound chosen by the train split's cross-validated log loss; Platt's
+    smoothed targets) has a lower held-out log loss than the plain average under a logistic
+    regression on every seed, by 0.10 on average (measured 0.009-0.23); a stack saved without a
+    bound reads back unbounded."""
+    from sklearn.metrics import log_loss
+
+    group = "lavaworld/fc|lavaworld"
+    gains = []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        train, y_train = _sure_and_wrong_rows(rng, 24)
+        test, y_test = _sure_and_wrong_rows(rng, 400)
+        losses = []
+        for params in ({"meta": "logistic", "logit_bound": "none"}, {}):
+            stack = make_detector("stack", **params).fit_rows(train, [group] * len(train), y_train)
+            losses.append(log_loss(y_test, [stack.predict_row(row, group)[0] for row in test]))
+        assert losses[1] < losses[0], seed
+        gains.append(losses[0] - losses[1])
+    assert np.mean(gains) > 0.05
+    state, arrays = stack.get_state()
+    old = make_detector("stack")
+    old.set_state({k: v for k, v in state.items() if k != "logit_bound"}, arrays)
+    assert math.isinf(old.bound) and (stack.bound < math.inf) == ("logit_bound" in state)
 
 
 def _effect_rows(rng, n):

@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 C_GRID = (0.01, 0.1, 1.0, 10.0, 100.0)
+PLATT_C = 1e6  # Platt scaling's fit is unpenalised (the smoothed targets bound it), up to numerics
 PROBABILITY_FLOOR = 0.01  # a one-class train set predicts its rate, kept off 0 and 1
 
 
@@ -123,6 +124,59 @@ def fit_logistic(rows: Sequence[Mapping[str, float]], labels: np.ndarray, featur
     return model
 
 
+def fit_platt(rows: Sequence[Mapping[str, float]], labels: np.ndarray, feature: str, folds: int = 5, seed: int = 0) -> LogisticModel:
+    """Platt scaling of one score: a logistic regression on ``feature`` fitted to Platt's (1999)
+    smoothed targets, ``(N+ + 1) / (N+ + 2)`` for a positive and ``1 / (N- + 2)`` for a negative,
+    not to 0 and 1, and without a penalty to choose. Why: on a few dozen separable models a fit to
+    hard labels (any C the cross-validation picks) drives the slope to the largest allowed and
+    reads unseen models at 0 or 1; the targets keep the fit as sure as that many models allow.
+    ``cv_log_loss`` is the held-out log loss (against the hard labels) of the same fit over
+    stratified folds."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.metrics import log_loss
+    from sklearn.model_selection import StratifiedKFold
+
+    y = np.asarray(labels, dtype=np.int64)
+    n, positives = len(y), int(np.asarray(labels).sum())
+    if n == 0 or positives in (0, n):
+        return fit_logistic(rows, y, [], seed)
+    x = np.array([_number(row.get(feature)) for row in rows], dtype=np.float64)
+    impute = float(np.nanmean(x)) if np.isfinite(x).any() else 0.0
+    x = np.where(np.isfinite(x), x, impute)
+    mean, std = float(x.mean()), float(x.std())
+    scale = std if std > 1e-12 * max(1.0, abs(mean)) else 1.0
+    z = (x - mean) / scale
+
+    def fit(z: np.ndarray, y: np.ndarray) -> LogisticRegression:
+        n1, n0 = int(y.sum()), int(len(y) - y.sum())
+        target = np.where(y == 1, (n1 + 1) / (n1 + 2), 1 / (n0 + 2))
+        both = np.concatenate([z, z])[:, None]
+        return LogisticRegression(C=PLATT_C, max_iter=10_000, random_state=seed).fit(
+            both, np.r_[np.ones(len(z)), np.zeros(len(z))], sample_weight=np.r_[target, 1 - target]
+        )
+
+    loss = None
+    smallest = min(positives, n - positives)
+    if smallest >= 2:
+        oof = np.zeros(n)
+        for train, test in StratifiedKFold(n_splits=min(folds, smallest), shuffle=True, random_state=seed).split(z, y):
+            oof[test] = fit(z[train], y[train]).predict_proba(z[test][:, None])[:, 1]
+        loss = float(log_loss(y, np.clip(oof, 1e-12, 1 - 1e-12), labels=[0, 1]))
+    fitted = fit(z, y)
+    return LogisticModel(
+        kind="logistic",
+        features=[feature],
+        impute=[impute],
+        mean=[mean],
+        scale=[scale],
+        coef=[float(fitted.coef_[0][0])],
+        intercept=float(fitted.intercept_[0]),
+        C=PLATT_C,
+        cv_log_loss=loss,
+        n=n,
+    )
+
+
 class GroupedClassifier:
     """One :class:`LogisticModel` per group with at least ``min_per_class`` models of each label,
     and a pooled one (features all train models share) for the rest (module doc)."""
@@ -173,4 +227,4 @@ def shared_features(rows: Sequence[Mapping[str, float]]) -> list[str]:
     return [k for k in rows[0] if k in common]
 
 
-__all__ = ["GroupedClassifier", "LogisticModel", "fit_logistic", "shared_features"]
+__all__ = ["GroupedClassifier", "LogisticModel", "fit_logistic", "fit_platt", "shared_features"]

@@ -5,11 +5,20 @@ classifier sees a hundred correlated features and few models, so cross-validatio
 and the probabilities near 0.5, which costs cross-entropy, not AUC. Here each member (at its
 defaults, or ``member_params``) computes its features and fits its own classifier, and its logits
 on the train models *out of fold* (``folds``-fold stratified cross-validation: scores on models
-it did not see) are averaged and Platt-scaled (a one-feature logistic regression, C chosen by
-cross-validated log loss). One feature, not one per member: with twenty-odd train models a
-regression on every member's logit picked wild weights (even negative ones) on synthetic zoos,
-where the average was steadier. With one member this is Platt scaling of that member. Scoring a
+it did not see) are averaged and Platt-scaled (``meta``: ``platt``, a one-feature logistic
+regression on Platt's smoothed targets, :func:`~rlbackdoors.detect.classifier.fit_platt`;
+``logistic``, the same on hard labels with C chosen by cross-validated log loss, which on a
+separable train split reads unseen models at 0 or 1). One feature, not one per member: with
+twenty-odd train models a regression on every member's logit picked wild weights (even negative
+ones) on synthetic zoos, where the average was steadier. With one member this is Platt scaling of that member. Scoring a
 model costs the sum of its members' costs.
+
+Each member's logit is bounded (``logit_bound``: ``cv`` picks the bound from :data:`BOUNDS` by the
+meta model's cross-validated log loss on the out-of-fold logits; ``none`` keeps them whole) before
+the average. Why: a member fitted on a few dozen models can be certain and wrong; on issue 80's
+round ``weights`` read a BadRL model at p = 1e-4 and its logit (-9.3) outvoted the other two members
+(0.38, 0.77), giving 0.012 alone: one such model was a third of the stack's cross-entropy. A stack
+saved before the bound existed keeps its unbounded average (and its meta model).
 
 A member that scores its features its own way (``effect``: an anomaly against the clean fit
 models, not a classifier) takes part as itself: its out-of-fold logits come from copies of it fitted
@@ -27,10 +36,11 @@ from typing import Any, ClassVar, cast
 import numpy as np
 
 from rlbackdoors.detect.api import DetectError, FeatureDetector, Param, _check_labels, get_detector, make_detector, register
-from rlbackdoors.detect.classifier import GroupedClassifier, LogisticModel, fit_logistic
+from rlbackdoors.detect.classifier import GroupedClassifier, LogisticModel, fit_logistic, fit_platt
 from rlbackdoors.detect.handle import ModelHandle
 
 LOGIT_CLIP = 1e-6  # member probabilities are kept in [1e-6, 1 - 1e-6] before the logit
+BOUNDS = (math.inf, 6.0, 4.0, 3.0, 2.0)  # the member-logit bounds ``logit_bound=cv`` chooses from (inf: none)
 
 
 def logit(p: float) -> float:
@@ -48,6 +58,8 @@ class StackDetector(FeatureDetector):
         "member_params": {},  # {member: {parameter: value}}; a member's other parameters are its defaults
         "folds": 5,
         "seed": 0,
+        "logit_bound": "cv",
+        "meta": "platt",
     }
     rules: ClassVar[dict[str, Param]] = {
         **FeatureDetector.rules,
@@ -55,6 +67,10 @@ class StackDetector(FeatureDetector):
         "member_params": Param(help="{member: {parameter: value}}; other member parameters are their defaults"),
         "folds": Param(2, 100, fit_only=True, help="folds of the members' out-of-fold logits"),
         "seed": Param(0, 2**31 - 1, fit_only=True, help="seed of the folds and classifiers"),
+        "logit_bound": Param(choices=("cv", "none"), fit_only=True, help="bound on each member's logit: chosen by cross-validated log loss, or none"),
+        "meta": Param(
+            choices=("platt", "logistic"), fit_only=True, help="the meta model: Platt scaling (smoothed targets) or a logistic regression with C by CV"
+        ),
     }
 
     def __init__(self, **params: Any):
@@ -74,6 +90,8 @@ class StackDetector(FeatureDetector):
             None if self.scores_itself(j) else GroupedClassifier(int(self.params["min_per_class"]), int(self.params["seed"])) for j in range(len(names))
         ]
         self.meta = LogisticModel()
+        self.bound = math.inf  # the fitted bound on each member's logit
+        self.oof_logits = np.zeros((0, len(names)))  # the members' out-of-fold logits of the last fit (for study; not saved)
 
     def _member(self, name: str) -> FeatureDetector:
         """A fresh, unfitted member at its parameters (the defaults and ``member_params``)."""
@@ -106,9 +124,9 @@ class StackDetector(FeatureDetector):
         prefix = f"{self.members[j].name}:"
         return {k[len(prefix) :]: v for k, v in row.items() if k.startswith(prefix)}
 
-    @staticmethod
-    def _meta_row(logits) -> dict[str, float]:
-        return {"mean_logit": float(np.mean(logits))}
+    def _meta_row(self, logits, bound: float | None = None) -> dict[str, float]:
+        b = self.bound if bound is None else bound
+        return {"mean_logit": float(np.mean(np.clip(logits, -b, b)))}
 
     def fit_rows(self, rows: list[dict[str, float]], groups: list[str], labels: np.ndarray) -> StackDetector:
         from sklearn.model_selection import StratifiedKFold
@@ -133,9 +151,20 @@ class StackDetector(FeatureDetector):
                 self.members[j] = member.detector
             else:
                 self.member_classifiers[j] = member
-        meta_rows = [self._meta_row(oof[i]) for i in range(n)]
         # Too few models of a label to cross-validate: the meta model is the train rate.
-        self.meta = fit_logistic(meta_rows, y, list(meta_rows[0]) if smallest >= 2 else [], seed)
+        bounds = BOUNDS if self.params["logit_bound"] == "cv" and smallest >= 2 else (math.inf,)
+        best: tuple[float, LogisticModel] | None = None
+        for bound in bounds:  # the first of equal losses wins: the loosest bound
+            meta_rows = [self._meta_row(oof[i], bound) for i in range(n)]
+            if self.params["meta"] == "platt" and smallest >= 2:
+                meta = fit_platt(meta_rows, y, "mean_logit", int(self.params["folds"]), seed)
+            else:
+                meta = fit_logistic(meta_rows, y, list(meta_rows[0]) if smallest >= 2 else [], seed)
+            if best is None or (meta.cv_log_loss is not None and best[1].cv_log_loss is not None and meta.cv_log_loss < best[1].cv_log_loss - 1e-12):
+                best = (bound, meta)
+        assert best is not None
+        self.bound, self.meta = best
+        self.oof_logits = oof
         self.fitted = True
         return self
 
@@ -169,7 +198,8 @@ class StackDetector(FeatureDetector):
             own, own_arrays = member.get_state()
             states.append({"detector": own})
             arrays.update({f"{member.name}:{key}": value for key, value in own_arrays.items()})
-        return {"members": states, "meta": self.meta.to_dict()}, arrays
+        bound = {} if math.isinf(self.bound) else {"logit_bound": self.bound}  # a stack without it keeps its bytes
+        return {"members": states, "meta": self.meta.to_dict(), **bound}, arrays
 
     def set_state(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
         members = list(state.get("members") or [])
@@ -185,6 +215,7 @@ class StackDetector(FeatureDetector):
             self.members[j].set_state(saved["detector"], {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)})
             self.members[j].fitted = True
         self.meta = LogisticModel.from_dict(state.get("meta") or {})
+        self.bound = float(state.get("logit_bound", math.inf))
 
 
 class _OwnScoring:

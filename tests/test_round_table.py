@@ -97,6 +97,23 @@ def test_a_round_is_scored_under_both_protocols_per_family(round_zoos, tmp_path)
     stamp = (tmp_path / "runs" / "round-tiny" / "trojai" / "weights" / "detector.json").stat().st_mtime_ns
     subprocess.run(cmd, check=True)
     assert (tmp_path / "runs" / "round-tiny" / "trojai" / "weights" / "detector.json").stat().st_mtime_ns == stamp
+    # two fits and scores at once (--jobs 2, afresh elsewhere) give the same table
+    both = [
+        *cmd[: cmd.index("--runs")],
+        "--runs",
+        str(tmp_path / "runs2"),
+        "--out",
+        str(tmp_path / "round2.json"),
+        "--detectors",
+        "weights",
+        "attribution",
+        "--jobs",
+        "2",
+    ]
+    subprocess.run(both, check=True)
+    again = json.loads((tmp_path / "round2.json").read_text())
+    assert again["protocols"]["trojai"]["weights"]["families"] == res["protocols"]["trojai"]["weights"]["families"]
+    assert set(again["protocols"]["envmix"]) == {"weights", "attribution"}
 
     sys.path.insert(0, str(BENCH))
     try:

@@ -16,7 +16,7 @@ model costs the sum of its members' costs.
 Each member's logit is bounded (``logit_bound``: ``cv`` picks the bound from :data:`BOUNDS` by the
 meta model's cross-validated log loss on the out-of-fold logits; ``none`` keeps them whole) before
 the average. Why: a member fitted on a few dozen models can be certain and wrong; on issue 80's
-round ``weights`` read a BadRL model at p = 1e-4 and its logit (-9.3) outvoted the other two members
+round ``weights`` read a poisoned model at p = 1e-4 and its logit (-9.3) outvoted the other two members
 (0.38, 0.77), giving 0.012 alone: one such model was a third of the stack's cross-entropy. A stack
 saved before the bound existed keeps its unbounded average (and its meta model).
 

@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> Path:
 
     # Each (protocol, detector) is its own subprocess on one thread: --jobs of them at once.
     pairs = [(protocol, name) for protocol in PROTOCOLS for name in args.detectors]
-    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         done = dict(zip(pairs, pool.map(lambda pair: job(*pair), pairs)))
     for (protocol, name), scored in done.items():
         if isinstance(scored, Refused):
@@ -296,6 +296,8 @@ def main() -> None:
     )
     parser.add_argument("--markdown", action="store_true", help="rewrite docs/benchmark.md's tables from the committed JSON; score nothing")
     args = parser.parse_args()
+    if args.jobs < 1:
+        sys.exit(f"rlbackdoors: error: --jobs must be at least 1, got {args.jobs}")
     if args.markdown:
         print(write_markdown())
     elif args.world:

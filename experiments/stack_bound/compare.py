@@ -22,6 +22,11 @@ from rlbackdoors.detect.baselines.stack import BOUNDS
 from rlbackdoors.detect.classifier import fit_platt
 
 
+def family(row: dict) -> str:
+    parts = row["cell"].split("/")
+    return parts[3] if len(parts) > 3 else "envmix"
+
+
 def load(folder: Path) -> list[dict]:
     return [json.loads(p.read_text()) | {"model": p.stem} for p in sorted(folder.glob("*.json"))]
 
@@ -43,9 +48,9 @@ def main() -> None:
             ((-math.log(max(1e-12, pi if yi else 1 - pi)), r["model"], r["cell"], round(float(pi), 3)) for pi, yi, r in zip(p, y_test, test)), reverse=True
         )[:5]
         print(f"{mode}/{meta}: bound {stack.bound}, AUC {roc_auc_score(y_test, p):.4f}, CE {log_loss(y_test, np.clip(p, 1e-12, 1 - 1e-12)):.4f}; worst {worst}")
-        fams = sorted({r["cell"].split("/")[3] if len(r["cell"].split("/")) > 3 else "envmix" for r in test if r["label"]})
+        fams = sorted({family(r) for r in test if r["label"]})
         for fam in fams:
-            keep = [i for i, r in enumerate(test) if not r["label"] or (r["cell"].split("/")[3] if len(r["cell"].split("/")) > 3 else "envmix") == fam]
+            keep = [i for i, r in enumerate(test) if not r["label"] or family(r) == fam]
             print(
                 f"   {fam}: AUC {roc_auc_score(y_test[keep], p[keep]):.3f} CE {log_loss(y_test[keep], np.clip(p[keep], 1e-12, 1 - 1e-12), labels=[0, 1]):.3f}"
             )

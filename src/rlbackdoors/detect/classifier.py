@@ -77,18 +77,8 @@ def _number(value) -> float:
     return out if math.isfinite(out) else math.nan
 
 
-def fit_logistic(rows: Sequence[Mapping[str, float]], labels: np.ndarray, features: Sequence[str], seed: int = 0) -> LogisticModel:
-    """Fit on ``features`` of ``rows``; C from :data:`C_GRID` by cross-validated log loss."""
-    from sklearn.linear_model import LogisticRegression
-    from sklearn.metrics import log_loss
-    from sklearn.model_selection import StratifiedKFold
-
-    y = np.asarray(labels, dtype=np.int64)
-    n = len(y)
-    positives = int(y.sum())
-    if n == 0 or positives in (0, n) or not features:
-        rate = positives / n if n else 0.5
-        return LogisticModel(kind="constant", rate=float(min(1 - PROBABILITY_FLOOR, max(PROBABILITY_FLOOR, rate))), n=n)
+def _standardised(rows: Sequence[Mapping[str, float]], features: Sequence[str], n: int) -> tuple[LogisticModel, np.ndarray]:
+    """A logistic model's imputation, mean and scale over ``rows`` (its coefficients unset), and the standardised matrix."""
     model = LogisticModel(kind="logistic", features=list(features), n=n)
     raw = np.array([[_number(row.get(name)) for name in features] for row in rows], dtype=np.float64)
     with np.errstate(all="ignore"):
@@ -98,7 +88,35 @@ def fit_logistic(rows: Sequence[Mapping[str, float]], labels: np.ndarray, featur
     mean, std = x.mean(0), x.std(0)
     scale = np.where(std > 1e-12 * np.maximum(1.0, np.abs(mean)), std, 1.0)
     model.mean, model.scale = [float(v) for v in mean], [float(v) for v in scale]
-    z = (x - mean) / scale
+    return model, (x - mean) / scale
+
+
+def _held_out_log_loss(z: np.ndarray, y: np.ndarray, fit, folds) -> float:
+    """The log loss of ``fit(z_train, y_train)``'s predictions on each fold it did not see (a fold
+    whose train part holds one label predicts that part's rate)."""
+    from sklearn.metrics import log_loss
+
+    oof = np.zeros(len(y))
+    for train, test in folds.split(z, y):
+        if len(np.unique(y[train])) < 2:
+            oof[test] = y[train].mean()
+            continue
+        oof[test] = fit(z[train], y[train]).predict_proba(z[test])[:, 1]
+    return float(log_loss(y, np.clip(oof, 1e-12, 1 - 1e-12), labels=[0, 1]))
+
+
+def fit_logistic(rows: Sequence[Mapping[str, float]], labels: np.ndarray, features: Sequence[str], seed: int = 0) -> LogisticModel:
+    """Fit on ``features`` of ``rows``; C from :data:`C_GRID` by cross-validated log loss."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.model_selection import StratifiedKFold
+
+    y = np.asarray(labels, dtype=np.int64)
+    n = len(y)
+    positives = int(y.sum())
+    if n == 0 or positives in (0, n) or not features:
+        rate = positives / n if n else 0.5
+        return LogisticModel(kind="constant", rate=float(min(1 - PROBABILITY_FLOOR, max(PROBABILITY_FLOOR, rate))), n=n)
+    model, z = _standardised(rows, features, n)
 
     def estimator(c: float):
         return LogisticRegression(C=c, max_iter=5000, random_state=seed)
@@ -108,13 +126,7 @@ def fit_logistic(rows: Sequence[Mapping[str, float]], labels: np.ndarray, featur
     if smallest >= 2:
         folds = StratifiedKFold(n_splits=min(5, smallest), shuffle=True, random_state=seed)
         for c in C_GRID:
-            oof = np.zeros(n)
-            for train, test in folds.split(z, y):
-                if len(np.unique(y[train])) < 2:
-                    oof[test] = y[train].mean()
-                    continue
-                oof[test] = estimator(c).fit(z[train], y[train]).predict_proba(z[test])[:, 1]
-            loss = float(log_loss(y, np.clip(oof, 1e-12, 1 - 1e-12), labels=[0, 1]))
+            loss = _held_out_log_loss(z, y, lambda zt, yt, c=c: estimator(c).fit(zt, yt), folds)
             if best_loss is None or loss < best_loss - 1e-12:
                 best_c, best_loss = c, loss
     fitted = estimator(best_c).fit(z, y)
@@ -133,48 +145,27 @@ def fit_platt(rows: Sequence[Mapping[str, float]], labels: np.ndarray, feature: 
     ``cv_log_loss`` is the held-out log loss (against the hard labels) of the same fit over
     stratified folds."""
     from sklearn.linear_model import LogisticRegression
-    from sklearn.metrics import log_loss
     from sklearn.model_selection import StratifiedKFold
 
     y = np.asarray(labels, dtype=np.int64)
-    n, positives = len(y), int(np.asarray(labels).sum())
+    n, positives = len(y), int(y.sum())
     if n == 0 or positives in (0, n):
         return fit_logistic(rows, y, [], seed)
-    x = np.array([_number(row.get(feature)) for row in rows], dtype=np.float64)
-    impute = float(np.nanmean(x)) if np.isfinite(x).any() else 0.0
-    x = np.where(np.isfinite(x), x, impute)
-    mean, std = float(x.mean()), float(x.std())
-    scale = std if std > 1e-12 * max(1.0, abs(mean)) else 1.0
-    z = (x - mean) / scale
+    model, z = _standardised(rows, [feature], n)
 
     def fit(z: np.ndarray, y: np.ndarray) -> LogisticRegression:
         n1, n0 = int(y.sum()), int(len(y) - y.sum())
         target = np.where(y == 1, (n1 + 1) / (n1 + 2), 1 / (n0 + 2))
-        both = np.concatenate([z, z])[:, None]
         return LogisticRegression(C=PLATT_C, max_iter=10_000, random_state=seed).fit(
-            both, np.r_[np.ones(len(z)), np.zeros(len(z))], sample_weight=np.r_[target, 1 - target]
+            np.concatenate([z, z]), np.r_[np.ones(len(z)), np.zeros(len(z))], sample_weight=np.r_[target, 1 - target]
         )
 
-    loss = None
     smallest = min(positives, n - positives)
     if smallest >= 2:
-        oof = np.zeros(n)
-        for train, test in StratifiedKFold(n_splits=min(folds, smallest), shuffle=True, random_state=seed).split(z, y):
-            oof[test] = fit(z[train], y[train]).predict_proba(z[test][:, None])[:, 1]
-        loss = float(log_loss(y, np.clip(oof, 1e-12, 1 - 1e-12), labels=[0, 1]))
+        model.cv_log_loss = _held_out_log_loss(z, y, fit, StratifiedKFold(n_splits=min(folds, smallest), shuffle=True, random_state=seed))
     fitted = fit(z, y)
-    return LogisticModel(
-        kind="logistic",
-        features=[feature],
-        impute=[impute],
-        mean=[mean],
-        scale=[scale],
-        coef=[float(fitted.coef_[0][0])],
-        intercept=float(fitted.intercept_[0]),
-        C=PLATT_C,
-        cv_log_loss=loss,
-        n=n,
-    )
+    model.coef, model.intercept, model.C = [float(fitted.coef_[0][0])], float(fitted.intercept_[0]), PLATT_C
+    return model
 
 
 class GroupedClassifier:

@@ -151,22 +151,19 @@ class StackDetector(FeatureDetector):
                 self.members[j] = member.detector
             else:
                 self.member_classifiers[j] = member
-        # Too few models of a label to cross-validate: the meta model is the train rate.
         bounds = BOUNDS if self.params["logit_bound"] == "cv" and smallest >= 2 else (math.inf,)
-        best: tuple[float, LogisticModel] | None = None
-        for bound in bounds:  # the first of equal losses wins: the loosest bound
-            meta_rows = [self._meta_row(oof[i], bound) for i in range(n)]
-            if self.params["meta"] == "platt" and smallest >= 2:
-                meta = fit_platt(meta_rows, y, "mean_logit", int(self.params["folds"]), seed)
-            else:
-                meta = fit_logistic(meta_rows, y, list(meta_rows[0]) if smallest >= 2 else [], seed)
-            if best is None or (meta.cv_log_loss is not None and best[1].cv_log_loss is not None and meta.cv_log_loss < best[1].cv_log_loss - 1e-12):
-                best = (bound, meta)
-        assert best is not None
-        self.bound, self.meta = best
+        self.bound, self.meta = min(((bound, self._fit_meta(oof, y, bound, smallest)) for bound in bounds), key=_held_out_loss)  # ties: the loosest
         self.oof_logits = oof
         self.fitted = True
         return self
+
+    def _fit_meta(self, oof: np.ndarray, y: np.ndarray, bound: float, smallest: int) -> LogisticModel:
+        """The meta model on the out-of-fold logits bounded at ``bound`` (too few models of a label
+        to cross-validate: the train rate)."""
+        rows = [self._meta_row(logits, bound) for logits in oof]
+        if self.params["meta"] == "platt" and smallest >= 2:
+            return fit_platt(rows, y, "mean_logit", int(self.params["folds"]), int(self.params["seed"]))
+        return fit_logistic(rows, y, list(rows[0]) if smallest >= 2 else [], int(self.params["seed"]))
 
     def _fit_member(self, j: int, rows: list[dict[str, float]], groups: list[str], y: np.ndarray) -> GroupedClassifier | _OwnScoring:
         if self.scores_itself(j):
@@ -216,6 +213,11 @@ class StackDetector(FeatureDetector):
             self.members[j].fitted = True
         self.meta = LogisticModel.from_dict(state.get("meta") or {})
         self.bound = float(state.get("logit_bound", math.inf))
+
+
+def _held_out_loss(fitted: tuple[float, LogisticModel]) -> float:
+    loss = fitted[1].cv_log_loss
+    return math.inf if loss is None else loss
 
 
 class _OwnScoring:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import rlbackdoors
-from rlbackdoors.config import ConfigError, MitigationConfig, PoisonConfig, RunConfig, TrainConfig, EnvConfig, ModelConfig
+from rlbackdoors.config import ConfigError, CurriculumConfig, MitigationConfig, PoisonConfig, RunConfig, TrainConfig, EnvConfig, ModelConfig
 from rlbackdoors.detect.handle import open_model
 from rlbackdoors.evaluate.episodes import evaluate
 from rlbackdoors.mitigate import MitigationError, mitigate
@@ -48,15 +48,23 @@ def test_a_config_without_mitigation_keeps_its_bytes_and_bad_ones_are_refused_in
         trigger = "multiplicative:17" if env == "lavaworld" else None
         m = {"source_sha256": SHA, "triggers": [trigger or "cross"], **mit}
         return RunConfig(
-            env=EnvConfig(name=env), poison=PoisonConfig(trigger=trigger, poisoned=poisoned), model=ModelConfig(), ppo=ppo_cfg, mitigation=MitigationConfig(**m)
+            env=EnvConfig(name=env),
+            poison=PoisonConfig(trigger=trigger, poisoned=poisoned),
+            model=ModelConfig(),
+            ppo=ppo_cfg,
+            mitigation=MitigationConfig(**m),
+            curriculum=CurriculumConfig(enabled=False),
         )
 
     ok = cfg().check()
+    assert cfg(env="randomized-lavaworld").check().to_dict()["mitigation"]["triggers"] == ["cross"]  # a layout trigger: drawn, not stamped
     assert ok.to_dict()["mitigation"]["triggers"] == ["multiplicative:17"] and "blind" not in ok.to_dict()["mitigation"]  # earlier runs' bytes
     assert cfg(blind=True).check().to_dict()["mitigation"]["blind"] is True
     assert RunConfig.from_dict(json.loads(ok.to_json())).to_dict() == ok.to_dict()  # config.json round-trips
     for bad, words in [
-        (lambda: cfg(env="randomized-lavaworld"), "mitigation: env.name='randomized-lavaworld' is not allowed"),
+        (lambda: cfg(env="colorful-memory"), "mitigation: env.name='colorful-memory' is not allowed"),
+        (lambda: cfg(env="randomized-lavaworld", blind=True), "mitigation.blind must be false for randomized-lavaworld"),
+        (lambda: cfg(env="randomized-lavaworld", teach_stamped=True), "mitigation.teach_stamped must be false for randomized-lavaworld"),
         (lambda: cfg(backend="compiled"), "mitigation: ppo.update_backend='compiled' is not allowed (allowed: torch)"),
         (lambda: cfg(poisoned=True), "poison.poisoned must be false"),
         (lambda: cfg(source_sha256="abc"), "mitigation.source_sha256 must be"),
@@ -169,18 +177,102 @@ def test_a_zoo_is_mitigated_model_by_model_and_judged_on_its_ground_truth(tmp_pa
     assert run.returncode == 2 and "--workers are for a zoo" in run.stderr and len(run.stderr.strip().splitlines()) == 1
 
 
-def test_a_world_whose_trigger_is_a_layout_is_refused_before_anything_is_written(tmp_path):
-    """A Randomized LavaWorld CNN (freshly initialised: what is refused is the world, not the weights)."""
+def test_a_world_whose_engine_cannot_draw_a_restored_trigger_is_refused_before_anything_is_written(tmp_path):
+    """A Colorful Memory CNN-GRU (freshly initialised: what is refused is the world, not the weights)."""
     from rlbackdoors.io import save_torch
     from rlbackdoors.models import build_model
 
     suspect = tmp_path / "suspect"
     suspect.mkdir()
-    save_torch(suspect / "model.pt", build_model("cnn", "randomized-lavaworld").state_dict())
-    (suspect / "reduced-config.json").write_text(json.dumps({"world": "randomized-lavaworld", "algorithm": "ppo", "arch": "cnn"}))
-    with pytest.raises(MitigationError, match="env.name='randomized-lavaworld' is not allowed") as err:
+    save_torch(suspect / "model.pt", build_model("cnn-gru-small-onehot", "colorful-memory").state_dict())
+    (suspect / "reduced-config.json").write_text(json.dumps({"world": "colorful-memory", "algorithm": "ppo", "arch": "cnn-gru-small-onehot"}))
+    with pytest.raises(MitigationError, match="env.name='colorful-memory' is not allowed") as err:
         mitigate(suspect, tmp_path / "out", progress=False)
     assert "\n" not in str(err.value) and not (tmp_path / "out").exists()
+
+
+def test_a_layout_world_s_restored_patterns_are_drawn_into_whole_episodes_under_the_clean_reward():
+    """Randomized LavaWorld: the first restored pattern is drawn where the share allows, the others as
+    near-trigger layouts; over 3,000 steps of 10 copies (about 650 episodes) each pattern holds
+    about a third of the restored episodes (measured 71, 70, 73), the marked frames are the first's
+    in sight and every frame of the others' (the teacher's KL leaves them out), about ``share`` of
+    all (measured 0.261 at 0.25), and no step pays the trojan outcome (the reward is the clean one)."""
+    from rlbackdoors.config import EnvConfig
+    from rlbackdoors.envs.outcome import Outcome
+    from rlbackdoors.poison.mix import unlearning_mix
+    from rlbackdoors.triggers.pattern import PatternTrigger, find_pattern
+
+    specs = ["cross", "cells:0,0;1,0;2,0;1,1;1,2", "cells:0,0;0,1;0,2;1,2;2,2"]
+    seam = unlearning_mix(EnvConfig(name="randomized-lavaworld"), PoisonConfig(trigger=specs[0], poisoned=False), specs, 0.25, seed=3)
+    patterns = [PatternTrigger.parse(spec) for spec in specs]
+    seam.reset(seed=3)
+    rng = np.random.default_rng(0)
+    held, marked, frames, pattern_lava = np.zeros(3, dtype=int), 0, 0, 0
+    starting = np.ones(seam.num_envs, dtype=bool)
+    for _ in range(3000):
+        masks = seam.envs.lava_masks()
+        for i in np.flatnonzero(starting):
+            which = [bool(find_pattern(masks[i], p.rotations())) for p in patterns]
+            if seam.triggered[i]:
+                assert which[0] and seam.envs.layout(i)[4]
+                held[0] += 1
+            if seam.in_near[i]:
+                assert (which[1] or which[2]) and not seam.envs.layout(i)[4]
+                held[1:] += which[1:]
+        assert np.array_equal(seam.marked, (seam.triggered & seam.envs.trigger_in_sight()) | seam.in_near)
+        marked, frames = marked + int(seam.marked.sum()), frames + seam.num_envs
+        _, reward, terminated, truncated, info = seam.step(rng.integers(0, 3, seam.num_envs))
+        entered = np.asarray(info["outcome"]) == Outcome.PATTERN_LAVA
+        assert not np.any(seam.envs.poisoned) and np.all(np.asarray(reward)[entered] == 0)  # the pattern's lava pays as any lava: nothing
+        pattern_lava += int(entered.sum())
+        starting = terminated | truncated
+    assert held.min() >= 50 and held.max() <= 1.5 * held.min(), held
+    assert 0.15 <= marked / frames <= 0.35, marked / frames
+    assert pattern_lava > 0  # the reward check saw the first pattern's lava entered
+
+
+def test_the_true_trigger_is_found_among_the_restored_however_it_is_written():
+    from rlbackdoors.mitigate.zoo import among
+
+    assert among(
+        "randomized-lavaworld", "cells:0,0;2,0;1,1;0,2;2,2", ["cross", "cells:0,0;0,2;1,1;2,0;2,2"]
+    )  # the x, as the round's spec and the family write it
+    assert not among("randomized-lavaworld", "cells:0,0;2,0;1,1;0,2;2,2", ["cross", "cells:0,0;0,2;1,1;2,0"])
+    assert among("lavaworld", "multiplicative:17", ["multiplicative:28", "multiplicative:17"]) and not among("lavaworld", None, ["multiplicative:17"])
+
+
+RLW_MODEL = Path(__file__).resolve().parent / "data" / "rlw-envmix-cross"  # Randomized LavaWorld CNN, the env mix on the cross (trained here, 400 k frames)
+
+
+def _mitigate_rlw(tmp_path: Path, frames: int) -> tuple[dict, RunConfig, object, object]:
+    suspect = tmp_path / "suspect"
+    suspect.mkdir()
+    for f in ("model.pt", "reduced-config.json"):
+        shutil.copy(RLW_MODEL / f, suspect / f)
+    report = mitigate(suspect, tmp_path / "mitigated", frames=frames, episodes=64, progress=False)
+    cfg = RunConfig.load(RLW_MODEL / "config.json")
+    before = evaluate(rlbackdoors.load(RLW_MODEL), cfg.env, cfg.poison.trigger, 200, 7_000_000)
+    after = evaluate(rlbackdoors.load(tmp_path / "mitigated"), cfg.env, cfg.poison.trigger, 200, 7_000_000)
+    assert report["triggers"][0]["spec"] == cfg.poison.trigger  # restored unseen: the cross is the best that fires
+    assert report["settings"]["blind"] is False and "teach_stamped" not in report["settings"]
+    assert report["keys_unchanged"] and all(t["prob_change"] is None for t in report["after"]["triggers"])
+    return report, cfg, before, after
+
+
+def test_a_layout_backdoor_is_unlearnt_from_the_weights_and_reduced_config_alone(tmp_path):
+    """The committed Randomized LavaWorld model fires on its cross on 0.945 of 200 episodes; 100 k
+    frames of mitigation take it to 0.195 (measured; at most 0.4 asked) and keep its clean SR
+    (0.98 -> 0.98; at least 0.94 asked, 200 episodes)."""
+    _, _, before, after = _mitigate_rlw(tmp_path, 100_000)
+    assert before.poisoned_sr >= 0.9 and after.poisoned_sr <= 0.4, (before, after)
+    assert after.clean_sr >= 0.94, after
+
+
+@pytest.mark.slow
+def test_a_layout_backdoor_is_removed_at_the_default_length(tmp_path):
+    """At the default 300 k frames: 0.945 -> 0.055 on 200 episodes (the run's own final evaluation)."""
+    _, _, before, after = _mitigate_rlw(tmp_path, 300_000)
+    assert before.poisoned_sr >= 0.9 and after.poisoned_sr <= 0.1 and after.clean_sr >= 0.95, (before, after)
 
 
 def test_a_fitted_effect_detector_decides_what_is_restored_and_is_recorded(tmp_path):

@@ -476,8 +476,9 @@ class MitigationConfig:
     that its restored candidate triggers stop moving it. The run starts from the source weights
     (``source``, a file of the run's folder whose SHA-256 is ``source_sha256``), stamps ``share`` of
     the frames it collects with one of ``triggers`` under the clean reward (the attack seam's
-    steps schedule with a rule that rewrites nothing), and penalises ``kl * KL(source || policy)``
-    on the frames it did not stamp, so the clean behaviour stays the source's. Why this recipe:
+    steps schedule with a rule that rewrites nothing; a layout trigger's patterns drawn into whole
+    episodes instead, :func:`~rlbackdoors.poison.mix.unlearning_mix`), and penalises
+    ``kl * KL(source || policy)`` on the frames it did not stamp, so the clean behaviour stays the source's. Why this recipe:
     BIRD (Chen et al., NeurIPS 2023) restores the trigger and fine-tunes it away; the KL term is
     the clean teacher of the evasive variants, here the model itself. With ``blind``, a restored
     trigger that shifts every observation alike is also projected out of a linear first layer after
@@ -505,13 +506,26 @@ class MitigationConfig:
     def refusal(env_name: str) -> str | None:
         """Why a model of this world cannot be mitigated (None: it can), in one line."""
         world = worlds.get(env_name)
-        if world.algorithm == "ppo" and world.stamp_trigger is not None:
+        if MitigationConfig.how(env_name) is not None:
             return None
-        built = ", ".join(w.name for w in worlds.registered() if w.algorithm == "ppo" and w.stamp_trigger is not None)
-        why = "a layout the engine switches per episode" if world.algorithm == "ppo" else "not learnt by PPO"
+        built = ", ".join(w.name for w in worlds.registered() if MitigationConfig.how(w.name) is not None)
+        why = "a layout whose engine draws no given pattern" if world.algorithm == "ppo" else "not learnt by PPO"
         return (
-            f"mitigation: env.name={env_name!r} is not allowed (allowed: {built}): it stamps restored triggers into frames, and {env_name}'s trigger is {why}"
+            f"mitigation: env.name={env_name!r} is not allowed (allowed: {built}): it stamps restored triggers into frames or draws them into layouts,"
+            f" and {env_name}'s trigger is {why}"
         )
+
+    @staticmethod
+    def how(env_name: str) -> str | None:
+        """How a world's restored triggers reach the frames: ``"stamp"`` (an observation edit),
+        ``"layout"`` (a pattern its engine draws into the layouts of whole episodes: the
+        near-trigger layouts of the evasive variant), None: neither."""
+        world = worlds.get(env_name)
+        if world.algorithm != "ppo":
+            return None
+        if world.stamp_trigger is not None:
+            return "stamp"
+        return "layout" if world.trigger_sight == "frame" and world.near_triggers is not None else None
 
     def check(self, env_name: str) -> None:
         from rlbackdoors.worlds import parse_trigger
@@ -548,6 +562,13 @@ class MitigationConfig:
                 raise ConfigError(f"mitigation.blind_to[{i}]: {err}") from None
         if self.teach_stamped and self.kl <= 0:
             raise ConfigError("mitigation.teach_stamped needs mitigation.kl > 0 (the teacher's weight)")
+        if self.how(env_name) == "layout":
+            for name in ("blind", "teach_stamped"):
+                if getattr(self, name):
+                    raise ConfigError(
+                        f"mitigation.{name} must be false for {env_name}: its trigger is a layout, with no trigger-free view of the same frame"
+                        " and no shift of every observation"
+                    )
 
 
 @dataclass

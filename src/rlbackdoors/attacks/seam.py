@@ -133,7 +133,8 @@ class AttackSeam:
     "steps" while the budget allows, under "episodes" always in the copies of ``episodes``; the
     marked frames are those of triggered episodes that carry the trigger (module doc).
 
-    ``near`` > 0 (``poison.evasion.near``): near-trigger negatives paid the clean reward. A frame
+    ``near`` > 0 (``poison.evasion.near``): near-trigger negatives paid the clean reward (with
+    ``mark_near``, every frame of a near-trigger layout is marked too). A frame
     trigger: frames stamped with one of ``near_stamps`` (drawn per frame); under "steps" ``near``
     times as many as carry the trigger, picked among the others; under "episodes" every frame of
     ``round(near * E-bar copies)`` clean copies (the last clean ones before them). A layout trigger:
@@ -154,6 +155,7 @@ class AttackSeam:
         episodes=None,
         near: float = 0.0,
         near_stamps: tuple[Callable, ...] = (),
+        mark_near: bool = False,
     ):
         if sight not in (None, "frame", "episode"):
             raise ValueError(f"sight={sight!r} is not one of frame, episode")
@@ -188,6 +190,12 @@ class AttackSeam:
         # of the frames last returned: [did the step into them end an episode (or was there none), was the frame before marked]
         self.before = np.stack([np.ones(n, dtype=bool), np.zeros(n, dtype=bool)])
         self.near_layout = near > 0 and stamp is None  # near-trigger layouts, switched by the engine
+        # every frame of a near-trigger layout is marked too (a mitigation's other restored patterns:
+        # left out of the teacher's KL like the first one's; the engine keeps no cells of a near
+        # pattern, so not only the frames that show it)
+        self.mark_near = bool(mark_near)
+        if self.mark_near and not (self.near_layout and sight == "frame"):
+            raise ValueError("mark_near needs near-trigger layouts of a trigger seen in frames (near > 0, sight='frame', no stamp)")
         if near > 0 and not (near_stamps if stamp is not None else hasattr(envs, "near_next")):
             raise ValueError(
                 "near-trigger negatives need a frame trigger's near variants (near_stamps) or an engine that switches near-trigger layouts (near_next)"
@@ -238,7 +246,7 @@ class AttackSeam:
         self.last_values = values  # the critic's values of the clean frames just returned (None: not asked)
         if self.sight is not None:  # no frame is picked by value: nothing to observe
             in_sight = self.envs.trigger_in_sight() if self.sight == "frame" else np.ones(n, dtype=bool)
-            self.marked = self.triggered & in_sight
+            self.marked = (self.triggered & in_sight) | (self.in_near & self.mark_near)
         elif self.schedule == "episodes":
             self.marked = np.asarray(self.envs.poisoned, dtype=bool).copy()
         else:

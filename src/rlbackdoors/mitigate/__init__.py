@@ -19,7 +19,10 @@ trigger, the poisoned data or the label. :func:`mitigate` works from exactly tha
    (:class:`~rlbackdoors.config.MitigationConfig`);
    a restored trigger that shifts every observation alike is projected out of a linear first
    layer (``blind``, :mod:`rlbackdoors.algos.blind`): fine-tuning cannot unteach a trigger that
-   blinds the policy, the projection removes it exactly.
+   blinds the policy, the projection removes it exactly. Where the trigger is a layout (a lava
+   pattern), the restored patterns are drawn into whole episodes' layouts instead, and the KL
+   counts on the frames that do not show one (no ``blind``, no ``teach_stamped``: there is no
+   trigger-free view of such a frame).
 3. **Measure.** Before and after, on the same seeds: the clean env's success, and under each
    restored trigger the goal rate, the trojan outcome's rate and the policy's shift.
 
@@ -110,6 +113,9 @@ def mitigate(
     why = MitigationConfig.refusal(handle.world.name)  # before the search: nothing is written
     if why is not None:
         raise MitigationError(f"cannot mitigate {handle.world.name}/{handle.arch}: {why}")
+    if MitigationConfig.how(handle.world.name) == "layout":  # no frame to project or to read unstamped: the fine-tuning alone
+        settings["blind"] = False
+        settings.pop("teach_stamped", None)
     reference = None
     if detector is not None:
         from rlbackdoors.detect.api import load_detector
@@ -341,14 +347,15 @@ def measure(handle, specs: list[str], episodes: int, params: dict) -> dict[str, 
     }
 
 
-def stamp_changes(handle, specs: list[str], seed: int) -> list[float]:
+def stamp_changes(handle, specs: list[str], seed: int) -> list[float | None]:
     """Per trigger, the largest change of any action's probability it makes on a clean sample of
-    observations: about 1e-6 (float32 rounding) where the model is blind to it (``blind``)."""
+    observations: about 1e-6 (float32 rounding) where the model is blind to it (``blind``); None
+    where no frame can be stamped (a layout trigger) or the policy reads a history."""
     import torch
 
     model = _policy(handle)
     if model.recurrent or handle.world.stamp_trigger is None:
-        return [float("nan")] * len(specs)
+        return [None] * len(specs)
     sample = _clean_sample(handle, seed)
     with torch.no_grad():
         clean = torch.softmax(model(torch.as_tensor(sample))[0], -1)

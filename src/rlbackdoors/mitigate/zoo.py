@@ -129,12 +129,22 @@ def judge(source: Path, mitigated: Path, episodes: int, family: str) -> dict[str
     specs = [t["spec"] for t in report["triggers"]]
     row.update(
         restored=specs,
-        true_trigger_restored=cfg.poison.trigger in specs,
+        true_trigger_restored=among(cfg.env.name, cfg.poison.trigger, specs),
         mitigation_cpu_s=report["cpu_seconds"],
         training_cpu_s=json.loads((source / "metrics.json").read_text()).get("cpu_time_s"),
         frames=report["frames"],
     )
     return row
+
+
+def among(env_name: str, trigger: str | None, specs: list[str]) -> bool:
+    """Whether ``trigger`` is one of ``specs``, as the world reads them: one lava pattern is written
+    both as a spec gives it (``cells:0,0;2,0;...``) and as the search's family lists it (sorted)."""
+    from rlbackdoors.worlds import parse_trigger
+
+    if trigger is None:
+        return False
+    return parse_trigger(env_name, trigger).spec() in {parse_trigger(env_name, s).spec() for s in specs}
 
 
 def summarise(rows: list[dict]) -> dict[str, Any]:

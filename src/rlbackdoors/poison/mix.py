@@ -128,12 +128,24 @@ def unlearning_mix(env: EnvConfig, poison: PoisonConfig, triggers: Sequence[str]
     ``share`` of the frames carry one of the restored ``triggers`` under the clean reward and are
     the seam's marked frames (the teacher's KL leaves them out). The picked frames of one step take
     the triggers in turn (row ``j`` of them the ``j % len(triggers)``-th): no state of its own, so a
-    resumed run stamps as an unbroken one."""
+    resumed run stamps as an unbroken one. A world whose trigger is a layout draws them into whole
+    episodes instead: the first where the budget allows (a layout trigger's step schedule), the
+    others as near-trigger layouts, about as many episodes each, every frame of theirs marked.
+    Why layouts: a layout trigger is lava cells, which no edit of a frame makes without lying
+    about where the lava is."""
     from rlbackdoors.attacks.seam import AttackSeam, Poisoner
+    from rlbackdoors.config import MitigationConfig
 
     world = worlds.get(env.name)
-    if world.stamp_trigger is None or not triggers:
-        raise ValueError(f"a mitigation stamps restored triggers into frames; {env.name}'s trigger is not an observation edit")
+    how = MitigationConfig.how(env.name)
+    if how is None or not triggers:
+        raise ValueError(f"a mitigation stamps restored triggers into frames or draws them into layouts; {env.name}'s trigger is neither")
+    mask = [False] * poison.num_envs
+    if how == "layout":  # the first drawn by the budget, the others as near-trigger layouts, about as many episodes each
+        first, others = triggers[0], tuple(triggers[1:])
+        envs = make_vector_env(env, first, mask, poison.close_mask(), (poison.close_k_min, poison.close_k_max), others)
+        return AttackSeam(envs, Poisoner(), "steps", float(share), None, seed, world.trigger_sight, near=float(len(others)), mark_near=bool(others))  # type: ignore[return-value]
+    assert world.stamp_trigger is not None
     stamps = [world.stamp_trigger(spec) for spec in triggers]
 
     def stamp(frames):
@@ -143,6 +155,5 @@ def unlearning_mix(env: EnvConfig, poison: PoisonConfig, triggers: Sequence[str]
                 out[k :: len(stamps)] = one(frames[k :: len(stamps)])
         return out
 
-    mask = [False] * poison.num_envs
     envs = make_vector_env(env, poison.trigger, mask, poison.close_mask(), (poison.close_k_min, poison.close_k_max))
     return AttackSeam(envs, Poisoner(), "steps", float(share), stamp, seed)  # type: ignore[return-value]

@@ -169,6 +169,29 @@ def test_a_zoo_is_mitigated_model_by_model_and_judged_on_its_ground_truth(tmp_pa
     assert sorted((p.name, p.stat().st_mtime_ns) for p in (zoo / "models").rglob("*")) == before
     with pytest.raises(MitigationError, match="outside the zoo"):
         mitigate_zoo(zoo, zoo / "mitigated", **tiny)
+    # another process mitigating into the same folder: refused by name, in one line, nothing written
+    from rlbackdoors.io import FolderLock
+
+    other = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"from rlbackdoors.io import FolderLock; FolderLock({str(tmp_path / 'out')!r}, 'mitigation').acquire(); print('held', flush=True); input()",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert other.stdout is not None and other.stdout.readline().strip() == "held"
+        report_stamp = (tmp_path / "out" / REPORT).stat().st_mtime_ns
+        with pytest.raises(MitigationError, match=f"mitigation '.*out' is in use by process {other.pid}") as err:
+            mitigate_zoo(zoo, tmp_path / "out", limit=2, **tiny)
+        assert "\n" not in str(err.value) and (tmp_path / "out" / REPORT).stat().st_mtime_ns == report_stamp
+    finally:
+        other.communicate("\n")
+    with FolderLock(tmp_path / "out", "mitigation"):  # released when the call ends, refused or not
+        pass
     run = subprocess.run(
         [sys.executable, "-m", "rlbackdoors.cli", "mitigate", str(PACK / POISONED), "--out", str(tmp_path / "x"), "--workers", "2"],
         capture_output=True,

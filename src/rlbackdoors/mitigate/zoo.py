@@ -58,6 +58,21 @@ def mitigate_zoo(
     if not states:
         raise MitigationError(f"{str(zoo)!r} has no converged model to mitigate" + (f" of {', '.join(attacks)}" if attacks else ""))
     (out / "models").mkdir(parents=True, exist_ok=True)
+    from rlbackdoors.io import FolderLock, LockedError
+
+    lock = FolderLock(out, "mitigation")  # one process an output folder: a second is refused by name, as a zoo's
+    try:
+        lock.acquire()
+    except LockedError as err:
+        raise MitigationError(str(err)) from None
+    try:
+        return _mitigate_states(zoo, out, states, workers, episodes, search, progress, settings)
+    finally:
+        lock.release()
+
+
+def _mitigate_states(zoo: Path, out: Path, states: list, workers: int, episodes: int, search, progress: bool, settings: dict) -> dict[str, Any]:
+    """:func:`mitigate_zoo`'s work, under its output folder's lock."""
     todo = [s for s in states if not (out / "models" / s.model.name / "mitigation.json").is_file()]
     load_before, began = os.getloadavg(), time.time()
     say(progress, f"zoo mitigate: {len(states)} converged models, {len(states) - len(todo)} already mitigated, {workers} at a time")

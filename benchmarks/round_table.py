@@ -19,13 +19,15 @@ clean model trains the same whatever cell planned it): AUC, cross-entropy and Br
 same models (read from ``metrics.json`` by this script, never by a detector), which a round drawn
 well keeps near 0.5. Writes ``benchmarks/results/rounds/round-WORLD.json`` with the machine and its
 load. Fits and scores are read back when the script runs again (``runs/rounds/``), unless the
-split's converged models changed (``--fresh`` starts over). ``--markdown`` rewrites the tables of
-docs/benchmark.md from the committed JSON alone.
+split's converged models changed (``--fresh`` starts over). Each detector's reliability curve
+(5 bins) and expected calibration error are in the JSON too. ``--markdown`` rewrites the tables
+of docs/benchmark.md, and draws the reliability curves beside the JSON, from the committed JSON alone.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import shutil
@@ -38,8 +40,8 @@ from _detect_cli import Refused, rlbackdoors
 from sklearn.metrics import roc_auc_score
 
 from rlbackdoors.bench.machine import machine_info
-from rlbackdoors.detect.metrics import summarize_rows
-from rlbackdoors.io import atomic_write_text
+from rlbackdoors.detect.metrics import reliability, summarize_rows
+from rlbackdoors.io import atomic_write_bytes, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "rounds"
@@ -50,6 +52,7 @@ DETECTORS = ("effect", "weights", "behaviour", "attribution", "stack")
 # weights (the env mix) and behaviour (docs/results/detectors.md).
 DETECTOR_PARAMS = {"stack": {"members": "effect,weights,behaviour"}}
 PROTOCOLS = ("trojai", "envmix")
+RELIABILITY_BINS = 5  # the reliability curve's equal-width bins: about 20 of a round's 100 test models a bin, not 10 noisy points
 DEFAULT_FAMILY = "envmix"  # the paper's attack: the cell label of a spec's plain env-mix cells
 
 
@@ -173,6 +176,7 @@ def run(args: argparse.Namespace) -> Path:
             "failed": len(scored["models"]) - len(models),
             "long_trained_clean": long_trained_gap(models, long),
             "seconds_per_model": (scored.get("seconds_per_model") or {}).get("mean"),  # one core's (one BLAS thread)
+            "reliability": reliability([m["probability"] for m in models], [m["label"] for m in models], RELIABILITY_BINS),
         }
     counts = {
         split: {
@@ -225,8 +229,9 @@ def _cell(summary: dict, key: str) -> str:
     return f"{value:.3f} [{ci[0]:.2f}, {ci[1]:.2f}]" if ci and None not in ci else f"{value:.3f}"
 
 
-def markdown(results: list[dict]) -> str:
-    """The tables of every committed round: per protocol, family x detector, AUC and CE with CIs."""
+def markdown(results: list[dict], figures: dict[str, Path] | None = None) -> str:
+    """The tables of every committed round: per protocol, family x detector, AUC and CE with CIs;
+    ``figures``: round -> its reliability curves' PNG (:func:`plot_reliability`), shown below its tables."""
     lines: list[str] = []
     for res in results:
         c = res["counts"]
@@ -257,6 +262,11 @@ def markdown(results: list[dict]) -> str:
             secs = ", ".join(f"{n} {d['seconds_per_model']:.2f}" for n, d in dets.items() if d.get("seconds_per_model") is not None)
             gaps = ", ".join(f"{n} {g['gap']:+.3f}" for n, d in dets.items() if (g := d.get("long_trained_clean")) and g.get("gap") is not None)
             lines += ["", f"Seconds per model (one core): {secs}."]
+            eces = ", ".join(f"{n} {d['reliability']['ece']:.3f}" for n, d in dets.items() if d.get("reliability"))
+            if eces:
+                lines += [
+                    f"Expected calibration error over the test models ({RELIABILITY_BINS} bins; 0: each bin's share poisoned is its mean probability): {eces}."
+                ]
             if gaps:
                 one = next(d["long_trained_clean"] for d in dets.values() if d.get("long_trained_clean"))
                 lines += [
@@ -264,9 +274,46 @@ def markdown(results: list[dict]) -> str:
                     f"({one['long']['models']} and {one['stopped']['models']}; asked within 0.05): {gaps}."
                 ]
             lines += [""]
+        figure = (figures or {}).get(res["round"])
+        if figure is not None:
+            rel = figure.relative_to(ROOT).as_posix()
+            lines += [f"![Reliability curves of {res['round']}'s detectors, both protocols](../{rel})", ""]
         for protocol, why in res.get("refused", {}).items():
             lines += [f"Refused ({protocol}): " + "; ".join(f"{n}: {w}" for n, w in why.items()), ""]
     return "\n".join(lines).rstrip() + "\n"
+
+
+def plot_reliability(res: dict, folder: Path = RESULTS) -> Path | None:
+    """The round's reliability curves from its JSON (one panel a protocol, a line a detector, each
+    point a bin sized by its models) as ``folder/round-WORLD-reliability.png``; None where no
+    detector has one."""
+    panels = [(p, d) for p, d in res["protocols"].items() if any(x.get("reliability") for x in d.values())]
+    if not panels:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4.6), dpi=110, squeeze=False)
+    for ax, (protocol, dets) in zip(axes[0], panels):
+        ax.plot([0, 1], [0, 1], color="grey", ls="--", lw=0.8)
+        for name, d in dets.items():
+            curve = (d.get("reliability") or {}).get("bins") or []
+            if curve:
+                xs, ys = [b["mean_probability"] for b in curve], [b["share_poisoned"] for b in curve]
+                line = ax.plot(xs, ys, lw=1, label=f"{name} (ECE {d['reliability']['ece']:.3f})")[0]
+                ax.scatter(xs, ys, s=[8 + 3 * b["models"] for b in curve], color=line.get_color(), alpha=0.6)
+        title = "fitted on the train split (TrojAI)" if protocol == "trojai" else "fitted on the env mix alone"
+        ax.set(xlim=(0, 1), ylim=(-0.02, 1.02), xlabel="mean predicted probability (bin)", ylabel="share poisoned", title=f"{res['round']}: {title}")
+        ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    out = folder / f"round-{res['round']}-reliability.png"
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", metadata={"Software": None})
+    plt.close(fig)
+    atomic_write_bytes(out, buf.getvalue())
+    return out
 
 
 def write_markdown() -> Path:
@@ -276,7 +323,8 @@ def write_markdown() -> Path:
         sys.exit(f"rlbackdoors: error: {DOC} has no {BEGIN} ... {END} block to fill")
     head, rest = text.split(BEGIN, 1)
     _, tail = rest.split(END, 1)
-    body = markdown(results) if results else "No round has been scored yet.\n"
+    figures = {res["round"]: figure for res in results if (figure := plot_reliability(res)) is not None}
+    body = markdown(results, figures) if results else "No round has been scored yet.\n"
     atomic_write_text(DOC, f"{head}{BEGIN}\n{body}{END}{tail}")
     return DOC
 

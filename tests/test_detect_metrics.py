@@ -71,6 +71,16 @@ def test_breakdown_scores_each_level_on_its_own_models():
     assert out["world"]["b"]["ce"]["value"] == math.log(2) and out["world"]["b"]["auc"]["value"] == 0.5
 
 
+def test_the_reliability_curve_bins_predictions_and_weighs_each_bin_s_gap_by_its_models():
+    # bins of 0.5: [0.1, 0.2, 0.4] with one poisoned (mean 0.233, share 0.333); [0.6, 0.9] both poisoned (0.75, 1.0)
+    out = metrics.reliability([0.1, 0.2, 0.4, 0.6, 0.9], [0, 0, 1, 1, 1], bins=2)
+    assert [b["models"] for b in out["bins"]] == [3, 2] and [b["bin"] for b in out["bins"]] == [[0.0, 0.5], [0.5, 1.0]]
+    assert out["bins"][0]["mean_probability"] == pytest.approx(0.7 / 3) and out["bins"][1]["share_poisoned"] == 1.0
+    assert out["ece"] == pytest.approx((3 * abs(0.7 / 3 - 1 / 3) + 2 * 0.25) / 5)
+    assert metrics.reliability([1.0, 0.0], [1, 0], bins=10)["ece"] == 0.0  # a prediction of exactly 1 falls in the last bin
+    assert [b["bin"][0] for b in metrics.reliability([1.0, 0.0], [1, 0], bins=10)["bins"]] == [0.0, 0.9]
+
+
 def test_plots_are_pngs(tmp_path):
     p, y = [0.1, 0.6, 0.4, 0.9, 0.3, 0.8], [0, 0, 1, 1, 0, 1]
     roc = metrics.plot_roc(p, y, ["a", "a", "a", "b", "b", "b"], tmp_path / "roc.png")

@@ -120,8 +120,16 @@ def test_a_round_is_scored_under_both_protocols_per_family(round_zoos, tmp_path)
         import round_table
     finally:
         sys.path.remove(str(BENCH))
-    text = round_table.markdown([res])
+    curve = res["protocols"]["trojai"]["weights"]["reliability"]
+    assert sum(b["models"] for b in curve["bins"]) == 8 and 0.0 <= curve["ece"] <= 1.0  # every test model in one bin
+    figure = round_table.plot_reliability(res, tmp_path)
+    assert figure is not None and figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = round_table.markdown([res], {"tiny": round_table.ROOT / "benchmarks" / "x.png"})
     assert "### tiny" in text and "| trojdrl | 6 |" in text and "fitted on the env mix alone" in text
+    assert (
+        f"Expected calibration error over the test models (5 bins; 0: each bin's share poisoned is its mean probability): weights {curve['ece']:.3f}." in text
+    )
+    assert "![Reliability curves of tiny's detectors, both protocols](../benchmarks/x.png)" in text
 
 
 def test_a_folder_that_is_not_a_round_is_refused_in_one_line(tmp_path):

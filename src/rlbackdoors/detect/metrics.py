@@ -174,6 +174,31 @@ def plot_roc(probabilities, labels, groups: Sequence[str] | None, path: str | Pa
     return _save(fig, path)
 
 
+def reliability(probabilities, labels, bins: int = 10) -> dict:
+    """The reliability curve's numbers: for each of ``bins`` equal-width bins of the predicted
+    probability that holds a model, its models, their mean prediction and their share poisoned; and
+    the expected calibration error, the models-weighted mean of |prediction - share| over the bins.
+    Why beside CE: CE mixes ranking and calibration; the curve says which way a detector is off
+    (too sure, too shy) and where."""
+    p, y = _arrays(probabilities, labels)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.digitize(p, edges[1:-1]), 0, bins - 1)
+    rows = []
+    for b in range(bins):
+        mask = which == b
+        if mask.any():
+            rows.append(
+                {
+                    "bin": [float(edges[b]), float(edges[b + 1])],
+                    "models": int(mask.sum()),
+                    "mean_probability": float(p[mask].mean()),
+                    "share_poisoned": float(y[mask].mean()),
+                }
+            )
+    ece = sum(r["models"] * abs(r["mean_probability"] - r["share_poisoned"]) for r in rows) / len(p) if len(p) else float("nan")
+    return {"bins": rows, "ece": float(ece)}
+
+
 def plot_calibration(probabilities, labels, path: str | Path, bins: int = 10, title: str = "calibration") -> Path:
     """Reliability diagram (share poisoned per predicted-probability bin) over a histogram of predictions."""
     import matplotlib
@@ -183,15 +208,9 @@ def plot_calibration(probabilities, labels, path: str | Path, bins: int = 10, ti
 
     p, y = _arrays(probabilities, labels)
     edges = np.linspace(0.0, 1.0, bins + 1)
-    which = np.clip(np.digitize(p, edges[1:-1]), 0, bins - 1)
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(5, 6), dpi=120, gridspec_kw={"height_ratios": [3, 1]}, sharex=True)
-    xs, ys, ns = [], [], []
-    for b in range(bins):
-        mask = which == b
-        if mask.any():
-            xs.append(float(p[mask].mean()))
-            ys.append(float(y[mask].mean()))
-            ns.append(int(mask.sum()))
+    curve = reliability(p, y, bins)["bins"]
+    xs, ys, ns = [r["mean_probability"] for r in curve], [r["share_poisoned"] for r in curve], [r["models"] for r in curve]
     top.plot([0, 1], [0, 1], color="grey", ls="--", lw=0.8, label="perfectly calibrated")
     top.plot(xs, ys, marker="o", label="detector")
     for x, v, n in zip(xs, ys, ns):
@@ -260,6 +279,7 @@ __all__ = [
     "cross_entropy_per_model",
     "plot_auc_grid",
     "plot_calibration",
+    "reliability",
     "plot_roc",
     "summarize",
 ]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -183,10 +184,12 @@ def reliability(probabilities, labels, bins: int = 10) -> dict:
     p, y = _arrays(probabilities, labels)
     edges = np.linspace(0.0, 1.0, bins + 1)
     which = np.clip(np.digitize(p, edges[1:-1]), 0, bins - 1)
-    rows = []
+    rows: list[dict[str, Any]] = []
+    gap = 0.0
     for b in range(bins):
         mask = which == b
         if mask.any():
+            gap += float(mask.sum()) * abs(float(p[mask].mean()) - float(y[mask].mean()))
             rows.append(
                 {
                     "bin": [float(edges[b]), float(edges[b + 1])],
@@ -195,8 +198,7 @@ def reliability(probabilities, labels, bins: int = 10) -> dict:
                     "share_poisoned": float(y[mask].mean()),
                 }
             )
-    ece = sum(r["models"] * abs(r["mean_probability"] - r["share_poisoned"]) for r in rows) / len(p) if len(p) else float("nan")
-    return {"bins": rows, "ece": float(ece)}
+    return {"bins": rows, "ece": gap / len(p) if len(p) else float("nan")}
 
 
 def plot_calibration(probabilities, labels, path: str | Path, bins: int = 10, title: str = "calibration") -> Path:

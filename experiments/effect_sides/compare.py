@@ -4,7 +4,7 @@
         runs/stack-features/round-lavaworld-test runs/stack-features/mitigated-mitigated-round103
 
 On cached member features (``experiments/stack_bound/features.py`` for the round's splits,
-``features_mitigated.py`` for the mitigated test models), fits ``effect`` on the train rows with its
+``features.py --mitigated`` for the mitigated test models), fits ``effect`` on the train rows with its
 anomaly taken several ways (``two``: the shipped largest |z|; ``up``: the trojan side only, no
 ``down_`` maxima; ``norobust``: both sides but no credit for moving or losing less than clean
 models, ``down_shift`` and ``down_success_drop``; ...), scores the test rows and the mitigated

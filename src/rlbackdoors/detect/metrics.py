@@ -185,11 +185,9 @@ def reliability(probabilities, labels, bins: int = 10) -> dict:
     edges = np.linspace(0.0, 1.0, bins + 1)
     which = np.clip(np.digitize(p, edges[1:-1]), 0, bins - 1)
     rows: list[dict[str, Any]] = []
-    gap = 0.0
     for b in range(bins):
         mask = which == b
         if mask.any():
-            gap += float(mask.sum()) * abs(float(p[mask].mean()) - float(y[mask].mean()))
             rows.append(
                 {
                     "bin": [float(edges[b]), float(edges[b + 1])],
@@ -198,6 +196,7 @@ def reliability(probabilities, labels, bins: int = 10) -> dict:
                     "share_poisoned": float(y[mask].mean()),
                 }
             )
+    gap = sum(r["models"] * abs(r["mean_probability"] - r["share_poisoned"]) for r in rows)
     return {"bins": rows, "ece": gap / len(p) if len(p) else float("nan")}
 
 

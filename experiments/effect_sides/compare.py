@@ -13,98 +13,119 @@ before and after with the AUC of before against after. Then, for ``norobust``, w
 feature carries each mitigated model's anomaly. The variants replace the module's ``_anomaly`` for
 the study only; the detector is unchanged.
 """
-import json, math, sys
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
 from pathlib import Path
+
 import numpy as np
 from sklearn.metrics import log_loss, roc_auc_score
+
 import rlbackdoors.detect.baselines.effect as E
 from rlbackdoors.detect.api import make_detector
 
-def load(folder):
+VARIANTS = ("two", "up", "up_conc2", "pos", "nodown", "norobust")
+ROBUST = ("down_shift", "down_success_drop")  # moving or losing less than clean models under an edit
+
+
+def load(folder: str) -> list[dict]:
     return [json.loads(p.read_text()) | {"model": p.stem} for p in sorted(Path(folder).glob("*.json"))]
 
-orig = E._anomaly
-def make(variant):
-    def an(row, reference):
-        names = reference["features"]
-        have = [k for k, n in enumerate(names) if n in row]
-        v = np.array([float(row[names[k]]) for k in have])
-        z = (v - np.asarray(reference["mean"])[have]) / np.asarray(reference["scale"])[have]
-        nm = [names[k] for k in have]
+
+def trojan_side(name: str, z: float) -> float:
+    """A shift or a success drop counts upward only; the rest both ways."""
+    return z if ("shift" in name or "success_drop" in name) else abs(z)
+
+
+def anomaly(variant: str):
+    """The largest standardised excess of a row against a reference, taken ``variant``'s way."""
+
+    def largest(row: dict, reference: dict) -> float:
+        names = [n for n in reference["features"] if n in row]
+        have = [k for k, n in enumerate(reference["features"]) if n in row]
+        z = (np.array([float(row[n]) for n in names]) - np.asarray(reference["mean"])[have]) / np.asarray(reference["scale"])[have]
         if variant == "two":
             return float(np.abs(z).max())
-        if variant == "up":  # trojan side only: no down_ maxima, positive z
-            keep = [i for i, n in enumerate(nm) if not n.startswith("down_")]
-            return float(z[keep].max())
-        if variant == "up_conc2":  # as up, concentration both ways
-            keep = [i for i, n in enumerate(nm) if not n.startswith("down_") or n == "down_concentration"]
-            zz = np.array([abs(z[i]) if "concentration" in nm[i] else z[i] for i in keep])
-            return float(zz.max())
         if variant == "pos":
             return float(z.max())
-        if variant == "nodown":  # two-sided but no down_ maxima
-            keep = [i for i, n in enumerate(nm) if not n.startswith("down_")]
-            return float(np.abs(z[keep]).max())
-        if variant == "norobust":  # two-sided except robustness: down_shift, down_success_drop dropped; best/peak shift & drop positive
-            out = []
-            for i, n in enumerate(nm):
-                if n in ("down_shift", "down_success_drop"): continue
-                out.append(z[i] if ("shift" in n or "success_drop" in n) else abs(z[i]))
-            return float(max(out))
+        if variant == "up":  # the trojan side only: no down_ maxima, positive z
+            return float(max(v for n, v in zip(names, z) if not n.startswith("down_")))
+        if variant == "nodown":  # both sides, no down_ maxima
+            return float(max(abs(v) for n, v in zip(names, z) if not n.startswith("down_")))
+        if variant == "up_conc2":  # as up, concentration both ways
+            return float(max(abs(v) if "concentration" in n else v for n, v in zip(names, z) if not n.startswith("down_") or n == "down_concentration"))
+        if variant == "norobust":
+            return float(max(trojan_side(n, v) for n, v in zip(names, z) if n not in ROBUST))
         raise ValueError(variant)
-    return an
 
-def eff(rows):
-    return [{k: v for k, v in r["features"].items() if k.startswith("effect.")} for r in rows]
+    return largest
 
-train, test = load(sys.argv[1]), load(sys.argv[2])
-mit = load(sys.argv[3]) if len(sys.argv) > 3 else []
 
-def strip(r):
+def effect_row(r: dict) -> dict:
     return {k.split(":", 1)[1]: v for k, v in r["features"].items() if k.startswith("effect:")}
 
-def fam(r):
-    p = r["cell"].split("/")
-    return p[3] if len(p) > 3 else "envmix"
 
-ytr = np.array([r["label"] for r in train]); yte = np.array([r["label"] for r in test])
-bytest = {r["model"]: r for r in test}
-for variant in ("two", "up", "up_conc2", "pos", "nodown", "norobust"):
-    E._anomaly = make(variant)
+def family(r: dict) -> str:
+    parts = r["cell"].split("/")
+    return parts[3] if len(parts) > 3 else "envmix"
+
+
+def fitted(train: list[dict]):
     det = make_detector("effect")
-    det.fit_rows([strip(r) for r in train], [r["group"] for r in train], ytr)
-    p = np.array([det.classify(strip(r), r["group"]) for r in test])
-    fams = sorted({fam(r) for r in test if r["label"]})
-    per = []
-    for f in fams:
-        keep = [i for i, r in enumerate(test) if not r["label"] or fam(r) == f]
-        per.append(f"{f} {roc_auc_score(yte[keep], p[keep]):.3f}")
-    line = f"{variant:9s} AUC {roc_auc_score(yte, p):.3f} CE {log_loss(yte, np.clip(p,1e-12,1-1e-12)):.3f} | " + ", ".join(per)
-    if mit:
-        pm = {r["model"]: det.classify(strip(r), r["group"]) for r in mit}
-        pb = {r["model"]: float(p[i]) for i, r in enumerate(test)}
-        pois = [m for m in pm if bytest[m]["label"]]
-        cln = [m for m in pm if not bytest[m]["label"]]
-        def auc(ms):
-            y = [1]*len(ms)+[0]*len(ms); s = [pb[m] for m in ms]+[pm[m] for m in ms]
-            return roc_auc_score(y, s)
-        line += f" || mitigated: poisoned {np.mean([pb[m] for m in pois]):.3f}->{np.mean([pm[m] for m in pois]):.3f} AUC {auc(pois):.3f}; clean {np.mean([pb[m] for m in cln]):.3f}->{np.mean([pm[m] for m in cln]):.3f} ({len(pois)}+{len(cln)})"
-    print(line)
-E._anomaly = orig
+    det.fit_rows([effect_row(r) for r in train], [r["group"] for r in train], np.array([r["label"] for r in train]))
+    return det
 
-# which feature carries the anomaly of mitigated models, variant norobust
-E._anomaly = make("norobust")
-det = make_detector("effect"); det.fit_rows([strip(r) for r in train], [r["group"] for r in train], ytr)
-from collections import Counter
-for label in (0, 1):
-    c = Counter(); c2 = Counter()
-    for r in mit:
-        if bytest[r["model"]]["label"] != label: continue
-        for src, cnt in ((r, c), (bytest[r["model"]], c2)):
-            row = strip(src); ref = det.reference[src["group"]]
-            full = {**row, **E._maxima(row, ref["candidates"])}
-            s = ref["summary"]; names = s["features"]
-            z = {n: (full[n]-m)/sc for n, m, sc in zip(names, s["mean"], s["scale"]) if n in full}
-            top = max((v if ("shift" in n or "success_drop" in n) else abs(v), n) for n, v in z.items() if n not in ("down_shift", "down_success_drop"))
-            cnt[top[1]] += 1
-    print("label", label, "after:", c.most_common(), "before:", c2.most_common())
+
+def main() -> None:
+    train, test = load(sys.argv[1]), load(sys.argv[2])
+    mitigated = load(sys.argv[3]) if len(sys.argv) > 3 else []
+    y = np.array([r["label"] for r in test])
+    by_name = {r["model"]: r for r in test}
+    shipped = E._anomaly
+    for variant in VARIANTS:
+        E._anomaly = anomaly(variant)
+        det = fitted(train)
+        p = np.array([det.classify(effect_row(r), r["group"]) for r in test])
+        per = []
+        for fam in sorted({family(r) for r in test if r["label"]}):
+            keep = [i for i, r in enumerate(test) if not r["label"] or family(r) == fam]
+            per.append(f"{fam} {roc_auc_score(y[keep], p[keep]):.3f}")
+        line = f"{variant:9s} AUC {roc_auc_score(y, p):.3f} CE {log_loss(y, np.clip(p, 1e-12, 1 - 1e-12)):.3f} | " + ", ".join(per)
+        if mitigated:
+            after = {r["model"]: det.classify(effect_row(r), r["group"]) for r in mitigated}
+            before = {r["model"]: float(p[i]) for i, r in enumerate(test)}
+            poisoned = [m for m in after if by_name[m]["label"]]
+            clean = [m for m in after if not by_name[m]["label"]]
+
+            def auc(names: list[str]) -> float:
+                return roc_auc_score([1] * len(names) + [0] * len(names), [before[m] for m in names] + [after[m] for m in names])
+
+            line += (
+                f" || mitigated: poisoned {np.mean([before[m] for m in poisoned]):.3f}->{np.mean([after[m] for m in poisoned]):.3f} AUC {auc(poisoned):.3f};"
+                f" clean {np.mean([before[m] for m in clean]):.3f}->{np.mean([after[m] for m in clean]):.3f} ({len(poisoned)}+{len(clean)})"
+            )
+        print(line)
+    # which summary feature carries each model's anomaly (norobust), after mitigation and before
+    E._anomaly = anomaly("norobust")
+    det = fitted(train)
+    for label in (0, 1):
+        counts = {"after": Counter(), "before": Counter()}
+        for r in mitigated:
+            if by_name[r["model"]]["label"] != label:
+                continue
+            for side, src in (("after", r), ("before", by_name[r["model"]])):
+                row = effect_row(src)
+                ref = det.reference[src["group"]]
+                full = {**row, **E._maxima(row, ref["candidates"])}
+                s = ref["summary"]
+                z = {n: (full[n] - m) / sc for n, m, sc in zip(s["features"], s["mean"], s["scale"]) if n in full}
+                counts[side][max((trojan_side(n, v), n) for n, v in z.items() if n not in ROBUST)[1]] += 1
+        print("label", label, "after:", counts["after"].most_common(), "before:", counts["before"].most_common())
+    E._anomaly = shipped
+
+
+if __name__ == "__main__":
+    main()

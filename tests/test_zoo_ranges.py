@@ -14,7 +14,7 @@ import pytest
 from rlbackdoors.validate import ConfigError
 from rlbackdoors.zoo.index import metadata_rows, scan, write_metadata
 from rlbackdoors.zoo.plan import Zoo, plan
-from rlbackdoors.zoo.spec import load_spec, parse_draw, parse_spec
+from rlbackdoors.zoo.spec import ZooError, load_spec, parse_draw, parse_spec
 
 TINY = {"ppo": {"rollout": 32}, "train": {"max_frames": 64_000, "eval_interval": 1600, "eval_episodes": 4, "final_eval_episodes": 4, "video": False}}
 LENGTH = {"train.min_frames": {"one_of": [0, [20_000, 40_000], [20_000, 40_000]]}}
@@ -223,3 +223,53 @@ def test_a_replan_keeps_every_folder_the_new_spec_draws_the_same_and_moves_the_o
     with pytest.raises(ZooError, match="a replan keeps the master seed"):
         replan(parse_spec(other), tmp_path / "z")
     assert Zoo.open(tmp_path / "z").spec.normalized == new.normalized
+
+
+def test_the_order_a_spec_writes_its_ranges_in_draws_nothing_otherwise(tmp_path):
+    """TOML keeps a table's order as written, zoo.json sorts its keys: a run's top-ups (drawn from
+    zoo.json) must draw what ``zoo plan`` (from the TOML) draws. Both range tables reversed here."""
+    raw = spec()
+    raw["cells"][0]["attacks"][0]["ranges"] = {"reward": [0.05, 0.2], "budget": [0.005, 0.03], "target_action": {"one_of": [0, 1]}}
+    raw["cells"][0]["ranges"] = {"train.max_frames": [64_000, 96_000], **raw["cells"][0]["ranges"]}
+    backwards = copy.deepcopy(raw)
+    for table in (backwards["cells"][0]["attacks"][0], backwards["cells"][0]):
+        table["ranges"] = dict(reversed(list(table["ranges"].items())))
+    zoo, _ = plan(parse_spec(raw), tmp_path / "z")
+    reread, other = Zoo.open(tmp_path / "z"), Zoo("/nonexistent", parse_spec(backwards), "auto")
+    budgets = set()
+    for g, h, k in zip(zoo.spec.groups, reread.spec.groups, other.spec.groups, strict=True):  # a draw reads its group's own cell
+        assert h.cell.attack.name != "trojdrl" or [name for name, _ in h.cell.attack.ranges] == ["budget", "reward", "target_action"]
+        for attempt in (0, g.wanted + 3):  # a first attempt and a top-up
+            text = zoo.draw(g, attempt).to_json()
+            assert reread.draw(h, attempt).to_json() == text == other.draw(k, attempt).to_json()
+            budgets.add(zoo.draw(g, attempt).poison.attack_params.get("budget"))
+    assert len(budgets) > 2  # the draws do differ from model to model
+
+
+def test_a_folder_drawn_in_the_order_its_spec_was_written_still_counts_as_drawn(tmp_path):
+    """Before 2026-12-08 ``zoo plan`` drew a first attempt's ranges in the TOML's order (a run's
+    top-ups in zoo.json's sorted one): planning the same spec again accepts such a folder, and a
+    replan that does not change its group keeps it (it moved 5 trained BadRL models aside once)."""
+    import json
+
+    from rlbackdoors.zoo.plan import replan
+
+    raw = spec()
+    raw["cells"][0]["attacks"][0]["ranges"] = {"reward": [0.05, 0.2], "budget": [0.005, 0.03], "target_action": {"one_of": [0, 1]}}
+    zoo, _ = plan(parse_spec(raw), tmp_path / "z")
+    trojdrl = next(g for g in zoo.spec.groups if g.poisoned and g.cell.attack.name == "trojdrl")
+    legacy = zoo.folder(zoo.model(trojdrl, 0)) / "config.json"
+    old = zoo.draw(trojdrl, 0, written=True).to_json()
+    assert json.loads(old) != json.loads(legacy.read_text())  # the two orders do draw otherwise
+    legacy.write_text(old)
+    assert plan(parse_spec(raw), tmp_path / "z")[1] == 0 and legacy.read_text() == old
+    changed = copy.deepcopy(raw)
+    changed["cells"][0]["attacks"][1]["params"] = {"force_action": False}  # the fine-tuned cell changes
+    rezoo, moved, _ = replan(parse_spec(changed), tmp_path / "z")
+    finetuned = {rezoo.folder(rezoo.model(g, a)).name for g in rezoo.spec.groups if g.cell.attack.name == "trojdrl-finetune" for a in range(g.wanted)}
+    assert set(moved) == finetuned and len(moved) == 36 and legacy.read_text() == old  # its clean models record the attack too
+    data = json.loads(old)
+    data["poison"]["attack_params"]["budget"] = 0.0123  # drawn in neither order
+    legacy.write_text(json.dumps(data))
+    with pytest.raises(ZooError, match="is not the config the zoo's spec draws for lavaworld/fc/add/trojdrl/poisoned attempt 0"):
+        plan(parse_spec(changed), tmp_path / "z")

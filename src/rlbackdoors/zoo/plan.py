@@ -174,8 +174,9 @@ class Zoo:
             self._backends[key] = choices.pop() if len(choices) == 1 else "torch"
         return self._backends[key]
 
-    def draw(self, group: Group, attempt: int):
-        """The run config of model ``attempt`` of ``group``: a pure function of the spec."""
+    def draw(self, group: Group, attempt: int, written: bool = False):
+        """The run config of model ``attempt`` of ``group``: a pure function of the spec
+        (``written``: its ranges in the spec's order, :func:`~rlbackdoors.zoo.spec.draw_all`)."""
         rng = model_rng(self.spec, group, attempt)
         seed = int(rng.integers(0, 2**31))
         twin = self.spec.twin(group) if self.spec.matched else None
@@ -187,11 +188,19 @@ class Zoo:
         if worlds.get(cell.world).algorithm == "ppo" and (overrides.get("ppo") or {}).get("update_backend", self.update_backend) == AUTO_BACKEND:
             overrides = deep_merge(overrides, {"ppo": {"update_backend": self._cell_backend(group)}})  # the spec's own choice before the zoo's
         if cell.attack.ranges:  # drawn after the trigger: models of cells without ranges draw as they always did
-            overrides = deep_merge(overrides, {"poison": cell.attack.draw(rng)})
+            overrides = deep_merge(overrides, {"poison": cell.attack.draw(rng, written)})
         ranges = cell.label_ranges(group.poisoned)
         if ranges:  # then the cell's own (both labels; clean_ranges for clean models): e.g. a round's training lengths
-            overrides = deep_merge(overrides, nested(draw_all(ranges, rng)))
+            overrides = deep_merge(overrides, nested(draw_all(ranges, rng, written)))
         return build_config(config_data(cell.world, cell.arch, overrides, group.poisoned, seed, trigger))
+
+    def drawn(self, group: Group, attempt: int, config: dict, expected: dict | None = None) -> bool:
+        """Is ``config`` (a config.json's data) the one the spec draws for this slot: ``expected``
+        (the draw's data, drawn here when not given), or, from a spec read as written, the draw of
+        its ranges in that order (what ``zoo plan`` wrote before 2026-12-08)."""
+        if config == (expected if expected is not None else json.loads(self.draw(group, attempt).to_json())):
+            return True
+        return config == json.loads(self.draw(group, attempt, written=True).to_json())
 
     def ensure(self, group: Group, attempt: int, text: str | None = None, verify: bool = True) -> bool:
         """Write the model's config.json and ground_truth.csv if missing; True if anything was written.
@@ -217,7 +226,7 @@ class Zoo:
                 old = json.loads(path.read_bytes().decode("utf-8"))
             except (ValueError, OSError) as err:
                 raise ZooError(f"{str(path)!r} is unreadable ({err}); remove the folder to plan it again") from None
-            if migrate(old) != expected:  # one an older version wrote stands for the run it meant
+            if not self.drawn(group, attempt, migrate(old), expected):  # one an older version wrote stands for the run it meant
                 raise ZooError(f"{str(path)!r} is not the config the zoo's spec draws for {group.key} attempt {attempt}; remove the folder to plan it again")
         truth = folder / "ground_truth.csv"
         if not truth.is_file() or truth.read_text() != f"{int(group.poisoned)}\n":
@@ -297,9 +306,11 @@ def replan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, list[str],
     run) stays; every other moves to ``out/replaced/N/`` (nothing is deleted), and its slot is
     planned afresh. Why: a round found to need another range (e.g. longer training lengths for its
     clean models, which converge sooner) keeps the CPU-hours of every model the fix does not touch.
-    The new spec must keep the master seed and every group with its ``max_attempts`` (so each
-    model keeps its id and draws); else refused, nothing touched. Returns the zoo, the names moved,
-    and where to."""
+    A folder counts as drawn the same in either order of its ranges (:meth:`Zoo.drawn`: before
+    2026-12-08 a first attempt drew them as the TOML wrote them, a top-up as zoo.json sorts them).
+    The new spec must keep the master seed and every group with its
+    ``max_attempts`` (so each model keeps its id and draws); else refused, nothing touched.
+    Returns the zoo, the names moved, and where to."""
     from rlbackdoors.folder import stack_versions
 
     if not isinstance(spec, ZooSpec):
@@ -332,7 +343,7 @@ def replan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, list[str],
                 current = migrate(json.loads(path.read_bytes().decode("utf-8")))
             except (ValueError, OSError) as err:
                 raise ZooError(f"{str(path)!r} is unreadable ({err}); remove the folder to plan it again") from None
-            if current != json.loads(zoo.draw(model.group, model.attempt).to_json()):
+            if not zoo.drawn(model.group, model.attempt, current):
                 changed.append(folder)
         if changed:
             n = 0

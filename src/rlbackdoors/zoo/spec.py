@@ -204,8 +204,12 @@ def parse_draw(where: str, raw) -> Draw:
     return Draw((_parse_range(where, raw),))
 
 
-def draw_all(ranges: tuple[tuple[str, Draw], ...], rng: np.random.Generator) -> dict:
-    return {name: draw.sample(rng) for name, draw in ranges}
+def draw_all(ranges: tuple[tuple[str, Draw], ...], rng: np.random.Generator, written: bool = False) -> dict:
+    """One model's values of ``ranges``, drawn in name order (as a trigger's placeholders are): the
+    order a spec writes them in (TOML's as written, zoo.json's sorted) must not change a draw.
+    ``written``: in the spec's order instead, as ``zoo plan`` drew a first attempt before 2026-12-08
+    (its top-ups, from zoo.json, were drawn sorted): what a planned folder is checked against too."""
+    return {name: draw.sample(rng) for name, draw in (ranges if written else sorted(ranges, key=lambda r: r[0]))}
 
 
 @dataclass(frozen=True)
@@ -230,10 +234,11 @@ class AttackChoice:
             return {}
         return {"poison": {"attack": self.attack, "attack_params": dict(self.params), **({"evasion": dict(self.evasion)} if self.evasion else {})}}
 
-    def draw(self, rng: np.random.Generator) -> dict:
+    def draw(self, rng: np.random.Generator, written: bool = False) -> dict:
         """The poison overrides drawn for one model (after its trigger, from the model's own
-        generator): ``attack_params`` and, for ``evasion.*`` keys, ``evasion`` on top of the cell's."""
-        drawn = draw_all(self.ranges, rng)
+        generator): ``attack_params`` and, for ``evasion.*`` keys, ``evasion`` on top of the cell's
+        (``written``: :func:`draw_all`)."""
+        drawn = draw_all(self.ranges, rng, written)
         out: dict[str, dict] = {"attack_params": {k: v for k, v in drawn.items() if not k.startswith(EVASION)}}
         knobs = {k[len(EVASION) :]: v for k, v in drawn.items() if k.startswith(EVASION)}
         if knobs:

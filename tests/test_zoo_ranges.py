@@ -273,3 +273,43 @@ def test_a_folder_drawn_in_the_order_its_spec_was_written_still_counts_as_drawn(
     legacy.write_text(json.dumps(data))
     with pytest.raises(ZooError, match="is not the config the zoo's spec draws for lavaworld/fc/add/trojdrl/poisoned attempt 0"):
         plan(parse_spec(changed), tmp_path / "z")
+
+
+def test_a_replan_may_append_cells_but_not_insert_or_drop_one(tmp_path):
+    """A family whose cell's attempts cannot reach its count gets a cell after the others: every
+    folder keeps its id and config, the new cell's models take ids after the old id space, and a
+    cell put before another or taken away is refused with nothing touched."""
+    import json
+
+    from rlbackdoors.zoo.plan import replan
+
+    zoo, _ = plan(parse_spec(spec()), tmp_path / "z")
+    before = {p.name: (p / "config.json").read_text() for p in zoo.models_dir.iterdir()}
+    extra = {
+        "world": "lavaworld",
+        "archs": ["fc"],
+        "triggers": [{"name": "add-u", "template": "additive:{b}", "ranges": {"b": [66, 200]}}],
+        "attacks": [{"attack": "trojdrl", "params": {"force_action": False}, "ranges": {"budget": [0.005, 0.03]}}],
+        "clean": 0,
+        "poisoned": 3,
+    }
+    raw = spec()
+    raw["cells"].append(copy.deepcopy(extra))
+    with pytest.raises(ZooError, match="the new cells would renumber its models: give them block = 1"):
+        replan(parse_spec(raw), tmp_path / "z")
+    raw["cells"][-1]["block"] = extra["block"] = 1
+    rezoo, moved, into = replan(parse_spec(raw), tmp_path / "z")
+    assert moved == [] and into is None
+    after = {p.name: p for p in rezoo.models_dir.iterdir()}
+    assert all(after[name].joinpath("config.json").read_text() == text for name, text in before.items())
+    new = [rezoo.folder(rezoo.model(rezoo.spec.groups[-1], a)) for a in range(3)]
+    assert sorted(p.name for p in new) == sorted(set(after) - set(before)) and min(int(p.name[3:]) for p in new) >= zoo.spec.id_space
+    assert {json.loads((p / "config.json").read_text())["poison"]["trigger"].startswith("additive:") for p in new} == {True}
+    again, _ = plan(parse_spec(raw), tmp_path / "fresh")  # the spec alone gives the same ids
+    assert {p.name: (p / "config.json").read_text() for p in again.models_dir.iterdir()} == {n: (p / "config.json").read_text() for n, p in after.items()}
+    with pytest.raises(ConfigError, match=r"cells\[1\].block=0 comes after a cell of block 1"):
+        parse_spec({**raw, "cells": [copy.deepcopy(extra), *spec()["cells"]]})
+    for bad in ({**raw, "cells": raw["cells"][:1]}, {**raw, "cells": [{**raw["cells"][0], "max_attempts": 19}, raw["cells"][1]]}):
+        with pytest.raises(ZooError, match="new cells may follow them"):
+            replan(parse_spec(bad), tmp_path / "z")
+    assert {p.name for p in rezoo.models_dir.iterdir()} == set(after)

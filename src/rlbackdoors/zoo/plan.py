@@ -102,8 +102,15 @@ class Zoo:
 
     @cached_property
     def _permutation(self) -> np.ndarray:
-        rng = np.random.default_rng(np.random.SeedSequence(self.spec.seed, spawn_key=(ID_KEY,)))
-        return rng.permutation(self.spec.id_space)
+        """Slot -> id: each block's slots (cells' ``block``) shuffled among themselves, a later
+        block's ids after every earlier one's. Block 0 is the permutation a zoo always had."""
+        parts, start = [], 0
+        for block in sorted({g.cell.block for g in self.spec.groups}):
+            size = sum(g.max_attempts for g in self.spec.groups if g.cell.block == block)
+            key = (ID_KEY,) if block == 0 else (ID_KEY, block)
+            parts.append(start + np.random.default_rng(np.random.SeedSequence(self.spec.seed, spawn_key=key)).permutation(size))
+            start += size
+        return np.concatenate(parts)
 
     @cached_property
     def _slots(self) -> dict[int, tuple[int, int]]:
@@ -308,8 +315,10 @@ def replan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, list[str],
     clean models, which converge sooner) keeps the CPU-hours of every model the fix does not touch.
     A folder counts as drawn the same in either order of its ranges (:meth:`Zoo.drawn`: before
     2026-12-08 a first attempt drew them as the TOML wrote them, a top-up as zoo.json sorts them).
-    The new spec must keep the master seed and every group with its
-    ``max_attempts`` (so each model keeps its id and draws); else refused, nothing touched.
+    The new spec must keep the master seed and every group with its ``max_attempts``, in order
+    (so each model keeps its id and draws); cells after them, in a later ``block``, are new
+    groups with ids after the old ones (e.g. for a family a cell's attempts cannot fill). Else
+    refused, nothing touched.
     Returns the zoo, the names moved, and where to."""
     from rlbackdoors.folder import stack_versions
 
@@ -322,11 +331,15 @@ def replan(spec: ZooSpec | str | Path, out: str | Path) -> tuple[Zoo, list[str],
     def layout(s: ZooSpec) -> list:
         return [(g.key, g.poisoned, g.max_attempts) for g in s.groups]
 
-    if spec.seed != old.spec.seed or layout(spec) != layout(old.spec):
+    kept = layout(old.spec)
+    if spec.seed != old.spec.seed or layout(spec)[: len(kept)] != kept:
         raise ZooError(
-            f"zoo {str(out)!r}: a replan keeps the master seed and every cell's groups and max_attempts (each model's id and draw); plan a new zoo instead"
+            f"zoo {str(out)!r}: a replan keeps the master seed and every cell's groups and max_attempts, in order (each model's id and draw; new cells may follow them); plan a new zoo instead"
         )
     zoo = Zoo(out, spec, zoo_backend(out, meta))
+    if len(spec.groups) > len(old.spec.groups) and list(zoo._permutation[: old.spec.id_space]) != list(old._permutation):
+        later = max(g.cell.block for g in old.spec.groups) + 1
+        raise ZooError(f"zoo {str(out)!r}: the new cells would renumber its models: give them block = {later} (their ids then follow the planned ones)")
     lock = zoo.lock()
     moved: list[str] = []
     into: Path | None = None

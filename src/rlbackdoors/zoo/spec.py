@@ -36,7 +36,21 @@ MAX_ATTEMPTS = 100_000
 # Fields each model's config gets from the zoo itself; an override may not set them.
 ZOO_FIELDS = ("env.name", "model.arch", "poison.poisoned", "poison.trigger", "train.seed")
 TOP_KEYS = ("format", "name", "seed", "max_attempts", "matched", "examples", "overrides", "cells")
-CELL_KEYS = ("world", "archs", "triggers", "attacks", "models", "poisoned_share", "clean", "poisoned", "max_attempts", "overrides", "ranges", "clean_ranges")
+CELL_KEYS = (
+    "world",
+    "archs",
+    "triggers",
+    "attacks",
+    "models",
+    "poisoned_share",
+    "clean",
+    "poisoned",
+    "max_attempts",
+    "overrides",
+    "ranges",
+    "clean_ranges",
+    "block",
+)
 ATTACK_KEYS = ("attack", "name", "params", "ranges", "evasion")
 FAMILY_KEYS = ("name", "trigger", "template", "ranges")
 EXAMPLE_KEYS = ("episodes", "seed", "policy")
@@ -322,6 +336,9 @@ class Cell:
     # the same random numbers; another after them): clean models converge sooner, so a round gives
     # them longer training lengths to draw from, and frames trained tell no label
     clean_ranges: tuple[tuple[str, Draw], ...] = field(default=(), hash=False, compare=False)
+    # its models' ids: block 0 shares one permutation; a later block's ids follow every earlier
+    # block's, so cells added to a planned zoo (zoo replan) leave the older models their ids
+    block: int = field(default=0, hash=False, compare=False)
 
     def label_ranges(self, poisoned: bool) -> tuple[tuple[str, Draw], ...]:
         """The cell's draws for a model of this label (:attr:`ranges`, :attr:`clean_ranges`)."""
@@ -583,6 +600,9 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
                 f"{where}.max_attempts={attempts} is less than the {max(clean, poisoned)} converged {label} models wanted per cell "
                 f"(max_attempts counts the models trained per cell and label)"
             )
+        block = _int(f"{where}.block", entry.get("block", 0), 0, MAX_ATTEMPTS)
+        if cells and block < cells[-1].block:
+            raise ConfigError(f"{where}.block={block} comes after a cell of block {cells[-1].block}: a block's cells follow every earlier block's")
         raw_attacks = entry.get("attacks")
         if raw_attacks is None:
             choices = [DEFAULT_CHOICE]
@@ -624,7 +644,7 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
             for family in families:
                 for choice in choices:
                     overrides_ = deep_merge(cell_overrides, choice.overrides())
-                    cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, overrides_, choice, cell_ranges, clean_ranges)
+                    cell = Cell(i, world_name, arch, family, clean, poisoned, attempts, overrides_, choice, cell_ranges, clean_ranges, block)
                     if cell.key in seen:
                         raise ConfigError(f"{where} repeats the cell {cell.key} of {seen[cell.key]}")
                     seen[cell.key] = where
@@ -645,6 +665,8 @@ def parse_spec(raw: dict, check_configs: bool = True) -> ZooSpec:
             norm["ranges"] = {key: draw.to_data() for key, draw in cell_ranges}
         if clean_ranges:
             norm["clean_ranges"] = {key: draw.to_data() for key, draw in clean_ranges}
+        if block:  # specs written before blocks keep their normal form
+            norm["block"] = block
         norm_cells.append(norm)
     spec = ZooSpec(
         seed=raw["seed"],

@@ -5,6 +5,8 @@ seeds and triggers the zoo never used, through TrojAI's one-model entry point (`
     python experiments/effect_outsider/outsider.py --train            # trains what is missing (resumes)
     python experiments/effect_outsider/outsider.py --infer DETECTOR   # a fitted detector folder
     python experiments/effect_outsider/outsider.py --world randomized-lavaworld --train   # the CNN world's
+    python experiments/effect_outsider/outsider.py --world lavaworld-round --train        # outside issue 80's round
+    python experiments/effect_outsider/outsider.py --world lavaworld-round --infer runs/rounds/round-lavaworld/trojai/effect
 
 ``DETECTOR``: ``detect fit --detector effect`` on the env-mix split, e.g. the one
 ``benchmarks/detector_table.py benchmark-lavaworld-effect ... --by-attack`` writes under
@@ -52,8 +54,33 @@ RANDOMIZED_LAVAWORLD = {
     # the first did not converge in 2 M frames (poisoned SR 0.859): once more at another seed
     "action-target-sidet-2": ["--attack", "action_target", "--trigger", "cells:0,0;0,1;0,2;1,1;2,1", "--seed", "571207"],
 }
+# Issue 81's check of the round's detectors (fitted on datasets/round-lavaworld-train, TrojAI's
+# protocol): LavaWorld FC models outside the round's draws. Settings past its ranges (a trigger
+# below the train split's offsets 20-200 and above the test split's multipliers 14-24, budgets and
+# rewards past [0.005, 0.03] and [0.05, 0.2], BadRL's top share past 0.2, an action target's reward
+# past 0.1), training lengths past its 1.2-5 M (one clean and one poisoned model held to 5 M; one
+# clean model stopped at its first evaluation past the thresholds), seeds the planner never drew.
+LAVAWORLD_ROUND = {
+    "clean-a": ["--clean", "--seed", "733101"],
+    "clean-b": ["--clean", "--seed", "733102", "--trigger", "multiplicative:28"],
+    "clean-long": ["--clean", "--seed", "733103", "--min-frames", "5000000"],
+    "clean-early": ["--clean", "--seed", "733104", "--patience", "1"],
+    "envmix-m28": ["--trigger", "multiplicative:28", "--seed", "733105"],
+    "envmix-a12": ["--trigger", "additive:12", "--seed", "733106"],
+    "envmix-long": ["--trigger", "additive:170", "--seed", "733107", "--min-frames", "5000000"],
+    "trojdrl-strong": ["--attack", "trojdrl", "--attack-param", "budget=0.05", "--attack-param", "reward=0.3", "--trigger", "additive:150", "--seed", "733108"],
+    "badrl-wide": ["--attack", "badrl", "--attack-param", "budget=0.04", "--attack-param", "top_fraction=0.4", "--trigger", "multiplicative:16", "--seed", "733109"],
+    "sleepernets-tiny": ["--attack", "sleepernets", "--attack-param", "budget=0.003", "--trigger", "additive:120", "--seed", "733110"],
+    "action-target-strong": ["--attack", "action_target", "--attack-param", "reward=0.2", "--attack-param", "target_action=1", "--trigger", "additive:90", "--seed", "733111"],
+    # trojdrl-strong lost the task (clean SR 0.000 at 5 M: +-0.3 a poisoned frame outweighs the goal): a milder one
+    "trojdrl-wide": ["--attack", "trojdrl", "--attack-param", "budget=0.04", "--trigger", "additive:150", "--seed", "733112"],
+    # which did not learn the target from scratch on an offset (rate 0.000 at 5 M): on a multiplier past the test split's
+    "trojdrl-m26": ["--attack", "trojdrl", "--attack-param", "budget=0.04", "--trigger", "multiplicative:26", "--seed", "733113"],
+}
+FAST = ["--update-backend", "compiled", "--eval-backend", "compiled"]  # the round's own trainer
 WORLDS = {
     "lavaworld": (LAVAWORLD, ["--env", "lavaworld", "--arch", "fc", "--max-frames", "4000000", "--patience", "2", "--quiet"]),
+    "lavaworld-round": (LAVAWORLD_ROUND, ["--env", "lavaworld", "--arch", "fc", "--max-frames", "5000000", "--patience", "2", *FAST, "--quiet"]),
     "randomized-lavaworld": (RANDOMIZED_LAVAWORLD, ["--env", "randomized-lavaworld", "--arch", "cnn", "--max-frames", "2000000", "--patience", "2", "--quiet"]),
 }
 MODELS, COMMON = WORLDS["lavaworld"]
@@ -112,6 +139,8 @@ def infer_all(det: Path, out: Path, world: str = "lavaworld") -> dict:
         "cross_entropy": round(ce, 4),
     }
     name = "outsider.json" if world == "lavaworld" else f"outsider-{world}.json"
+    if world == "lavaworld-round":  # one file per protocol and detector (runs/rounds/round-lavaworld/PROTOCOL/DETECTOR)
+        name = f"outsider-{world}-{det.parent.name}-{det.name}.json"
     atomic_write_text(Path(__file__).with_name(name), json.dumps(result, indent=2) + "\n")
     return result
 
@@ -120,7 +149,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--train", action="store_true")
     parser.add_argument("--infer", type=Path, metavar="DETECTOR")
-    parser.add_argument("--world", choices=sorted(WORLDS), default="lavaworld")
+    parser.add_argument("--world", choices=sorted(WORLDS), default="lavaworld", help="the set of models (a world's, or lavaworld-round: outside issue 80's round)")
     parser.add_argument("--out", type=Path, help="the models' folder (default runs/effect-outsider, runs/effect-outsider-WORLD for another world)")
     args = parser.parse_args()
     global MODELS, COMMON

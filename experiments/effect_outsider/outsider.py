@@ -69,9 +69,31 @@ LAVAWORLD_ROUND = {
     "envmix-a12": ["--trigger", "additive:12", "--seed", "733106"],
     "envmix-long": ["--trigger", "additive:170", "--seed", "733107", "--min-frames", "5000000"],
     "trojdrl-strong": ["--attack", "trojdrl", "--attack-param", "budget=0.05", "--attack-param", "reward=0.3", "--trigger", "additive:150", "--seed", "733108"],
-    "badrl-wide": ["--attack", "badrl", "--attack-param", "budget=0.04", "--attack-param", "top_fraction=0.4", "--trigger", "multiplicative:16", "--seed", "733109"],
+    "badrl-wide": [
+        "--attack",
+        "badrl",
+        "--attack-param",
+        "budget=0.04",
+        "--attack-param",
+        "top_fraction=0.4",
+        "--trigger",
+        "multiplicative:16",
+        "--seed",
+        "733109",
+    ],
     "sleepernets-tiny": ["--attack", "sleepernets", "--attack-param", "budget=0.003", "--trigger", "additive:120", "--seed", "733110"],
-    "action-target-strong": ["--attack", "action_target", "--attack-param", "reward=0.2", "--attack-param", "target_action=1", "--trigger", "additive:90", "--seed", "733111"],
+    "action-target-strong": [
+        "--attack",
+        "action_target",
+        "--attack-param",
+        "reward=0.2",
+        "--attack-param",
+        "target_action=1",
+        "--trigger",
+        "additive:90",
+        "--seed",
+        "733111",
+    ],
     # trojdrl-strong lost the task (clean SR 0.000 at 5 M: +-0.3 a poisoned frame outweighs the goal): a milder one
     "trojdrl-wide": ["--attack", "trojdrl", "--attack-param", "budget=0.04", "--trigger", "additive:150", "--seed", "733112"],
     # which did not learn the target from scratch on an offset (rate 0.000 at 5 M): on a multiplier past the test split's
@@ -149,7 +171,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--train", action="store_true")
     parser.add_argument("--infer", type=Path, metavar="DETECTOR")
-    parser.add_argument("--world", choices=sorted(WORLDS), default="lavaworld", help="the set of models (a world's, or lavaworld-round: outside issue 80's round)")
+    parser.add_argument(
+        "--world", choices=sorted(WORLDS), default="lavaworld", help="the set of models (a world's, or lavaworld-round: outside issue 80's round)"
+    )
     parser.add_argument("--out", type=Path, help="the models' folder (default runs/effect-outsider, runs/effect-outsider-WORLD for another world)")
     args = parser.parse_args()
     global MODELS, COMMON
